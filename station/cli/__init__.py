@@ -1,0 +1,58 @@
+"""The ``station`` command. Each command group lives in its own module and registers itself here.
+
+Errors the station raises on purpose (``StationError``, bad model files, bad input) print one line
+``station: error: ...`` and exit 2; a traceback is a bug."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+import typer
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  help="Robot calibration station: jog, record, solve, verify, report, write back.")
+
+# module -> it defines ``register(app: typer.Typer) -> None``
+COMMAND_MODULES = (
+    "station.cli.model_cmd",  # station model show|export|list
+    "station.cli.solve_cmd",  # station solve, station fk
+    "station.cli.mock_cmd",  # station mock dynamixel|canopen|ur|world
+    "station.cli.run_cmd",  # station run, resume, demo
+    "station.cli.jog_cmd",  # station jog
+    "station.cli.records_cmd",  # station records list|show, report
+)
+
+for _name in COMMAND_MODULES:
+    importlib.import_module(_name).register(app)
+
+
+def fail(message: str, code: int = 2) -> typer.Exit:
+    """Print the one-line error and return the exit to raise."""
+    typer.echo(f"station: error: {message}", err=True)
+    return typer.Exit(code)
+
+
+def main() -> None:
+    from station.kinematics.modelfile import ModelFileError
+    from station.robot.errors import StationError
+
+    try:
+        app(standalone_mode=False)
+    except typer.Exit as e:
+        sys.exit(e.exit_code)
+    except (StationError, ModelFileError) as e:
+        typer.echo(f"station: error: {e}", err=True)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        typer.echo("station: interrupted", err=True)
+        sys.exit(130)
+    except Exception as e:  # click usage errors come through here in non-standalone mode
+        import click
+
+        if isinstance(e, click.exceptions.Abort):
+            sys.exit(130)
+        if isinstance(e, click.ClickException):
+            e.show()
+            sys.exit(2)
+        raise

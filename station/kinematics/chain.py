@@ -1,0 +1,83 @@
+"""A kinematic chain as a sequence of elementary transforms, each owned by one named parameter.
+
+Every model convention (DH, modified DH with Hayati beta, local POE, base and tool frames) compiles
+to this form, so forward kinematics and the *analytic* Jacobians with respect to joint values and to
+every geometric parameter come from one vectorised routine: the derivative of the tool pose with
+respect to the value of element k is the unit twist of that element's axis expressed in the world
+frame (``w x (p - o)`` and ``w`` for a rotation, ``w`` and 0 for a translation).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+TX, TY, TZ, RX, RY, RZ = range(6)
+AXIS_NAMES = ("Tx", "Ty", "Tz", "Rx", "Ry", "Rz")
+
+
+@dataclass(frozen=True)
+class Chain:
+    """Element k has value ``const[k] + params[param[k]] + q[:, joint[k]]`` (terms absent when -1)."""
+
+    axis: np.ndarray  # (K,) int in TX..RZ
+    param: np.ndarray  # (K,) int index into the parameter vector, -1 for none
+    joint: np.ndarray  # (K,) int joint index, -1 for a fixed element
+    const: np.ndarray  # (K,) float
+
+    @property
+    def n_elements(self) -> int:
+        return len(self.axis)
+
+    def values(self, q: np.ndarray, params: np.ndarray) -> np.ndarray:
+        """Element values ``(N, K)``."""
+        N = q.shape[0]
+        v = np.broadcast_to(self.const, (N, self.n_elements)).copy()
+        has_p = self.param >= 0
+        v[:, has_p] += params[self.param[has_p]]
+        has_j = self.joint >= 0
+        v[:, has_j] += q[:, self.joint[has_j]]
+        return v
+
+
+def _apply(T: np.ndarray, axis: int, v: np.ndarray) -> None:
+    """In place ``T <- T @ E(axis, v)`` for a batch ``T (N,4,4)`` and values ``v (N,)``."""
+    if axis < 3:
+        T[:, :3, 3] += v[:, None] * T[:, :3, axis]
+        return
+    c, s = np.cos(v)[:, None], np.sin(v)[:, None]
+    i, j = {RX: (1, 2), RY: (2, 0), RZ: (0, 1)}[axis]
+    ci, cj = T[:, :3, i].copy(), T[:, :3, j]
+    T[:, :3, i] = c * ci + s * cj
+    T[:, :3, j] = -s * ci + c * cj
+
+
+def forward(chain: Chain, q: np.ndarray, params: np.ndarray, keep_prefix: bool = False):
+    """Tool transform ``(N,4,4)``; with ``keep_prefix`` also the frame before each element ``(N,K,4,4)``."""
+    N = q.shape[0]
+    v = chain.values(q, params)
+    T = np.broadcast_to(np.eye(4), (N, 4, 4)).copy()
+    prefix = np.empty((N, chain.n_elements, 4, 4)) if keep_prefix else None
+    for k in range(chain.n_elements):
+        if keep_prefix:
+            prefix[:, k] = T
+        _apply(T, int(chain.axis[k]), v[:, k])
+    return (T, prefix) if keep_prefix else T
+
+
+def element_twists(chain: Chain, T: np.ndarray, prefix: np.ndarray) -> np.ndarray:
+    """``(N, 6, K)``: d(tool position, tool orientation)/d(element value), world frame."""
+    N, K = prefix.shape[0], chain.n_elements
+    p = T[:, :3, 3]
+    out = np.zeros((N, 6, K))
+    axes = chain.axis
+    sel = (axes % 3)[None, :, None, None]
+    w = np.take_along_axis(prefix[:, :, :3, :], sel, axis=3)[..., 0]  # (N, K, 3) world axis directions
+    rot = axes >= 3
+    out[:, :3, ~rot] = np.swapaxes(w[:, ~rot], 1, 2)
+    if rot.any():
+        o = prefix[:, rot][:, :, :3, 3]
+        out[:, :3, rot] = np.swapaxes(np.cross(w[:, rot], p[:, None, :] - o), 1, 2)
+        out[:, 3:, rot] = np.swapaxes(w[:, rot], 1, 2)
+    return out

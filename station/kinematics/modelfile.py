@@ -1,0 +1,183 @@
+"""Model files (YAML, ``format: station-model/1``): read with explicit units, write back. See docs/formats.md."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from station.kinematics.model import FRAME_AXES, Encoder, Joint, Model, from_dh, from_mdh, from_poe, screws_of
+
+FORMAT = "station-model/1"
+LENGTH = {"m": 1.0, "mm": 1e-3}
+ANGLE = {"rad": 1.0, "deg": np.pi / 180}
+ANGLE_KEYS = {"alpha", "theta", "beta", "rx", "ry", "rz"}
+
+
+class ModelFileError(ValueError):
+    """Malformed model file; the message names the file and the field."""
+
+
+def _num(v, where: str) -> float:
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        raise ModelFileError(f"{where}: expected a number, got {v!r}") from None
+    if not np.isfinite(x):
+        raise ModelFileError(f"{where}: not a finite number ({v!r})")
+    return x
+
+
+def model_from_dict(doc: dict, where: str = "<model>") -> Model:
+    if not isinstance(doc, dict):
+        raise ModelFileError(f"{where}: not a mapping")
+    if doc.get("format", FORMAT) != FORMAT:
+        raise ModelFileError(f"{where}: format {doc.get('format')!r} is not {FORMAT!r}")
+    units = doc.get("units") or {}
+    lu, au = units.get("length"), units.get("angle")
+    if lu not in LENGTH or au not in ANGLE:
+        raise ModelFileError(f"{where}: 'units' must state length (m|mm) and angle (rad|deg), got {units!r}")
+    L, A = LENGTH[lu], ANGLE[au]
+    conv = doc.get("convention")
+    if conv not in ("dh", "mdh", "poe"):
+        raise ModelFileError(f"{where}: convention must be dh, mdh or poe, got {conv!r}")
+    jdocs = doc.get("joints")
+    if not isinstance(jdocs, list) or not jdocs:
+        raise ModelFileError(f"{where}: 'joints' must be a non-empty list")
+
+    def frame(d, key):
+        d = d or {}
+        unknown = set(d) - {"x", "y", "z", "rx", "ry", "rz"}
+        if unknown:
+            raise ModelFileError(f"{where}: {key}: unknown keys {sorted(unknown)}")
+        return {k: _num(v, f"{where}: {key}.{k}") * (A if k in ANGLE_KEYS else L) for k, v in d.items()}
+
+    joints, links, offsets = [], [], []
+    for i, jd in enumerate(jdocs):
+        w = f"{where}: joints[{i}]"
+        kind = jd.get("type", "revolute")
+        if kind not in ("revolute", "prismatic"):
+            raise ModelFileError(f"{w}.type: revolute or prismatic, got {kind!r}")
+        U = A if kind == "revolute" else L
+        lim = jd.get("limits")
+        if not (isinstance(lim, list) and len(lim) == 2):
+            raise ModelFileError(f"{w}.limits: expected [lower, upper]")
+        lo, hi = (_num(x, f"{w}.limits") * U for x in lim)
+        if lo >= hi:
+            raise ModelFileError(f"{w}.limits: lower {lim[0]} is not below upper {lim[1]}")
+        enc = None
+        if jd.get("encoder"):
+            e = jd["encoder"]
+            if "counts_per_rev" in e:
+                cpu = _num(e["counts_per_rev"], f"{w}.encoder.counts_per_rev") / (2 * np.pi)
+            elif "counts_per_m" in e:
+                cpu = _num(e["counts_per_m"], f"{w}.encoder.counts_per_m")
+            else:
+                raise ModelFileError(f"{w}.encoder: needs counts_per_rev or counts_per_m")
+            enc = Encoder(cpu, _num(e.get("gear", 1), f"{w}.encoder.gear"),
+                          int(e.get("direction", 1)), _num(e.get("zero", 0), f"{w}.encoder.zero"))
+        joints.append(Joint(str(jd.get("name", f"j{i + 1}")), kind, lo, hi,
+                            _num(jd.get("max_velocity", 1.0), f"{w}.max_velocity") * U,
+                            _num(jd.get("max_acceleration", 10.0 / U), f"{w}.max_acceleration") * U, enc))
+        offsets.append(_num(jd.get("offset", 0.0), f"{w}.offset") * U)
+        if conv in ("dh", "mdh"):
+            g = jd.get(conv)
+            if not isinstance(g, dict):
+                raise ModelFileError(f"{w}: missing '{conv}' table")
+            links.append({k: _num(v, f"{w}.{conv}.{k}") * (A if k in ANGLE_KEYS else L) for k, v in g.items()})
+        else:
+            s = jd.get("screw")
+            if not isinstance(s, dict) or "axis" not in s:
+                raise ModelFileError(f"{w}: missing 'screw: {{axis: [..], point: [..]}}'")
+            ax = np.array([_num(x, f"{w}.screw.axis") for x in s["axis"]])
+            if ax.shape != (3,) or np.linalg.norm(ax) < 1e-9:
+                raise ModelFileError(f"{w}.screw.axis: expected a non-zero 3-vector")
+            sc = {"axis": ax / np.linalg.norm(ax)}
+            if kind == "revolute":
+                sc["point"] = np.array([_num(x, f"{w}.screw.point") * L for x in s.get("point", [0, 0, 0])])
+            links.append(sc)
+    kw = dict(base=frame(doc.get("base"), "base"), tool=frame(doc.get("tool"), "tool"), offsets=offsets,
+              description=str(doc.get("description", "")))
+    name = str(doc.get("name", Path(where).stem))
+    if conv == "dh":
+        return from_dh(name, joints, links, **kw)
+    if conv == "mdh":
+        return from_mdh(name, joints, links, **kw)
+    h = frame(doc.get("home"), "home")
+    from station.kinematics.model import _pose
+
+    return from_poe(name, joints, links, _pose(h), **kw)
+
+
+def load_model_file(path: str | Path) -> Model:
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except OSError as e:
+        raise ModelFileError(f"{path}: cannot read ({e.strerror})") from None
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        line = f" line {mark.line + 1}" if mark else ""
+        raise ModelFileError(f"{path}:{line} not valid YAML") from None
+    return model_from_dict(doc, str(path))
+
+
+def model_to_dict(model: Model, length: str = "m", angle: str = "rad") -> dict:
+    """Current parameter values (nominal or calibrated) in the stated units."""
+    L, A = 1 / LENGTH[length], 1 / ANGLE[angle]
+    p = model.param_dict()
+
+    def r(x: float) -> float:
+        return float(round(x, 12))
+
+    def frame(prefix):
+        return {k: r(p[f"{prefix}.{k}"] * (A if k in ANGLE_KEYS else L)) for k, _ in FRAME_AXES}
+
+    joints = []
+    for i, j in enumerate(model.joints):
+        U = A if j.revolute else L
+        jd: dict = {"name": j.name, "type": j.kind, "limits": [r(j.lower * U), r(j.upper * U)],
+                    "max_velocity": r(j.max_velocity * U), "max_acceleration": r(j.max_acceleration * U)}
+        if j.encoder:
+            e = j.encoder
+            key, cpu = ("counts_per_rev", e.counts_per_unit * 2 * np.pi) if j.revolute else \
+                ("counts_per_m", e.counts_per_unit)
+            jd["encoder"] = {key: r(cpu), "gear": r(e.gear), "direction": e.direction, "zero": r(e.zero)}
+        jd["offset"] = r(p[f"offset.j{i + 1}"] * U)
+        joints.append(jd)
+    doc: dict = {"format": FORMAT, "name": model.name, "description": model.description,
+                 "convention": model.convention, "units": {"length": length, "angle": angle}}
+    if model.convention in ("dh", "mdh"):
+        c = model.convention
+        for i, j in enumerate(model.joints):
+            k = int(np.flatnonzero(model.chain.joint == i)[0])
+            const = float(model.chain.const[k])
+            pre = f"{c}.j{i + 1}"
+            tab = {"a": p[f"{pre}.a"] * L, "alpha": p[f"{pre}.alpha"] * A, "beta": p[f"{pre}.beta"] * A}
+            if j.revolute:
+                tab |= {"d": p[f"{pre}.d"] * L, "theta": const * A}
+            else:
+                tab |= {"d": const * L, "theta": p[f"{pre}.theta"] * A}
+            joints[i][c] = {k2: r(v) for k2, v in tab.items()}
+    else:
+        screws, home = screws_of(model)
+        from station.kinematics.se3 import matrix_to_rpy
+
+        for i, s in enumerate(screws):
+            joints[i]["screw"] = {"axis": [r(x) for x in s["axis"]]}
+            if "point" in s:
+                joints[i]["screw"]["point"] = [r(x * L) for x in s["point"]]
+        rpy = matrix_to_rpy(home[:3, :3])
+        doc["home"] = {"x": r(home[0, 3] * L), "y": r(home[1, 3] * L), "z": r(home[2, 3] * L),
+                       "rx": r(rpy[0] * A), "ry": r(rpy[1] * A), "rz": r(rpy[2] * A)}
+    doc["joints"] = joints
+    doc["base"] = frame("base")
+    doc["tool"] = frame("tcp")
+    return doc
+
+
+def dump_model(model: Model, length: str = "m", angle: str = "rad") -> str:
+    header = (f"# station kinematic model '{model.name}' ({model.convention.upper()}); "
+              f"lengths in {length}, angles in {angle}. Format: docs/formats.md\n")
+    return header + yaml.safe_dump(model_to_dict(model, length, angle), sort_keys=False)

@@ -1,0 +1,72 @@
+"""Small SE(3) helpers, vectorised over leading axes. Angles in rad, lengths in m."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def rot_x(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def rot_y(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
+
+
+def rot_z(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:
+    """Fixed-axis roll-pitch-yaw: ``R = Rz(rz) Ry(ry) Rx(rx)``; input ``(..., 3)`` as (rx, ry, rz)."""
+    return Rotation.from_euler("ZYX", np.asarray(rpy)[..., ::-1]).as_matrix()
+
+
+def matrix_to_rpy(R: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`rpy_to_matrix`, returns ``(..., 3)`` as (rx, ry, rz)."""
+    return Rotation.from_matrix(R).as_euler("ZYX")[..., ::-1]
+
+
+def rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:
+    """Axis-angle rotation vector (as a UR controller reports rx, ry, rz) to rotation matrix."""
+    return Rotation.from_rotvec(rv).as_matrix()
+
+
+def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
+    return Rotation.from_matrix(R).as_rotvec()
+
+
+def pose_to_matrix(pose: np.ndarray, rotation: str = "rotvec") -> np.ndarray:
+    """``(..., 6)`` x, y, z, rx, ry, rz -> ``(..., 4, 4)``; ``rotation`` is ``rotvec`` or ``rpy``."""
+    pose = np.asarray(pose, dtype=float)
+    T = np.zeros(pose.shape[:-1] + (4, 4))
+    conv = rotvec_to_matrix if rotation == "rotvec" else rpy_to_matrix
+    T[..., :3, :3] = conv(pose[..., 3:6])
+    T[..., :3, 3] = pose[..., :3]
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def matrix_to_pose(T: np.ndarray, rotation: str = "rotvec") -> np.ndarray:
+    T = np.asarray(T, dtype=float)
+    conv = matrix_to_rotvec if rotation == "rotvec" else matrix_to_rpy
+    return np.concatenate([T[..., :3, 3], conv(T[..., :3, :3])], axis=-1)
+
+
+def invert(T: np.ndarray) -> np.ndarray:
+    T = np.asarray(T, dtype=float)
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def orientation_error(R_target: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """World-frame rotation vector taking ``R`` to ``R_target``."""
+    return Rotation.from_matrix(R_target @ np.swapaxes(R, -1, -2)).as_rotvec()

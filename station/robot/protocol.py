@@ -1,0 +1,82 @@
+"""The one interface every bus adapter fulfils and the procedure engine uses (SI units throughout)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal, Protocol, runtime_checkable
+
+import numpy as np
+
+from station.kinematics import Model
+
+
+@dataclass(frozen=True)
+class JointSnapshot:
+    """All joints read in one transaction. ``q`` in rad (revolute) / m (prismatic)."""
+
+    q: np.ndarray
+    raw: tuple[float | int, ...]  # device units as read (ticks, counts, rad)
+    raw_unit: str  # e.g. "tick", "count", "rad"
+    t: float  # host wall clock (time.time()) when the reply arrived
+    t_device: float | None = None  # device/controller timestamp if the bus has one (s)
+
+
+@dataclass(frozen=True)
+class JointState:
+    name: str
+    enabled: bool
+    moving: bool
+    fault: str | None = None
+
+
+@dataclass(frozen=True)
+class RobotStatus:
+    enabled: bool
+    moving: bool
+    faults: tuple[str, ...] = ()
+    estop: bool = False
+    protective_stop: bool = False
+    compliant: bool = False
+    joints: tuple[JointState, ...] = ()
+
+    @property
+    def ok(self) -> bool:
+        return not (self.faults or self.estop or self.protective_stop)
+
+
+@dataclass(frozen=True)
+class Identity:
+    vendor: str
+    model: str  # kinematic model name, e.g. "ur5e"
+    serial: str
+    firmware: str = ""
+    devices: tuple[dict, ...] = field(default_factory=tuple)  # per-joint/device ids, serials, firmware
+    url: str = ""
+
+
+JogMode = Literal["joint", "cartesian"]
+
+
+@runtime_checkable
+class Robot(Protocol):
+    """Fulfilled by every driver. Methods raise typed errors from ``station.robot.errors``.
+
+    A raised fault always leaves the robot stopped. ``speed`` arguments are joint speed in rad/s
+    (or m/s for prismatic) for joint motion and tool speed in m/s for Cartesian motion.
+    """
+
+    model: Model  # nominal kinematic model the driver converts with
+
+    def identity(self) -> Identity: ...
+    def joint_positions(self) -> JointSnapshot: ...
+    def move_joints(self, q: np.ndarray, speed: float | None = None, wait: bool = True) -> None: ...
+    def jog(self, mode: JogMode, axis: int, step: float, speed: float | None = None) -> None: ...
+    def stop(self) -> None: ...
+    def enable(self) -> None: ...
+    def disable(self) -> None: ...
+    def status(self) -> RobotStatus: ...
+    def touch(self) -> bool | None: ...
+    def set_compliant(self, on: bool) -> None: ...
+    def read_calibration(self) -> dict[str, float]: ...
+    def write_calibration(self, values: dict[str, float]) -> None: ...
+    def close(self) -> None: ...
