@@ -1,7 +1,25 @@
-"""Placeholder: this command group is being built (see the open issues); it registers nothing yet."""
+"""``station mock ...``: emulators and the simulated world. Each bus's emulator package provides
+``station.mocks.<bus>.cli.register(mock_app)``; the world provides ``station.mocks.world.cli``."""
+
+from __future__ import annotations
+
+import importlib
 
 import typer
 
+mock_app = typer.Typer(no_args_is_help=True, help="Emulated robots (wire-level) and the simulated world.")
+
+PROVIDERS = ("station.mocks.world.cli", "station.mocks.dynamixel.cli", "station.mocks.canopen.cli",
+             "station.mocks.ur.cli")
+
 
 def register(app: typer.Typer) -> None:
-    return None
+    for name in PROVIDERS:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as e:
+            if e.name != name:  # a real import error inside the provider is a bug: surface it
+                raise
+            continue  # provider not built yet
+        module.register(mock_app)
+    app.add_typer(mock_app, name="mock")
