@@ -1,0 +1,44 @@
+"""Bus benchmark table: one row per bus/measurement, from each bus's own bench module.
+
+Run: ``.venv/bin/python bench/buses.py [--only dynamixel,canopen,ur] [--ur-seconds 60]``"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", HERE / f"buses_{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--only", default="dynamixel,canopen,ur")
+    ap.add_argument("--ur-seconds", type=float, default=60.0)
+    args = ap.parse_args()
+    rows: list[dict] = []
+    for bus in args.only.split(","):
+        module = _load(bus.strip())
+        kw = {"seconds": args.ur_seconds} if bus.strip() == "ur" else {}
+        rows.extend({"bus": bus.strip(), **r} for r in module.rows(**kw))
+    cols: list[str] = []
+    for r in rows:
+        cols.extend(k for k in r if k not in cols)
+    widths = {c: max(len(c), *(len(str(r.get(c, ""))) for r in rows)) for c in cols}
+    print(" | ".join(c.ljust(widths[c]) for c in cols))
+    print("-|-".join("-" * widths[c] for c in cols))
+    for r in rows:
+        print(" | ".join(str(r.get(c, "")).ljust(widths[c]) for c in cols))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
