@@ -1,0 +1,203 @@
+"""``solve``: iterated Gauss-Newton / Levenberg-Marquardt on the analytic Jacobian with identifiability
+analysis and covariance. Seed 000's linear solve ``phi = (B^T B)^-1 B^T Y`` is the first Gauss-Newton
+step; seed 002's loop ``dphi = (J^T J)^-1 J^T e`` until ``|dphi| < eps`` is this loop without damping."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from station.solver.identifiability import RTOL, RankAnalysis, analyse
+from station.solver.observations import Observations, SolverInputError
+from station.solver.problem import Problem
+from station.solver.result import CalibrationResult, ParameterEstimate
+
+XTOL = 1e-11  # m (scaled step): below this a step changes nothing measurable
+FTOL = 1e-13  # relative cost decrease
+
+
+def select_names(model, identify) -> list[str]:
+    """Model parameter names of ``identify`` (groups, names, globs); the ``points`` group is implicit."""
+    spec = identify.split(",") if isinstance(identify, str) else list(identify)
+    spec = [s.strip() for s in spec if s.strip() and s.strip() != "points"]
+    if not spec:
+        return []
+    try:
+        return model.select(spec)
+    except KeyError as e:
+        raise SolverInputError(str(e.args[0])) from None
+
+
+def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown", holdout: Observations | None = None,
+          *, instrument_frame: str = "unknown", noise: float | None = None, max_std: float = 1e-3,
+          max_iter: int = 100) -> CalibrationResult:
+    """Identify ``identify`` of ``model`` from touch observations.
+
+    ``reference``: ``"unknown"`` (every touched point is a nuisance unknown ``point.LABEL.{x,y,z}``) or
+    ``{label: xyz}`` known positions in the robot base frame (m); labels not given are solved as unknown.
+    With instrument measurements (``obs.measured``) the reference labels are not used; the instrument
+    frame is solved as the nuisance ``base.*`` (``instrument_frame="unknown"``) or the measurements are
+    taken as base-frame positions (``"base"``). ``noise`` (m): touch noise for the rank decision; default:
+    the residual standard deviation of the fit. ``max_std`` (m at the tool): weaker directions are named
+    unidentifiable instead of estimated."""
+    if not isinstance(obs, Observations):
+        raise SolverInputError("obs must be an Observations")
+    if obs.q.shape[1] != model.n_joints:
+        raise SolverInputError(f"model {model.name} has {model.n_joints} joints, observations have {obs.q.shape[1]}")
+    if instrument_frame not in ("unknown", "base"):
+        raise SolverInputError(f"instrument_frame must be 'unknown' or 'base', got {instrument_frame!r}")
+    names = select_names(model, identify)
+    prob = Problem(model, obs, names, reference, instrument_frame)
+    m, p = 3 * len(obs), prob.n_unknowns
+    if m <= p:
+        raise SolverInputError(
+            f"{len(obs)} samples give {m} equations for {p} unknowns ({len(names)} model parameters"
+            f"{', instrument frame' if prob.frame_unknown else ''}, {len(prob.unknown_points)} unknown point(s)); "
+            f"need at least {p // 3 + 1} samples, ~20 well spread poses recommended")
+    x = prob.initial()
+    r_before = prob.residual(x)
+    x_start = x.copy()
+    r, J = prob.residual_jacobian(x)
+    ana = _analyse(prob, J, x, noise or 0.0, max_std)
+    iterations, converged = 0, False
+    for _ in range(4):
+        act = ana.accepted
+        x, it, converged = _levenberg_marquardt(prob, x, act, max_iter)
+        iterations += it
+        r, J = prob.residual_jacobian(x)
+        dof = m - len(act)
+        sigma = math.sqrt(float(r @ r) / dof)
+        new = _analyse(prob, J, x, noise if noise is not None else sigma, max_std)
+        if new.accepted == act:
+            ana = new
+            break
+        dropped = [j for j in act if j not in new.accepted]
+        x[dropped] = x_start[dropped]  # back to nominal: never keep numbers for an unseen direction
+        ana = new
+    return _result(model, prob, x, r, J, r_before, ana, iterations, converged, holdout,
+                   dict(identify=identify if isinstance(identify, str) else ",".join(identify),
+                        reference=_ref_setting(reference), instrument_frame=instrument_frame,
+                        noise_m=noise, max_std_m=max_std, rtol=RTOL, characteristic_length_m=prob.length,
+                        max_iter=max_iter, estimator="Levenberg-Marquardt on analytic Jacobian"))
+
+
+def _analyse(prob: Problem, J, x, sigma, max_std) -> RankAnalysis:
+    Js = J * prob.scale
+    sd = prob.scale_direction(x) / prob.scale
+    joints = prob.model.joints
+    return analyse(Js, prob.names, prob.kinds, sigma=sigma, max_std=max_std, scale_dir=sd,
+                   n_joints=len(joints), first_revolute=joints[0].revolute, last_revolute=joints[-1].revolute)
+
+
+def _levenberg_marquardt(prob: Problem, x, act, max_iter) -> tuple[np.ndarray, int, bool]:
+    """Undamped Gauss-Newton steps while they reduce the cost; Marquardt damping otherwise."""
+    x = x.copy()
+    if not act:
+        return x, 0, True
+    D = prob.scale[act]
+    r, J = prob.residual_jacobian(x)
+    cost = float(r @ r)
+    lam = 0.0
+    for it in range(1, max_iter + 1):
+        Js = J[:, act] * D
+        if lam == 0.0:
+            du = np.linalg.lstsq(Js, -r, rcond=None)[0]
+        else:
+            A = np.vstack([Js, math.sqrt(lam) * np.eye(len(act))])
+            du = np.linalg.lstsq(A, np.concatenate([-r, np.zeros(len(act))]), rcond=None)[0]
+        x_new = x.copy()
+        x_new[act] += D * du
+        r_new, J_new = prob.residual_jacobian(x_new)
+        cost_new = float(r_new @ r_new)
+        if cost_new <= cost:
+            small = np.max(np.abs(du)) < XTOL or cost - cost_new <= FTOL * cost
+            x, r, J, cost = x_new, r_new, J_new, cost_new
+            lam = 0.0 if lam < 1e-9 else lam / 10.0
+            if small:
+                return x, it, True
+        else:
+            if np.max(np.abs(du)) < XTOL:
+                return x, it, True  # at the minimum within rounding
+            lam = max(lam * 10.0, 1e-6 * float(np.max(np.sum(Js * Js, axis=0))))
+    return x, max_iter, False
+
+
+def _ref_setting(reference):
+    if isinstance(reference, str):
+        return reference
+    return {k: np.asarray(v, dtype=float).tolist() for k, v in dict(reference).items()}
+
+
+def _stats(r: np.ndarray) -> tuple[float, float]:
+    d = np.linalg.norm(r.reshape(-1, 3), axis=1)
+    return float(np.sqrt(np.mean(d**2))), float(d.max())
+
+
+def _result(model, prob: Problem, x, r, J, r_before, ana: RankAnalysis, iterations, converged, holdout,
+            settings) -> CalibrationResult:
+    act = ana.accepted
+    m = r.size
+    dof = m - len(act)
+    sigma = math.sqrt(float(r @ r) / dof)
+    cov = None
+    std = np.full(prob.n_unknowns, np.nan)
+    if act:
+        Js = J[:, act] * prob.scale[act]
+        _, s, Vt = np.linalg.svd(Js, full_matrices=False)
+        cov_u = (Vt.T / s**2) @ Vt * sigma**2
+        cov = cov_u * np.outer(prob.scale[act], prob.scale[act])
+        std[act] = np.sqrt(np.diag(cov))
+    params: dict[str, ParameterEstimate] = {}
+    for i, n in enumerate(prob.names):
+        kind, unit = prob.kinds[i], prob.units[i]
+        nominal = float(prob.x_nominal[i]) if kind != "point" else math.nan
+        if i in act:
+            params[n] = ParameterEstimate(n, float(x[i]), nominal, float(std[i]), True, "", kind, unit)
+        else:
+            value = nominal if kind == "model" else math.nan
+            params[n] = ParameterEstimate(n, value, nominal, None, False, ana.rejected[i], kind, unit)
+    rms0, max0 = _stats(r_before)
+    rms1, max1 = _stats(r)
+    notes = []
+    if not converged:
+        notes.append("the iteration did not converge within max_iter; the estimate is not reliable")
+    if isinstance(settings["reference"], dict):
+        extra = [lb for lb in prob.unknown_points]
+        if extra:
+            notes.append(f"reference point(s) {', '.join(extra)} not given: solved as unknown")
+    res = CalibrationResult(
+        model=model.name, parameters=params,
+        residuals={"rms_before_m": rms0, "max_before_m": max0, "rms_after_m": rms1, "max_after_m": max1},
+        rank=ana.rank, n_parameters=prob.n_unknowns, converged=converged, iterations=iterations,
+        condition_number=ana.condition_number, observability_index=ana.observability_index, sigma_m=sigma,
+        covariance=cov, n_samples=len(prob.obs), n_residuals=m, settings=settings, notes=notes)
+    if holdout is not None:
+        res.holdout = _holdout(prob, x, act, holdout)
+    return res
+
+
+def _holdout(prob: Problem, x, act, ho: Observations) -> dict:
+    model = prob.model
+    if ho.q.shape[1] != model.n_joints:
+        raise SolverInputError(f"holdout: model {model.name} has {model.n_joints} joints, got {ho.q.shape[1]}")
+    xa = prob.x_nominal.copy()
+    xa[act] = x[act]
+    if prob.frame_unknown:  # the instrument frame is always needed to compare, identified or not
+        inst = [i for i, k in enumerate(prob.kinds) if k == "instrument"]
+        xa[inst] = x[inst]
+    P = model.position(ho.q, prob.full_params(xa))
+    if prob.instrument:
+        if ho.measured is None:
+            raise SolverInputError("holdout: the fit used instrument measurements; holdout needs them too")
+        tgt = ho.measured
+    else:
+        pts = prob.points_of(x)
+        missing = [lb for lb in ho.labels if lb not in pts]
+        if missing:
+            raise SolverInputError(f"holdout: point {missing[0]!r} was not touched in the fit and is not known")
+        tgt = np.array([pts[lb] for lb in ho.point])
+    rms, mx = _stats(P - tgt)
+    P0 = model.position(ho.q)
+    rms0, _ = _stats(P0 - tgt)
+    return {"n_samples": len(ho), "rms_m": rms, "max_m": mx, "rms_nominal_m": rms0}

@@ -1,0 +1,145 @@
+"""Which unknowns can the data identify? Column-scaled, priority-ordered rank revealing (Gram-Schmidt
+with re-orthogonalisation, i.e. a QR factorisation with a chosen column order) plus an SVD for the
+condition number and the observability index.
+
+Columns are scaled to metres (angles times the characteristic length L), so a column's norm is how far
+the tool moves, summed over the poses, per metre (or per L radians) of that parameter. Column j is
+*dependent* when what remains of it after projecting out the columns accepted before it is below
+
+    tau_j = max(rtol * max_k |J_k|,  sigma / max_std)
+
+The first term catches exact redundancy (the model's deliberate over-parameterisation); the second one
+is tied to the noise: with residual standard deviation sigma, the standard deviation of that parameter,
+given the ones before it, would be sigma / |remainder| > max_std (default 1 mm at the tool)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+RTOL = 1e-7
+PRIORITY = ("point.", "instrument", "tcp.", "offset.", "base.")
+
+
+@dataclass
+class RankAnalysis:
+    accepted: list[int]  # column indices the data identify, in acceptance order
+    rejected: dict[int, str]  # column -> reason
+    rank: int
+    condition_number: float | None
+    observability_index: float | None  # O1 = (s1 ... sr)^(1/r) / sqrt(m) of the scaled Jacobian
+    singular_values: np.ndarray
+
+
+def priority_order(names: list[str], kinds: list[str]) -> list[int]:
+    """Reference points and the instrument frame first (nuisance unknowns absorb what they can), then
+    the TCP, joint offsets, base, and link geometry last: when two columns are confounded, the later
+    one stays at nominal."""
+
+    def rank(i: int) -> tuple[int, int]:
+        n, k = names[i], kinds[i]
+        if k == "point":
+            return 0, i
+        if k == "instrument":
+            return 1, i
+        for p, pre in enumerate(PRIORITY[2:], start=2):
+            if n.startswith(pre):
+                return p, i
+        return len(PRIORITY), i
+
+    return sorted(range(len(names)), key=rank)
+
+
+def analyse(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float = 0.0, max_std: float = 1e-3,
+            scale_dir: np.ndarray | None = None, n_joints: int = 0, first_revolute: bool = True,
+            last_revolute: bool = True) -> RankAnalysis:
+    """``Js`` is the column-scaled Jacobian (m x p); ``scale_dir`` the uniform-scaling direction in the
+    same scaled coordinates (to detect "no known length")."""
+    m, p = Js.shape
+    norms = np.linalg.norm(Js, axis=0)
+    big = norms.max() if p else 0.0
+    tau_struct = RTOL * big if big > 0 else np.inf
+    tau_noise = sigma / max_std if max_std > 0 else 0.0
+    Q = np.zeros((m, 0))
+    accepted: list[int] = []
+    weak: dict[int, float] = {}
+    for j in priority_order(names, kinds):
+        c = Js[:, j]
+        res = c - Q @ (Q.T @ c)
+        res = res - Q @ (Q.T @ res)
+        nr = float(np.linalg.norm(res))
+        if nr > max(tau_struct, tau_noise):
+            accepted.append(j)
+            Q = np.column_stack([Q, res / nr])
+        elif nr > tau_struct:
+            weak[j] = nr
+    rejected: dict[int, str] = {}
+    dep = [j for j in range(p) if j not in accepted]
+    if dep:
+        A = Js[:, accepted]
+        scale_hit = _scale_owner(Js, A, accepted, dep, scale_dir)
+        for j in dep:
+            rejected[j] = _reason(j, Js, A, accepted, names, kinds, norms, tau_struct, weak.get(j), sigma,
+                                  max_std, j == scale_hit, n_joints, first_revolute, last_revolute)
+    s = np.linalg.svd(Js[:, accepted], compute_uv=False) if accepted else np.zeros(0)
+    r = len(accepted)
+    cond = float(s[0] / s[-1]) if r and s[-1] > 0 else None
+    o1 = float(np.exp(np.mean(np.log(s))) / np.sqrt(m)) if r and s[-1] > 0 else None
+    return RankAnalysis(sorted(accepted), rejected, r, cond, o1, s)
+
+
+def _coefficients(A: np.ndarray, c: np.ndarray) -> np.ndarray:
+    if A.shape[1] == 0:
+        return np.zeros(0)
+    return np.linalg.lstsq(A, c, rcond=None)[0]
+
+
+def _scale_owner(Js, A, accepted, dep, scale_dir) -> int | None:
+    """The dependent column whose null-space vector is most aligned with a uniform scaling, if the data
+    cannot see scaling at all."""
+    if scale_dir is None or not np.any(scale_dir):
+        return None
+    v = scale_dir
+    if np.linalg.norm(Js @ v) > 1e-6 * np.sum(np.linalg.norm(Js, axis=0) * np.abs(v)):
+        return None
+    best, best_cos = None, 0.5
+    for j in dep:
+        a = _coefficients(A, Js[:, j])
+        nv = np.zeros(Js.shape[1])
+        nv[j] = 1.0
+        nv[accepted] = -a
+        cos = abs(nv @ v) / (np.linalg.norm(nv) * np.linalg.norm(v))
+        if cos > best_cos:
+            best, best_cos = j, cos
+    return best
+
+
+def _reason(j, Js, A, accepted, names, kinds, norms, tau_struct, weak_norm, sigma, max_std, scale_hit, n_joints,
+            first_revolute, last_revolute) -> str:
+    name = names[j]
+    if scale_hit:
+        return ("scale: no known length - every length of the robot and the unknown point(s) can grow "
+                "together without changing the data; give a known point or measure with an instrument")
+    if norms[j] <= tau_struct:
+        if name == f"offset.j{n_joints}" and last_revolute:
+            return f"the TCP lies on the axis of joint {n_joints}: rotating it does not move the tool tip"
+        return "changing it does not move the tool tip in any of these poses"
+    a = _coefficients(A, Js[:, j])
+    contrib = np.abs(a) * norms[accepted]
+    order = np.argsort(-contrib)
+    partners = [names[accepted[k]] for k in order if contrib[k] > 0.2 * contrib.max()][:4]
+    if name == "offset.j1" and first_revolute:
+        if any(p.startswith("point.") for p in partners):
+            return "a rotation about joint 1 moves the unknown point with the robot"
+        if any(kinds[names.index(p)] == "instrument" for p in partners):
+            return "a rotation about joint 1 is indistinguishable from rotating the unknown instrument frame"
+    if name == f"offset.j{n_joints}" and last_revolute and any(p.startswith("tcp.") for p in partners):
+        return (f"the TCP is free: a rotation about joint {n_joints} only turns the TCP offset about that "
+                f"axis, which is absorbed by {', '.join(p for p in partners if p.startswith('tcp.'))}")
+    with_ = ", ".join(partners) if partners else "the other unknowns"
+    if weak_norm is not None:
+        std = sigma / weak_norm
+        return (f"poorly observed: its standard deviation would be about {std * 1e3:.2g} mm at the tool "
+                f"(threshold {max_std * 1e3:.2g} mm); nearly confounded with {with_}")
+    return f"confounded with {with_}: the data cannot tell them apart"

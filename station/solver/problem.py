@@ -1,0 +1,168 @@
+"""The least-squares problem of a touch calibration: unknowns, residuals and the analytic Jacobian.
+
+Unknown vector x = [selected model parameters, instrument frame (base.*), unknown reference points].
+Residual of sample i (3 rows): ``r_i = p_tool(q_i; x) - c_i`` where ``c_i`` is the reference point touched
+(known or unknown) or, with an instrument, the measured tip position in the instrument frame; in that case
+the model's ``base.*`` frame is the instrument-to-robot-base transform, a nuisance unknown."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from station.kinematics import se3
+from station.kinematics.chain import RX, RY, RZ
+from station.solver.observations import Observations, SolverInputError
+
+BASE6 = ("base.x", "base.y", "base.z", "base.rz", "base.ry", "base.rx")
+
+
+def angle_params(model) -> set[str]:
+    """Names of parameters that are angles (their chain element is a rotation)."""
+    ch = model.chain
+    return {model.param_names[p] for p, ax in zip(ch.param, ch.axis, strict=True) if p >= 0 and ax in (RX, RY, RZ)}
+
+
+def characteristic_length(model) -> float:
+    """Sum of the model's translation parameters (link lengths, tool) without the base: an upper bound
+    of the reach. Angles are scaled by it so that rank decisions compare metres with metres."""
+    ang = angle_params(model)
+    total = sum(abs(v) for n, v in zip(model.param_names, model.params, strict=True)
+                if n not in ang and not n.startswith(("base.", "offset.")))
+    return max(float(total), 0.1)
+
+
+class Problem:
+    def __init__(self, model, obs: Observations, model_names: list[str], reference,
+                 instrument_frame: str = "unknown") -> None:
+        self.model = model
+        self.obs = obs
+        instrument = obs.measured is not None
+        self.instrument = instrument
+        # "unknown": the instrument-to-base transform is solved as the nuisance frame base.*;
+        # "base": the measurements are already in the robot base frame
+        self.frame_unknown = instrument and instrument_frame == "unknown"
+        names = list(model_names)
+        if self.frame_unknown:
+            names += [b for b in BASE6 if b not in names]
+        self.model_names = names
+        self.model_idx = np.array([model.index(n) for n in names], dtype=int)
+        self.kinds = ["instrument" if self.frame_unknown and n.startswith("base.") else "model" for n in names]
+        ang = angle_params(model)
+        self.units = ["rad" if n in ang else "m" for n in names]
+        # reference points
+        labels = obs.labels
+        if instrument:
+            self.known: dict[str, np.ndarray] = {}
+            self.unknown_points: list[str] = []
+        elif isinstance(reference, str):
+            if reference != "unknown":
+                raise SolverInputError(f"reference must be 'unknown' or {{label: xyz}}, got {reference!r}")
+            self.known, self.unknown_points = {}, labels
+        else:
+            self.known = {}
+            for k, v in dict(reference).items():
+                xyz = np.asarray(v, dtype=float)
+                if xyz.shape != (3,) or not np.isfinite(xyz).all():
+                    raise SolverInputError(f"reference point {k!r}: expected 3 finite coordinates (m), got {v!r}")
+                self.known[str(k)] = xyz
+            self.unknown_points = [lb for lb in labels if lb not in self.known]
+        self.point_names = [f"point.{lb}.{a}" for lb in self.unknown_points for a in "xyz"]
+        self.names = self.model_names + self.point_names
+        self.kinds += ["point"] * len(self.point_names)
+        self.units += ["m"] * len(self.point_names)
+        self.n_model = len(self.model_names)
+        # sample -> unknown point slot (or -1 for a known point)
+        slot = {lb: i for i, lb in enumerate(self.unknown_points)}
+        self.slot = np.array([slot.get(lb, -1) for lb in obs.point], dtype=int)
+        if instrument:
+            self.target_fixed = obs.measured
+        else:
+            self.target_fixed = np.array([self.known.get(lb, np.zeros(3)) for lb in obs.point])
+        L = characteristic_length(model)
+        self.length = L
+        self.scale = np.array([L if u == "rad" else 1.0 for u in self.units])
+        self.x_nominal = np.concatenate([model.params[self.model_idx], np.zeros(len(self.point_names))])
+
+    @property
+    def n_unknowns(self) -> int:
+        return len(self.names)
+
+    def full_params(self, x: np.ndarray) -> np.ndarray:
+        p = self.model.params.copy()
+        p[self.model_idx] = x[: self.n_model]
+        return p
+
+    def points_of(self, x: np.ndarray) -> dict[str, np.ndarray]:
+        pts = dict(self.known)
+        for i, lb in enumerate(self.unknown_points):
+            pts[lb] = x[self.n_model + 3 * i: self.n_model + 3 * i + 3]
+        return pts
+
+    def initial(self) -> np.ndarray:
+        """Nominal model; unknown points at the mean nominal tip position of their touches; instrument
+        frame by rigid registration (Kabsch) of nominal tip positions onto the measurements."""
+        x = self.x_nominal.copy()
+        P = self.model.position(self.obs.q)
+        if self.frame_unknown:
+            T0 = np.eye(4)
+            T0[:3, :3], T0[:3, 3] = _kabsch(P, self.obs.measured)
+            bi = [self.model.index(b) for b in BASE6]
+            Tb = T0 @ _base_matrix(self.model.params[bi])
+            rx, ry, rz = se3.matrix_to_rpy(Tb[:3, :3])
+            vals = dict(zip(BASE6, [*Tb[:3, 3], rz, ry, rx], strict=True))
+            for i, n in enumerate(self.model_names):
+                if n in vals:
+                    x[i] = vals[n]
+        for i, lb in enumerate(self.unknown_points):
+            x[self.n_model + 3 * i: self.n_model + 3 * i + 3] = P[self.obs.point == lb].mean(axis=0)
+        return x
+
+    def residual(self, x: np.ndarray) -> np.ndarray:
+        P = self.model.position(self.obs.q, self.full_params(x))
+        return (P - self._targets(x)).ravel()
+
+    def residual_jacobian(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        T, _, Jp = self.model.jacobians(self.obs.q, self.full_params(x))
+        N = T.shape[0]
+        r = (T[:, :3, 3] - self._targets(x)).ravel()
+        J = np.zeros((3 * N, self.n_unknowns))
+        J[:, : self.n_model] = Jp[:, :3, self.model_idx].reshape(3 * N, -1)
+        rows = np.flatnonzero(self.slot >= 0)
+        for a in range(3):
+            J[3 * rows + a, self.n_model + 3 * self.slot[rows] + a] = -1.0
+        return r, J
+
+    def _targets(self, x: np.ndarray) -> np.ndarray:
+        if self.instrument or not self.unknown_points:
+            return self.target_fixed
+        tgt = self.target_fixed.copy()
+        has = self.slot >= 0
+        pts = x[self.n_model:].reshape(-1, 3)
+        tgt[has] = pts[self.slot[has]]
+        return tgt
+
+    def scale_direction(self, x: np.ndarray) -> np.ndarray:
+        """d x / d s for a uniform scaling of every length (model lengths and points) by (1 + s)."""
+        v = np.where(np.array(self.units) == "m", x, 0.0)
+        for i, n in enumerate(self.names):
+            if n.startswith("offset.") and self.units[i] == "m":
+                v[i] = 0.0  # a prismatic offset is a zero reading, not a length of the machine
+        return v
+
+
+def _base_matrix(vals) -> np.ndarray:
+    x, y, z, rz, ry, rx = vals
+    T = np.eye(4)
+    T[:3, :3] = se3.rpy_to_matrix(np.array([rx, ry, rz]))
+    T[:3, 3] = [x, y, z]
+    return T
+
+
+def _kabsch(P: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """R, t minimising sum |R p + t - q|^2."""
+    pc, qc = P.mean(axis=0), Q.mean(axis=0)
+    H = (P - pc).T @ (Q - qc)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return R, qc - R @ pc

@@ -1,0 +1,135 @@
+"""``CalibrationResult``: what a solve found, in SI, with per-parameter standard errors and the names and
+reasons of everything the data could not identify. ``to_dict`` is the result JSON of ``station solve``."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+FORMAT = "station-calibration/1"
+
+
+@dataclass
+class ParameterEstimate:
+    name: str
+    value: float  # SI; the nominal value when not identifiable
+    nominal: float
+    std: float | None  # None when not identifiable (never a number for a direction the data cannot see)
+    identifiable: bool
+    reason: str = ""  # why not identifiable; empty otherwise
+    kind: str = "model"  # "model" (goes into the model), "point" (reference), "instrument" (nuisance frame)
+    unit: str = "m"  # "m" or "rad"
+
+    def to_dict(self) -> dict:
+        return {"value": _num(self.value), "std": self.std, "identifiable": self.identifiable,
+                "reason": self.reason or None, "nominal": _num(self.nominal), "kind": self.kind, "unit": self.unit}
+
+    @classmethod
+    def from_dict(cls, name: str, d: dict) -> ParameterEstimate:
+        return cls(name, _float(d["value"]), _float(d.get("nominal", d["value"])),
+                   None if d.get("std") is None else float(d["std"]), bool(d["identifiable"]),
+                   d.get("reason") or "", d.get("kind", "model"), d.get("unit", "m"))
+
+
+def _num(v: float) -> float | None:
+    """JSON has no NaN: a value the data do not determine is written as null."""
+    return float(v) if v is not None and math.isfinite(v) else None
+
+
+def _float(v) -> float:
+    return math.nan if v is None else float(v)
+
+
+@dataclass
+class CalibrationResult:
+    model: str
+    parameters: dict[str, ParameterEstimate]
+    residuals: dict[str, float | int | None]
+    rank: int
+    n_parameters: int
+    converged: bool
+    iterations: int
+    condition_number: float | None = None
+    observability_index: float | None = None
+    sigma_m: float | None = None  # residual standard deviation sigma_hat = sqrt(|r|^2 / (m - p))
+    covariance: np.ndarray | None = None  # over ``identified`` (SI)
+    n_samples: int = 0
+    n_residuals: int = 0
+    holdout: dict | None = None
+    settings: dict = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+    # ---- convenience -----------------------------------------------------------------------------
+    @property
+    def identified(self) -> list[str]:
+        return [n for n, p in self.parameters.items() if p.identifiable]
+
+    @property
+    def unidentifiable(self) -> dict[str, str]:
+        return {n: p.reason for n, p in self.parameters.items() if not p.identifiable}
+
+    def values(self, kind: str | None = "model", identified_only: bool = True) -> dict[str, float]:
+        return {n: p.value for n, p in self.parameters.items()
+                if (kind is None or p.kind == kind) and (p.identifiable or not identified_only)}
+
+    def points(self) -> dict[str, np.ndarray]:
+        """Reference point positions (m) that were solved or given, by label."""
+        out: dict[str, list[float]] = {}
+        for n, p in self.parameters.items():
+            if p.kind == "point":
+                _, label, axis = n.split(".", 2)
+                out.setdefault(label, [math.nan] * 3)["xyz".index(axis)] = p.value
+        return {k: np.array(v) for k, v in out.items()}
+
+    def calibrated(self, model):
+        """``model`` with every identified model parameter set to its estimate (points and the instrument
+        frame are not part of the robot and are left out)."""
+        if model.name != self.model:
+            raise ValueError(f"calibration is for model {self.model!r}, not {model.name!r}")
+        return model.with_params(self.values("model"))
+
+    # ---- JSON ------------------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        cov = None
+        if self.covariance is not None:
+            cov = {"names": self.identified, "matrix": np.asarray(self.covariance).tolist()}
+        return {
+            "format": FORMAT,
+            "units": "SI (m, rad)",
+            "model": self.model,
+            "parameters": {n: p.to_dict() for n, p in self.parameters.items()},
+            "identified": self.identified,
+            "unidentifiable": self.unidentifiable,
+            "residuals": dict(self.residuals),
+            "rank": self.rank,
+            "n_parameters": self.n_parameters,
+            "condition_number": self.condition_number,
+            "observability_index": self.observability_index,
+            "sigma_m": self.sigma_m,
+            "converged": self.converged,
+            "iterations": self.iterations,
+            "n_samples": self.n_samples,
+            "n_residuals": self.n_residuals,
+            "holdout": self.holdout,
+            "covariance": cov,
+            "settings": dict(self.settings),
+            "notes": list(self.notes),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> CalibrationResult:
+        try:
+            params = {n: ParameterEstimate.from_dict(n, v) for n, v in d["parameters"].items()}
+            cov = d.get("covariance")
+            return cls(
+                model=str(d["model"]), parameters=params, residuals=dict(d["residuals"]), rank=int(d["rank"]),
+                n_parameters=int(d["n_parameters"]), converged=bool(d["converged"]),
+                iterations=int(d["iterations"]), condition_number=d.get("condition_number"),
+                observability_index=d.get("observability_index"), sigma_m=d.get("sigma_m"),
+                covariance=None if not cov else np.array(cov["matrix"], dtype=float),
+                n_samples=int(d.get("n_samples", 0)), n_residuals=int(d.get("n_residuals", 0)),
+                holdout=d.get("holdout"), settings=dict(d.get("settings", {})), notes=list(d.get("notes", [])))
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"not a calibration result: {type(e).__name__}: {e}") from None
