@@ -1,7 +1,79 @@
-"""Placeholder: this command group is being built (see the open issues); it registers nothing yet."""
+"""``station jog``: the technician's terminal UI (see docs/jog.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from urllib.parse import parse_qs, urlencode, urlsplit, urlunsplit
 
 import typer
 
 
+def url_with_model(url: str, model: str | None) -> str:
+    """Put ``--model`` into the robot URL's query (the drivers read ``model=`` there)."""
+    if not model:
+        return url
+    parts = urlsplit(url)
+    query = {k: v[-1] for k, v in parse_qs(parts.query, keep_blank_values=True).items()}
+    query["model"] = model
+    return urlunsplit(parts._replace(query=urlencode(query, safe=",-/:")))
+
+
+def open_jog(url: str, *, serial: str | None = None, model: str | None = None, session: Path | None = None,
+             identify: str = "offsets,tcp", reference: str = "unknown"):
+    """Connect, create the session (journal + samples.csv) and return ``(robot, controller)``.
+    The robot is closed again when anything after connecting fails."""
+    from station.robot import open_robot
+    from station.tui.controller import JogController, parse_reference
+    from station.tui.session import JogSession, session_header
+
+    ref = parse_reference(reference)
+    full_url = url_with_model(url, model)
+    robot = open_robot(full_url)
+    try:
+        robot.model.select(identify)  # unknown group: one-line error before anything is written
+        ident = robot.identity()
+        sn = serial or ident.serial or "unknown"
+        header = session_header(identity=ident, model_name=robot.model.name, serial=sn, identify=identify,
+                                reference=reference, url=full_url)
+        sid = session.name if session is not None else None
+        jog_session = JogSession.create(header=header, n_joints=robot.model.n_joints, folder=session,
+                                        session_id=sid)
+        ctl = JogController(robot, jog_session, identify=identify, reference=ref)
+    except BaseException:
+        robot.close()
+        raise
+    return robot, ctl
+
+
 def register(app: typer.Typer) -> None:
-    return None
+    @app.command("jog")
+    def jog(
+        robot: str = typer.Option(..., "--robot", help="robot URL, e.g. canopen+socketcand://127.0.0.1:29536"
+                                                      "?channel=can0&nodes=1-6&model=arm6"),
+        serial: str = typer.Option(None, "--serial", help="robot serial for the session (default: as the robot "
+                                                         "reports it)"),
+        model: str = typer.Option(None, "--model", help="kinematic model name or file (default: from the URL)"),
+        session: Path = typer.Option(None, "--session", help="session folder (default: "
+                                                            "$STATION_HOME/sessions/<id>/)"),
+        identify: str = typer.Option("offsets,tcp", "--identify", help="parameters for the live solve"),
+        reference: str = typer.Option("unknown", "--reference",
+                                      help="reference point A: 'unknown' or x,y,z in metres (suffix mm for mm)"),
+    ) -> None:
+        """Jog the robot, touch reference points, record samples, watch the live solve, write back."""
+        from station.solver import SolverInputError
+        from station.tui.app import JogApp
+
+        try:
+            rob, ctl = open_jog(robot, serial=serial, model=model, session=session, identify=identify,
+                                reference=reference)
+        except (KeyError, SolverInputError) as e:
+            typer.echo(f"station: error: --identify {identify!r}: {e.args[0] if e.args else e}", err=True)
+            raise typer.Exit(2) from None
+        try:
+            JogApp(ctl).run()
+        finally:
+            ctl.close()
+            rob.close()
+        typer.echo(f"session saved: {ctl.session.folder}\n"
+                   f"  solve it: station solve --model {rob.model.name} --samples {ctl.session.samples_csv} "
+                   f"--identify {identify}")

@@ -1,0 +1,350 @@
+"""``station jog``: the technician's terminal UI (textual). Widgets render a ``JogController``; motion runs in a
+worker thread so the stop key is always served by the UI thread."""
+
+from __future__ import annotations
+
+import numpy as np
+from rich.text import Text
+from textual.app import App, ComposeResult
+from textual.binding import Binding
+from textual.containers import Horizontal, Vertical
+from textual.screen import ModalScreen
+from textual.widgets import Button, DataTable, Footer, Header, Static
+
+from station.tui.controller import STEP_PRESETS, JogController, WritebackPlan
+
+# (plus key, minus key) per axis: J1..J6 in joint mode, X Y Z Rx Ry Rz in Cartesian mode
+JOG_KEYS = (("q", "a"), ("w", "s"), ("e", "d"), ("r", "f"), ("t", "g"), ("y", "h"), ("u", "j"))
+POLL_S = 0.2
+
+
+def _fmt_value(v: float, rotational: bool) -> str:
+    return f"{np.rad2deg(v):+10.3f} deg" if rotational else f"{v * 1e3:+10.3f} mm "
+
+
+class WritebackScreen(ModalScreen[bool]):
+    """Explicit confirmation with the before/after of every value the write would change."""
+
+    BINDINGS = [Binding("y", "confirm", "write to robot"), Binding("n,escape", "cancel", "cancel")]
+    AUTO_FOCUS = "#wb-no"  # enter (the record key) must never confirm a write by accident
+    DEFAULT_CSS = """
+    WritebackScreen { align: center middle; }
+    #wb-box { width: 90; height: auto; border: thick $warning; background: $surface; padding: 1 2; }
+    #wb-buttons { height: auto; margin-top: 1; }
+    #wb-buttons Button { margin-right: 2; }
+    """
+
+    def __init__(self, plan: WritebackPlan) -> None:
+        super().__init__()
+        self.plan = plan
+
+    def compose(self) -> ComposeResult:
+        t = Text()
+        t.append("Write joint zero offsets to the robot?\n\n", style="bold")
+        t.append(f"{'parameter':<12}{'before [deg]':>16}{'correction':>14}{'after [deg]':>16}\n", style="bold")
+        for name in sorted(self.plan.after, key=lambda n: (len(n), n)):
+            b = self.plan.before.get(name, 0.0)
+            a = self.plan.after[name]
+            c = self.plan.corrections.get(name)
+            mark = "" if c is None else f"{np.rad2deg(c):+14.4f}"
+            t.append(f"{name:<12}{np.rad2deg(b):+16.4f}{mark:>14}{np.rad2deg(a):+16.4f}\n",
+                     style="bold yellow" if c is not None else "")
+        t.append("\nThe pre-image is journaled and saved as calibration-backup.json before writing.\n")
+        with Vertical(id="wb-box"):
+            yield Static(t, id="wb-table")
+            with Horizontal(id="wb-buttons"):
+                yield Button("Write (y)", variant="error", id="wb-yes")
+                yield Button("Cancel (n)", variant="primary", id="wb-no")
+
+    def on_button_pressed(self, event: Button.Pressed) -> None:
+        self.dismiss(event.button.id == "wb-yes")
+
+    def action_confirm(self) -> None:
+        self.dismiss(True)
+
+    def action_cancel(self) -> None:
+        self.dismiss(False)
+
+
+class JogApp(App):
+    TITLE = "station jog"
+    CSS = """
+    #banner { display: none; background: $error; color: $text; text-style: bold; padding: 0 1; height: auto; }
+    #banner.on { display: block; }
+    #left { width: 60; }
+    #right { width: 1fr; }
+    .panel { border: round $primary; padding: 0 1; height: auto; }
+    #samples { height: 1fr; min-height: 6; border: round $primary; }
+    #solve { height: auto; max-height: 24; }
+    #message { height: 1; padding: 0 1; background: $boost; }
+    """
+    BINDINGS = [
+        Binding("space", "stop", "STOP", priority=True),
+        Binding("x", "stop", "STOP", show=False, priority=True),
+        Binding("m", "toggle_mode", "joint/cart"),
+        Binding("1", "step(0)", f"{STEP_PRESETS[0]:g}", show=False),
+        Binding("2", "step(1)", f"{STEP_PRESETS[1]:g}", show=False),
+        Binding("3", "step(2)", f"{STEP_PRESETS[2]:g}", show=False),
+        Binding("minus", "speed(-1)", "slower", show=False),
+        Binding("plus,equals_sign", "speed(1)", "faster", show=False),
+        Binding("p", "point(1)", "point"),
+        Binding("enter", "record", "record"),
+        Binding("exclamation_mark", "record_forced", "record w/o contact", show=False),
+        Binding("k", "retake", "retake"),
+        Binding("delete,backspace", "discard", "discard"),
+        Binding("up", "select(-1)", "select", show=False),
+        Binding("down", "select(1)", "select", show=False),
+        Binding("e", "enable", "enable/reset", show=False),
+        Binding("W", "writeback", "write back"),
+        Binding("ctrl+q", "quit", "quit"),
+    ]
+
+    def __init__(self, controller: JogController, *, poll_s: float = POLL_S) -> None:
+        super().__init__()
+        self.ctl = controller
+        self.poll_s = poll_s
+        self.motion_busy = False
+        n = controller.model.n_joints
+        for i, (plus, minus) in enumerate(JOG_KEYS[:max(n, 6)]):
+            self._bindings.bind(plus, f"jog({i},1)", show=False)
+            self._bindings.bind(minus, f"jog({i},-1)", show=False)
+
+    # ---- layout ----------------------------------------------------------------------------------------
+    def compose(self) -> ComposeResult:
+        yield Header()
+        yield Static("", id="banner")
+        with Horizontal():
+            with Vertical(id="left"):
+                yield Static(id="joints", classes="panel")
+                yield Static(id="tcp", classes="panel")
+                yield Static(id="jog", classes="panel")
+                yield Static(id="keys", classes="panel")
+            with Vertical(id="right"):
+                yield DataTable(id="samples", cursor_type="row", zebra_stripes=True)
+                yield Static(id="solve", classes="panel")
+        yield Static("", id="message")
+        yield Footer()
+
+    def on_mount(self) -> None:
+        ident = self.ctl.session.session_id
+        self.sub_title = f"{self.ctl.model.name} · session {ident}"
+        self.query_one("#joints").border_title = "joints (encoder, as reported)"
+        self.query_one("#tcp").border_title = "TCP (nominal model FK, base frame)"
+        self.query_one("#jog").border_title = "jog"
+        self.query_one("#keys").border_title = "keys"
+        self.query_one("#solve").border_title = f"live solve: {self.ctl.identify}"
+        table = self.query_one("#samples", DataTable)
+        table.can_focus = False  # every key goes to the app's bindings
+        table.border_title = f"samples → {self.ctl.session.samples_csv}"
+        table.add_columns("#", "point", "touch", *[f"J{i + 1}" for i in range(self.ctl.model.n_joints)])
+        self.query_one("#keys", Static).update(self._keys_text())
+        self.ctl.poll(block=True)
+        self.refresh_view()
+        self.set_interval(self.poll_s, self._tick)
+
+    def _keys_text(self) -> Text:
+        n = max(self.ctl.model.n_joints, 6)
+        pairs = " ".join(f"{p}/{m}" for p, m in JOG_KEYS[:n])
+        return Text.from_markup(
+            f"[b]{pairs}[/b] axis 1..{n} +/-  [b]m[/b] joint|Cart\n"
+            f"[b]1 2 3[/b] step {' / '.join(f'{s:g}' for s in STEP_PRESETS)} mm|deg  [b]- +[/b] speed\n"
+            "[b]p[/b] point  [b]enter[/b] record  [b]![/b] record w/o contact\n"
+            "[b]↑ ↓[/b] select  [b]k[/b] retake  [b]del[/b] discard  [b]W[/b] write\n"
+            "[b][reverse] space [/reverse][/b] STOP (x)  [b]e[/b] enable/reset  [b]ctrl+q[/b] quit")
+
+    # ---- periodic refresh ------------------------------------------------------------------------------
+    def _tick(self) -> None:
+        if self.ctl.closed:
+            return
+        self.ctl.poll()
+        self.refresh_view()
+
+    def refresh_view(self) -> None:
+        ctl = self.ctl
+        banner = self.query_one("#banner", Static)
+        if ctl.fault:
+            banner.update(f"⚠ FAULT — motion stopped: {ctl.fault}   (e: enable / reset)")
+            banner.add_class("on")
+        else:
+            banner.remove_class("on")
+        r = ctl.readout
+        joints = Text()
+        if r is not None:
+            for i, j in enumerate(ctl.model.joints):
+                style = "bold" if ctl.mode == "joint" and i == ctl.axis else ""
+                joints.append(f"J{i + 1} {j.name[:8]:<8}{_fmt_value(r.q[i], j.revolute)}", style=style)
+                lo, hi = (np.rad2deg([j.lower, j.upper]) if j.revolute else np.array([j.lower, j.upper]) * 1e3)
+                joints.append(f"  [{lo:.0f}, {hi:.0f}]\n", style="dim")
+        self.query_one("#joints", Static).update(joints)
+        tcp = Text()
+        if r is not None:
+            x, y, z = r.tcp[:3] * 1e3
+            rx, ry, rz = np.rad2deg(r.tcp[3:])
+            tcp.append(f"X {x:+10.3f} mm   Rx {rx:+9.3f} deg\nY {y:+10.3f} mm   Ry {ry:+9.3f} deg\n"
+                       f"Z {z:+10.3f} mm   Rz {rz:+9.3f} deg")
+        self.query_one("#tcp", Static).update(tcp)
+        jog = Text()
+        jog.append("mode  ")
+        jog.append(f"{ctl.mode:<10}", style="bold cyan")
+        jog.append("step  ")
+        jog.append(f"{ctl.step:g} mm | deg\n", style="bold cyan")
+        jog.append("speed ")
+        jog.append(f"{ctl.speed_mm_s:g} mm/s", style="bold cyan")
+        jog.append(" (cap 250)  point ")
+        jog.append(f"{ctl.point}\n", style="bold magenta")
+        jog.append("touch ")
+        if r is None or r.touch is None:
+            jog.append(" no contact input ", style="reverse dim")
+        elif r.touch:
+            jog.append(" ● CONTACT ", style="bold black on green")
+        else:
+            jog.append(" ○ no contact ", style="dim")
+        state = "moving" if (r and r.moving) or self.motion_busy else "still"
+        jog.append(f"   {state}", style="yellow" if state == "moving" else "green")
+        if r is not None and not r.enabled:
+            jog.append("  disabled", style="red")
+        self.query_one("#jog", Static).update(jog)
+        self._refresh_samples()
+        self.query_one("#solve", Static).update(self._solve_text())
+        self.query_one("#message", Static).update(ctl.message)
+
+    def _refresh_samples(self) -> None:
+        table = self.query_one("#samples", DataTable)
+        samples = self.ctl.session.samples
+        table.clear()
+        for s in samples:
+            touch = "–" if s.touch is None else ("●" if s.touch else "○")
+            vals = [f"{np.rad2deg(v):.3f}" if j.revolute else f"{v * 1e3:.3f}"
+                    for v, j in zip(s.q, self.ctl.model.joints, strict=True)]
+            table.add_row(str(s.seq), s.point, touch, *vals)
+        if samples:
+            sel = len(samples) - 1 if self.ctl.selected is None else self.ctl.selected
+            table.move_cursor(row=sel, animate=False)
+
+    def _solve_text(self) -> Text:
+        st = self.ctl.solve_state
+        t = Text()
+        if st.status == "waiting":
+            t.append("record samples to start the solve", style="dim")
+            return t
+        t.append(f"{st.n_samples} samples · ")
+        if st.status == "error":
+            t.append(st.message, style="bold yellow")
+            return t
+        res = st.residuals
+        before, after, mx = (res.get(k) for k in ("rms_before_m", "rms_after_m", "max_after_m"))
+
+        def um(v):
+            return "–" if v is None else f"{v * 1e6:.1f}"
+
+        t.append(f"{st.message} · residual RMS {um(before)} → {um(after)} µm, max {um(mx)} µm\n")
+        t.append("identified", style="bold green")
+        t.append(" (correction ± std):\n")
+        for name, value, std, unit in st.identified:
+            k, u = (180 / np.pi, "deg") if unit == "rad" else (1e3, "mm")
+            sd = "" if std is None else f" ± {std * k:.4f}"
+            t.append(f"  {name:<14}{value * k:+10.4f}{sd} {u}\n")
+        if st.unidentifiable:
+            t.append("not identifiable — add poses that change these:\n", style="bold yellow")
+            for name, reason in st.unidentifiable.items():
+                t.append(f"  {name}: ", style="yellow")
+                t.append(f"{reason}\n")
+        else:
+            t.append("every requested parameter is identifiable\n", style="green")
+        return t
+
+    # ---- actions ---------------------------------------------------------------------------------------
+    def check_action(self, action: str, parameters: tuple) -> bool | None:
+        """While a dialog is open only STOP and quit reach the app (no jog or record behind the dialog)."""
+        return len(self.screen_stack) <= 1 or action in ("stop", "quit")
+
+    def action_stop(self) -> None:
+        self.ctl.stop()
+        self.refresh_view()
+
+    def action_jog(self, axis: int, direction: int) -> None:
+        if self.motion_busy:
+            self.ctl.message = "still moving: wait, or STOP (space)"
+            self.refresh_view()
+            return
+        self.motion_busy = True
+        self.run_worker(lambda: self._jog_worker(axis, direction), thread=True, group="motion",
+                        name=f"jog {axis} {direction}")
+
+    def _jog_worker(self, axis: int, direction: int) -> None:
+        try:
+            self.ctl.jog(axis, direction)
+            self.ctl.poll(block=True)
+        finally:
+            self.motion_busy = False
+            self.call_from_thread(self.refresh_view)
+
+    def action_toggle_mode(self) -> None:
+        self.ctl.toggle_mode()
+        self.refresh_view()
+
+    def action_step(self, index: int) -> None:
+        self.ctl.set_step(index)
+        self.refresh_view()
+
+    def action_speed(self, delta: int) -> None:
+        self.ctl.change_speed(delta)
+        self.refresh_view()
+
+    def action_point(self, delta: int) -> None:
+        self.ctl.next_point(delta)
+        self.refresh_view()
+
+    def _guard_motion(self) -> bool:
+        if self.motion_busy:
+            self.ctl.message = "still moving: not recorded"
+            self.refresh_view()
+            return False
+        return True
+
+    def action_record(self) -> None:
+        if self._guard_motion():
+            self.ctl.record()
+            self.refresh_view()
+
+    def action_record_forced(self) -> None:
+        if self._guard_motion():
+            self.ctl.record(force=True)
+            self.refresh_view()
+
+    def action_retake(self) -> None:
+        if self._guard_motion():
+            self.ctl.retake()
+            self.refresh_view()
+
+    def action_discard(self) -> None:
+        self.ctl.discard()
+        self.refresh_view()
+
+    def action_select(self, delta: int) -> None:
+        self.ctl.select(delta)
+        self.refresh_view()
+
+    def action_enable(self) -> None:
+        self.ctl.enable()
+        self.refresh_view()
+
+    def action_writeback(self) -> None:
+        if not self._guard_motion():
+            return
+        plan = self.ctl.writeback_plan()
+        self.refresh_view()
+        if plan is None:
+            return
+
+        def done(confirmed: bool | None) -> None:
+            if confirmed:
+                self.ctl.writeback_apply(plan)
+            else:
+                self.ctl.message = "write-back cancelled: nothing written"
+            self.refresh_view()
+
+        self.push_screen(WritebackScreen(plan), done)
+
+    def on_unmount(self) -> None:
+        self.ctl.close()

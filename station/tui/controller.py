@@ -1,0 +1,417 @@
+"""The jog UI's logic, apart from any widget: step presets, speed override, jogging through the shared
+motion helpers, the touch indicator, record/retake/discard into the session, the live solve, faults and
+write-back. Textual widgets only render this state and call these methods (and tests can too)."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from station.kinematics import Model, se3
+from station.robot.errors import LimitError, StationError
+from station.robot.motion import MANUAL_TOOL_SPEED_CAP, jog_target, joint_speed_for_tool_cap
+from station.tui.session import JogSample, JogSession
+
+STEP_PRESETS = (0.01, 0.1, 1.0)  # mm for translations / prismatic joints, deg for rotations
+SPEED_PRESETS_MM_S = (5.0, 10.0, 25.0, 50.0, 100.0, 250.0)  # speed override at the tool
+POINT_LABELS = tuple("ABCDEFGH")
+CART_AXES = ("X", "Y", "Z", "Rx", "Ry", "Rz")
+WRITEBACK_READBACK_TOL = 1e-6  # rad/m: a device stores whole encoder counts, far finer than this is not asked
+
+
+@dataclass
+class Readout:
+    q: np.ndarray  # SI
+    tcp: np.ndarray  # (6,) x, y, z (m), rx, ry, rz (rad, fixed-axis roll-pitch-yaw) of the nominal model
+    touch: bool | None
+    moving: bool
+    enabled: bool
+    t: float
+
+
+@dataclass
+class SolveState:
+    status: str = "waiting"  # waiting | ok | error
+    message: str = "no samples yet"
+    n_samples: int = 0
+    residuals: dict = field(default_factory=dict)
+    identified: list[tuple[str, float, float | None, str]] = field(default_factory=list)  # name, value, std, unit
+    unidentifiable: dict[str, str] = field(default_factory=dict)
+    result: object | None = None  # CalibrationResult
+    seconds: float = 0.0
+
+
+@dataclass
+class WritebackPlan:
+    before: dict[str, float]
+    after: dict[str, float]
+    corrections: dict[str, float]
+
+
+def parse_reference(text: str | None) -> str | dict[str, np.ndarray]:
+    """``unknown`` or ``x,y,z`` in metres (``x,y,zmm`` or a ``mm`` suffix for millimetres) -> the solver's
+    ``reference`` argument for point ``A``."""
+    if text is None or text.strip().lower() in ("", "unknown"):
+        return "unknown"
+    t = text.strip().lower()
+    scale = 1.0
+    if t.endswith("mm"):
+        t, scale = t[:-2], 1e-3
+    elif t.endswith("m"):
+        t = t[:-1]
+    try:
+        xyz = np.array([float(v) for v in t.split(",")], dtype=float) * scale
+    except ValueError:
+        xyz = np.array([])
+    if xyz.shape != (3,) or not np.all(np.isfinite(xyz)):
+        from station.robot.errors import ConfigError
+
+        raise ConfigError(f"--reference {text!r}: expected 'unknown' or x,y,z in metres (or x,y,z mm)")
+    return {"A": xyz}
+
+
+class JogController:
+    """One robot, one session. Robot I/O is serialised by ``io_lock`` (the UI polls from its thread and moves
+    from a worker thread); ``stop()`` deliberately bypasses the lock so it always gets through."""
+
+    def __init__(self, robot, session: JogSession, *, model: Model | None = None, identify: str = "offsets,tcp",
+                 reference: str | dict = "unknown", solve_fn: Callable | None = None) -> None:
+        self.robot = robot
+        self.model: Model = model if model is not None else robot.model
+        self.session = session
+        self.identify = identify
+        self.reference = reference
+        self._solve_fn = solve_fn
+        self.io_lock = threading.RLock()
+        self.mode = "joint"  # joint | cartesian
+        self.axis = 0  # last axis jogged / selected
+        self.step_index = 1
+        self.speed_index = 2
+        self.point_index = 0
+        self.selected: int | None = None  # index into session.samples; None = the latest
+        self.fault: str | None = None
+        self.message = "ready"
+        self.readout: Readout | None = None
+        self.solve_state = SolveState()
+        self.writeback_done: dict | None = None
+        self.last_jog: dict | None = None
+        self.closed = False
+        self.model.select(identify)  # unknown group/name: fail at start, not after the first record
+
+    # ---- presets ---------------------------------------------------------------------------------------
+    @property
+    def step(self) -> float:
+        return STEP_PRESETS[self.step_index]
+
+    @property
+    def speed_mm_s(self) -> float:
+        return min(SPEED_PRESETS_MM_S[self.speed_index], MANUAL_TOOL_SPEED_CAP * 1e3)
+
+    @property
+    def point(self) -> str:
+        return POINT_LABELS[self.point_index]
+
+    def set_step(self, index: int) -> None:
+        self.step_index = max(0, min(len(STEP_PRESETS) - 1, index))
+        self.message = f"step {self.step:g} mm / deg"
+
+    def change_speed(self, delta: int) -> None:
+        self.speed_index = max(0, min(len(SPEED_PRESETS_MM_S) - 1, self.speed_index + delta))
+        self.message = f"speed override {self.speed_mm_s:g} mm/s at the tool"
+
+    def toggle_mode(self) -> None:
+        self.mode = "cartesian" if self.mode == "joint" else "joint"
+        self.message = f"{self.mode} jog"
+
+    def next_point(self, delta: int = 1) -> None:
+        self.point_index = (self.point_index + delta) % len(POINT_LABELS)
+        self.message = f"reference point {self.point}"
+
+    def axis_names(self) -> list[str]:
+        if self.mode == "cartesian":
+            return list(CART_AXES)
+        return [f"J{i + 1}" for i in range(self.model.n_joints)]
+
+    def axis_unit(self, axis: int) -> str:
+        if self.mode == "joint":
+            rotational = self.model.joints[axis].revolute if axis < self.model.n_joints else True
+        else:
+            rotational = axis >= 3
+        return "deg" if rotational else "mm"
+
+    def step_si(self, axis: int) -> float:
+        """The current preset in SI for ``axis`` of the current mode."""
+        return np.deg2rad(self.step) if self.axis_unit(axis) == "deg" else self.step * 1e-3
+
+    # ---- robot I/O -------------------------------------------------------------------------------------
+    def _on_error(self, err: StationError, what: str) -> None:
+        """A bus/device/safety error: stop, show it, journal it. A refused command (LimitError) is not a
+        fault: nothing was sent, so the UI only says why."""
+        if isinstance(err, LimitError):
+            self.message = f"refused: {err}"
+            return
+        self.fault = f"{what}: {err}"
+        self.message = "FAULT: motion stopped"
+        self.stop(quiet=True)
+        try:
+            self.session.event({"type": "fault", "step": what, "error": type(err).__name__, "message": str(err)})
+        except Exception as e:  # the journal is gone too (disk full): keep the banner, say so
+            self.fault += f" (journal: {e})"
+
+    def stop(self, quiet: bool = False) -> None:
+        """Always available: no lock, no precondition."""
+        try:
+            self.robot.stop()
+            if not quiet:
+                self.message = "STOPPED"
+        except StationError as e:
+            if not quiet:
+                self._on_error(e, "stop")
+
+    def poll(self, block: bool = False) -> Readout | None:
+        """Refresh joints, TCP, touch and status. Skips (returns None) while another thread talks to the robot
+        unless ``block``."""
+        if not self.io_lock.acquire(blocking=block):
+            return None
+        try:
+            snap = self.robot.joint_positions()
+            touch = self.robot.touch()
+            status = self.robot.status()
+        except StationError as e:
+            self._on_error(e, "read")
+            return None
+        finally:
+            self.io_lock.release()
+        if not status.ok and self.fault is None:
+            parts = list(status.faults)
+            if status.estop:
+                parts.append("emergency stop")
+            if status.protective_stop:
+                parts.append("protective stop")
+            self.fault = "robot reports: " + "; ".join(parts)
+            self.message = "FAULT: motion stopped"
+            self.stop(quiet=True)
+            self.session.event({"type": "fault", "step": "status", "error": "status", "message": self.fault})
+        T = self.model.fk(snap.q)
+        tcp = np.concatenate([T[:3, 3], se3.matrix_to_rpy(T[:3, :3])])
+        self.readout = Readout(np.asarray(snap.q, float), tcp, touch, status.moving, status.enabled, snap.t)
+        return self.readout
+
+    def jog(self, axis: int, direction: int) -> bool:
+        """One step of the current preset on ``axis`` (joint index or 0..5 = X Y Z Rx Ry Rz), sign from
+        ``direction``. Target and speed come from the shared motion helpers; the driver checks again."""
+        if self.fault:
+            self.message = "clear the fault first (e)"
+            return False
+        if self.mode == "joint" and axis >= self.model.n_joints:
+            self.message = f"this robot has {self.model.n_joints} joints"
+            return False
+        self.axis = axis
+        step = float(np.sign(direction)) * self.step_si(axis)
+        cap = self.speed_mm_s * 1e-3
+        with self.io_lock:
+            try:
+                q0 = np.asarray(self.robot.joint_positions().q, dtype=float)
+                target = jog_target(self.model, q0, self.mode, axis, step)  # LimitError: nothing sent
+                # joint jog: the protocol's speed is a joint speed; Cartesian jog: the tool speed (m/s)
+                speed = (joint_speed_for_tool_cap(self.model, q0, target, None, cap=cap) if self.mode == "joint"
+                         else cap)
+                self.robot.jog(self.mode, axis, step, speed)
+            except StationError as e:
+                self._on_error(e, f"jog {self.axis_names()[axis]}")
+                return False
+        self.last_jog = {"mode": self.mode, "axis": axis, "step": step, "speed": speed, "q0": q0, "target": target,
+                         "cap_m_s": cap}
+        self.message = f"jog {self.axis_names()[axis]} {'+' if step > 0 else '-'}{self.step:g} {self.axis_unit(axis)}"
+        return True
+
+    def enable(self) -> None:
+        """Reset a fault: re-enable the robot and clear the banner only if the robot then reports OK."""
+        with self.io_lock:
+            try:
+                self.robot.enable()
+                status = self.robot.status()
+            except StationError as e:
+                self.fault = f"enable: {e}"
+                return
+        if status.ok:
+            self.fault = None
+            self.message = "enabled"
+            self.session.event({"type": "step", "name": "enable", "status": "ok"})
+        else:
+            self.fault = "still faulted: " + "; ".join(status.faults or ("stop input active",))
+
+    # ---- samples ---------------------------------------------------------------------------------------
+    def _selected_sample(self) -> JogSample | None:
+        samples = self.session.samples
+        if not samples:
+            return None
+        i = len(samples) - 1 if self.selected is None else max(0, min(len(samples) - 1, self.selected))
+        return samples[i]
+
+    def select(self, delta: int) -> None:
+        n = len(self.session.samples)
+        if not n:
+            return
+        cur = n - 1 if self.selected is None else self.selected
+        cur = max(0, min(n - 1, cur + delta))
+        self.selected = None if cur == n - 1 else cur
+
+    def record(self, force: bool = False, point: str | None = None) -> JogSample | None:
+        """Record the current pose as a touch of the selected reference point. Refused while faulted, moving,
+        or (unless ``force``) while the cell's contact input is present and not lit."""
+        if self.fault:
+            self.message = "clear the fault first (e)"
+            return None
+        if self.writeback_done is not None:
+            self.message = "calibration was written back: start a new session to verify (samples would mix)"
+            return None
+        with self.io_lock:
+            try:
+                status = self.robot.status()
+                touch = self.robot.touch()
+                snap = self.robot.joint_positions()
+            except StationError as e:
+                self._on_error(e, "record")
+                return None
+        if not status.ok:
+            self.message = "robot not OK: not recorded"
+            return None
+        if status.moving:
+            self.message = "robot is moving: not recorded"
+            return None
+        if touch is False and not force:
+            self.message = "no contact: jog onto the reference until the touch indicator lights (! records anyway)"
+            return None
+        sample = self.session.add_sample(
+            snap.q, point or self.point, raw=snap.raw, raw_unit=snap.raw_unit, t=snap.t, t_device=snap.t_device,
+            touch=touch, status={"enabled": status.enabled, "forced": bool(force and touch is False)})
+        self.selected = None
+        self.message = f"recorded #{sample.seq} on {sample.point} ({len(self.session.samples)} samples)"
+        self.solve()
+        return sample
+
+    def retake(self, force: bool = False) -> JogSample | None:
+        """Record the current pose in place of the selected sample (same point); the old one is discarded only
+        after the new one is safely journaled."""
+        old = self._selected_sample()
+        if old is None:
+            self.message = "nothing to retake"
+            return None
+        new = self.record(force=force, point=old.point)
+        if new is None:
+            return None
+        self.session.discard(old, reason=f"retaken as #{new.seq}")
+        self.message = f"retook #{old.seq} as #{new.seq} on {new.point}"
+        self.solve()
+        return new
+
+    def discard(self) -> JogSample | None:
+        old = self._selected_sample()
+        if old is None:
+            self.message = "nothing to discard"
+            return None
+        self.session.discard(old, reason="technician")
+        self.selected = None
+        self.message = f"discarded #{old.seq}"
+        self.solve()
+        return old
+
+    # ---- live solve ------------------------------------------------------------------------------------
+    def solve(self) -> SolveState:
+        samples = self.session.samples
+        if not samples:
+            self.solve_state = SolveState()
+            return self.solve_state
+        from station.solver import Observations
+
+        solve = self._solve_fn
+        if solve is None:
+            from station.solver import solve
+        q = np.array([s.q for s in samples])
+        labels = np.array([s.point for s in samples], dtype=object)
+        t0 = time.perf_counter()
+        try:
+            result = solve(self.model, Observations(q, labels), identify=self.identify, reference=self.reference)
+        except (ValueError, KeyError, StationError, np.linalg.LinAlgError) as e:
+            self.solve_state = SolveState("error", str(e), len(samples), seconds=time.perf_counter() - t0)
+            return self.solve_state
+        dt = time.perf_counter() - t0
+        identified = [(n, p.value - p.nominal if p.kind == "model" else p.value, p.std, p.unit)
+                      for n, p in result.parameters.items() if p.identifiable]
+        self.solve_state = SolveState("ok", "converged" if result.converged else "did not converge", len(samples),
+                                      dict(result.residuals), identified, dict(result.unidentifiable), result, dt)
+        return self.solve_state
+
+    # ---- write-back ------------------------------------------------------------------------------------
+    def writeback_plan(self) -> WritebackPlan | None:
+        """Before/after of the device's zero offsets: ``after = before + identified offset``."""
+        if self.fault:
+            self.message = "clear the fault first (e)"
+            return None
+        result = self.solve_state.result
+        if result is None:
+            self.message = "nothing to write back: record samples until the solve identifies offsets"
+            return None
+        corr = {n: float(p.value) for n, p in result.parameters.items()
+                if n.startswith("offset.") and p.identifiable}
+        if not corr:
+            self.message = "the solve identified no joint offsets: nothing to write back"
+            return None
+        with self.io_lock:
+            try:
+                before = {k: float(v) for k, v in self.robot.read_calibration().items()}
+            except StationError as e:
+                self._on_error(e, "read calibration")
+                return None
+        after = dict(before)
+        for n, v in corr.items():
+            after[n] = before.get(n, 0.0) + v
+        return WritebackPlan(before, after, corr)
+
+    def writeback_apply(self, plan: WritebackPlan) -> bool:
+        """Only after the technician confirmed ``plan``: journal the pre-image (and keep a backup file),
+        write, read back, journal the outcome."""
+        result = self.solve_state.result
+        if result is not None:
+            self.session.event({"type": "result", "result": result.to_dict()})
+        backup = self.session.folder / "calibration-backup.json"
+        backup.write_text(json.dumps({"units": "SI (m, rad)", "before": plan.before}, indent=2))
+        self.session.event({"type": "writeback", "stage": "pre-image", "before": plan.before, "after": plan.after,
+                            "applied": False, "verified": False})
+        with self.io_lock:
+            try:
+                self.robot.stop()
+                self.robot.write_calibration(plan.after)
+                readback = {k: float(v) for k, v in self.robot.read_calibration().items()}
+            except StationError as e:
+                self._on_error(e, "write-back")
+                self.session.event({"type": "writeback", "stage": "failed", "before": plan.before,
+                                    "after": plan.after, "applied": False, "verified": False, "error": str(e)})
+                return False
+        verified = all(abs(readback.get(k, np.nan) - v) <= WRITEBACK_READBACK_TOL for k, v in plan.after.items())
+        self.session.event({"type": "writeback", "stage": "done", "before": plan.before, "after": plan.after,
+                            "readback": readback, "applied": True, "verified": verified})
+        self.writeback_done = {"before": plan.before, "after": plan.after, "verified": verified}
+        self.message = ("written back and read back OK" if verified else
+                        "written back but the read-back differs: check the robot")
+        return verified
+
+    # ---- end -------------------------------------------------------------------------------------------
+    def close(self) -> None:
+        """Teardown: stop motion whatever happened, journal the final result and the end. Idempotent."""
+        if self.closed:
+            return
+        self.closed = True
+        self.stop(quiet=True)
+        try:
+            result = self.solve_state.result
+            if result is not None and self.writeback_done is None:
+                self.session.event({"type": "result", "result": result.to_dict()})
+        finally:
+            self.session.close()
