@@ -1,0 +1,91 @@
+"""``station mock dynamixel``: the Dynamixel bus emulator as a process; prints the pty path and runs
+until SIGTERM/SIGINT."""
+
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import threading
+from pathlib import Path
+
+import typer
+
+from station.robot.errors import ConfigError
+
+
+def _load_eeprom(path: Path | None) -> dict[int, bytes]:
+    if path is None or not path.exists():
+        return {}
+    try:
+        doc = json.loads(path.read_text())
+        return {int(k): bytes.fromhex(v) for k, v in doc["eeprom"].items()}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
+        raise ConfigError(f"{path}: not a dynamixel EEPROM file ({e})") from None
+
+
+def _save_eeprom(path: Path, images: dict[int, bytes]) -> None:
+    doc = {"format": "station-dxl-eeprom/1", "note": "EEPROM bytes 0..63 of each emulated device by id, hex",
+           "eeprom": {str(k): v.hex() for k, v in sorted(images.items())}}
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(doc, indent=1) + "\n")
+    tmp.replace(path)
+
+
+def build_emulator(world_file: Path | None, model: str, ids: str | None, baud: int | None, wire_timing: bool,
+                   return_delay: int | None, contact_id: str | None, servo: str | None, eeprom: Path | None,
+                   seed: int = 0):
+    from station.mocks.dynamixel.emulator import DEFAULT_CONTACT_ID, DynamixelEmulator
+    from station.mocks.world import World, WorldFileError
+
+    from station.robot.registry import parse_ids
+
+    try:
+        world = World.from_file(world_file) if world_file else World.default(model=model, seed=seed,
+                                                                             time_mode="realtime")
+    except (WorldFileError, ValueError, OSError) as e:
+        raise ConfigError(f"world: {e}") from None
+    cfg = world.bus_config("dynamixel")
+    id_list = parse_ids(ids) if ids else (parse_ids(str(cfg["ids"]).strip("[]")) if cfg.get("ids") else None)
+    c = contact_id if contact_id is not None else cfg.get("contact_id", DEFAULT_CONTACT_ID)
+    c = None if c is None or str(c).lower() in ("none", "off", "") else int(c)
+    try:
+        return DynamixelEmulator(world, id_list, servo=servo or cfg.get("servo", "xm430"),
+                                 baud=int(baud or cfg.get("baud", 1_000_000)),
+                                 return_delay=int(return_delay if return_delay is not None
+                                                  else cfg.get("return_delay", 0)),
+                                 wire_timing=wire_timing or bool(cfg.get("wire_timing", False)),
+                                 contact_id=c, eeprom=_load_eeprom(eeprom))
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+
+
+def register(mock_app: typer.Typer) -> None:
+    @mock_app.command("dynamixel")
+    def dynamixel(
+        world: Path = typer.Option(None, "--world", help="world file (docs/world.md); default: built-in world"),
+        model: str = typer.Option("omx", "--model", help="model of the default world"),
+        seed: int = typer.Option(0, "--seed", help="seed of the default world's hidden errors"),
+        ids: str = typer.Option(None, "--ids", help="servo ids in joint order, e.g. 11-14 (default 1..n)"),
+        baud: int = typer.Option(None, "--baud", help="baud rate (default 1000000)"),
+        wire_timing: bool = typer.Option(False, "--wire-timing", help="answer after real wire time"),
+        return_delay: int = typer.Option(None, "--return-delay", help="return delay time, units of 2 us"),
+        contact: str = typer.Option(None, "--contact-id", help="contact sensor id (default 200, 'none': off)"),
+        servo: str = typer.Option(None, "--servo", help="xm430 (default) or xl430"),
+        eeprom: Path = typer.Option(None, "--eeprom", help="EEPROM file: loaded at start, saved at exit"),
+    ) -> None:
+        """Emulated Dynamixel servos (Protocol 2.0) on a pseudo-terminal; prints the pty path."""
+        emu = build_emulator(world, model, ids, baud, wire_timing, return_delay, contact, servo, eeprom, seed)
+        done = threading.Event()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: done.set())
+        path = emu.start()
+        try:
+            sys.stdout.write(path + "\n")
+            sys.stdout.flush()
+            while not done.wait(0.5):
+                pass
+        finally:
+            emu.stop()
+            if eeprom is not None:
+                _save_eeprom(eeprom, emu.eeprom())
