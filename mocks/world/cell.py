@@ -1,0 +1,76 @@
+"""Calibration cell: fixed reference points the tool tip can touch (needle) or seat in (socket)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+KINDS = ("socket", "needle")
+CELL_FORMAT = "station-cell/1"
+
+
+@dataclass(frozen=True)
+class CellPoint:
+    """A reference point, TRUE position in the robot base frame (m).
+
+    ``radius`` is the contact radius of a needle or the capture radius of a socket (m); ``approach`` is
+    the unit vector from the point towards where the tool comes from (e.g. up, out of a socket's cone)."""
+
+    label: str
+    kind: str  # "socket" | "needle"
+    position: np.ndarray = field(repr=False)
+    radius: float
+    approach: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]), repr=False)
+
+    def distance(self, p) -> float:
+        return float(np.linalg.norm(np.asarray(p, dtype=float) - self.position))
+
+
+# Default cells and start poses per built-in model (SI). Sockets sit where the tool reaches them from a
+# wide cone of orientations (checked by tests/test_world_cell.py); needles point up.
+DEFAULTS: dict[str, dict] = {
+    "ur5e": {
+        "start": [0.0, -1.5707963267948966, 1.5707963267948966, -1.5707963267948966, -1.5707963267948966, 0.0],
+        "points": [
+            {"label": "A", "kind": "socket", "position": [0.45, 0.0, 0.05], "approach": [0, 0, 1]},
+            {"label": "B", "kind": "socket", "position": [0.35, -0.30, 0.05], "approach": [0, 0, 1]},
+            {"label": "N", "kind": "needle", "position": [0.40, 0.25, 0.10], "approach": [0, 0, 1]},
+        ],
+    },
+    "ur3e": {
+        "start": [0.0, -1.5707963267948966, 1.5707963267948966, -1.5707963267948966, -1.5707963267948966, 0.0],
+        "points": [
+            {"label": "A", "kind": "socket", "position": [0.30, 0.0, 0.05], "approach": [0, 0, 1]},
+            {"label": "N", "kind": "needle", "position": [0.25, 0.15, 0.08], "approach": [0, 0, 1]},
+        ],
+    },
+    "ur10e": {
+        "start": [0.0, -1.5707963267948966, 1.5707963267948966, -1.5707963267948966, -1.5707963267948966, 0.0],
+        "points": [
+            {"label": "A", "kind": "socket", "position": [0.70, 0.0, 0.05], "approach": [0, 0, 1]},
+            {"label": "N", "kind": "needle", "position": [0.60, 0.35, 0.10], "approach": [0, 0, 1]},
+        ],
+    },
+    "omx": {
+        "start": [0.0, 0.0, 0.0, 0.0],
+        "points": [
+            {"label": "A", "kind": "socket", "position": [0.20, 0.0, 0.03], "approach": [0, 0, 1]},
+            {"label": "N", "kind": "needle", "position": [0.18, 0.08, 0.05], "approach": [0, 0, 1]},
+        ],
+    },
+    "arm6": {
+        "start": [0.0, -0.5, 0.5, 0.0, 0.0, 0.0],
+        "points": [
+            {"label": "A", "kind": "socket", "position": [0.70, 0.0, 0.10], "approach": [0, 0, 1]},
+            {"label": "N", "kind": "needle", "position": [0.65, 0.30, 0.15], "approach": [0, 0, 1]},
+        ],
+    },
+    "scara": {
+        "start": [0.3, 0.8, 0.05, 0.0],
+        "points": [
+            {"label": "A", "kind": "socket", "position": [0.40, 0.20, 0.20], "approach": [0, 0, 1]},
+            {"label": "N", "kind": "needle", "position": [0.35, -0.25, 0.20], "approach": [0, 0, 1]},
+        ],
+    },
+}

@@ -1,0 +1,92 @@
+"""``station mock world example|show|cell``: write, inspect and export simulated worlds."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+world_app = typer.Typer(no_args_is_help=True, help="Simulated world: robot with hidden errors, cell, faults.")
+
+
+def _fail(message: str) -> Exception:
+    # a StationError: station.cli.main prints "station: error: ..." and exits 2
+    from station.robot.errors import ConfigError
+
+    return ConfigError(message)
+
+
+def _load(path: Path):
+    from station.mocks.world import World, WorldFileError
+
+    try:
+        return World.from_file(path)
+    except WorldFileError as e:
+        raise _fail(str(e)) from None
+
+
+@world_app.command("example")
+def example(model: str = typer.Option("ur5e", "--model", help="Built-in model name or model file."),
+            seed: int = typer.Option(0, "--seed", help="Seed written into the file.")) -> None:
+    """Print a complete, commented world file (mm, deg): station mock world example > world.yaml"""
+    from station.mocks.world.example import example_text
+
+    from station.kinematics import ModelFileError
+
+    try:
+        typer.echo(example_text(model, seed), nl=False)
+    except ModelFileError as e:
+        raise _fail(str(e)) from None
+
+
+@world_app.command("show")
+def show(file: Path = typer.Argument(..., help="World file (station-world/1)."),
+         length: str = typer.Option("mm", "--length", help="Length unit of the report: mm or m."),
+         angle: str = typer.Option("deg", "--angle", help="Angle unit of the report: deg or rad.")) -> None:
+    """Print the hidden truth: every perturbed parameter (nominal, true, difference), the cell points."""
+    if length not in ("mm", "m") or angle not in ("deg", "rad"):
+        raise _fail(f"--length must be mm or m and --angle deg or rad (got {length!r}, {angle!r})")
+    typer.echo(_load(file).truth_report(length, angle))
+
+
+@world_app.command("cell")
+def cell(file: Path = typer.Argument(..., help="World file (station-world/1)."),
+         out: Path | None = typer.Option(None, "--out", help="Write the station-cell/1 file here (default: stdout).")
+         ) -> None:
+    """Export the station-side cell file (approximate point positions as an integrator knows them)."""
+    import yaml
+
+    doc = _load(file).station_cell()
+    text = ("# station cell (station-cell/1): reference points in the robot base frame, lengths in m, unit\n"
+            "# approach vectors point from the point towards the tool. Positions are surveyed, not exact.\n"
+            + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None))
+    if out is None:
+        typer.echo(text, nl=False)
+    else:
+        try:
+            out.write_text(text)
+        except OSError as e:
+            raise _fail(f"{out}: cannot write ({e.strerror})") from None
+        typer.echo(f"wrote {out} ({len(doc['points'])} points)", err=True)
+
+
+@world_app.command("freeze")
+def freeze(file: Path = typer.Argument(..., help="World file (station-world/1)."),
+           out: Path | None = typer.Option(None, "--out", help="Output file (default: stdout).")) -> None:
+    """Rewrite a world with its random errors drawn and written out explicitly (mm, deg)."""
+    import yaml
+
+    text = ("# station simulated world (station-world/1), random errors frozen; lengths mm, angles deg\n"
+            + yaml.safe_dump(_load(file).to_dict("mm", "deg", frozen=True), sort_keys=False,
+                           default_flow_style=None))
+    if out is None:
+        typer.echo(text, nl=False)
+    else:
+        try:
+            out.write_text(text)
+        except OSError as e:
+            raise _fail(f"{out}: cannot write ({e.strerror})") from None
+
+
+def register(mock_app: typer.Typer) -> None:
+    mock_app.add_typer(world_app, name="world")

@@ -1,0 +1,80 @@
+"""``station mock world example``: a complete, commented world file for a built-in model (mm, deg)."""
+
+from __future__ import annotations
+
+import math
+
+from station.mocks.world.cell import DEFAULTS
+from station.mocks.world.world import DEFAULT_SIGMAS
+
+
+def _mm(x: float) -> str:
+    return f"{x * 1e3:g}"
+
+
+def example_text(model: str = "ur5e", seed: int = 0) -> str:
+    from station.kinematics import load_model
+
+    m = load_model(model)
+    d = DEFAULTS.get(m.name, {"start": [0.0] * m.n_joints, "points": []})
+    start = ", ".join(f"{math.degrees(x):g}" if j.revolute else _mm(x) for x, j in zip(d["start"], m.joints,
+                                                                                       strict=True))
+    pts = "\n".join(
+        f"    - {{label: {p['label']}, kind: {p['kind']}, position: [{', '.join(_mm(x) for x in p['position'])}], "
+        f"approach: [{', '.join(f'{a:g}' for a in p['approach'])}]}}" for p in d["points"]) or "    []"
+    sj = m.joints[1].name
+    o, dh, tcp = DEFAULT_SIGMAS["offsets"], DEFAULT_SIGMAS["dh"], DEFAULT_SIGMAS["tcp"]
+    link = next((n for n in m.param_names if n.endswith(".a") and abs(m.param(n)) > 0), m.param_names[7])
+    return f"""\
+# station simulated world (station-world/1): the robot the emulators serve, with errors only you know.
+# Use it with any emulator:  station mock <bus> --world THIS_FILE ; inspect it:  station mock world show THIS_FILE
+# Units: every length below is in units.length, every angle in units.angle; time in s, mass in kg.
+format: station-world/1
+description: example world for {m.name}
+units: {{length: mm, angle: deg, time: s, mass: kg}}
+seed: {seed}                     # seeds every random draw (hidden errors, seating noise, survey error, encoder noise)
+
+robot:
+  model: {m.name}                 # built-in name ({m.name}, ...) or a station-model/1 file (relative to this file)
+  # tool: {{x: 0, y: 0, z: 0, rx: 0, ry: 0, rz: 0}}   # nominal tool (TCP) frame on the flange; default: the model's
+
+errors:                        # hidden: truth = nominal + error (the station does not know them)
+  explicit:                    # by parameter name (station model show {m.name} lists them); mm or deg by kind
+    offset.j2: 0.05            # deg: joint zero offset (theta = q + offset)
+    {link}: 0.3               # mm
+  random:                      # group, name or glob -> sigma of a zero-mean normal draw per parameter
+    offsets: {{length: {_mm(o['length'])}, angle: {math.degrees(o['angle']):g}}}   # mm for prismatic, deg for revolute
+    dh: {{length: {_mm(dh['length'])}, angle: {math.degrees(dh['angle']):g}}}   # link geometry a, d, alpha, beta
+    tcp: {_mm(tcp['length'])}                   # mm, tool position
+  # explicit values replace the random draw of the same parameter
+
+joints:                        # mechanics between motor encoder and link; all off by default
+  backlash: {{}}                 # e.g. {{{sj}: 0.02}}: full dead band, deg (mm for prismatic joints)
+  compliance: {{}}               # e.g. {{{sj}: 0.0001}}: deg per N*m of gravity torque from the payload
+  payload: 0                   # kg at the tool tip (loads the compliant joints)
+  gravity: [0, 0, -9.81]       # m/s^2 in the robot base frame
+
+motion:
+  time_mode: instant           # instant: moves complete at once | sim: time passes with world.advance(dt)
+                               # | realtime: state follows the wall clock
+  time_scale: 1                # realtime only: world seconds per wall second
+  start: [{start}]   # encoder positions at power-on (deg; mm for prismatic)
+  enabled: true                # joints powered at start
+
+cell:                          # reference points in the robot base frame (true positions, mm)
+  contact_radius: 0.05         # mm: needle contact input closes within this distance of the needle tip
+  capture_radius: 8            # mm: a socket seats the compliant tip from within this distance
+  points:                      # kind socket (ball-in-cone) or needle; approach: unit vector towards the tool
+{pts}
+    # per point, radius: overrides the contact (needle) or capture (socket) radius, mm
+
+noise:
+  seating: 0.01                # mm, sigma per axis of where the tip settles in a socket
+  survey: 0                    # mm, sigma per axis of the cell positions given to the station (station-cell)
+  encoder: 0                   # deg (mm for prismatic), sigma of each encoder reading
+
+buses:                         # passed through to the bus emulators (world.bus_config(name))
+  dynamixel: {{baud: 1000000, ids: [11, 12, 13, 14]}}
+  canopen: {{nodes: [1, 2, 3, 4, 5, 6]}}
+  ur: {{serial: "20235500000"}}
+"""

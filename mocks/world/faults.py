@@ -1,0 +1,82 @@
+"""Fault injection shared by every emulator: a test arms a fault, the emulator consumes it once.
+
+Emulators call ``faults.take(kind, device)`` at the point where the fault would bite (before answering
+a request, before sending a frame) and act it out on the wire: no answer (``timeout``), a damaged frame
+(``corrupt``), a device error status / EMCY (``device_fault``), a closed port or socket (``disconnect``),
+a protective stop (``protective_stop``)."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Hashable
+from dataclasses import dataclass
+
+KINDS = ("timeout", "corrupt", "device_fault", "disconnect", "protective_stop")
+
+
+@dataclass
+class PendingFault:
+    kind: str
+    device: Hashable | None  # None: the first device that asks
+    count: int  # how many more times it fires
+    after: int  # opportunities to let pass before it fires
+    code: int | None = None  # optional device-specific error code for device_fault
+
+
+class Faults:
+    """Thread-safe queue of armed faults."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._pending: list[PendingFault] = []
+        self.fired: list[tuple[str, Hashable | None]] = []  # (kind, device) in the order consumed
+
+    def inject(self, kind: str, device: Hashable | None = None, count: int = 1, *, after: int = 0,
+               code: int | None = None) -> None:
+        """Arm ``count`` faults of ``kind`` for ``device`` (None: any device), firing after ``after``
+        opportunities have passed."""
+        if kind not in KINDS:
+            raise ValueError(f"unknown fault kind {kind!r}; known: {', '.join(KINDS)}")
+        if count < 1 or after < 0:
+            raise ValueError(f"fault {kind!r}: count must be >= 1 and after >= 0 (got {count}, {after})")
+        with self._lock:
+            self._pending.append(PendingFault(kind, device, int(count), int(after), code))
+
+    @staticmethod
+    def _matches(f: PendingFault, kind: str, device: Hashable | None) -> bool:
+        if f.kind != kind:
+            return False
+        return f.device is None or device is None or f.device == device or str(f.device) == str(device)
+
+    def take(self, kind: str, device: Hashable | None = None) -> bool:
+        """Consume one armed fault of ``kind`` matching ``device``; True if the caller must act it out."""
+        return self.take_fault(kind, device) is not None
+
+    def take_fault(self, kind: str, device: Hashable | None = None) -> PendingFault | None:
+        """Like :meth:`take` but returns the fault (with its ``code``) or None."""
+        with self._lock:
+            for f in self._pending:
+                if not self._matches(f, kind, device):
+                    continue
+                if f.after > 0:
+                    f.after -= 1
+                    return None
+                f.count -= 1
+                if f.count <= 0:
+                    self._pending.remove(f)
+                self.fired.append((kind, device))
+                return PendingFault(kind, device if device is not None else f.device, 1, 0, f.code)
+        return None
+
+    def peek(self, kind: str, device: Hashable | None = None) -> bool:
+        """True if a fault of ``kind`` for ``device`` is armed (does not consume it)."""
+        with self._lock:
+            return any(self._matches(f, kind, device) for f in self._pending)
+
+    def pending(self) -> list[PendingFault]:
+        with self._lock:
+            return [PendingFault(f.kind, f.device, f.count, f.after, f.code) for f in self._pending]
+
+    def clear(self) -> None:
+        with self._lock:
+            self._pending.clear()

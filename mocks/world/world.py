@@ -1,0 +1,531 @@
+"""The simulated world: one robot with hidden kinematic errors, its joint motion, and a calibration cell.
+
+Every emulator serves this object's state over its wire; tests read the hidden truth from it. All
+public methods take one re-entrant lock, so emulator threads may call them concurrently.
+
+Joint state is the motor/encoder position ``q`` (SI). The true joint value seen by the kinematics is
+``q_joint = q - side * backlash/2 + C * J(q)^T * m g`` (backlash and gravity compliance, off by default),
+and the true tip is ``truth.fk(q_joint)``."""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+from station.mocks.world import motion
+from station.mocks.world.cell import CELL_FORMAT, DEFAULTS, CellPoint
+from station.mocks.world.faults import Faults
+from station.mocks.world.worldfile import (
+    FORMAT,
+    TIME_MODES,
+    WorldFileError,
+    WorldSpec,
+    load_world_doc,
+    param_kind,
+    spec_from_dict,
+    spec_to_dict,
+)
+
+from station.kinematics import Model, load_model
+from station.kinematics.modelfile import ModelFileError
+
+log = logging.getLogger("station.mocks.world")
+
+# sigmas of the hidden errors of World.default (SI)
+DEFAULT_SIGMAS = {"offsets": {"length": 0.1e-3, "angle": math.radians(0.1)},
+                  "dh": {"length": 0.2e-3, "angle": math.radians(0.02)},
+                  "tcp": {"length": 0.5e-3}}
+
+
+def default_doc(model: str = "ur5e", seed: int = 0) -> dict:
+    """The world document of ``World.default`` (SI units), before overrides."""
+    doc: dict = {"format": FORMAT, "description": f"default world for {model}",
+                 "units": {"length": "m", "angle": "rad", "time": "s", "mass": "kg"}, "seed": int(seed),
+                 "robot": {"model": model},
+                 "errors": {"random": {k: dict(v) for k, v in DEFAULT_SIGMAS.items()}},
+                 "motion": {"time_mode": "instant", "time_scale": 1.0}}
+    if model not in DEFAULTS:
+        doc["cell"] = {"points": []}
+    return doc
+
+
+class World:
+    """The truth behind every emulator. Build with :meth:`from_file`, :meth:`from_dict`, :meth:`default`."""
+
+    def __init__(self, spec: WorldSpec) -> None:
+        self.spec = spec
+        self._lock = threading.RLock()
+        nominal = load_model(spec.model)
+        if spec.tool:
+            nominal = nominal.with_params({f"tcp.{k}": v for k, v in spec.tool.items()})
+        self.nominal: Model = nominal
+        # independent streams, so that e.g. more seatings never change the hidden errors
+        g_err, self._g_seat, g_survey, self._g_enc = (np.random.default_rng(s) for s in
+                                                      np.random.SeedSequence(spec.seed).spawn(4))
+        errors: dict[str, float] = {}
+        for sel, sl, sa in spec.random:
+            for name in nominal.select(sel):
+                sigma = sl if param_kind(nominal, name) == "length" else sa
+                errors[name] = float(g_err.normal(0.0, sigma or 0.0))
+        errors.update(spec.explicit)
+        self._errors = {n: v for n, v in errors.items() if v != 0.0}
+        self.truth: Model = nominal.with_params({n: nominal.param(n) + v for n, v in self._errors.items()})
+        n = nominal.n_joints
+        self.n_joints = n
+        self._vmax = np.array([j.max_velocity for j in self.truth.joints])
+        self._amax = np.array([j.max_acceleration for j in self.truth.joints])
+        self.lower, self.upper = self.truth.lower, self.truth.upper
+        self._backlash = np.zeros(n)
+        for i, b in spec.backlash.items():
+            self._backlash[i] = b
+        self._compliance = np.zeros(n)
+        for i, c in spec.compliance.items():
+            self._compliance[i] = c
+        self._weight = spec.payload * np.asarray(spec.gravity, dtype=float)  # N, base frame
+        self.points: dict[str, CellPoint] = {}
+        self._survey: dict[str, np.ndarray] = {}
+        for p in spec.points:
+            radius = p["radius"] or (spec.capture_radius if p["kind"] == "socket" else spec.contact_radius)
+            self.points[p["label"]] = CellPoint(p["label"], p["kind"], np.array(p["position"], dtype=float),
+                                                float(radius), np.array(p["approach"], dtype=float))
+            self._survey[p["label"]] = g_survey.normal(0.0, spec.survey_sigma, 3)
+        self.faults = Faults()
+        self.events: deque[tuple[float, str]] = deque(maxlen=500)
+        # time
+        if spec.time_mode not in TIME_MODES:
+            raise WorldFileError(f"time_mode {spec.time_mode!r} is not one of {', '.join(TIME_MODES)}")
+        self.time_mode = spec.time_mode
+        self.time_scale = spec.time_scale
+        self._t = 0.0
+        self._mono0 = time.monotonic()
+        # joints
+        q0 = np.zeros(n) if spec.start is None else np.asarray(spec.start, dtype=float)
+        q0 = np.clip(q0, self.lower, self.upper)
+        self._tracks = [motion.hold(0.0, float(x)) for x in q0]
+        self._enabled = np.full(n, bool(spec.enabled))
+        self._compliant = False
+        self._seated: str | None = None
+        self._seat_target: np.ndarray | None = None
+        self._joint_faults: dict[int, int] = {}
+        self._pstop = False
+
+    # ---- construction -------------------------------------------------------------------------
+    @classmethod
+    def from_dict(cls, doc: dict, where: str = "<world>") -> World:
+        return cls(spec_from_dict(doc, where))
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> World:
+        return cls(spec_from_dict(load_world_doc(path), str(path)))
+
+    @classmethod
+    def default(cls, model: str = "ur5e", seed: int = 0, **overrides) -> World:
+        """A default world for a built-in model. ``overrides``: ``time_mode``, ``time_scale``, ``start``
+        (SI), ``enabled``, or whole sections of the world document (``errors``, ``cell``, ``noise``,
+        ``joints``, ``buses``, ...) in SI units (m, rad)."""
+        doc = default_doc(model, seed)
+        for k, v in overrides.items():
+            if k in ("time_mode", "time_scale", "start", "enabled"):
+                doc["motion"][k] = list(np.asarray(v, dtype=float)) if k == "start" else v
+            elif k in ("errors", "cell", "noise", "joints", "buses", "robot", "description", "motion"):
+                doc[k] = v
+            else:
+                raise TypeError(f"World.default: unknown override {k!r}")
+        try:
+            return cls.from_dict(doc, f"<default world {model}>")
+        except ModelFileError as e:
+            raise WorldFileError(str(e)) from None
+
+    def to_dict(self, length: str = "m", angle: str = "rad", *, frozen: bool = False) -> dict:
+        """The world document (loads back to an identical world). ``frozen``: the drawn random errors
+        written out as explicit errors, so the file no longer depends on the seed for its truth."""
+        spec = self.spec
+        if frozen:
+            from dataclasses import replace
+
+            spec = replace(spec, explicit=dict(self._errors), random=[])
+        return spec_to_dict(spec, self.nominal, length, angle)
+
+    # ---- time ---------------------------------------------------------------------------------
+    def now(self) -> float:
+        """World time (s): simulated in ``instant``/``sim`` mode, scaled wall clock in ``realtime``."""
+        with self._lock:
+            if self.time_mode == "realtime":
+                return (time.monotonic() - self._mono0) * self.time_scale
+            return self._t
+
+    def advance(self, dt: float) -> None:
+        """Let ``dt`` seconds of simulated time pass (``sim`` and ``instant`` mode)."""
+        if not (math.isfinite(dt) and dt >= 0):
+            raise ValueError(f"advance: dt must be a finite non-negative number of seconds, got {dt!r}")
+        with self._lock:
+            if self.time_mode == "realtime":
+                raise RuntimeError("advance() is for sim/instant time; a realtime world follows the clock")
+            self._t += dt
+            self._update()
+
+    def run_until_idle(self, max_time: float = 3600.0, step: float | None = None) -> float:
+        """Advance simulated time to the end of the current motion (sim/instant); returns the time spent.
+        In realtime mode, sleeps until motion ends (bounded by ``max_time`` world seconds)."""
+        with self._lock:
+            t0 = self.now()
+            if self.time_mode != "realtime":
+                end = max([tr.t_end for tr in self._tracks] + [t0])
+                if step is None:
+                    self._t = min(end, t0 + max_time)
+                else:
+                    while self._t < min(end, t0 + max_time):
+                        self._t = min(self._t + step, end)
+                self._update()
+                return self.now() - t0
+        while self.is_moving() and self.now() - t0 < max_time:
+            time.sleep(0.002)
+        return self.now() - t0
+
+    # ---- joint state --------------------------------------------------------------------------
+    def _state(self, t: float | None = None):
+        t = self.now() if t is None else t
+        st = np.array([tr.state(t) for tr in self._tracks])
+        return st[:, 0], st[:, 1], st[:, 2]
+
+    def encoder_q(self) -> np.ndarray:
+        """Motor/encoder positions (SI), as a device reads them before its own calibration offset."""
+        with self._lock:
+            self._update()
+            q = self._state()[0]
+            if self.spec.encoder_sigma > 0:
+                q = q + self._g_enc.normal(0.0, self.spec.encoder_sigma, self.n_joints)
+            return q
+
+    def encoder_qd(self) -> np.ndarray:
+        """Joint velocities (SI/s)."""
+        with self._lock:
+            return self._state()[1]
+
+    def joint_q(self) -> np.ndarray:
+        """True joint values (encoder + backlash + compliance deflection), SI."""
+        with self._lock:
+            self._update()
+            q, _, side = self._state()
+            return self._deflect(q, side)
+
+    def _deflect(self, q: np.ndarray, side: np.ndarray) -> np.ndarray:
+        qj = q - side * self._backlash / 2
+        if self._compliance.any() and self._weight.any():
+            _, Jq, _ = self.truth.jacobians(qj)
+            tau = Jq[0, :3].T @ self._weight  # gravity load of the payload on each joint
+            qj = qj + self._compliance * tau
+        return qj
+
+    def _undeflect(self, qj: np.ndarray, side: np.ndarray) -> np.ndarray:
+        """Encoder positions that put the joints at ``qj`` (fixed point; the deflection is small)."""
+        q = qj + side * self._backlash / 2
+        for _ in range(5):
+            q = q + (qj - self._deflect(q, side))
+        return q
+
+    def tip_true(self) -> np.ndarray:
+        """TRUE tool tip position (m, base frame)."""
+        with self._lock:
+            return self.truth.position(self.joint_q())
+
+    def tip_pose_true(self) -> np.ndarray:
+        with self._lock:
+            return self.truth.fk(self.joint_q())
+
+    def tip_nominal(self) -> np.ndarray:
+        """Where the station believes the tip is: nominal model at the noise-free encoder reading."""
+        with self._lock:
+            return self.nominal.position(self._state()[0])
+
+    def is_moving(self) -> bool:
+        with self._lock:
+            t = self.now()
+            return any(t < tr.t_end for tr in self._tracks)
+
+    # ---- commands -----------------------------------------------------------------------------
+    def _event(self, msg: str) -> None:
+        self.events.append((self.now(), msg))
+        log.info("world: %s", msg)
+
+    def _vector(self, x, what: str) -> np.ndarray:
+        a = np.asarray(x, dtype=float).reshape(-1)
+        if a.shape != (self.n_joints,):
+            raise ValueError(f"{what}: expected {self.n_joints} joint values, got {a.shape[0]}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{what}: not finite: {a.tolist()}")
+        return a
+
+    def _limits(self, cap, default: np.ndarray, what: str) -> np.ndarray:
+        if cap is None:
+            return default.copy()
+        c = np.broadcast_to(np.asarray(cap, dtype=float), default.shape)
+        if not np.all(np.isfinite(c)) or np.any(c <= 0):
+            raise ValueError(f"{what}: must be positive, got {cap!r}")
+        return np.minimum(c, default)
+
+    def _refused(self, what: str) -> bool:
+        if self._pstop:
+            self._event(f"{what} ignored: protective stop")
+            return True
+        return False
+
+    def command_q(self, q_target, speed=None, accel=None) -> np.ndarray:
+        """Synchronised joint move to ``q_target`` (encoder positions, SI). ``speed``/``accel`` cap the
+        per-joint velocity/acceleration (scalar or per joint, SI). Targets outside the joint limits are
+        clamped (and logged in ``events``); disabled joints stay. Returns the target actually used."""
+        with self._lock:
+            q1 = self._vector(q_target, "command_q")
+            vlim = self._limits(speed, self._vmax, "command_q speed")
+            alim = self._limits(accel, self._amax, "command_q accel")
+            target = np.clip(q1, self.lower, self.upper)
+            if np.any(target != q1):
+                bad = [self.truth.joints[i].name for i in np.flatnonzero(target != q1)]
+                self._event(f"command_q clamped to joint limits: {', '.join(bad)}")
+            if self._refused("command_q"):
+                return self._state()[0]
+            t = self.now()
+            x, v, side = self._state(t)
+            target = np.where(self._enabled, target, x)
+            if self.time_mode == "instant":
+                new_side = np.where(np.abs(target - x) > motion.EPS, np.sign(target - x), side)
+                tracks = [motion.hold(t, float(target[i]), float(new_side[i])) for i in range(self.n_joints)]
+            else:
+                vs, as_ = motion.synchronised_limits(target - x, vlim, alim)
+                tracks = [motion.plan(t, float(x[i]), float(v[i]), float(target[i]), vs[i], as_[i],
+                                      float(side[i])) for i in range(self.n_joints)]
+            self._set_tracks(tracks, x)
+            return target
+
+    def command_joint(self, i: int, x_target: float, speed: float | None = None,
+                      accel: float | None = None) -> float:
+        """Move one joint (its own trapezoid; the other joints keep their motion). Returns the target used."""
+        with self._lock:
+            if not 0 <= i < self.n_joints:
+                raise ValueError(f"command_joint: no joint {i} (0..{self.n_joints - 1})")
+            q = self._state()[0]
+            q[i] = float(x_target)
+            q1 = self._vector(q, "command_joint")[i]
+            tgt = float(np.clip(q1, self.lower[i], self.upper[i]))
+            if tgt != q1:
+                self._event(f"command_joint clamped to joint limits: {self.truth.joints[i].name}")
+            if self._refused("command_joint") or not self._enabled[i]:
+                return float(self._state()[0][i])
+            vl = float(self._limits(speed, self._vmax, "speed")[i])
+            al = float(self._limits(accel, self._amax, "accel")[i])
+            t = self.now()
+            x, v, side = self._tracks[i].state(t)
+            tracks = list(self._tracks)
+            if self.time_mode == "instant":
+                tracks[i] = motion.hold(t, tgt, math.copysign(1.0, tgt - x) if abs(tgt - x) > motion.EPS else side)
+            else:
+                tracks[i] = motion.plan(t, x, v, tgt, vl, al, side)
+            self._set_tracks(tracks, self._state(t)[0])
+            return tgt
+
+    def command_qd(self, qd, accel=None) -> np.ndarray:
+        """Velocity mode: each joint ramps to ``qd`` (SI/s, capped at its maximum) and keeps going until
+        it stops at its joint limit (decelerating in time) or a new command arrives. Time passes with
+        the clock (realtime) or :meth:`advance` (sim and instant mode). Returns the velocities used."""
+        with self._lock:
+            v1 = self._vector(qd, "command_qd")
+            alim = self._limits(accel, self._amax, "command_qd accel")
+            capped = np.clip(v1, -self._vmax, self._vmax)
+            if np.any(capped != v1):
+                self._event("command_qd capped at the joint velocity limits")
+            if self._refused("command_qd"):
+                return np.zeros(self.n_joints)
+            capped = np.where(self._enabled, capped, 0.0)
+            t = self.now()
+            x, v, side = self._state(t)
+            tracks = []
+            for i in range(self.n_joints):
+                if abs(capped[i]) < motion.EPS:
+                    tracks.append(motion.brake(t, x[i], v[i], alim[i], side[i]))
+                else:
+                    end = self.upper[i] if capped[i] > 0 else self.lower[i]
+                    tracks.append(motion.plan(t, x[i], v[i], end, abs(capped[i]), alim[i], side[i]))
+            self._set_tracks(tracks, x)
+            return capped
+
+    def halt(self) -> None:
+        """Decelerate every joint to rest at its acceleration limit (a controlled stop)."""
+        with self._lock:
+            t = self.now()
+            x, v, side = self._state(t)
+            self._tracks = [motion.brake(t, x[i], v[i], self._amax[i], side[i]) for i in range(self.n_joints)]
+
+    def _set_tracks(self, tracks: list[motion.Track], x_now: np.ndarray) -> None:
+        moved = any(abs(tr.x_end - x_now[i]) > 1e-12 or tr.phases for i, tr in enumerate(tracks))
+        self._tracks = tracks
+        if moved and self._seated:
+            self._event(f"left socket {self._seated}")
+            self._seated = None
+            self._seat_target = None
+        self._update()
+
+    # ---- power, compliance, faults ------------------------------------------------------------
+    def _joints(self, joints) -> list[int]:
+        if joints is None:
+            return list(range(self.n_joints))
+        idx = [int(joints)] if np.isscalar(joints) else [int(j) for j in joints]
+        for i in idx:
+            if not 0 <= i < self.n_joints:
+                raise ValueError(f"no joint {i} (0..{self.n_joints - 1})")
+        return idx
+
+    def set_enabled(self, on: bool, joints=None) -> None:
+        """Power/torque on or off for ``joints`` (index or list; None: all). A disabled joint is held by
+        its brake where it is (stops at once) and ignores commands."""
+        with self._lock:
+            idx = self._joints(joints)
+            if not on:
+                t = self.now()
+                for i in idx:
+                    x, _, side = self._tracks[i].state(t)
+                    self._tracks[i] = motion.hold(t, x, side)
+            self._enabled[idx] = bool(on)
+
+    def enabled(self) -> np.ndarray:
+        with self._lock:
+            return self._enabled.copy()
+
+    def set_compliant(self, on: bool) -> None:
+        """Compliant (torque-limited / freedrive) mode. Entering it with the true tip inside a socket's
+        capture radius seats the tip in the socket; leaving it keeps the seated position."""
+        with self._lock:
+            self._compliant = bool(on)
+            self._update()
+
+    @property
+    def compliant(self) -> bool:
+        return self._compliant
+
+    @property
+    def seated(self) -> str | None:
+        """Label of the socket the tip sits in, or None."""
+        with self._lock:
+            self._update()
+            return self._seated
+
+    def fault_joint(self, i: int, code: int = 1) -> None:
+        """A device fault on joint ``i``: every joint halts, joint ``i`` is disabled (brake) until
+        :meth:`clear_fault` and re-enable."""
+        with self._lock:
+            self._joints(i)
+            self.halt()
+            self.set_enabled(False, i)
+            self._joint_faults[i] = int(code)
+            self._event(f"fault on joint {self.truth.joints[i].name} (code {code}): halted, disabled")
+
+    def joint_fault(self, i: int) -> int | None:
+        with self._lock:
+            return self._joint_faults.get(i)
+
+    def clear_fault(self, i: int | None = None) -> None:
+        with self._lock:
+            if i is None:
+                self._joint_faults.clear()
+            else:
+                self._joint_faults.pop(i, None)
+
+    def protective_stop(self, reason: str = "protective stop") -> None:
+        """Halt and refuse motion commands until :meth:`clear_protective_stop`."""
+        with self._lock:
+            self.halt()
+            self._pstop = True
+            self._event(reason)
+
+    def clear_protective_stop(self) -> None:
+        with self._lock:
+            self._pstop = False
+
+    @property
+    def protective_stopped(self) -> bool:
+        return self._pstop
+
+    # ---- cell ---------------------------------------------------------------------------------
+    def _update(self) -> None:
+        """Lazy world rules evaluated whenever state is read: socket seating while compliant."""
+        if self._compliant and self._seated is None and not self.is_moving():
+            self._try_seat()
+
+    def _try_seat(self) -> None:
+        q, _, side = self._state()
+        qj = self._deflect(q, side)
+        tip = self.truth.position(qj)
+        sockets = [p for p in self.points.values() if p.kind == "socket" and p.distance(tip) <= p.radius]
+        if not sockets or not self._enabled.any():
+            return
+        p = min(sockets, key=lambda s: s.distance(tip))
+        target = p.position + self._g_seat.normal(0.0, self.spec.seating_sigma, 3)
+        res = self.truth.ik(target, qj, position_only=True, weights=self._enabled.astype(float), tol_pos=1e-9)
+        if res.position_error[0] > 1e-7:
+            self._event(f"socket {p.label}: the arm cannot settle (IK {res.position_error[0]:.2e} m)")
+            return
+        q_new = self._undeflect(res.q[0], side)
+        t = self.now()
+        self._tracks = [motion.hold(t, float(q_new[i]), float(side[i])) for i in range(self.n_joints)]
+        self._seated = p.label
+        self._seat_target = target
+        self._event(f"seated in socket {p.label}")
+
+    def contact(self) -> bool:
+        """The cell's contact input: true tip within a needle's contact radius, or seated in a socket."""
+        return self.touching() is not None
+
+    def touching(self) -> str | None:
+        """Label of the point in contact (needle within its radius, or the socket the tip is seated in)."""
+        with self._lock:
+            self._update()
+            if self._seated:
+                return self._seated
+            tip = self.tip_true()
+            for p in self.points.values():
+                if p.kind == "needle" and p.distance(tip) <= p.radius:
+                    return p.label
+            return None
+
+    def station_cell(self) -> dict:
+        """The cell as the integrator knows it (``station-cell/1``): approximate positions in the robot
+        base frame = true + survey error, rounded to 0.1 mm."""
+        pts = []
+        for label, p in self.points.items():
+            pos = p.position + self._survey[label]
+            pts.append({"label": label, "kind": p.kind, "position": [round(float(x), 4) for x in pos],
+                        "approach": [round(float(x), 6) for x in p.approach],
+                        "radius": round(p.radius, 6)})
+        tool = {k: round(self.nominal.param(f"tcp.{k}"), 6) for k in ("x", "y", "z", "rx", "ry", "rz")}
+        return {"format": CELL_FORMAT, "units": {"length": "m", "angle": "rad"}, "frame": "robot base",
+                "model": self.nominal.name, "tool": tool, "survey_sigma": self.spec.survey_sigma,
+                "points": pts}
+
+    # ---- truth --------------------------------------------------------------------------------
+    def errors(self) -> dict[str, float]:
+        """Hidden errors: true minus nominal value of every perturbed parameter (SI)."""
+        return dict(self._errors)
+
+    def hidden(self) -> dict[str, float]:
+        """TRUE values of every perturbed parameter (SI); ``offset.jN`` are the true zero offsets."""
+        return {n: self.truth.param(n) for n in self._errors}
+
+    def truth_report(self, length: str = "mm", angle: str = "deg") -> str:
+        """Human-readable hidden truth: every perturbed parameter, the cell points, the mechanics."""
+        from station.mocks.world.report import truth_report
+
+        return truth_report(self, length, angle)
+
+    def bus_config(self, name: str) -> dict:
+        """The ``buses.<name>`` mapping of the world file, passed through unchanged ({} if absent)."""
+        import copy
+
+        return copy.deepcopy(self.spec.buses.get(name, {}))
+
+    def __repr__(self) -> str:
+        return (f"World(model={self.nominal.name!r}, seed={self.spec.seed}, time_mode={self.time_mode!r}, "
+                f"{len(self._errors)} hidden errors, points={list(self.points)})")

@@ -1,0 +1,328 @@
+"""World files (YAML, ``format: station-world/1``): parse with explicit units into SI, write back.
+
+The format is documented in docs/world.md. Every length is in ``units.length`` (m|mm), every angle in
+``units.angle`` (rad|deg); time in s, mass in kg, joint compliance in ``units.angle`` per N*m."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+from station.mocks.world.cell import DEFAULTS, KINDS
+
+FORMAT = "station-world/1"
+LENGTH = {"m": 1.0, "mm": 1e-3}
+ANGLE = {"rad": 1.0, "deg": math.pi / 180}
+TIME_MODES = ("instant", "sim", "realtime")
+SECTIONS = {"format", "units", "seed", "robot", "errors", "joints", "motion", "cell", "noise", "buses",
+            "description"}
+ANGLE_SUFFIX = {"alpha", "beta", "theta", "rx", "ry", "rz"}
+LENGTH_SUFFIX = {"a", "d", "x", "y", "z"}
+
+# defaults (SI)
+CONTACT_RADIUS = 50e-6
+CAPTURE_RADIUS = 8e-3
+SEATING_SIGMA = 10e-6
+
+
+class WorldFileError(ValueError):
+    """Malformed world file; the message names the file and the field."""
+
+
+@dataclass
+class WorldSpec:
+    """A parsed world file, SI throughout. Random errors are kept as sigmas (drawn by the World)."""
+
+    model: str = "ur5e"
+    seed: int = 0
+    description: str = ""
+    tool: dict[str, float] | None = None  # nominal tool frame override {x,y,z,rx,ry,rz}
+    explicit: dict[str, float] = field(default_factory=dict)  # parameter -> error (true - nominal)
+    random: list[tuple[str, float | None, float | None]] = field(default_factory=list)  # (selector, σL, σA)
+    backlash: dict[int, float] = field(default_factory=dict)  # joint index -> full width
+    compliance: dict[int, float] = field(default_factory=dict)  # joint index -> rad/(N*m) or m/N
+    payload: float = 0.0  # kg at the tool tip, loads the compliant joints
+    gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)  # m/s^2 in the base frame
+    start: list[float] | None = None
+    enabled: bool = True
+    time_mode: str = "instant"
+    time_scale: float = 1.0
+    contact_radius: float = CONTACT_RADIUS
+    capture_radius: float = CAPTURE_RADIUS
+    points: list[dict] = field(default_factory=list)  # label, kind, position, approach, radius|None
+    seating_sigma: float = SEATING_SIGMA
+    survey_sigma: float = 0.0
+    encoder_sigma: float = 0.0
+    buses: dict = field(default_factory=dict)
+
+
+def param_kind(model, name: str) -> str:
+    """``"length"`` or ``"angle"``: the unit class of a parameter of ``model``."""
+    if name.startswith("offset.j"):
+        i = int(name.split(".j")[1]) - 1
+        return "angle" if model.joints[i].revolute else "length"
+    last = name.rsplit(".", 1)[-1]
+    if last in ANGLE_SUFFIX:
+        return "angle"
+    if last in LENGTH_SUFFIX:
+        return "length"
+    raise KeyError(name)
+
+
+class _Reader:
+    def __init__(self, where: str) -> None:
+        self.where = where
+
+    def fail(self, field_: str, msg: str) -> WorldFileError:
+        return WorldFileError(f"{self.where}: {field_}: {msg}")
+
+    def num(self, v, field_: str, *, positive: bool = False, nonneg: bool = False) -> float:
+        if isinstance(v, bool):
+            raise self.fail(field_, f"expected a number, got {v!r}")
+        try:
+            x = float(v)
+        except (TypeError, ValueError):
+            raise self.fail(field_, f"expected a number, got {v!r}") from None
+        if not math.isfinite(x):
+            raise self.fail(field_, f"not a finite number ({v!r})")
+        if positive and x <= 0:
+            raise self.fail(field_, f"must be > 0, got {v!r}")
+        if nonneg and x < 0:
+            raise self.fail(field_, f"must be >= 0, got {v!r}")
+        return x
+
+    def mapping(self, v, field_: str, keys: set[str] | None = None) -> dict:
+        if v is None:
+            return {}
+        if not isinstance(v, dict):
+            raise self.fail(field_, f"expected a mapping, got {type(v).__name__}")
+        if keys is not None:
+            unknown = sorted(set(v) - keys)
+            if unknown:
+                raise self.fail(field_, f"unknown keys {unknown} (known: {sorted(keys)})")
+        return v
+
+    def vec3(self, v, field_: str, scale: float) -> list[float]:
+        if not isinstance(v, list | tuple) or len(v) != 3:
+            raise self.fail(field_, f"expected [x, y, z], got {v!r}")
+        return [self.num(x, field_) * scale for x in v]
+
+
+def _joint_index(model, key, r: _Reader, field_: str) -> int:
+    names = [j.name for j in model.joints]
+    k = str(key)
+    if k in names:
+        return names.index(k)
+    if k.startswith("j") and k[1:].isdigit() and 1 <= int(k[1:]) <= model.n_joints:
+        return int(k[1:]) - 1
+    raise r.fail(field_, f"unknown joint {k!r} (use j1..j{model.n_joints} or {', '.join(names)})")
+
+
+def spec_from_dict(doc, where: str = "<world>") -> WorldSpec:
+    from station.kinematics import ModelFileError, load_model
+
+    r = _Reader(where)
+    if not isinstance(doc, dict):
+        raise WorldFileError(f"{where}: not a mapping (expected a station-world/1 document)")
+    if doc.get("format") != FORMAT:
+        raise r.fail("format", f"{doc.get('format')!r} is not {FORMAT!r}")
+    unknown = sorted(set(doc) - SECTIONS)
+    if unknown:
+        raise r.fail(unknown[0], f"unknown section (known: {', '.join(sorted(SECTIONS))})")
+    units = r.mapping(doc.get("units"), "units", {"length", "angle", "time", "mass"})
+    if units.get("length") not in LENGTH or units.get("angle") not in ANGLE:
+        raise r.fail("units", f"must state length (m|mm) and angle (rad|deg), got {units!r}")
+    if units.get("time", "s") != "s" or units.get("mass", "kg") != "kg":
+        raise r.fail("units", "time must be s and mass kg")
+    L, A = LENGTH[units["length"]], ANGLE[units["angle"]]
+    s = WorldSpec()
+    s.description = str(doc.get("description", ""))
+    seed = doc.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise r.fail("seed", f"expected a non-negative integer, got {seed!r}")
+    s.seed = seed
+
+    robot = r.mapping(doc.get("robot"), "robot", {"model", "tool"})
+    s.model = str(robot.get("model", "ur5e"))
+    model_name = s.model
+    if not Path(model_name).is_absolute() and where not in ("<world>",) and not _is_builtin(model_name):
+        cand = Path(where).parent / model_name
+        if cand.exists():
+            s.model = str(cand)
+    try:
+        model = load_model(s.model)
+    except ModelFileError as e:
+        raise r.fail("robot.model", str(e)) from None
+    if robot.get("tool") is not None:
+        t = r.mapping(robot["tool"], "robot.tool", {"x", "y", "z", "rx", "ry", "rz"})
+        s.tool = {k: r.num(v, f"robot.tool.{k}") * (A if k.startswith("r") else L) for k, v in t.items()}
+    U = {"length": L, "angle": A}
+
+    errors = r.mapping(doc.get("errors"), "errors", {"explicit", "random"})
+    for name, v in r.mapping(errors.get("explicit"), "errors.explicit").items():
+        if name not in model.param_names:
+            raise r.fail(f"errors.explicit.{name}", f"no such parameter in model {model.name} "
+                                                    f"(names like offset.j2, {model.param_names[7]}, tcp.z)")
+        s.explicit[name] = r.num(v, f"errors.explicit.{name}") * U[param_kind(model, name)]
+    for sel, v in r.mapping(errors.get("random"), "errors.random").items():
+        f = f"errors.random.{sel}"
+        try:
+            names = model.select(str(sel))
+        except KeyError as e:
+            raise r.fail(f, str(e).strip("'\"")) from None
+        kinds = {param_kind(model, n) for n in names}
+        if isinstance(v, dict):
+            v = r.mapping(v, f, {"length", "angle"})
+            sl = r.num(v["length"], f + ".length", nonneg=True) * L if "length" in v else None
+            sa = r.num(v["angle"], f + ".angle", nonneg=True) * A if "angle" in v else None
+            missing = [k for k in kinds if (sl if k == "length" else sa) is None]
+            if missing:
+                raise r.fail(f, f"selects {missing[0]} parameters but gives no {missing[0]} sigma")
+        else:
+            if len(kinds) > 1:
+                raise r.fail(f, "selects lengths and angles: give {length: sigma, angle: sigma}")
+            x = r.num(v, f, nonneg=True)
+            sl, sa = (x * L, None) if kinds == {"length"} else (None, x * A)
+        s.random.append((str(sel), sl, sa))
+
+    joints = r.mapping(doc.get("joints"), "joints", {"backlash", "compliance", "payload", "gravity"})
+    for k, v in r.mapping(joints.get("backlash"), "joints.backlash").items():
+        i = _joint_index(model, k, r, f"joints.backlash.{k}")
+        s.backlash[i] = r.num(v, f"joints.backlash.{k}", nonneg=True) * (A if model.joints[i].revolute else L)
+    for k, v in r.mapping(joints.get("compliance"), "joints.compliance").items():
+        i = _joint_index(model, k, r, f"joints.compliance.{k}")
+        s.compliance[i] = r.num(v, f"joints.compliance.{k}", nonneg=True) * (A if model.joints[i].revolute
+                                                                             else L)
+    s.payload = r.num(joints.get("payload", 0.0), "joints.payload", nonneg=True)
+    if "gravity" in joints:
+        s.gravity = tuple(r.vec3(joints["gravity"], "joints.gravity", 1.0))
+
+    motion = r.mapping(doc.get("motion"), "motion", {"time_mode", "time_scale", "start", "enabled"})
+    s.time_mode = str(motion.get("time_mode", "instant"))
+    if s.time_mode not in TIME_MODES:
+        raise r.fail("motion.time_mode", f"{s.time_mode!r} is not one of {', '.join(TIME_MODES)}")
+    s.time_scale = r.num(motion.get("time_scale", 1.0), "motion.time_scale", positive=True)
+    s.enabled = bool(motion.get("enabled", True))
+    if motion.get("start") is not None:
+        st = motion["start"]
+        if not isinstance(st, list) or len(st) != model.n_joints:
+            raise r.fail("motion.start", f"expected {model.n_joints} joint values, got {st!r}")
+        s.start = [r.num(x, f"motion.start[{i}]") * (A if model.joints[i].revolute else L)
+                   for i, x in enumerate(st)]
+        lo, hi = model.lower, model.upper
+        for i, x in enumerate(s.start):
+            if not lo[i] <= x <= hi[i]:
+                raise r.fail(f"motion.start[{i}]", f"outside the joint limits of {model.joints[i].name}")
+    elif model.name in DEFAULTS:
+        s.start = list(DEFAULTS[model.name]["start"])
+
+    cell = r.mapping(doc.get("cell"), "cell", {"contact_radius", "capture_radius", "points"})
+    s.contact_radius = r.num(cell.get("contact_radius", CONTACT_RADIUS / L), "cell.contact_radius",
+                             positive=True) * L
+    s.capture_radius = r.num(cell.get("capture_radius", CAPTURE_RADIUS / L), "cell.capture_radius",
+                             positive=True) * L
+    pts = cell.get("points")
+    if pts is None:
+        pts = [dict(p, position=[x / L for x in p["position"]]) for p in DEFAULTS.get(model.name, {}).get(
+            "points", [])]
+    if not isinstance(pts, list):
+        raise r.fail("cell.points", "expected a list of points")
+    labels: set[str] = set()
+    for i, p in enumerate(pts):
+        f = f"cell.points[{i}]"
+        p = r.mapping(p, f, {"label", "kind", "position", "approach", "radius"})
+        label = str(p.get("label", ""))
+        if not label or label in labels:
+            raise r.fail(f + ".label", f"missing or duplicate label {label!r}")
+        labels.add(label)
+        kind = p.get("kind")
+        if kind not in KINDS:
+            raise r.fail(f + ".kind", f"expected socket or needle, got {kind!r}")
+        if "position" not in p:
+            raise r.fail(f + ".position", "missing")
+        ap = np.array(r.vec3(p.get("approach", [0, 0, 1]), f + ".approach", 1.0))
+        if np.linalg.norm(ap) < 1e-9:
+            raise r.fail(f + ".approach", "must be a non-zero vector")
+        rad = r.num(p["radius"], f + ".radius", positive=True) * L if "radius" in p else None
+        s.points.append({"label": label, "kind": kind, "position": r.vec3(p["position"], f + ".position", L),
+                         "approach": (ap / np.linalg.norm(ap)).tolist(), "radius": rad})
+
+    noise = r.mapping(doc.get("noise"), "noise", {"seating", "survey", "encoder"})
+    s.seating_sigma = r.num(noise.get("seating", SEATING_SIGMA / L), "noise.seating", nonneg=True) * L
+    s.survey_sigma = r.num(noise.get("survey", 0.0), "noise.survey", nonneg=True) * L
+    s.encoder_sigma = r.num(noise.get("encoder", 0.0), "noise.encoder", nonneg=True) * A
+    buses = doc.get("buses") or {}
+    if not isinstance(buses, dict) or any(not isinstance(v, dict | type(None)) for v in buses.values()):
+        raise r.fail("buses", "expected a mapping of bus name -> settings mapping")
+    s.buses = {str(k): dict(v or {}) for k, v in buses.items()}
+    return s
+
+
+def _is_builtin(name: str) -> bool:
+    from station.kinematics import builtin_names
+
+    return name in builtin_names()
+
+
+def spec_to_dict(s: WorldSpec, model, length: str = "m", angle: str = "rad") -> dict:
+    """The spec as a world document in the given units (loads back to the same world)."""
+    L, A = 1 / LENGTH[length], 1 / ANGLE[angle]
+    U = {"length": L, "angle": A}
+
+    def jscale(i):
+        return A if model.joints[i].revolute else L
+
+    def r(x):
+        return float(round(x, 12))
+
+    doc: dict = {"format": FORMAT, "description": s.description,
+                 "units": {"length": length, "angle": angle, "time": "s", "mass": "kg"}, "seed": s.seed}
+    robot: dict = {"model": s.model}
+    if s.tool:
+        robot["tool"] = {k: r(v * (A if k.startswith("r") else L)) for k, v in s.tool.items()}
+    doc["robot"] = robot
+    random: dict = {}
+    for sel, sl, sa in s.random:
+        kinds = {param_kind(model, n) for n in model.select(sel)}
+        if len(kinds) == 1:
+            random[sel] = r((sl if kinds == {"length"} else sa) * U[kinds.pop()])
+        else:
+            random[sel] = {"length": r(sl * L), "angle": r(sa * A)}
+    doc["errors"] = {"explicit": {n: r(v * U[param_kind(model, n)]) for n, v in s.explicit.items()},
+                     "random": random}
+    doc["joints"] = {"backlash": {f"j{i + 1}": r(v * jscale(i)) for i, v in s.backlash.items()},
+                     "compliance": {f"j{i + 1}": r(v * jscale(i)) for i, v in s.compliance.items()},
+                     "payload": r(s.payload), "gravity": [r(g) for g in s.gravity]}
+    motion: dict = {"time_mode": s.time_mode, "time_scale": r(s.time_scale), "enabled": s.enabled}
+    if s.start is not None:
+        motion["start"] = [r(x * jscale(i)) for i, x in enumerate(s.start)]
+    doc["motion"] = motion
+    pts = []
+    for p in s.points:
+        d = {"label": p["label"], "kind": p["kind"], "position": [r(x * L) for x in p["position"]],
+             "approach": [r(x) for x in p["approach"]]}
+        if p.get("radius") is not None:
+            d["radius"] = r(p["radius"] * L)
+        pts.append(d)
+    doc["cell"] = {"contact_radius": r(s.contact_radius * L), "capture_radius": r(s.capture_radius * L),
+                   "points": pts}
+    doc["noise"] = {"seating": r(s.seating_sigma * L), "survey": r(s.survey_sigma * L),
+                    "encoder": r(s.encoder_sigma * A)}
+    doc["buses"] = s.buses
+    return doc
+
+
+def load_world_doc(path: str | Path) -> dict:
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except OSError as e:
+        raise WorldFileError(f"{path}: cannot read ({e.strerror})") from None
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        line = f" line {mark.line + 1}" if mark else ""
+        raise WorldFileError(f"{path}:{line} not valid YAML") from None
+    return doc
