@@ -19,12 +19,12 @@ def url_with_model(url: str, model: str | None) -> str:
 
 
 def open_jog(url: str, *, serial: str | None = None, model: str | None = None, session: Path | None = None,
-             identify: str = "offsets,tcp", reference: str = "unknown"):
+             identify: str = "offsets,tcp", reference: list[str] | str | None = None):
     """Connect, create the session (journal + samples.csv) and return ``(robot, controller)``.
     The robot is closed again when anything after connecting fails."""
     from station.robot import open_robot
     from station.tui.controller import JogController, parse_reference
-    from station.tui.session import JogSession, session_header
+    from station.tui.session import JogSession, joint_units, session_header
 
     ref = parse_reference(reference)
     full_url = url_with_model(url, model)
@@ -34,9 +34,9 @@ def open_jog(url: str, *, serial: str | None = None, model: str | None = None, s
         ident = robot.identity()
         sn = serial or ident.serial or "unknown"
         header = session_header(identity=ident, model_name=robot.model.name, serial=sn, identify=identify,
-                                reference=reference, url=full_url)
+                                reference=ref, url=full_url)
         sid = session.name if session is not None else None
-        jog_session = JogSession.create(header=header, n_joints=robot.model.n_joints, folder=session,
+        jog_session = JogSession.create(header=header, joint_units=joint_units(robot.model), folder=session,
                                         session_id=sid)
         ctl = JogController(robot, jog_session, identify=identify, reference=ref)
     except BaseException:
@@ -56,8 +56,9 @@ def register(app: typer.Typer) -> None:
         session: Path = typer.Option(None, "--session", help="session folder (default: "
                                                             "$STATION_HOME/sessions/<id>/)"),
         identify: str = typer.Option("offsets,tcp", "--identify", help="parameters for the live solve"),
-        reference: str = typer.Option("unknown", "--reference",
-                                      help="reference point A: 'unknown' or x,y,z in metres (suffix mm for mm)"),
+        reference: list[str] = typer.Option(None, "--reference",
+                                            help="unknown | x,y,z (point A; m, or suffix mm) | LABEL=x,y,z "
+                                                 "(repeatable), as for station solve"),
     ) -> None:
         """Jog the robot, touch reference points, record samples, watch the live solve, write back."""
         from station.solver import SolverInputError

@@ -5,6 +5,7 @@ write-back. Textual widgets only render this state and call these methods (and t
 from __future__ import annotations
 
 import json
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -53,26 +54,32 @@ class WritebackPlan:
     corrections: dict[str, float]
 
 
-def parse_reference(text: str | None) -> str | dict[str, np.ndarray]:
-    """``unknown`` or ``x,y,z`` in metres (``x,y,zmm`` or a ``mm`` suffix for millimetres) -> the solver's
-    ``reference`` argument for point ``A``."""
-    if text is None or text.strip().lower() in ("", "unknown"):
-        return "unknown"
-    t = text.strip().lower()
-    scale = 1.0
-    if t.endswith("mm"):
-        t, scale = t[:-2], 1e-3
-    elif t.endswith("m"):
-        t = t[:-1]
-    try:
-        xyz = np.array([float(v) for v in t.split(",")], dtype=float) * scale
-    except ValueError:
-        xyz = np.array([])
-    if xyz.shape != (3,) or not np.all(np.isfinite(xyz)):
-        from station.robot.errors import ConfigError
+def parse_reference(specs: str | list[str] | None) -> str | dict[str, np.ndarray]:
+    """``--reference`` as ``station solve`` takes it: ``unknown``, ``x,y,z`` (point A) or ``LABEL=x,y,z``
+    (repeatable), metres unless one unit suffix follows the three numbers (``100,200,50mm``)."""
+    from station.robot.errors import ConfigError
+    from station.samplesfile import LENGTH_UNITS
 
-        raise ConfigError(f"--reference {text!r}: expected 'unknown' or x,y,z in metres (or x,y,z mm)")
-    return {"A": xyz}
+    items = [specs] if isinstance(specs, str) else list(specs or [])
+    items = [s.strip() for s in items if s and s.strip()]
+    if not items or items == ["unknown"]:
+        return "unknown"
+    ref: dict[str, np.ndarray] = {}
+    for spec in items:
+        label, _, xyz = spec.rpartition("=")
+        label = label.strip() or POINT_LABELS[0]
+        m = re.fullmatch(r"\s*([^,]+),([^,]+),([^,a-zA-Z]+?)\s*([a-zA-Z]+)?\s*", xyz)
+        try:
+            if spec == "unknown" or not m or (m.group(4) or "m") not in LENGTH_UNITS:
+                raise ValueError
+            v = np.array([float(m.group(k)) for k in (1, 2, 3)]) * LENGTH_UNITS[m.group(4) or "m"]
+            if not np.all(np.isfinite(v)):
+                raise ValueError
+        except ValueError:
+            raise ConfigError(f"--reference {spec!r}: expected unknown, x,y,z or LABEL=x,y,z in metres "
+                              "(or with a unit suffix like 100,200,50mm)") from None
+        ref[label] = v
+    return ref
 
 
 class JogController:

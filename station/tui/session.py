@@ -39,17 +39,21 @@ class JogSample:
     pose: int
 
 
+def joint_units(model) -> list[str]:
+    return ["rad" if j.revolute else "m" for j in model.joints]
+
+
 @dataclass
 class JogSession:
     session_id: str
     folder: Path
     journal: object  # station.engine.journal.Journal
-    n_joints: int
+    joint_units: list[str]  # "rad" | "m" per joint, for the samples.csv header
     samples: list[JogSample] = field(default_factory=list)
     _pose: int = 0
 
     @classmethod
-    def create(cls, *, header: dict, n_joints: int, folder: Path | None = None,
+    def create(cls, *, header: dict, joint_units: list[str], folder: Path | None = None,
                session_id: str | None = None) -> JogSession:
         from station.engine.journal import Journal
 
@@ -59,7 +63,7 @@ class JogSession:
             raise ConfigError(f"session folder {folder} already has a journal; choose a new --session folder")
         folder.mkdir(parents=True, exist_ok=True)
         journal = Journal.create(folder / "journal.jsonl", {**header, "session": sid})
-        session = cls(sid, folder, journal, n_joints)
+        session = cls(sid, folder, journal, list(joint_units))
         session.write_samples_csv()
         return session
 
@@ -93,10 +97,12 @@ class JogSession:
         file, never a torn one; the journal stays the truth either way."""
         tmp = self.samples_csv.with_suffix(".csv.tmp")
         with open(tmp, "w", newline="") as f:
+            f.write(f"# station jog session {self.session_id}: kept samples, joints in rad (m if prismatic); "
+                    "seq = journal sequence number\n")
             w = csv.writer(f)
-            w.writerow([f"q{i + 1}" for i in range(self.n_joints)] + ["point"])
+            w.writerow([f"q{i + 1}[{u}]" for i, u in enumerate(self.joint_units)] + ["point", "seq"])
             for s in self.samples:
-                w.writerow([repr(float(v)) for v in s.q] + [s.point])
+                w.writerow([repr(float(v)) for v in s.q] + [s.point, s.seq])
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, self.samples_csv)
@@ -116,7 +122,7 @@ def _plain(v):
     return v
 
 
-def session_header(*, identity, model_name: str, serial: str, identify: str, reference: str, url: str) -> dict:
+def session_header(*, identity, model_name: str, serial: str, identify: str, reference, url: str) -> dict:
     from importlib.metadata import PackageNotFoundError, version
 
     try:
@@ -127,7 +133,9 @@ def session_header(*, identity, model_name: str, serial: str, identify: str, ref
         k: getattr(identity, k) for k in ("vendor", "model", "serial", "firmware", "url")}
     return {
         "procedure": "jog", "procedure_sha256": None, "mode": "technician",
-        "station": {"host": socket.gethostname(), "robot_url": url, "identify": identify, "reference": reference},
+        "station": {"host": socket.gethostname(), "robot_url": url, "identify": identify,
+                    "reference": reference if isinstance(reference, str)
+                    else {k: [float(x) for x in v] for k, v in reference.items()}},
         "robot": ident, "model": model_name, "serial": serial, "operator": _operator(),
         "versions": {"station": station_version}, "started": datetime.now(UTC).isoformat(),
         "units": "SI (m, rad)", "t_created": time.time(),
