@@ -1,0 +1,34 @@
+"""`station jog` argument errors: one line, exit 2, no session folder left behind."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from station.cli.jog_cmd import url_with_model
+
+
+def _station(*args, cwd):
+    code = "import sys; from station.cli import main; sys.argv = ['station', *sys.argv[1:]]; main()"
+    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=60, cwd=cwd,
+                          env={"STATION_HOME": str(cwd / "home"), "PATH": "/usr/bin:/bin"})
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--robot", "nosuch://x"], "unknown scheme 'nosuch'"),
+    (["--robot", "dynamixel:///dev/null?model=omx", "--reference", "1,2"], "--reference '1,2'"),
+])
+def test_bad_arguments_exit_2(tmp_path, args, message):
+    p = _station("jog", *args, cwd=tmp_path)
+    assert p.returncode == 2, p.stderr
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("station: error:") and message in lines[0], p.stderr
+    assert not (tmp_path / "home").exists()
+
+
+def test_model_goes_into_the_url():
+    assert url_with_model("canopen+virtual://c0?nodes=1-6", "arm6") == "canopen+virtual://c0?nodes=1-6&model=arm6"
+    assert url_with_model("dynamixel:///dev/ttyUSB0?ids=1-4&model=x", "omx").endswith("ids=1-4&model=omx")
+    assert url_with_model("ur://h", None) == "ur://h"
