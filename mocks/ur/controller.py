@@ -1,0 +1,504 @@
+"""The emulated controller: one 500 Hz tick that runs the uploaded ur_rtde control script's register
+handshake on the simulated world, keeps the safety state, and publishes RTDE output packages.
+
+The controller's own kinematics are the world's *nominal* model (what a real controller believes):
+``actual_TCP_pose`` comes from it, ``actual_q`` from the world's encoders."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import numpy as np
+from station.mocks.ur import state as S
+
+from station.kinematics.se3 import invert, matrix_to_pose, pose_to_matrix
+
+log = logging.getLogger("station.mocks.ur")
+
+PERIOD = 0.002  # e-Series controller cycle (500 Hz)
+UNLOCK_DELAY = 5.0  # s: a protective stop cannot be unlocked earlier (as on a real robot)
+
+
+def _take(world, kind: str) -> bool:
+    faults = getattr(world, "faults", None)
+    if faults is None:
+        return False
+    try:
+        return bool(faults.take(kind, "ur"))
+    except TypeError:
+        return bool(faults.take(kind))
+
+
+class URController:
+    """Registers, safety state, program state and the control-script interpreter. Thread-safe: the
+    network handlers call into it under ``self.lock``; the tick thread owns motion."""
+
+    def __init__(self, world, *, serial: str = "20235500001", model_name: str = "ur5e",
+                 contact_bit: int = S.DEFAULT_CONTACT_BIT, stall_s: float = 1.0, drop_s: float = 1.0,
+                 remote_control: bool = True) -> None:
+        self.world = world
+        self.nominal = world.nominal
+        self.n = self.nominal.n_joints
+        self.serial = serial
+        self.model_name = model_name
+        self.contact_bit = contact_bit
+        self.stall_s, self.drop_s = stall_s, drop_s
+        self.remote_control = remote_control
+        self.lock = threading.RLock()
+        # registers (lower and upper range: 0..47)
+        self.in_int = [0] * 48
+        self.in_double = [0.0] * 48
+        self.out_int = [0] * 48
+        self.out_double = [0.0] * 48
+        self.in_int0_written = time.monotonic()  # watchdog: last time a client wrote input_int_register_0
+        # controller state
+        self.tick_count = 0
+        self.runtime_state = S.STOPPED
+        self.program: str | None = None  # name of the running program ("rtde_control")
+        self.reg_offset = 0
+        self.safety_mode = S.SAFETY_NORMAL
+        self.safety_bits = S.SS_NORMAL
+        self.pstop_at: float | None = None
+        self.estop = False
+        self.powered = True
+        self.teach = False
+        self.freedrive_axes = [1] * 6
+        self.speed_qd: np.ndarray | None = None  # speedj target (rad/s) held until stopped
+        self.speed_xd: np.ndarray | None = None  # speedl target (base frame, m/s and rad/s)
+        self.sync_busy = False  # a blocking move in progress: the script loop waits for it
+        self.async_busy = False
+        self.executing = False
+        self.watchdog_hz = 0.0
+        self.async_wr_count = 0
+        self.async_op_id = 0
+        self.stall_until = 0.0
+        self.messages: list[str] = []  # textmsg / popup log (dashboard: "emulator log")
+        self.q_prev = np.asarray(world.encoder_q(), dtype=float)
+        self.qd = np.zeros(self.n)
+        names = [n for n in self.nominal.param_names if n.startswith("tcp.")]
+        self.flange_model = self.nominal.with_params({n: 0.0 for n in names}) if names else self.nominal
+        q0 = np.zeros(self.n)
+        self.tcp = invert(self.flange_model.fk(q0)) @ self.nominal.fk(q0)  # installation TCP = nominal tool
+        self.on_drop = None  # set by the server: closes every connection for ``seconds``
+        # instant/sim worlds: the controller's cycle is the world's clock (2 ms of world time per tick)
+        self._sim = getattr(world, "time_mode", "realtime") != "realtime"
+        self._running = False
+        self._thread: threading.Thread | None = None
+        self._state_cache: dict | None = None
+
+    # ---- lifecycle ---------------------------------------------------------------------------
+    def start(self) -> None:
+        self._running = True
+        self._thread = threading.Thread(target=self._loop, name="ur-controller", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._running = False
+        if self._thread is not None:
+            self._thread.join(timeout=2)
+        self.world.halt()
+
+    def controller_time(self) -> float:
+        return self.tick_count * PERIOD
+
+    def _loop(self) -> None:
+        next_t = time.monotonic()
+        self.publishers: list = getattr(self, "publishers", [])
+        while self._running:
+            try:
+                self.tick()
+            except Exception:  # a bug in one tick must not freeze the controller: log and stop motion
+                log.exception("controller tick failed")
+                self.world.halt()
+            next_t += PERIOD
+            delay = next_t - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            elif delay < -0.5:  # far behind (machine stalled): resynchronise instead of bursting
+                next_t = time.monotonic()
+
+    # ---- one controller cycle ----------------------------------------------------------------
+    def tick(self) -> None:
+        with self.lock:
+            self.tick_count += 1
+            if self._sim:
+                self.world.advance(PERIOD)
+            self._faults()
+            self._watchdog()
+            self._motion_step()
+            if self.runtime_state == S.PLAYING and self.program == "rtde_control":
+                self._script_step()
+            q = np.asarray(self.world.encoder_q(), dtype=float)
+            self.qd = (q - self.q_prev) / PERIOD
+            self.q_prev = q
+            self._state_cache = None
+            stalled = time.monotonic() < self.stall_until
+        if not stalled:
+            for pub in list(getattr(self, "publishers", [])):
+                pub.on_tick(self)
+
+    def _faults(self) -> None:
+        if _take(self.world, "protective_stop"):
+            self.protective_stop("fault injected by the world")
+        if _take(self.world, "timeout"):
+            self.stall(self.stall_s)
+        if _take(self.world, "disconnect"):
+            self.drop(self.drop_s)
+
+    def _watchdog(self) -> None:
+        if (self.watchdog_hz > 0 and self.runtime_state == S.PLAYING
+                and time.monotonic() - self.in_int0_written > 1.0 / self.watchdog_hz):
+            self.messages.append("RTDE watchdog expired: program stopped")
+            self._halt_all()
+            self._end_program()
+
+    # ---- faults and safety -------------------------------------------------------------------
+    def protective_stop(self, why: str) -> None:
+        with self.lock:
+            self._halt_all()
+            self.safety_mode = S.SAFETY_PROTECTIVE_STOP
+            self.safety_bits = S.SS_PROTECTIVE_STOPPED | S.SS_STOPPED_DUE_TO_SAFETY
+            self.pstop_at = time.monotonic()
+            self.world.protective_stop(f"UR protective stop: {why}")
+            if self.runtime_state == S.PLAYING:
+                self.runtime_state = S.PAUSED  # the program is paused, as PolyScope does
+            self.messages.append(f"protective stop: {why}")
+            log.warning("protective stop: %s", why)
+
+    def emergency_stop(self, on: bool) -> None:
+        with self.lock:
+            if on:
+                self._halt_all()
+                self.estop = True
+                self.safety_mode = S.SAFETY_ROBOT_EMERGENCY_STOP
+                self.safety_bits = S.SS_ROBOT_EMERGENCY_STOPPED | S.SS_EMERGENCY_STOPPED | S.SS_STOPPED_DUE_TO_SAFETY
+                self.powered = False
+                self._end_program()
+            else:
+                self.estop = False
+                self.safety_mode, self.safety_bits = S.SAFETY_NORMAL, S.SS_NORMAL
+
+    def unlock_protective_stop(self) -> str:
+        with self.lock:
+            if self.safety_mode != S.SAFETY_PROTECTIVE_STOP:
+                return "Protective stop releasing"  # the real dashboard answers the same when not stopped
+            if time.monotonic() - (self.pstop_at or 0.0) < UNLOCK_DELAY:
+                return ("Cannot unlock protective stop until 5s after occurrence. "
+                        "Always inspect cause of protective stop before unlocking")
+            self.safety_mode, self.safety_bits, self.pstop_at = S.SAFETY_NORMAL, S.SS_NORMAL, None
+            self.world.clear_protective_stop()
+            return "Protective stop releasing"
+
+    def stall(self, seconds: float) -> None:
+        self.stall_until = time.monotonic() + seconds
+        log.warning("data stream stalled for %.2f s", seconds)
+
+    def drop(self, seconds: float) -> None:
+        log.warning("dropping every connection for %.2f s", seconds)
+        if self.on_drop is not None:
+            threading.Thread(target=self.on_drop, args=(seconds,), daemon=True).start()
+
+    @property
+    def stopped_by_safety(self) -> bool:
+        return self.safety_mode != S.SAFETY_NORMAL
+
+    def _halt_all(self) -> None:
+        self.speed_qd = self.speed_xd = None
+        self.world.halt()
+        if self.teach:
+            self.teach = False
+            self.world.set_compliant(False)
+        if self.async_busy:
+            self.async_busy = False
+            self._async_progress(-1)
+
+    # ---- program -----------------------------------------------------------------------------
+    def load_program(self, name: str, text: str) -> None:
+        """A script arrived on port 30003: it replaces whatever runs (as on the real controller)."""
+        with self.lock:
+            self._halt_all()
+            self.program = name
+            if name != "rtde_control":
+                self.messages.append(f"program {name!r} is not an ur_rtde control script: not executed")
+                self.runtime_state = S.STOPPED
+                return
+            if self.stopped_by_safety or not self.powered:
+                self.messages.append("program not started: robot is stopped by safety")
+                self.runtime_state = S.STOPPED
+                return
+            self.reg_offset = 24 if "reg_offset_int = 24" in text else 0
+            self.executing = False
+            self.sync_busy = False
+            self.watchdog_hz = 0.0
+            self.out_int[self.reg_offset] = S.SCRIPT_READY
+            self._async_progress(-1)
+            self.runtime_state = S.PLAYING
+
+    def stop_program(self) -> None:
+        with self.lock:
+            self._halt_all()
+            self._end_program()
+
+    def _end_program(self) -> None:
+        self.runtime_state = S.STOPPED
+        self.sync_busy = False
+        self.executing = False
+        self.watchdog_hz = 0.0
+
+    # ---- the control script's main loop ------------------------------------------------------
+    def _reg_i(self, i: int) -> int:
+        return self.in_int[self.reg_offset + i]
+
+    def _reg_d(self, i: int, n: int = 1):
+        o = self.reg_offset + i
+        return self.in_double[o] if n == 1 else np.array(self.in_double[o:o + n])
+
+    def _out_i(self, i: int, v: int) -> None:
+        self.out_int[self.reg_offset + i] = int(v)
+
+    def _out_d(self, i: int, values) -> None:
+        for k, v in enumerate(np.atleast_1d(values)):
+            self.out_double[self.reg_offset + i + k] = float(v)
+
+    def _script_step(self) -> None:
+        if self.sync_busy:
+            if self.world.is_moving():
+                return
+            self.sync_busy = False
+            self._out_i(0, S.SCRIPT_DONE)
+            return
+        cmd = self._reg_i(0)
+        if cmd in S.REALTIME_COMMANDS:
+            self._execute(cmd)
+            self._out_i(0, S.SCRIPT_READY)
+        elif cmd == S.CMD_NONE:
+            self.executing = False
+            self._out_i(0, S.SCRIPT_READY)
+        elif not self.executing:
+            self.executing = True
+            keep = self._execute(cmd)
+            if not keep:
+                self._end_program()
+                return
+            if not self.sync_busy:
+                self._out_i(0, S.SCRIPT_DONE)
+
+    def _execute(self, cmd: int) -> bool:
+        """Run one command like the control script's ``process_cmd``; False ends the program."""
+        if cmd == S.CMD_STOP_SCRIPT:
+            self._halt_all()
+            return False
+        if cmd in (S.CMD_MOVEJ, S.CMD_MOVEJ_IK, S.CMD_MOVEL, S.CMD_MOVEL_FK):
+            return self._move(cmd)
+        if cmd == S.CMD_SPEEDJ:
+            self.speed_xd = None
+            self.speed_qd = self._reg_d(0, 6)
+        elif cmd == S.CMD_SPEEDL:
+            self.speed_qd = None
+            self.speed_xd = self._reg_d(0, 6)
+        elif cmd == S.CMD_JOG_START:
+            self.speed_qd = None
+            speed, feature = self._reg_d(0, 6), int(self._reg_d(6))
+            if feature == 1:  # tool frame -> base frame
+                R = self._tcp_T(self.q_prev)[:3, :3]
+                speed = np.concatenate([R @ speed[:3], R @ speed[3:]])
+            self.speed_xd = speed
+        elif cmd == S.CMD_SERVOJ:
+            self.speed_qd = self.speed_xd = None
+            self._command_q(self._reg_d(0, 6), None)
+        elif cmd in (S.CMD_SPEED_STOP, S.CMD_SERVO_STOP, S.CMD_STOPJ, S.CMD_STOPL, S.CMD_JOG_STOP,
+                     S.CMD_FORCE_MODE_STOP):
+            self._halt_all()
+        elif cmd in (S.CMD_TEACH_MODE, S.CMD_FREEDRIVE_MODE):
+            self.speed_qd = self.speed_xd = None
+            self.world.halt()
+            if cmd == S.CMD_FREEDRIVE_MODE:
+                self.freedrive_axes = [self._reg_i(1 + k) for k in range(6)]
+            self.teach = True
+            self.world.set_compliant(True)
+        elif cmd in (S.CMD_END_TEACH_MODE, S.CMD_END_FREEDRIVE_MODE):
+            self.teach = False
+            self.world.set_compliant(False)
+        elif cmd == S.CMD_GET_FREEDRIVE_STATUS:
+            self._out_i(1, 1 if self.teach else 0)
+        elif cmd == S.CMD_SET_TCP:
+            self.tcp = pose_to_matrix(self._reg_d(0, 6))
+        elif cmd == S.CMD_GET_TCP_OFFSET:
+            self._out_d(0, matrix_to_pose(self.tcp))
+        elif cmd == S.CMD_GET_FORWARD_KINEMATICS_DEFAULT:
+            self._out_d(0, matrix_to_pose(self._tcp_T(self.q_prev)))
+        elif cmd == S.CMD_GET_FORWARD_KINEMATICS_ARGS:
+            q, tcp = self._reg_d(0, 6), pose_to_matrix(self._reg_d(6, 6))
+            self._out_d(0, matrix_to_pose(self.flange_model.fk(q) @ tcp))
+        elif cmd in (S.CMD_GET_INVERSE_KINEMATICS_DEFAULT, S.CMD_GET_INVERSE_KINEMATICS_ARGS):
+            q0 = self._reg_d(6, 6) if cmd == S.CMD_GET_INVERSE_KINEMATICS_ARGS else self.q_prev
+            q = self._ik(pose_to_matrix(self._reg_d(0, 6)), q0)
+            if q is None:
+                self.messages.append("get_inverse_kin: no solution")
+                return False  # the script raises: the program stops, as on the robot
+            self._out_d(0, q)
+        elif cmd == S.CMD_IS_JOINTS_WITHIN_SAFETY_LIMITS:
+            self._out_i(1, int(bool(self.nominal.within_limits(self._reg_d(0, 6))[0])))
+        elif cmd == S.CMD_IS_POSE_WITHIN_SAFETY_LIMITS:
+            self._out_i(1, 1)
+        elif cmd == S.CMD_IS_STEADY:
+            self._out_i(1, int(not self.world.is_moving()))
+        elif cmd == S.CMD_PROTECTIVE_STOP:
+            self.protective_stop("triggerProtectiveStop() from the client")
+        elif cmd == S.CMD_SET_WATCHDOG:
+            self.watchdog_hz = float(self._reg_d(0))
+            self.in_int0_written = time.monotonic()
+        elif cmd == S.CMD_GET_STEPTIME:
+            self._out_d(0, PERIOD)
+        elif cmd == S.CMD_GET_ACTUAL_JOINT_POSITIONS_HISTORY:
+            self._out_d(0, self.q_prev)
+        # anything else (payload, force-mode gains, IO, ...) has no effect on the simulated world
+        return True
+
+    # ---- motion ------------------------------------------------------------------------------
+    def _tcp_T(self, q) -> np.ndarray:
+        return self.flange_model.fk(np.asarray(q, float)) @ self.tcp
+
+    def _ik(self, T: np.ndarray, q0) -> np.ndarray | None:
+        target = T @ invert(self.tcp)
+        res = self.flange_model.ik(target[None], np.asarray(q0, float)[None])
+        if not res.ok[0] or not self.nominal.within_limits(res.q[0])[0]:
+            return None
+        return res.q[0]
+
+    def _command_q(self, q, speed) -> bool:
+        q = np.asarray(q, float)
+        if not (np.all(np.isfinite(q)) and self.nominal.within_limits(q)[0]):
+            self.messages.append(f"target {np.round(q, 4).tolist()} outside joint limits: program stopped")
+            return False
+        self.world.command_q(q, speed=speed)
+        return True
+
+    def _move(self, cmd: int) -> bool:
+        self.speed_qd = self.speed_xd = None
+        vals = self._reg_d(0, 6)
+        v, asynchronous = float(self._reg_d(6)), self._reg_i(1) == 1
+        if cmd == S.CMD_MOVEJ:
+            q, speed = vals, v
+        else:
+            if cmd == S.CMD_MOVEL_FK:
+                q = vals
+            else:
+                q = self._ik(pose_to_matrix(vals), self.q_prev)
+                if q is None:
+                    self.messages.append("move: target pose has no inverse kinematics solution: program stopped")
+                    return False
+            # movel / movej_ik with a tool speed: joint-interpolated (not a straight line) at the joint speed
+            # that keeps the tool at v; documented emulator simplification
+            speed = v if cmd == S.CMD_MOVEJ_IK else self._joint_speed_for_tool(q, v)
+        if not self._command_q(q, speed):
+            return False
+        if asynchronous:
+            self.async_busy = True
+            self._async_progress(0)
+        else:
+            self.sync_busy = True
+        return True
+
+    def _joint_speed_for_tool(self, q1, v_tool: float) -> float:
+        q0 = self.q_prev
+        dq = np.asarray(q1) - q0
+        lead = float(np.max(np.abs(dq)))
+        if lead < 1e-12:
+            return float(self.nominal.max_velocity.min())
+        s = np.linspace(0, 1, 6)[:, None]
+        J = self.flange_model.jacobian_q(q0 + s * dq)[:, :3]
+        per = float(np.max(np.linalg.norm(J @ (dq / lead), axis=1))) + 0.1  # lever of the TCP, roughly
+        return min(float(self.nominal.max_velocity.min()), v_tool / per)
+
+    def _motion_step(self) -> None:
+        if self.async_busy and not self.world.is_moving():
+            self.async_busy = False
+            self._async_progress(-1)
+        if self.stopped_by_safety:
+            return
+        if self.speed_qd is not None:
+            self._speed_joints(self.speed_qd)
+        elif self.speed_xd is not None:
+            q = self.q_prev
+            T, Jq, _ = self.flange_model.jacobians(q)
+            J = Jq[0].copy()
+            r = T[0, :3, :3] @ self.tcp[:3, 3]
+            skew = np.array([[0, -r[2], r[1]], [r[2], 0, -r[0]], [-r[1], r[0], 0]])
+            J[:3] -= skew @ J[3:]
+            self._speed_joints(np.linalg.pinv(J) @ self.speed_xd)
+
+    def _speed_joints(self, qd) -> None:
+        qd = np.clip(np.asarray(qd, float), -self.nominal.max_velocity, self.nominal.max_velocity)
+        # a speed command that would leave the joint limits within one cycle is a protective stop on the robot
+        nxt = self.q_prev + qd * PERIOD * 5
+        if not self.nominal.within_limits(nxt)[0]:
+            self.protective_stop("joint limit reached in speed mode")
+            return
+        self.world.command_qd(qd)
+
+    def _async_progress(self, value: int) -> None:
+        self.async_wr_count = 0 if self.async_wr_count >= 127 else self.async_wr_count + 1
+        if value == 0:
+            self.async_op_id = 0 if self.async_op_id >= 127 else self.async_op_id + 1
+        reg = self.async_wr_count * 65536 + self.async_op_id * 16777216
+        if value >= 0:
+            reg += min(value, 32767) + 32768
+        self._out_i(2, reg)
+
+    # ---- published state ---------------------------------------------------------------------
+    def robot_status_bits(self) -> int:
+        bits = S.RS_POWER_ON if self.powered else 0
+        if self.runtime_state == S.PLAYING:
+            bits |= S.RS_PROGRAM_RUNNING
+        if self.teach:
+            bits |= S.RS_TEACH_BUTTON
+        return bits
+
+    def snapshot(self) -> dict:
+        """Every output variable the emulator computes, for this cycle (cached until the next tick)."""
+        with self.lock:
+            if self._state_cache is not None:
+                return self._state_cache
+            q = self.q_prev
+            T = self._tcp_T(q)
+            contact = bool(self.world.contact())
+            di = (1 << self.contact_bit) if contact else 0
+            moving = bool(np.any(np.abs(self.qd) > 1e-6))
+            st = {
+                "timestamp": self.controller_time(),
+                "actual_q": q.tolist(), "target_q": q.tolist(), "actual_qd": self.qd.tolist(),
+                "target_qd": self.qd.tolist(), "actual_TCP_pose": matrix_to_pose(T).tolist(),
+                "target_TCP_pose": matrix_to_pose(T).tolist(),
+                "actual_digital_input_bits": di,
+                "robot_mode": S.ROBOT_MODE_RUNNING if self.powered else S.ROBOT_MODE_POWER_OFF,
+                "joint_mode": [253 if self.powered else 236] * 6,  # JOINT_RUNNING_MODE / POWER_OFF
+                "safety_mode": self.safety_mode, "safety_status": self.safety_mode,
+                "runtime_state": self.runtime_state, "robot_status_bits": self.robot_status_bits(),
+                "safety_status_bits": self.safety_bits, "speed_scaling": 1.0, "target_speed_fraction": 1.0,
+                "actual_main_voltage": 48.0, "actual_robot_voltage": 48.0, "joint_temperatures": [30.0] * 6,
+                "actual_joint_voltage": [48.0] * 6, "actual_execution_time": 0.3,
+                "payload": 0.0, "tool_temperature": 30.0, "tool_output_voltage": 0,
+                "moving": moving,
+            }
+            for i in range(48):
+                st[f"output_int_register_{i}"] = self.out_int[i]
+                st[f"output_double_register_{i}"] = self.out_double[i]
+                st[f"input_int_register_{i}"] = self.in_int[i]
+                st[f"input_double_register_{i}"] = self.in_double[i]
+            self._state_cache = st
+            return st
+
+    def write_inputs(self, names: list[str], values: list) -> None:
+        """One RTDE input package from a client."""
+        with self.lock:
+            for name, v in zip(names, values, strict=True):
+                if name.startswith("input_int_register_"):
+                    i = int(name.rsplit("_", 1)[1])
+                    self.in_int[i] = int(v)
+                    if i == self.reg_offset:
+                        self.in_int0_written = time.monotonic()
+                elif name.startswith("input_double_register_"):
+                    self.in_double[int(name.rsplit("_", 1)[1])] = float(v)

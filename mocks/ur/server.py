@@ -1,0 +1,393 @@
+"""The controller's TCP ports on one address: RTDE (30004), dashboard server (29999), script port (30003).
+
+Port 30004 is fixed in ur_rtde, so each emulator gets its own loopback address (127.0.0.2, 127.0.0.3, ...).
+Every connection runs in its own thread; RTDE output packages are pushed from the controller's tick."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import re
+import socket
+import struct
+import threading
+import time
+
+import numpy as np
+from station.mocks.ur import rtde_wire as W
+from station.mocks.ur.controller import PERIOD, URController
+
+log = logging.getLogger("station.mocks.ur")
+
+RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
+CONTROLLER_VERSION = (5, 11, 1, 108318)  # PolyScope 5.11 -> ur_rtde picks 500 Hz
+POLYSCOPE = "URSoftware 5.11.1.108318 (Mar 22 2022)"
+
+
+def _recv_exact(sock: socket.socket, n: int) -> bytes:
+    buf = bytearray()
+    while len(buf) < n:
+        chunk = sock.recv(n - len(buf))
+        if not chunk:
+            raise ConnectionError("peer closed")
+        buf += chunk
+    return bytes(buf)
+
+
+class _Conn:
+    def __init__(self, server: URServer, sock: socket.socket) -> None:
+        self.server, self.sock, self.ctl = server, sock, server.controller
+        self.closed = False
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        with contextlib.suppress(OSError):
+            self.sock.shutdown(socket.SHUT_RDWR)
+        with contextlib.suppress(OSError):
+            self.sock.close()
+        self.server.forget(self)
+
+    def serve(self) -> None:
+        try:
+            self.run()
+        except (ConnectionError, OSError, struct.error):
+            pass
+        finally:
+            self.close()
+
+    def run(self) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+
+class RTDEConn(_Conn):
+    """One RTDE client: recipes, start/pause, input packages; output packages from the tick."""
+
+    def __init__(self, server: URServer, sock: socket.socket) -> None:
+        super().__init__(server, sock)
+        self.send_lock = threading.Lock()
+        self.version = 1
+        self.out_names: list[str] = []
+        self.out_types: list[str] = []
+        self.out_struct: struct.Struct | None = None
+        self.divider = 1
+        self.inputs: dict[int, tuple[list[str], list[str], struct.Struct]] = {}
+        self.started = False
+
+    def send(self, kind: int, payload: bytes = b"") -> None:
+        with self.send_lock:
+            self.sock.sendall(W.frame(kind, payload))
+
+    def run(self) -> None:
+        while not self.closed:
+            size, kind = W.HEADER.unpack(_recv_exact(self.sock, W.HEADER.size))
+            payload = _recv_exact(self.sock, size - W.HEADER.size) if size > W.HEADER.size else b""
+            self.handle(kind, payload)
+
+    def handle(self, kind: int, payload: bytes) -> None:
+        if kind == W.REQUEST_PROTOCOL_VERSION:
+            (ver,) = struct.unpack(">H", payload[:2])
+            ok = ver in (1, 2)
+            if ok:
+                self.version = ver
+            self.send(kind, struct.pack(">B", int(ok)))
+        elif kind == W.GET_URCONTROL_VERSION:
+            self.send(kind, struct.pack(">IIII", *CONTROLLER_VERSION))
+        elif kind == W.SETUP_OUTPUTS:
+            self._setup_outputs(payload)
+        elif kind == W.SETUP_INPUTS:
+            self._setup_inputs(payload)
+        elif kind == W.START:
+            self.started = self.out_struct is not None or bool(self.inputs)
+            self.send(kind, struct.pack(">B", int(self.started)))
+        elif kind == W.PAUSE:
+            self.started = False
+            self.send(kind, struct.pack(">B", 1))
+        elif kind == W.DATA_PACKAGE:
+            self._input_package(payload)
+        else:
+            log.info("RTDE: ignoring message type %r", chr(kind))
+
+    def _setup_outputs(self, payload: bytes) -> None:
+        if self.version >= 2:
+            (freq,) = struct.unpack(">d", payload[:8])
+            payload = payload[8:]
+        else:
+            freq = 125.0
+        names = W.split_names(payload)
+        types = [W.OUTPUTS.get(n, "NOT_FOUND") for n in names]
+        ok = names and "NOT_FOUND" not in types and 0 < freq <= 1.0 / PERIOD
+        if ok:
+            self.out_names, self.out_types = names, types
+            self.out_struct = W.recipe_struct(types)
+            self.divider = max(1, round(1.0 / (PERIOD * freq)))
+        reply = ",".join(types).encode()
+        recipe_id = 1 if ok else 0
+        self.send(W.SETUP_OUTPUTS, (struct.pack(">B", recipe_id) if self.version >= 2 else b"") + reply)
+
+    def _setup_inputs(self, payload: bytes) -> None:
+        names = W.split_names(payload)
+        types = []
+        for n in names:
+            t = W.INPUTS.get(n, "NOT_FOUND")
+            if t != "NOT_FOUND" and not self.server.claim_input(n, self):
+                t = "IN_USE"
+            types.append(t)
+        ok = names and all(t in W.TYPE_FORMATS for t in types)
+        recipe_id = 0
+        if ok:
+            recipe_id = len(self.inputs) + 1
+            self.inputs[recipe_id] = (names, types, W.recipe_struct(types))
+        self.send(W.SETUP_INPUTS, struct.pack(">B", recipe_id) + ",".join(types).encode())
+
+    def _input_package(self, payload: bytes) -> None:
+        recipe_id = payload[0]
+        recipe = self.inputs.get(recipe_id)
+        if recipe is None:
+            return
+        names, types, st = recipe
+        values = W.unflatten(st.unpack(payload[1:1 + st.size]), types)
+        self.ctl.write_inputs(names, values)
+
+    def on_tick(self, ctl: URController) -> None:
+        if not self.started or self.out_struct is None or ctl.tick_count % self.divider:
+            return
+        snap = ctl.snapshot()
+        values = [snap.get(n, _zero(t)) for n, t in zip(self.out_names, self.out_types, strict=True)]
+        body = self.out_struct.pack(*W.flatten(values, self.out_types))
+        try:
+            self.send(W.DATA_PACKAGE, (struct.pack(">B", 1) if self.version >= 2 else b"") + body)
+        except OSError:
+            self.close()
+
+
+def _zero(t: str):
+    fmt = W.TYPE_FORMATS[t]
+    if fmt[0].isdigit():
+        return [0] * int(fmt[0])
+    return False if t == "BOOL" else 0
+
+
+class DashboardConn(_Conn):
+    """Line protocol on 29999. Commands starting with ``emulator`` exist only here (fault injection and
+    truth read-back for tests); a real controller answers them with "could not understand"."""
+
+    def run(self) -> None:
+        self.sock.sendall(b"Connected: Universal Robots Dashboard Server\n")
+        f = self.sock.makefile("rb")
+        try:
+            for raw in f:
+                line = raw.decode("utf-8", "replace").strip()
+                if not line:
+                    continue
+                reply, after = self.answer(line)
+                self.sock.sendall((reply + "\n").encode())
+                if after is not None:
+                    after()
+                if line.lower() == "quit":
+                    break
+        finally:
+            f.close()
+
+    def answer(self, line: str):
+        ctl = self.ctl
+        cmd = line.lower()
+        states = {0: "STOPPING", 1: "STOPPED", 2: "PLAYING", 3: "PAUSING", 4: "PAUSED", 5: "RESUMING"}
+        if cmd == "polyscopeversion":
+            return POLYSCOPE, None
+        if cmd == "get serial number":
+            return ctl.serial, None
+        if cmd == "get robot model":
+            return ctl.model_name[:-1].upper() if ctl.model_name.endswith("e") else ctl.model_name.upper(), None
+        if cmd == "is in remote control":
+            return str(ctl.remote_control).lower(), None
+        if cmd == "robotmode":
+            return ("Robotmode: RUNNING" if ctl.powered else "Robotmode: POWER_OFF"), None
+        if cmd == "safetymode" or cmd == "safetystatus":
+            names = {1: "NORMAL", 3: "PROTECTIVE_STOP", 7: "ROBOT_EMERGENCY_STOP"}
+            label = "Safetymode" if cmd == "safetymode" else "Safetystatus"
+            return f"{label}: {names.get(ctl.safety_mode, 'FAULT')}", None
+        if cmd == "unlock protective stop":
+            return ctl.unlock_protective_stop(), None
+        if cmd == "close safety popup":
+            return "closing safety popup", None
+        if cmd == "close popup":
+            return "closing popup", None
+        if cmd.startswith("popup "):
+            ctl.messages.append(line[6:])
+            return "showing popup", None
+        if cmd == "stop":
+            ctl.stop_program()
+            return "Stopped", None
+        if cmd == "pause":
+            return "Pausing program", None
+        if cmd == "programstate":
+            return f"{states.get(ctl.runtime_state, 'STOPPED')} {ctl.program or '<unnamed>'}", None
+        if cmd == "running":
+            return f"Program running: {str(ctl.runtime_state == 2).lower()}", None
+        if cmd == "power on":
+            ctl.powered = True
+            return "Powering on", None
+        if cmd == "power off":
+            ctl.stop_program()
+            ctl.powered = False
+            return "Powering off", None
+        if cmd == "brake release":
+            return "Brake releasing", None
+        if cmd.startswith("addtolog"):
+            ctl.messages.append(line[9:])
+            return "Added log message", None
+        if cmd == "quit":
+            return "Disconnected", None
+        if cmd.startswith("emulator"):
+            return self.emulator(cmd.split()[1:])
+        return f"could not understand: '{line}'", None
+
+    def emulator(self, args: list[str]):
+        ctl = self.ctl
+        if not args:
+            return "emulator: commands: protective_stop, stall S, drop S, estop on|off, encoder, tip, log", None
+        what, rest = args[0], args[1:]
+        seconds = float(rest[0]) if rest else None
+        if what == "protective_stop":
+            ctl.protective_stop("injected on the dashboard")
+            return "emulator: protective stop", None
+        if what == "stall":
+            ctl.stall(seconds or ctl.stall_s)
+            return "emulator: stalling data stream", None
+        if what == "drop":
+            return "emulator: dropping connections", lambda: ctl.drop(seconds or ctl.drop_s)
+        if what == "estop":
+            ctl.emergency_stop(bool(rest) and rest[0] == "on")
+            return f"emulator: emergency stop {'on' if ctl.estop else 'off'}", None
+        if what == "encoder":
+            return "emulator: " + " ".join(f"{v:.12g}" for v in np.asarray(ctl.world.encoder_q())), None
+        if what == "tip":
+            return "emulator: " + " ".join(f"{v:.12g}" for v in np.asarray(ctl.world.tip_true())), None
+        if what == "log":
+            return "emulator: " + " | ".join(ctl.messages[-20:]), None
+        return f"emulator: unknown command {what!r}", None
+
+
+_PROGRAM = re.compile(r"^(?:def|sec)\s+(\w+)\s*\(\s*\)\s*:", re.M)
+_END = re.compile(r"^end\s*$", re.M)
+
+
+class ScriptConn(_Conn):
+    """Port 30003: URScript programs. A top-level ``def name():`` ... ``end`` replaces the running program.
+    (The real port also streams a 500 Hz realtime state; ur_rtde does not read it, so neither is it sent.)"""
+
+    def run(self) -> None:
+        buf = ""
+        while not self.closed:
+            chunk = self.sock.recv(65536)
+            if not chunk:
+                return
+            buf += chunk.decode("utf-8", "replace")
+            while True:
+                m = _PROGRAM.search(buf)
+                if not m:
+                    break
+                e = _END.search(buf, m.end())
+                if not e:
+                    break
+                text = buf[m.start():e.end()]
+                buf = buf[e.end():]
+                if self.server.dump_script:
+                    with open(self.server.dump_script, "w") as f:
+                        f.write(text)
+                self.ctl.load_program(m.group(1), text)
+
+
+class URServer:
+    """Listens on ``host`` for the three ports and owns the controller thread."""
+
+    def __init__(self, controller: URController, host: str = "127.0.0.1", *, rtde_port: int = RTDE_PORT,
+                 dashboard_port: int = DASHBOARD_PORT, script_port: int = SCRIPT_PORT,
+                 dump_script: str | None = None) -> None:
+        self.controller = controller
+        self.host = host
+        self.ports = {rtde_port: RTDEConn, dashboard_port: DashboardConn, script_port: ScriptConn}
+        self.dump_script = dump_script
+        self.conns: set[_Conn] = set()
+        self.claims: dict[str, _Conn] = {}
+        self.lock = threading.Lock()
+        self.listeners: list[socket.socket] = []
+        self.threads: list[threading.Thread] = []
+        self.running = False
+        controller.publishers = []
+        controller.on_drop = self.drop
+
+    def start(self) -> None:
+        self.running = True
+        self._listen()
+        self.controller.start()
+
+    def _listen(self) -> None:
+        for port, kind in self.ports.items():
+            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            s.bind((self.host, port))
+            s.listen(8)
+            self.listeners.append(s)
+            t = threading.Thread(target=self._accept, args=(s, kind), name=f"ur-accept-{port}", daemon=True)
+            t.start()
+            self.threads.append(t)
+
+    def _accept(self, listener: socket.socket, kind) -> None:
+        while self.running:
+            try:
+                sock, _ = listener.accept()
+            except OSError:
+                return
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            sock.settimeout(None)
+            conn = kind(self, sock)
+            with self.lock:
+                self.conns.add(conn)
+                if isinstance(conn, RTDEConn):
+                    self.controller.publishers.append(conn)
+            threading.Thread(target=conn.serve, name=f"ur-{kind.__name__}", daemon=True).start()
+
+    def claim_input(self, name: str, conn: _Conn) -> bool:
+        with self.lock:
+            owner = self.claims.get(name)
+            if owner is not None and owner is not conn and not owner.closed:
+                return False
+            self.claims[name] = conn
+            return True
+
+    def forget(self, conn: _Conn) -> None:
+        with self.lock:
+            self.conns.discard(conn)
+            if conn in self.controller.publishers:
+                self.controller.publishers.remove(conn)
+            for name in [n for n, c in self.claims.items() if c is conn]:
+                del self.claims[name]
+
+    def _close_listeners(self) -> None:
+        for s in self.listeners:
+            with contextlib.suppress(OSError):
+                s.close()
+        self.listeners.clear()
+
+    def close_connections(self) -> None:
+        with self.lock:
+            conns = list(self.conns)
+        for c in conns:
+            c.close()
+
+    def drop(self, seconds: float) -> None:
+        """Connection loss: every socket closes and the ports refuse connections for ``seconds``."""
+        self._close_listeners()
+        self.close_connections()
+        time.sleep(seconds)
+        if self.running:
+            self._listen()
+
+    def close(self) -> None:
+        self.running = False
+        self._close_listeners()
+        self.close_connections()
+        self.controller.stop()
