@@ -1,7 +1,210 @@
-"""Placeholder: this command group is being built (see the open issues); it registers nothing yet."""
+"""``station solve`` (identify parameters from touch samples) and ``station fk`` (tool poses from joint
+readings with the nominal or a calibrated model). Public interface: factory scripts depend on it."""
 
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
 import typer
+
+from station.samplesfile import LENGTH_UNITS, SamplesFileError, read_joints, read_samples
+
+
+def _fail(msg: str):
+    from station.cli import fail
+
+    return fail(msg)
+
+
+_TRIPLE = re.compile(r"^\s*([^,]+),([^,]+),([^,]+?)\s*([a-z]*)\s*$")
+
+
+def parse_xyz(text: str, option: str) -> np.ndarray:
+    """``x,y,z`` in metres, or with one unit suffix for all three: ``100,200,50mm``."""
+    m = _TRIPLE.match(text)
+    if not m:
+        raise _fail(f"{option} {text!r}: expected x,y,z (metres, or with a unit suffix like 100,200,50mm)")
+    unit = m.group(4) or "m"
+    if unit not in LENGTH_UNITS:
+        raise _fail(f"{option} {text!r}: unknown length unit {unit!r} (m, mm, cm, um)")
+    try:
+        v = np.array([float(m.group(k)) for k in (1, 2, 3)]) * LENGTH_UNITS[unit]
+    except ValueError:
+        raise _fail(f"{option} {text!r}: not a number") from None
+    if not np.isfinite(v).all():
+        raise _fail(f"{option} {text!r}: not a finite number")
+    return v
+
+
+def _load_model(name: str, tool: str | None):
+    from station.kinematics import load_model
+
+    model = load_model(name)  # ModelFileError -> one-line error in station.cli.main
+    if tool:
+        t = parse_xyz(tool, "--tool")
+        model = model.with_params({"tcp.x": t[0], "tcp.y": t[1], "tcp.z": t[2]})
+    return model
+
+
+def _references(specs: list[str], labels: list[str], samples: str):
+    if not specs or specs == ["unknown"]:
+        return "unknown"
+    ref: dict[str, np.ndarray] = {}
+    for s in specs:
+        if s == "unknown":
+            raise _fail("--reference unknown cannot be combined with known points")
+        if "=" in s:
+            label, xyz = s.split("=", 1)
+            ref[label.strip()] = parse_xyz(xyz, "--reference")
+        else:
+            if len(labels) != 1:
+                raise _fail(f"--reference {s!r}: {samples} touches points {', '.join(labels)}; "
+                            f"give LABEL=x,y,z for each known one")
+            ref[labels[0]] = parse_xyz(s, "--reference")
+    unknown = [lb for lb in ref if lb not in labels]
+    if unknown:
+        raise _fail(f"--reference: point {unknown[0]!r} is not in {samples} (points: {', '.join(labels)})")
+    return ref
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def _fmt(p) -> tuple[str, str, str]:
+    """Value, std and unit for humans: mm / deg."""
+    k = 1e3 if p.unit == "m" else 180.0 / math.pi
+    unit = "mm" if p.unit == "m" else "deg"
+    val = "-" if not math.isfinite(p.value) else f"{p.value * k:+.4f}"
+    std = "-" if p.std is None else f"{p.std * k:.4f}"
+    return val, std, unit
+
+
+def summary(res) -> str:
+    lines = [f"model {res.model}: {res.n_samples} samples, {res.n_parameters} unknowns, rank {res.rank}, "
+             f"{'converged' if res.converged else 'NOT CONVERGED'} in {res.iterations} iterations"]
+    cond = "-" if res.condition_number is None else f"{res.condition_number:.3g}"
+    o1 = "-" if res.observability_index is None else f"{res.observability_index:.3g}"
+    lines.append(f"condition number {cond}, observability index O1 {o1}, residual sigma "
+                 f"{(res.sigma_m or 0) * 1e3:.4f} mm")
+    r = res.residuals
+    lines.append(f"residual RMS {r['rms_before_m'] * 1e3:.4f} mm -> {r['rms_after_m'] * 1e3:.4f} mm "
+                 f"(max {r['max_after_m'] * 1e3:.4f} mm)")
+    if res.holdout:
+        h = res.holdout
+        lines.append(f"holdout ({h['n_samples']} samples): RMS {h['rms_m'] * 1e3:.4f} mm, max {h['max_m'] * 1e3:.4f} "
+                     f"mm (nominal model {h['rms_nominal_m'] * 1e3:.4f} mm)")
+    lines.append(f"{'parameter':<16} {'value':>12} {'std':>10}  unit")
+    for n, p in res.parameters.items():
+        if p.identifiable:
+            val, std, unit = _fmt(p)
+            lines.append(f"{n:<16} {val:>12} {std:>10}  {unit}")
+    bad = res.unidentifiable
+    if bad:
+        lines.append("not identifiable (kept at nominal):")
+        lines += [f"  {n}: {why}" for n, why in bad.items()]
+    lines += [f"note: {n}" for n in res.notes]
+    return "\n".join(lines)
+
+
+def solve_command(
+    model: str = typer.Option(..., "--model", help="built-in model name or model file"),
+    samples: Path = typer.Option(..., "--samples", help="CSV: q1..qN [point] [x,y,z]; units in headers"),
+    identify: str = typer.Option("offsets,tcp", "--identify", help="groups/names/globs, e.g. offsets,tcp,dh"),
+    reference: list[str] = typer.Option(None, "--reference",
+                                        help="unknown | x,y,z (m, or suffix mm) | LABEL=x,y,z (repeatable)"),
+    tool: str = typer.Option(None, "--tool", help="nominal TCP x,y,z in the flange frame (m, or suffix mm)"),
+    holdout: Path = typer.Option(None, "--holdout", help="CSV of validation samples (same columns)"),
+    out: Path = typer.Option(None, "--out", help="write the result JSON here"),
+    instrument_frame: str = typer.Option("unknown", "--instrument-frame",
+                                         help="x,y,z columns: unknown (solve the instrument frame) | base"),
+    max_std: float = typer.Option(1e-3, "--max-std", help="m at the tool: weaker directions are not estimated"),
+) -> None:
+    """Identify joint offsets, TCP, link geometry from touch samples."""
+    from station.solver import Observations, SolverInputError, solve
+
+    m = _load_model(model, tool)
+    try:
+        s = read_samples(samples, m)
+        obs = Observations(s.q, s.point, s.measured)
+        ho = None
+        if holdout is not None:
+            h = read_samples(holdout, m)
+            ho = Observations(h.q, h.point, h.measured)
+    except SamplesFileError as e:
+        raise _fail(str(e)) from None
+    if instrument_frame not in ("unknown", "base"):
+        raise _fail(f"--instrument-frame {instrument_frame!r}: expected unknown or base")
+    ref = _references(list(reference or []), obs.labels, str(samples))
+    if s.measured is not None and ref != "unknown":
+        raise _fail(f"--reference: {samples} has instrument columns x,y,z; known points are not used with them")
+    try:
+        res = solve(m, obs, identify, ref, ho, instrument_frame=instrument_frame, max_std=max_std)
+    except SolverInputError as e:
+        msg = str(e)
+        if "parameter or group" in msg:
+            raise _fail(f"--identify {identify!r}: {msg}") from None
+        raise _fail(f"{samples}: {msg}") from None
+    res.settings.update(samples=str(samples), holdout=None if holdout is None else str(holdout), tool=tool)
+    typer.echo(summary(res))
+    if out is not None:
+        _write_atomic(out, json.dumps(res.to_dict(), indent=2) + "\n")
+        typer.echo(f"result: {out}")
+
+
+def fk_command(
+    model: str = typer.Option(..., "--model", help="built-in model name or model file"),
+    joints: Path = typer.Option(..., "--joints", help="CSV with q1..qN (units in headers: q1[deg], q3[mm])"),
+    calibration: Path = typer.Option(None, "--calibration", help="result JSON of station solve"),
+    tool: str = typer.Option(None, "--tool", help="nominal TCP x,y,z (m, or suffix mm), before the calibration"),
+    out: Path = typer.Option(None, "--out", help="write CSV here (default: stdout)"),
+) -> None:
+    """Tool pose (x, y, z in m; rx, ry, rz rotation vector in rad) for each row of joint readings."""
+    from station.kinematics import se3
+    from station.solver import CalibrationResult
+
+    m = _load_model(model, tool)
+    if calibration is not None:
+        try:
+            doc = json.loads(Path(calibration).read_text())
+            cal = CalibrationResult.from_dict(doc)
+            m = cal.calibrated(m)
+        except FileNotFoundError:
+            raise _fail(f"{calibration}: no such file") from None
+        except (json.JSONDecodeError, ValueError, KeyError) as e:
+            raise _fail(f"{calibration}: {e}") from None
+    try:
+        q, _ = read_joints(joints, m)
+    except SamplesFileError as e:
+        raise _fail(str(e)) from None
+    pose = se3.matrix_to_pose(m.fk(q).reshape(-1, 4, 4), "rotvec")
+    header = ["x[m]", "y[m]", "z[m]", "rx[rad]", "ry[rad]", "rz[rad]"]
+    buf = io.StringIO()
+    buf.write(f"# station fk: model {m.name}, "
+              f"{'calibration ' + str(calibration) if calibration else 'nominal'}; rotation vector\n")
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    for row in pose:
+        w.writerow([f"{v:.9f}" for v in row])
+    if out is None:
+        sys.stdout.write(buf.getvalue())
+    else:
+        _write_atomic(out, buf.getvalue())
 
 
 def register(app: typer.Typer) -> None:
-    return None
+    app.command("solve")(solve_command)
+    app.command("fk")(fk_command)

@@ -15,6 +15,7 @@ from station.solver.result import CalibrationResult, ParameterEstimate
 
 XTOL = 1e-11  # m (scaled step): below this a step changes nothing measurable
 FTOL = 1e-13  # relative cost decrease
+POSE_TOL = 1e-3  # rad or m: joint readings closer than this are the same pose
 
 
 def select_names(model, identify) -> list[str]:
@@ -55,11 +56,16 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
             f"{len(obs)} samples give {m} equations for {p} unknowns ({len(names)} model parameters"
             f"{', instrument frame' if prob.frame_unknown else ''}, {len(prob.unknown_points)} unknown point(s)); "
             f"need at least {p // 3 + 1} samples, ~20 well spread poses recommended")
+    k = distinct_poses(obs.q)
+    if 3 * k <= p:
+        raise SolverInputError(
+            f"only {k} distinct pose(s) among {len(obs)} samples (readings within {POSE_TOL * 1e3:g} mrad/um count as "
+            f"one): {3 * k} equations for {p} unknowns; move the robot between touches")
     x = prob.initial()
     r_before = prob.residual(x)
     x_start = x.copy()
     r, J = prob.residual_jacobian(x)
-    ana = _analyse(prob, J, x, noise or 0.0, max_std)
+    ana = _analyse(prob, J, x, noise or 0.0, max_std, r)
     iterations, converged = 0, False
     for _ in range(4):
         act = ana.accepted
@@ -68,7 +74,7 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
         r, J = prob.residual_jacobian(x)
         dof = m - len(act)
         sigma = math.sqrt(float(r @ r) / dof)
-        new = _analyse(prob, J, x, noise if noise is not None else sigma, max_std)
+        new = _analyse(prob, J, x, noise if noise is not None else sigma, max_std, r)
         if new.accepted == act:
             ana = new
             break
@@ -82,11 +88,22 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
                         max_iter=max_iter, estimator="Levenberg-Marquardt on analytic Jacobian"))
 
 
-def _analyse(prob: Problem, J, x, sigma, max_std) -> RankAnalysis:
+def distinct_poses(q: np.ndarray, tol: float | None = None) -> int:
+    """Number of joint configurations that differ by more than ``tol`` in some joint (greedy clustering):
+    repeating one pose adds no information about the geometry."""
+    tol = POSE_TOL if tol is None else tol
+    reps: list[np.ndarray] = []
+    for row in q:
+        if not reps or np.min(np.max(np.abs(np.array(reps) - row), axis=1)) > tol:
+            reps.append(row)
+    return len(reps)
+
+
+def _analyse(prob: Problem, J, x, sigma, max_std, r) -> RankAnalysis:
     Js = J * prob.scale
     sd = prob.scale_direction(x) / prob.scale
     joints = prob.model.joints
-    return analyse(Js, prob.names, prob.kinds, sigma=sigma, max_std=max_std, scale_dir=sd,
+    return analyse(Js, prob.names, prob.kinds, sigma=sigma, max_std=max_std, scale_dir=sd, residual=r,
                    n_joints=len(joints), first_revolute=joints[0].revolute, last_revolute=joints[-1].revolute)
 
 

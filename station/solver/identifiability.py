@@ -52,33 +52,30 @@ def priority_order(names: list[str], kinds: list[str]) -> list[int]:
 
 
 def analyse(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float = 0.0, max_std: float = 1e-3,
-            scale_dir: np.ndarray | None = None, n_joints: int = 0, first_revolute: bool = True,
-            last_revolute: bool = True) -> RankAnalysis:
+            scale_dir: np.ndarray | None = None, residual: np.ndarray | None = None, n_joints: int = 0,
+            first_revolute: bool = True, last_revolute: bool = True) -> RankAnalysis:
     """``Js`` is the column-scaled Jacobian (m x p); ``scale_dir`` the uniform-scaling direction in the
-    same scaled coordinates (to detect "no known length")."""
+    same scaled coordinates and ``residual`` the current residual (to detect "no known length")."""
     m, p = Js.shape
     norms = np.linalg.norm(Js, axis=0)
     big = norms.max() if p else 0.0
     tau_struct = RTOL * big if big > 0 else np.inf
     tau_noise = sigma / max_std if max_std > 0 else 0.0
-    Q = np.zeros((m, 0))
-    accepted: list[int] = []
-    weak: dict[int, float] = {}
-    for j in priority_order(names, kinds):
-        c = Js[:, j]
-        res = c - Q @ (Q.T @ c)
-        res = res - Q @ (Q.T @ res)
-        nr = float(np.linalg.norm(res))
-        if nr > max(tau_struct, tau_noise):
-            accepted.append(j)
-            Q = np.column_stack([Q, res / nr])
-        elif nr > tau_struct:
-            weak[j] = nr
+    order = priority_order(names, kinds)
+    accepted, weak = _greedy(Js, order, tau_struct, tau_noise)
+    scale_hit = None
+    if _scale_invisible(Js, scale_dir, residual):
+        # a uniform scaling of every length only scales the residual: the data have no length standard.
+        # The longest link length that would be estimated keeps its nominal value instead (fixing a
+        # long one pins the scale best).
+        owners = [j for j in accepted if kinds[j] == "model" and scale_dir[j] != 0.0]
+        if owners:
+            scale_hit = max(owners, key=lambda j: abs(scale_dir[j]))
+            accepted, weak = _greedy(Js, [j for j in order if j != scale_hit], tau_struct, tau_noise)
     rejected: dict[int, str] = {}
     dep = [j for j in range(p) if j not in accepted]
     if dep:
         A = Js[:, accepted]
-        scale_hit = _scale_owner(Js, A, accepted, dep, scale_dir)
         for j in dep:
             rejected[j] = _reason(j, Js, A, accepted, names, kinds, norms, tau_struct, weak.get(j), sigma,
                                   max_std, j == scale_hit, n_joints, first_revolute, last_revolute)
@@ -95,24 +92,30 @@ def _coefficients(A: np.ndarray, c: np.ndarray) -> np.ndarray:
     return np.linalg.lstsq(A, c, rcond=None)[0]
 
 
-def _scale_owner(Js, A, accepted, dep, scale_dir) -> int | None:
-    """The dependent column whose null-space vector is most aligned with a uniform scaling, if the data
-    cannot see scaling at all."""
-    if scale_dir is None or not np.any(scale_dir):
-        return None
-    v = scale_dir
-    if np.linalg.norm(Js @ v) > 1e-6 * np.sum(np.linalg.norm(Js, axis=0) * np.abs(v)):
-        return None
-    best, best_cos = None, 0.5
-    for j in dep:
-        a = _coefficients(A, Js[:, j])
-        nv = np.zeros(Js.shape[1])
-        nv[j] = 1.0
-        nv[accepted] = -a
-        cos = abs(nv @ v) / (np.linalg.norm(nv) * np.linalg.norm(v))
-        if cos > best_cos:
-            best, best_cos = j, cos
-    return best
+def _greedy(Js, order, tau_struct, tau_noise) -> tuple[list[int], dict[int, float]]:
+    Q = np.zeros((Js.shape[0], 0))
+    accepted: list[int] = []
+    weak: dict[int, float] = {}
+    for j in order:
+        c = Js[:, j]
+        res = c - Q @ (Q.T @ c)
+        res = res - Q @ (Q.T @ res)
+        nr = float(np.linalg.norm(res))
+        if nr > max(tau_struct, tau_noise):
+            accepted.append(j)
+            Q = np.column_stack([Q, res / nr])
+        elif nr > tau_struct:
+            weak[j] = nr
+    return accepted, weak
+
+
+def _scale_invisible(Js, scale_dir, residual) -> bool:
+    """Scaling every length by (1 + s) changes the residual r into (1 + s) r exactly when no length is
+    known, i.e. ``J v = r``: the data carry no length standard (seed 003d's distance argument)."""
+    if scale_dir is None or residual is None or not np.any(scale_dir):
+        return False
+    ref = np.sum(np.linalg.norm(Js, axis=0) * np.abs(scale_dir))
+    return bool(np.linalg.norm(Js @ scale_dir - residual) <= 1e-6 * ref)
 
 
 def _reason(j, Js, A, accepted, names, kinds, norms, tau_struct, weak_norm, sigma, max_std, scale_hit, n_joints,
@@ -121,9 +124,10 @@ def _reason(j, Js, A, accepted, names, kinds, norms, tau_struct, weak_norm, sigm
     if scale_hit:
         return ("scale: no known length - every length of the robot and the unknown point(s) can grow "
                 "together without changing the data; give a known point or measure with an instrument")
+    last = name == f"offset.j{n_joints}" and last_revolute
+    if last and norms[j] <= max(tau_struct, sigma / max_std if max_std > 0 else 0.0):
+        return f"the TCP lies on the axis of joint {n_joints}: rotating it does not move the tool tip"
     if norms[j] <= tau_struct:
-        if name == f"offset.j{n_joints}" and last_revolute:
-            return f"the TCP lies on the axis of joint {n_joints}: rotating it does not move the tool tip"
         return "changing it does not move the tool tip in any of these poses"
     a = _coefficients(A, Js[:, j])
     contrib = np.abs(a) * norms[accepted]
@@ -134,7 +138,7 @@ def _reason(j, Js, A, accepted, names, kinds, norms, tau_struct, weak_norm, sigm
             return "a rotation about joint 1 moves the unknown point with the robot"
         if any(kinds[names.index(p)] == "instrument" for p in partners):
             return "a rotation about joint 1 is indistinguishable from rotating the unknown instrument frame"
-    if name == f"offset.j{n_joints}" and last_revolute and any(p.startswith("tcp.") for p in partners):
+    if last and any(p.startswith("tcp.") for p in partners):
         return (f"the TCP is free: a rotation about joint {n_joints} only turns the TCP offset about that "
                 f"axis, which is absorbed by {', '.join(p for p in partners if p.startswith('tcp.'))}")
     with_ = ", ".join(partners) if partners else "the other unknowns"

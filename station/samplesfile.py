@@ -1,0 +1,184 @@
+"""CSV files of touch samples and joint readings, with units in the headers. Pure: text in, SI arrays out.
+
+Columns: ``q1..qN`` (joint readings; radians or metres unless the header says ``q1[deg]``, ``q3[mm]``),
+optional ``point`` (label of the reference point touched; default ``A``), optional ``x,y,z`` (instrument
+measurement of the tip; metres unless ``x[mm]``). Other columns are ignored; lines starting with ``#`` are
+comments. Errors name the file, the line and the column: ``samples.csv:7: column 'q3': not a number``."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "um": 1e-6}
+ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0, "mrad": 1e-3}
+_HEADER = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_.]*)\s*(?:\[\s*([A-Za-z]+)\s*\])?\s*$")
+_JOINT = re.compile(r"^q(\d+)$")
+
+
+class SamplesFileError(ValueError):
+    """A samples/joints file cannot be read; the message is one line naming file, line and column."""
+
+
+@dataclass(frozen=True)
+class Column:
+    name: str  # base name, lower case: "q3", "x", "point"
+    unit: str | None  # as written in the header, lower case
+    header: str  # as written
+
+
+@dataclass
+class Table:
+    path: str
+    columns: dict[str, tuple[int, Column]]  # base name -> (field index, column)
+    rows: list[list[str]]
+    lines: list[int]  # file line number of each row
+    header_line: int = 1
+
+    def where(self, i: int) -> str:
+        return f"{self.path}:{self.lines[i]}"
+
+
+@dataclass
+class Samples:
+    q: np.ndarray  # (N, n) SI
+    point: np.ndarray  # (N,) labels
+    measured: np.ndarray | None  # (N, 3) m
+    lines: list[int]  # file line of each sample
+    path: str
+
+
+def parse_table(text: str, path: str = "<text>") -> Table:
+    lines = text.splitlines()
+    body = [(i + 1, ln) for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
+    if not body:
+        raise SamplesFileError(f"{path}: empty file (expected a header line with q1..qN)")
+    head_line, head = body[0]
+    fields = next(csv.reader(io.StringIO(head)))
+    columns: dict[str, tuple[int, Column]] = {}
+    for k, h in enumerate(fields):
+        m = _HEADER.match(h)
+        if not m:
+            raise SamplesFileError(f"{path}:{head_line}: column {k + 1} {h.strip()!r}: not a column name "
+                                   f"(expected e.g. q1, q1[deg], x[mm], point)")
+        name, unit = m.group(1).lower(), (m.group(2) or "").lower() or None
+        if name in columns:
+            raise SamplesFileError(f"{path}:{head_line}: column {name!r} appears twice")
+        columns[name] = (k, Column(name, unit, h.strip()))
+    rows, nums = [], []
+    for ln, text_line in body[1:]:
+        row = next(csv.reader(io.StringIO(text_line)))
+        if len(row) != len(fields):
+            raise SamplesFileError(f"{path}:{ln}: {len(row)} fields, the header has {len(fields)}")
+        rows.append([c.strip() for c in row])
+        nums.append(ln)
+    return Table(path, columns, rows, nums, head_line)
+
+
+def read_table(path: str | Path) -> Table:
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise SamplesFileError(f"{p}: no such file") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise SamplesFileError(f"{p}: cannot read: {e}") from None
+    return parse_table(text, str(p))
+
+
+def _kinds(joints) -> list[str]:
+    if hasattr(joints, "joints"):
+        joints = joints.joints
+    return [j if isinstance(j, str) else j.kind for j in joints]
+
+
+def _factor(t: Table, col: Column, kind: str, what: str) -> float:
+    where = f"{t.path}:{t.header_line}"
+    if col.unit is None:
+        return 1.0
+    table = ANGLE_UNITS if kind == "revolute" else LENGTH_UNITS
+    if col.unit in table:
+        return table[col.unit]
+    other = LENGTH_UNITS if kind == "revolute" else ANGLE_UNITS
+    if col.unit in other:
+        expect = "an angle (rad, deg, mrad)" if kind == "revolute" else "a length (m, mm, cm, um)"
+        raise SamplesFileError(f"{where}: column {col.header!r}: {what} is {kind}, its unit must be {expect}")
+    raise SamplesFileError(f"{where}: column {col.header!r}: unknown unit {col.unit!r}")
+
+
+def _number(t: Table, i: int, col: Column, k: int) -> float:
+    s = t.rows[i][k]
+    try:
+        v = float(s)
+    except ValueError:
+        raise SamplesFileError(f"{t.where(i)}: column {col.header!r}: not a number ({s!r})") from None
+    if not math.isfinite(v):
+        raise SamplesFileError(f"{t.where(i)}: column {col.header!r}: not a finite number ({s!r})")
+    return v
+
+
+def joint_matrix(t: Table, joints) -> np.ndarray:
+    """``(N, n)`` joint readings in SI from columns ``q1..qn``; the joint count must match exactly."""
+    kinds = _kinds(joints)
+    n = len(kinds)
+    qcols = sorted(int(m.group(1)) for name in t.columns if (m := _JOINT.match(name)))
+    model = f"the model has {n} joints"
+    if any(k > n for k in qcols) or any(k < 1 for k in qcols):
+        raise SamplesFileError(f"{t.path}: wrong joint count: joint columns {', '.join(f'q{k}' for k in qcols)} "
+                               f"but {model} (q1..q{n})")
+    for k in range(1, n + 1):
+        if f"q{k}" not in t.columns:
+            raise SamplesFileError(f"{t.path}: missing column 'q{k}' ({model}: q1..q{n})")
+    if not t.rows:
+        raise SamplesFileError(f"{t.path}: no data rows")
+    q = np.zeros((len(t.rows), n))
+    for j in range(n):
+        k, col = t.columns[f"q{j + 1}"]
+        f = _factor(t, col, kinds[j], f"joint {j + 1}")
+        for i in range(len(t.rows)):
+            q[i, j] = _number(t, i, col, k) * f
+    return q
+
+
+def read_joints(path: str | Path, joints) -> tuple[np.ndarray, Table]:
+    """Joint readings only (``station fk`` input)."""
+    t = read_table(path)
+    return joint_matrix(t, joints), t
+
+
+def read_samples(path: str | Path, joints) -> Samples:
+    """Touch samples: joint readings, point labels, optional instrument measurements."""
+    t = read_table(path)
+    q = joint_matrix(t, joints)
+    if "point" in t.columns:
+        k, col = t.columns["point"]
+        labels = []
+        for i in range(len(t.rows)):
+            s = t.rows[i][k]
+            if not s:
+                raise SamplesFileError(f"{t.where(i)}: column 'point': empty label")
+            if not re.fullmatch(r"[A-Za-z0-9_-]+", s):
+                raise SamplesFileError(f"{t.where(i)}: column 'point': label {s!r} (use letters, digits, _ or -)")
+            labels.append(s)
+        point = np.array(labels, dtype=object)
+    else:
+        point = np.full(len(t.rows), "A", dtype=object)
+    have = [a for a in "xyz" if a in t.columns]
+    measured = None
+    if have:
+        if len(have) != 3:
+            missing = [a for a in "xyz" if a not in have]
+            raise SamplesFileError(f"{t.path}: missing column {missing[0]!r} (instrument measurements need x, y, z)")
+        measured = np.zeros((len(t.rows), 3))
+        for a, axis in enumerate("xyz"):
+            k, col = t.columns[axis]
+            f = _factor(t, col, "prismatic", f"measurement {axis}")
+            for i in range(len(t.rows)):
+                measured[i, a] = _number(t, i, col, k) * f
+    return Samples(q, point, measured, list(t.lines), t.path)
