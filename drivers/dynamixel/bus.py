@@ -1,0 +1,159 @@
+"""The wire: ``dynamixel_sdk`` Protocol 2.0 calls with bounded retries and typed errors.
+
+Every transaction goes through :meth:`DxlBus._transact`: COMM_RX_TIMEOUT / COMM_RX_CORRUPT (and a busy
+port left behind by a failed call) are retried ``retries`` times, then raised as ``ConnectionLost``
+(nothing answered) or ``BusError`` (answers were damaged)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import dynamixel_sdk as sdk
+
+from station.robot.errors import BusError, ConfigError, ConnectionLost
+
+RETRYABLE = (sdk.COMM_RX_TIMEOUT, sdk.COMM_RX_CORRUPT, sdk.COMM_RX_FAIL, sdk.COMM_PORT_BUSY)
+
+
+def _signed(value: int, size: int) -> int:
+    bits = 8 * size
+    return value - (1 << bits) if value >= 1 << (bits - 1) else value
+
+
+class DxlBus:
+    def __init__(self, path: str, baud: int, retries: int = 3) -> None:
+        self.path = path
+        self.retries = max(0, int(retries))
+        self.port = sdk.PortHandler(path)
+        self.ph = sdk.PacketHandler(2.0)
+        self.transactions = 0  # instruction packets sent (retries included)
+        self.retried = 0
+        try:
+            ok = self.port.openPort() and self.port.setBaudRate(int(baud))
+        except Exception as e:  # pyserial raises SerialException/OSError for a missing or busy port
+            raise BusError(f"dynamixel: cannot open {path}: {e}") from None
+        if not ok:
+            raise ConfigError(f"dynamixel: {path}: baud rate {baud} not supported by the SDK")
+        self.baud = int(baud)
+
+    def close(self) -> None:
+        if self.port.is_open:
+            self.port.closePort()
+
+    # ---- core -----------------------------------------------------------------------------
+    def _transact(self, what: str, fn: Callable[[], tuple], retry: bool = True):
+        """``fn() -> (result_code, *values)``; returns ``values`` on success."""
+        results = []
+        for attempt in range(1 + (self.retries if retry else 0)):
+            if attempt:
+                self.retried += 1
+            self.port.is_using = False  # a failed SDK call can leave the port marked busy
+            self.transactions += 1
+            out = fn()
+            res = out[0]
+            if res == sdk.COMM_SUCCESS:
+                return out[1:]
+            results.append(res)
+            if res not in RETRYABLE:
+                break
+        self.port.is_using = False
+        text = self.ph.getTxRxResult(results[-1])
+        n = len(results)
+        if all(r == sdk.COMM_RX_TIMEOUT for r in results):
+            raise ConnectionLost(f"dynamixel bus {self.path}: {what}: no answer ({text}) after {n} attempt(s)")
+        raise BusError(f"dynamixel bus {self.path}: {what}: {text} after {n} attempt(s)")
+
+    # ---- unicast ------------------------------------------------------------------------------
+    def ping(self, dxl_id: int, retry: bool = True) -> tuple[int, int]:
+        """``(model_number, error)``."""
+        def call():
+            model, res, err = self.ph.ping(self.port, dxl_id)
+            return res, model, err
+        return self._transact(f"ping id {dxl_id}", call, retry)
+
+    def read(self, dxl_id: int, addr: int, size: int, signed: bool = False) -> tuple[int, int]:
+        """``(value, error)`` of a 1/2/4-byte item."""
+        fn = {1: self.ph.read1ByteTxRx, 2: self.ph.read2ByteTxRx, 4: self.ph.read4ByteTxRx}[size]
+
+        def call():
+            value, res, err = fn(self.port, dxl_id, addr)
+            return res, value, err
+        value, err = self._transact(f"read id {dxl_id} address {addr}", call)
+        return (_signed(value, size) if signed else value), err
+
+    def write(self, dxl_id: int, addr: int, size: int, value: int) -> int:
+        """Write with status; returns the status error byte."""
+        fn = {1: self.ph.write1ByteTxRx, 2: self.ph.write2ByteTxRx, 4: self.ph.write4ByteTxRx}[size]
+        v = int(value) & ((1 << (8 * size)) - 1)
+
+        def call():
+            res, err = fn(self.port, dxl_id, addr, v)
+            return res, err
+        (err,) = self._transact(f"write id {dxl_id} address {addr}", call)
+        return err
+
+    def reboot(self, dxl_id: int) -> int:
+        def call():
+            res, err = self.ph.reboot(self.port, dxl_id)
+            return res, err
+        (err,) = self._transact(f"reboot id {dxl_id}", call)
+        return err
+
+    # ---- group transactions -----------------------------------------------------------------------
+    def sync_read(self, addr: int, size: int, ids: list[int], fast: bool = True,
+                  retry: bool = True) -> dict[int, tuple[bytes, int]]:
+        """One Sync Read (or Fast Sync Read) of ``size`` bytes at ``addr`` from every id, as one
+        instruction packet. Returns ``{id: (data, status error byte)}`` (the SDK's GroupSyncRead drops
+        the error bytes, which carry the alert flag, so the answers are collected here)."""
+        group = sdk.GroupSyncRead(self.port, self.ph, addr, size)
+        for i in ids:
+            group.addParam(i)
+
+        def call_fast():
+            res = group.fastSyncReadTxPacket()
+            if res != sdk.COMM_SUCCESS:
+                return (res, None)
+            raw, res, _ = self.ph.fastSyncReadRx(self.port, sdk.BROADCAST_ID, (size + 4) * len(ids))
+            if res != sdk.COMM_SUCCESS:
+                return (res, None)
+            out, k = {}, 0
+            for i in ids:  # ERR ID DATA CRC per device, in request order
+                if len(raw) < k + size + 4 or raw[k + 1] != i:
+                    return (sdk.COMM_RX_CORRUPT, None)
+                out[i] = (bytes(raw[k + 2:k + 2 + size]), raw[k])
+                k += size + 4
+            return (sdk.COMM_SUCCESS, out)
+
+        def call_plain():
+            res = group.txPacket()
+            if res != sdk.COMM_SUCCESS:
+                return (res, None)
+            out = {}
+            for i in ids:
+                data, res, err = self.ph.readRx(self.port, i, size)
+                if res != sdk.COMM_SUCCESS:
+                    return (res, None)
+                out[i] = (bytes(data), err)
+            return (sdk.COMM_SUCCESS, out)
+
+        name = "fast sync read" if fast else "sync read"
+        (out,) = self._transact(f"{name} address {addr} ids {ids}", call_fast if fast else call_plain, retry)
+        return out
+
+    def sync_write(self, addr: int, size: int, values: dict[int, int | bytes]) -> None:
+        """One Sync Write (broadcast, no status: a refused item shows only when read back)."""
+        group = sdk.GroupSyncWrite(self.port, self.ph, addr, size)
+        for i, v in values.items():
+            data = v if isinstance(v, bytes | bytearray) else (int(v) & ((1 << (8 * size)) - 1)).to_bytes(size,
+                                                                                                        "little")
+            if len(data) != size:
+                raise ValueError(f"sync write address {addr}: {len(data)} bytes for id {i}, expected {size}")
+            group.addParam(i, list(data))
+
+        def call():
+            return (group.txPacket(),)
+        self._transact(f"sync write address {addr}", call)
+
+
+def unpack(data: bytes, signed: bool = True) -> int:
+    return int.from_bytes(data, "little", signed=signed)

@@ -1,0 +1,392 @@
+"""``DynamixelRobot``: the Robot protocol over a Dynamixel Protocol 2.0 bus (one servo per joint).
+
+URL: ``dynamixel:///dev/ttyUSB0?baud=1000000&ids=11-14&model=omx[&contact=200][&serial=SN][&fast=1]
+[&retries=3]``. Ids map to the model's joints in order. Joint snapshot = one (Fast) Sync Read of
+Present Position; goals = one Sync Write of Profile Acceleration + Profile Velocity + Goal Position.
+Ticks <-> SI through each joint's encoder scaling in the kinematic model."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+
+import numpy as np
+from station.drivers.dynamixel import table as T
+from station.drivers.dynamixel.bus import DxlBus, unpack
+
+from station.kinematics import Model, load_model
+from station.robot.errors import BusError, ConfigError, DeviceFault, LimitError, StationError
+from station.robot.motion import MANUAL_TOOL_SPEED_CAP, check_joint_limits, jog_target, joint_speed_for_tool_cap
+from station.robot.protocol import Identity, JointSnapshot, JointState, RobotStatus
+from station.robot.registry import RobotURL, parse_ids
+
+URL_KEYS = {"baud", "ids", "model", "contact", "serial", "fast", "retries"}
+
+
+class DynamixelRobot:
+    """A serial arm of Dynamixel X-series servos. SI units at the interface (rad, rad/s, m/s)."""
+
+    def __init__(self, port: str, *, ids: list[int], model: Model | str = "omx", baud: int = 1_000_000,
+                 contact_id: int | None = None, serial: str | None = None, fast: bool = True, retries: int = 3,
+                 url: str = "") -> None:
+        self.model: Model = load_model(model) if isinstance(model, str) else model
+        n = self.model.n_joints
+        if len(ids) != n or len(set(ids)) != n:
+            raise ConfigError(f"dynamixel: model {self.model.name} has {n} joints but ids are {ids}; "
+                              "give one distinct id per joint, in joint order (e.g. ids=11-14)")
+        for j in self.model.joints:
+            if j.encoder is None:
+                raise ConfigError(f"dynamixel: joint {j.name} of model {self.model.name} has no encoder scaling")
+        self.ids = [int(i) for i in ids]
+        self.contact_id = contact_id
+        self.fast = fast
+        self.url = url
+        self.bus = DxlBus(port, baud, retries)
+        self._compliant = False
+        self._closed = False
+        self._last_ticks: dict[int, int] = {}
+        try:
+            self.devices = self._probe()
+        except BaseException:
+            self.bus.close()
+            raise
+        self.serial = serial or f"DXL-{self.model.name.upper()}-" + ".".join(str(i) for i in self.ids)
+
+    @classmethod
+    def from_url(cls, url: RobotURL, **kw) -> DynamixelRobot:
+        unknown = set(url.query) - URL_KEYS
+        if unknown:
+            raise ConfigError(f"robot URL {url.raw!r}: unknown option(s) {', '.join(sorted(unknown))}; "
+                              f"known: {', '.join(sorted(URL_KEYS))}")
+        if not url.path:
+            raise ConfigError(f"robot URL {url.raw!r}: no serial port path (dynamixel:///dev/ttyUSB0?...)")
+        model = kw.pop("model", None) or url.get("model") or "omx"
+        try:
+            m = load_model(model) if isinstance(model, str) else model
+        except (KeyError, ValueError, OSError) as e:
+            raise ConfigError(f"robot URL {url.raw!r}: model {model!r}: {e}") from None
+        ids = parse_ids(url.get("ids")) if url.get("ids") else list(range(1, m.n_joints + 1))
+        try:
+            baud = int(url.get("baud", "1000000"))
+            contact = url.get("contact")
+            contact_id = int(contact) if contact not in (None, "", "none") else None
+            retries = int(url.get("retries", "3"))
+        except ValueError:
+            raise ConfigError(f"robot URL {url.raw!r}: baud, contact and retries must be integers") from None
+        fast = url.get("fast", "1").lower() not in ("0", "false", "no")
+        args = {"ids": ids, "model": m, "baud": baud, "contact_id": contact_id, "serial": url.get("serial"),
+                "fast": fast, "retries": retries, "url": url.raw}
+        args.update(kw)
+        return cls(url.path, **args)
+
+    # ---- helpers --------------------------------------------------------------------------------
+    def _name(self, i: int) -> str:
+        j = self.ids.index(i)
+        return f"servo id {i} (joint {j + 1} {self.model.joints[j].name})"
+
+    def _enc(self, j: int):
+        return self.model.joints[j].encoder
+
+    def _probe(self) -> list[dict]:
+        devices = []
+        for i in self.ids:
+            number, _ = self.bus.ping(i)
+            if number not in T.SERVO_MODELS:
+                raise ConfigError(f"dynamixel: id {i} answers with model number {number}, not a supported "
+                                  f"X-series servo ({', '.join(f'{k} {v}' for k, v in T.SERVO_MODELS.items())})")
+            fw, _ = self.bus.read(i, T.FIRMWARE_VERSION, 1)
+            devices.append({"id": i, "joint": self.model.joints[self.ids.index(i)].name, "model_number": number,
+                            "model": T.SERVO_MODELS[number], "firmware": fw})
+        if self.contact_id is not None:
+            number, _ = self.bus.ping(self.contact_id)
+            if number != T.CONTACT_SENSOR_MODEL:
+                raise ConfigError(f"dynamixel: id {self.contact_id} has model number {number}, not the contact "
+                                  f"sensor ({T.CONTACT_SENSOR_MODEL})")
+            fw, _ = self.bus.read(self.contact_id, T.FIRMWARE_VERSION, 1)
+            devices.append({"id": self.contact_id, "joint": None, "model_number": number,
+                            "model": "contact sensor", "firmware": fw})
+        return devices
+
+    def _read_all(self, addr: int, size: int, signed: bool = True, retry: bool = True) -> tuple[list[int], list[int]]:
+        out = self.bus.sync_read(addr, size, self.ids, self.fast, retry)
+        return [unpack(out[i][0], signed) for i in self.ids], [out[i][1] for i in self.ids]
+
+    def _halt_quietly(self, ticks: list[int] | None = None, skip: set[int] = frozenset()) -> None:
+        """Best effort on a fault path: every servo still under torque holds where it is (goal := present).
+        Never raises: the caller is about to raise the real error."""
+        try:
+            if ticks is None:
+                ticks, _ = self._read_all(T.PRESENT_POSITION, 4, retry=False)
+            self.bus.sync_write(T.GOAL_POSITION, 4, {i: t for i, t in zip(self.ids, ticks, strict=True)
+                                                    if i not in skip})
+        except Exception:  # noqa: BLE001 - the bus may be gone; the original fault is what matters
+            pass
+
+    def _check_alerts(self, errors: list[int], ticks: list[int] | None = None) -> None:
+        bad = [i for i, e in zip(self.ids, errors, strict=True) if e & T.ALERT]
+        if not bad:
+            return
+        self._halt_quietly(ticks, skip=set(bad))
+        parts = []
+        code = 0
+        for i in bad:
+            try:
+                bits, _ = self.bus.read(i, T.HARDWARE_ERROR_STATUS, 1)
+            except BusError:
+                bits = 0
+            code = code or bits
+            parts.append(f"{self._name(i)}: hardware error 0x{bits:02X} ({T.describe_hardware_error(bits)})")
+        j = self.ids.index(bad[0])
+        raise DeviceFault("; ".join(parts) + f"; its torque is off until reboot: remove the cause, then "
+                          f"robot.reboot('{self.model.joints[j].name}') and enable() (or power-cycle); "
+                          "the other servos hold position", device=f"dynamixel:{bad[0]}", code=code)
+
+    def _guard(self, fn, *args, **kw):
+        """Run a bus operation; on a bus error, stop what can be stopped, then re-raise."""
+        try:
+            return fn(*args, **kw)
+        except BusError:
+            self._halt_quietly(list(self._last_ticks.values()) if len(self._last_ticks) == len(self.ids)
+                               else None)
+            raise
+
+    # ---- Robot protocol ------------------------------------------------------------------------------
+    def identity(self) -> Identity:
+        fws = sorted({str(d["firmware"]) for d in self.devices if d["joint"] is not None})
+        return Identity(vendor="ROBOTIS", model=self.model.name, serial=self.serial, firmware=",".join(fws),
+                        devices=tuple(dict(d) for d in self.devices), url=self.url)
+
+    def joint_positions(self) -> JointSnapshot:
+        ticks, errors = self._guard(self._read_all, T.PRESENT_POSITION, 4)
+        t = time.time()
+        self._last_ticks = dict(zip(self.ids, ticks, strict=True))
+        self._check_alerts(errors, ticks)
+        q = np.array([float(self._enc(j).to_si(k)) for j, k in enumerate(ticks)])
+        return JointSnapshot(q=q, raw=tuple(ticks), raw_unit="tick", t=t)
+
+    def _profiles(self, q0: np.ndarray, q1: np.ndarray, speed: float | None) -> tuple[list[int], list[int]]:
+        """Per-joint profile velocity/acceleration so all joints arrive together (straight joint path)."""
+        dq = np.abs(q1 - q0)
+        lead = float(dq.max())
+        vmax = self.model.max_velocity
+        amax = np.array([j.max_acceleration for j in self.model.joints])
+        if speed is not None and (not math.isfinite(speed) or speed <= 0):
+            raise LimitError(f"move: speed must be a positive number of rad/s, got {speed!r}; nothing was sent")
+        v = 0.5 * float(vmax.min()) if speed is None else float(speed)
+        if lead <= 0:
+            return [1] * len(self.ids), [1] * len(self.ids)
+        frac = dq / lead
+        scale = min(1.0, *(vmax[k] / (v * frac[k]) for k in range(len(dq)) if frac[k] > 0))
+        a = float(min(amax[k] / frac[k] for k in range(len(dq)) if frac[k] > 0))
+        vel, acc = [], []
+        for k in range(len(dq)):
+            g = self._enc(k).gear
+            vel.append(max(1, math.floor(v * scale * frac[k] * g / T.VELOCITY_UNIT)) if frac[k] > 0 else 1)
+            acc.append(max(1, math.floor(a * frac[k] * g / T.ACCEL_UNIT)) if frac[k] > 0 else 1)
+        return vel, acc
+
+    def move_joints(self, q: np.ndarray, speed: float | None = None, wait: bool = True) -> None:
+        target = check_joint_limits(self.model, np.asarray(q, dtype=float), "move")
+        if self._compliant:
+            raise LimitError("move: the arm is compliant (set_compliant(False) first); nothing was sent")
+        start = self.joint_positions()
+        vel, acc = self._profiles(start.q, target, speed)
+        goals = [int(round(float(self._enc(j).to_counts(target[j])))) for j in range(len(self.ids))]
+        payload = {i: b"".join(int(x).to_bytes(4, "little", signed=True) for x in (acc[k], vel[k], goals[k]))
+                   for k, i in enumerate(self.ids)}
+        self._guard(self.bus.sync_write, T.PROFILE_ACCELERATION, 12, payload)
+        if wait:
+            lead = float(np.max(np.abs(target - start.q)))
+            v = max(1e-3, min(vel[k] * T.VELOCITY_UNIT for k in range(len(vel))) if lead else 1.0)
+            self._wait(goals, timeout=3.0 * lead / max(v, 1e-3) + 2.0)
+
+    def _wait(self, goals: list[int], timeout: float) -> None:
+        """Poll Moving (one sync read per poll) until every servo is in position."""
+        deadline = time.monotonic() + timeout
+        while True:
+            moving, errors = self._guard(self._read_all, T.MOVING, 1, False)
+            self._check_alerts(errors)
+            if not any(moving):
+                snap = self.joint_positions()
+                off = [abs(int(r) - g) for r, g in zip(snap.raw, goals, strict=True)]
+                if max(off) <= 10:  # the servo's default moving threshold (ticks)
+                    return
+            if time.monotonic() > deadline:
+                self._halt_quietly()
+                raise DeviceFault(f"move: the arm did not reach its target within {timeout:.1f} s "
+                                  "(blocked or torque off?); it was stopped", device="dynamixel")
+            time.sleep(0.01)
+
+    def jog(self, mode: str, axis: int, step: float, speed: float | None = None) -> None:
+        snap = self.joint_positions()
+        target = jog_target(self.model, snap.q, mode, axis, step)
+        if mode == "joint":
+            v = joint_speed_for_tool_cap(self.model, snap.q, target, speed)
+        else:
+            cap = MANUAL_TOOL_SPEED_CAP if speed is None else min(float(speed), MANUAL_TOOL_SPEED_CAP)
+            if not cap > 0:
+                raise LimitError(f"jog: tool speed must be positive, got {speed!r}; nothing was sent")
+            v = joint_speed_for_tool_cap(self.model, snap.q, target, None, cap=cap)
+        self.move_joints(target, v, wait=True)
+
+    def stop(self) -> None:
+        """Every servo holds where it is now (goal := present)."""
+        ticks, _ = self._read_all(T.PRESENT_POSITION, 4)
+        self.bus.sync_write(T.GOAL_POSITION, 4, dict(zip(self.ids, ticks, strict=True)))
+
+    def _torque(self, on: bool, ids: list[int] | None = None) -> None:
+        ids = self.ids if ids is None else ids
+        self._guard(self.bus.sync_write, T.TORQUE_ENABLE, 1, {i: int(on) for i in ids})
+        state, errors = self._guard(self._read_all, T.TORQUE_ENABLE, 1, False)
+        wrong = [i for i, s in zip(self.ids, state, strict=True) if i in ids and bool(s) != on]
+        if wrong:
+            self._check_alerts(errors)
+            raise DeviceFault(f"torque {'on' if on else 'off'} refused by {', '.join(self._name(i) for i in wrong)}",
+                              device=f"dynamixel:{wrong[0]}")
+
+    def enable(self) -> None:
+        self._torque(True)
+
+    def disable(self) -> None:
+        self._torque(False)
+
+    def status(self) -> RobotStatus:
+        head, _ = self._read_all(T.TORQUE_ENABLE, 7, False)  # 64..70: torque ... hardware error status
+        moving, _ = self._read_all(T.MOVING, 1, False)
+        torque = [(h >> 0) & 0xFF for h in head]
+        hw = [(h >> 48) & 0xFF for h in head]
+        joints, faults = [], []
+        for k, i in enumerate(self.ids):
+            fault = None
+            if hw[k]:
+                fault = f"hardware error 0x{hw[k]:02X} ({T.describe_hardware_error(hw[k])})"
+                faults.append(f"{self._name(i)}: {fault}")
+            joints.append(JointState(self.model.joints[k].name, bool(torque[k]), bool(moving[k]), fault))
+        return RobotStatus(enabled=all(torque), moving=any(moving), faults=tuple(faults),
+                           compliant=self._compliant, joints=tuple(joints))
+
+    def touch(self) -> bool | None:
+        if self.contact_id is None:
+            return None
+        value, _ = self._guard(self.bus.read, self.contact_id, T.CONTACT, 1)
+        return bool(value)
+
+    def set_compliant(self, on: bool) -> None:
+        """On: current-based position mode (5) with a low Goal Current, so the tip can be seated in a
+        socket by hand / by the cone; off: position mode (3) holding where the arm settled. Operating
+        mode is EEPROM: torque goes off for the switch (the arm is briefly unpowered)."""
+        no_current = [d["id"] for d in self.devices if d["joint"] and d["model_number"] not in T.CURRENT_CAPABLE]
+        if no_current:
+            raise ConfigError(f"set_compliant: {', '.join(self._name(i) for i in no_current)} has no "
+                              "current-based position mode (XL430 has no current sensing)")
+        self.stop()
+        self._torque(False)
+        mode = T.MODE_CURRENT_POSITION if on else T.MODE_POSITION
+        self._guard(self.bus.sync_write, T.OPERATING_MODE, 1, {i: mode for i in self.ids})
+        if on:
+            self._guard(self.bus.sync_write, T.GOAL_CURRENT, 2, {i: T.COMPLIANT_GOAL_CURRENT for i in self.ids})
+        else:
+            limits, _ = self._guard(self._read_all, T.CURRENT_LIMIT, 2, False)
+            self._guard(self.bus.sync_write, T.GOAL_CURRENT, 2, dict(zip(self.ids, limits, strict=True)))
+        modes, _ = self._guard(self._read_all, T.OPERATING_MODE, 1, False)
+        if any(m != mode for m in modes):
+            raise DeviceFault(f"set_compliant: operating mode {mode} not accepted (read back {modes})",
+                              device="dynamixel")
+        self._torque(True)  # enabling sets goal := present: the arm holds where it is
+        self._compliant = bool(on)
+
+    def _offset_si(self, j: int, ticks: int) -> float:
+        e = self._enc(j)
+        return float(e.to_si(ticks + e.zero) - e.to_si(e.zero))
+
+    def read_calibration(self) -> dict[str, float]:
+        """``{"offset.jN": rad}``: the Homing Offset (20) each servo adds to its reading, in SI."""
+        ticks, _ = self._guard(self._read_all, T.HOMING_OFFSET, 4)
+        return {f"offset.j{j + 1}": self._offset_si(j, t) for j, t in enumerate(ticks)}
+
+    def write_calibration(self, values: dict[str, float]) -> None:
+        """Store absolute Homing Offsets (EEPROM): torque off, write, read back and verify, restore torque."""
+        n = len(self.ids)
+        ticks: dict[int, int] = {}
+        for name, value in values.items():
+            if not (name.startswith("offset.j") and name[8:].isdigit() and 1 <= int(name[8:]) <= n):
+                raise ConfigError(f"write_calibration: {name!r} is not a joint offset of this robot "
+                                  f"(offset.j1..offset.j{n})")
+            if not math.isfinite(float(value)):
+                raise ConfigError(f"write_calibration: {name} = {value!r} is not finite")
+            j = int(name[8:]) - 1
+            e = self._enc(j)
+            t = int(round(float(value) * e.counts_per_unit * e.gear * e.direction))
+            if abs(t) > T.HOMING_OFFSET_RANGE:
+                raise LimitError(f"write_calibration: {name} = {value:.6g} rad is {t} ticks, beyond the servo's "
+                                 f"homing offset range +-{T.HOMING_OFFSET_RANGE}; nothing was written")
+            ticks[self.ids[j]] = t
+        if not ticks:
+            return
+        was_on, _ = self._guard(self._read_all, T.TORQUE_ENABLE, 1, False)
+        restore = [i for i, on in zip(self.ids, was_on, strict=True) if on and i in ticks]
+        done = False
+        try:
+            self._torque(False, list(ticks))
+            for i, t in ticks.items():
+                err = self._guard(self.bus.write, i, T.HOMING_OFFSET, 4, t)
+                if err & 0x7F:
+                    raise DeviceFault(f"write_calibration: {self._name(i)} refused homing offset {t}: "
+                                      f"{T.PACKET_ERRORS.get(err & 0x7F, err)}", device=f"dynamixel:{i}", code=err)
+            back, _ = self._guard(self._read_all, T.HOMING_OFFSET, 4)
+            bad = [i for i, b in zip(self.ids, back, strict=True) if i in ticks and b != ticks[i]]
+            if bad:
+                raise DeviceFault(f"write_calibration: read-back mismatch on {', '.join(self._name(i) for i in bad)}",
+                                  device=f"dynamixel:{bad[0]}")
+            done = True
+        finally:
+            if restore and done:
+                self._torque(True, restore)
+            elif restore:
+                with contextlib.suppress(StationError):  # the original error is the one to raise
+                    self._torque(True, restore)
+
+    def reboot(self, joint: int | str) -> None:
+        """Reboot one servo (clears a latched hardware error; torque comes back off: call enable())."""
+        if isinstance(joint, str):
+            names = [j.name for j in self.model.joints]
+            if joint not in names:
+                raise ConfigError(f"reboot: no joint {joint!r} (joints: {', '.join(names)})")
+            k = names.index(joint)
+        else:
+            k = int(joint)
+            if not 0 <= k < len(self.ids):
+                raise ConfigError(f"reboot: joint index {joint} outside 0..{len(self.ids) - 1}")
+        i = self.ids[k]
+        self.bus.reboot(i)
+        deadline = time.monotonic() + 2.0  # a real servo needs ~0.5 s to come back
+        while True:
+            try:
+                self.bus.ping(i, retry=False)
+                break
+            except BusError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.05)
+        bits, _ = self.bus.read(i, T.HARDWARE_ERROR_STATUS, 1)
+        if bits:
+            raise DeviceFault(f"{self._name(i)} still reports hardware error 0x{bits:02X} "
+                              f"({T.describe_hardware_error(bits)}) after reboot", device=f"dynamixel:{i}", code=bits)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self.stop()
+        except StationError:
+            pass  # closing a robot on a dead bus must still release the port
+        finally:
+            self.bus.close()
+
+    def __enter__(self) -> DynamixelRobot:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
