@@ -1,0 +1,529 @@
+"""One emulated CiA 402 servo drive: a ``canopen.LocalNode`` loaded from the shipped EDS, plus the glue
+LocalNode lacks (402 state machine, profile position/velocity/torque, PDO engine, NMT with boot-up,
+EMCY, store/restore parameters).
+
+Position convention (documented in docs/hardware-canopen.md): the drive reports
+``0x6064 = round(encoder.to_counts(q_raw)) + 0x607C`` where ``q_raw`` is the world's encoder position
+of this joint; so with the station's ``q = encoder.to_si(0x6064)`` the reported joint value is
+``q_raw + direction * home_offset / (counts_per_unit * gear)``, which is the write-back contract of
+docs/architecture.md (``offset.jN`` = that SI value). Targets (0x607A) are in the same offset frame.
+The drive keeps its internal target in raw counts, so changing the home offset never moves the joint.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import canopen
+from canopen.sdo import SdoAbortedError
+from station.mocks.canopen.eds import (
+    CONTACT_INPUT_BIT,
+    EDS_PATH,
+    LOAD_SIGNATURE,
+    SAVE_SIGNATURE,
+)
+
+if TYPE_CHECKING:
+    from station.mocks.canopen.emulator import CanopenEmulator
+
+# 402 states (names as canopen.profiles.p402 spells them) and their statusword bits (incl. voltage
+# enabled, bit 4, from READY TO SWITCH ON on)
+NOT_READY, SOD, RTSO, SO, OE, QSA, FRA, FAULT = (
+    "NOT READY TO SWITCH ON", "SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON",
+    "OPERATION ENABLED", "QUICK STOP ACTIVE", "FAULT REACTION ACTIVE", "FAULT")
+STATE_BITS = {NOT_READY: 0x0000, SOD: 0x0040, RTSO: 0x0031, SO: 0x0033, OE: 0x0037, QSA: 0x0017,
+              FRA: 0x001F, FAULT: 0x0018}
+SW_REMOTE, SW_TARGET_REACHED, SW_LIMIT, SW_SETPOINT_ACK = 1 << 9, 1 << 10, 1 << 11, 1 << 12
+CW_NEW_SETPOINT, CW_IMMEDIATE, CW_RELATIVE, CW_FAULT_RESET, CW_HALT = 0x10, 0x20, 0x40, 0x80, 0x100
+
+MODE_PP, MODE_PV, MODE_PT = 1, 3, 4
+SUPPORTED = {0, MODE_PP, MODE_PV, MODE_PT}
+COMPLIANT_TORQUE = 300  # per mille: |0x6071| at or below this in profile torque mode = compliant seating
+
+# NMT states (CiA 301 heartbeat values)
+INITIALISING, STOPPED, OPERATIONAL, PRE_OPERATIONAL = 0, 4, 5, 127
+
+DEFAULT_FAULT_CODE = 0x2310  # continuous over-current (CiA 402)
+
+# SDO abort codes
+ABORT_STORE = 0x08000020  # data cannot be transferred or stored
+ABORT_RANGE = 0x06090030  # value range of parameter exceeded
+ABORT_NOT_MAPPABLE = 0x06040041
+ABORT_PDO_LENGTH = 0x06040042
+ABORT_STATE = 0x08000022  # not in the present device state
+
+
+@dataclass
+class PdoConfig:
+    """One PDO as the drive's object dictionary currently describes it."""
+
+    num: int  # 1..4
+    cob_id: int
+    valid: bool
+    trans: int
+    event_ms: int
+    entries: list[tuple[int, int, int]]  # (index, subindex, bits)
+    sync_count: int = 0
+    last_data: bytes | None = None
+    next_due: float = math.inf
+    pending: bytes | None = None  # synchronous RPDO waiting for the next SYNC
+    extra: dict = field(default_factory=dict)
+
+
+class DriveNode(canopen.LocalNode):
+    """LocalNode that tells its drive after a value was stored (LocalNode's write callbacks run before)."""
+
+    def __init__(self, node_id: int, drive: Drive402) -> None:
+        super().__init__(node_id, str(EDS_PATH))
+        self._drive = drive
+
+    def set_data(self, index, subindex, data, check_writable=False):
+        super().set_data(index, subindex, data, check_writable)
+        self._drive.after_write(index, subindex)
+
+
+class Drive402:
+    """One node: its object dictionary (a LocalNode), 402 state, PDOs, NMT. All world access goes through
+    the emulator (``emu``), which owns the bus and the scheduler thread."""
+
+    def __init__(self, emu: CanopenEmulator, node_id: int, joint: int, encoder, serial: int,
+                 contact_wired: bool = False) -> None:
+        self.emu = emu
+        self.id = node_id
+        self.joint = joint
+        self.encoder = encoder
+        self.serial = serial
+        self.contact_wired = contact_wired
+        self.lock = threading.RLock()
+        self.node = DriveNode(node_id, self)
+        # NMT and heartbeat are ours (boot-up on reset, first heartbeat one period after boot-up)
+        self.node._write_callbacks.remove(self.node.nmt.on_write)
+        self.node.add_write_callback(self._check_write)
+        self.node.add_read_callback(self._on_read)
+        self.stored: dict[tuple[int, int], bytes] = {}  # what 0x1010 persisted (survives power cycles)
+        self.nmt = INITIALISING
+        self.state = NOT_READY
+        self.silent_until = 0.0  # monotonic; math.inf = disconnected until power cycle
+        self.last_cw = 0
+        self.sp_ack = False
+        self.limit_active = False
+        self.halted = False
+        self.target_raw: float | None = None  # internal target, raw counts (before home offset)
+        self.fault_code = 0
+        self.errors: list[int] = []  # 0x1003, newest first
+        self.tpdos: list[PdoConfig] = []
+        self.rpdos: list[PdoConfig] = []
+        self.hb_next = math.inf
+        self.bootup_due = math.inf
+        self._batch: list[int] | None = None
+
+    # ---- object dictionary helpers -------------------------------------------------------------
+    def get(self, index: int, sub: int = 0):
+        obj = self.node._find_object(index, sub)
+        return obj.decode_raw(self.node.get_data(index, sub))
+
+    def put(self, index: int, value, sub: int = 0) -> None:
+        """Set a value without running the write effects (the drive's own bookkeeping)."""
+        obj = self.node._find_object(index, sub)
+        self.node.data_store.setdefault(index, {})[sub] = obj.encode_raw(value)
+
+    @property
+    def home_offset(self) -> int:
+        return int(self.get(0x607C))
+
+    @property
+    def mode(self) -> int:
+        return int(self.get(0x6060))
+
+    def silent(self) -> bool:
+        return time.monotonic() < self.silent_until
+
+    # ---- power and NMT ------------------------------------------------------------------------
+    def power_on(self) -> None:
+        """Power-up / NMT reset node: volatile values back to stored-or-default, boot-up after a short delay."""
+        with self.lock:
+            self.node.data_store = {}
+            for (index, sub), data in self.stored.items():
+                self.node.data_store.setdefault(index, {})[sub] = data
+            self._identity_values()
+            self.silent_until = 0.0
+            self._reset_402()
+            self._begin_boot()
+
+    def reset_communication(self) -> None:
+        with self.lock:
+            for index in [i for i in self.node.data_store if 0x1000 <= i < 0x2000]:
+                del self.node.data_store[index]
+            for (index, sub), data in self.stored.items():
+                if 0x1000 <= index < 0x2000:
+                    self.node.data_store.setdefault(index, {})[sub] = data
+            self._identity_values()
+            self._begin_boot()
+
+    def _identity_values(self) -> None:
+        self.put(0x1018, self.serial, 4)
+        self.put(0x2000, int(self.contact_wired))
+
+    def _reset_402(self) -> None:
+        self.last_cw = 0
+        self.sp_ack = self.limit_active = self.halted = False
+        self.target_raw = None
+        self.fault_code = 0
+        self.errors = []
+        self.emu.world_set_enabled(self.joint, False)
+        self.emu.world_clear_fault(self.joint)
+        self.state = SOD  # NOT READY TO SWITCH ON passes automatically at power-up (transition 1)
+
+    def _begin_boot(self) -> None:
+        self.nmt = INITIALISING
+        self.hb_next = math.inf
+        self.rebuild_pdos()
+        self.bootup_due = time.monotonic() + self.emu.boot_delay
+        self.emu.wake()
+
+    def boot(self, now: float) -> None:
+        """Send the boot-up message and enter PRE-OPERATIONAL; the first heartbeat follows one period later
+        (sending it at once would race canopen's ``wait_for_bootup``)."""
+        with self.lock:
+            self.bootup_due = math.inf
+            self.nmt = PRE_OPERATIONAL
+            self.emu.send(0x700 + self.id, b"\x00")
+            period = self.heartbeat_period()
+            self.hb_next = now + period if period else math.inf
+
+    def heartbeat_period(self) -> float:
+        return int(self.get(0x1017)) / 1000.0
+
+    def on_nmt(self, command: int) -> None:
+        with self.lock:
+            if self.nmt == INITIALISING:
+                return
+            if command == 1:
+                self.nmt = OPERATIONAL
+                self.rebuild_pdos()
+            elif command == 2:
+                self.nmt = STOPPED
+            elif command == 128:
+                self.nmt = PRE_OPERATIONAL
+            elif command == 129:
+                self.power_on()
+            elif command == 130:
+                self.reset_communication()
+
+    # ---- reads --------------------------------------------------------------------------------
+    def _on_read(self, index: int, subindex: int, od) -> int | None:
+        if index == 0x6041:
+            return self.statusword()
+        if index == 0x6064:
+            return self.position_actual()
+        if index == 0x6061:
+            return self.mode
+        if index == 0x6062:
+            return int(round(self.target_raw)) + self.home_offset if self.target_raw is not None \
+                else self.position_actual()
+        if index == 0x606C:
+            return int(round(self.encoder.to_counts(self.emu.snap().qd[self.joint]) - self.encoder.zero))
+        if index == 0x60FD:
+            contact = self.contact_wired and self.emu.snap().contact
+            return (1 << CONTACT_INPUT_BIT) if contact else 0
+        if index == 0x6077:
+            return int(self.get(0x6071)) if self.state == OE and self.mode == MODE_PT else 0
+        if index == 0x603F:
+            return self.fault_code
+        if index == 0x1001:
+            return 0x03 if self.state in (FAULT, FRA) else 0x00  # generic + current
+        if index == 0x1003:
+            return len(self.errors) if subindex == 0 else (
+                self.errors[subindex - 1] if subindex <= len(self.errors) else 0)
+        if index in (0x1010, 0x1011) and subindex >= 1:
+            return 1  # the device saves/restores on command
+        return None
+
+    def raw_counts(self) -> float:
+        return float(self.encoder.to_counts(self.emu.snap().q[self.joint]))
+
+    def position_actual(self) -> int:
+        value = int(round(self.raw_counts())) + self.home_offset
+        return max(-(1 << 31), min((1 << 31) - 1, value))
+
+    def statusword(self) -> int:
+        sw = STATE_BITS[self.state] | SW_REMOTE
+        if self.state == OE:
+            if self.sp_ack:
+                sw |= SW_SETPOINT_ACK
+            if self.limit_active:
+                sw |= SW_LIMIT
+            if self._target_reached():
+                sw |= SW_TARGET_REACHED
+        return sw
+
+    def _target_reached(self) -> bool:
+        snap = self.emu.snap()
+        still = abs(float(self.encoder.to_counts(snap.qd[self.joint]) - self.encoder.zero)) < 1.0
+        if self.halted or self.mode != MODE_PP:
+            return still
+        if self.target_raw is None:
+            return still
+        window = int(self.get(0x6067))
+        return still and abs(self.raw_counts() - self.target_raw) <= max(window, 1)
+
+    # ---- writes -------------------------------------------------------------------------------
+    def _check_write(self, index: int, subindex: int, od, data: bytes) -> None:
+        """Validation before LocalNode stores a value (raising aborts the SDO)."""
+        value = od.decode_raw(data) if od.data_type in canopen.objectdictionary.NUMBER_TYPES else None
+        if index == 0x1010 and subindex >= 1 and value != SAVE_SIGNATURE:
+            raise SdoAbortedError(ABORT_STORE)
+        if index == 0x1011 and subindex >= 1 and value != LOAD_SIGNATURE:
+            raise SdoAbortedError(ABORT_STORE)
+        if index == 0x1003 and subindex == 0 and value != 0:
+            raise SdoAbortedError(ABORT_RANGE)
+        if index == 0x6060 and value not in SUPPORTED:
+            raise SdoAbortedError(ABORT_RANGE)
+        if (0x1600 <= index < 0x1604 or 0x1A00 <= index < 0x1A04) and subindex >= 1 and value:
+            self._check_mapping_entry(value, tx=index >= 0x1A00)
+        if (0x1600 <= index < 0x1604 or 0x1A00 <= index < 0x1A04) and subindex == 0:
+            if value > 8:
+                raise SdoAbortedError(ABORT_PDO_LENGTH)
+            bits = sum((int(self.get(index, k)) & 0xFF) for k in range(1, value + 1))
+            if bits > 64:
+                raise SdoAbortedError(ABORT_PDO_LENGTH)
+
+    def _check_mapping_entry(self, value: int, tx: bool) -> None:
+        index, sub, bits = value >> 16, (value >> 8) & 0xFF, value & 0xFF
+        try:
+            obj = self.node._find_object(index, sub)
+        except SdoAbortedError:
+            raise SdoAbortedError(ABORT_NOT_MAPPABLE) from None
+        if not obj.pdo_mappable or bits != len(obj) or (not tx and not obj.writable):
+            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+
+    def after_write(self, index: int, subindex: int) -> None:
+        """Effects of a stored value. While an RPDO is unpacked (``_batch``), effects run after all of its
+        values are stored, controlword last, so a target and its new-setpoint bit can share one frame."""
+        if self._batch is not None:
+            self._batch.append(index)
+            return
+        with self.lock:
+            self._effect(index, subindex)
+
+    def _effect(self, index: int, subindex: int) -> None:
+        if index == 0x6040:
+            self._controlword(int(self.get(0x6040)))
+        elif index == 0x6060:
+            self._mode_changed()
+        elif index == 0x6071:
+            self.emu.update_compliance()
+        elif index == 0x60FF:
+            self._velocity_target()
+        elif index == 0x1010:
+            self.save(subindex)
+        elif index == 0x1011:
+            self.stored = {}  # defaults take effect at the next reset (CiA 301)
+            self.emu.persist()
+        elif index == 0x1017:
+            period = self.heartbeat_period()
+            self.hb_next = time.monotonic() + period if period and self.nmt != INITIALISING else math.inf
+            self.emu.wake()
+        elif index == 0x1003 and subindex == 0:
+            self.errors = []
+        elif 0x1400 <= index < 0x1C00:
+            self.rebuild_pdos()
+
+    def save(self, scope: int) -> None:
+        """0x1010: persist the parameters of ``scope`` (1 all, 2 communication, 3 application,
+        4 manufacturer) so they survive NMT reset node and emulated power cycles."""
+        where = {1: ("PERSIST_COMM", "PERSIST_APP", "PERSIST_MFR"), 2: ("PERSIST_COMM",),
+                 3: ("PERSIST_APP",), 4: ("PERSIST_MFR",)}[scope]
+        for obj in self._variables():
+            if obj.storage_location not in where:
+                continue
+            key = (obj.index, obj.subindex)
+            data = self.node.data_store.get(obj.index, {}).get(obj.subindex)
+            if data is None:
+                self.stored.pop(key, None)
+            else:
+                self.stored[key] = bytes(data)
+        self.emu.persist()
+
+    def _variables(self):
+        for obj in self.node.object_dictionary.values():
+            if isinstance(obj, canopen.objectdictionary.ODVariable):
+                yield obj
+            else:
+                yield from obj.values()
+
+    # ---- 402 state machine --------------------------------------------------------------------
+    def _controlword(self, cw: int) -> None:
+        prev, self.last_cw = self.last_cw, cw
+        if self.state == FAULT:
+            if cw & CW_FAULT_RESET and not prev & CW_FAULT_RESET:
+                self._fault_reset()
+            return
+        old = self.state
+        if cw & CW_FAULT_RESET:
+            pass  # a fault reset outside FAULT is ignored
+        elif cw & 0x02 == 0:  # disable voltage
+            if old in (RTSO, SO, OE, QSA):
+                self._enter(SOD)
+        elif cw & 0x06 == 0x02:  # quick stop
+            if old == OE:
+                self._enter(QSA)
+            elif old in (RTSO, SO):
+                self._enter(SOD)
+        elif cw & 0x07 == 0x06:  # shutdown
+            if old in (SOD, SO, OE):
+                self._enter(RTSO)
+        elif cw & 0x0F == 0x07:  # switch on / disable operation
+            if old in (RTSO, OE):
+                self._enter(SO)
+        elif cw & 0x0F == 0x0F and old in (SO, RTSO, QSA):  # enable operation (3+4, 16)
+            self._enter(OE)
+        if self.state != OE:
+            return
+        halt = bool(cw & CW_HALT)
+        if halt and not self.halted:
+            self.halted = True
+            self.emu.stop_joint(self.joint)
+        elif not halt:
+            self.halted = False
+        if self.mode == MODE_PP:
+            if cw & CW_NEW_SETPOINT and not prev & CW_NEW_SETPOINT:
+                self._new_setpoint(relative=bool(cw & CW_RELATIVE))
+            elif not cw & CW_NEW_SETPOINT:
+                self.sp_ack = False
+
+    def _enter(self, new: str) -> None:
+        old, self.state = self.state, new
+        if new == OE:
+            self.emu.world_set_enabled(self.joint, True)
+            self.target_raw = self.raw_counts()  # hold where it is; PP moves only on a new set-point
+            self.halted = False
+        elif new == QSA:
+            self.emu.stop_joint(self.joint)
+        elif old in (OE, QSA):
+            self.emu.world_set_enabled(self.joint, False)  # brake holds the joint where it stopped
+        self.sp_ack = False
+        self.emu.update_compliance()
+
+    def fault(self, code: int = DEFAULT_FAULT_CODE) -> None:
+        """Device fault: EMCY, FAULT state (no torque, world halts), until controlword fault reset."""
+        with self.lock:
+            if self.state == FAULT:
+                return
+            self.state = FAULT
+            self.fault_code = code & 0xFFFF
+            self.errors = ([self.fault_code] + self.errors)[:8]
+            self.sp_ack = False
+            self.emu.world_fault(self.joint, self.fault_code)
+            self.emu.update_compliance()
+            self.send_emcy(self.fault_code, 0x03)
+
+    def _fault_reset(self) -> None:
+        self.fault_code = 0
+        self.state = SOD
+        self.emu.world_clear_fault(self.joint)
+        self.send_emcy(0x0000, 0x00)  # error reset / no error
+
+    def send_emcy(self, code: int, register: int) -> None:
+        if self.silent() or self.nmt in (INITIALISING, STOPPED):
+            return
+        cob = int(self.get(0x1014)) & 0x7FF
+        self.emu.send(cob, struct.pack("<HB5s", code, register, b"\x00" * 5))
+
+    # ---- modes --------------------------------------------------------------------------------
+    def _mode_changed(self) -> None:
+        if self.state == OE:
+            self.target_raw = self.raw_counts()  # a mode switch holds the present position
+            if self.mode != MODE_PV:
+                self.emu.stop_joint(self.joint)
+        self.emu.update_compliance()
+
+    def compliant(self) -> bool:
+        return self.state == OE and self.mode == MODE_PT and abs(int(self.get(0x6071))) <= COMPLIANT_TORQUE
+
+    def _new_setpoint(self, relative: bool) -> None:
+        target = int(self.get(0x607A))
+        offset = self.home_offset
+        if relative:
+            base = self.target_raw if self.target_raw is not None else self.raw_counts()
+            target = int(round(base)) + offset + target
+        lo, hi = int(self.get(0x607D, 1)), int(self.get(0x607D, 2))
+        self.limit_active = False
+        if lo < hi and not lo <= target <= hi:
+            target = min(max(target, lo), hi)
+            self.limit_active = True
+        self.target_raw = float(target - offset)
+        self.sp_ack = True
+        if self.halted:
+            return
+        velocity = int(self.get(0x6081))
+        vmax = int(self.get(0x607F))
+        if vmax:
+            velocity = min(velocity, vmax)
+        per_unit = self.encoder.counts_per_unit * self.encoder.gear
+        speed = velocity / per_unit if velocity > 0 else None
+        self.emu.move_joint(self.joint, float(self.encoder.to_si(self.target_raw)), speed)
+
+    def _velocity_target(self) -> None:
+        if self.state != OE or self.mode != MODE_PV or self.halted:
+            return
+        counts = int(self.get(0x60FF))
+        per_unit = self.encoder.counts_per_unit * self.encoder.gear
+        self.emu.velocity_joint(self.joint, self.encoder.direction * counts / per_unit)
+
+    # ---- PDOs ---------------------------------------------------------------------------------
+    def rebuild_pdos(self) -> None:
+        self.tpdos = [self._read_pdo(0x1800 + n, 0x1A00 + n, n + 1) for n in range(4)]
+        self.rpdos = [self._read_pdo(0x1400 + n, 0x1600 + n, n + 1) for n in range(4)]
+        now = time.monotonic()
+        for p in self.tpdos:
+            if p.valid and p.trans >= 254 and p.event_ms > 0:
+                p.next_due = now + p.event_ms / 1000.0
+        self.emu.rpdo_config_changed()
+        self.emu.wake()
+
+    def _read_pdo(self, com: int, mapping: int, num: int) -> PdoConfig:
+        cob = int(self.get(com, 1))
+        entries = []
+        for k in range(1, int(self.get(mapping, 0)) + 1):
+            v = int(self.get(mapping, k))
+            if v:
+                entries.append((v >> 16, (v >> 8) & 0xFF, v & 0xFF))
+        event = int(self.get(com, 5))
+        return PdoConfig(num, cob & 0x7FF, not cob & 0x80000000, int(self.get(com, 2)), event, entries)
+
+    def tpdo_data(self, p: PdoConfig) -> bytes:
+        return b"".join(self.node.get_data(i, s) for i, s, _ in p.entries)
+
+    def on_rpdo(self, p: PdoConfig, data: bytes) -> None:
+        if self.nmt != OPERATIONAL or self.silent():
+            return
+        if p.trans <= 240:
+            p.pending = bytes(data)  # synchronous: actuate at the next SYNC
+            return
+        self.apply_rpdo(p, data)
+
+    def apply_rpdo(self, p: PdoConfig, data: bytes) -> None:
+        with self.lock:
+            self._batch = []
+            offset = 0
+            try:
+                for index, sub, bits in p.entries:
+                    n = bits // 8
+                    chunk = bytes(data[offset:offset + n])
+                    offset += n
+                    if len(chunk) < n:
+                        break  # short frame: the rest of the mapping is not updated
+                    try:
+                        self.node.set_data(index, sub, chunk)
+                    except SdoAbortedError:
+                        continue  # e.g. an unsupported mode: the drive keeps the old value
+            finally:
+                changed, self._batch = self._batch, None
+            for index in sorted(set(changed), key=lambda i: (i == 0x6040, i)):
+                self._effect(index, 0)

@@ -1,0 +1,374 @@
+"""A bus of emulated CiA 402 drives serving one simulated world over python-can.
+
+``CanopenEmulator(world, interface="virtual", channel="chan0", nodes=[1, ..., 6]).start()`` puts one
+drive per joint (node order = joint order) on the bus. Station-side code talks to it with the real
+``canopen`` and ``python-can`` libraries: in-process over the ``virtual`` interface, or across processes
+through :class:`station.mocks.canopen.hub.SocketcandHub`.
+
+Fault injection (``world.faults.inject(kind, device=<node id>)``):
+``device_fault`` -> EMCY (code = the fault's ``code`` or 0x2310) + FAULT state + world halt;
+``timeout`` -> the node is silent (no SDO answer, PDO, heartbeat or EMCY) for ``timeout_silence`` s;
+``disconnect`` -> the node is silent until an emulated power cycle;
+``corrupt`` -> the node's next TPDO is replaced by a CAN error frame (protocol error) on the wire.
+``inject_error_frame("busoff")`` puts a bus-off error frame on the wire.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import can
+import canopen
+import numpy as np
+from station.mocks.canopen.drive import (
+    INITIALISING,
+    OPERATIONAL,
+    PRE_OPERATIONAL,
+    STOPPED,
+    Drive402,
+    PdoConfig,
+)
+
+log = logging.getLogger("station.mocks.canopen")
+
+CAN_ERR_PROT = 0x08  # SocketCAN error class: protocol violation (what a corrupted frame causes)
+CAN_ERR_BUSOFF = 0x40  # SocketCAN error class: bus off
+ERROR_CLASSES = {"protocol": CAN_ERR_PROT, "busoff": CAN_ERR_BUSOFF}
+STORE_FORMAT = "station-canopen-store/1"
+DEFAULT_SERIAL_BASE = 0x5A100000
+
+
+@dataclass(frozen=True)
+class Snap:
+    t: float
+    q: np.ndarray  # encoder positions, SI
+    qd: np.ndarray
+    contact: bool
+
+
+class _Rx(can.Listener):
+    def __init__(self, emu: CanopenEmulator) -> None:
+        self.emu = emu
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame or msg.is_remote_frame:
+            return
+        try:
+            self.emu._dispatch(msg.arbitration_id, bytes(msg.data))
+        except Exception:  # an emulator bug must not kill the bus thread silently
+            log.exception("canopen emulator: handling frame 0x%03X failed", msg.arbitration_id)
+
+
+class CanopenEmulator:
+    """Drives 1..n on one CAN channel, wired to ``world`` (joint i <-> i-th node of ``nodes``)."""
+
+    def __init__(self, world, interface: str = "virtual", channel: str = "chan0", nodes=None, *,
+                 contact_node: int | None = -1, store_path: str | Path | None = None,
+                 timeout_silence: float = 1.0, boot_delay: float = 0.005, fault_poll: float = 0.01,
+                 **bus_kwargs) -> None:
+        cfg = world.bus_config("canopen")
+        n = world.nominal.n_joints
+        nodes = list(nodes if nodes is not None else cfg.get("nodes") or range(1, n + 1))
+        if len(nodes) != n:
+            raise ValueError(f"canopen emulator: {len(nodes)} node ids {nodes} for a {n}-joint robot "
+                             f"({world.nominal.name}); give one node per joint")
+        if len(set(nodes)) != n or not all(1 <= int(i) <= 127 for i in nodes):
+            raise ValueError(f"canopen emulator: node ids must be distinct and within 1..127, got {nodes}")
+        if contact_node == -1:
+            contact_node = cfg.get("contact_node", nodes[-1])
+        if contact_node is not None and contact_node not in nodes:
+            raise ValueError(f"canopen emulator: contact node {contact_node} is not one of {nodes}")
+        self.world = world
+        self.interface, self.channel, self.bus_kwargs = interface, channel, bus_kwargs
+        self.nodes = [int(i) for i in nodes]
+        self.contact_node = contact_node
+        self.store_path = Path(store_path) if store_path else None
+        self.timeout_silence = float(cfg.get("timeout_silence", timeout_silence))
+        self.boot_delay = boot_delay
+        self.fault_poll = fault_poll
+        serial_base = int(cfg.get("serial_base", DEFAULT_SERIAL_BASE))
+        self.drives: dict[int, Drive402] = {}
+        for j, node_id in enumerate(self.nodes):
+            enc = world.nominal.joints[j].encoder
+            if enc is None:
+                raise ValueError(f"canopen emulator: joint {j + 1} of model {world.nominal.name} has no encoder "
+                                 "scaling (counts_per_rev, gear, direction) in its model file")
+            self.drives[node_id] = Drive402(self, node_id, j, enc, serial_base + node_id, node_id == contact_node)
+        self._load_store()
+        self.network: canopen.Network | None = None
+        self._rx_map: dict[int, list[tuple[Drive402, PdoConfig]]] = {}
+        self._snap: Snap | None = None
+        self._snap_lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.frames_sent = 0
+        self.sync_count = 0
+
+    # ---- lifecycle ----------------------------------------------------------------------------
+    def start(self) -> CanopenEmulator:
+        bus = can.Bus(interface=self.interface, channel=self.channel, **self.bus_kwargs)
+        net = canopen.Network(bus)
+        for d in self.drives.values():
+            net.add_node(d.node)
+            # SDO and NMT go through our dispatcher (silence, NMT state, boot-up on reset)
+            net.unsubscribe(0x600 + d.id, d.node.sdo.on_request)
+            net.unsubscribe(0, d.node.nmt.on_command)
+        net.listeners.append(_Rx(self))
+        self.network = net
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name=f"canopen-emu-{self.channel}", daemon=True)
+        self._thread.start()
+        net.connect()
+        for d in self.drives.values():
+            d.power_on()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None
+        if self.network is not None:
+            net, self.network = self.network, None
+            try:
+                net.disconnect()
+            except Exception:  # bus already gone
+                log.debug("canopen emulator: disconnect failed", exc_info=True)
+
+    def __enter__(self) -> CanopenEmulator:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def power_cycle(self, nodes=None) -> None:
+        """Emulated power off/on: volatile values are lost, parameters stored with 0x1010 survive,
+        every drive boots (boot-up message, PRE-OPERATIONAL, SWITCH ON DISABLED)."""
+        for node_id in nodes or self.nodes:
+            self.drives[node_id].power_on()
+
+    # ---- persistence of stored parameters (0x1010) ---------------------------------------------
+    def _load_store(self) -> None:
+        if not self.store_path or not self.store_path.exists():
+            return
+        try:
+            doc = json.loads(self.store_path.read_text())
+            if doc.get("format") != STORE_FORMAT:
+                raise ValueError(f"format is not {STORE_FORMAT}")
+            for node_id, values in doc["nodes"].items():
+                d = self.drives.get(int(node_id))
+                if d is None:
+                    continue
+                for key, hexdata in values.items():
+                    index, sub = key.split(":")
+                    d.stored[(int(index, 16), int(sub, 16))] = bytes.fromhex(hexdata)
+        except (OSError, ValueError, KeyError, AttributeError) as e:
+            raise ValueError(f"canopen emulator: parameter store {self.store_path}: {e}") from None
+
+    def persist(self) -> None:
+        if not self.store_path:
+            return
+        doc = {"format": STORE_FORMAT,
+               "nodes": {str(d.id): {f"{i:04X}:{s:02X}": data.hex() for (i, s), data in sorted(d.stored.items())}
+                         for d in self.drives.values()}}
+        tmp = self.store_path.with_suffix(self.store_path.suffix + ".tmp")
+        tmp.write_text(json.dumps(doc, indent=1))
+        tmp.replace(self.store_path)
+
+    # ---- world access (called by the drives) -------------------------------------------------
+    def snap(self, max_age: float = 0.001) -> Snap:
+        with self._snap_lock:
+            now = time.monotonic()
+            if self._snap is None or now - self._snap.t > max_age:
+                contact = self.world.contact() if self.contact_node is not None else False
+                self._snap = Snap(now, self.world.encoder_q(), self.world.encoder_qd(), contact)
+            return self._snap
+
+    def _invalidate(self) -> None:
+        with self._snap_lock:
+            self._snap = None
+
+    def world_set_enabled(self, joint: int, on: bool) -> None:
+        self.world.set_enabled(on, joint)
+        self._invalidate()
+
+    def world_fault(self, joint: int, code: int) -> None:
+        self.world.fault_joint(joint, code)
+        self._invalidate()
+
+    def world_clear_fault(self, joint: int) -> None:
+        self.world.clear_fault(joint)
+
+    def move_joint(self, joint: int, q: float, speed: float | None) -> None:
+        self.world.command_joint(joint, q, speed=speed)
+        self._invalidate()
+
+    def stop_joint(self, joint: int) -> None:
+        """Decelerate one joint to rest at its acceleration limit (no motion if it is at rest)."""
+        q, qd = self.world.encoder_q()[joint], self.world.encoder_qd()[joint]
+        if abs(qd) < 1e-9:
+            return
+        amax = self.world.truth.joints[joint].max_acceleration
+        self.world.command_joint(joint, float(q + qd * abs(qd) / (2 * amax)))
+        self._invalidate()
+
+    def velocity_joint(self, joint: int, qd: float) -> None:
+        if abs(qd) < 1e-12:
+            self.stop_joint(joint)
+            return
+        end = self.world.upper[joint] if qd > 0 else self.world.lower[joint]
+        self.world.command_joint(joint, float(end), speed=abs(qd))
+        self._invalidate()
+
+    def update_compliance(self) -> None:
+        on = all(d.compliant() for d in self.drives.values())
+        if on != self.world.compliant:
+            self.world.set_compliant(on)
+            self._invalidate()
+
+    # ---- wire ---------------------------------------------------------------------------------
+    def send(self, cob_id: int, data: bytes) -> None:
+        net = self.network
+        if net is None or net.bus is None:
+            return
+        try:
+            net.send_message(cob_id, data)
+            self.frames_sent += 1
+        except can.CanError:
+            log.debug("canopen emulator: send 0x%03X failed", cob_id, exc_info=True)
+
+    def inject_error_frame(self, kind: str = "busoff") -> None:
+        """Put a CAN error frame on the wire (``busoff`` or ``protocol``), as a controller reports it."""
+        if kind not in ERROR_CLASSES:
+            raise ValueError(f"error frame kind must be one of {', '.join(ERROR_CLASSES)}, got {kind!r}")
+        net = self.network
+        if net is None or net.bus is None:
+            return
+        msg = can.Message(arbitration_id=ERROR_CLASSES[kind], is_error_frame=True, is_extended_id=False,
+                          data=bytes(8))
+        with net.send_lock:
+            net.bus.send(msg)
+
+    def _send_tpdo(self, d: Drive402, p: PdoConfig) -> None:
+        if self.world.faults.take("corrupt", d.id):
+            self.inject_error_frame("protocol")  # the frame was destroyed on the wire
+            return
+        data = d.tpdo_data(p)
+        p.last_data = data
+        self.send(p.cob_id, data)
+
+    def rpdo_config_changed(self) -> None:
+        rx: dict[int, list[tuple[Drive402, PdoConfig]]] = {}
+        for d in self.drives.values():
+            for p in d.rpdos:
+                if p.valid and p.entries:
+                    rx.setdefault(p.cob_id, []).append((d, p))
+        self._rx_map = rx
+
+    def _dispatch(self, cob_id: int, data: bytes) -> None:
+        if cob_id == 0 and len(data) >= 2:
+            for d in self.drives.values():
+                if data[1] in (0, d.id) and not d.silent():
+                    d.on_nmt(data[0])
+            return
+        if cob_id == 0x80:
+            self._on_sync()
+            return
+        d = self.drives.get(cob_id - 0x600) if 0x600 < cob_id < 0x680 else None
+        if d is not None:
+            if d.silent() or d.nmt not in (PRE_OPERATIONAL, OPERATIONAL) or len(data) < 8:
+                return
+            with d.lock:
+                d.node.sdo.on_request(cob_id, bytearray(data), time.time())
+            return
+        for d, p in self._rx_map.get(cob_id, ()):
+            d.on_rpdo(p, data)
+
+    def _on_sync(self) -> None:
+        self.sync_count += 1
+        live = [d for d in self.drives.values() if d.nmt == OPERATIONAL and not d.silent()]
+        for d in live:
+            for p in d.rpdos:
+                if p.valid and p.pending is not None:
+                    data, p.pending = p.pending, None
+                    d.apply_rpdo(p, data)
+        self.snap(max_age=0.0)
+        for d in live:
+            with d.lock:
+                for p in d.tpdos:
+                    if not (p.valid and p.entries and p.trans <= 240):
+                        continue
+                    if p.trans == 0:  # acyclic synchronous: on SYNC, only if changed
+                        if d.tpdo_data(p) != p.last_data:
+                            self._send_tpdo(d, p)
+                        continue
+                    p.sync_count += 1
+                    if p.sync_count >= p.trans:
+                        p.sync_count = 0
+                        self._send_tpdo(d, p)
+
+    def wake(self) -> None:
+        self._wake.set()
+
+    # ---- scheduler: boot-up, heartbeat, event-timer TPDOs, fault polling ----------------------
+    def _run(self) -> None:
+        next_poll = 0.0
+        while not self._stop.is_set():
+            now = time.monotonic()
+            try:
+                if now >= next_poll:
+                    self._poll_faults(now)
+                    next_poll = now + self.fault_poll
+                due = next_poll
+                for d in self.drives.values():
+                    due = min(due, self._service(d, now))
+            except Exception:
+                log.exception("canopen emulator scheduler")
+                due = now + 0.05
+            self._wake.wait(max(0.0, due - time.monotonic()))
+            self._wake.clear()
+
+    def _service(self, d: Drive402, now: float) -> float:
+        with d.lock:
+            if now >= d.bootup_due and not d.silent():
+                d.boot(now)
+            if d.nmt == INITIALISING:
+                return d.bootup_due
+            due = math.inf
+            period = d.heartbeat_period()
+            if period and now >= d.hb_next:
+                if not d.silent():
+                    self.send(0x700 + d.id, bytes([d.nmt]))
+                d.hb_next = d.hb_next + period if now - d.hb_next < period else now + period
+            due = min(due, d.hb_next if period else math.inf)
+            if d.nmt == OPERATIONAL:
+                for p in d.tpdos:
+                    if p.valid and p.entries and p.trans >= 254 and p.event_ms > 0:
+                        if now >= p.next_due:
+                            if not d.silent():
+                                self._send_tpdo(d, p)
+                            p.next_due = now + p.event_ms / 1000.0
+                        due = min(due, p.next_due)
+            return due
+
+    def _poll_faults(self, now: float) -> None:
+        faults = self.world.faults
+        for d in self.drives.values():
+            if d.nmt in (INITIALISING, STOPPED) and not faults.peek("disconnect", d.id):
+                continue
+            f = faults.take_fault("device_fault", d.id)
+            if f is not None:
+                log.info("canopen emulator: device fault on node %d", d.id)
+                d.fault(f.code or 0x2310)
+            if faults.take("timeout", d.id):
+                d.silent_until = max(d.silent_until, now + self.timeout_silence)
+            if faults.take("disconnect", d.id):
+                d.silent_until = math.inf
