@@ -1,7 +1,204 @@
-"""Placeholder: this command group is being built (see the open issues); it registers nothing yet."""
+"""``station records list|show`` (the calibration records database) and ``station report`` (rebuild the
+HTML/JSON report of a session from its journal). Tables are for people: lengths in mm, angles in deg."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
 
 import typer
+from rich.console import Console
+from rich.table import Table
+
+records_app = typer.Typer(no_args_is_help=True, help="Calibration records per robot serial (list, show).")
+
+DB_HELP = "records database URL (default $STATION_DB, else sqlite:///$STATION_HOME/station.db)"
+
+
+def _open(db: str | None):
+    from station.cli import fail
+    from station.records import open_records
+    from station.robot.errors import StationError
+
+    try:
+        return open_records(db)
+    except StationError as e:
+        raise fail(str(e)) from None
+
+
+def _mm(v) -> str:
+    return "" if v is None or not math.isfinite(float(v)) else f"{float(v) * 1e3:.4f}"
+
+
+def _human(v, unit: str | None) -> str:
+    if v is None or not math.isfinite(float(v)):
+        return ""
+    return f"{math.degrees(float(v)):.4f}" if unit == "rad" else f"{float(v) * 1e3:.4f}"
+
+
+def _hunit(unit: str | None) -> str:
+    return {"rad": "deg", "m": "mm"}.get(unit or "", unit or "")
+
+
+def _verdict(passed) -> str:
+    return {True: "[green]PASS[/]", False: "[red]FAIL[/]"}.get(passed, "-")
+
+
+def _console() -> Console:
+    return Console(highlight=False, soft_wrap=False, width=160)
+
+
+def _sessions_table(title: str, rows: list[dict]) -> Table:
+    t = Table(title=title, title_justify="left")
+    for col in ("session", "procedure", "started", "finished", "station", "operator", "samples", "rms before mm",
+                "rms after mm", "verdict", "write-back"):
+        t.add_column(col, justify="right" if col in ("samples",) or col.endswith("mm") else "left")
+    for s in rows:
+        wb = "-" if s["writeback_applied"] is None else (
+            ("applied, verified" if s["writeback_verified"] else "applied, NOT verified") if s["writeback_applied"]
+            else "not applied")
+        t.add_row(s["session"], s["procedure"], s["started"], s["finished"] or "(open)", s["station"],
+                  s["operator"], str(s["n_samples"]), _mm(s["rms_before_m"]), _mm(s["rms_after_m"]),
+                  _verdict(s["passed"]), wb)
+    return t
+
+
+@records_app.command("list")
+def list_records(db: str = typer.Option(None, "--db", help=DB_HELP),
+                 serial: str = typer.Option(None, "--serial", help="only the sessions of this robot")) -> None:
+    """List robots, or the sessions of one robot with --serial."""
+    from station.cli import fail
+    from station.records import RecordNotFound
+
+    con = _console()
+    with _open(db) as rec:
+        if serial is None:
+            robots = rec.robots()
+            t = Table(title=f"Robots in {rec.url}", title_justify="left")
+            for col in ("serial", "vendor", "model", "firmware", "sessions", "last session", "last started",
+                        "last verdict"):
+                t.add_column(col, justify="right" if col == "sessions" else "left")
+            for r in robots:
+                t.add_row(r["serial"], r["vendor"], r["model"], r["firmware"], str(r["n_sessions"]),
+                          r["last_session"] or "", r["last_started"] or "", _verdict(r["last_passed"]))
+            con.print(t)
+            if not robots:
+                con.print("no records yet")
+            return
+        try:
+            rec.robot(serial)
+        except RecordNotFound as e:
+            raise fail(str(e)) from None
+        con.print(_sessions_table(f"Sessions of robot {serial}", rec.sessions(serial)))
+
+
+@records_app.command("show")
+def show(serial: str = typer.Argument(..., help="robot serial number"),
+         db: str = typer.Option(None, "--db", help=DB_HELP),
+         session: str = typer.Option(None, "--session", help="this session instead of the latest one")) -> None:
+    """One robot: identity, its sessions, and the latest (or --session) result, verdict and write-back."""
+    from station.cli import fail
+    from station.records import RecordNotFound
+
+    con = _console()
+    with _open(db) as rec:
+        try:
+            robot = rec.robot(serial)
+            sessions = rec.sessions(serial)
+            if session is not None:
+                chosen = rec.session(session)
+                if chosen.get("serial") != serial:
+                    raise RecordNotFound(f"session {session!r} is not a session of robot {serial!r}")
+            else:
+                chosen = rec.session(sessions[-1]["session"]) if sessions else None
+        except RecordNotFound as e:
+            raise fail(str(e)) from None
+        con.print(f"[bold]Robot {serial}[/]  {robot['vendor']} {robot['model']}  firmware {robot['firmware'] or '-'}"
+                  f"  {robot['url']}")
+        con.print(f"first seen {robot['first_seen']}, last seen {robot['last_seen']}, {robot['n_sessions']} session(s)")
+        con.print(_sessions_table("Sessions", sessions))
+        if chosen is None:
+            return
+        _show_session(con, chosen)
+
+
+def _show_session(con: Console, s: dict) -> None:
+    from station.records import measurement_status
+
+    con.print(f"\n[bold]Session {s['session']}[/]  {s.get('procedure') or ''}  started {s.get('started') or ''}"
+              f"  station {s.get('station') or ''}  operator {s.get('operator') or ''}")
+    result = s.get("result")
+    if result:
+        res = result.get("residuals") or {}
+        t = Table(title=f"Result ({'converged' if result.get('converged') else 'NOT converged'}, rank "
+                        f"{result.get('rank')} of {result.get('n_parameters')}; rms {_mm(res.get('rms_before_m'))} -> "
+                        f"{_mm(res.get('rms_after_m'))} mm)", title_justify="left")
+        for col in ("parameter", "nominal", "estimate", "±σ", "unit", "note"):
+            t.add_column(col, justify="right" if col in ("nominal", "estimate", "±σ") else "left")
+        for name, p in (result.get("parameters") or {}).items():
+            unit = p.get("unit") or ("rad" if name.startswith("offset.") else "m")
+            t.add_row(name, _human(p.get("nominal"), unit), _human(p.get("value"), unit) if p.get("identifiable")
+                      else "", _human(p.get("std"), unit), _hunit(unit),
+                      "" if p.get("identifiable") else f"not identifiable: {p.get('reason') or '?'}")
+        con.print(t)
+    else:
+        con.print("no solver result")
+    verdict = s.get("verdict")
+    if verdict:
+        t = Table(title="Verdict", title_justify="left")
+        for col in ("measurement", "value", "low", "high", "unit", "result"):
+            t.add_column(col, justify="right" if col in ("value", "low", "high") else "left")
+        for m in verdict.get("measurements") or []:
+            st = measurement_status(m)
+            colour = {"PASS": "green", "FAIL": "red", "MARGINAL": "yellow"}[st]
+            t.add_row(str(m.get("name")), *(("" if m.get(k) is None else f"{float(m[k]):.4g}")
+                                            for k in ("value", "low", "high")), str(m.get("unit") or ""),
+                      f"[{colour}]{st}[/]")
+        con.print(t)
+    wb = s.get("writeback")
+    if wb:
+        before, after = wb.get("before") or {}, wb.get("after") or {}
+        t = Table(title=f"Write-back ({'applied' if wb.get('applied') else 'not applied'}, "
+                        f"{'verified' if wb.get('verified') else 'not verified'})", title_justify="left")
+        for col in ("value", "before", "after", "unit"):
+            t.add_column(col, justify="left" if col in ("value", "unit") else "right")
+        for name in dict.fromkeys([*before, *after]):
+            unit = "rad" if name.startswith("offset.") else "m"
+            t.add_row(name, _human(before.get(name), unit), _human(after.get(name), unit), _hunit(unit))
+        con.print(t)
+
+
+def report(source: Path = typer.Argument(..., help="session folder (holding journal.jsonl) or a journal file"),
+           out: Path = typer.Option(None, "--out", help="folder for report.html/report.json "
+                                                        "(default: the session folder)")) -> None:
+    """Rebuild the HTML and JSON report of a session from its journal."""
+    from station.cli import fail
+    from station.report import ReportError, write_report
+
+    if not source.exists():
+        raise fail(f"{source}: no such session folder or journal")
+    journal = source / "journal.jsonl" if source.is_dir() else source
+    if not journal.is_file():
+        raise fail(f"{source}: no journal.jsonl in this folder")
+    try:
+        from station.engine.journal import session_from_journal
+    except ImportError:
+        try:
+            from station.engine.session_record import session_from_journal
+        except ImportError:
+            raise fail("reading a journal needs station.engine (session_from_journal), which is not "
+                       "installed") from None
+    try:
+        session = session_from_journal(journal)
+    except (ValueError, OSError) as e:
+        raise fail(f"{journal}: {e}") from None
+    try:
+        path = write_report(session, out or journal.parent)
+    except (ReportError, OSError) as e:
+        raise fail(str(e)) from None
+    typer.echo(str(path))
 
 
 def register(app: typer.Typer) -> None:
-    return None
+    app.add_typer(records_app, name="records")
+    app.command("report")(report)

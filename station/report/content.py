@@ -1,0 +1,115 @@
+"""``build_report(session) -> dict``: everything the report shows, SI, JSON-ready (this is report.json)."""
+
+from __future__ import annotations
+
+import math
+from datetime import datetime
+
+from station.records.verdict import measurement_status, overall_status
+from station.report.analysis import coverage, load_session_model, per_pose_residuals, sample_arrays
+
+FORMAT = "station-report/1"
+
+
+class ReportError(ValueError):
+    """The session dict cannot be reported (not a dict, no session id)."""
+
+
+def _clean(o):
+    """JSON-safe copy: non-finite floats become None (strict JSON has no NaN)."""
+    if isinstance(o, float):
+        return o if math.isfinite(o) else None
+    if isinstance(o, dict):
+        return {str(k): _clean(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_clean(v) for v in o]
+    if hasattr(o, "tolist"):
+        return _clean(o.tolist())
+    return o
+
+
+def _duration(started, finished) -> float | None:
+    try:
+        return (datetime.fromisoformat(str(finished)) - datetime.fromisoformat(str(started))).total_seconds()
+    except (TypeError, ValueError):
+        return None
+
+
+def param_unit(name: str, p: dict) -> str:
+    """SI unit of a parameter: its ``unit`` when the solver gave one, else by name (offsets and angles rad)."""
+    if p.get("unit") in ("m", "rad"):
+        return p["unit"]
+    last = name.rsplit(".", 1)[-1]
+    if name.startswith("offset.") and not name.endswith(".d"):
+        return "rad"
+    return "rad" if last in ("rx", "ry", "rz", "alpha", "beta", "theta") else "m"
+
+
+def build_report(session: dict) -> dict:
+    if not isinstance(session, dict) or not session.get("session"):
+        raise ReportError("report: the session record must be a dict with a 'session' id")
+    result = session.get("result") or None
+    verdict = session.get("verdict") or None
+    writeback = session.get("writeback") or None
+    robot = session.get("robot") or {}
+    model, model_note = load_session_model(session)
+    arrays = sample_arrays(session)
+
+    header = {
+        "session": session.get("session"), "serial": session.get("serial"), "robot": robot,
+        "model": session.get("model") or robot.get("model"), "procedure": session.get("procedure"),
+        "procedure_sha256": session.get("procedure_sha256"), "operator": session.get("operator"),
+        "station": session.get("station"), "started": session.get("started"), "finished": session.get("finished"),
+        "duration_s": _duration(session.get("started"), session.get("finished")),
+        "n_samples": len(session.get("samples") or []),
+        "n_fit": sum(1 for s in arrays["set"] if s == "fit"),
+        "n_holdout": sum(1 for s in arrays["set"] if s == "holdout"),
+    }
+    measurements = [{**m, "status": measurement_status(m)} for m in (verdict or {}).get("measurements") or []]
+
+    parameters, unidentifiable = [], []
+    for name, p in ((result or {}).get("parameters") or {}).items():
+        unit = param_unit(name, p)
+        value, nominal = p.get("value"), p.get("nominal")
+        corr = None
+        if p.get("identifiable") and value is not None and nominal is not None and math.isfinite(float(nominal)):
+            corr = float(value) - float(nominal)
+        row = {"name": name, "kind": p.get("kind", "model"), "unit": unit, "value": value, "nominal": nominal,
+               "correction": corr, "std": p.get("std"), "identifiable": bool(p.get("identifiable")),
+               "reason": p.get("reason")}
+        parameters.append(row)
+        if not row["identifiable"]:
+            unidentifiable.append({"name": name, "reason": p.get("reason") or "not identifiable"})
+
+    residuals = dict((result or {}).get("residuals") or {})
+    per_pose = per_pose_residuals(session, model, arrays)
+    per_pose["seq"] = arrays["seq"] if per_pose["source"].startswith("recomputed") else \
+        [s for s, st in zip(arrays["seq"], arrays["set"], strict=True) if st == "fit"][:len(per_pose["before_m"])]
+    residual_summary = {k: v for k, v in residuals.items() if not isinstance(v, (list, tuple))}
+
+    wb = None
+    if writeback:
+        before, after = writeback.get("before") or {}, writeback.get("after") or {}
+        rows = []
+        for name in dict.fromkeys([*before, *after]):
+            b, a = before.get(name), after.get(name)
+            rows.append({"name": name, "unit": param_unit(name, {}), "before": b, "after": a,
+                         "change": None if b is None or a is None else float(a) - float(b)})
+        wb = {"applied": bool(writeback.get("applied")), "verified": bool(writeback.get("verified")), "values": rows}
+
+    return _clean({
+        "format": FORMAT, "units": "SI (m, rad, s)",
+        "header": header,
+        "overall": overall_status(verdict),
+        "verdict": {"passed": (verdict or {}).get("passed"), "measurements": measurements} if verdict else None,
+        "result": None if result is None else {
+            "model": result.get("model"), "converged": result.get("converged"), "iterations": result.get("iterations"),
+            "rank": result.get("rank"), "n_parameters": result.get("n_parameters"),
+            "condition_number": result.get("condition_number"), "sigma_m": result.get("sigma_m"),
+            "settings": result.get("settings") or {}, "notes": result.get("notes") or []},
+        "parameters": parameters,
+        "unidentifiable": unidentifiable,
+        "residuals": {"summary": residual_summary, "holdout": (result or {}).get("holdout"), "per_pose": per_pose},
+        "coverage": {**coverage(model, arrays), "model_note": model_note},
+        "writeback": wb,
+    })
