@@ -15,13 +15,14 @@ from pathlib import Path
 import numpy as np
 import typer
 
+from station.robot.errors import ConfigError
 from station.samplesfile import LENGTH_UNITS, SamplesFileError, read_joints, read_samples
 
 
-def _fail(msg: str):
-    from station.cli import fail
-
-    return fail(msg)
+def _fail(msg: str) -> ConfigError:
+    # a StationError, not station.cli.fail(): main() runs click with standalone_mode=False, where a raised
+    # typer.Exit becomes a return value and the exit status would be 0
+    return ConfigError(msg)
 
 
 _TRIPLE = re.compile(r"^\s*([^,]+),([^,]+),([^,]+?)\s*([a-z]*)\s*$")

@@ -55,7 +55,7 @@ def _rigid_lsq(R: np.ndarray, p: np.ndarray, known_point_z: float | None = None)
     b = -p.reshape(-1)
     names = list(NAMES)
     if known_point_z is not None:
-        b = b + A[:, 5] * known_point_z
+        b = b - A[:, 5] * known_point_z
         A, names = A[:, :5], names[:5]
     if not np.isfinite(A).all() or not np.isfinite(b).all():
         raise SolverInputError("tcp: poses contain NaN or infinite values")
