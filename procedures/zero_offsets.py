@@ -1,0 +1,23 @@
+"""Zero offsets: seat the tool ball in the cell's socket from ~20 poses and identify the joint zero offsets.
+
+End-of-line procedure after seed 000 (tip touch on a fixed reference, position of the reference unknown).
+Offsets that a single fixed point cannot show (the base axis, a wrist axis the tip lies on) are reported
+unidentifiable, never guessed. Limits: ``procedures/limits.yaml``, section ``zero_offsets`` of the model."""
+
+IDENTIFY = "offsets"
+DEFAULTS = {"n_holdout": 4}
+
+
+def checklist(s):
+    s.connect()                                  # 1. connect and identify the robot (serial must match)
+    s.check_state()                              # 2. no fault or stop, powered, not compliant
+    plan = s.plan(s.points("socket")[:1], identify=IDENTIFY)   # 3. spread of poses around the socket
+    for pose in s.todo(plan):                    # 4. every pose not yet recorded:
+        s.approach(pose)                         #    move above the socket
+        s.seat(pose)                             #    go down, compliant: the ball seats in the cone
+        s.record(pose)                           #    read all joints, journal the sample (fsynced)
+        s.leave(pose)                            #    compliance off, back above the socket
+    s.solve(identify=IDENTIFY, reference="unknown")   # 5. offsets + socket position from the fit poses
+    s.measure_result()                           # 6. residuals, held-out check, offsets vs. limits
+    s.judge()                                    # 7. PASS / FAIL
+    s.write_back()                               # 8. only with --apply: pre-image, write, read back, verify

@@ -1,0 +1,126 @@
+"""The station's view of the cell: where the fixed reference points are, as the integrator knows them.
+
+File format (``station-cell/1``, YAML; written for emulated cells by ``station mock world cell WORLD``)::
+
+    format: station-cell/1
+    units: {length: mm}            # units of every position below (m or mm)
+    model: ur5e                    # optional: the robot model this cell was laid out for
+    points:
+      - {label: A, kind: socket, position: [450, 0, 50], approach: [0, 0, 1], radius: 3}
+
+``position`` is approximate, in the robot base frame; ``approach`` the unit vector from the point towards where
+the tool comes from (up for a socket in a table); ``radius`` the socket capture / needle contact radius."""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from station.robot.errors import ConfigError
+
+FORMAT = "station-cell/1"
+LENGTH = {"m": 1.0, "mm": 1e-3}
+
+
+class CellError(ConfigError):
+    pass
+
+
+@dataclass(frozen=True)
+class RefPoint:
+    label: str
+    kind: str  # "socket" | "needle"
+    position: np.ndarray  # m, robot base frame (approximate)
+    approach: np.ndarray  # unit vector, point -> where the tool comes from
+    radius: float = 0.002  # m
+
+    def to_dict(self) -> dict:
+        return {"label": self.label, "kind": self.kind, "position": self.position.tolist(),
+                "approach": self.approach.tolist(), "radius": self.radius}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> RefPoint:
+        return cls(d["label"], d["kind"], np.asarray(d["position"], float), np.asarray(d["approach"], float),
+                   float(d.get("radius", 0.002)))
+
+
+@dataclass(frozen=True)
+class Cell:
+    path: str
+    points: dict[str, RefPoint]
+    model: str | None = None
+
+    def point(self, label: str) -> RefPoint:
+        if label not in self.points:
+            raise CellError(f"cell {self.path}: no reference point {label!r}; it has {', '.join(self.points)}")
+        return self.points[label]
+
+    def of_kind(self, kind: str) -> list[RefPoint]:
+        return [p for p in self.points.values() if p.kind == kind]
+
+
+def default_cell_path() -> Path:
+    return Path(os.environ.get("STATION_CELL") or "cell.yaml")
+
+
+def _vec(where: str, v, scale: float, unit: bool = False) -> np.ndarray:
+    try:
+        a = np.asarray(v, dtype=float)
+    except (TypeError, ValueError):
+        raise CellError(f"{where}: expected 3 numbers, got {v!r}") from None
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise CellError(f"{where}: expected 3 finite numbers, got {v!r}")
+    if unit:
+        n = float(np.linalg.norm(a))
+        if n < 1e-9:
+            raise CellError(f"{where}: approach direction is zero")
+        return a / n
+    return a * scale
+
+
+def load_cell(path: str | Path | None = None) -> Cell:
+    path = Path(path) if path else default_cell_path()
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except OSError as e:
+        raise CellError(f"cell file {path}: {e.strerror or e} (pass --cell FILE or set STATION_CELL)") from None
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        raise CellError(f"cell file {path}{f' line {mark.line + 1}' if mark else ''}: not valid YAML") from None
+    return cell_from_dict(doc, str(path))
+
+
+def cell_from_dict(doc, where: str = "cell") -> Cell:
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise CellError(f"{where}: expected 'format: {FORMAT}'")
+    units = doc.get("units") or {}
+    length = units.get("length") if isinstance(units, dict) else None
+    if length not in LENGTH:
+        raise CellError(f"{where}: units.length must be m or mm (every position is in it), got {length!r}")
+    scale = LENGTH[length]
+    raw = doc.get("points")
+    if isinstance(raw, dict):
+        raw = [{"label": k, **(v or {})} for k, v in raw.items()]
+    if not isinstance(raw, list) or not raw:
+        raise CellError(f"{where}: 'points' must list at least one reference point")
+    points: dict[str, RefPoint] = {}
+    for i, d in enumerate(raw):
+        w = f"{where}: points[{i}]"
+        if not isinstance(d, dict) or "label" not in d:
+            raise CellError(f"{w}: needs label, kind, position")
+        kind = d.get("kind", "socket")
+        if kind not in ("socket", "needle"):
+            raise CellError(f"{w}: kind must be socket or needle, got {kind!r}")
+        radius = d.get("radius", 2e-3 / scale)
+        if not isinstance(radius, (int, float)) or not math.isfinite(radius) or radius <= 0:
+            raise CellError(f"{w}: radius must be a positive number")
+        label = str(d["label"])
+        points[label] = RefPoint(label, kind, _vec(f"{w}.position", d.get("position"), scale),
+                                 _vec(f"{w}.approach", d.get("approach", [0, 0, 1]), 1.0, unit=True),
+                                 float(radius) * scale)
+    return Cell(where, points, doc.get("model"))

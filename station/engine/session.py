@@ -1,0 +1,420 @@
+"""``Session``: the vocabulary procedures are written in (the scripted API). Every step journals what it did;
+replaying a procedure on a resumed session skips what the journal already holds (recorded samples, the plan,
+a write-back in progress) after re-verifying the robot."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+
+from station.engine.cell import Cell, RefPoint
+from station.engine.journal import Journal
+from station.engine.limits import Limit, LimitsError
+from station.engine.plan import PlannedPose, PosePlan, generate_plan, plan_from_joints
+from station.engine.session_record import live_samples, session_from_events
+from station.engine.touch import TouchProvider, provider_for
+from station.kinematics import Model
+from station.robot.errors import ConfigError, DeviceFault, SafetyStop, StationError
+
+APPROACH_TOOL_SPEED = 0.10  # m/s at the tool on the last centimetres to a reference (seating, contact)
+
+
+class ResumeMismatch(StationError):
+    """The robot is not in the state the journal left it in: resuming would mix samples of two states."""
+
+
+class Session:
+    """One calibration session on one robot. Build it with ``station.connect``/``station.engine.runner``;
+    procedures receive it as ``s``."""
+
+    def __init__(self, journal: Journal, robot, *, limits: dict[str, Limit] | None = None,
+                 limits_version: str | None = None, cell: Cell | None = None, options: dict | None = None,
+                 replay: list[dict] | None = None, progress: Callable[[int, int, str], None] | None = None,
+                 touch: TouchProvider | str | None = None, log: Callable[[str], None] | None = None) -> None:
+        self.journal = journal
+        self.robot = robot
+        self.model: Model = robot.model
+        self.limits = limits or {}
+        self.limits_version = limits_version
+        self.cell = cell
+        self.options = dict(options or {})
+        self.replay = list(replay or [])  # events of the interrupted run (resume); empty for a new session
+        self.progress = progress or (lambda done, total, text: None)
+        self.log = log or (lambda text: None)
+        self._touch = touch
+        self.current_plan: PosePlan | None = None
+        self.result = None  # CalibrationResult of the last solve
+        self.measurements: list[dict] = []
+        self.verdict: dict | None = None
+        self._events: list[dict] = list(self.replay)
+        self._aim: dict[str, list[np.ndarray]] = {}
+
+    # ---- journal ---------------------------------------------------------------------------------
+    @property
+    def id(self) -> str:
+        return str(self.journal.header.get("session"))
+
+    @property
+    def folder(self) -> Path:
+        return self.journal.path.parent
+
+    @property
+    def resumed(self) -> bool:
+        return bool(self.replay)
+
+    def event(self, event: dict) -> dict:
+        ev = self.journal.append({"session": self.id, **event})
+        self._events.append(ev)
+        return ev
+
+    def events(self, kind: str | None = None) -> list[dict]:
+        return [e for e in self._events if kind is None or e.get("type") == kind]
+
+    def record_dict(self) -> dict:
+        """The session record (what ``station.records`` stores), projected from the journal so far."""
+        return session_from_events(self.journal.header, self._events)
+
+    @contextlib.contextmanager
+    def step(self, name: str, **info) -> Iterator[None]:
+        """An OpenHTF-style phase: journaled start and outcome; a failure names the step."""
+        self.event({"type": "step", "name": name, "status": "start", **info})
+        try:
+            yield
+        except BaseException as e:
+            self.event({"type": "step", "name": name, "status": "failed", "error": type(e).__name__,
+                        "message": str(e)[:500]})
+            raise
+        self.event({"type": "step", "name": name, "status": "done"})
+
+    # ---- connect and check -----------------------------------------------------------------------
+    def connect(self) -> dict:
+        """Connect and identify: the robot must be the one the session is for (serial, model)."""
+        with self.step("connect"):
+            ident = self.robot.identity()
+            d = _identity_dict(ident)
+            want = self.journal.header.get("serial")
+            if ident.serial and want and ident.serial != want:
+                raise ConfigError(f"the robot reports serial {ident.serial!r} but the session is for {want!r}; "
+                                  "wrong robot on the station?")
+            first = self.events("identity")
+            if first and (first[0]["robot"].get("serial"), first[0]["robot"].get("model")) != (d["serial"], d["model"]):
+                raise ResumeMismatch(f"resume: robot is {d['model']} {d['serial']!r}, the session was recorded on "
+                                     f"{first[0]['robot'].get('model')} {first[0]['robot'].get('serial')!r}")
+            self.event({"type": "identity", "robot": d})
+            return d
+
+    def check_state(self) -> dict:
+        """Check state: no fault/stop, powered, and (on resume) the device calibration unchanged since the
+        samples were taken."""
+        with self.step("check_state"):
+            st = self.robot.status()
+            if st.estop or st.protective_stop:
+                raise SafetyStop(f"robot is in {'emergency' if st.estop else 'protective'} stop; clear it first")
+            if st.faults:
+                raise DeviceFault(f"robot reports faults: {', '.join(st.faults)}")
+            if not st.enabled:
+                self.robot.enable()
+            if st.compliant:
+                self.robot.set_compliant(False)
+            cal = self._read_calibration()
+            q = self.robot.joint_positions().q
+            prior = self.events("state")
+            if prior and cal is not None and prior[0].get("calibration") is not None:
+                expected = self._expected_calibration(prior[0]["calibration"])
+                bad = [k for k, v in expected.items() if abs(cal.get(k, math.nan) - v) > self._cal_tol(k)]
+                if bad:
+                    raise ResumeMismatch(f"resume: device calibration {bad[0]} is {cal.get(bad[0])!r}, the journal "
+                                         f"expects {expected[bad[0]]!r}; the recorded samples no longer apply")
+            out = {"enabled": True, "calibration": cal, "q": q.tolist()}
+            self.event({"type": "state", **out})
+            return out
+
+    def _read_calibration(self) -> dict[str, float] | None:
+        try:
+            cal = self.robot.read_calibration()
+        except (NotImplementedError, AttributeError):
+            return None
+        return {k: float(v) for k, v in (cal or {}).items()} or None
+
+    def _expected_calibration(self, first: dict) -> dict:
+        # after a completed write (journaled), the device holds the new values
+        for ev in reversed(self.events("writeback")):
+            if ev.get("phase") in ("written", "verified") and ev.get("after"):
+                return dict(ev["after"])
+        return dict(first)
+
+    def _cal_tol(self, name: str) -> float:
+        try:
+            j = self.model.joints[int(name.split(".j")[1]) - 1]
+        except (IndexError, ValueError):
+            return 1e-9
+        if j.encoder is None:
+            return 1e-9
+        return 1.5 / (j.encoder.counts_per_unit * j.encoder.gear)  # one count (plus rounding)
+
+    # ---- reference points and plans -------------------------------------------------------------
+    def point(self, label: str) -> RefPoint:
+        if self.cell is None:
+            raise ConfigError("this procedure needs a cell file (--cell FILE or $STATION_CELL or ./cell.yaml)")
+        return self.cell.point(label)
+
+    def points(self, kind: str | None = None, labels: list[str] | None = None) -> list[RefPoint]:
+        if self.cell is None:
+            raise ConfigError("this procedure needs a cell file (--cell FILE or $STATION_CELL or ./cell.yaml)")
+        if labels:
+            return [self.cell.point(lb) for lb in labels]
+        pts = list(self.cell.points.values()) if kind is None else self.cell.of_kind(kind)
+        if not pts:
+            raise ConfigError(f"cell {self.cell.path} has no {kind or ''} reference point".replace("  ", " "))
+        return pts
+
+    def plan(self, points: list[RefPoint] | None = None, *, identify: str = "offsets", n_fit: int | None = None,
+             n_holdout: int | None = None, listed: list[dict] | None = None, **kw) -> PosePlan:
+        """The pose plan: generated for ``points`` (or ``listed`` joint positions); journaled, so a resumed
+        session reuses exactly the same poses."""
+        old = self.events("plan")
+        if old:
+            self.current_plan = PosePlan.from_dict(old[-1]["plan"])
+            return self.current_plan
+        with self.step("plan"):
+            q0 = self.robot.joint_positions().q
+            opt = self.options
+            n_fit = n_fit or opt.get("n_fit")
+            n_holdout = opt.get("n_holdout", 4) if n_holdout is None else n_holdout
+            rotate = kw.pop("rotate_joint", None)
+            if rotate is not None:
+                from station.engine.plan import generate_rotation_plan
+
+                plan = generate_rotation_plan(self.model, (points or self.points("socket"))[0], q0, joint=rotate,
+                                              n_fit=n_fit or 8, n_holdout=n_holdout, **kw)
+            elif listed is not None:
+                plan = plan_from_joints(self.model, listed, self.cell.points if self.cell else {}, q_start=q0)
+            else:
+                plan = generate_plan(self.model, points or self.points("socket")[:1], q0, identify=identify,
+                                     n_fit=n_fit, n_holdout=n_holdout, seed=int(opt.get("seed", 0)), **kw)
+            self.event({"type": "plan", "plan": plan.to_dict()})
+        self.current_plan = plan
+        return plan
+
+    def todo(self, plan: PosePlan | None = None) -> Iterator[PlannedPose]:
+        """The poses not yet recorded, in plan order (a resumed session does not repeat recorded samples)."""
+        plan = plan or self.current_plan
+        total = len(plan)
+        for pose in plan.poses:
+            done = self._recorded_poses()
+            self.progress(len(done), total, f"pose {pose.index + 1}/{total} ({pose.point}, {pose.set})")
+            if pose.index in done:
+                continue
+            yield pose
+        self.progress(total, total, "all poses recorded")
+
+    def _recorded_poses(self) -> set[int]:
+        return {s.get("pose") for s in live_samples(self._events)}
+
+    # ---- motion ----------------------------------------------------------------------------------
+    def move_to(self, q, speed: float | None = None) -> None:
+        self.robot.move_joints(np.asarray(q, float), speed=speed)
+
+    def approach(self, pose: PlannedPose) -> None:
+        """Move above the reference (approach pose of the plan)."""
+        self.robot.move_joints(pose.approach_arr)
+
+    def touch_speed(self, q_from, q_to) -> float:
+        from station.robot.motion import joint_speed_for_tool_cap
+
+        return joint_speed_for_tool_cap(self.model, q_from, q_to, None, cap=APPROACH_TOOL_SPEED)
+
+    def aimed_q(self, pose: PlannedPose) -> np.ndarray:
+        """Touch target corrected by where earlier seatings put this point in the nominal model."""
+        seen = self._aim.get(pose.point) or [self.model.position(np.asarray(s["q"]))
+                                             for s in live_samples(self._events) if s.get("point") == pose.point]
+        if not seen or self.cell is None or pose.point not in self.cell.points:
+            return pose.q_arr
+        self._aim[pose.point] = list(seen)
+        target = self.model.fk(pose.q_arr)
+        target[:3, 3] = np.mean(seen, axis=0)
+        full = self.model.n_joints >= 6
+        r = self.model.ik(target if full else target[:3, 3], pose.q_arr, position_only=not full)
+        if not r.ok[0] or np.max(np.abs(r.q[0] - pose.q_arr)) > 0.1:
+            return pose.q_arr
+        return r.q[0]
+
+    @property
+    def toucher(self) -> TouchProvider:
+        if self._touch is None or isinstance(self._touch, str):
+            kind = "socket"
+            if self.current_plan and self.current_plan.poses and self.cell:
+                kind = self.cell.point(self.current_plan.poses[0].point).kind
+            self._touch = provider_for(kind, self._touch if isinstance(self._touch, str) else
+                                       self.options.get("touch"))
+        return self._touch
+
+    def seat(self, pose: PlannedPose) -> None:
+        """Bring the tip onto the reference (socket seating, guarded contact or the technician)."""
+        self.toucher.bring_to(self, pose)
+
+    def leave(self, pose: PlannedPose) -> None:
+        """Leave the reference: compliance off, back to the approach pose."""
+        self.toucher.release(self, pose)
+
+    # ---- samples ---------------------------------------------------------------------------------
+    def record(self, pose: PlannedPose | None = None, point: str | None = None, measured=None) -> dict:
+        """Read all joints in one transaction and journal the sample (fsynced before the next motion)."""
+        snap = self.robot.joint_positions()
+        touch = self.robot.touch()
+        if touch is False:
+            raise DeviceFault(f"record: touch indicator is off at pose {pose.index if pose else '?'}; the tip is "
+                              "not on the reference")
+        q = np.asarray(snap.q, float)
+        if not np.all(np.isfinite(q)):
+            raise DeviceFault(f"record: joint reading is not finite: {q.tolist()}")
+        ev = self.event({
+            "type": "sample", "point": point or (pose.point if pose else "A"), "q": q.tolist(),
+            "raw": list(snap.raw), "raw_unit": snap.raw_unit, "t_read": snap.t, "t_device": snap.t_device,
+            "measured": None if measured is None else np.asarray(measured, float).tolist(),
+            "pose": None if pose is None else pose.index, "set": pose.set if pose else "fit",
+            "status": {"touch": touch}})
+        if pose is not None:
+            self._aim.setdefault(pose.point, []).append(self.model.position(q))
+        return ev
+
+    def discard(self, seq: int, reason: str = "") -> None:
+        self.event({"type": "discard", "sample": int(seq), "reason": reason})
+
+    def samples(self, which: str | None = None) -> list[dict]:
+        return [s for s in live_samples(self._events) if which is None or s.get("set", "fit") == which]
+
+    # ---- solve, measure, judge ------------------------------------------------------------------
+    def observations(self, which: str = "fit"):
+        from station.solver import Observations
+
+        smp = self.samples(which)
+        if not smp:
+            return None
+        meas = [s.get("measured") for s in smp]
+        measured = np.array(meas, float) if all(m is not None for m in meas) else None
+        return Observations(np.array([s["q"] for s in smp]), np.array([s["point"] for s in smp], dtype=object),
+                            measured)
+
+    def solve(self, identify: str = "offsets", reference: str | dict = "unknown", **kw):
+        """Identify ``identify`` from the fit samples, check on the held-out samples; journals the result."""
+        from station.solver import solve
+
+        with self.step("solve", identify=identify):
+            fit = self.observations("fit")
+            if fit is None:
+                raise ConfigError("solve: no fit samples recorded")
+            ref = reference
+            if reference == "cell":
+                ref = {lb: p.position for lb, p in self.cell.points.items()} if self.cell else "unknown"
+            self.result = solve(self.model, fit, identify=identify, reference=ref,
+                                holdout=self.observations("holdout"), **kw)
+            self.event({"type": "result", "result": self.result.to_dict()})
+        return self.result
+
+    def measure(self, name: str, value_si: float | None, quantity: str = "length") -> dict:
+        """A measurement, judged against the limits file (a measurement without a limit is informational)."""
+        lim = self.limits.get(name)
+        if lim is not None:
+            m = lim.judge(value_si, quantity)
+        else:
+            m = {"name": name, "value": value_si, "unit": {"length": "m", "angle": "rad"}.get(quantity, "1"),
+                 "low": None, "high": None, "marginal": False, "passed": True, "note": "no limit (informational)"}
+        m["quantity"] = quantity
+        self.measurements = [x for x in self.measurements if x["name"] != name] + [m]
+        self.event({"type": "measurement", **m})
+        return m
+
+    def measure_result(self, result=None) -> list[dict]:
+        """The standard measurements of a solve: fit and holdout residuals, identified offsets and their
+        uncertainty, how many parameters the data identified."""
+        res = result or self.result
+        r = res.residuals
+        out = [self.measure("samples", float(res.n_samples), "number"),
+               self.measure("fit_rms", r.get("rms_after_m")), self.measure("fit_max", r.get("max_after_m")),
+               self.measure("identified", float(len([n for n, p in res.parameters.items()
+                                                      if p.identifiable and p.kind == "model"])), "number")]
+        if res.holdout:
+            out += [self.measure("holdout_rms", res.holdout.get("rms_m")),
+                    self.measure("holdout_max", res.holdout.get("max_m"))]
+        offs = {n: p for n, p in res.parameters.items() if n.startswith("offset.") and p.identifiable}
+        rev = [p for n, p in offs.items() if p.unit == "rad"]
+        if rev:
+            out.append(self.measure("offset_abs_max", max(abs(p.value - p.nominal) for p in rev), "angle"))
+            out.append(self.measure("offset_std_max", max(p.std or 0.0 for p in rev), "angle"))
+        return out
+
+    def measure_consistency(self) -> list[dict]:
+        """Held-out check without solving: with the robot's current calibration, the nominal model must put
+        the tip on the same spot at every touch of a point (spread about each point's centroid)."""
+        d = []
+        for label in dict.fromkeys(s["point"] for s in self.samples()):
+            q = np.array([s["q"] for s in self.samples() if s["point"] == label])
+            P = self.model.position(q)
+            d.extend(np.linalg.norm(P - P.mean(axis=0), axis=1).tolist())
+        if not d:
+            raise ConfigError("verify: no samples recorded")
+        return [self.measure("samples", float(len(d)), "number"),
+                self.measure("verify_rms", float(np.sqrt(np.mean(np.square(d))))),
+                self.measure("verify_max", float(np.max(d)))]
+
+    def judge(self) -> dict:
+        """Verdict: every limit of this procedure and model must be measured and inside its bounds."""
+        with self.step("judge"):
+            names = {m["name"] for m in self.measurements}
+            for name, lim in self.limits.items():
+                if name not in names:
+                    try:
+                        self.measurements.append({**lim.judge(None, lim.quantity), "quantity": lim.quantity})
+                    except LimitsError:
+                        raise
+            passed = all(m["passed"] for m in self.measurements)
+            self.verdict = {"passed": passed, "measurements": self.measurements,
+                            "limits_version": self.limits_version}
+            self.event({"type": "verdict", **self.verdict})
+        return self.verdict
+
+    # ---- write-back ------------------------------------------------------------------------------
+    def write_back(self, check_pose: PlannedPose | None = None) -> dict | None:
+        """Two-phase write of the identified joint offsets into the devices (only with ``apply``): journal the
+        pre-image, write, read back, then verify with a touch at a known pose."""
+        from station.engine.writeback import write_back
+
+        if not self.options.get("apply"):
+            self.event({"type": "step", "name": "write_back", "status": "skipped", "reason": "not requested (--apply)"})
+            return None
+        if self.verdict is not None and not self.verdict["passed"]:
+            self.event({"type": "step", "name": "write_back", "status": "skipped", "reason": "verdict FAIL"})
+            return None
+        with self.step("write_back"):
+            return write_back(self, check_pose)
+
+    # ---- teardown --------------------------------------------------------------------------------
+    def safe_state(self) -> list[str]:
+        """Stop motion, leave compliant mode. Best effort: every action is tried, failures are returned."""
+        problems = []
+        for what, fn in (("stop", self.robot.stop), ("compliance off", lambda: self.robot.set_compliant(False))):
+            try:
+                fn()
+            except Exception as e:  # teardown must try everything; the caller journals what failed
+                problems.append(f"{what}: {type(e).__name__}: {e}")
+        return problems
+
+
+def _identity_dict(ident) -> dict:
+    from dataclasses import asdict
+
+    d = asdict(ident)
+    d["devices"] = [dict(x) for x in d.get("devices") or ()]
+    return d
+
+
+def wait_idle(robot, timeout: float = 30.0) -> None:
+    end = time.monotonic() + timeout
+    while robot.status().moving and time.monotonic() < end:
+        time.sleep(0.005)

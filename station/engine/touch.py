@@ -1,0 +1,150 @@
+"""Bringing the tool tip onto a reference point: one protocol, fulfilled automatically (compliant seating in a
+socket, guarded approach on the contact input) or by a technician jogging until the touch indicator lights
+(labgrid's ManualPowerDriver idea: the same step, a person does the physical part)."""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+
+from station.robot.errors import DeviceFault
+
+if TYPE_CHECKING:
+    from station.engine.plan import PlannedPose
+    from station.engine.session import Session
+
+
+class TouchFailed(DeviceFault):
+    """The tip could not be brought onto the reference (socket not captured, no contact)."""
+
+
+class TouchProvider(Protocol):
+    """``bring_to`` ends with the tip on the reference (touch lit where the robot has an indicator);
+    ``release`` leaves it (back to the approach pose)."""
+
+    def bring_to(self, s: Session, pose: PlannedPose) -> None: ...
+    def release(self, s: Session, pose: PlannedPose) -> None: ...
+
+
+def _wait(cond, timeout: float, poll: float = 0.005) -> bool:
+    end = time.monotonic() + timeout
+    while True:
+        if cond():
+            return True
+        if time.monotonic() >= end:
+            return False
+        time.sleep(poll)
+
+
+class SocketSeating:
+    """Automatic: move to the nominal touch pose (the tip lands within the socket's capture radius), switch to
+    compliant mode and let the ball seat in the cone; the joints are read while still compliant.
+
+    The aim is corrected as the session goes: the nominal position of the seated tip at earlier poses tells
+    where the station's model puts the socket, which keeps later poses well inside the capture radius."""
+
+    def __init__(self, settle_timeout: float = 5.0, search_radius: float | None = None) -> None:
+        self.settle_timeout = settle_timeout
+        self.search_radius = search_radius
+
+    def bring_to(self, s: Session, pose: PlannedPose) -> None:
+        robot = s.robot
+        target = s.aimed_q(pose)
+        robot.move_joints(target, speed=s.touch_speed(pose.approach_arr, target))
+        robot.set_compliant(True)
+        if _wait(lambda: bool(robot.touch()), self.settle_timeout) and _wait(
+                lambda: not robot.status().moving, self.settle_timeout):
+            return
+        robot.set_compliant(False)
+        raise TouchFailed(f"pose {pose.index}: the tip did not seat in socket {pose.point} within "
+                          f"{self.settle_timeout:g} s (outside the capture radius? check the cell file)")
+
+    def release(self, s: Session, pose: PlannedPose) -> None:
+        s.robot.set_compliant(False)
+        s.robot.move_joints(pose.approach_arr)
+
+
+class GuardedApproach:
+    """Automatic, for a needle on the contact input: from the approach pose, step along the approach axis until
+    the contact closes, then back off and come again in fine steps (the contact point is then known to the
+    fine step size)."""
+
+    def __init__(self, coarse: float = 0.5e-3, fine: float = 0.02e-3, travel: float = 0.05) -> None:
+        self.coarse, self.fine, self.travel = coarse, fine, travel
+
+    def _step_until_contact(self, s: Session, pose: PlannedPose, start: np.ndarray, step: float,
+                            travel: float) -> np.ndarray | None:
+        model, robot = s.model, s.robot
+        pt = s.point(pose.point)
+        full = model.n_joints >= 6
+        T0 = model.fk(start)
+        q = start
+        for k in range(1, int(travel / step) + 2):
+            T = T0.copy()
+            T[:3, 3] -= pt.approach * step * k
+            r = model.ik(T if full else T[:3, 3], q, position_only=not full)
+            if not r.ok[0]:
+                return None
+            q = r.q[0]
+            robot.move_joints(q, speed=s.touch_speed(start, q))
+            if robot.touch():
+                return q
+        return None
+
+    def bring_to(self, s: Session, pose: PlannedPose) -> None:
+        start = pose.approach_arr
+        hit = self._step_until_contact(s, pose, start, self.coarse, self.travel)
+        if hit is None:
+            raise TouchFailed(f"pose {pose.index}: no contact with needle {pose.point} within "
+                              f"{self.travel * 1e3:g} mm of travel")
+        model = s.model
+        pt = s.point(pose.point)
+        T = model.fk(hit)
+        T[:3, 3] += pt.approach * 2 * self.coarse
+        full = model.n_joints >= 6
+        r = model.ik(T if full else T[:3, 3], hit, position_only=not full)
+        back = r.q[0]
+        s.robot.move_joints(back)
+        if self._step_until_contact(s, pose, back, self.fine, 3 * self.coarse) is None:
+            raise TouchFailed(f"pose {pose.index}: needle {pose.point} lost on the fine approach")
+
+    def release(self, s: Session, pose: PlannedPose) -> None:
+        s.robot.move_joints(pose.approach_arr)
+
+
+class ManualTouch:
+    """A technician jogs the tip onto the point (``station jog`` or the teach pendant) until the touch indicator
+    lights, then confirms. ``prompt(text) -> None`` blocks until the technician confirms (default: input())."""
+
+    def __init__(self, prompt=None, require_indicator: bool = True, timeout: float = 600.0) -> None:
+        self.prompt = prompt or (lambda text: input(text + " [Enter] "))
+        self.require_indicator = require_indicator
+        self.timeout = timeout
+
+    def bring_to(self, s: Session, pose: PlannedPose) -> None:
+        s.robot.move_joints(pose.approach_arr)
+        self.prompt(f"Pose {pose.index + 1}/{len(s.current_plan or [])}: jog the tool tip onto point {pose.point} "
+                    "until the touch indicator lights, then confirm")
+        if self.require_indicator and s.robot.touch() is False and not _wait(
+                lambda: bool(s.robot.touch()), self.timeout):
+            raise TouchFailed(f"pose {pose.index}: the touch indicator did not light")
+
+    def release(self, s: Session, pose: PlannedPose) -> None:
+        s.robot.set_compliant(False)
+        self.prompt(f"Jog the tool clear of point {pose.point}, then confirm")
+
+
+def provider_for(kind: str, name: str | None = None) -> TouchProvider:
+    """Default provider for a reference kind (``socket``/``needle``) or by name (``manual``)."""
+    name = name or ("seat" if kind == "socket" else "guarded")
+    if name == "seat":
+        return SocketSeating()
+    if name == "guarded":
+        return GuardedApproach()
+    if name == "manual":
+        return ManualTouch()
+    from station.robot.errors import ConfigError
+
+    raise ConfigError(f"touch method {name!r} is not one of seat, guarded, manual")
