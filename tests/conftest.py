@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import os
 import shutil
+import socket
 import subprocess
 import tempfile
 from datetime import UTC, datetime, timedelta
@@ -181,7 +182,9 @@ def pg_url():
     # not under pytest's 0700 tmp dir: the cluster runs as user postgres when we are root
     data = Path(tempfile.mkdtemp(prefix="station-pg-"))
     data.chmod(0o755)
-    port = str(55000 + os.getpid() % 5000)
+    with socket.socket() as sock:  # a free loopback port (the cluster binds it a moment later)
+        sock.bind(("127.0.0.1", 0))
+        port = str(sock.getsockname()[1])
     env = {**os.environ, "PGDATA_DIR": str(data / "cluster"), "PGPORT_CI": port}
     out = subprocess.run(["bash", str(root / ".ci" / "pg-start")], env=env, capture_output=True, text=True,
                          timeout=120)
