@@ -62,8 +62,9 @@ DEFAULTS: dict[str, dict] = {
     "arm6": {
         "start": [0.0, -0.5, 0.5, 0.0, 0.0, 0.0],
         "points": [
-            {"label": "A", "kind": "socket", "position": [0.70, 0.0, 0.10], "approach": [0, 0, 1]},
-            {"label": "N", "kind": "needle", "position": [0.65, 0.30, 0.15], "approach": [0, 0, 1]},
+            # the wrist cannot reach table height (d1 = 400 mm, shoulder limits): a raised fixture
+            {"label": "A", "kind": "socket", "position": [0.60, 0.0, 0.30], "approach": [0, 0, 1]},
+            {"label": "N", "kind": "needle", "position": [0.55, 0.25, 0.35], "approach": [0, 0, 1]},
         ],
     },
     "scara": {
