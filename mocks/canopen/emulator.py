@@ -44,12 +44,21 @@ STORE_FORMAT = "station-canopen-store/1"
 DEFAULT_SERIAL_BASE = 0x5A100000
 
 
-@dataclass(frozen=True)
+@dataclass
 class Snap:
+    """The world as one SYNC (or one SDO read) sees it; the contact input is evaluated on first use."""
+
     t: float
     q: np.ndarray  # encoder positions, SI
     qd: np.ndarray
-    contact: bool
+    world: object
+    _contact: bool | None = None
+
+    @property
+    def contact(self) -> bool:
+        if self._contact is None:
+            self._contact = bool(self.world.contact())
+        return self._contact
 
 
 class _Rx(can.Listener):
@@ -104,6 +113,8 @@ class CanopenEmulator:
         self.network: canopen.Network | None = None
         self._rx_map: dict[int, list[tuple[Drive402, PdoConfig]]] = {}
         self._snap: Snap | None = None
+        self._pinned: Snap | None = None
+        self._pinned_by: int | None = None
         self._snap_lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -184,13 +195,19 @@ class CanopenEmulator:
         tmp.replace(self.store_path)
 
     # ---- world access (called by the drives) -------------------------------------------------
-    def snap(self, max_age: float = 0.001) -> Snap:
+    def snap(self, max_age: float = 0.002) -> Snap:
         with self._snap_lock:
+            if self._pinned is not None and self._pinned_by == threading.get_ident():
+                return self._pinned
             now = time.monotonic()
             if self._snap is None or now - self._snap.t > max_age:
-                contact = self.world.contact() if self.contact_node is not None else False
-                self._snap = Snap(now, self.world.encoder_q(), self.world.encoder_qd(), contact)
+                self._snap = Snap(now, self.world.encoder_q(), self.world.encoder_qd(), self.world)
             return self._snap
+
+    def _pin(self, snap: Snap | None) -> None:
+        """While pinned, this thread's reads see ``snap``: every TPDO of one SYNC samples the same instant."""
+        with self._snap_lock:
+            self._pinned, self._pinned_by = snap, threading.get_ident() if snap is not None else None
 
     def _invalidate(self) -> None:
         with self._snap_lock:
@@ -300,7 +317,13 @@ class CanopenEmulator:
                 if p.valid and p.pending is not None:
                     data, p.pending = p.pending, None
                     d.apply_rpdo(p, data)
-        self.snap(max_age=0.0)
+        self._pin(self.snap(max_age=0.0))
+        try:
+            self._sync_tpdos(live)
+        finally:
+            self._pin(None)
+
+    def _sync_tpdos(self, live: list[Drive402]) -> None:
         for d in live:
             with d.lock:
                 for p in d.tpdos:
