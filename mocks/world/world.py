@@ -67,12 +67,20 @@ class World:
         # independent streams, so that e.g. more seatings never change the hidden errors
         g_err, self._g_seat, g_survey, self._g_enc = (np.random.default_rng(s) for s in
                                                       np.random.SeedSequence(spec.seed).spawn(4))
-        errors: dict[str, float] = {}
+        # one standard normal per model parameter, scaled by the sigma of the most specific selector
+        # that names it: neither the order of selectors nor adding one elsewhere changes a draw
+        z = g_err.standard_normal(len(nominal.param_names))
+        chosen: dict[str, tuple[int, str, float]] = {}
         for sel, sl, sa in spec.random:
-            for name in nominal.select(sel):
-                sigma = sl if param_kind(nominal, name) == "length" else sa
-                errors[name] = float(g_err.normal(0.0, sigma or 0.0))
+            names = nominal.select(sel)
+            for name in names:
+                sigma = (sl if param_kind(nominal, name) == "length" else sa) or 0.0
+                key = (len(names), sel, sigma)
+                if name not in chosen or key[:2] < chosen[name][:2]:
+                    chosen[name] = key
+        errors = {n: float(z[nominal.index(n)] * c[2]) for n, c in chosen.items()}
         errors.update(spec.explicit)
+        errors = {n: errors[n] for n in nominal.param_names if n in errors}  # model order
         self._errors = {n: v for n, v in errors.items() if v != 0.0}
         self.truth: Model = nominal.with_params({n: nominal.param(n) + v for n, v in self._errors.items()})
         n = nominal.n_joints
