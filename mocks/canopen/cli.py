@@ -1,0 +1,82 @@
+"""``station mock canopen``: emulated CiA 402 drives behind a socketcand hub, as a process.
+
+Prints one line (flushed) with the address and channel to give python-can and the robot URL, then runs
+until SIGTERM/SIGINT."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import threading
+from pathlib import Path
+
+import typer
+
+from station.robot.errors import ConfigError
+
+
+def build(world_file: Path | None, model: str, seed: int, nodes: str | None, contact: str | None,
+          store: Path | None, channel: str):
+    from station.mocks.canopen.emulator import CanopenEmulator
+    from station.mocks.world import World, WorldFileError
+
+    from station.robot.registry import parse_ids
+
+    try:
+        world = World.from_file(world_file) if world_file else World.default(model=model, seed=seed,
+                                                                             time_mode="realtime")
+    except (WorldFileError, ValueError, OSError) as e:
+        raise ConfigError(f"world: {e}") from None
+    cfg = world.bus_config("canopen")
+    node_list = parse_ids(nodes) if nodes else None
+    c = contact if contact is not None else cfg.get("contact_node", -1)
+    c = None if c is None or str(c).lower() in ("none", "off", "") else int(c)
+    try:
+        return CanopenEmulator(world, interface="virtual", channel=channel, nodes=node_list, contact_node=c,
+                               store_path=store)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+
+
+def register(mock_app: typer.Typer) -> None:
+    @mock_app.command("canopen")
+    def canopen(
+        nodes: str = typer.Option(None, "--nodes", help="node ids in joint order, e.g. 1-6 (default 1..n)"),
+        world: Path = typer.Option(None, "--world", help="world file (docs/world.md); default: built-in world"),
+        model: str = typer.Option("arm6", "--model", help="model of the default world"),
+        seed: int = typer.Option(0, "--seed", help="seed of the default world's hidden errors"),
+        host: str = typer.Option("127.0.0.1", "--host", help="address the socketcand hub listens on"),
+        port: int = typer.Option(29536, "--port", help="TCP port of the socketcand hub (0: any free port)"),
+        bus: str = typer.Option("can0", "--channel", help="bus name clients open (python-can channel)"),
+        contact: str = typer.Option(None, "--contact-node", help="node with the contact input (default: last; "
+                                                                 "'none': no contact input)"),
+        store: Path = typer.Option(None, "--store", help="JSON file keeping parameters saved with 0x1010 "
+                                                         "across emulator restarts"),
+    ) -> None:
+        """Emulated CiA 402 servo drives behind a socketcand hub; prints host:port, channel and robot URL."""
+        from station.mocks.canopen.hub import SocketcandHub
+
+        internal = f"station-canopen-{os.getpid()}"
+        emu = build(world, model, seed, nodes, contact, store, internal)
+        done = threading.Event()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: done.set())
+        emu.start()
+        hub = SocketcandHub(internal, host=host, port=port, name=bus)
+        try:
+            hub.start()
+        except OSError as e:
+            emu.stop()
+            raise ConfigError(str(e)) from None
+        try:
+            ids = ",".join(str(n) for n in emu.nodes)
+            url = (f"canopen+socketcand://{host}:{hub.port}?channel={bus}&nodes={ids}"
+                   f"&model={emu.world.nominal.name}")
+            sys.stdout.write(f"socketcand {host}:{hub.port} channel {bus} url {url}\n")
+            sys.stdout.flush()
+            while not done.wait(0.5):
+                pass
+        finally:
+            hub.stop()
+            emu.stop()
