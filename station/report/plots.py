@@ -44,12 +44,12 @@ def residual_per_pose(report: dict) -> str | None:
         ax.set_yscale("log")  # before is often 10-100x after: a linear axis would hide the after bars
     ax.set_xlabel("pose (sample order)")
     ax.set_ylabel("tip error (mm)")
-    ax.set_title("Residual per pose, before and after calibration", pad=24)
+    fig.suptitle("Residual per pose, before and after calibration")
     seqs = report["residuals"]["per_pose"].get("seq") or []
     if len(seqs) == len(x) and len(x) <= 40:
         ax.set_xticks(x, [str(s) for s in seqs], fontsize=7)
         ax.set_xlabel("pose (sample seq)")
-    ax.legend(fontsize=8, loc="lower center", bbox_to_anchor=(0.5, 1.08), ncol=3, frameon=False)
+    ax.legend(fontsize=8, loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=3, frameon=False)
     ax.grid(axis="y", alpha=0.3)
     return _png(fig)
 

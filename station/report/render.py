@@ -17,7 +17,7 @@ _TEMPLATE = Path(__file__).with_name("template.html")
 
 
 def _num(v, digits: int = 4) -> str:
-    if v is None or isinstance(v, bool):
+    if v is None or isinstance(v, (bool, jinja2.Undefined)):
         return ""
     try:
         f = float(v)
@@ -30,7 +30,7 @@ def _num(v, digits: int = 4) -> str:
 
 def _human(v, unit: str) -> str:
     """SI -> mm / deg text for people."""
-    if v is None:
+    if v is None or isinstance(v, jinja2.Undefined):
         return ""
     try:
         f = float(v)
@@ -46,6 +46,8 @@ def _hunit(unit: str) -> str:
 
 
 def _band(v) -> str:
+    if isinstance(v, jinja2.Undefined):
+        return ""
     if v is True:
         return "yes"
     if v in (None, False):

@@ -1,0 +1,165 @@
+"""Report content (report.json) and the self-contained HTML: numbers checked against the simulated session."""
+
+from __future__ import annotations
+
+import base64
+import copy
+import json
+import math
+import re
+
+import numpy as np
+import pytest
+
+from station.kinematics import load_model
+from station.records import measurement_status, overall_status
+from station.report import ReportError, build_report, write_report
+
+
+@pytest.fixture(scope="module")
+def session(session_factory):
+    return session_factory(seed=11)[0]
+
+
+@pytest.fixture(scope="module")
+def written(session, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("report")
+    path = write_report(session, folder)
+    return folder, path, json.loads((folder / "report.json").read_text()), path.read_text()
+
+
+def test_json_is_strict_si_and_complete(written, session):
+    folder, path, rep, _ = written
+    assert path == folder / "report.html"
+    json.loads((folder / "report.json").read_text(), parse_constant=lambda c: pytest.fail(f"non-JSON {c}"))
+    assert rep["format"] == "station-report/1" and rep["units"].startswith("SI")
+    h = rep["header"]
+    for key in ("serial", "procedure", "operator", "station", "started", "finished"):
+        assert h[key] == session[key]
+    assert h["robot"]["vendor"] == "Universal Robots"
+    assert h["duration_s"] == pytest.approx(5 * len(session["samples"]) + 20)
+    assert (h["n_fit"], h["n_holdout"]) == (16, 4)
+    assert rep["overall"] == overall_status(session["verdict"])
+    names = {p["name"]: p for p in rep["parameters"]}
+    j2 = session["result"]["parameters"]["offset.j2"]
+    assert names["offset.j2"]["correction"] == pytest.approx(j2["value"] - j2["nominal"])
+    assert names["offset.j2"]["unit"] == "rad" and names["point.A.x"]["unit"] == "m"
+    assert names["point.A.x"]["nominal"] is None  # NaN nominal -> null, not invalid JSON
+    assert {u["name"]: u["reason"] for u in rep["unidentifiable"]} == session["result"]["unidentifiable"]
+    wb = {w["name"]: w for w in rep["writeback"]["values"]}
+    assert wb["offset.j3"]["change"] == pytest.approx(session["result"]["parameters"]["offset.j3"]["value"])
+    assert rep["writeback"]["applied"] and rep["writeback"]["verified"]
+
+
+def test_recovered_offsets_match_hidden_truth_within_reported_uncertainty(written, session_factory):
+    _, _, rep, _ = written
+    _, hidden = session_factory(seed=11)
+    for p in rep["parameters"]:
+        if p["name"] in hidden and p["identifiable"]:
+            assert abs(p["value"] - hidden[p["name"]]) < 4 * p["std"], p
+
+
+def test_per_pose_residuals_recomputed_agree_with_the_fit(written, session):
+    """The report recomputes per-pose residuals from samples + model; the session fixture computed its own
+    during the fit (independently): they must agree, and holdout poses are included."""
+    _, _, rep, _ = written
+    pp = rep["residuals"]["per_pose"]
+    assert pp["source"].startswith("recomputed")
+    res = session["result"]["residuals"]
+    n_fit = len(res["per_sample_after_m"])
+    np.testing.assert_allclose(pp["before_m"][:n_fit], res["per_sample_before_m"], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(pp["after_m"][:n_fit], res["per_sample_after_m"], rtol=1e-6, atol=1e-9)
+    assert pp["set"].count("holdout") == 4
+    ho = np.array(pp["after_m"][n_fit:])
+    assert math.sqrt(np.mean(ho**2)) == pytest.approx(session["result"]["holdout"]["rms_m"], rel=1e-6)
+    assert pp["seq"] == [s["seq"] for s in session["samples"]]
+
+
+def test_per_pose_from_solver_arrays_when_model_is_unknown(session):
+    s = copy.deepcopy(session)
+    s["model"] = "no-such-model"
+    s["result"]["model"] = "no-such-model"
+    s["robot"]["model"] = "no-such-model"
+    rep = build_report(s)
+    pp = rep["residuals"]["per_pose"]
+    assert pp["source"] == "solver" and pp["after_m"] == s["result"]["residuals"]["per_sample_after_m"]
+    assert rep["coverage"]["tool"] is None and "could not be loaded" in rep["coverage"]["model_note"]
+    assert rep["coverage"]["joints"][0]["lower"] is None
+
+
+def test_coverage_matches_samples_and_limits(written, session):
+    _, _, rep, _ = written
+    model = load_model("ur5e")
+    q = np.array([s["q"] for s in session["samples"]])
+    for i, j in enumerate(rep["coverage"]["joints"]):
+        assert j["min"] == pytest.approx(q[:, i].min()) and j["max"] == pytest.approx(q[:, i].max())
+        assert j["fraction"] == pytest.approx((q[:, i].max() - q[:, i].min()) / (model.upper[i] - model.lower[i]))
+    z = model.fk(q)[:, :3, 2]
+    angles = np.degrees(np.arccos(np.clip(z @ z.T, -1, 1)))
+    assert rep["coverage"]["tool"]["max_pairwise_deg"] == pytest.approx(angles.max())
+
+
+@pytest.mark.parametrize("m, status", [
+    ({"value": 0.05, "low": None, "high": 0.1, "marginal": 0.02, "passed": True}, "PASS"),
+    ({"value": 0.09, "low": None, "high": 0.1, "marginal": 0.02, "passed": True}, "MARGINAL"),
+    ({"value": -0.95, "low": -1.0, "high": 1.0, "marginal": 0.1, "passed": True}, "MARGINAL"),
+    ({"value": 0.11, "low": None, "high": 0.1, "marginal": 0.02, "passed": False}, "FAIL"),
+    ({"value": 0.11, "low": None, "high": 0.1}, "FAIL"),  # no 'passed': judged from the limits
+    ({"value": 0.05, "high": 0.1, "marginal": True, "passed": True}, "MARGINAL"),
+    ({"value": 0.05, "high": 0.1, "passed": True, "status": "marginal"}, "MARGINAL"),  # engine's word wins
+])
+def test_measurement_status(m, status):
+    assert measurement_status(m) == status
+
+
+def test_overall_status():
+    assert overall_status(None) == "NONE"
+    assert overall_status({"passed": False, "measurements": []}) == "FAIL"
+    assert overall_status({"passed": True, "measurements": [{"value": 1, "high": 2, "marginal": 1.5,
+                                                              "passed": True}]}) == "MARGINAL"
+
+
+def test_html_is_self_contained_with_decodable_pngs(written):
+    _, _, rep, html = written
+    assert not re.search(r"""(src|href)\s*=\s*["']?(https?:)?//""", html, re.I)
+    assert "<script" not in html.lower() and "@import" not in html and "url(" not in html
+    assert "default-src 'none'" in html  # the browser itself refuses anything external
+    imgs = re.findall(r'src="data:image/png;base64,([^"]+)"', html)
+    assert len(imgs) == 5
+    alts = re.findall(r'<img alt="([^"]+)"', html)
+    assert alts == ["parameter corrections with error bars", "residual per pose before and after", "error histogram",
+                    "joint-space coverage", "tool orientation spread"]
+    for b in imgs:
+        assert base64.b64decode(b)[:8] == b"\x89PNG\r\n\x1a\n"
+    for text in ("offset.j2", "not separable from the unknown reference point position", "rms_after", "PASS",
+                 "eol-station-3", "j.doe", "Universal Robots"):
+        assert text in html
+    # corrections shown in deg for people (the JSON keeps rad)
+    j2 = next(p for p in rep["parameters"] if p["name"] == "offset.j2")
+    assert f"{math.degrees(j2['correction']):.4f}" in html
+
+
+def test_session_without_result_still_reports(tmp_path, session):
+    s = copy.deepcopy(session)
+    s.update(result=None, verdict=None, writeback=None, finished=None)
+    path = write_report(s, tmp_path / "r")
+    html = path.read_text()
+    assert "No solver result in this session." in html and "NO VERDICT" in html
+    rep = json.loads((tmp_path / "r" / "report.json").read_text())
+    assert rep["overall"] == "NONE" and rep["residuals"]["per_pose"]["before_m"] == []
+    assert len(rep["coverage"]["joints"]) == 6  # the samples still show their coverage
+
+
+def test_failing_verdict_is_shown(tmp_path, session):
+    s = copy.deepcopy(session)
+    s["verdict"]["measurements"][0].update(value=0.5, passed=False)
+    s["verdict"]["passed"] = False
+    html = write_report(s, tmp_path).read_text()
+    assert 'class="banner FAIL"' in html and 'class="st FAIL">FAIL<' in html
+
+
+@pytest.mark.parametrize("bad", [None, [], {"serial": "X"}])
+def test_bad_session_is_a_one_line_error(tmp_path, bad):
+    with pytest.raises(ReportError, match="session record must be a dict"):
+        write_report(bad, tmp_path)
+    assert not (tmp_path / "report.html").exists()
