@@ -13,6 +13,8 @@ import numpy as np
 import yaml
 from station.mocks.world.cell import DEFAULTS, KINDS
 
+from station.robot.errors import ConfigError
+
 FORMAT = "station-world/1"
 LENGTH = {"m": 1.0, "mm": 1e-3}
 ANGLE = {"rad": 1.0, "deg": math.pi / 180}
@@ -28,8 +30,9 @@ CAPTURE_RADIUS = 8e-3
 SEATING_SIGMA = 10e-6
 
 
-class WorldFileError(ValueError):
-    """Malformed world file; the message names the file and the field."""
+class WorldFileError(ConfigError, ValueError):
+    """Malformed world file; the message names the file and the field. A ``ConfigError`` too, so the
+    ``station`` command prints it as one line and exits 2 wherever a world file is read."""
 
 
 @dataclass
