@@ -130,6 +130,7 @@ class CanopenRobot:
         self._closed = False
         self.sync_frames = 0
         self.network = canopen.Network()
+        self.network.NOTIFIER_CYCLE = 0.05  # bounds how long close() waits for the bus thread
         self._watch = _BusWatch(self)
         try:
             self._connect()

@@ -126,6 +126,7 @@ class CanopenEmulator:
     def start(self) -> CanopenEmulator:
         bus = can.Bus(interface=self.interface, channel=self.channel, **self.bus_kwargs)
         net = canopen.Network(bus)
+        net.NOTIFIER_CYCLE = 0.05  # bounds how long stop() waits for the bus thread
         for d in self.drives.values():
             net.add_node(d.node)
             # SDO and NMT go through our dispatcher (silence, NMT state, boot-up on reset)
