@@ -11,13 +11,13 @@ DEFAULTS = {"n_holdout": 4}
 def checklist(s):
     s.connect()                                  # 1. connect and identify the robot (serial must match)
     s.check_state()                              # 2. no fault or stop, powered, not compliant
-    plan = s.plan(s.points("socket")[:1], identify=IDENTIFY)   # 3. spread of poses around the socket
+    plan = s.plan(s.points("socket"), identify=IDENTIFY)   # 3. spread of poses around the socket(s)
     for pose in s.todo(plan):                    # 4. every pose not yet recorded:
         s.approach(pose)                         #    move above the socket
         s.seat(pose)                             #    go down, compliant: the ball seats in the cone
         s.record(pose)                           #    read all joints, journal the sample (fsynced)
         s.leave(pose)                            #    compliance off, back above the socket
-    s.solve(identify=IDENTIFY, reference="unknown")   # 5. offsets + socket position from the fit poses
+    s.solve(identify=IDENTIFY)                   # 5. offsets (+ socket position unless --reference cell)
     s.measure_result()                           # 6. residuals, held-out check, offsets vs. limits
     s.judge()                                    # 7. PASS / FAIL
     s.write_back()                               # 8. only with --apply: pre-image, write, read back, verify

@@ -1,7 +1,394 @@
-"""Placeholder: this command group is being built (see the open issues); it registers nothing yet."""
+"""``station run``, ``station resume``, ``station demo``: end-of-line procedures from the command line.
+
+Exit status: 0 PASS, 1 FAIL, 2 error (``station: error: ...``), 130 interrupted. PASS/FAIL is printed only
+after the session record is stored in the records database."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
 
 import typer
 
 
+def _progress_bar(quiet: bool):
+    """A rich progress bar on stderr; returns (callback, context manager)."""
+    import contextlib
+
+    if quiet or not sys.stderr.isatty():
+        state = {"last": -1}
+
+        def plain(done: int, total: int, text: str) -> None:
+            if not quiet and done != state["last"] and (done == total or done % 5 == 0):
+                typer.echo(f"  {done}/{total} samples", err=True)
+            state["last"] = done
+
+        return plain, contextlib.nullcontext()
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    prog = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                    console=Console(stderr=True), transient=False)
+    task = {"id": None}
+
+    def cb(done: int, total: int, text: str) -> None:
+        if task["id"] is None:
+            task["id"] = prog.add_task("samples", total=total)
+        prog.update(task["id"], completed=done, total=total, description=text[:48])
+
+    return cb, prog
+
+
+def _options(poses, holdout, cone, reference, seed) -> dict:
+    opts = {}
+    if poses is not None:
+        opts["n_fit"] = poses
+    if holdout is not None:
+        opts["n_holdout"] = holdout
+    if cone is not None:
+        opts["cone_deg"] = cone
+    if reference is not None:
+        if reference not in ("unknown", "cell"):
+            from station.robot.errors import ConfigError
+
+            raise ConfigError(f"--reference must be 'unknown' or 'cell', got {reference!r}")
+        opts["reference"] = reference
+    if seed is not None:
+        opts["seed"] = seed
+    return opts
+
+
+def _fmt(value: float | None, unit: str) -> str:
+    return "-" if value is None else f"{value:.4g} {unit}"
+
+
+def summary(out, echo=typer.echo) -> None:
+    """Print result, verdict table, report path (no PASS/FAIL line: the caller prints it last)."""
+    import math
+
+    rec = out.record
+    res = rec.get("result")
+    if res:
+        echo("parameters (identified value - nominal, 1-sigma):")
+        for name, p in res["parameters"].items():
+            if p.get("kind") == "point":
+                continue
+            angle = p.get("unit") == "rad"
+            k, u = (180 / math.pi, "deg") if angle else (1e3, "mm")
+            if p["identifiable"]:
+                echo(f"  {name:14s} {(p['value'] - p['nominal']) * k:+10.4f} {u} ± {(p['std'] or 0) * k:.4f}")
+            else:
+                echo(f"  {name:14s} {'not identifiable':>14s}  ({p.get('reason') or ''})"[:118])
+        r = res["residuals"]
+        echo(f"residuals: RMS {r['rms_before_m'] * 1e3:.3f} mm before -> {r['rms_after_m'] * 1e3:.3f} mm after"
+             + (f"; held-out RMS {res['holdout']['rms_m'] * 1e3:.3f} mm" if res.get("holdout") else ""))
+    verdict = rec.get("verdict")
+    if verdict:
+        echo(f"verdict (limits {rec.get('limits', {}).get('version') if rec.get('limits') else '?'}):")
+        for m in verdict["measurements"]:
+            lo, hi = ("" if m.get(k) is None else m[k] for k in ("low", "high"))
+            bounds = f"[{lo:>6} .. {hi:<6}]"
+            flag = "PASS" if m["passed"] else "FAIL"
+            if m["passed"] and m.get("marginal"):
+                flag = "MARGINAL"
+            value = m.get("value")
+            echo(f"  {m['name']:16s} {'-' if value is None else format(value, '.4g'):>10} {m.get('unit', ''):5s} "
+                 f"{bounds:18s} {flag}")
+    wb = rec.get("writeback")
+    if wb:
+        echo(f"write-back: applied={wb.get('applied')} verified={wb.get('verified')} {wb.get('note') or ''}")
+    echo(f"session:  {out.session}  ({out.folder / 'journal.jsonl'})")
+    if out.report:
+        echo(f"report:   {out.report}")
+
+
+def _finish(out) -> None:
+    from station.robot.errors import StationError
+
+    if out.status == "completed" and out.passed is not None:
+        summary(out)
+        if not out.stored:
+            typer.echo("station: error: the record was not stored", err=True)
+            raise typer.Exit(2)
+        typer.echo("PASS" if out.passed else "FAIL")
+        raise typer.Exit(out.exit_code)
+    summary(out, echo=lambda s: typer.echo(s, err=True))
+    err = out.error
+    msg = str(err) if err is not None and str(err) else type(err).__name__
+    if out.status == "interrupted":
+        typer.echo(f"station: interrupted; continue with: station resume {out.session}", err=True)
+        raise typer.Exit(130)
+    if err is not None and not isinstance(err, (StationError, ValueError, OSError)):
+        raise err  # a bug: keep the traceback
+    typer.echo(f"station: error: {msg}", err=True)
+    typer.echo(f"station: the journal is kept; continue with: station resume {out.session}", err=True)
+    raise typer.Exit(2)
+
+
+def run(
+    procedure: str = typer.Argument(..., help="Shipped procedure name (zero_offsets, tcp_4point, tcp_circle, "
+                                    "dh_full, verify) or a procedure .py file."),
+    robot: str = typer.Option(..., "--robot", help="Robot URL, e.g. ur://127.0.0.2?model=ur5e"),
+    serial: str = typer.Option(..., "--serial", help="Serial number of the robot under calibration."),
+    limits: Path = typer.Option(None, "--limits", help="Limits file (default: procedures/limits.yaml)."),
+    db: str = typer.Option(None, "--db", help="Records database URL (default $STATION_DB, else SQLite in "
+                           "$STATION_HOME)."),
+    apply: bool = typer.Option(False, "--apply", help="Write identified joint offsets back (two-phase)."),
+    cell: Path = typer.Option(None, "--cell", help="Cell file (default $STATION_CELL, then ./cell.yaml)."),
+    operator: str = typer.Option(None, "--operator", help="Who runs it (default: login name)."),
+    touch: str = typer.Option(None, "--touch", help="seat (socket), guarded (contact input) or manual."),
+    reference: str = typer.Option(None, "--reference", help="unknown (solve the point) or cell (use the cell "
+                                  "file's surveyed positions)."),
+    poses: int = typer.Option(None, "--poses", help="Number of fit poses (default from the procedure)."),
+    holdout: int = typer.Option(None, "--holdout", help="Number of held-out poses."),
+    cone: float = typer.Option(None, "--cone", help="Half-angle (deg) of the tool orientation cone."),
+    seed: int = typer.Option(None, "--seed", help="Seed of the pose plan."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
+) -> None:
+    """Run a procedure end of line: unattended, PASS/FAIL, exit 0 pass / 1 fail / 2 error."""
+    from station.engine import start
+
+    cb, bar = _progress_bar(quiet)
+    with bar:
+        out = start(procedure, robot, serial, limits=limits, db=db, apply=apply, cell=cell, operator=operator,
+                    options=_options(poses, holdout, cone, reference, seed), touch=touch, progress=cb,
+                    log=lambda s: typer.echo(s, err=True))
+    _finish(out)
+
+
+def resume_cmd(
+    session: str = typer.Argument(..., help="Session id (in $STATION_HOME/sessions) or its folder/journal."),
+    db: str = typer.Option(None, "--db", help="Records database URL (default: the one the session used)."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
+) -> None:
+    """Continue an interrupted session: robot re-verified, recorded samples kept, nothing repeated."""
+    from station.engine import resume
+
+    cb, bar = _progress_bar(quiet)
+    with bar:
+        out = resume(session, db=db, progress=cb, log=lambda s: typer.echo(s, err=True))
+    _finish(out)
+
+
+def demo(
+    robot: str = typer.Option("ur", "--robot", help="Bus to demonstrate: ur, canopen or dynamixel."),
+    time_mode: str = typer.Option("instant", "--time", help="Emulated motion: instant or realtime."),
+    seed: int = typer.Option(5, "--seed", help="Seed of the hidden errors."),
+) -> None:
+    """Emulated robot with hidden offset errors and a socket: run zero_offsets end of line through the real
+    client library, print recovered offsets next to the hidden truth, residuals and the report path."""
+    raise typer.Exit(run_demo(robot, time_mode=time_mode, seed=seed))
+
+
+# ---- emulated robots (demo, benchmark, end-to-end tests) -----------------------------------------------
+# The station side never imports the mocks; this glue starts an emulator for a world file and yields the URL
+# the real client library connects to.
+BUS_MODELS = {"ur": "ur5e", "canopen": "arm6", "dynamixel": "omx"}
+# Dynamixel: one socket on a 4-axis arm cannot separate the first two zeros from the socket's position; the
+# surveyed cell position is used instead (see docs/procedures.md)
+BUS_OPTIONS = {"ur": {}, "canopen": {}, "dynamixel": {"reference": "cell", "cone_deg": 70.0}}
+
+
+def demo_world(bus: str, seed: int, time_mode: str = "instant", sigma_deg: float = 0.15) -> dict:
+    """World document (SI) with hidden joint zero offsets only (what zero_offsets identifies)."""
+    import math
+
+    import numpy as np
+
+    from station.kinematics import load_model
+    from station.mocks.world.world import default_doc
+
+    model = BUS_MODELS[bus]
+    m = load_model(model)
+    rng = np.random.default_rng(seed)
+    doc = default_doc(model, seed)
+    doc["description"] = f"demo world for {model} on {bus}: hidden joint zero offsets"
+    doc["errors"] = {"explicit": {f"offset.j{i + 1}": float(rng.normal(0, math.radians(sigma_deg)))
+                                  if j.revolute else float(rng.normal(0, 0.1e-3)) for i, j in enumerate(m.joints)}}
+    doc["motion"]["time_mode"] = time_mode
+    if bus == "canopen":
+        # the default arm6 cell puts the socket at the shoulder's limit (j2 hardly varies: ~0.02 deg spread of
+        # the estimate); a tall fixture lets the shoulder swing and the zero of joint 2 shows
+        doc["cell"] = {"points": [{"label": "A", "kind": "socket", "position": [0.40, 0.0, 0.70],
+                                   "approach": [0, 0, 1]}]}
+    doc["buses"] = {"ur": {"serial": f"2023550{seed:04d}"}, "dynamixel": {"ids": [11, 12, 13, 14]},
+                    "canopen": {"nodes": list(range(1, m.n_joints + 1))}}
+    return doc
+
+
+def _free_loopback() -> str:
+    import random
+    import socket
+
+    for _ in range(50):
+        host = f"127.0.{random.randint(1, 250)}.{random.randint(2, 250)}"
+        with socket.socket() as sk:
+            try:
+                sk.bind((host, 30004))
+            except OSError:
+                continue
+            return host
+    raise RuntimeError("no free loopback address for the UR emulator")
+
+
+class Emulated:
+    """An emulator serving the world file ``world_path`` on ``bus``: ``with Emulated(...) as e: e.url``.
+
+    ur: ``station mock ur`` as a separate process on a free 127.x.y.z (ur_rtde's ports are fixed);
+    canopen: in-process drives on a python-can virtual channel; dynamixel: in-process pty (``process=True``:
+    ``station mock dynamixel`` as a separate process)."""
+
+    def __init__(self, bus: str, world_path: Path, serial: str, process: bool = False) -> None:
+        if bus not in BUS_MODELS:
+            from station.robot.errors import ConfigError
+
+            raise ConfigError(f"--robot must be one of {', '.join(BUS_MODELS)}, got {bus!r}")
+        self.bus, self.world_path, self.serial, self.process = bus, Path(world_path), serial, process
+        self.url = ""
+        self.world = None  # in-process emulators: the World they serve
+        self._proc = None
+        self._emu = None
+
+    def _spawn(self, args: list[str], ready) -> str:
+        import subprocess
+        import time
+
+        exe = Path(sys.executable).with_name("station")
+        cmd = [str(exe)] if exe.exists() else [sys.executable, "-c", "from station.cli import main; main()"]
+        self._proc = subprocess.Popen(cmd + args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        end = time.monotonic() + 30
+        while time.monotonic() < end:
+            line = self._proc.stdout.readline()
+            if not line:
+                break
+            if ready(line):
+                return line.strip()
+        err = self._proc.stderr.read() if self._proc.poll() is not None else ""
+        self.close()
+        raise RuntimeError(f"emulator {' '.join(args[:2])} did not start: {err.strip()[-300:]}")
+
+    def __enter__(self) -> Emulated:
+        model = BUS_MODELS[self.bus]
+        try:
+            if self.bus == "ur":
+                host = _free_loopback()
+                self._spawn(["mock", "ur", "--host", host, "--world", str(self.world_path)],
+                            lambda line: "ready" in line)
+                self.url = f"ur://{host}?model={model}"
+            elif self.bus == "dynamixel" and self.process:
+                port = self._spawn(["mock", "dynamixel", "--world", str(self.world_path)],
+                                   lambda line: line.startswith("/dev/"))
+                self.url = f"dynamixel://{port}?model={model}&ids=11-14&contact=200&serial={self.serial}"
+            else:
+                from station.mocks.world import World
+
+                self.world = World.from_file(self.world_path)
+                if self.bus == "dynamixel":
+                    from station.mocks.dynamixel.emulator import DynamixelEmulator
+
+                    self._emu = DynamixelEmulator(self.world)
+                    port = self._emu.start()
+                    self.url = f"dynamixel://{port}?model={model}&ids=11-14&contact=200&serial={self.serial}"
+                else:
+                    import uuid
+
+                    from station.mocks.canopen.emulator import CanopenEmulator
+
+                    channel = f"demo{uuid.uuid4().hex[:8]}"
+                    self._emu = CanopenEmulator(self.world, "virtual", channel).start()
+                    n = self.world.nominal.n_joints
+                    self.url = f"canopen+virtual://{channel}?nodes=1-{n}&model={model}&serial={self.serial}"
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def close(self) -> None:
+        if self._emu is not None:
+            emu, self._emu = self._emu, None
+            emu.stop()
+        if self._proc is not None:
+            proc, self._proc = self._proc, None
+            if proc.poll() is None:
+                proc.terminate()
+                try:
+                    proc.wait(timeout=10)
+                except Exception:
+                    proc.kill()
+                    proc.wait()
+            for f in (proc.stdout, proc.stderr):
+                if f:
+                    f.close()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def write_demo_files(bus: str, folder: Path, seed: int, time_mode: str) -> tuple[Path, Path, str]:
+    """World file (the hidden truth) and the station's cell file for it; returns (world, cell, serial)."""
+    import yaml
+
+    from station.mocks.world import World
+
+    folder.mkdir(parents=True, exist_ok=True)
+    doc = demo_world(bus, seed, time_mode)
+    world_path, cell_path = folder / f"{bus}-world.yaml", folder / f"{bus}-cell.yaml"
+    world_path.write_text("# demo world (station-world/1), SI units; the hidden truth of the demo\n"
+                          + yaml.safe_dump(doc, sort_keys=False))
+    world = World.from_file(world_path)
+    cell_path.write_text("# station cell (station-cell/1), lengths in m\n"
+                         + yaml.safe_dump(world.station_cell(), sort_keys=False))
+    serial = doc["buses"]["ur"]["serial"] if bus == "ur" else f"DEMO-{bus.upper()}-{seed:04d}"
+    return world_path, cell_path, serial
+
+
+def run_demo(bus: str, *, time_mode: str = "instant", seed: int = 5, quiet: bool = False) -> int:
+    import math
+    import os
+    import time
+
+    from station.engine import start
+    from station.mocks.world import World
+
+    if time_mode not in ("instant", "realtime"):
+        from station.robot.errors import ConfigError
+
+        raise ConfigError(f"--time must be instant or realtime, got {time_mode!r}")
+    home = Path(os.environ.get("STATION_HOME") or "./station-data")
+    world_path, cell_path, serial = write_demo_files(bus, home / "demo", seed, time_mode)
+    hidden = World.from_file(world_path).hidden()
+    typer.echo(f"demo: {BUS_MODELS[bus]} on {bus}, hidden errors in {world_path}")
+    t0 = time.monotonic()
+    with Emulated(bus, world_path, serial, process=(bus == "dynamixel")) as emu:
+        typer.echo(f"demo: emulator up, robot URL {emu.url}")
+        cb, bar = _progress_bar(quiet)
+        with bar:
+            out = start("zero_offsets", emu.url, serial, cell=cell_path, options=dict(BUS_OPTIONS[bus]),
+                        progress=cb, log=lambda s: typer.echo(s, err=True))
+    if out.status != "completed" or out.passed is None:
+        _finish(out)
+    res = out.record["result"]
+    typer.echo("")
+    typer.echo("joint zero offsets: hidden truth (world file) vs. recovered (deg)")
+    typer.echo(f"  {'parameter':12s} {'truth':>10s} {'recovered':>10s} {'± 1σ':>8s} {'error':>9s}  ")
+    for name, p in res["parameters"].items():
+        if not name.startswith("offset."):
+            continue
+        truth = math.degrees(hidden.get(name, 0.0))
+        if p["identifiable"]:
+            v, sd = math.degrees(p["value"]), math.degrees(p["std"])
+            typer.echo(f"  {name:12s} {truth:10.4f} {v:10.4f} {sd:8.4f} {v - truth:+9.4f}  "
+                       f"({abs(v - truth) / sd if sd else 0:.1f} σ)")
+        else:
+            typer.echo(f"  {name:12s} {truth:10.4f} {'—':>10s}  not identifiable: {p.get('reason') or ''}"[:118])
+    typer.echo("")
+    summary(out)
+    typer.echo(f"time:     {time.monotonic() - t0:.1f} s")
+    typer.echo("PASS" if out.passed else "FAIL")
+    return out.exit_code
+
+
 def register(app: typer.Typer) -> None:
-    return None
+    app.command("run")(run)
+    app.command("resume")(resume_cmd)
+    app.command("demo")(demo)

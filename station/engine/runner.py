@@ -112,6 +112,9 @@ def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, lim
     robot = robot or open_robot(robot_url)
     try:
         ident = robot.identity()
+        if ident.serial and ident.serial != str(serial):
+            raise ConfigError(f"the robot reports serial {ident.serial!r}, not {serial!r} (wrong robot? on a bus "
+                              "without device serials set it in the URL: ?serial=SN)")
         table = lim.for_procedure(robot.model.name, proc.name)
         opts = {**proc.defaults, **(options or {}), "apply": bool(apply)}
         if isinstance(touch, str):

@@ -99,8 +99,8 @@ class Session:
             d = _identity_dict(ident)
             want = self.journal.header.get("serial")
             if ident.serial and want and ident.serial != want:
-                raise ConfigError(f"the robot reports serial {ident.serial!r} but the session is for {want!r}; "
-                                  "wrong robot on the station?")
+                raise ConfigError(f"the robot reports serial {ident.serial!r} but the session is for {want!r} "
+                                  "(wrong robot? on a bus without device serials set it in the URL: ?serial=SN)")
             first = self.events("identity")
             if first and (first[0]["robot"].get("serial"), first[0]["robot"].get("model")) != (d["serial"], d["model"]):
                 raise ResumeMismatch(f"resume: robot is {d['model']} {d['serial']!r}, the session was recorded on "
@@ -195,6 +195,9 @@ class Session:
             elif listed is not None:
                 plan = plan_from_joints(self.model, listed, self.cell.points if self.cell else {}, q_start=q0)
             else:
+                for key in ("cone_deg", "clearance", "roll_deg", "margin_deg"):
+                    if key in opt:
+                        kw.setdefault(key, float(opt[key]))
                 plan = generate_plan(self.model, points or self.points("socket")[:1], q0, identify=identify,
                                      n_fit=n_fit, n_holdout=n_holdout, seed=int(opt.get("seed", 0)), **kw)
             self.event({"type": "plan", "plan": plan.to_dict()})
@@ -301,7 +304,7 @@ class Session:
         return Observations(np.array([s["q"] for s in smp]), np.array([s["point"] for s in smp], dtype=object),
                             measured)
 
-    def solve(self, identify: str = "offsets", reference: str | dict = "unknown", **kw):
+    def solve(self, identify: str = "offsets", reference: str | dict | None = None, **kw):
         """Identify ``identify`` from the fit samples, check on the held-out samples; journals the result."""
         from station.solver import solve
 
@@ -309,8 +312,8 @@ class Session:
             fit = self.observations("fit")
             if fit is None:
                 raise ConfigError("solve: no fit samples recorded")
-            ref = reference
-            if reference == "cell":
+            ref = reference or self.options.get("reference", "unknown")
+            if ref == "cell":
                 ref = {lb: p.position for lb, p in self.cell.points.items()} if self.cell else "unknown"
             self.result = solve(self.model, fit, identify=identify, reference=ref,
                                 holdout=self.observations("holdout"), **kw)
@@ -323,7 +326,8 @@ class Session:
         if lim is not None:
             m = lim.judge(value_si, quantity)
         else:
-            m = {"name": name, "value": value_si, "unit": {"length": "m", "angle": "rad"}.get(quantity, "1"),
+            unit, k = {"length": ("mm", 1e3), "angle": ("deg", 180 / math.pi)}.get(quantity, ("count", 1.0))
+            m = {"name": name, "value": None if value_si is None else value_si * k, "unit": unit,
                  "low": None, "high": None, "marginal": False, "passed": True, "note": "no limit (informational)"}
         m["quantity"] = quantity
         self.measurements = [x for x in self.measurements if x["name"] != name] + [m]

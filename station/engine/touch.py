@@ -54,7 +54,8 @@ class SocketSeating:
         target = s.aimed_q(pose)
         robot.move_joints(target, speed=s.touch_speed(pose.approach_arr, target))
         robot.set_compliant(True)
-        if _wait(lambda: bool(robot.touch()), self.settle_timeout) and _wait(
+        # a robot without a touch indicator (touch() is None) is trusted to have seated once it rests
+        if _wait(lambda: robot.touch() is not False, self.settle_timeout) and _wait(
                 lambda: not robot.status().moving, self.settle_timeout):
             return
         robot.set_compliant(False)
