@@ -45,7 +45,6 @@ class DynamixelRobot:
         self.bus = DxlBus(port, baud, retries)
         self._compliant = False
         self._closed = False
-        self._last_ticks: dict[int, int] = {}
         try:
             self.devices = self._probe()
         except BaseException:
@@ -120,6 +119,7 @@ class DynamixelRobot:
                 ticks, _ = self._read_all(T.PRESENT_POSITION, 4, retry=False)
             self.bus.sync_write(T.GOAL_POSITION, 4, {i: t for i, t in zip(self.ids, ticks, strict=True)
                                                     if i not in skip})
+            self._read_all(T.GOAL_POSITION, 4, retry=False)  # answered: the servos have taken the new goal
         except Exception:  # noqa: BLE001 - the bus may be gone; the original fault is what matters
             pass
 
@@ -147,8 +147,8 @@ class DynamixelRobot:
         try:
             return fn(*args, **kw)
         except BusError:
-            self._halt_quietly(list(self._last_ticks.values()) if len(self._last_ticks) == len(self.ids)
-                               else None)
+            # a fresh reading or nothing: holding at a stale position would move the arm back
+            self._halt_quietly()
             raise
 
     # ---- Robot protocol ------------------------------------------------------------------------------
@@ -160,7 +160,6 @@ class DynamixelRobot:
     def joint_positions(self) -> JointSnapshot:
         ticks, errors = self._guard(self._read_all, T.PRESENT_POSITION, 4)
         t = time.time()
-        self._last_ticks = dict(zip(self.ids, ticks, strict=True))
         self._check_alerts(errors, ticks)
         q = np.array([float(self._enc(j).to_si(k)) for j, k in enumerate(ticks)])
         return JointSnapshot(q=q, raw=tuple(ticks), raw_unit="tick", t=t)
@@ -195,11 +194,25 @@ class DynamixelRobot:
         goals = [int(round(float(self._enc(j).to_counts(target[j])))) for j in range(len(self.ids))]
         payload = {i: b"".join(int(x).to_bytes(4, "little", signed=True) for x in (acc[k], vel[k], goals[k]))
                    for k, i in enumerate(self.ids)}
-        self._guard(self.bus.sync_write, T.PROFILE_ACCELERATION, 12, payload)
-        if wait:
-            lead = float(np.max(np.abs(target - start.q)))
-            v = max(1e-3, min(vel[k] * T.VELOCITY_UNIT for k in range(len(vel))) if lead else 1.0)
-            self._wait(goals, timeout=3.0 * lead / max(v, 1e-3) + 2.0)
+        if not wait:
+            self._guard(self.bus.sync_write, T.PROFILE_ACCELERATION, 12, payload)
+            return
+        # while we watch the move, the servos' bus watchdog stops them if the bus goes quiet
+        self._guard(self.bus.sync_write, T.BUS_WATCHDOG, 1, {i: T.WATCHDOG_UNITS for i in self.ids})
+        done = False
+        try:
+            self._guard(self.bus.sync_write, T.PROFILE_ACCELERATION, 12, payload)
+            lead_k = int(np.argmax(np.abs(target - start.q)))
+            lead = float(abs(target[lead_k] - start.q[lead_k]))
+            v = vel[lead_k] * T.VELOCITY_UNIT / self._enc(lead_k).gear
+            self._wait(goals, timeout=3.0 * lead / v + 2.0)
+            done = True
+        finally:
+            if done:
+                self._guard(self.bus.sync_write, T.BUS_WATCHDOG, 1, {i: 0 for i in self.ids})
+            else:
+                with contextlib.suppress(StationError):
+                    self.bus.sync_write(T.BUS_WATCHDOG, 1, {i: 0 for i in self.ids})
 
     def _wait(self, goals: list[int], timeout: float) -> None:
         """Poll Moving (one sync read per poll) until every servo is in position."""
@@ -234,6 +247,11 @@ class DynamixelRobot:
         """Every servo holds where it is now (goal := present)."""
         ticks, _ = self._read_all(T.PRESENT_POSITION, 4)
         self.bus.sync_write(T.GOAL_POSITION, 4, dict(zip(self.ids, ticks, strict=True)))
+        goals, _ = self._read_all(T.GOAL_POSITION, 4)  # sync write has no status: confirm it landed
+        late = [i for i, g, t in zip(self.ids, goals, ticks, strict=True) if abs(g - t) > 10]
+        if late:
+            raise DeviceFault(f"stop: {', '.join(self._name(i) for i in late)} did not take the hold position "
+                              "(bus watchdog or hardware error?)", device=f"dynamixel:{late[0]}")
 
     def _torque(self, on: bool, ids: list[int] | None = None) -> None:
         ids = self.ids if ids is None else ids

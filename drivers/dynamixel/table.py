@@ -10,7 +10,7 @@ import math
 MODEL_NUMBER, FIRMWARE_VERSION, RETURN_DELAY_TIME, OPERATING_MODE = 0, 6, 9, 11
 HOMING_OFFSET, CURRENT_LIMIT, MAX_POSITION_LIMIT, MIN_POSITION_LIMIT = 20, 38, 48, 52
 # RAM
-TORQUE_ENABLE, HARDWARE_ERROR_STATUS, GOAL_CURRENT = 64, 70, 102
+TORQUE_ENABLE, HARDWARE_ERROR_STATUS, BUS_WATCHDOG, GOAL_CURRENT = 64, 70, 98, 102
 PROFILE_ACCELERATION, PROFILE_VELOCITY, GOAL_POSITION = 108, 112, 116
 MOVING, PRESENT_POSITION = 122, 132
 # contact sensor device (this project's, model 0x5A01): 1 while the tool touches a needle / sits in a socket
@@ -32,6 +32,7 @@ ALERT = 0x80
 
 VELOCITY_UNIT = 0.229 * 2 * math.pi / 60  # rad/s per profile-velocity unit (0.229 rev/min)
 ACCEL_UNIT = 214.577 * 2 * math.pi / 3600  # rad/s^2 per profile-acceleration unit (214.577 rev/min^2)
+WATCHDOG_UNITS = 10  # x 20 ms: servos stop by themselves if a waited-for move loses the bus for 0.2 s
 COMPLIANT_GOAL_CURRENT = 60  # units of 2.69 mA: ~0.16 A, enough to hold the tip in a cone, not to push
 
 

@@ -123,6 +123,8 @@ class Device:
                 raise WriteRefused(ERR_DATA_LIMIT, f"goal current {value} above current limit")
             if f.name == "profile_velocity" and value > self.get("velocity_limit") > 0:
                 value = self.get("velocity_limit")  # the profile is clamped to the velocity limit
+            if f.name == "goal_position" and self.has("bus_watchdog") and self.get("bus_watchdog") == 255:
+                raise WriteRefused(ERR_RESULT_FAIL, "bus watchdog tripped: write 0 to bus watchdog (98) first")
             if f.name == "torque_enable" and value and self.hardware_error:
                 raise WriteRefused(ERR_RESULT_FAIL, "hardware error latched: reboot before enabling torque")
             out.append((f, value))

@@ -111,6 +111,7 @@ class DynamixelEmulator:
         self._enabled: bool | None = None
         self._compliant: bool | None = None
         self._last_contact = False
+        self._last_rx: dict[int, float] = {}  # per device: when it last received an instruction (watchdog)
         self.stats: dict = {}
         self.reset_stats()
         self._sync_world()
@@ -176,7 +177,9 @@ class DynamixelEmulator:
         parser = pk.StreamParser()
         while not self._stop.is_set():
             try:
-                r, _, _ = select.select([self._master], [], [], 0.05)
+                r, _, _ = select.select([self._master], [], [], 0.01)
+                with self._lock:
+                    self._check_watchdogs()
                 if not r:
                     continue
                 data = os.read(self._master, 4096)
@@ -237,7 +240,10 @@ class DynamixelEmulator:
         dev.set("present_position", pos)
         if ws["qd"] is not None:
             dev.set("present_velocity", int(round(ws["qd"][j] * enc.gear * enc.direction / VELOCITY_UNIT)))
-        moving = ws["moving"] and abs(dev.get("goal_position") - pos) > dev.get("moving_threshold")
+        # Moving (122): the profile is still running for this joint (the world's trajectory), not merely
+        # "far from goal": a joint held off its goal (blocked, compliant) is not moving
+        qd = 0.0 if ws["qd"] is None else abs(float(ws["qd"][j]))
+        moving = ws["moving"] and (qd > 1e-9 or abs(dev.get("goal_position") - pos) > dev.get("moving_threshold"))
         dev.set("moving", int(moving))
         in_pos = abs(dev.get("goal_position") - pos) <= dev.get("moving_threshold")
         dev.set("moving_status", (0x01 if in_pos else 0) | (0x02 if moving else 0))
@@ -312,11 +318,19 @@ class DynamixelEmulator:
                     self.world.halt()
                 self._sync_world()
 
+    def _device_disconnect_armed(self, dev_id: int) -> bool:
+        """A disconnect armed for this device only (device=None means the whole bus, taken per packet)."""
+        faults = getattr(self.world, "faults", None)
+        if faults is None or not hasattr(faults, "pending"):
+            return False
+        return any(f.kind == "disconnect" and f.device is not None and str(f.device) == str(dev_id)
+                   for f in faults.pending())
+
     def _answering(self, dev_id: int) -> bool:
         """False if the device is gone or a timeout fault swallows this answer."""
         if dev_id in self._silent:
             return False
-        if self._take("disconnect", dev_id) is not None:
+        if self._device_disconnect_armed(dev_id) and self._take("disconnect", dev_id) is not None:
             self._silent.add(dev_id)
             return False
         return self._take("timeout", dev_id) is None
@@ -341,6 +355,10 @@ class DynamixelEmulator:
             self._bus_down = True
             return []
         broadcast = p.dxl_id == pk.BROADCAST_ID
+        now = time.monotonic()
+        for i in self.devices:
+            if (broadcast or i == p.dxl_id) and i not in self._silent:
+                self._last_rx[i] = now
         if not p.crc_ok:
             st["bad_crc"] += 1
             dev = self.devices.get(p.dxl_id)
@@ -483,8 +501,14 @@ class DynamixelEmulator:
                 data, err = bytes(length), e.code
             parts.append((dev, err | dev.error_flags, data))
         if not fast:
-            return [(dev, self._maybe_corrupt(dev.dxl_id, pk.status(dev.dxl_id, err, data)))
-                    for dev, err, data in parts]
+            out, hit = [], False  # at most one damaged answer per instruction: one fault, one frame
+            for dev, err, data in parts:
+                frame = pk.status(dev.dxl_id, err, data)
+                if not hit:
+                    damaged = self._maybe_corrupt(dev.dxl_id, frame)
+                    hit, frame = damaged != frame, damaged
+                out.append((dev, frame))
+            return out
         if len(parts) < len(req):
             return []
         # FF FF FD 00 FE LEN 55 | ERR ID DATA CRC | ERR ID DATA CRC | ... (last CRC = packet CRC, no stuffing)
@@ -497,7 +521,9 @@ class DynamixelEmulator:
         first = parts[0][0] if parts else next(iter(self.devices.values()))
         raw = bytes(buf)
         for dev, _, _ in parts:
-            raw = self._maybe_corrupt(dev.dxl_id, raw)
+            damaged = self._maybe_corrupt(dev.dxl_id, raw)
+            if damaged != raw:
+                return [(first, damaged)]
         return [(first, raw)]
 
     def _write_many(self, chunks: list[tuple[int, int, bytes]], reg: bool = False) -> None:
@@ -562,6 +588,27 @@ class DynamixelEmulator:
             self.joint_ids[self.joint_ids.index(old)] = dev.dxl_id
         if old == self.contact_id:
             self.contact_id = dev.dxl_id
+
+    def _check_watchdogs(self) -> None:
+        """Bus Watchdog (98): a servo that hears nothing for value x 20 ms stops (goal := present) and
+        refuses goals (value reads 255) until 0 or a new period is written."""
+        now = time.monotonic()
+        tripped = False
+        for i in self.joint_ids:
+            dev = self.devices.get(i)
+            if dev is None:
+                continue
+            wd = dev.get("bus_watchdog")
+            if 0 < wd <= 127 and now - self._last_rx.get(i, now) > wd * 0.02:
+                dev.set("bus_watchdog", 255)
+                tripped = True
+        if tripped:
+            ws = self._world_state()
+            self.world.halt()
+            for dev in self._joint_devs():
+                if dev.get("bus_watchdog") == 255:
+                    self._refresh(dev, ws)
+                    dev.set("goal_position", dev.get("present_position"))
 
     def _reboot(self, dev: Device) -> None:
         dev.reboot()

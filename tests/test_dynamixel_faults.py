@@ -1,0 +1,129 @@
+"""Bus and device faults: each gives its typed error and leaves the arm stopped (real SDK over a pty)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from station.mocks.dynamixel import DynamixelEmulator
+from station.mocks.world import World
+
+from station.robot import BusError, ConnectionLost, DeviceFault, open_robot
+
+IDS = [11, 12, 13, 14]
+TARGET = np.array([1.0, 0.5, -0.5, 0.8])
+
+
+@pytest.fixture()
+def sim():
+    """Simulated time: the test decides when time passes, so a fault lands mid-move deterministically."""
+    world = World.default(model="omx", seed=4, time_mode="sim")
+    emu = DynamixelEmulator(world, ids=IDS)
+    robot = open_robot(f"dynamixel://{emu.start()}?ids=11-14&model=omx&retries=3")
+    robot.enable()
+    yield world, emu, robot
+    robot.close()
+    emu.stop()
+
+
+def _start_move(world, robot):
+    robot.move_joints(TARGET, speed=1.0, wait=False)
+    robot.joint_positions()  # a round trip: the emulator has applied the (unanswered) sync write
+    world.advance(0.3)
+    assert world.is_moving()
+    return world.encoder_q()
+
+
+def _assert_stopped_near(world, q_fault):
+    """Holding: the world settles near where the fault struck (braking distance), far from the target."""
+    world.run_until_idle()
+    q = world.encoder_q()
+    assert not world.is_moving()
+    assert np.max(np.abs(q - q_fault)) < 0.15
+    assert np.max(np.abs(q - TARGET)) > 0.3
+
+
+def test_transient_timeouts_and_corruption_are_retried(sim):
+    world, emu, robot = sim
+    emu.reset_stats()
+    world.faults.inject("timeout", count=2)
+    q = robot.joint_positions().q
+    assert emu.stats["by_inst"] == {"fast_sync_read": 3}  # two lost answers, then success
+    world.faults.inject("corrupt", count=1)
+    q2 = robot.joint_positions().q
+    assert emu.stats["by_inst"] == {"fast_sync_read": 5}
+    assert np.array_equal(q, q2)
+    assert robot.bus.retried == 3
+
+
+def test_persistent_timeout_raises_connection_lost_and_stops(sim):
+    world, emu, robot = sim
+    q_fault = _start_move(world, robot)
+    world.faults.inject("timeout", count=4)  # 1 try + 3 retries
+    with pytest.raises(ConnectionLost, match=r"no answer .* after 4 attempt"):
+        robot.joint_positions()
+    _assert_stopped_near(world, q_fault)
+
+
+def test_persistent_corruption_raises_bus_error_and_stops(sim):
+    world, emu, robot = sim
+    q_fault = _start_move(world, robot)
+    world.faults.inject("corrupt", count=4)
+    with pytest.raises(BusError) as e:
+        robot.joint_positions()
+    assert not isinstance(e.value, ConnectionLost)
+    _assert_stopped_near(world, q_fault)
+
+
+def test_device_fault_names_servo_and_bits_and_reboot_recovers(sim):
+    world, emu, robot = sim
+    q_fault = _start_move(world, robot)
+    world.faults.inject("device_fault", device=13)
+    with pytest.raises(DeviceFault) as e:
+        robot.joint_positions()
+    msg = str(e.value)
+    assert "servo id 13" in msg and "elbow" in msg and "0x20" in msg and "overload" in msg
+    assert "robot.reboot('elbow')" in msg
+    assert e.value.device == "dynamixel:13" and e.value.code == 0x20
+    _assert_stopped_near(world, q_fault)
+    st = robot.status()
+    assert not st.ok and not st.enabled and st.joints[2].fault and st.joints[0].enabled
+    with pytest.raises(DeviceFault):
+        robot.enable()  # refused while the error is latched
+    robot.reboot("elbow")
+    robot.enable()
+    assert robot.status().ok
+    robot.move_joints(TARGET, speed=1.0, wait=False)
+    robot.joint_positions()
+    world.run_until_idle()
+    assert np.max(np.abs(robot.joint_positions().q - TARGET)) < 2e-3
+
+
+def test_device_fault_during_a_waited_move():
+    world = World.default(model="omx", seed=4, time_mode="realtime")
+    with DynamixelEmulator(world, ids=IDS) as emu, \
+            open_robot(f"dynamixel://{emu.path}?ids=11-14&model=omx") as robot:
+        robot.enable()
+        world.faults.inject("device_fault", device=12, after=3)
+        with pytest.raises(DeviceFault, match="servo id 12"):
+            robot.move_joints(TARGET, speed=1.0)
+        time.sleep(0.05)
+        assert not world.is_moving()
+        assert np.max(np.abs(world.encoder_q() - TARGET)) > 0.3
+
+
+def test_disconnect_mid_move_bus_watchdog_stops_the_arm():
+    world = World.default(model="omx", seed=4, time_mode="realtime")
+    with DynamixelEmulator(world, ids=IDS) as emu, \
+            open_robot(f"dynamixel://{emu.path}?ids=11-14&model=omx") as robot:
+        robot.enable()
+        world.faults.inject("disconnect", after=8)
+        t0 = time.monotonic()
+        with pytest.raises(ConnectionLost):
+            robot.move_joints(TARGET, speed=1.0)
+        assert time.monotonic() - t0 < 1.0  # bounded retries, not the move's duration
+        time.sleep(0.4)  # 0.2 s watchdog + braking
+        assert not world.is_moving()
+        assert np.max(np.abs(world.encoder_q() - TARGET)) > 0.3
+        assert all(emu.devices[i].get("bus_watchdog") == 255 for i in IDS)
