@@ -4,6 +4,7 @@ HTML/JSON report of a session from its journal). Tables are for people: lengths 
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import typer
@@ -45,19 +46,43 @@ def _verdict(passed) -> str:
 
 
 def _console() -> Console:
-    return Console(highlight=False, soft_wrap=False, width=160)
+    # a pipe or log file gets 160 columns instead of rich's 80: the tables stay readable in CI logs
+    con = Console(highlight=False, soft_wrap=False)
+    if not con.is_terminal and "COLUMNS" not in os.environ:
+        con = Console(highlight=False, soft_wrap=False, width=160)
+    return con
+
+
+def _when(iso: str | None) -> str:
+    """ISO time as 'YYYY-MM-DD HH:MM:SS' (UTC as the engine writes it) to keep tables narrow."""
+    return (iso or "").replace("T", " ")[:19]
+
+
+def _duration(started: str | None, finished: str | None) -> str:
+    from datetime import datetime
+
+    if not finished:
+        return "(open)"
+    try:
+        sec = (datetime.fromisoformat(finished) - datetime.fromisoformat(started or "")).total_seconds()
+    except ValueError:
+        return "?"
+    return f"{int(sec // 60)}m{int(sec % 60):02d}s"
 
 
 def _sessions_table(title: str, rows: list[dict]) -> Table:
     t = Table(title=title, title_justify="left")
-    for col in ("session", "procedure", "started", "finished", "station", "operator", "samples", "rms before mm",
-                "rms after mm", "verdict", "write-back"):
-        t.add_column(col, justify="right" if col in ("samples",) or col.endswith("mm") else "left")
+    width = max([len(s["session"]) for s in rows] + [7])
+    t.add_column("session", no_wrap=True, min_width=width)  # the id is what people copy: never truncated
+    for col in ("procedure", "started", "took", "station", "operator", "samples", "rms before mm",
+                "rms after mm", "verdict", "written"):
+        t.add_column(col, justify="right" if col in ("samples",) or col.endswith("mm") else "left",
+                     no_wrap=col in ("started", "took"))
     for s in rows:
         wb = "-" if s["writeback_applied"] is None else (
-            ("applied, verified" if s["writeback_verified"] else "applied, NOT verified") if s["writeback_applied"]
-            else "not applied")
-        t.add_row(s["session"], s["procedure"], s["started"], s["finished"] or "(open)", s["station"],
+            ("verified" if s["writeback_verified"] else "NOT verified") if s["writeback_applied"] else "not applied")
+        t.add_row(s["session"], s["procedure"], _when(s["started"]), _duration(s["started"], s["finished"]),
+                  s["station"],
                   s["operator"], str(s["n_samples"]), _mm(s["rms_before_m"]), _mm(s["rms_after_m"]),
                   _verdict(s["passed"]), wb)
     return t
@@ -80,7 +105,7 @@ def list_records(db: str = typer.Option(None, "--db", help=DB_HELP),
                 t.add_column(col, justify="right" if col == "sessions" else "left")
             for r in robots:
                 t.add_row(r["serial"], r["vendor"], r["model"], r["firmware"], str(r["n_sessions"]),
-                          r["last_session"] or "", r["last_started"] or "", _verdict(r["last_passed"]))
+                          r["last_session"] or "", _when(r["last_started"]), _verdict(r["last_passed"]))
             con.print(t)
             if not robots:
                 con.print("no records yet")
