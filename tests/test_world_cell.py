@@ -1,6 +1,8 @@
 """Simulated world, calibration cell: socket seating puts the TRUE tip at the socket within the seating
 noise, capture and contact radii are respected, default cells are reachable, station-side cell file."""
 
+import time
+
 import numpy as np
 import pytest
 from station.mocks.world import World
@@ -202,3 +204,43 @@ def test_station_cell_file():
     exact = World.default("ur5e", seed=9).station_cell()
     for p in exact["points"]:
         np.testing.assert_allclose(p["position"], w.points[p["label"]].position, atol=5e-5)
+
+
+def test_unreachable_socket_centre_does_not_seat():
+    """Within the capture radius but the centre is beyond the arm's reach: nothing seats, one event."""
+    w = World.default("scara", seed=1, errors={}, cell={"points": [
+        {"label": "F", "kind": "socket", "position": [0.604, 0.0, 0.25]}]})
+    tip = w.nominal.position([0.0, 0.1, 0.15, 0.0])
+    assert np.linalg.norm(tip[:2]) < 0.6
+    w.command_q(w.nominal.ik(np.array([0.597, 0.0, 0.25]), [0.0, 0.1, 0.15, 0.0]).q[0])
+    assert w.points["F"].distance(w.tip_true()) < w.points["F"].radius
+    w.set_compliant(True)
+    for _ in range(3):
+        assert w.seated is None and not w.contact()
+    assert sum("cannot settle" in m for _, m in w.events) == 1
+
+
+def test_snapshot_is_one_instant():
+    w = World.default("omx", seed=1, time_mode="sim")
+    w.command_q([0.5, 0.0, 0.3, 0.0])
+    w.advance(0.1)
+    s = w.snapshot()
+    assert s.t == pytest.approx(0.1)
+    np.testing.assert_allclose(s.q, w.encoder_q())
+    np.testing.assert_allclose(s.qd, w.encoder_qd())
+    assert list(s.moving) == [True, False, True, False] == list(w.joint_moving())
+    assert not s.contact and s.enabled.all() and s.seated is None
+    w.halt(0)
+    w.run_until_idle()
+    q = w.encoder_q()
+    assert q[0] < 0.5 and q[2] == pytest.approx(0.3)  # only joint 0 was stopped short
+
+
+def test_time_scale_change_keeps_world_time_continuous():
+    w = World.default("omx", seed=1, time_mode="realtime", time_scale=1.0)
+    t0 = w.now()
+    w.set_time_scale(100.0)
+    t1 = w.now()
+    assert 0 <= t1 - t0 < 0.05
+    time.sleep(0.02)
+    assert w.now() - t1 == pytest.approx(2.0, abs=1.0)  # 20 ms wall at x100

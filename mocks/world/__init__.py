@@ -4,7 +4,7 @@ velocity/acceleration limits, a calibration cell (needles, sockets), fault injec
 from station.mocks.world.cell import CellPoint
 from station.mocks.world.faults import KINDS as FAULT_KINDS
 from station.mocks.world.faults import Faults
-from station.mocks.world.world import World, default_doc
+from station.mocks.world.world import Snapshot, World, default_doc
 from station.mocks.world.worldfile import WorldFileError
 
-__all__ = ["FAULT_KINDS", "CellPoint", "Faults", "World", "WorldFileError", "default_doc"]
+__all__ = ["FAULT_KINDS", "CellPoint", "Faults", "Snapshot", "World", "WorldFileError", "default_doc"]

@@ -14,6 +14,7 @@ import math
 import threading
 import time
 from collections import deque
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +53,18 @@ def default_doc(model: str = "ur5e", seed: int = 0) -> dict:
     if model not in DEFAULTS:
         doc["cell"] = {"points": []}
     return doc
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    t: float  # world time, s
+    q: np.ndarray  # encoder positions (SI), with encoder noise if configured
+    qd: np.ndarray  # velocities (SI/s)
+    moving: np.ndarray  # per joint: profile running
+    contact: bool
+    enabled: np.ndarray
+    compliant: bool
+    seated: str | None
 
 
 class World:
@@ -119,6 +132,7 @@ class World:
         self._compliant = False
         self._seated: str | None = None
         self._seat_target: np.ndarray | None = None
+        self._seat_failed: np.ndarray | None = None
         self._joint_faults: dict[int, int] = {}
         self._pstop = False
 
@@ -166,6 +180,15 @@ class World:
             if self.time_mode == "realtime":
                 return (time.monotonic() - self._mono0) * self.time_scale
             return self._t
+
+    def set_time_scale(self, scale: float) -> None:
+        """Change the realtime speed-up without a jump in world time."""
+        if not (math.isfinite(scale) and scale > 0):
+            raise ValueError(f"time_scale must be a positive number, got {scale!r}")
+        with self._lock:
+            t = self.now()
+            self._mono0 = time.monotonic() - t / scale
+            self.time_scale = float(scale)
 
     def advance(self, dt: float) -> None:
         """Let ``dt`` seconds of simulated time pass (``sim`` and ``instant`` mode)."""
@@ -255,6 +278,25 @@ class World:
         with self._lock:
             t = self.now()
             return any(t < tr.t_end for tr in self._tracks)
+
+    def joint_moving(self) -> np.ndarray:
+        """Per joint: its profile is still running."""
+        with self._lock:
+            t = self.now()
+            return np.array([t < tr.t_end for tr in self._tracks])
+
+    def snapshot(self) -> Snapshot:
+        """Everything an emulator serves, evaluated at ONE instant (realtime mode moves between calls)."""
+        with self._lock:
+            self._update()
+            t = self.now()
+            q, qd, side = self._state(t)
+            q_read = q
+            if self.spec.encoder_sigma > 0:
+                q_read = q + self._g_enc.normal(0.0, self.spec.encoder_sigma, self.n_joints)
+            moving = np.array([t < tr.t_end for tr in self._tracks])
+            return Snapshot(t, q_read, qd, moving, self.touching() is not None, self._enabled.copy(),
+                            self._compliant, self._seated)
 
     # ---- commands -----------------------------------------------------------------------------
     def _event(self, msg: str) -> None:
@@ -361,12 +403,13 @@ class World:
             self._set_tracks(tracks, x)
             return capped
 
-    def halt(self) -> None:
-        """Decelerate every joint to rest at its acceleration limit (a controlled stop)."""
+    def halt(self, joints=None) -> None:
+        """Decelerate ``joints`` (index, list; None: all) to rest at the acceleration limit (controlled stop)."""
         with self._lock:
             t = self.now()
-            x, v, side = self._state(t)
-            self._tracks = [motion.brake(t, x[i], v[i], self._amax[i], side[i]) for i in range(self.n_joints)]
+            for i in self._joints(joints):
+                x, v, side = self._tracks[i].state(t)
+                self._tracks[i] = motion.brake(t, x, v, float(self._amax[i]), side)
 
     def _set_tracks(self, tracks: list[motion.Track], x_now: np.ndarray) -> None:
         moved = any(abs(tr.x_end - x_now[i]) > 1e-12 or tr.phases for i, tr in enumerate(tracks))
@@ -470,11 +513,15 @@ class World:
         sockets = [p for p in self.points.values() if p.kind == "socket" and p.distance(tip) <= p.radius]
         if not sockets or not self._enabled.any():
             return
+        if self._seat_failed is not None and np.array_equal(self._seat_failed, q):
+            return
         p = min(sockets, key=lambda s: s.distance(tip))
         target = p.position + self._g_seat.normal(0.0, self.spec.seating_sigma, 3)
         res = self.truth.ik(target, qj, position_only=True, weights=self._enabled.astype(float), tol_pos=1e-9)
         if res.position_error[0] > 1e-7:
-            self._event(f"socket {p.label}: the arm cannot settle (IK {res.position_error[0]:.2e} m)")
+            if self._seat_failed is None or not np.array_equal(self._seat_failed, q):
+                self._event(f"socket {p.label}: the arm cannot settle (IK {res.position_error[0]:.2e} m)")
+            self._seat_failed = q  # do not retry (and log) on every read until the arm moves
             return
         q_new = self._undeflect(res.q[0], side)
         t = self.now()
