@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 
 import numpy as np
 from station.mocks.ur import state as S
@@ -74,7 +75,8 @@ class URController:
         self.async_wr_count = 0
         self.async_op_id = 0
         self.stall_until = 0.0
-        self.messages: list[str] = []  # textmsg / popup log (dashboard: "emulator log")
+        self.messages: list[str] = []
+        self.cmd_log: deque[tuple[int, int]] = deque(maxlen=40)  # (tick, command id) written by clients
         self.q_prev = np.asarray(world.encoder_q(), dtype=float)
         self.qd = np.zeros(self.n)
         names = [n for n in self.nominal.param_names if n.startswith("tcp.")]
@@ -368,18 +370,18 @@ class URController:
             return None
         return res.q[0]
 
-    def _command_q(self, q, speed) -> bool:
+    def _command_q(self, q, speed, accel=None) -> bool:
         q = np.asarray(q, float)
         if not (np.all(np.isfinite(q)) and self.nominal.within_limits(q)[0]):
             self.messages.append(f"target {np.round(q, 4).tolist()} outside joint limits: program stopped")
             return False
-        self.world.command_q(q, speed=speed)
+        self.world.command_q(q, speed=speed, accel=accel if accel and accel > 0 else None)
         return True
 
     def _move(self, cmd: int) -> bool:
         self.speed_qd = self.speed_xd = None
         vals = self._reg_d(0, 6)
-        v, asynchronous = float(self._reg_d(6)), self._reg_i(1) == 1
+        v, a, asynchronous = float(self._reg_d(6)), float(self._reg_d(7)), self._reg_i(1) == 1
         if cmd == S.CMD_MOVEJ:
             q, speed = vals, v
         else:
@@ -393,7 +395,7 @@ class URController:
             # movel / movej_ik with a tool speed: joint-interpolated (not a straight line) at the joint speed
             # that keeps the tool at v; documented emulator simplification
             speed = v if cmd == S.CMD_MOVEJ_IK else self._joint_speed_for_tool(q, v)
-        if not self._command_q(q, speed):
+        if not self._command_q(q, speed, a if cmd in (S.CMD_MOVEJ, S.CMD_MOVEJ_IK) else None):
             return False
         if asynchronous:
             self.async_busy = True
@@ -500,5 +502,7 @@ class URController:
                     self.in_int[i] = int(v)
                     if i == self.reg_offset:
                         self.in_int0_written = time.monotonic()
+                        if not self.cmd_log or self.cmd_log[-1][1] != int(v):
+                            self.cmd_log.append((self.tick_count, int(v)))
                 elif name.startswith("input_double_register_"):
                     self.in_double[int(name.rsplit("_", 1)[1])] = float(v)

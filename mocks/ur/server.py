@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import re
 import socket
 import struct
@@ -21,6 +22,7 @@ log = logging.getLogger("station.mocks.ur")
 
 RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
 CONTROLLER_VERSION = (5, 11, 1, 108318)  # PolyScope 5.11 -> ur_rtde picks 500 Hz
+TRACE = os.environ.get("STATION_UR_TRACE")  # debugging: append every RTDE input package to this file
 POLYSCOPE = "URSoftware 5.11.1.108318 (Mar 22 2022)"
 
 
@@ -148,6 +150,9 @@ class RTDEConn(_Conn):
             return
         names, types, st = recipe
         values = W.unflatten(st.unpack(payload[1:1 + st.size]), types)
+        if TRACE:
+            with open(TRACE, "a") as f:
+                f.write(f"{self.ctl.tick_count} recipe {recipe_id} {dict(zip(names, values, strict=True))}\n")
         self.ctl.write_inputs(names, values)
 
     def on_tick(self, ctl: URController) -> None:
@@ -245,19 +250,36 @@ class DashboardConn(_Conn):
         return f"could not understand: '{line}'", None
 
     def emulator(self, args: list[str]):
+        """``emulator protective_stop [AFTER]``, ``emulator stall SECONDS [AFTER]``, ``emulator drop SECONDS
+        [AFTER]``, ``emulator estop on|off``, ``emulator encoder``, ``emulator tip``, ``emulator log``.
+        AFTER (s) delays the fault, so a client can be mid-command when it bites."""
         ctl = self.ctl
         if not args:
-            return "emulator: commands: protective_stop, stall S, drop S, estop on|off, encoder, tip, log", None
+            return ("emulator: commands: protective_stop [after], stall S [after], drop S [after], "
+                    "estop on|off, encoder, tip, log"), None
         what, rest = args[0], args[1:]
-        seconds = float(rest[0]) if rest else None
+        try:
+            nums = [float(x) for x in rest if x not in ("on", "off")]
+        except ValueError:
+            return f"emulator: bad number in {' '.join(rest)!r}", None
+
+        def later(after: float, fn) -> None:
+            if after > 0:
+                threading.Timer(after, fn).start()
+            else:
+                fn()
+
         if what == "protective_stop":
-            ctl.protective_stop("injected on the dashboard")
+            later(nums[0] if nums else 0.0, lambda: ctl.protective_stop("injected on the dashboard"))
             return "emulator: protective stop", None
         if what == "stall":
-            ctl.stall(seconds or ctl.stall_s)
+            seconds = nums[0] if nums else ctl.stall_s
+            later(nums[1] if len(nums) > 1 else 0.0, lambda: ctl.stall(seconds))
             return "emulator: stalling data stream", None
         if what == "drop":
-            return "emulator: dropping connections", lambda: ctl.drop(seconds or ctl.drop_s)
+            seconds = nums[0] if nums else ctl.drop_s
+            return "emulator: dropping connections", lambda: later(nums[1] if len(nums) > 1 else 0.0,
+                                                                  lambda: ctl.drop(seconds))
         if what == "estop":
             ctl.emergency_stop(bool(rest) and rest[0] == "on")
             return f"emulator: emergency stop {'on' if ctl.estop else 'off'}", None
@@ -265,6 +287,12 @@ class DashboardConn(_Conn):
             return "emulator: " + " ".join(f"{v:.12g}" for v in np.asarray(ctl.world.encoder_q())), None
         if what == "tip":
             return "emulator: " + " ".join(f"{v:.12g}" for v in np.asarray(ctl.world.tip_true())), None
+        if what == "registers":
+            o = ctl.reg_offset
+            return (f"emulator: in_int {ctl.in_int[o:o + 3]} out_int {ctl.out_int[o:o + 3]} "
+                    f"watchdog {ctl.watchdog_hz:g} Hz, last write {time.monotonic() - ctl.in_int0_written:.3f} s ago, "
+                    f"(tick, command) {list(ctl.cmd_log)[-12:]}"
+                    ), None
         if what == "log":
             return "emulator: " + " | ".join(ctl.messages[-20:]), None
         return f"emulator: unknown command {what!r}", None

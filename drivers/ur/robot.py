@@ -1,0 +1,530 @@
+"""``ur://HOST[?model=ur5e&calibration=PATH&export=DIR&contact_bit=16&speed=0.5]``: a Universal Robots
+e-Series arm over RTDE (ur_rtde's RTDEReceiveInterface + RTDEControlInterface) and the dashboard server.
+
+Units: joints in rad, joint speed rad/s, tool speed m/s. Every motion command checks limits first (a refused
+command sends nothing) and is then watched: protective/emergency stop -> SafetyStop, lost link ->
+ConnectionLost, stalled data stream -> BusError; each leaves the robot stopped."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+from station.drivers.ur.calibration import (
+    apply_deltas,
+    deltas_from_values,
+    export_files,
+    read_calibration_conf,
+)
+from station.drivers.ur.dashboard import DashboardClient
+
+from station.kinematics import Model, ModelFileError, load_model
+from station.robot.errors import BusError, ConfigError, ConnectionLost, DeviceFault, LimitError, SafetyStop
+from station.robot.motion import MANUAL_TOOL_SPEED_CAP, check_joint_limits, jog_target, joint_speed_for_tool_cap
+from station.robot.protocol import Identity, JointSnapshot, JointState, RobotStatus
+
+log = logging.getLogger("station.drivers.ur")
+
+# The receive recipe: only what the driver reads (fewer bytes per 2 ms package than ur_rtde's default).
+RECV_VARIABLES = ["timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "actual_digital_input_bits",
+                  "robot_mode", "safety_mode", "runtime_state", "robot_status_bits", "safety_status_bits"]
+
+SS_PROTECTIVE, SS_SAFEGUARD, SS_ESTOP_MASK = 1 << 2, 1 << 4, (1 << 5) | (1 << 6) | (1 << 7)
+SS_VIOLATION, SS_FAULT = 1 << 8, 1 << 9
+ROBOT_MODE_RUNNING = 7
+LOCAL_HOSTS = ("localhost", "127.0.0.1")  # ur_rtde skips its remote-control check only for these
+
+
+def _ur_modules():
+    try:
+        import rtde_control
+        import rtde_receive
+    except ImportError as e:  # pragma: no cover - dependency of the project
+        raise ConfigError(f"ur:// needs the ur-rtde package ({e})") from None
+    return rtde_receive, rtde_control
+
+
+class URRobot:
+    """Fulfils ``station.robot.Robot`` for UR e-Series controllers."""
+
+    vendor = "Universal Robots"
+
+    def __init__(self, host: str, catalog: Model, *, deltas: dict[str, list[float]] | None = None,
+                 export_dir: str | None = None, contact_bit: int = 16, speed: float = 0.5, accel: float = 1.0,
+                 jog_speed: float = 0.2, tool_speed: float = 0.05, stale_timeout: float = 0.2,
+                 jog_watchdog: float = 10.0, url: str = "", connect: bool = True) -> None:
+        self.host = host
+        self.catalog = catalog  # published DH table
+        self.deltas = deltas  # the controller's calibration.conf, if given
+        self.model: Model = apply_deltas(catalog, deltas) if deltas else catalog
+        self.export_dir = export_dir
+        self.contact_bit = contact_bit
+        self.speed, self.accel = speed, accel
+        self.jog_speed, self.tool_speed = jog_speed, tool_speed
+        self.stale_timeout = stale_timeout
+        self.jog_watchdog = jog_watchdog  # Hz: controller-side RTDE watchdog armed for speed jogs (0: off)
+        self._watchdog_armed = False
+        self._rt_sent = self._last_kick = 0.0
+        self.url = url or f"ur://{host}?model={catalog.name}"
+        self.serial = ""
+        self.firmware = ""
+        self.robot_model = ""
+        self.last_export: list[Path] = []
+        self._r = None
+        self._c = None
+        self._dash = DashboardClient(host)
+        self._compliant_mode: str | None = None  # "freedrive" | "teach"
+        self._speeding = False
+        self._last_ts: float | None = None
+        if connect:
+            self.connect()
+
+    # ---- construction ------------------------------------------------------------------------
+    @classmethod
+    def from_url(cls, url, **kw) -> URRobot:
+        if not url.host:
+            raise ConfigError(f"robot URL {url.raw!r}: ur:// needs the controller's address, e.g. ur://192.168.0.10")
+        if url.port is not None:
+            raise ConfigError(f"robot URL {url.raw!r}: ur:// takes no port (RTDE 30004, dashboard 29999 and "
+                              "script 30003 are fixed by the controller)")
+        known = {"model", "calibration", "export", "contact_bit", "speed", "jog_speed", "tool_speed", "jog_watchdog"}
+        unknown = sorted(set(url.query) - known)
+        if unknown:
+            raise ConfigError(f"robot URL {url.raw!r}: unknown option(s) {', '.join(unknown)}; "
+                              f"known: {', '.join(sorted(known))}")
+        name = url.get("model", "ur5e")
+        try:
+            catalog = load_model(name)
+        except (ModelFileError, FileNotFoundError, KeyError) as e:
+            raise ConfigError(f"robot URL {url.raw!r}: model {name!r}: {e}") from None
+        calibration = url.get("calibration")
+        deltas = read_calibration_conf(calibration, catalog.n_joints) if calibration else None
+
+        def num(key: str, default: float, lo: float, hi: float) -> float:
+            text = url.get(key)
+            try:
+                v = default if text is None else float(text)
+            except ValueError:
+                raise ConfigError(f"robot URL {url.raw!r}: {key}={text!r} is not a number") from None
+            if not (math.isfinite(v) and lo < v <= hi):
+                raise ConfigError(f"robot URL {url.raw!r}: {key}={v:g} must be in ({lo:g}, {hi:g}]")
+            return v
+
+        vmax = float(catalog.max_velocity.min())
+        bit = num("contact_bit", 16, -1, 63)
+        if bit != int(bit):
+            raise ConfigError(f"robot URL {url.raw!r}: contact_bit must be an integer 0..63")
+        args = dict(deltas=deltas, export_dir=url.get("export"), contact_bit=int(bit),
+                    speed=num("speed", min(0.5, vmax), 0, vmax), jog_speed=num("jog_speed", min(0.2, vmax), 0, vmax),
+                    tool_speed=num("tool_speed", 0.05, 0, MANUAL_TOOL_SPEED_CAP),
+                    jog_watchdog=num("jog_watchdog", 10.0, -1, 500), url=url.raw)
+        args.update(kw)
+        return cls(url.host, catalog, **args)
+
+    # ---- connection --------------------------------------------------------------------------
+    def connect(self) -> None:
+        rtde_receive, rtde_control = _ur_modules()
+        self._dash.connect()
+        self.firmware = self._dash.polyscope_version()
+        self.serial = self._dash.serial_number()
+        self.robot_model = self._dash.robot_model()
+        if self.host not in LOCAL_HOSTS and not self._dash.is_in_remote_control():
+            raise ConfigError(f"ur://{self.host}: the robot is in local control; switch it to Remote Control on "
+                              "the teach pendant (Settings > System > Remote Control, then the pendant's top bar)")
+        try:
+            self._r = rtde_receive.RTDEReceiveInterface(self.host, -1.0, RECV_VARIABLES)
+        except Exception as e:
+            raise ConnectionLost(f"ur://{self.host}: RTDE (port 30004) connection failed: {e}") from None
+        try:
+            self._c = rtde_control.RTDEControlInterface(self.host)
+        except Exception as e:
+            self._r.disconnect()
+            self._r = None
+            raise ConnectionLost(f"ur://{self.host}: RTDE control (script upload on 30003) failed: {e}") from None
+        self._last_ts = None
+        self._watchdog_armed = False
+        log.info("ur://%s connected: serial %s, %s", self.host, self.serial, self.firmware)
+
+    def _drop_interfaces(self) -> None:
+        for obj in (self._c, self._r):
+            if obj is not None:
+                with contextlib.suppress(Exception):  # already broken: nothing to release
+                    obj.disconnect()
+        self._c = self._r = None
+        self._dash.close()
+
+    def reconnect(self, timeout: float = 10.0) -> None:
+        """Re-open every channel after a ConnectionLost (retries until ``timeout`` s)."""
+        self._drop_interfaces()
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                self.connect()
+                return
+            except (ConnectionLost, BusError) as e:
+                self._drop_interfaces()
+                if time.monotonic() > deadline:
+                    raise ConnectionLost(f"ur://{self.host}: reconnect failed for {timeout:g} s: {e}") from None
+                time.sleep(0.25)
+
+    def close(self) -> None:
+        """Stop motion, end the control script on the controller, close every channel."""
+        if self._c is not None:
+            try:
+                if self._c.isConnected() and self._c.isProgramRunning():
+                    self.stop()
+                    self._c.stopScript()
+            except Exception as e:  # closing must not fail; the controller stops the script anyway on drop
+                log.warning("ur://%s: close: %s", self.host, e)
+        self._drop_interfaces()
+
+    def __enter__(self) -> URRobot:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ---- link and safety checks --------------------------------------------------------------
+    def _check_link(self) -> None:
+        if self._r is None or self._c is None:
+            raise ConnectionLost(f"ur://{self.host}: not connected (call reconnect())")
+        if not self._r.isConnected() or not self._c.isConnected():
+            raise ConnectionLost(f"ur://{self.host}: connection to the controller lost (RTDE port 30004 closed); "
+                                 "call reconnect() when the network is back")
+
+    def _safety_error(self, bits: int) -> SafetyStop | None:
+        if bits & SS_ESTOP_MASK:
+            return SafetyStop(f"ur://{self.host}: emergency stop (safety_status_bits 0x{bits:x}); release the "
+                              "e-stop, power on and restart")
+        if bits & SS_PROTECTIVE:
+            return SafetyStop(f"ur://{self.host}: protective stop (safety_status_bits 0x{bits:x}): the robot halted. "
+                              "Inspect the cause, then unlock_protective_stop() (allowed 5 s after the stop)")
+        if bits & SS_SAFEGUARD:
+            return SafetyStop(f"ur://{self.host}: safeguard stop (safety_status_bits 0x{bits:x}); close the guard")
+        if bits & (SS_VIOLATION | SS_FAULT):
+            return SafetyStop(f"ur://{self.host}: safety system fault/violation (safety_status_bits 0x{bits:x})")
+        return None
+
+    def _check_safety(self) -> None:
+        err = self._safety_error(int(self._r.getSafetyStatusBits()))
+        if err is not None:
+            self._halt_quietly()
+            raise err
+
+    def _halt_quietly(self, dashboard: bool = False) -> None:
+        """Leave the robot stopped after a fault, whatever state the link is in. ``dashboard``: stop the
+        program over port 29999 (when RTDE data is stale, a control command would wait for its answer)."""
+        self._speeding = False
+        try:
+            if not dashboard and self._c is not None and self._c.isConnected() and self._c.isProgramRunning():
+                self._c.stopJ(2.0, False)
+                return
+        except Exception:  # fall through to the dashboard
+            pass
+        with contextlib.suppress(ConnectionLost, BusError):
+            self._dash.stop_program()
+
+    def _kick(self) -> None:
+        # A kick writes 0 into the command register: never within a few controller cycles of a speed
+        # command, or the script would not have read the command yet (and the jog would never start).
+        now = time.monotonic()
+        if self._watchdog_armed and now - self._rt_sent > 0.01 and now - self._last_kick > 0.02:
+            self._c.kickWatchdog()
+            self._last_kick = now
+
+    def _ready_for_motion(self) -> None:
+        self._check_link()
+        self._check_safety()
+        self._kick()
+        if not self._c.isProgramRunning():
+            self._watchdog_armed = False  # a new script has no watchdog
+            # after an unlock, a dashboard stop or a watchdog stop, the control script must run again
+            log.info("ur://%s: control script not running: re-uploading", self.host)
+            self._c.reuploadScript()
+            deadline = time.monotonic() + 5.0
+            while not self._c.isProgramRunning():
+                if time.monotonic() > deadline:
+                    raise DeviceFault(f"ur://{self.host}: the control script did not start within 5 s "
+                                      "(is the robot powered on and in remote control?)")
+                time.sleep(0.01)
+
+    def _refused(self, what: str) -> None:
+        """A ur_rtde command returned False: say why, leave the robot stopped."""
+        self._check_link()
+        bits = int(self._r.getSafetyStatusBits())
+        err = self._safety_error(bits)
+        self._halt_quietly()
+        if err is not None:
+            raise err
+        raise DeviceFault(f"ur://{self.host}: {what} was not executed by the controller (runtime_state "
+                          f"{self._r.getRuntimeState()}, robot_mode {self._r.getRobotMode()})")
+
+    # ---- Robot protocol ----------------------------------------------------------------------
+    def identity(self) -> Identity:
+        return Identity(vendor=self.vendor, model=self.model.name, serial=self.serial, firmware=self.firmware,
+                        devices=({"controller": self.robot_model, "software": self.firmware,
+                                  "serial": self.serial},), url=self.url)
+
+    def joint_positions(self) -> JointSnapshot:
+        """One RTDE package: actual_q with that package's controller timestamp (always a package newer
+        than the previous snapshot; none within ``stale_timeout`` -> BusError and a stopped robot)."""
+        self._check_link()
+        t0 = time.monotonic()
+        while True:
+            ts1 = self._r.getTimestamp()
+            q = self._r.getActualQ()
+            ts2 = self._r.getTimestamp()
+            if ts1 == ts2 and ts1 != self._last_ts:
+                break
+            if time.monotonic() - t0 > self.stale_timeout:
+                self._check_link()
+                self._halt_quietly(dashboard=True)
+                raise BusError(f"ur://{self.host}: RTDE data stream stalled: no new package for "
+                               f"{self.stale_timeout * 1e3:.0f} ms (last controller time {ts2:.3f} s); "
+                               "robot stopped")
+            time.sleep(0.0003)
+        self._last_ts = ts1
+        qa = np.asarray(q, dtype=float)
+        return JointSnapshot(q=qa, raw=tuple(float(x) for x in q), raw_unit="rad", t=time.time(), t_device=ts1)
+
+    def tcp_pose(self) -> np.ndarray:
+        """The controller's own ``actual_TCP_pose`` (x, y, z m; rx, ry, rz rotation vector), from ITS model."""
+        self._check_link()
+        return np.asarray(self._r.getActualTCPPose(), dtype=float)
+
+    def _check_speed(self, speed: float | None, default: float, vmax: float, what: str, unit: str) -> float:
+        v = default if speed is None else float(speed)
+        if not (math.isfinite(v) and 0 < v <= vmax):
+            raise LimitError(f"{what}: speed {v:g} {unit} outside (0, {vmax:g}] {unit}; nothing was sent")
+        return v
+
+    def move_joints(self, q, speed: float | None = None, wait: bool = True) -> None:
+        target = check_joint_limits(self.model, q, "move_joints")
+        v = self._check_speed(speed, self.speed, float(self.model.max_velocity.min()), "move_joints", "rad/s")
+        self._ready_for_motion()
+        self._move(target, v, wait)
+
+    def _move(self, target: np.ndarray, v: float, wait: bool) -> None:
+        start = self.joint_positions().q
+        if not self._c.moveJ(target.tolist(), v, self.accel, True):
+            self._refused("moveJ")
+        if wait:
+            lead = float(np.max(np.abs(target - start)))
+            self._wait_move(target, lead / v + 2 * v / self.accel + 5.0)
+
+    def _wait_move(self, target: np.ndarray, budget: float) -> None:
+        deadline = time.monotonic() + budget
+        while True:
+            self._check_link()
+            self._check_safety()
+            if not self._c.isProgramRunning():
+                self._halt_quietly()
+                raise DeviceFault(f"ur://{self.host}: the control script stopped during the move")
+            if self._c.getAsyncOperationProgress() < 0:
+                break
+            self._kick()
+            if time.monotonic() > deadline:
+                self._halt_quietly()
+                raise BusError(f"ur://{self.host}: move not finished within {budget:.1f} s; robot stopped")
+            time.sleep(0.004)
+        q = self.joint_positions().q  # a package after the end of the move
+        self._check_safety()
+        err = float(np.max(np.abs(q - target)))
+        if err > 1e-3:
+            self._halt_quietly()
+            raise DeviceFault(f"ur://{self.host}: move ended {math.degrees(err):.3f} deg from its target")
+
+    def jog(self, mode: str, axis: int, step: float, speed: float | None = None) -> None:
+        """One jog step with speedJ (joints, Cartesian rotations) or speedL (Cartesian translations), watched
+        by a deadline; the tool never exceeds 0.25 m/s. Ends with a short moveJ onto the exact target."""
+        q0 = self.joint_positions().q
+        target = jog_target(self.model, q0, mode, axis, step)
+        if mode == "cartesian" and axis < 3:
+            v = self._check_speed(speed, self.tool_speed, MANUAL_TOOL_SPEED_CAP, "jog", "m/s")
+        elif mode == "cartesian":
+            v = joint_speed_for_tool_cap(self.model, q0, target, None)
+        else:
+            v = self._check_speed(speed, self.jog_speed, float(self.model.max_velocity[axis]), "jog", "rad/s")
+        self._ready_for_motion()
+        if mode == "cartesian" and axis < 3:
+            p0 = self.model.position(q0)
+            sign = math.copysign(1.0, step)
+            xd = [0.0] * 6
+            xd[axis] = sign * v
+            a = 0.5  # m/s^2
+            self._velocity_jog(lambda: self._c.speedL(xd, a, 0.0),
+                               lambda q: abs(step) - sign * (self.model.position(q) - p0)[axis], v, a)
+            v_fix = joint_speed_for_tool_cap(self.model, self.joint_positions().q, target, self.jog_speed)
+        else:
+            dq = target - q0
+            lead = float(np.max(np.abs(dq)))
+            if lead <= 0:
+                return
+            v = joint_speed_for_tool_cap(self.model, q0, target, v)
+            u = dq / lead
+            qd = (u * v).tolist()
+            self._velocity_jog(lambda: self._c.speedJ(qd, self.accel, 0.0),
+                               lambda q: lead - float(np.dot(q - q0, u)), v, self.accel)
+            v_fix = v
+        self._move(target, max(min(v_fix, self.jog_speed), 1e-3), True)
+
+    def _velocity_jog(self, send, remaining, v: float, a: float) -> None:
+        total = remaining(self.joint_positions().q)
+        deadline = time.monotonic() + total / v + v / a + 1.0  # the jog watchdog
+        self._speeding = True
+        try:
+            if self.jog_watchdog > 0 and not self._watchdog_armed:
+                # if this process or the network dies mid-jog, the controller stops the program itself
+                # (the script's rtde_set_watchdog(..., "stop")); it stays armed until the program ends
+                self._watchdog_armed = bool(self._c.setWatchdog(self.jog_watchdog))
+            ok = send()
+            self._rt_sent = time.monotonic()  # the command is on the wire now; kicks wait for the script to read it
+            if not ok:
+                self._refused("speed command")
+            while True:
+                snap = self.joint_positions()
+                self._check_safety()
+                if remaining(snap.q) <= v * v / (2 * a) + v * 0.004:
+                    break
+                if time.monotonic() > deadline:
+                    raise BusError(f"ur://{self.host}: jog watchdog: the step did not complete in time; stopped")
+                self._kick()
+                time.sleep(0.002)
+        finally:
+            if self._speeding:
+                self._speeding = False
+                try:
+                    self._c.speedStop(a * 4)
+                except Exception:
+                    self._halt_quietly()
+
+    def stop(self) -> None:
+        self._check_link()
+        try:
+            if self._r.getSafetyStatusBits() & (SS_PROTECTIVE | SS_ESTOP_MASK | SS_SAFEGUARD):
+                return  # already halted by the safety system; commands would be refused
+            if self._c.isProgramRunning():
+                if self._speeding:
+                    self._c.speedStop(10.0)
+                    self._speeding = False
+                self._c.stopJ(2.0, False)
+            elif any(abs(v) > 1e-4 for v in self._r.getActualQd()):
+                self._dash.stop_program()
+        except (ConnectionLost, BusError):
+            raise
+        except Exception as e:
+            self._halt_quietly()
+            raise DeviceFault(f"ur://{self.host}: stop: {e}") from None
+
+    def enable(self) -> None:
+        """Power on and release the brakes (dashboard), then make sure the control script runs."""
+        self._check_link()
+        if self._r.getRobotMode() != ROBOT_MODE_RUNNING:
+            self._dash.power_on()
+            deadline = time.monotonic() + 10.0
+            while self._r.getRobotMode() != ROBOT_MODE_RUNNING:
+                if time.monotonic() > deadline:
+                    raise DeviceFault(f"ur://{self.host}: the arm did not reach RUNNING after power on")
+                time.sleep(0.05)
+        self._ready_for_motion()
+
+    def disable(self) -> None:
+        self.stop()
+        self._dash.power_off()
+
+    def status(self) -> RobotStatus:
+        self._check_link()
+        bits = int(self._r.getSafetyStatusBits())
+        mode = int(self._r.getRobotMode())
+        qd = np.asarray(self._r.getActualQd(), dtype=float)
+        moving = bool(np.any(np.abs(qd) > 1e-4))
+        enabled = mode == ROBOT_MODE_RUNNING
+        faults = []
+        if bits & (SS_VIOLATION | SS_FAULT):
+            faults.append(f"safety fault (safety_status_bits 0x{bits:x})")
+        joints = tuple(JointState(j.name, enabled, bool(abs(qd[i]) > 1e-4)) for i, j in enumerate(self.model.joints))
+        return RobotStatus(enabled=enabled, moving=moving, faults=tuple(faults), estop=bool(bits & SS_ESTOP_MASK),
+                           protective_stop=bool(bits & SS_PROTECTIVE), compliant=self._compliant_mode is not None,
+                           joints=joints)
+
+    def touch(self) -> bool:
+        """Contact sensor on ``actual_digital_input_bits`` bit ``contact_bit`` (default 16 = tool DI 0)."""
+        self._check_link()
+        return bool((int(self._r.getActualDigitalInputBits()) >> self.contact_bit) & 1)
+
+    def set_compliant(self, on: bool) -> None:
+        """Freedrive (falls back to teach mode) so the tip can settle in a socket; off keeps the position."""
+        self._ready_for_motion()
+        if on:
+            if self._compliant_mode is not None:
+                return
+            if self._c.freedriveMode():
+                self._compliant_mode = "freedrive"
+            elif self._c.teachMode():
+                self._compliant_mode = "teach"
+            else:
+                self._refused("freedrive/teach mode")
+        else:
+            if self._compliant_mode is None:
+                return
+            ok = self._c.endFreedriveMode() if self._compliant_mode == "freedrive" else self._c.endTeachMode()
+            self._compliant_mode = None
+            if not ok:
+                self._refused("end of freedrive")
+
+    def unlock_protective_stop(self, wait: bool = True, timeout: float = 8.0) -> str:
+        """Dashboard ``unlock protective stop`` (the controller refuses it for 5 s after the stop; with
+        ``wait`` this retries until ``timeout``), then restart the control script."""
+        deadline = time.monotonic() + timeout
+        while True:
+            ok, reply = self._dash.unlock_protective_stop()
+            if ok:
+                break
+            if not wait or time.monotonic() > deadline:
+                raise SafetyStop(f"ur://{self.host}: unlock refused: {reply}")
+            time.sleep(0.25)
+        self._dash.close_safety_popup()
+        self._compliant_mode = None
+        t_end = time.monotonic() + 1.0
+        while self._r.getSafetyStatusBits() & SS_PROTECTIVE and time.monotonic() < t_end:
+            time.sleep(0.005)
+        self._ready_for_motion()
+        return reply
+
+    # ---- calibration -------------------------------------------------------------------------
+    def read_calibration(self) -> dict[str, float]:
+        """Joint zero corrections the controller applies, from its calibration.conf (URL ``calibration=``);
+        zeros when none was given (the controller's internal values cannot be read over RTDE)."""
+        n = self.model.n_joints
+        dtheta = (self.deltas or {}).get("delta_theta", [0.0] * n)
+        return {f"offset.j{i + 1}": float(dtheta[i]) for i in range(n)}
+
+    def export_calibration(self, result_or_values, folder: str | Path | None = None) -> list[Path]:
+        """Write calibration.conf ([mounting] deltas), ur_kinematics.yaml and ur_calibrated.urdf."""
+        from station.drivers.ur.calibration import _values_of
+
+        values = _values_of(result_or_values)
+        deltas, dropped = deltas_from_values(self.catalog, values, self.deltas)
+        folder = Path(folder or self.export_dir or f"./ur-calibration-{self.serial or 'unknown'}")
+        self.last_export = export_files(self.catalog, deltas, folder, serial=self.serial or "unknown",
+                                        dropped=dropped)
+        return self.last_export
+
+    def write_calibration(self, values: dict[str, float]) -> None:
+        """UR controllers keep their calibration internally: nothing is written to the robot. The values are
+        exported (see export_calibration) into URL ``export=DIR`` (default ./ur-calibration-SERIAL/) and
+        read back from the written calibration.conf."""
+        paths = self.export_calibration(values)
+        back = read_calibration_conf(paths[0], self.model.n_joints)["delta_theta"]
+        for name, v in values.items():
+            if name.startswith("offset.j"):
+                i = int(name[8:]) - 1
+                if abs(back[i] - v) > 1e-9:
+                    raise DeviceFault(f"export read-back of {paths[0]}: {name} {back[i]!r} != {v!r}")
+        log.warning("ur://%s: UR controller unchanged; calibration exported to %s (calibration.conf, URDF, YAML). "
+                    "Use it as the nominal with ur://%s?calibration=%s", self.host, paths[0].parent, self.host,
+                    paths[0])
