@@ -423,6 +423,13 @@ class Drive402:
             self.emu.update_compliance()
             self.send_emcy(self.fault_code, 0x03)
 
+    def connection_lost(self) -> None:
+        """Cut off from the bus: abort-connection reaction (CiA 402 0x6007 = quick stop) so the joint
+        does not run on without its master."""
+        with self.lock:
+            if self.state == OE:
+                self._enter(QSA)
+
     def _fault_reset(self) -> None:
         self.fault_code = 0
         self.state = SOD

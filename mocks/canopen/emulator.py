@@ -394,5 +394,7 @@ class CanopenEmulator:
                 d.fault(f.code or 0x2310)
             if faults.take("timeout", d.id):
                 d.silent_until = max(d.silent_until, now + self.timeout_silence)
+                d.connection_lost()
             if faults.take("disconnect", d.id):
                 d.silent_until = math.inf
+                d.connection_lost()

@@ -1,0 +1,123 @@
+"""Each bus fault produces its typed error and leaves the robot stopped (real World in realtime, real
+canopen + python-can on a virtual bus)."""
+
+from __future__ import annotations
+
+import time
+import uuid
+
+import numpy as np
+import pytest
+from station.mocks.canopen.emulator import CanopenEmulator
+from station.mocks.world import World
+
+from station.robot import BusError, ConnectionLost, DeviceFault, open_robot
+
+START = [0.3, -0.7, 0.9, 1.0, -0.6, 2.0]
+TARGET = np.array(START) + np.array([0.4, 0.3, -0.4, 0.5, 0.4, 0.6])
+
+
+@pytest.fixture
+def moving():
+    """A robot in the middle of a slow realtime move."""
+    chan = f"f-{uuid.uuid4().hex[:8]}"
+    world = World.default(model="arm6", seed=11, start=START, time_mode="realtime")
+    emu = CanopenEmulator(world, channel=chan, timeout_silence=0.6).start()
+    robot = open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6&heartbeat_ms=50")
+    robot.enable()
+    robot.move_joints(TARGET, speed=0.3, wait=False)
+    time.sleep(0.1)
+    assert world.is_moving()
+    yield world, emu, robot
+    robot.close()
+    emu.stop()
+
+
+def wait_fault(robot, timeout: float = 2.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            robot.joint_positions()
+        except Exception as e:  # noqa: BLE001 - the test inspects the type
+            return e
+        time.sleep(0.01)
+    raise AssertionError("no fault raised")
+
+
+def assert_stopped(world, robot):
+    end = time.monotonic() + 1.5
+    while world.is_moving() and time.monotonic() < end:
+        time.sleep(0.02)
+    assert not world.is_moving()
+    assert not robot.status().enabled
+    assert np.max(np.abs(world.encoder_q() - TARGET)) > 0.05  # it did not finish the move
+
+
+def test_emcy_is_device_fault_naming_node_and_code_then_recovers(moving):
+    world, emu, robot = moving
+    world.faults.inject("device_fault", device=3, code=0x4310)
+    err = wait_fault(robot)
+    assert isinstance(err, DeviceFault)
+    assert "node 3" in str(err) and "0x4310" in str(err) and err.code == 0x4310
+    assert_stopped(world, robot)
+    st = robot.status()
+    assert any("node 3" in f for f in st.faults) and st.joints[2].fault == "EMCY 0x4310"
+    with pytest.raises(DeviceFault):
+        robot.move_joints(TARGET)  # latched until enable()
+    robot.enable()
+    assert robot.status().enabled and not robot.status().faults
+    robot.move_joints(TARGET, speed=1.0)
+    assert np.max(np.abs(world.encoder_q() - TARGET)) < 1e-5
+
+
+def test_heartbeat_loss_is_connection_lost_and_clears_when_node_returns(moving):
+    world, emu, robot = moving
+    t0 = time.monotonic()
+    world.faults.inject("timeout", device=5)
+    err = wait_fault(robot)
+    assert isinstance(err, ConnectionLost) and "node 5" in str(err) and "heartbeat" in str(err)
+    assert time.monotonic() - t0 < 0.6  # 3 heartbeat periods + margin, not a long hang
+    assert_stopped(world, robot)
+    with pytest.raises(ConnectionLost):
+        robot.enable()  # node still silent
+    time.sleep(0.7)  # the emulated timeout ends; heartbeats come back
+    robot.enable()
+    assert robot.status().enabled
+
+
+def test_disconnect_stays_connection_lost(moving):
+    world, emu, robot = moving
+    world.faults.inject("disconnect", device=2)
+    err = wait_fault(robot)
+    assert isinstance(err, ConnectionLost) and "node 2" in str(err)
+    assert_stopped(world, robot)
+    time.sleep(0.3)
+    with pytest.raises(ConnectionLost):
+        robot.enable()
+
+
+def test_corrupted_frame_is_bus_error(moving):
+    world, emu, robot = moving
+    world.faults.inject("corrupt", device=4)
+    err = wait_fault(robot)
+    assert isinstance(err, BusError) and not isinstance(err, ConnectionLost)
+    assert "error frame" in str(err)
+    assert_stopped(world, robot)
+
+
+def test_bus_off_is_bus_error(moving):
+    world, emu, robot = moving
+    emu.inject_error_frame("busoff")
+    err = wait_fault(robot)
+    assert isinstance(err, BusError) and "bus-off" in str(err)
+    assert_stopped(world, robot)
+    robot.stop()  # never raises, even latched
+    assert "bus-off" in " ".join(robot.status().faults)
+
+
+def test_node_reboot_is_connection_lost(moving):
+    world, emu, robot = moving
+    emu.power_cycle([6])
+    err = wait_fault(robot)
+    assert isinstance(err, ConnectionLost) and "node 6 rebooted" in str(err)
+    assert_stopped(world, robot)
