@@ -96,6 +96,53 @@ def _find_session(ref: str | Path) -> Path:
     raise ConfigError(f"session {ref!r}: no journal at {p} nor in {station_home() / 'sessions'}")
 
 
+def create_session(robot, serial: str, *, procedure: Procedure | None = None, name: str | None = None,
+                   sha256: str | None = None, path: str | None = None, title: str = "",
+                   limits: str | Path | None = None, db: str | None = None, apply: bool = False,
+                   cell: str | Path | Cell | None = None, operator: str | None = None, options: dict | None = None,
+                   touch=None, progress: Callable[[int, int, str], None] | None = None,
+                   log: Callable[[str], None] | None = None, robot_url: str = "") -> Session:
+    """A new session on a connected robot: checks serial and limits, writes the journal header."""
+    from station.engine.session import _identity_dict
+
+    name = procedure.name if procedure else (name or "script")
+    lim = load_limits(limits)  # bad files fail before anything moves
+    the_cell = cell if isinstance(cell, Cell) else _optional_cell(cell)
+    if not serial or not str(serial).strip():
+        raise ConfigError("--serial is required: the record is filed under the robot's serial number")
+    ident = robot.identity()
+    if ident.serial and ident.serial != str(serial):
+        raise ConfigError(f"the robot reports serial {ident.serial!r}, not {serial!r} (wrong robot? on a bus "
+                          "without device serials set it in the URL: ?serial=SN)")
+    try:
+        table = lim.for_procedure(robot.model.name, name)
+    except ConfigError:
+        if procedure is not None:
+            raise
+        table = {}  # a script without its own limits section: measurements are informational
+    opts = {**(procedure.defaults if procedure else {}), **(options or {}), "apply": bool(apply)}
+    if isinstance(touch, str):
+        opts["touch"] = touch
+    sid = new_session_id(name, str(serial))
+    folder = station_home() / "sessions" / sid
+    header = {
+        "session": sid, "procedure": name,
+        "procedure_path": str(procedure.path.resolve()) if procedure else path,
+        "procedure_sha256": procedure.sha256 if procedure else sha256,
+        "procedure_title": procedure.title if procedure else title, "serial": str(serial),
+        "operator": operator or getpass.getuser(), "station": socket.gethostname(),
+        "url": robot_url or getattr(robot, "url", "") or ident.url,
+        "model": robot.model.name, "robot": _identity_dict(ident),
+        "limits": {"path": lim.path, "version": lim.version, "sha256": lim.sha256},
+        "cell": None if the_cell is None else {"path": the_cell.path, "model": the_cell.model,
+                                               "points": [p.to_dict() for p in the_cell.points.values()]},
+        "options": opts, "db": db, "versions": _versions(),
+    }
+    journal = Journal.create(folder / "journal.jsonl", header)
+    return Session(journal, robot, limits=table, limits_version=lim.version, cell=the_cell, options=opts,
+                   progress=progress, touch=None if isinstance(touch, str) else touch, log=log)
+
+
 def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, limits: str | Path | None = None,
           db: str | None = None, apply: bool = False, cell: str | Path | Cell | None = None,
           operator: str | None = None, options: dict | None = None, touch=None,
@@ -105,41 +152,16 @@ def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, lim
     from station.robot import open_robot
 
     proc = procedure if isinstance(procedure, Procedure) else load_procedure(procedure)
-    lim = load_limits(limits)  # bad files fail before anything moves
-    the_cell = cell if isinstance(cell, Cell) else _optional_cell(cell)
-    if not serial or not str(serial).strip():
-        raise ConfigError("--serial is required: the record is filed under the robot's serial number")
+    load_limits(limits)  # a bad limits file fails before the robot is opened
     robot = robot or open_robot(robot_url)
     try:
-        ident = robot.identity()
-        if ident.serial and ident.serial != str(serial):
-            raise ConfigError(f"the robot reports serial {ident.serial!r}, not {serial!r} (wrong robot? on a bus "
-                              "without device serials set it in the URL: ?serial=SN)")
-        table = lim.for_procedure(robot.model.name, proc.name)
-        opts = {**proc.defaults, **(options or {}), "apply": bool(apply)}
-        if isinstance(touch, str):
-            opts["touch"] = touch
-        sid = new_session_id(proc.name, str(serial))
-        folder = station_home() / "sessions" / sid
-        from station.engine.session import _identity_dict
-
-        header = {
-            "session": sid, "procedure": proc.name, "procedure_path": str(proc.path.resolve()),
-            "procedure_sha256": proc.sha256, "procedure_title": proc.title, "serial": str(serial),
-            "operator": operator or getpass.getuser(), "station": socket.gethostname(), "url": robot_url,
-            "model": robot.model.name, "robot": _identity_dict(ident),
-            "limits": {"path": lim.path, "version": lim.version, "sha256": lim.sha256},
-            "cell": None if the_cell is None else {"path": the_cell.path, "model": the_cell.model,
-                                                   "points": [p.to_dict() for p in the_cell.points.values()]},
-            "options": opts, "db": db, "versions": _versions(),
-        }
-        journal = Journal.create(folder / "journal.jsonl", header)
+        s = create_session(robot, serial, procedure=proc, limits=limits, db=db, apply=apply, cell=cell,
+                           operator=operator, options=options, touch=touch, progress=progress, log=log,
+                           robot_url=robot_url)
     except BaseException:
         robot.close()
         raise
-    s = Session(journal, robot, limits=table, limits_version=lim.version, cell=the_cell, options=opts,
-                progress=progress, touch=None if isinstance(touch, str) else touch, log=log)
-    return _execute(s, proc, db=db, report=report)
+    return _execute(s, proc.checklist, db=db, report=report)
 
 
 def resume(session_ref: str | Path, *, db: str | None = None, touch=None,
@@ -174,7 +196,7 @@ def resume(session_ref: str | Path, *, db: str | None = None, touch=None,
     s = Session(journal, robot, limits=table, limits_version=lim.version, cell=_cell_from_header(header.get("cell")),
                 options=opts, replay=events, progress=progress, touch=touch, log=log)
     s.event({"type": "resume", "samples_kept": len(s.samples()), "events_before": len(events)})
-    return _execute(s, proc, db=db if db is not None else header.get("db"), report=report)
+    return _execute(s, proc.checklist, db=db if db is not None else header.get("db"), report=report)
 
 
 def _install_sigterm():
@@ -190,18 +212,29 @@ def _install_sigterm():
         return None
 
 
-def _execute(s: Session, proc: Procedure, *, db: str | None, report: bool) -> Outcome:
+def _execute(s: Session, body: Callable[[Session], None], *, db: str | None, report: bool,
+             store: bool = True) -> Outcome:
     status, err = "completed", None
     old = _install_sigterm()
     try:
         try:
-            proc.checklist(s)
+            body(s)
         except KeyboardInterrupt as e:
             status, err = "interrupted", e
         except Exception as e:
             status, err = "error", e
-        finally:
-            problems = s.safe_state()  # first: the robot stops whatever the journal can still do
+        return finish(s, status, err, db=db, report=report, store=store)
+    finally:
+        if old is not None:
+            signal.signal(signal.SIGTERM, old)
+
+
+def finish(s: Session, status: str, err: BaseException | None, *, db: str | None, report: bool,
+           store: bool = True) -> Outcome:
+    """Teardown (stop, compliance off) whatever happened, journal the fault and the end, close, then store the
+    record and write the report. Used by the runner and by scripted sessions."""
+    try:
+        problems = s.safe_state()  # first: the robot stops, whatever the journal can still do
         if err is not None:
             s.event({"type": "fault", "step": _failed_step(s), "error": type(err).__name__,
                      "message": str(err) or type(err).__name__, "teardown": problems})
@@ -210,8 +243,6 @@ def _execute(s: Session, proc: Procedure, *, db: str | None, report: bool) -> Ou
         s.event({"type": "end", "status": status,
                  "passed": None if s.verdict is None else bool(s.verdict["passed"])})
     finally:
-        if old is not None:
-            signal.signal(signal.SIGTERM, old)
         with contextlib.suppress(Exception):  # closing a dead connection must not hide the original outcome
             s.robot.close()
         s.journal.close()
@@ -220,8 +251,9 @@ def _execute(s: Session, proc: Procedure, *, db: str | None, report: bool) -> Ou
                   error=err)
     _write_samples_csv(s)
     try:
-        _store(record, db)
-        out.stored = True
+        if store:
+            _store(record, db)
+            out.stored = True
         if report:
             from station.report import write_report
 
