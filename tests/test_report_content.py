@@ -163,3 +163,31 @@ def test_bad_session_is_a_one_line_error(tmp_path, bad):
     with pytest.raises(ReportError, match="session record must be a dict"):
         write_report(bad, tmp_path)
     assert not (tmp_path / "report.html").exists()
+
+
+def test_report_with_the_real_solver_result(session, tmp_path):
+    """Contract check against station.solver: the report's per-pose residuals reproduce the solver's own
+    summary numbers (fit before/after RMS and max, holdout RMS before/after)."""
+    from station.solver import Observations, solve
+
+    s = copy.deepcopy(session)
+    fit = np.array([x["q"] for x in s["samples"] if x["set"] == "fit"])
+    ho = np.array([x["q"] for x in s["samples"] if x["set"] == "holdout"])
+    res = solve(load_model("ur5e"), Observations(fit), identify="offsets", holdout=Observations(ho)).to_dict()
+    s["result"] = json.loads(json.dumps(res))
+    write_report(s, tmp_path)
+    rep = json.loads((tmp_path / "report.json").read_text())
+    pp = rep["residuals"]["per_pose"]
+    b, a, is_fit = np.array(pp["before_m"]), np.array(pp["after_m"]), np.array(pp["set"]) == "fit"
+
+    def rms(x):
+        return math.sqrt(np.mean(x**2))
+
+    r = res["residuals"]
+    assert rms(b[is_fit]) == pytest.approx(r["rms_before_m"], rel=1e-6)
+    assert rms(a[is_fit]) == pytest.approx(r["rms_after_m"], rel=1e-6)
+    assert a[is_fit].max() == pytest.approx(r["max_after_m"], rel=1e-6)
+    assert rms(a[~is_fit]) == pytest.approx(res["holdout"]["rms_m"], rel=1e-6)
+    assert rms(b[~is_fit]) == pytest.approx(res["holdout"]["rms_nominal_m"], rel=1e-6)
+    unid = {u["name"] for u in rep["unidentifiable"]}
+    assert unid == {n for n, p in res["parameters"].items() if not p["identifiable"]}

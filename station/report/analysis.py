@@ -57,7 +57,8 @@ def per_pose_residuals(session: dict, model, arrays: dict) -> dict:
 
     Recomputed from the samples when the model loads (so held-out poses are included): the tip of the
     nominal model (before) and of the calibrated model (after) against the touched reference point (known;
-    or, unknown, the solver's estimate after and the mean nominal touch before, as the solver starts) or, with
+    or, unknown, the solver's estimate after and, for fit poses, the mean nominal touch before, as the solver
+    starts; held-out poses before: vs the estimate, as the solver's ``holdout.rms_nominal_m``) or, with
     an instrument, against the measured point in the instrument frame the solver found. Otherwise taken from
     per-sample arrays in the result (``residuals.per_sample_before_m`` / ``per_sample_after_m``, fit samples
     in order) when the solver provides them."""
@@ -120,7 +121,10 @@ def _recompute(result: dict, model, arrays: dict) -> dict | None:
             else:
                 return None  # the point is neither given nor solved: nothing to compare with
             target_a[m], target_b[m] = pt_a, pt_b
-        source = "recomputed: tip vs reference point (before: nominal model vs mean of its touches)"
+            # held-out poses did not shape the estimate: before = nominal model vs the estimated point
+            target_b[m & ~fit] = pt_a
+        source = ("recomputed: tip vs reference point (before: nominal model vs the mean of its fit touches, "
+                  "held-out poses vs the estimated point)")
     return {"before_m": np.linalg.norm(p_before - target_b, axis=1).tolist(),
             "after_m": np.linalg.norm(p_after - target_a, axis=1).tolist(),
             "set": list(arrays["set"]), "source": source}
