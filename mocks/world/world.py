@@ -127,6 +127,8 @@ class World:
         # joints
         q0 = np.zeros(n) if spec.start is None else np.asarray(spec.start, dtype=float)
         q0 = np.clip(q0, self.lower, self.upper)
+        self._version = 0
+        self._cache: tuple | None = None  # (key, q_joint): FK-free reads while the arm stands still
         self._tracks = [motion.hold(0.0, float(x)) for x in q0]
         self._enabled = np.full(n, bool(spec.enabled))
         self._compliant = False
@@ -219,6 +221,16 @@ class World:
         return self.now() - t0
 
     # ---- joint state --------------------------------------------------------------------------
+    @property
+    def _tracks(self) -> list[motion.Track]:
+        return self.__tracks
+
+    @_tracks.setter
+    def _tracks(self, tracks: list[motion.Track]) -> None:
+        # every change of motion goes through here (lists are replaced, never edited in place)
+        self.__tracks = tracks
+        self._version += 1
+
     def _state(self, t: float | None = None):
         t = self.now() if t is None else t
         st = np.array([tr.state(t) for tr in self._tracks])
@@ -242,8 +254,17 @@ class World:
         """True joint values (encoder + backlash + compliance deflection), SI."""
         with self._lock:
             self._update()
-            q, _, side = self._state()
-            return self._deflect(q, side)
+            return self._joint_q_now()[0].copy()
+
+    def _joint_q_now(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(q_joint, tip)`` now; cached while the arm stands still (emulators poll contact() fast)."""
+        t = self.now()
+        key = (self._version, t if any(t < tr.t_end for tr in self._tracks) else None)
+        if self._cache is None or self._cache[0] != key:
+            q, _, side = self._state(t)
+            qj = self._deflect(q, side)
+            self._cache = (key, qj, self.truth.position(qj))
+        return self._cache[1], self._cache[2]
 
     def _deflect(self, q: np.ndarray, side: np.ndarray) -> np.ndarray:
         qj = q - side * self._backlash / 2
@@ -263,7 +284,8 @@ class World:
     def tip_true(self) -> np.ndarray:
         """TRUE tool tip position (m, base frame)."""
         with self._lock:
-            return self.truth.position(self.joint_q())
+            self._update()
+            return self._joint_q_now()[1].copy()
 
     def tip_pose_true(self) -> np.ndarray:
         with self._lock:
@@ -409,7 +431,9 @@ class World:
             t = self.now()
             for i in self._joints(joints):
                 x, v, side = self._tracks[i].state(t)
-                self._tracks[i] = motion.brake(t, x, v, float(self._amax[i]), side)
+                tracks = list(self._tracks)
+                tracks[i] = motion.brake(t, x, v, float(self._amax[i]), side)
+                self._tracks = tracks
 
     def _set_tracks(self, tracks: list[motion.Track], x_now: np.ndarray) -> None:
         moved = any(abs(tr.x_end - x_now[i]) > 1e-12 or tr.phases for i, tr in enumerate(tracks))
@@ -439,7 +463,9 @@ class World:
                 t = self.now()
                 for i in idx:
                     x, _, side = self._tracks[i].state(t)
-                    self._tracks[i] = motion.hold(t, x, side)
+                    tracks = list(self._tracks)
+                    tracks[i] = motion.hold(t, x, side)
+                    self._tracks = tracks
             self._enabled[idx] = bool(on)
 
     def enabled(self) -> np.ndarray:
@@ -508,8 +534,7 @@ class World:
 
     def _try_seat(self) -> None:
         q, _, side = self._state()
-        qj = self._deflect(q, side)
-        tip = self.truth.position(qj)
+        qj, tip = self._joint_q_now()
         sockets = [p for p in self.points.values() if p.kind == "socket" and p.distance(tip) <= p.radius]
         if not sockets or not self._enabled.any():
             return

@@ -154,7 +154,7 @@ def spec_from_dict(doc, where: str = "<world>") -> WorldSpec:
     if not Path(model_name).is_absolute() and where not in ("<world>",) and not _is_builtin(model_name):
         cand = Path(where).parent / model_name
         if cand.exists():
-            s.model = str(cand)
+            s.model = str(cand.resolve())  # absolute: to_dict() output may be written elsewhere
     try:
         model = load_model(s.model)
     except ModelFileError as e:
