@@ -166,3 +166,24 @@ def test_realtime_mode_follows_scaled_wall_clock():
     assert w.encoder_q()[0] == pytest.approx(d, abs=1e-12)
     with pytest.raises(RuntimeError):
         w.advance(0.1)
+
+
+def test_random_tracks_are_continuous_and_end_on_target():
+    rng = np.random.default_rng(5)
+    for _ in range(300):
+        vmax, amax = rng.uniform(0.1, 3.0), rng.uniform(0.5, 20.0)
+        x0, x1 = rng.uniform(-2, 2, 2)
+        v0 = rng.uniform(-1.5, 1.5) * vmax
+        tr = mo.plan(0.0, x0, v0, x1, vmax, amax)
+        assert tr.x_end == pytest.approx(x1, abs=1e-12)
+        assert all(d >= 0 and abs(a) <= amax * (1 + 1e-12) for d, a in tr.phases)
+        # velocity continuous at every phase boundary and zero at the end
+        t, v = 0.0, v0
+        for d, a in tr.phases:
+            t += d
+            v += a * d
+            assert tr.state(t - 1e-9)[1] == pytest.approx(v, abs=amax * 2e-9 + 1e-9)
+        assert abs(v) < 1e-9
+        # never faster than max(|v0|, vmax)
+        ts = np.linspace(0, tr.t_end, 200)
+        assert max(abs(tr.state(x)[1]) for x in ts) <= max(abs(v0), vmax) + 1e-9

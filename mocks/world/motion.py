@@ -60,28 +60,36 @@ def plan(t0: float, x0: float, v0: float, x1: float, vmax: float, amax: float, s
     """Time-optimal move from ``(x0, v0)`` to rest at ``x1`` with ``|v| <= vmax``, ``|a| <= amax``."""
     if vmax <= 0 or amax <= 0:
         raise ValueError(f"velocity and acceleration limits must be positive (got {vmax}, {amax})")
+    phases = _phases(x0, v0, x1, vmax, amax)
+    tr = Track(t0, x0, v0, phases, side)
+    if not phases:
+        tr.x0 = x1
+    else:  # absorb rounding so that the track ends exactly on the target
+        tr.x0 = x0 + (x1 - tr.x_end)
+    return tr
+
+
+def _phases(x0: float, v0: float, x1: float, vmax: float, amax: float) -> list[tuple[float, float]]:
     phases: list[tuple[float, float]] = []
     d = x1 - x0
     if abs(d) < EPS and abs(v0) < EPS:
-        return Track(t0, x1, 0.0, [], side)
+        return phases
     s = math.copysign(1.0, d) if abs(d) > EPS else math.copysign(1.0, -v0)
     u0 = s * v0  # initial speed towards the target (negative: moving away)
     D = abs(d)
     stop = u0 * u0 / (2 * amax) if u0 > 0 else 0.0
     if u0 < 0 or stop > D + EPS:
         # moving away or cannot stop in time: brake to rest first, then plan again from rest
+        a = -math.copysign(amax, v0)
         tb = abs(v0) / amax
-        phases.append((tb, -math.copysign(amax, v0)))
-        xb = x0 + v0 * tb - 0.5 * math.copysign(amax, v0) * tb * tb
-        rest = plan(t0 + tb, xb, 0.0, x1, vmax, amax, side)
-        return Track(t0, x0, v0, phases + rest.phases, side)
+        xb = x0 + v0 * tb + 0.5 * a * tb * tb
+        return [(tb, a), *_phases(xb, 0.0, x1, vmax, amax)]
     if u0 > vmax:  # over the (new) speed limit: slow down to it first
         t1 = (u0 - vmax) / amax
         phases.append((t1, -s * amax))
         D -= (u0 * u0 - vmax * vmax) / (2 * amax)
         u0 = vmax
-    vp = min(vmax, math.sqrt(amax * D + 0.5 * u0 * u0))
-    vp = max(vp, u0)
+    vp = max(u0, min(vmax, math.sqrt(amax * D + 0.5 * u0 * u0)))
     t_acc = (vp - u0) / amax
     d_acc = (vp * vp - u0 * u0) / (2 * amax)
     d_dec = vp * vp / (2 * amax)
@@ -92,12 +100,7 @@ def plan(t0: float, x0: float, v0: float, x1: float, vmax: float, amax: float, s
         phases.append((t_cruise, 0.0))
     if vp > EPS:
         phases.append((vp / amax, -s * amax))
-    tr = Track(t0, x0, v0, phases, side)
-    # absorb rounding so that the track ends exactly on the target
-    err = x1 - tr.x_end
-    if phases and abs(err) > 0:
-        tr.x0 = x0 + err
-    return tr
+    return phases
 
 
 def brake(t0: float, x0: float, v0: float, amax: float, side: float = 1.0) -> Track:
