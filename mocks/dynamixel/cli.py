@@ -35,10 +35,9 @@ def _save_eeprom(path: Path, images: dict[int, bytes]) -> None:
 def build_emulator(world_file: Path | None, model: str, ids: str | None, baud: int | None, wire_timing: bool,
                    return_delay: int | None, contact_id: str | None, servo: str | None, eeprom: Path | None,
                    seed: int = 0):
-    from station.mocks.dynamixel.emulator import DEFAULT_CONTACT_ID, DynamixelEmulator
+    from station.mocks.dynamixel.emulator import DEFAULT_CONTACT_ID, DynamixelEmulator, parse_id_list
     from station.mocks.world import World, WorldFileError
 
-    from station.robot.registry import parse_ids
 
     try:
         world = World.from_file(world_file) if world_file else World.default(model=model, seed=seed,
@@ -46,7 +45,10 @@ def build_emulator(world_file: Path | None, model: str, ids: str | None, baud: i
     except (WorldFileError, ValueError, OSError) as e:
         raise ConfigError(f"world: {e}") from None
     cfg = world.bus_config("dynamixel")
-    id_list = parse_ids(ids) if ids else (parse_ids(str(cfg["ids"]).strip("[]")) if cfg.get("ids") else None)
+    try:
+        id_list = parse_id_list(ids) if ids else (parse_id_list(cfg["ids"]) if cfg.get("ids") else None)
+    except (ValueError, TypeError):
+        raise ConfigError(f"bad servo id list {ids or cfg.get('ids')!r}: expected e.g. 11-14 or 11,12,13,14") from None
     c = contact_id if contact_id is not None else cfg.get("contact_id", DEFAULT_CONTACT_ID)
     c = None if c is None or str(c).lower() in ("none", "off", "") else int(c)
     try:

@@ -54,6 +54,22 @@ INST_NAMES = {INST_PING: "ping", INST_READ: "read", INST_WRITE: "write", INST_RE
 DEFAULT_CONTACT_ID = 200
 
 
+def parse_id_list(ids) -> list[int]:
+    """``[11, 12]``, ``"11-14"`` or ``"11,12,14"`` -> list of ints (ValueError on anything else)."""
+    if not isinstance(ids, str):
+        return [int(i) for i in ids]
+    out: list[int] = []
+    for part in (p.strip() for p in ids.split(",")):
+        if "-" in part:
+            lo, hi = (int(x) for x in part.split("-", 1))
+            if hi < lo:
+                raise ValueError(f"bad id range {part!r}")
+            out.extend(range(lo, hi + 1))
+        elif part:
+            out.append(int(part))
+    return out
+
+
 def _u16(b: bytes, i: int) -> int:
     return b[i] | (b[i + 1] << 8)
 
@@ -122,12 +138,7 @@ class DynamixelEmulator:
             with contextlib.suppress(Exception):
                 cfg = self.world.bus_config("dynamixel")
         if isinstance(cfg, dict) and cfg.get("ids"):
-            ids = cfg["ids"]
-            if isinstance(ids, str):
-                from station.robot.registry import parse_ids
-
-                ids = parse_ids(ids)
-            return list(ids)
+            return parse_id_list(cfg["ids"])
         return list(range(1, n + 1))
 
     # ---- lifecycle ----------------------------------------------------------------------------
@@ -204,7 +215,7 @@ class DynamixelEmulator:
     def _wait_wire(self, t_rx: float, packet: pk.Packet, replies: list[tuple[Device, bytes]]) -> None:
         per_byte = 10.0 / self.baud()
         delay = len(packet.raw) * per_byte
-        for dev, data in replies:
+        for dev, data in replies:  # a fast sync/bulk read is one reply: one return delay, then back-to-back
             delay += dev.get("return_delay_time") * 2e-6 + len(data) * per_byte
         deadline = t_rx + delay
         while True:

@@ -1,0 +1,75 @@
+"""``station mock dynamixel`` as a process: prints a pty path the real SDK opens; EEPROM file = power cycle."""
+
+from __future__ import annotations
+
+import json
+import select
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from station.mocks.world import World
+
+from station.robot import open_robot
+
+STATION = [sys.executable, "-c", "from station.cli import main; main()"]
+
+
+def _start(*args: str) -> tuple[subprocess.Popen, str]:
+    proc = subprocess.Popen([*STATION, "mock", "dynamixel", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    ready, _, _ = select.select([proc.stdout], [], [], 30)
+    if not ready:
+        proc.kill()
+        proc.wait()
+        pytest.fail("station mock dynamixel printed nothing within 30 s")
+    path = proc.stdout.readline().strip()
+    return proc, path
+
+
+def _stop(proc: subprocess.Popen) -> int:
+    proc.send_signal(signal.SIGTERM)
+    try:
+        return proc.wait(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_process_serves_world_file_and_keeps_eeprom_across_restarts(tmp_path: Path):
+    world = World.default(model="omx", seed=11, start=[0.3, -0.4, 0.5, -0.2], time_mode="realtime")
+    wfile = tmp_path / "world.yaml"
+    wfile.write_text(yaml.safe_dump(world.to_dict()))
+    truth = World.from_file(wfile).encoder_q()
+    eeprom = tmp_path / "eeprom.json"
+    proc, path = _start("--world", str(wfile), "--ids", "21-24", "--eeprom", str(eeprom))
+    try:
+        assert path.startswith("/dev/pts/")
+        with open_robot(f"dynamixel://{path}?ids=21-24&model=omx&contact=200") as robot:
+            snap = robot.joint_positions()
+            tick = 1 / world.nominal.joints[0].encoder.counts_per_unit
+            assert np.all(np.abs(snap.q - truth) <= tick / 2 + 1e-12)
+            robot.write_calibration({"offset.j3": 0.05})
+            written = robot.read_calibration()
+    finally:
+        assert _stop(proc) == 0
+    assert json.loads(eeprom.read_text())["format"] == "station-dxl-eeprom/1"
+    proc, path = _start("--world", str(wfile), "--ids", "21-24", "--eeprom", str(eeprom))
+    try:
+        with open_robot(f"dynamixel://{path}?ids=21-24&model=omx") as robot:
+            assert robot.read_calibration() == written
+    finally:
+        assert _stop(proc) == 0
+
+
+def test_bad_arguments_exit_2_with_one_line():
+    proc = subprocess.run([*STATION, "mock", "dynamixel", "--ids", "1-3"], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().startswith("station: error:") and "one id per joint" in proc.stderr
+    assert proc.stdout == ""
