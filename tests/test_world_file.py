@@ -20,7 +20,10 @@ def _doc(**sections):
 def test_explicit_errors_in_file_units():
     w = World.from_dict(_doc(errors={"explicit": {"offset.j2": 0.05, "dh.j3.a": 0.3, "tcp.z": -1.5}}))
     h = w.hidden()
-    assert set(h) == {"offset.j2", "dh.j3.a", "tcp.z"}
+    assert set(h) == {"dh.j3.a", "tcp.z"} | {f"offset.j{i}" for i in range(1, 7)}  # offsets always listed
+    assert set(w.errors()) == {"offset.j2", "dh.j3.a", "tcp.z"}
+    assert h["offset.j1"] == 0.0
+    np.testing.assert_allclose(w.true_offsets(), [0, math.radians(0.05), 0, 0, 0, 0])
     assert h["offset.j2"] == pytest.approx(math.radians(0.05))
     assert h["dh.j3.a"] == pytest.approx(w.nominal.param("dh.j3.a") + 0.3e-3)
     assert h["tcp.z"] == pytest.approx(-1.5e-3)

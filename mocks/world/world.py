@@ -591,8 +591,14 @@ class World:
         return dict(self._errors)
 
     def hidden(self) -> dict[str, float]:
-        """TRUE values of every perturbed parameter (SI); ``offset.jN`` are the true zero offsets."""
-        return {n: self.truth.param(n) for n in self._errors}
+        """TRUE values of every perturbed parameter (SI), and always every ``offset.jN`` (the true zero
+        offsets, 0.0 where not perturbed)."""
+        names = [n for n in self.truth.param_names if n in self._errors or n.startswith("offset.j")]
+        return {n: self.truth.param(n) for n in names}
+
+    def true_offsets(self) -> np.ndarray:
+        """True zero offsets ``(n,)`` (SI): ``theta_i = q_i + offset_i`` on the true robot."""
+        return np.array([self.truth.param(f"offset.j{i + 1}") for i in range(self.n_joints)])
 
     def truth_report(self, length: str = "mm", angle: str = "deg") -> str:
         """Human-readable hidden truth: every perturbed parameter, the cell points, the mechanics."""
