@@ -119,6 +119,11 @@ def test_sync_fast_bulk_read_and_writes(bus):
     assert br.txRxPacket() == sdk.COMM_SUCCESS
     assert br.getData(11, 132, 4) == expect[0] + 100  # instant world: the move is done
     assert br.getData(12, 65, 1) == 1
+    fb = sdk.GroupBulkRead(port, ph)
+    fb.addParam(13, 132, 4)
+    fb.addParam(200, 128, 1)  # the contact sensor answers in the same fast bulk read
+    assert fb.fastBulkRead() == sdk.COMM_SUCCESS
+    assert fb.getData(13, 132, 4) == expect[2] and fb.getData(200, 128, 1) == int(world.contact())
     assert abs(world.encoder_q()[0] - enc[0].to_si(expect[0] + 100)) < 1e-9
 
 
