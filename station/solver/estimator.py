@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
 from station.solver.identifiability import RTOL, RankAnalysis, analyse
 from station.solver.observations import Observations, SolverInputError
@@ -56,22 +57,21 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
             f"{len(obs)} samples give {m} equations for {p} unknowns ({len(names)} model parameters"
             f"{', instrument frame' if prob.frame_unknown else ''}, {len(prob.unknown_points)} unknown point(s)); "
             f"need at least {p // 3 + 1} samples, ~20 well spread poses recommended")
-    k = distinct_poses(obs.q)
+    k = distinct_poses(obs.q, limit=p // 3 + 1)
     if 3 * k <= p:
         raise SolverInputError(
             f"only {k} distinct pose(s) among {len(obs)} samples (readings within {POSE_TOL * 1e3:g} mrad/um count as "
             f"one): {3 * k} equations for {p} unknowns; move the robot between touches")
     x = prob.initial()
-    r_before = prob.residual(x)
     x_start = x.copy()
     r, J = prob.residual_jacobian(x)
+    r_before = r
     ana = _analyse(prob, J, x, noise or 0.0, max_std, r)
     iterations, converged = 0, False
     for _ in range(4):
         act = ana.accepted
-        x, it, converged = _levenberg_marquardt(prob, x, act, max_iter)
+        x, r, J, it, converged = _levenberg_marquardt(prob, x, act, max_iter, (r, J))
         iterations += it
-        r, J = prob.residual_jacobian(x)
         dof = m - len(act)
         sigma = math.sqrt(float(r @ r) / dof)
         new = _analyse(prob, J, x, noise if noise is not None else sigma, max_std, r)
@@ -80,6 +80,7 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
             break
         dropped = [j for j in act if j not in new.accepted]
         x[dropped] = x_start[dropped]  # back to nominal: never keep numbers for an unseen direction
+        r, J = prob.residual_jacobian(x)
         ana = new
     return _result(model, prob, x, r, J, r_before, ana, iterations, converged, holdout,
                    dict(identify=identify if isinstance(identify, str) else ",".join(identify),
@@ -88,14 +89,16 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
                         max_iter=max_iter, estimator="Levenberg-Marquardt on analytic Jacobian"))
 
 
-def distinct_poses(q: np.ndarray, tol: float | None = None) -> int:
-    """Number of joint configurations that differ by more than ``tol`` in some joint (greedy clustering):
-    repeating one pose adds no information about the geometry."""
+def distinct_poses(q: np.ndarray, tol: float | None = None, limit: int | None = None) -> int:
+    """Number of joint configurations that differ by more than ``tol`` in some joint (greedy clustering;
+    counting stops at ``limit``): repeating one pose adds no information about the geometry."""
     tol = POSE_TOL if tol is None else tol
-    reps: list[np.ndarray] = []
+    reps = np.zeros((0, q.shape[1]))
     for row in q:
-        if not reps or np.min(np.max(np.abs(np.array(reps) - row), axis=1)) > tol:
-            reps.append(row)
+        if not len(reps) or np.min(np.max(np.abs(reps - row), axis=1)) > tol:
+            reps = np.vstack([reps, row])
+            if limit is not None and len(reps) >= limit:
+                break
     return len(reps)
 
 
@@ -107,37 +110,51 @@ def _analyse(prob: Problem, J, x, sigma, max_std, r) -> RankAnalysis:
                    n_joints=len(joints), first_revolute=joints[0].revolute, last_revolute=joints[-1].revolute)
 
 
-def _levenberg_marquardt(prob: Problem, x, act, max_iter) -> tuple[np.ndarray, int, bool]:
-    """Undamped Gauss-Newton steps while they reduce the cost; Marquardt damping otherwise."""
+def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ):
+    """Undamped Gauss-Newton steps while they reduce the cost; Marquardt damping otherwise. Stops when a
+    step is below 1e-4 of the parameters' standard deviations (statistically nothing) or below XTOL, or
+    the cost stops decreasing. Returns ``x, r, J, iterations, converged``."""
     x = x.copy()
+    r, J = rJ
     if not act:
-        return x, 0, True
+        return x, r, J, 0, True
     D = prob.scale[act]
-    r, J = prob.residual_jacobian(x)
     cost = float(r @ r)
+    dof = max(r.size - len(act), 1)
+    eye = np.eye(len(act))
     lam = 0.0
     for it in range(1, max_iter + 1):
         Js = J[:, act] * D
-        if lam == 0.0:
-            du = np.linalg.lstsq(Js, -r, rcond=None)[0]
-        else:
-            A = np.vstack([Js, math.sqrt(lam) * np.eye(len(act))])
-            du = np.linalg.lstsq(A, np.concatenate([-r, np.zeros(len(act))]), rcond=None)[0]
+        # normal equations on the column-scaled, full-rank (after the rank analysis) Jacobian: cond(J)^2
+        # stays far from 1/eps, and any error in a step is corrected by the next iteration
+        H = Js.T @ Js
+        g = Js.T @ r
+        try:
+            c = cho_factor(H + lam * eye)
+            du = -cho_solve(c, g)
+            std_u = np.sqrt(cost / dof * np.diag(cho_solve(c, eye)))
+        except (LinAlgError, np.linalg.LinAlgError):
+            du = -np.linalg.lstsq(H + lam * eye, g, rcond=None)[0]
+            std_u = np.full(len(act), np.inf)
         x_new = x.copy()
         x_new[act] += D * du
+        step = float(np.max(np.abs(du)))
+        if lam == 0.0 and (step < XTOL or np.all(np.abs(du) < 1e-4 * std_u)):
+            # the step is statistically nothing: take it, the Jacobian does not change over it
+            return x_new, prob.residual(x_new), J, it, True
         r_new, J_new = prob.residual_jacobian(x_new)
         cost_new = float(r_new @ r_new)
         if cost_new <= cost:
-            small = np.max(np.abs(du)) < XTOL or cost - cost_new <= FTOL * cost
+            small = cost - cost_new <= FTOL * cost
             x, r, J, cost = x_new, r_new, J_new, cost_new
-            lam = 0.0 if lam < 1e-9 else lam / 10.0
+            lam = 0.0 if lam < 1e-9 * float(np.max(np.diag(H))) else lam / 10.0
             if small:
-                return x, it, True
+                return x, r, J, it, True
         else:
-            if np.max(np.abs(du)) < XTOL:
-                return x, it, True  # at the minimum within rounding
-            lam = max(lam * 10.0, 1e-6 * float(np.max(np.sum(Js * Js, axis=0))))
-    return x, max_iter, False
+            if step < XTOL:
+                return x, r, J, it, True  # at the minimum within rounding
+            lam = max(lam * 10.0, 1e-6 * float(np.max(np.diag(H))))
+    return x, r, J, max_iter, False
 
 
 def _ref_setting(reference):
@@ -161,8 +178,7 @@ def _result(model, prob: Problem, x, r, J, r_before, ana: RankAnalysis, iteratio
     std = np.full(prob.n_unknowns, np.nan)
     if act:
         Js = J[:, act] * prob.scale[act]
-        _, s, Vt = np.linalg.svd(Js, full_matrices=False)
-        cov_u = (Vt.T / s**2) @ Vt * sigma**2
+        cov_u = np.linalg.inv(Js.T @ Js) * sigma**2
         cov = cov_u * np.outer(prob.scale[act], prob.scale[act])
         std[act] = np.sqrt(np.diag(cov))
     params: dict[str, ParameterEstimate] = {}

@@ -76,34 +76,42 @@ def analyse(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float 
     dep = [j for j in range(p) if j not in accepted]
     if dep:
         A = Js[:, accepted]
-        for j in dep:
-            rejected[j] = _reason(j, Js, A, accepted, names, kinds, norms, tau_struct, weak.get(j), sigma,
+        # each dependent column as a combination of the accepted ones (its null-space vector)
+        # (normal equations: A has full column rank by construction; the coefficients only rank partners)
+        coef = np.linalg.solve(A.T @ A, A.T @ Js[:, dep]) if accepted else np.zeros((0, len(dep)))
+        for c, j in enumerate(dep):
+            rejected[j] = _reason(j, coef[:, c], accepted, names, kinds, norms, tau_struct, weak.get(j), sigma,
                                   max_std, j == scale_hit, n_joints, first_revolute, last_revolute)
-    s = np.linalg.svd(Js[:, accepted], compute_uv=False) if accepted else np.zeros(0)
+    s = singular_values(Js[:, accepted]) if accepted else np.zeros(0)
     r = len(accepted)
     cond = float(s[0] / s[-1]) if r and s[-1] > 0 else None
     o1 = float(np.exp(np.mean(np.log(s))) / np.sqrt(m)) if r and s[-1] > 0 else None
     return RankAnalysis(sorted(accepted), rejected, r, cond, o1, s)
 
 
-def _coefficients(A: np.ndarray, c: np.ndarray) -> np.ndarray:
-    if A.shape[1] == 0:
-        return np.zeros(0)
-    return np.linalg.lstsq(A, c, rcond=None)[0]
+def singular_values(A: np.ndarray) -> np.ndarray:
+    """Singular values of a tall full-rank ``A``, descending, from the small Gram matrix (relative accuracy
+    ~ eps * cond^2, ample for the condition numbers that pass the rank analysis)."""
+    ev = np.linalg.eigvalsh(A.T @ A)[::-1]
+    return np.sqrt(np.maximum(ev, 0.0))
 
 
 def _greedy(Js, order, tau_struct, tau_noise) -> tuple[list[int], dict[int, float]]:
-    Q = np.zeros((Js.shape[0], 0))
+    cols = np.ascontiguousarray(Js.T)
+    Q = np.zeros((len(order), Js.shape[0]))  # accepted orthonormal directions as rows
+    k = 0
     accepted: list[int] = []
     weak: dict[int, float] = {}
     for j in order:
-        c = Js[:, j]
-        res = c - Q @ (Q.T @ c)
-        res = res - Q @ (Q.T @ res)
-        nr = float(np.linalg.norm(res))
+        c = cols[j]
+        Qk = Q[:k]
+        res = c - (Qk @ c) @ Qk
+        res = res - (Qk @ res) @ Qk  # twice is enough (Kahan-Parlett)
+        nr = float(np.sqrt(res @ res))
         if nr > max(tau_struct, tau_noise):
             accepted.append(j)
-            Q = np.column_stack([Q, res / nr])
+            Q[k] = res / nr
+            k += 1
         elif nr > tau_struct:
             weak[j] = nr
     return accepted, weak
@@ -118,7 +126,7 @@ def _scale_invisible(Js, scale_dir, residual) -> bool:
     return bool(np.linalg.norm(Js @ scale_dir - residual) <= 1e-6 * ref)
 
 
-def _reason(j, Js, A, accepted, names, kinds, norms, tau_struct, weak_norm, sigma, max_std, scale_hit, n_joints,
+def _reason(j, a, accepted, names, kinds, norms, tau_struct, weak_norm, sigma, max_std, scale_hit, n_joints,
             first_revolute, last_revolute) -> str:
     name = names[j]
     if scale_hit:
@@ -129,7 +137,6 @@ def _reason(j, Js, A, accepted, names, kinds, norms, tau_struct, weak_norm, sigm
         return f"the TCP lies on the axis of joint {n_joints}: rotating it does not move the tool tip"
     if norms[j] <= tau_struct:
         return "changing it does not move the tool tip in any of these poses"
-    a = _coefficients(A, Js[:, j])
     contrib = np.abs(a) * norms[accepted]
     order = np.argsort(-contrib)
     partners = [names[accepted[k]] for k in order if contrib[k] > 0.2 * contrib.max()][:4]

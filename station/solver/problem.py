@@ -13,6 +13,7 @@ from station.kinematics import se3
 from station.kinematics.chain import RX, RY, RZ
 from station.solver.observations import Observations, SolverInputError
 
+_NONE = np.zeros(0, dtype=int)
 BASE6 = ("base.x", "base.y", "base.z", "base.rz", "base.ry", "base.rx")
 
 
@@ -22,10 +23,10 @@ def angle_params(model) -> set[str]:
     return {model.param_names[p] for p, ax in zip(ch.param, ch.axis, strict=True) if p >= 0 and ax in (RX, RY, RZ)}
 
 
-def characteristic_length(model) -> float:
+def characteristic_length(model, ang: set[str] | None = None) -> float:
     """Sum of the model's translation parameters (link lengths, tool) without the base: an upper bound
     of the reach. Angles are scaled by it so that rank decisions compare metres with metres."""
-    ang = angle_params(model)
+    ang = angle_params(model) if ang is None else ang
     total = sum(abs(v) for n, v in zip(model.param_names, model.params, strict=True)
                 if n not in ang and not n.startswith(("base.", "offset.")))
     return max(float(total), 0.1)
@@ -46,6 +47,7 @@ class Problem:
             names += [b for b in BASE6 if b not in names]
         self.model_names = names
         self.model_idx = np.array([model.index(n) for n in names], dtype=int)
+        self._want = element_columns(model.chain, self.model_idx)
         self.kinds = ["instrument" if self.frame_unknown and n.startswith("base.") else "model" for n in names]
         ang = angle_params(model)
         self.units = ["rad" if n in ang else "m" for n in names]
@@ -78,7 +80,7 @@ class Problem:
             self.target_fixed = obs.measured
         else:
             self.target_fixed = np.array([self.known.get(lb, np.zeros(3)) for lb in obs.point])
-        L = characteristic_length(model)
+        L = characteristic_length(model, ang)
         self.length = L
         self.scale = np.array([L if u == "rad" else 1.0 for u in self.units])
         self.x_nominal = np.concatenate([model.params[self.model_idx], np.zeros(len(self.point_names))])
@@ -102,7 +104,7 @@ class Problem:
         """Nominal model; unknown points at the mean nominal tip position of their touches; instrument
         frame by rigid registration (Kabsch) of nominal tip positions onto the measurements."""
         x = self.x_nominal.copy()
-        P = self.model.position(self.obs.q)
+        P = position_jacobian(self.model.chain, self.obs.q, self.model.params, _NONE)[0]
         if self.frame_unknown:
             T0 = np.eye(4)
             T0[:3, :3], T0[:3, 3] = _kabsch(P, self.obs.measured)
@@ -117,16 +119,22 @@ class Problem:
             x[self.n_model + 3 * i: self.n_model + 3 * i + 3] = P[self.obs.point == lb].mean(axis=0)
         return x
 
-    def residual(self, x: np.ndarray) -> np.ndarray:
-        P = self.model.position(self.obs.q, self.full_params(x))
+    def residual(self, x: np.ndarray, fused: bool = True) -> np.ndarray:
+        """Stacked residual (3N,). ``fused=False`` evaluates it through the kinematics layer's public
+        ``Model.position`` instead of the solver's fused chain pass (same numbers; used as the baseline in
+        bench/solver.py)."""
+        if fused:
+            P = position_jacobian(self.model.chain, self.obs.q, self.full_params(x), _NONE, {})[0]
+        else:
+            P = self.model.position(self.obs.q, self.full_params(x))
         return (P - self._targets(x)).ravel()
 
     def residual_jacobian(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        T, _, Jp = self.model.jacobians(self.obs.q, self.full_params(x))
-        N = T.shape[0]
-        r = (T[:, :3, 3] - self._targets(x)).ravel()
+        P, Jm = position_jacobian(self.model.chain, self.obs.q, self.full_params(x), self.model_idx, self._want)
+        N = P.shape[0]
+        r = (P - self._targets(x)).ravel()
         J = np.zeros((3 * N, self.n_unknowns))
-        J[:, : self.n_model] = Jp[:, :3, self.model_idx].reshape(3 * N, -1)
+        J[:, : self.n_model] = Jm.reshape(3 * N, -1)
         rows = np.flatnonzero(self.slot >= 0)
         for a in range(3):
             J[3 * rows + a, self.n_model + 3 * self.slot[rows] + a] = -1.0
@@ -148,6 +156,80 @@ class Problem:
             if n.startswith("offset.") and self.units[i] == "m":
                 v[i] = 0.0  # a prismatic offset is a zero reading, not a length of the machine
         return v
+
+
+def position_jacobian(chain, q: np.ndarray, params: np.ndarray, param_idx: np.ndarray, want: dict | None = None):
+    """Tool positions ``(N, 3)`` and ``d position / d params[param_idx]`` ``(N, 3, k)``.
+
+    The same chain semantics as ``station.kinematics.chain.forward`` (``T <- T E_k``, each element a
+    translation along or rotation about a local axis), but only position rows and only the requested
+    parameters, in a (3, ., N) memory layout, with runs of pose-independent elements multiplied once as
+    4x4 matrices: the identification Jacobian costs about one forward kinematics evaluation.
+    ``tests/test_solver_problem.py`` checks it against ``Model.jacobians`` and finite differences."""
+    q = np.atleast_2d(q)
+    N, K = q.shape[0], chain.n_elements
+    if want is None:
+        want = element_columns(chain, param_idx)
+    v = chain.values(q, params)  # (N, K)
+    R = np.zeros((3, 3, N))  # R[:, c] = column c of the rotation (world axis c of the current frame)
+    R[0, 0] = R[1, 1] = R[2, 2] = 1.0
+    p = np.zeros((3, N))
+    moving = chain.joint >= 0
+    J = np.zeros((N, 3, len(param_idx)))
+    C = None  # pending product of pose-independent elements
+    pending: list[tuple[int, np.ndarray, np.ndarray]] = []  # rotation columns: w x (tool - o) at the end
+    for k in range(K):
+        ax = int(chain.axis[k])
+        if C is not None and (moving[k] or k in want):
+            p = p + np.einsum("abn,b->an", R, C[:3, 3])
+            R = np.einsum("abn,bc->acn", R, C[:3, :3])
+            C = None
+        if k in want:  # R and p are replaced, never modified in place, so views stay valid
+            if ax >= 3:
+                pending.append((want[k], R[:, ax - 3], p))
+            else:
+                J[:, :, want[k]] = R[:, ax].T
+        if not moving[k]:
+            val = v[0, k]
+            if val != 0.0:
+                E = _elementary(ax, val)
+                C = E if C is None else C @ E
+            continue
+        vk = v[:, k]
+        if ax < 3:
+            p = p + vk * R[:, ax]
+        else:
+            i, j = {RX: (1, 2), RY: (2, 0), RZ: (0, 1)}[ax]
+            c, s = np.cos(vk), np.sin(vk)
+            R = R.copy()
+            ci = R[:, i].copy()
+            R[:, i] = c * ci + s * R[:, j]
+            R[:, j] = -s * ci + c * R[:, j]
+    if C is not None:
+        p = p + np.einsum("abn,b->an", R, C[:3, 3])
+    for col, w, o in pending:
+        d = p - o
+        J[:, 0, col] = w[1] * d[2] - w[2] * d[1]
+        J[:, 1, col] = w[2] * d[0] - w[0] * d[2]
+        J[:, 2, col] = w[0] * d[1] - w[1] * d[0]
+    return p.T.copy(), J
+
+
+def _elementary(ax: int, val: float) -> np.ndarray:
+    E = np.eye(4)
+    if ax < 3:
+        E[ax, 3] = val
+        return E
+    i, j = {RX: (1, 2), RY: (2, 0), RZ: (0, 1)}[ax]
+    c, s = np.cos(val), np.sin(val)
+    E[i, i], E[i, j], E[j, i], E[j, j] = c, -s, s, c
+    return E
+
+
+def element_columns(chain, param_idx) -> dict[int, int]:
+    """Chain element -> Jacobian column for the parameters ``param_idx``."""
+    elem_of = {int(pi): k for k, pi in enumerate(chain.param) if pi >= 0}
+    return {elem_of[int(i)]: col for col, i in enumerate(param_idx)}
 
 
 def _base_matrix(vals) -> np.ndarray:

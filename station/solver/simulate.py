@@ -47,14 +47,19 @@ def touch_observations(truth, points: dict[str, np.ndarray], n_per_point: int, r
         qs.append(q)
         labels += [label] * len(q)
     q = np.vstack(qs)
+    targets = np.array([points[lb] for lb in labels], dtype=float)
     if noise > 0:
-        _, Jq, _ = truth.jacobians(q)
-        dp = rng.normal(0.0, noise, size=(len(q), 3))
-        # the robot rests where the tip is off by dp: move the joints so the true tip is at point + dp
-        q = q + np.einsum("nij,nj->ni", np.linalg.pinv(Jq[:, :3]), dp)
-        # one Newton correction to land exactly (noise is tiny, this is to second order)
-        P = truth.position(q)
-        tgt = np.vstack([np.broadcast_to(points[lb], (1, 3)) for lb in labels]) + dp
-        _, Jq, _ = truth.jacobians(q)
-        q = q + np.einsum("nij,nj->ni", np.linalg.pinv(Jq[:, :3]), tgt - P)
+        q = noisy_q(truth, q, targets, noise, rng)
     return Observations(q, np.array(labels, dtype=object))
+
+
+def noisy_q(truth, q: np.ndarray, targets: np.ndarray, noise: float, rng: np.random.Generator) -> np.ndarray:
+    """Joint readings of touches that land ``N(0, noise^2 I)`` away from ``targets``: the tip error is
+    drawn in space and mapped to the joints through the joint Jacobian pseudo-inverse, then one Newton
+    correction puts the true tip exactly at ``target + dp``."""
+    dp = rng.normal(0.0, noise, size=(len(q), 3))
+    _, Jq, _ = truth.jacobians(q)
+    q = q + np.einsum("nij,nj->ni", np.linalg.pinv(Jq[:, :3]), dp)
+    P = truth.position(q)
+    _, Jq, _ = truth.jacobians(q)
+    return q + np.einsum("nij,nj->ni", np.linalg.pinv(Jq[:, :3]), targets + dp - P)
