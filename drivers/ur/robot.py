@@ -138,12 +138,18 @@ class URRobot:
         try:
             self._r = rtde_receive.RTDEReceiveInterface(self.host, -1.0, RECV_VARIABLES)
         except Exception as e:
+            self._dash.close()
             raise ConnectionLost(f"ur://{self.host}: RTDE (port 30004) connection failed: {e}") from None
         try:
             self._c = rtde_control.RTDEControlInterface(self.host)
         except Exception as e:
             self._r.disconnect()
             self._r = None
+            self._dash.close()
+            if "already in use" in str(e):
+                raise BusError(f"ur://{self.host}: another RTDE client already controls this robot (input "
+                               "registers in use); close it, or disable EtherNet/IP, PROFINET and MODBUS units "
+                               "on the controller") from None
             raise ConnectionLost(f"ur://{self.host}: RTDE control (script upload on 30003) failed: {e}") from None
         self._last_ts = None
         self._watchdog_armed = False
@@ -270,15 +276,16 @@ class URRobot:
                                   "serial": self.serial},), url=self.url)
 
     def joint_positions(self) -> JointSnapshot:
-        """One RTDE package: actual_q with that package's controller timestamp (always a package newer
-        than the previous snapshot; none within ``stale_timeout`` -> BusError and a stopped robot)."""
+        """actual_q of one RTDE package produced after this call began, with that package's controller
+        timestamp (waits at most one 2 ms cycle). None within ``stale_timeout`` -> BusError, robot stopped."""
         self._check_link()
         t0 = time.monotonic()
+        ts_entry = self._r.getTimestamp()
         while True:
             ts1 = self._r.getTimestamp()
             q = self._r.getActualQ()
             ts2 = self._r.getTimestamp()
-            if ts1 == ts2 and ts1 != self._last_ts:
+            if ts1 == ts2 and ts1 != ts_entry:
                 break
             if time.monotonic() - t0 > self.stale_timeout:
                 self._check_link()

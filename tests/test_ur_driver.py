@@ -1,0 +1,256 @@
+"""ur:// driver against the UR emulator process: the real ur_rtde on loopback sockets, truth from the world file.
+
+Each test starts its own ``station mock ur`` process on its own loopback address (ur_rtde's port 30004 is
+fixed) and builds the same World from the same file to know the hidden truth."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import yaml
+from station.mocks.ur.process import EmulatorProcess
+from station.mocks.world import World, default_doc
+
+from station.robot import BusError, ConnectionLost, LimitError, SafetyStop, open_robot
+
+START = [0.1, -1.45, 1.6, -1.72, -1.5708, 0.2]
+
+
+def world_file(tmp_path, seed: int = 7, serial: str = "20235512345", start=START, name: str = "world.yaml"):
+    doc = default_doc("ur5e", seed=seed)
+    doc["motion"].update(time_mode="sim", start=list(start))  # the controller's 2 ms cycle drives the world
+    doc["buses"] = {"ur": {"serial": serial}}
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(doc))
+    return path, World.from_file(path)
+
+
+@pytest.fixture
+def emulator(request):
+    """Factory: start an emulator for a world file; every one is terminated at teardown."""
+    procs: list[EmulatorProcess] = []
+
+    def start(path) -> EmulatorProcess:
+        emu = EmulatorProcess(world=path)
+        procs.append(emu)
+        return emu.start()
+
+    yield start
+    for emu in procs:
+        emu.stop()
+
+
+@pytest.fixture
+def robots():
+    opened = []
+
+    def open_(url: str):
+        r = open_robot(url)
+        opened.append(r)
+        return r
+
+    yield open_
+    for r in opened:
+        r.close()
+
+
+def commands_seen(emu: EmulatorProcess) -> list[int]:
+    """Command ids the controller received in input_int_register_0 (emulator-only read-back)."""
+    reply = emu.dashboard("emulator registers")
+    return [int(c) for c in reply.split("(tick, command)")[1].replace("(", "").replace(")", "").replace("[", "")
+            .replace("]", "").split(",")[1::2] if c.strip()]
+
+
+def test_connect_reads_hidden_truth_and_nominal_tcp(tmp_path, emulator, robots):
+    path, world = world_file(tmp_path)
+    emu = emulator(path)
+    robot = robots(f"ur://{emu.host}?model=ur5e")
+    ident = robot.identity()
+    assert ident.serial == "20235512345" and "5.11" in ident.firmware and ident.vendor == "Universal Robots"
+    s1 = robot.joint_positions()
+    s2 = robot.joint_positions()
+    # joints: the world's encoders, bit-exact through RTDE doubles
+    np.testing.assert_array_equal(s1.q, world.encoder_q())
+    assert s1.raw_unit == "rad" and s2.t_device > s1.t_device > 0
+    # the controller reports actual_TCP_pose from its NOMINAL model; the truth differs by the hidden errors
+    pose = robot.tcp_pose()
+    np.testing.assert_allclose(pose[:3], world.nominal.position(s1.q), atol=1e-12)
+    assert np.linalg.norm(world.truth.position(s1.q) - pose[:3]) > 1e-4
+    assert robot.read_calibration() == {f"offset.j{i}": 0.0 for i in range(1, 7)}
+    st = robot.status()
+    assert st.ok and st.enabled and not st.moving and not st.compliant and len(st.joints) == 6
+
+
+def test_movej_reaches_target_and_limits_refuse(tmp_path, emulator, robots):
+    path, world = world_file(tmp_path)
+    emu = emulator(path)
+    robot = robots(f"ur://{emu.host}")
+    q0 = robot.joint_positions().q
+    target = q0 + np.array([0.2, -0.1, 0.15, 0.05, -0.1, 0.3])
+    t0 = time.monotonic()
+    robot.move_joints(target, speed=1.0)
+    assert time.monotonic() - t0 > 0.25  # moves take time on the controller's clock (0.3 rad at 1 rad/s)
+    np.testing.assert_allclose(robot.joint_positions().q, target, atol=1e-9)
+    encoder = np.array([float(x) for x in emu.dashboard("emulator encoder").split()[1:]])
+    np.testing.assert_allclose(encoder, target, atol=1e-9)
+    bad = target.copy()
+    bad[1] = 7.0  # beyond +-360 deg
+    with pytest.raises(LimitError, match="outside its limits"):
+        robot.move_joints(bad)
+    with pytest.raises(LimitError, match="speed"):
+        robot.move_joints(q0, speed=10.0)
+    with pytest.raises(LimitError):
+        robot.move_joints(np.full(6, np.nan))
+    np.testing.assert_allclose(robot.joint_positions().q, target, atol=1e-9)  # nothing moved
+    assert not robot.status().moving
+
+
+def test_speed_jogs_use_speedj_and_speedl_and_cap_tool_speed(tmp_path, emulator, robots):
+    path, world = world_file(tmp_path)
+    emu = emulator(path)
+    robot = robots(f"ur://{emu.host}")
+    q0 = robot.joint_positions().q
+    robot.jog("joint", 0, 0.05, speed=0.3)
+    q1 = robot.joint_positions().q
+    np.testing.assert_allclose(q1, q0 + np.array([0.05, 0, 0, 0, 0, 0]), atol=1e-9)
+    assert 9 in commands_seen(emu)  # SPEEDJ reached the controller's script
+    p1 = world.nominal.position(q1)
+    robot.jog("cartesian", 2, 0.004, speed=0.05)  # +4 mm along base z
+    p2 = world.nominal.position(robot.joint_positions().q)
+    np.testing.assert_allclose(p2 - p1, [0, 0, 0.004], atol=1e-6)
+    assert 10 in commands_seen(emu)  # SPEEDL
+    q2 = robot.joint_positions().q
+    with pytest.raises(LimitError, match="speed"):
+        robot.jog("cartesian", 0, 0.01, speed=0.3)  # above the 0.25 m/s manual cap
+    with pytest.raises(LimitError):
+        robot.jog("joint", 7, 0.01)
+    np.testing.assert_allclose(robot.joint_positions().q, q2, atol=1e-12)
+    assert not robot.status().moving
+
+
+def test_freedrive_seats_tip_in_socket(tmp_path, emulator, robots):
+    path, world = world_file(tmp_path)
+    emu = emulator(path)
+    robot = robots(f"ur://{emu.host}")
+    socket_a = world.points["A"]
+    q0 = robot.joint_positions().q
+    # aim 2 mm above the socket with the NOMINAL model (the station does not know the truth)
+    ik = world.nominal.ik((socket_a.position + [0, 0, 0.002])[None], q0[None], position_only=True)
+    assert ik.ok[0]
+    robot.move_joints(ik.q[0], speed=1.0)
+    assert np.linalg.norm(world.truth.position(robot.joint_positions().q) - socket_a.position) > 1e-4
+    assert robot.touch() is False
+    robot.set_compliant(True)
+    assert robot.status().compliant
+    q_seated = robot.joint_positions().q
+    # the TRUE tip settles at the socket centre (seating noise 10 um per axis)
+    err = np.linalg.norm(world.truth.position(q_seated) - socket_a.position)
+    assert err < 5 * world.spec.seating_sigma * np.sqrt(3)
+    assert robot.touch() is True  # contact input (tool DI 0) wired to the world's socket
+    robot.set_compliant(False)
+    np.testing.assert_allclose(robot.joint_positions().q, q_seated, atol=1e-12)
+    assert not robot.status().compliant
+
+
+def test_protective_stop_mid_move_then_unlock_and_continue(tmp_path, emulator, robots):
+    path, world = world_file(tmp_path)
+    emu = emulator(path)
+    robot = robots(f"ur://{emu.host}")
+    q0 = robot.joint_positions().q
+    target = q0 + np.array([1.0, 0, 0, 0, 0, 0])
+    emu.dashboard("emulator protective_stop 0.3")  # bites while the move runs
+    t0 = time.monotonic()
+    with pytest.raises(SafetyStop, match="protective stop"):
+        robot.move_joints(target, speed=0.5)
+    assert 0.2 < time.monotonic() - t0 < 2.0
+    deadline = time.monotonic() + 2.0
+    while robot.status().moving and time.monotonic() < deadline:
+        time.sleep(0.02)
+    st = robot.status()
+    assert st.protective_stop and not st.moving and not st.ok
+    qa = robot.joint_positions().q
+    time.sleep(0.05)
+    np.testing.assert_array_equal(robot.joint_positions().q, qa)  # stopped and stays stopped
+    assert 0.01 < qa[0] - q0[0] < 0.9  # stopped part-way
+    with pytest.raises(SafetyStop):
+        robot.move_joints(target, speed=0.5)  # refused while protective-stopped
+    with pytest.raises(SafetyStop, match="5s"):
+        robot.unlock_protective_stop(wait=False)  # a real controller refuses for 5 s
+    assert robot.unlock_protective_stop(wait=True) == "Protective stop releasing"
+    assert not robot.status().protective_stop
+    robot.move_joints(target, speed=1.0)
+    np.testing.assert_allclose(robot.joint_positions().q, target, atol=1e-9)
+
+
+def test_connection_drop_then_reconnect(tmp_path, emulator, robots):
+    path, world = world_file(tmp_path)
+    emu = emulator(path)
+    robot = robots(f"ur://{emu.host}")
+    q0 = robot.joint_positions().q
+    emu.dashboard("emulator drop 1.5")
+    deadline = time.monotonic() + 3.0
+    with pytest.raises(ConnectionLost, match="connection to the controller lost"):  # noqa: PT012
+        while time.monotonic() < deadline:
+            robot.joint_positions()
+            time.sleep(0.01)
+    with pytest.raises(ConnectionLost):
+        robot.move_joints(q0 + 0.1)
+    robot.reconnect(timeout=10.0)
+    np.testing.assert_allclose(robot.joint_positions().q, q0, atol=1e-12)  # nothing moved meanwhile
+    robot.move_joints(q0 + 0.05, speed=1.0)
+    np.testing.assert_allclose(robot.joint_positions().q, q0 + 0.05, atol=1e-9)
+
+
+def test_stalled_data_stream_is_a_bus_error(tmp_path, emulator, robots):
+    path, world = world_file(tmp_path)
+    emu = emulator(path)
+    robot = robots(f"ur://{emu.host}")
+    robot.joint_positions()
+    emu.dashboard("emulator stall 1.0")
+    time.sleep(0.02)
+    t0 = time.monotonic()
+    with pytest.raises(BusError, match="stalled"):
+        robot.joint_positions()
+    assert time.monotonic() - t0 < 0.5
+    time.sleep(1.2)
+    s = robot.joint_positions()  # the stream is back
+    np.testing.assert_array_equal(s.q, world.encoder_q())
+    robot.move_joints(s.q + 0.02, speed=1.0)  # control script re-uploaded after the fault stop
+    np.testing.assert_allclose(robot.joint_positions().q, s.q + 0.02, atol=1e-9)
+
+
+def test_two_emulators_in_parallel(tmp_path, emulator, robots):
+    path_a, world_a = world_file(tmp_path, seed=1, serial="20235500011", name="a.yaml")
+    start_b = [-0.3, -1.2, 1.3, -1.5, -1.4, 0.5]
+    path_b, world_b = world_file(tmp_path, seed=2, serial="20235500022", start=start_b, name="b.yaml")
+    emu_a, emu_b = emulator(path_a), emulator(path_b)
+    assert emu_a.host != emu_b.host
+    ra, rb = robots(f"ur://{emu_a.host}"), robots(f"ur://{emu_b.host}")
+    assert (ra.identity().serial, rb.identity().serial) == ("20235500011", "20235500022")
+    np.testing.assert_array_equal(ra.joint_positions().q, world_a.encoder_q())
+    np.testing.assert_array_equal(rb.joint_positions().q, world_b.encoder_q())
+    ra.move_joints(world_a.encoder_q() + 0.1, speed=1.0)
+    np.testing.assert_allclose(ra.joint_positions().q, world_a.encoder_q() + 0.1, atol=1e-9)
+    np.testing.assert_array_equal(rb.joint_positions().q, world_b.encoder_q())  # B did not move
+
+
+def test_write_calibration_exports_and_reads_back(tmp_path, emulator, robots):
+    path, world = world_file(tmp_path)
+    emu = emulator(path)
+    out = tmp_path / "export"
+    robot = robots(f"ur://{emu.host}?export={out}")
+    values = {f"offset.j{i}": 1e-3 * i for i in range(1, 7)}
+    robot.write_calibration(values)
+    conf = out / "calibration.conf"
+    assert conf.exists() and (out / "ur_calibrated.urdf").exists() and (out / "ur_kinematics.yaml").exists()
+    with pytest.raises(BusError, match="another RTDE client"):  # one controlling client at a time
+        open_robot(f"ur://{emu.host}")
+    robot.close()
+    again = robots(f"ur://{emu.host}?calibration={conf}")
+    assert again.read_calibration() == pytest.approx(values, abs=1e-12)
+    # the station's nominal now includes the controller's calibration; the controller itself is unchanged
+    q = again.joint_positions().q
+    np.testing.assert_allclose(again.model.fk(q), world.nominal.with_params(values).fk(q), atol=1e-12)
+    np.testing.assert_allclose(again.tcp_pose()[:3], world.nominal.position(q), atol=1e-12)
