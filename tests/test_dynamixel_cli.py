@@ -42,12 +42,13 @@ def _stop(proc: subprocess.Popen) -> int:
 
 
 def test_process_serves_world_file_and_keeps_eeprom_across_restarts(tmp_path: Path):
-    world = World.default(model="omx", seed=11, start=[0.3, -0.4, 0.5, -0.2], time_mode="realtime")
+    world = World.default(model="omx", seed=11, start=[0.3, -0.4, 0.5, -0.2], time_mode="realtime",
+                          buses={"dynamixel": {"ids": "21-24", "contact_id": 201}})
     wfile = tmp_path / "world.yaml"
     wfile.write_text(yaml.safe_dump(world.to_dict()))
     truth = World.from_file(wfile).encoder_q()
     eeprom = tmp_path / "eeprom.json"
-    proc, path = _start("--world", str(wfile), "--ids", "21-24", "--eeprom", str(eeprom))
+    proc, path = _start("--world", str(wfile), "--ids", "21-24", "--contact-id", "200", "--eeprom", str(eeprom))
     try:
         assert path.startswith("/dev/pts/")
         with open_robot(f"dynamixel://{path}?ids=21-24&model=omx&contact=200") as robot:
@@ -59,9 +60,9 @@ def test_process_serves_world_file_and_keeps_eeprom_across_restarts(tmp_path: Pa
     finally:
         assert _stop(proc) == 0
     assert json.loads(eeprom.read_text())["format"] == "station-dxl-eeprom/1"
-    proc, path = _start("--world", str(wfile), "--ids", "21-24", "--eeprom", str(eeprom))
+    proc, path = _start("--world", str(wfile), "--eeprom", str(eeprom))  # ids from the world's buses section
     try:
-        with open_robot(f"dynamixel://{path}?ids=21-24&model=omx") as robot:
+        with open_robot(f"dynamixel://{path}?ids=21-24&model=omx&contact=201") as robot:
             assert robot.read_calibration() == written
     finally:
         assert _stop(proc) == 0

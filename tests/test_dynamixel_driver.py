@@ -9,7 +9,7 @@ import pytest
 from station.mocks.dynamixel import DynamixelEmulator
 from station.mocks.world import World
 
-from station.robot import ConfigError, LimitError, Robot, open_robot
+from station.robot import ConfigError, DeviceFault, LimitError, Robot, open_robot
 
 IDS = [11, 12, 13, 14]
 
@@ -215,3 +215,16 @@ def test_url_errors_are_config_errors():
         open_robot("dynamixel:///dev/null?ids=1-4&bogus=1")
     with pytest.raises(ConfigError, match="ids"):
         open_robot("dynamixel:///dev/null?ids=1-3&model=omx")
+
+
+def test_goal_refused_by_servo_position_limits_is_caught_at_once(rig):
+    world, emu, robot = rig
+    robot.enable()
+    # a technician narrowed servo 12's Max Position Limit (EEPROM 48) to 2100 ticks (~ +0.08 rad)
+    robot.disable()
+    assert robot.bus.write(12, 48, 4, 2100) == 0
+    robot.enable()
+    before = world.encoder_q()
+    with pytest.raises(DeviceFault, match=r"servo id 12 \(joint 2 shoulder\) refused the goal"):
+        robot.move_joints(np.array([before[0], 0.5, before[2], before[3]]), wait=False)
+    assert np.allclose(world.encoder_q(), before)

@@ -6,6 +6,7 @@ port left behind by a failed call) are retried ``retries`` times, then raised as
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 
 import dynamixel_sdk as sdk
@@ -28,6 +29,7 @@ class DxlBus:
         self.ph = sdk.PacketHandler(2.0)
         self.transactions = 0  # instruction packets sent (retries included)
         self.retried = 0
+        self._lock = threading.RLock()  # one transaction at a time (a UI may poll status while jogging)
         try:
             ok = self.port.openPort() and self.port.setBaudRate(int(baud))
         except Exception as e:  # pyserial raises SerialException/OSError for a missing or busy port
@@ -43,6 +45,10 @@ class DxlBus:
     # ---- core -----------------------------------------------------------------------------
     def _transact(self, what: str, fn: Callable[[], tuple], retry: bool = True):
         """``fn() -> (result_code, *values)``; returns ``values`` on success."""
+        with self._lock:
+            return self._transact_locked(what, fn, retry)
+
+    def _transact_locked(self, what: str, fn: Callable[[], tuple], retry: bool):
         results = []
         for attempt in range(1 + (self.retries if retry else 0)):
             if attempt:

@@ -195,13 +195,15 @@ class DynamixelRobot:
         payload = {i: b"".join(int(x).to_bytes(4, "little", signed=True) for x in (acc[k], vel[k], goals[k]))
                    for k, i in enumerate(self.ids)}
         if not wait:
-            self._guard(self.bus.sync_write, T.PROFILE_ACCELERATION, 12, payload)
+            self._send_goals(payload, goals)
             return
         # while we watch the move, the servos' bus watchdog stops them if the bus goes quiet
+        # (0 first: a servo whose watchdog tripped earlier only re-arms from 0)
+        self._guard(self.bus.sync_write, T.BUS_WATCHDOG, 1, {i: 0 for i in self.ids})
         self._guard(self.bus.sync_write, T.BUS_WATCHDOG, 1, {i: T.WATCHDOG_UNITS for i in self.ids})
         done = False
         try:
-            self._guard(self.bus.sync_write, T.PROFILE_ACCELERATION, 12, payload)
+            self._send_goals(payload, goals)
             lead_k = int(np.argmax(np.abs(target - start.q)))
             lead = float(abs(target[lead_k] - start.q[lead_k]))
             v = vel[lead_k] * T.VELOCITY_UNIT / self._enc(lead_k).gear
@@ -213,6 +215,19 @@ class DynamixelRobot:
             else:
                 with contextlib.suppress(StationError):
                     self.bus.sync_write(T.BUS_WATCHDOG, 1, {i: 0 for i in self.ids})
+
+    def _send_goals(self, payload: dict[int, bytes], goals: list[int]) -> None:
+        """Sync Write has no status: read the goals back, so a refused goal (position limits 48/52, bus
+        watchdog, hardware error) is caught now and the servos have taken it when this returns."""
+        self._guard(self.bus.sync_write, T.PROFILE_ACCELERATION, 12, payload)
+        back, errors = self._guard(self._read_all, T.GOAL_POSITION, 4)
+        self._check_alerts(errors)
+        refused = [i for i, b, g in zip(self.ids, back, goals, strict=True) if b != g]
+        if refused:
+            self._halt_quietly()
+            raise DeviceFault(f"move: {', '.join(self._name(i) for i in refused)} refused the goal position "
+                              "(outside its min/max position limits 52/48, or bus watchdog tripped); stopped",
+                              device=f"dynamixel:{refused[0]}")
 
     def _wait(self, goals: list[int], timeout: float) -> None:
         """Poll Moving (one sync read per poll) until every servo is in position."""
@@ -272,6 +287,7 @@ class DynamixelRobot:
     def status(self) -> RobotStatus:
         head, _ = self._read_all(T.TORQUE_ENABLE, 7, False)  # 64..70: torque ... hardware error status
         moving, _ = self._read_all(T.MOVING, 1, False)
+        watchdog, _ = self._read_all(T.BUS_WATCHDOG, 1, False)
         torque = [(h >> 0) & 0xFF for h in head]
         hw = [(h >> 48) & 0xFF for h in head]
         joints, faults = [], []
@@ -279,6 +295,9 @@ class DynamixelRobot:
             fault = None
             if hw[k]:
                 fault = f"hardware error 0x{hw[k]:02X} ({T.describe_hardware_error(hw[k])})"
+                faults.append(f"{self._name(i)}: {fault}")
+            elif watchdog[k] == 255:
+                fault = "bus watchdog tripped (the bus went quiet during a move): it holds; next move re-arms"
                 faults.append(f"{self._name(i)}: {fault}")
             joints.append(JointState(self.model.joints[k].name, bool(torque[k]), bool(moving[k]), fault))
         return RobotStatus(enabled=all(torque), moving=any(moving), faults=tuple(faults),
