@@ -213,3 +213,15 @@ def test_default_overrides():
     d2 = copy.deepcopy(d)
     World.from_dict(d)
     assert d == d2  # from_dict does not modify the caller's document
+
+
+def test_example_for_a_model_file_keeps_its_path(tmp_path):
+    from station.kinematics import builtin_text
+
+    m = tmp_path / "arm.yaml"
+    m.write_text(builtin_text("scara"))
+    text = example_text(str(m))
+    assert f"model: {m}" in text
+    f = tmp_path / "w.yaml"
+    f.write_text(text)
+    assert World.from_file(f).nominal.n_joints == 4

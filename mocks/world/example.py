@@ -13,9 +13,10 @@ def _mm(x: float) -> str:
 
 
 def example_text(model: str = "ur5e", seed: int = 0) -> str:
-    from station.kinematics import load_model
+    from station.kinematics import builtin_names, load_model
 
     m = load_model(model)
+    ref = m.name if model in builtin_names() else str(model)  # a model file: keep its path
     d = DEFAULTS.get(m.name, {"start": [0.0] * m.n_joints, "points": []})
     start = ", ".join(f"{math.degrees(x):g}" if j.revolute else _mm(x) for x, j in zip(d["start"], m.joints,
                                                                                        strict=True))
@@ -35,7 +36,7 @@ units: {{length: mm, angle: deg, time: s, mass: kg}}
 seed: {seed}                     # seeds every random draw (hidden errors, seating noise, survey error, encoder noise)
 
 robot:
-  model: {m.name}                 # built-in name ({m.name}, ...) or a station-model/1 file (relative to this file)
+  model: {ref}                 # built-in name ({m.name}, ...) or a station-model/1 file (relative to this file)
   # tool: {{x: 0, y: 0, z: 0, rx: 0, ry: 0, rz: 0}}   # nominal tool (TCP) frame on the flange; default: the model's
 
 errors:                        # hidden: truth = nominal + error (the station does not know them)
