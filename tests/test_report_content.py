@@ -191,3 +191,43 @@ def test_report_with_the_real_solver_result(session, tmp_path):
     assert rms(b[~is_fit]) == pytest.approx(res["holdout"]["rms_nominal_m"], rel=1e-6)
     unid = {u["name"] for u in rep["unidentifiable"]}
     assert unid == {n for n, p in res["parameters"].items() if not p["identifiable"]}
+
+
+def test_report_with_instrument_measurements(session):
+    """With an external instrument the report compares the calibrated tip, in the instrument frame the solver
+    found, with the measured points: it reproduces the solver's fit residual."""
+    from station.solver import Observations, solve
+
+    rng = np.random.default_rng(3)
+    nominal = load_model("ur5e")
+    truth = nominal.with_params({"offset.j2": 0.002, "offset.j3": -0.001})
+    q = np.clip(np.array([0.3, -1.2, 1.5, -1.9, -1.57, 0.0]) + rng.uniform(-0.6, 0.6, (24, 6)),
+                nominal.lower, nominal.upper)
+    c, s = math.cos(0.3), math.sin(0.3)
+    rot, shift = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]), np.array([1.0, 0.2, -0.1])
+    measured = (truth.position(q) - shift) @ rot + rng.normal(0, 20e-6, (len(q), 3))  # instrument frame
+    res = solve(nominal, Observations(q, measured=measured), identify="offsets").to_dict()
+    sess = copy.deepcopy(session)
+    sess["samples"] = [{"type": "sample", "seq": i, "q": qi.tolist(), "measured": mi.tolist(), "set": "fit",
+                        "point": "A", "pose": i} for i, (qi, mi) in enumerate(zip(q, measured, strict=True))]
+    sess["result"] = json.loads(json.dumps(res))
+    pp = build_report(sess)["residuals"]["per_pose"]
+    assert "instrument" in pp["source"]
+    after = np.array(pp["after_m"])
+    assert math.sqrt(np.mean(after**2)) == pytest.approx(res["residuals"]["rms_after_m"], rel=1e-6)
+    assert after.max() == pytest.approx(res["residuals"]["max_after_m"], rel=1e-6)
+    assert np.mean(pp["before_m"]) > 3 * np.mean(after)  # the uncalibrated robot is visibly worse
+
+
+def test_prismatic_offset_is_a_length(tmp_path, session):
+    s = copy.deepcopy(session)
+    s.update(model="scara", samples=[], result=None, verdict=None,
+             writeback={"before": {"offset.j1": 0.1, "offset.j3": 0.010}, "after": {"offset.j1": 0.1002,
+                                                                                   "offset.j3": 0.0105},
+                        "applied": True, "verified": True})
+    s["robot"]["model"] = "scara"
+    html = write_report(s, tmp_path).read_text()
+    rows = {w["name"]: w for w in json.loads((tmp_path / "report.json").read_text())["writeback"]["values"]}
+    assert rows["offset.j3"]["unit"] == "m" and rows["offset.j1"]["unit"] == "rad"
+    assert "10.5000" in html and "0.5000" in html  # mm
+    assert f"{math.degrees(0.1002):.4f}" in html  # deg

@@ -149,6 +149,10 @@ def show(serial: str = typer.Argument(..., help="robot serial number"),
 
 def _show_session(con: Console, s: dict) -> None:
     from station.records import measurement_status
+    from station.report.analysis import load_session_model
+    from station.report.content import param_unit
+
+    model, _ = load_session_model(s)  # joint kinds: a prismatic joint's offset is shown in mm
 
     con.print(f"\n[bold]Session {s['session']}[/]  {s.get('procedure') or ''}  started {s.get('started') or ''}"
               f"  station {s.get('station') or ''}  operator {s.get('operator') or ''}")
@@ -161,7 +165,7 @@ def _show_session(con: Console, s: dict) -> None:
         for col in ("parameter", "nominal", "estimate", "±σ", "unit", "note"):
             t.add_column(col, justify="right" if col in ("nominal", "estimate", "±σ") else "left")
         for name, p in (result.get("parameters") or {}).items():
-            unit = p.get("unit") or ("rad" if name.startswith("offset.") else "m")
+            unit = param_unit(name, p, model)
             t.add_row(name, _human(p.get("nominal"), unit), _human(p.get("value"), unit) if p.get("identifiable")
                       else "", _human(p.get("std"), unit), _hunit(unit),
                       "" if p.get("identifiable") else f"not identifiable: {p.get('reason') or '?'}")
@@ -187,8 +191,9 @@ def _show_session(con: Console, s: dict) -> None:
                         f"{'verified' if wb.get('verified') else 'not verified'})", title_justify="left")
         for col in ("value", "before", "after", "unit"):
             t.add_column(col, justify="left" if col in ("value", "unit") else "right")
+        params = (result or {}).get("parameters") or {}
         for name in dict.fromkeys([*before, *after]):
-            unit = "rad" if name.startswith("offset.") else "m"
+            unit = param_unit(name, params.get(name) or {}, model)
             t.add_row(name, _human(before.get(name), unit), _human(after.get(name), unit), _hunit(unit))
         con.print(t)
 

@@ -35,12 +35,18 @@ def _duration(started, finished) -> float | None:
         return None
 
 
-def param_unit(name: str, p: dict) -> str:
-    """SI unit of a parameter: its ``unit`` when the solver gave one, else by name (offsets and angles rad)."""
+def param_unit(name: str, p: dict, model=None) -> str:
+    """SI unit of a parameter: its ``unit`` when the solver gave one; for ``offset.jN`` the joint kind of the
+    model (a prismatic joint's offset is a length); else by name (angles rad, the rest m)."""
     if p.get("unit") in ("m", "rad"):
         return p["unit"]
     last = name.rsplit(".", 1)[-1]
-    if name.startswith("offset.") and not name.endswith(".d"):
+    if name.startswith("offset.j"):
+        if model is not None:
+            try:
+                return "rad" if model.joints[int(name[len("offset.j"):]) - 1].revolute else "m"
+            except (ValueError, IndexError):
+                pass
         return "rad"
     return "rad" if last in ("rx", "ry", "rz", "alpha", "beta", "theta") else "m"
 
@@ -69,7 +75,7 @@ def build_report(session: dict) -> dict:
 
     parameters, unidentifiable = [], []
     for name, p in ((result or {}).get("parameters") or {}).items():
-        unit = param_unit(name, p)
+        unit = param_unit(name, p, model)
         value, nominal = p.get("value"), p.get("nominal")
         corr = None
         if p.get("identifiable") and value is not None and nominal is not None and math.isfinite(float(nominal)):
@@ -93,7 +99,8 @@ def build_report(session: dict) -> dict:
         rows = []
         for name in dict.fromkeys([*before, *after]):
             b, a = before.get(name), after.get(name)
-            rows.append({"name": name, "unit": param_unit(name, {}), "before": b, "after": a,
+            known = ((result or {}).get("parameters") or {}).get(name) or {}
+            rows.append({"name": name, "unit": param_unit(name, known, model), "before": b, "after": a,
                          "change": None if b is None or a is None else float(a) - float(b)})
         wb = {"applied": bool(writeback.get("applied")), "verified": bool(writeback.get("verified")), "values": rows}
 
