@@ -31,6 +31,7 @@ import numpy as np
 from station.mocks.dynamixel import packets as pk
 from station.mocks.dynamixel.devices import Device, WriteRefused
 from station.mocks.dynamixel.tables import (
+    ACCEL_UNIT,
     BAUD_CODES,
     BAUD_TO_CODE,
     BY_NAME,
@@ -290,19 +291,19 @@ class DynamixelEmulator:
             targets = np.array([float(self.model.joints[j].encoder.to_si(d.get("goal_position")
                                                                          - d.get("homing_offset")))
                                 for j, d in enumerate(devs)])
-            speeds = []
+            speeds, accels = [], []
             for j, d in enumerate(devs):
-                pv = d.get("profile_velocity") or d.get("velocity_limit")
-                speeds.append(pv * VELOCITY_UNIT / self.model.joints[j].encoder.gear)
+                gear = self.model.joints[j].encoder.gear
+                pv = d.get("profile_velocity") or d.get("velocity_limit")  # 0: as fast as the limit allows
+                speeds.append(pv * VELOCITY_UNIT / gear)
+                pa = d.get("profile_acceleration")  # 0: no profile, the joint's own limit
+                accels.append(pa * ACCEL_UNIT / gear if pa else np.inf)
             self._targets = targets
-            self._command(targets, np.array(speeds))
+            self._command(targets, np.array(speeds), np.array(accels))
 
-    def _command(self, targets: np.ndarray, speeds: np.ndarray) -> None:
-        try:
-            self.world.command_q(targets, speed=np.maximum(speeds, 1e-6))
-        except TypeError:
-            # a world that only takes one speed: the slowest profile keeps every joint within its profile
-            self.world.command_q(targets, speed=float(np.min(speeds)))
+    def _command(self, targets: np.ndarray, speeds: np.ndarray, accels: np.ndarray) -> None:
+        accel = None if np.all(np.isinf(accels)) else np.where(np.isinf(accels), 1e9, np.maximum(accels, 1e-6))
+        self.world.command_q(targets, speed=np.maximum(speeds, 1e-6), accel=accel)
 
     # ---- faults ----------------------------------------------------------------------------------
     def _take(self, kind: str, device) -> object | None:
