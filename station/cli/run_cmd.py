@@ -11,6 +11,12 @@ from pathlib import Path
 import typer
 
 
+def _exit(code: int):
+    # sys.exit, not typer.Exit: station.cli.main runs click with standalone_mode=False, where a typer.Exit comes
+    # back as a return value that main() drops (every exit would be 0)
+    sys.exit(code)
+
+
 def _progress_bar(quiet: bool):
     """A rich progress bar on stderr; returns (callback, context manager)."""
     import contextlib
@@ -109,20 +115,20 @@ def _finish(out) -> None:
         summary(out)
         if not out.stored:
             typer.echo("station: error: the record was not stored", err=True)
-            raise typer.Exit(2)
+            _exit(2)
         typer.echo("PASS" if out.passed else "FAIL")
-        raise typer.Exit(out.exit_code)
+        _exit(out.exit_code)
     summary(out, echo=lambda s: typer.echo(s, err=True))
     err = out.error
     msg = str(err) if err is not None and str(err) else type(err).__name__
     if out.status == "interrupted":
         typer.echo(f"station: interrupted; continue with: station resume {out.session}", err=True)
-        raise typer.Exit(130)
+        _exit(130)
     if err is not None and not isinstance(err, (StationError, ValueError, OSError)):
         raise err  # a bug: keep the traceback
     typer.echo(f"station: error: {msg}", err=True)
     typer.echo(f"station: the journal is kept; continue with: station resume {out.session}", err=True)
-    raise typer.Exit(2)
+    _exit(2)
 
 
 def run(
@@ -177,7 +183,7 @@ def demo(
 ) -> None:
     """Emulated robot with hidden offset errors and a socket: run zero_offsets end of line through the real
     client library, print recovered offsets next to the hidden truth, residuals and the report path."""
-    raise typer.Exit(run_demo(robot, time_mode=time_mode, seed=seed))
+    _exit(run_demo(robot, time_mode=time_mode, seed=seed))
 
 
 # ---- emulated robots (demo, benchmark, end-to-end tests) -----------------------------------------------
