@@ -229,3 +229,70 @@ def test_timeout_fault_silences_node(rig):
     time.sleep(0.1)
     assert not [m for m in drain(sniff) if m.arbitration_id == 0x703]  # no heartbeat while silent
     assert nodes[2].sdo[0x1000].raw & 0xFFFF == 402  # the others still answer
+
+
+def _enable(n) -> None:
+    for cw in (0x06, 0x07, 0x0F):
+        n.sdo[0x6040].raw = cw
+
+
+def test_software_limit_clamps_and_relative_setpoint(rig):
+    world, emu, net, nodes, _ = rig
+    n = nodes[1]
+    _enable(n)
+    n.sdo[0x6060].raw = 1
+    here = n.sdo[0x6064].raw
+    n.sdo[0x607D][1].raw = here - 1000
+    n.sdo[0x607D][2].raw = here + 1000
+    n.sdo[0x607A].raw = here + 5000
+    n.sdo[0x6040].raw = 0x3F
+    assert n.sdo[0x6041].raw & (1 << 11)  # internal limit active
+    n.sdo[0x6040].raw = 0x0F
+    assert n.sdo[0x6064].raw == here + 1000
+    n.sdo[0x607A].raw = -300
+    n.sdo[0x6040].raw = 0x7F  # relative (bit 6)
+    n.sdo[0x6040].raw = 0x4F
+    assert n.sdo[0x6064].raw == here + 700 and not n.sdo[0x6041].raw & (1 << 11)
+
+
+def test_synchronous_rpdo_acts_on_the_next_sync(rig):
+    world, emu, net, nodes, _ = rig
+    n = nodes[2]
+    _enable(n)
+    n.sdo[0x6060].raw = 1
+    n.sdo[0x1400][2].raw = 1  # RPDO1 synchronous
+    n.nmt.state = "OPERATIONAL"
+    n.rpdo.read()
+    here = n.sdo[0x6064].raw
+    n.rpdo[1][0x607A].raw = here + 20000
+    n.rpdo[1][0x6040].raw = 0x3F
+    n.rpdo[1].transmit()
+    time.sleep(0.05)
+    assert n.sdo[0x6064].raw == here  # buffered until SYNC
+    net.sync.transmit()
+    time.sleep(0.05)
+    assert n.sdo[0x6064].raw == here + 20000
+
+
+def test_profile_velocity_mode_moves_a_realtime_joint():
+    chan = f"t-{uuid.uuid4().hex[:8]}"
+    world = World.default(model="arm6", time_mode="realtime")
+    with CanopenEmulator(world, channel=chan):
+        net = canopen.Network()
+        net.NOTIFIER_CYCLE = 0.05
+        net.connect(interface="virtual", channel=chan)
+        try:
+            time.sleep(0.02)
+            n = net.add_node(4, str(eds.EDS_PATH))
+            _enable(n)
+            n.sdo[0x6060].raw = 3
+            q0 = world.encoder_q()[3]
+            enc = world.nominal.joints[3].encoder  # direction -1: positive counts = negative joint motion
+            n.sdo[0x60FF].raw = int(0.5 * enc.counts_per_unit * enc.gear)  # 0.5 rad/s at the joint
+            time.sleep(0.3)
+            assert world.encoder_q()[3] < q0 - 0.05
+            n.sdo[0x60FF].raw = 0
+            time.sleep(0.2)
+            assert not world.is_moving()
+        finally:
+            net.disconnect()

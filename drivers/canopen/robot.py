@@ -289,9 +289,7 @@ class CanopenRobot:
     # ---- SDO helpers (configuration only, never in the streaming cycle) ------------------------
     def _sdo_read(self, node, index: int, sub: int = 0):
         try:
-            var = node.sdo[index] if sub == 0 and not isinstance(node.sdo[index], canopen.sdo.SdoArray) \
-                else node.sdo[index][sub]
-            return var.raw
+            return (node.sdo[index][sub] if sub else node.sdo[index]).raw
         except canopen.SdoCommunicationError as e:
             raise ConnectionLost(f"canopen node {node.id} on {self.where} does not answer "
                                  f"(SDO 0x{index:04X}:{sub:02X}: {e})") from None
