@@ -38,7 +38,10 @@ def main() -> None:
     from station.robot.errors import StationError
 
     try:
-        app(standalone_mode=False)
+        # in non-standalone mode click *returns* the code of a raised Exit instead of exiting
+        rc = app(standalone_mode=False)
+        if isinstance(rc, int) and rc != 0:
+            sys.exit(rc)
     except typer.Exit as e:
         sys.exit(e.exit_code)
     except (StationError, ModelFileError) as e:
