@@ -50,12 +50,10 @@ def main() -> None:
     except KeyboardInterrupt:
         typer.echo("station: interrupted", err=True)
         sys.exit(130)
-    except Exception as e:  # click usage errors come through here in non-standalone mode
-        import click
-
-        if isinstance(e, click.exceptions.Abort):
+    except Exception as e:  # click usage errors arrive here in non-standalone mode (typer vendors click)
+        if type(e).__name__ == "Abort":
             sys.exit(130)
-        if isinstance(e, click.ClickException):
+        if hasattr(e, "show") and isinstance(getattr(e, "exit_code", None), int):
             e.show()
-            sys.exit(2)
+            sys.exit(e.exit_code)
         raise
