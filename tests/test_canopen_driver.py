@@ -220,6 +220,13 @@ def test_url_errors():
     assert time.monotonic() - t < 3
 
 
+def test_virtual_channel_name_keeps_its_case():
+    chan = f"Cell-{uuid.uuid4().hex[:6].upper()}"
+    with CanopenEmulator(World.default(model="arm6"), channel=chan):
+        robot = open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6")
+        robot.close()
+
+
 def test_no_drives_on_the_bus_is_connection_lost():
     chan = f"d-{uuid.uuid4().hex[:8]}"
     with pytest.raises(ConnectionLost, match="node 1 .*does not answer"):

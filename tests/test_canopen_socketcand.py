@@ -148,3 +148,12 @@ def test_station_mock_canopen_process():
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
+
+
+def test_station_mock_canopen_bad_input_exits_2(tmp_path):
+    station = str(Path(sys.executable).with_name("station"))
+    for args, what in ((["--nodes", "1-3"], "one node per joint"),
+                       (["--world", str(tmp_path / "missing.yaml")], "missing.yaml")):
+        out = subprocess.run([station, "mock", "canopen", "--port", "0", *args], capture_output=True, text=True,
+                             timeout=60, cwd=ROOT)
+        assert out.returncode == 2 and out.stderr.startswith("station: error: ") and what in out.stderr

@@ -19,6 +19,7 @@ import socket
 import struct
 import threading
 import time
+from urllib.parse import urlsplit
 
 import can
 import canopen
@@ -178,7 +179,8 @@ class CanopenRobot:
                       eds=q.get("eds"), serial=q.get("serial"), error_frame_limit=frames, url=url.raw)
         common.update(kw)
         if url.scheme == "canopen+virtual":
-            channel = q.get("channel") or url.host or url.path.strip("/")
+            # the netloc keeps the channel's case (RobotURL.host is lower-cased by urlsplit)
+            channel = q.get("channel") or urlsplit(url.raw).netloc or url.path.strip("/")
             if not channel:
                 raise ConfigError(f"robot URL {url.raw!r}: give the virtual channel, canopen+virtual://chan0?...")
             return cls(model, nodes, interface="virtual", channel=channel, **common)
