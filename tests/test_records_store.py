@@ -201,3 +201,24 @@ def test_stored_session_survives_kill_9_right_after_store(tmp_path, session_fact
     assert out.returncode == -9, out.stderr.decode()
     with open_records(url) as r:
         assert _canon(r.session(s["session"])) == _canon(s)
+
+
+def test_version_1_database_is_migrated_without_loss(tmp_path, session_factory):
+    """A database written by schema version 1 (no sessions.status) is upgraded in place when opened."""
+    url = f"sqlite:///{tmp_path / 'old.db'}"
+    s, _ = session_factory(seed=14)
+    with open_records(url) as r:
+        r.store_session(s)
+        with r.engine.begin() as c:  # turn it back into what version 1 left on disk
+            c.execute(sa.text("ALTER TABLE sessions DROP COLUMN status"))
+            c.execute(sa.text("UPDATE station_schema SET version = 1"))
+    with open_records(url) as r:
+        assert r.schema_version() == SCHEMA_VERSION == 2
+        assert _canon(r.session(s["session"])) == _canon(s)
+        assert r.sessions()[0]["status"] is None
+        s2 = {**copy.deepcopy(s), "status": "passed"}
+        r.store_session(s2)
+        assert r.sessions()[0]["status"] == "passed"
+        with r.engine.connect() as c:
+            notes = c.execute(sa.text("SELECT version, note FROM station_schema ORDER BY version")).all()
+    assert [tuple(n) for n in notes] == [(1, "created"), (2, "migrated from 1")]

@@ -137,6 +137,10 @@ def test_html_is_self_contained_with_decodable_pngs(written):
     # corrections shown in deg for people (the JSON keeps rad)
     j2 = next(p for p in rep["parameters"] if p["name"] == "offset.j2")
     assert f"{math.degrees(j2['correction']):.4f}" in html
+    # each sample row carries its own error after calibration (mm), so a bad touch can be found
+    pp = rep["residuals"]["per_pose"]
+    row = re.search(rf'<td class="n">{pp["seq"][-1]}</td>.*?</tr>', html, re.S).group(0)
+    assert f"{pp['after_m'][-1] * 1e3:.4f}" in row and f"{pp['before_m'][-1] * 1e3:.4f}" in row
 
 
 def test_session_without_result_still_reports(tmp_path, session):

@@ -84,7 +84,7 @@ def _sessions_table(title: str, rows: list[dict]) -> Table:
         t.add_row(s["session"], s["procedure"], _when(s["started"]), _duration(s["started"], s["finished"]),
                   s["station"],
                   s["operator"], str(s["n_samples"]), _mm(s["rms_before_m"]), _mm(s["rms_after_m"]),
-                  _verdict(s["passed"]), wb)
+                  _verdict(s["passed"]) if s["passed"] is not None else (s["status"] or "-"), wb)
     return t
 
 

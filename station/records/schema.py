@@ -20,10 +20,11 @@ from sqlalchemy import (
     String,
     Table,
     Text,
+    text,
 )
 from sqlalchemy.engine import Connection
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 metadata = MetaData()
 
@@ -60,6 +61,7 @@ sessions = Table(
     Column("started_utc", DateTime(timezone=True), index=True),
     Column("finished_utc", DateTime(timezone=True)),
     Column("passed", Boolean),  # None: no verdict (yet)
+    Column("status", String(32)),  # the engine's end status (passed, failed, error, aborted...); v2
     Column("n_samples", Integer, nullable=False, default=0),
     # result summary, SI; the whole CalibrationResult.to_dict() is in doc_json["result"]
     Column("converged", Boolean),
@@ -131,4 +133,8 @@ CHILD_TABLES = (samples, parameters, measurements, writeback_values)
 
 # Migrations: version N -> N+1, each run inside the opening transaction. Additive only (new tables, new
 # nullable columns); a database newer than this code is refused rather than guessed at.
-MIGRATIONS: dict[int, Callable[[Connection], None]] = {}
+def _v1_to_v2(conn: Connection) -> None:
+    conn.execute(text("ALTER TABLE sessions ADD COLUMN status VARCHAR(32)"))
+
+
+MIGRATIONS: dict[int, Callable[[Connection], None]] = {1: _v1_to_v2}

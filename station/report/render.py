@@ -70,11 +70,17 @@ def render_html(report: dict, session: dict) -> str:
     template = env.from_string(_TEMPLATE.read_text(encoding="utf-8"))
     joints = report["coverage"]["joints"]
     samples = []
+    pp = report["residuals"]["per_pose"]
+    # per-sample errors line up with the samples only when recomputed for all of them
+    by_seq = dict(zip(pp.get("seq") or [], zip(pp["before_m"], pp["after_m"], strict=False), strict=False)) \
+        if len(pp.get("seq") or []) == len(pp["before_m"]) else {}
     for s in session.get("samples") or []:
         q = s.get("q") or []
         units = [("rad" if j["kind"] == "revolute" else "m") for j in joints] or ["rad"] * len(q)
         samples.append({"seq": s.get("seq"), "pose": s.get("pose"), "point": s.get("point", ""),
                         "set": s.get("set", "fit"),
+                        "before": _human(by_seq.get(s.get("seq"), (None, None))[0], "m"),
+                        "after": _human(by_seq.get(s.get("seq"), (None, None))[1], "m"),
                         "q": "  ".join(_human(v, units[i] if i < len(units) else "rad") for i, v in enumerate(q))})
     return template.render(
         r=report, h=report["header"], plots=all_plots(report), samples=samples, num=_num, mm=lambda v: _human(v, "m"),
