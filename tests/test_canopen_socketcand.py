@@ -118,6 +118,11 @@ def test_hub_gone_is_connection_lost(hub_rig):
         with pytest.raises(ConnectionLost):
             while time.monotonic() < end:
                 robot.joint_positions()
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end and not any("closed the connection" in f for f in robot.status().faults):
+            time.sleep(0.02)
+        assert any("closed the connection" in f for f in robot.status().faults)
+        assert robot.network.notifier._stopped  # no receive thread left spinning on the dead socket
     finally:
         robot.close()
 

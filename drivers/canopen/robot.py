@@ -438,7 +438,27 @@ class CanopenRobot:
                     self._latch(ConnectionLost(
                         f"canopen node {node_id} on {self.where}: heartbeat lost ({(now - t) * 1e3:.0f} ms "
                         f"without one, expected every {self.heartbeat_ms} ms); robot stopped"))
+                    if self._server_closed():
+                        # python-can's socketcand client spins on a closed socket (select says readable,
+                        # recv returns b""): stop its receive thread instead of burning a core until close()
+                        self._latch(ConnectionLost(f"socketcand server {self.host}:{self.port} closed the "
+                                                   "connection; reopen the robot"))
+                        with contextlib.suppress(Exception):
+                            self.network.notifier.stop(1.0)
+                        return
                     break
+
+    def _server_closed(self) -> bool:
+        """True if the socketcand TCP connection reached end-of-file."""
+        sock = getattr(self.network.bus, "_SocketCanDaemonBus__socket", None)
+        if self.interface != "socketcand" or sock is None:
+            return False
+        try:
+            return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+        except BlockingIOError:
+            return False
+        except OSError:
+            return True
 
     # ---- RPDO helpers -------------------------------------------------------------------------
     def _send_rpdo1(self, node, cw: int, target: int | None = None) -> None:
