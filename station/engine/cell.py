@@ -3,8 +3,9 @@
 File format (``station-cell/1``, YAML; written for emulated cells by ``station mock world cell WORLD``)::
 
     format: station-cell/1
-    units: {length: mm}            # units of every position below (m or mm)
+    units: {length: mm, angle: deg}   # units of every position below (m or mm) and of tool angles
     model: ur5e                    # optional: the robot model this cell was laid out for
+    tool: {x: 0, y: 0, z: 100, rx: 0, ry: 0, rz: 0}   # optional: nominal TCP of the mounted tool
     points:
       - {label: A, kind: socket, position: [450, 0, 50], approach: [0, 0, 1], radius: 3}
 
@@ -54,6 +55,7 @@ class Cell:
     path: str
     points: dict[str, RefPoint]
     model: str | None = None
+    tool: dict[str, float] | None = None  # nominal TCP on the flange (m, rad: x y z rx ry rz), if the cell says
 
     def point(self, label: str) -> RefPoint:
         if label not in self.points:
@@ -123,4 +125,15 @@ def cell_from_dict(doc, where: str = "cell") -> Cell:
         points[label] = RefPoint(label, kind, _vec(f"{w}.position", d.get("position"), scale),
                                  _vec(f"{w}.approach", d.get("approach", [0, 0, 1]), 1.0, unit=True),
                                  float(radius) * scale)
-    return Cell(where, points, doc.get("model"))
+    tool = doc.get("tool")
+    if tool is not None:
+        if not isinstance(tool, dict) or set(tool) - {"x", "y", "z", "rx", "ry", "rz"}:
+            raise CellError(f"{where}: tool must map x, y, z (length unit), rx, ry, rz (rad) to numbers")
+        angle = {"rad": 1.0, "deg": math.pi / 180}.get((units or {}).get("angle", "rad"))
+        if angle is None:
+            raise CellError(f"{where}: units.angle must be rad or deg")
+        try:
+            tool = {k: float(v) * (angle if k.startswith("r") else scale) for k, v in tool.items()}
+        except (TypeError, ValueError):
+            raise CellError(f"{where}: tool values must be numbers") from None
+    return Cell(where, points, doc.get("model"), tool)

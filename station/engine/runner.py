@@ -76,7 +76,8 @@ def _versions() -> dict:
 def _cell_from_header(d: dict | None) -> Cell | None:
     if not d:
         return None
-    return Cell(d.get("path", "journal"), {p["label"]: RefPoint.from_dict(p) for p in d["points"]}, d.get("model"))
+    return Cell(d.get("path", "journal"), {p["label"]: RefPoint.from_dict(p) for p in d["points"]}, d.get("model"),
+                d.get("tool"))
 
 
 def _optional_cell(cell_path) -> Cell | None:
@@ -134,7 +135,7 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
         "url": robot_url or getattr(robot, "url", "") or ident.url,
         "model": robot.model.name, "robot": _identity_dict(ident),
         "limits": {"path": lim.path, "version": lim.version, "sha256": lim.sha256},
-        "cell": None if the_cell is None else {"path": the_cell.path, "model": the_cell.model,
+        "cell": None if the_cell is None else {"path": the_cell.path, "model": the_cell.model, "tool": the_cell.tool,
                                                "points": [p.to_dict() for p in the_cell.points.values()]},
         "options": opts, "db": db, "versions": _versions(),
     }

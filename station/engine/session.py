@@ -39,6 +39,9 @@ class Session:
         self.journal = journal
         self.robot = robot
         self.model: Model = robot.model
+        if cell is not None and cell.tool:
+            # the cell names the mounted tool: plans and solves start from it (the driver knows the arm only)
+            self.model = self.model.with_params({f"tcp.{k}": v for k, v in cell.tool.items()})
         self.limits = limits or {}
         self.limits_version = limits_version
         self.cell = cell
