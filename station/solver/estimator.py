@@ -140,8 +140,8 @@ def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ):
         x_new[act] += D * du
         step = float(np.max(np.abs(du)))
         if lam == 0.0 and (step < XTOL or np.all(np.abs(du) < 1e-4 * std_u)):
-            # the step is statistically nothing: take it, the Jacobian does not change over it
-            return x_new, prob.residual(x_new), J, it, True
+            # the step is statistically nothing: take it; over it the model is linear to O(step^2)
+            return x_new, r + J[:, act] @ (D * du), J, it, True
         r_new, J_new = prob.residual_jacobian(x_new)
         cost_new = float(r_new @ r_new)
         if cost_new <= cost:

@@ -7,6 +7,8 @@ the model's ``base.*`` frame is the instrument-to-robot-base transform, a nuisan
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from station.kinematics import se3
@@ -215,13 +217,16 @@ def position_jacobian(chain, q: np.ndarray, params: np.ndarray, param_idx: np.nd
     return p.T.copy(), J
 
 
+_EYE4 = np.eye(4)
+
+
 def _elementary(ax: int, val: float) -> np.ndarray:
-    E = np.eye(4)
+    E = _EYE4.copy()
     if ax < 3:
         E[ax, 3] = val
         return E
     i, j = {RX: (1, 2), RY: (2, 0), RZ: (0, 1)}[ax]
-    c, s = np.cos(val), np.sin(val)
+    c, s = math.cos(val), math.sin(val)
     E[i, i], E[i, j], E[j, i], E[j, j] = c, -s, s, c
     return E
 
