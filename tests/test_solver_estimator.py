@@ -238,3 +238,16 @@ def test_result_json_roundtrip_holdout_and_calibrated_model():
     assert cal.param("offset.j1") == 0.0
     with pytest.raises(ValueError):
         back.calibrated(load_model("ur10e"))
+
+
+def test_observations_from_sample_dicts():
+    from station.solver import observations_from_samples
+
+    samples = [{"type": "sample", "seq": i, "point": "AB"[i % 2], "q": list(UR_HOME + 0.01 * i), "measured": None,
+                "set": "holdout" if i >= 8 else "fit"} for i in range(10)]
+    fit, ho = observations_from_samples(samples)
+    assert len(fit) == 8 and len(ho) == 2 and fit.labels == ["A", "B"] and fit.measured is None
+    with pytest.raises(SolverInputError, match="some samples carry instrument"):
+        observations_from_samples(samples[:2] + [{**samples[2], "measured": [0.1, 0.2, 0.3]}])
+    with pytest.raises(SolverInputError, match="no joint readings"):
+        observations_from_samples([{"seq": 4, "point": "A"}])

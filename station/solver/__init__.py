@@ -4,11 +4,11 @@
 methods ``tcp_from_flange_poses``, ``tcp_scara_4point``, ``tcp_circle_fit``. See docs/solver.md."""
 
 from station.solver.estimator import select_names, solve
-from station.solver.observations import Observations, SolverInputError
+from station.solver.observations import Observations, SolverInputError, observations_from_samples
 from station.solver.result import CalibrationResult, ParameterEstimate
 from station.solver.tcp import CircleFit, TcpFit, tcp_circle_fit, tcp_from_flange_poses, tcp_scara_4point
 
 __all__ = [
     "CalibrationResult", "CircleFit", "Observations", "ParameterEstimate", "SolverInputError", "TcpFit",
-    "select_names", "solve", "tcp_circle_fit", "tcp_from_flange_poses", "tcp_scara_4point",
+    "observations_from_samples", "select_names", "solve", "tcp_circle_fit", "tcp_from_flange_poses", "tcp_scara_4point",
 ]

@@ -58,3 +58,33 @@ class Observations:
     def subset(self, mask) -> Observations:
         mask = np.asarray(mask)
         return Observations(self.q[mask], self.point[mask], None if self.measured is None else self.measured[mask])
+
+
+def observations_from_samples(samples: list[dict]) -> tuple[Observations, Observations | None]:
+    """Journal/records sample dicts (``{"point", "q", "measured", "set"}``, SI; see docs/architecture.md)
+    -> (fit, holdout) observations split by ``set`` ("fit" unless "holdout"); holdout None when empty.
+    Samples either all carry ``measured`` or none does."""
+    if not samples:
+        raise SolverInputError("no samples")
+    fit, ho = [], []
+    for i, s in enumerate(samples):
+        try:
+            q = [float(v) for v in s["q"]]
+        except (KeyError, TypeError, ValueError):
+            raise SolverInputError(f"sample {s.get('seq', i)}: no joint readings 'q'") from None
+        (ho if s.get("set") == "holdout" else fit).append((q, str(s.get("point") or "A"), s.get("measured")))
+    with_m = {m is not None for _, _, m in fit + ho}
+    if len(with_m) > 1:
+        raise SolverInputError("some samples carry instrument measurements and some do not")
+
+    def build(rows):
+        if not rows:
+            return None
+        meas = [m for _, _, m in rows]
+        return Observations(np.array([q for q, _, _ in rows]), np.array([p for _, p, _ in rows], dtype=object),
+                            None if meas[0] is None else np.array(meas, dtype=float))
+
+    out = build(fit)
+    if out is None:
+        raise SolverInputError("every sample is in the holdout set; nothing to fit")
+    return out, build(ho)
