@@ -107,7 +107,7 @@ class CanopenRobot:
         self.where = f"{interface} {host}:{port}/{channel}" if host else f"{interface} {channel}"
         self.sync_period = sync_period
         self.heartbeat_ms = heartbeat_ms
-        self.hb_timeout = 3 * heartbeat_ms / 1000.0 + 0.1
+        self.hb_timeout = 3 * heartbeat_ms / 1000.0 + 0.2  # margin for a loaded host
         self.touch_ms = touch_ms
         self.error_frame_limit = max(1, error_frame_limit)
         self.url = url
@@ -117,6 +117,7 @@ class CanopenRobot:
         self.contact_node: int | None = None
         self._fault: StationError | None = None
         self._faults: list[str] = []
+        self._fatal = False  # a fault enable() cannot clear (drive rebooted, server gone): reopen
         self._fault_lock = threading.Lock()
         self._cv = threading.Condition()
         self._seq = 0
@@ -368,7 +369,7 @@ class CanopenRobot:
     def _round(self, timeout: float | None = None) -> dict[int, tuple[int, int, int, float]]:
         """A complete SYNC round started after this call: {node: (statusword, counts, mode, t)}. If the
         replies of one SYNC do not line up within 3 periods, every node's newest reply after the call."""
-        timeout = timeout or max(0.5, 20 * self.sync_period)
+        timeout = timeout or max(1.0, 20 * self.sync_period)
         start = time.monotonic()
         with self._cv:
             s0 = self._seq
@@ -426,6 +427,7 @@ class CanopenRobot:
     def _on_heartbeat(self, node_id: int, state: int) -> None:
         self._last_hb[node_id] = time.monotonic()
         if state == 0 and not self._closed:
+            self._fatal = True
             self._latch(ConnectionLost(f"canopen node {node_id} rebooted (boot-up message while running); "
                                        "reopen the robot"))
 
@@ -439,6 +441,7 @@ class CanopenRobot:
                         f"canopen node {node_id} on {self.where}: heartbeat lost ({(now - t) * 1e3:.0f} ms "
                         f"without one, expected every {self.heartbeat_ms} ms); robot stopped"))
                     if self._server_closed():
+                        self._fatal = True
                         # python-can's socketcand client spins on a closed socket (select says readable,
                         # recv returns b""): stop its receive thread instead of burning a core until close()
                         self._latch(ConnectionLost(f"socketcand server {self.host}:{self.port} closed the "
@@ -585,7 +588,7 @@ class CanopenRobot:
         if isinstance(self._fault, ConnectionLost):
             now = time.monotonic()
             dead = [n for n, t in self._last_hb.items() if now - t > self.hb_timeout]
-            if dead or "heartbeat" not in str(self._fault):
+            if dead or self._fatal:
                 raise self._fault
         with self._fault_lock:
             self._fault = None
