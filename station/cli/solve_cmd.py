@@ -20,8 +20,7 @@ from station.samplesfile import LENGTH_UNITS, SamplesFileError, read_joints, rea
 
 
 def _fail(msg: str) -> ConfigError:
-    # a StationError, not station.cli.fail(): main() runs click with standalone_mode=False, where a raised
-    # typer.Exit becomes a return value and the exit status would be 0
+    """The one-line error to raise: station.cli.main prints ``station: error: MSG`` and exits 2."""
     return ConfigError(msg)
 
 
