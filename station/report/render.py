@@ -25,6 +25,8 @@ def _num(v, digits: int = 4) -> str:
         return str(v)
     if not math.isfinite(f):
         return ""
+    if f.is_integer() and abs(f) < 1e6:  # counts and whole-number limits read as integers
+        return str(int(f))
     return f"{f:.{digits}g}" if abs(f) >= 1e4 or (f != 0 and abs(f) < 1e-3) else f"{f:.{digits}f}"
 
 
