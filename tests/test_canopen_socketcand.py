@@ -96,11 +96,15 @@ def test_robot_over_python_can_socketcand_streams_without_sdo(hub_rig):
         robot.close()
 
 
-def test_error_frame_from_hub_is_bus_error(hub_rig):
+@pytest.mark.parametrize("source", ["hub", "drive side of the wire"])
+def test_error_frame_through_hub_is_bus_error(hub_rig, source):
     world, emu, hub = hub_rig
     robot = open_robot(url_of(hub))
     try:
-        hub.inject_error(0x40)
+        if source == "hub":
+            hub.inject_error(0x40)
+        else:
+            emu.inject_error_frame("busoff")  # crosses the virtual bus, then the hub as "< error 040 ... >"
         end = time.monotonic() + 1.0
         with pytest.raises(BusError, match="bus-off"):
             while time.monotonic() < end:
