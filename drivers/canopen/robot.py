@@ -487,6 +487,7 @@ class CanopenRobot:
             if cond(snap):
                 return snap
             if time.monotonic() > end:
+                self.stop()  # whatever did not happen, nothing keeps moving
                 bad = [n for n in self.nodes if not cond({n: snap[n]})]
                 raise DeviceFault(f"canopen {self.where}: {what} not confirmed within {timeout:.1f} s "
                                   f"(node(s) {bad})", device=f"node {bad[0]}" if bad else None)
