@@ -338,7 +338,13 @@ class URRobot:
                 self._halt_quietly()
                 raise BusError(f"ur://{self.host}: move not finished within {budget:.1f} s; robot stopped")
             time.sleep(0.004)
-        q = self.joint_positions().q  # a package after the end of the move
+        # the receive connection may be a package behind the control connection that saw the end of the
+        # move: read a package two cycles newer than the newest one at that moment
+        ts_done = self._r.getTimestamp()
+        snap = self.joint_positions()
+        while snap.t_device < ts_done + 0.0039:
+            snap = self.joint_positions()
+        q = snap.q
         self._check_safety()
         err = float(np.max(np.abs(q - target)))
         if err > 1e-3:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import random
 import selectors
 import socket
 import subprocess
@@ -18,23 +19,25 @@ PORTS = (30004, 29999, 30003)
 _CLI = "import sys; from station.cli import main; sys.argv[0] = 'station'; main()"
 
 
-def free_loopback(start: int = 2) -> str:
-    """A loopback address (127.0.0.N, then 127.0.N.M) whose three UR ports are free right now."""
-    candidates = [f"127.0.0.{i}" for i in range(start, 255)]
-    candidates += [f"127.0.{a}.{b}" for a in range(1, 255) for b in range(2, 255)]
-    for host in candidates:
-        ok = True
-        for port in PORTS:
-            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-            try:
-                s.bind((host, port))
-            except OSError:
-                ok = False
-            finally:
-                s.close()
-            if not ok:
-                break
-        if ok:
+def _ports_free(host: str) -> bool:
+    for port in PORTS:
+        s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        try:
+            s.bind((host, port))
+        except OSError:
+            return False
+        finally:
+            s.close()
+    return True
+
+
+def free_loopback() -> str:
+    """A random loopback address 127.A.B.C whose three UR ports are free right now. Random, so that test
+    sessions running side by side (other engineers, CI shards) do not pick the same address."""
+    rng = random.Random()
+    for _ in range(200):
+        host = f"127.{rng.randint(1, 254)}.{rng.randint(0, 255)}.{rng.randint(2, 254)}"
+        if _ports_free(host):
             return host
     raise RuntimeError("no free loopback address for a UR emulator")
 
