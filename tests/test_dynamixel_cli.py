@@ -51,7 +51,7 @@ def test_process_serves_world_file_and_keeps_eeprom_across_restarts(tmp_path: Pa
     proc, path = _start("--world", str(wfile), "--ids", "21-24", "--contact-id", "200", "--eeprom", str(eeprom))
     try:
         assert path.startswith("/dev/pts/")
-        with open_robot(f"dynamixel://{path}?ids=21-24&model=omx&contact=200") as robot:
+        with open_robot(f"dynamixel://{path}?ids=21-24&model=omx&contact=200&latency=50") as robot:
             snap = robot.joint_positions()
             tick = 1 / world.nominal.joints[0].encoder.counts_per_unit
             assert np.all(np.abs(snap.q - truth) <= tick / 2 + 1e-12)
@@ -62,7 +62,7 @@ def test_process_serves_world_file_and_keeps_eeprom_across_restarts(tmp_path: Pa
     assert json.loads(eeprom.read_text())["format"] == "station-dxl-eeprom/1"
     proc, path = _start("--world", str(wfile), "--eeprom", str(eeprom))  # ids from the world's buses section
     try:
-        with open_robot(f"dynamixel://{path}?ids=21-24&model=omx&contact=201") as robot:
+        with open_robot(f"dynamixel://{path}?ids=21-24&model=omx&contact=201&latency=50") as robot:
             assert robot.read_calibration() == written
     finally:
         assert _stop(proc) == 0

@@ -23,7 +23,7 @@ def rig():
     world = World.default(model="omx", seed=7, start=[0.2, -0.3, 0.4, 0.1])
     emu = DynamixelEmulator(world, ids=IDS)
     path = emu.start()
-    robot = open_robot(f"dynamixel://{path}?baud=1000000&ids=11-14&model=omx&contact=200")
+    robot = open_robot(f"dynamixel://{path}?baud=1000000&ids=11-14&model=omx&contact=200&latency=50")
     yield world, emu, robot
     robot.close()
     emu.stop()
@@ -74,7 +74,7 @@ def test_motion_reaches_targets_and_one_sync_read_per_snapshot(rig):
 
 def test_plain_sync_read_snapshot_costs_one_transaction(rig):
     world, emu, _ = rig
-    with open_robot(f"dynamixel://{emu.path}?ids=11-14&model=omx&fast=0") as robot:
+    with open_robot(f"dynamixel://{emu.path}?ids=11-14&model=omx&fast=0&latency=50") as robot:
         emu.reset_stats()
         snap = robot.joint_positions()
         assert emu.stats["by_inst"] == {"sync_read": 1}
@@ -85,7 +85,7 @@ def test_plain_sync_read_snapshot_costs_one_transaction(rig):
 def test_profile_velocity_is_respected_in_real_time():
     world = World.default(model="omx", time_mode="realtime")
     with DynamixelEmulator(world, ids=IDS) as emu, \
-            open_robot(f"dynamixel://{emu.path}?ids=11-14&model=omx") as robot:
+            open_robot(f"dynamixel://{emu.path}?ids=11-14&model=omx&latency=50") as robot:
         robot.enable()
         t0 = time.monotonic()
         robot.move_joints(np.array([0.4, 0.0, 0.0, 0.0]), speed=1.0)
@@ -134,7 +134,7 @@ def test_jog_joint_and_cartesian_with_tool_speed_cap(rig):
 def test_writeback_round_trips_and_survives_a_power_cycle():
     world = World.default(model="omx", seed=2, start=[0.1, 0.2, 0.3, 0.4])
     emu = DynamixelEmulator(world, ids=IDS)
-    url = f"dynamixel://{emu.start()}?ids=11-14&model=omx"
+    url = f"dynamixel://{emu.start()}?ids=11-14&model=omx&latency=50"
     robot = open_robot(url)
     try:
         robot.enable()
@@ -158,7 +158,7 @@ def test_writeback_round_trips_and_survives_a_power_cycle():
         emu.stop()
         # power cycle: a new emulator keeps the EEPROM images, RAM restarts (torque off)
         emu = DynamixelEmulator(world, ids=IDS, eeprom=eeprom)
-        url = f"dynamixel://{emu.start()}?ids=11-14&model=omx"
+        url = f"dynamixel://{emu.start()}?ids=11-14&model=omx&latency=50"
         robot = open_robot(url)
         assert robot.read_calibration() == got
         assert not robot.status().enabled
@@ -199,7 +199,7 @@ def test_needle_contact_through_the_contact_sensor():
             "points": [{"label": "N", "kind": "needle", "position": [0.18, 0.08, 0.05], "approach": [0, 0, 1]}]}
     world = World.default(model="omx", seed=1, cell=cell)
     with DynamixelEmulator(world, ids=IDS, contact_id=210) as emu, \
-            open_robot(f"dynamixel://{emu.path}?ids=11-14&model=omx&contact=210") as robot:
+            open_robot(f"dynamixel://{emu.path}?ids=11-14&model=omx&contact=210&latency=50") as robot:
         robot.enable()
         needle = world.points["N"].position
         res = world.truth.ik(needle, np.array([0.4, 0.5, 0.3, 0.8]))

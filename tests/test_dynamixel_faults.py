@@ -20,7 +20,7 @@ def sim():
     """Simulated time: the test decides when time passes, so a fault lands mid-move deterministically."""
     world = World.default(model="omx", seed=4, time_mode="sim")
     emu = DynamixelEmulator(world, ids=IDS)
-    robot = open_robot(f"dynamixel://{emu.start()}?ids=11-14&model=omx&retries=3")
+    robot = open_robot(f"dynamixel://{emu.start()}?ids=11-14&model=omx&retries=3&latency=50")
     robot.enable()
     yield world, emu, robot
     robot.close()
@@ -103,26 +103,30 @@ def test_device_fault_names_servo_and_bits_and_reboot_recovers(sim):
 def test_device_fault_during_a_waited_move():
     world = World.default(model="omx", seed=4, time_mode="realtime")
     with DynamixelEmulator(world, ids=IDS) as emu, \
-            open_robot(f"dynamixel://{emu.path}?ids=11-14&model=omx") as robot:
+            open_robot(f"dynamixel://{emu.path}?ids=11-14&model=omx&latency=50") as robot:
         robot.enable()
-        world.faults.inject("device_fault", device=12, after=3)
+        world.faults.inject("device_fault", device=12, after=8)  # strikes while polling
         with pytest.raises(DeviceFault, match="servo id 12"):
             robot.move_joints(TARGET, speed=1.0)
-        time.sleep(0.05)
+        q_fault = world.encoder_q()
+        deadline = time.monotonic() + 1.0  # braking from <= 1 rad/s takes a fraction of that
+        while world.is_moving() and time.monotonic() < deadline:
+            time.sleep(0.01)
         assert not world.is_moving()
+        assert np.max(np.abs(world.encoder_q() - q_fault)) < 0.1
         assert np.max(np.abs(world.encoder_q() - TARGET)) > 0.3
 
 
 def test_disconnect_mid_move_bus_watchdog_stops_the_arm():
     world = World.default(model="omx", seed=4, time_mode="realtime")
     with DynamixelEmulator(world, ids=IDS) as emu, \
-            open_robot(f"dynamixel://{emu.path}?ids=11-14&model=omx") as robot:
+            open_robot(f"dynamixel://{emu.path}?ids=11-14&model=omx&latency=50") as robot:
         robot.enable()
         world.faults.inject("disconnect", after=8)
         t0 = time.monotonic()
         with pytest.raises(ConnectionLost):
             robot.move_joints(TARGET, speed=1.0)
-        assert time.monotonic() - t0 < 1.0  # bounded retries, not the move's duration
+        assert time.monotonic() - t0 < 1.5  # bounded retries, not the move's duration
         time.sleep(0.4)  # 0.2 s watchdog + braking
         assert not world.is_moving()
         assert np.max(np.abs(world.encoder_q() - TARGET)) > 0.3

@@ -16,16 +16,32 @@ from station.robot.errors import BusError, ConfigError, ConnectionLost
 RETRYABLE = (sdk.COMM_RX_TIMEOUT, sdk.COMM_RX_CORRUPT, sdk.COMM_RX_FAIL, sdk.COMM_PORT_BUSY)
 
 
+class DxlPort(sdk.PortHandler):
+    """The SDK's PortHandler with its answer timeout's latency term configurable: the SDK waits
+    ``bytes x byte time + 2 x 16 ms (FTDI latency timer) + 2 ms``. With the adapter's latency timer set to
+    1 ms, ``latency_ms=1`` detects a lost answer 30 ms sooner; on a loaded host (or CI) a larger value keeps
+    scheduling delays from counting as lost answers."""
+
+    def __init__(self, port_name: str, latency_ms: float = sdk.port_handler.LATENCY_TIMER) -> None:
+        super().__init__(port_name)
+        self.latency_ms = float(latency_ms)
+
+    def setPacketTimeout(self, packet_length):  # noqa: N802 - SDK method name
+        self.packet_start_time = self.getCurrentTime()
+        self.packet_timeout = (self.tx_time_per_byte * packet_length) + (self.latency_ms * 2.0) + 2.0
+
+
 def _signed(value: int, size: int) -> int:
     bits = 8 * size
     return value - (1 << bits) if value >= 1 << (bits - 1) else value
 
 
 class DxlBus:
-    def __init__(self, path: str, baud: int, retries: int = 3) -> None:
+    def __init__(self, path: str, baud: int, retries: int = 3,
+                 latency_ms: float = sdk.port_handler.LATENCY_TIMER) -> None:
         self.path = path
         self.retries = max(0, int(retries))
-        self.port = sdk.PortHandler(path)
+        self.port = DxlPort(path, latency_ms)
         self.ph = sdk.PacketHandler(2.0)
         self.transactions = 0  # instruction packets sent (retries included)
         self.retried = 0

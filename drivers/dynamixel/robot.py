@@ -1,7 +1,7 @@
 """``DynamixelRobot``: the Robot protocol over a Dynamixel Protocol 2.0 bus (one servo per joint).
 
 URL: ``dynamixel:///dev/ttyUSB0?baud=1000000&ids=11-14&model=omx[&contact=200][&serial=SN][&fast=1]
-[&retries=3]``. Ids map to the model's joints in order. Joint snapshot = one (Fast) Sync Read of
+[&retries=3][&latency=16]``. Ids map to the model's joints in order. Joint snapshot = one (Fast) Sync Read of
 Present Position; goals = one Sync Write of Profile Acceleration + Profile Velocity + Goal Position.
 Ticks <-> SI through each joint's encoder scaling in the kinematic model."""
 
@@ -21,7 +21,7 @@ from station.robot.motion import MANUAL_TOOL_SPEED_CAP, check_joint_limits, jog_
 from station.robot.protocol import Identity, JointSnapshot, JointState, RobotStatus
 from station.robot.registry import RobotURL, parse_ids
 
-URL_KEYS = {"baud", "ids", "model", "contact", "serial", "fast", "retries"}
+URL_KEYS = {"baud", "ids", "model", "contact", "serial", "fast", "retries", "latency"}
 
 
 class DynamixelRobot:
@@ -29,7 +29,7 @@ class DynamixelRobot:
 
     def __init__(self, port: str, *, ids: list[int], model: Model | str = "omx", baud: int = 1_000_000,
                  contact_id: int | None = None, serial: str | None = None, fast: bool = True, retries: int = 3,
-                 url: str = "") -> None:
+                 latency_ms: float = 16.0, url: str = "") -> None:
         self.model: Model = load_model(model) if isinstance(model, str) else model
         n = self.model.n_joints
         if len(ids) != n or len(set(ids)) != n:
@@ -42,7 +42,7 @@ class DynamixelRobot:
         self.contact_id = contact_id
         self.fast = fast
         self.url = url
-        self.bus = DxlBus(port, baud, retries)
+        self.bus = DxlBus(port, baud, retries, latency_ms)
         self._compliant = False
         self._closed = False
         try:
@@ -71,11 +71,15 @@ class DynamixelRobot:
             contact = url.get("contact")
             contact_id = int(contact) if contact not in (None, "", "none") else None
             retries = int(url.get("retries", "3"))
+            latency = float(url.get("latency", "16"))
+            if not (math.isfinite(latency) and 0 <= latency <= 1000):
+                raise ValueError
         except ValueError:
-            raise ConfigError(f"robot URL {url.raw!r}: baud, contact and retries must be integers") from None
+            raise ConfigError(f"robot URL {url.raw!r}: baud, contact and retries must be integers, latency "
+                              "a number of ms in 0..1000") from None
         fast = url.get("fast", "1").lower() not in ("0", "false", "no")
         args = {"ids": ids, "model": m, "baud": baud, "contact_id": contact_id, "serial": url.get("serial"),
-                "fast": fast, "retries": retries, "url": url.raw}
+                "fast": fast, "retries": retries, "latency_ms": latency, "url": url.raw}
         args.update(kw)
         return cls(url.path, **args)
 

@@ -6,8 +6,9 @@ One servo per joint of the world's model (ids in joint order) plus an optional c
 
 World wiring (all through the public World API):
 - Present Position (132) = encoder counts of ``world.encoder_q()`` (model encoder scaling) + Homing Offset (20).
-- Goal Position (116) -> ``world.command_q(to_si(goal - homing offset), speed)``; speed from Profile
-  Velocity (112, 0 = Velocity Limit 44), Goal Velocity (104) in velocity mode -> ``world.command_qd``.
+- Goal Position (116) -> ``world.command_joint(j, to_si(goal - homing offset), speed, accel)`` per servo
+  (each servo plans its own profile); speed from Profile Velocity (112, 0 = Velocity Limit 44), acceleration
+  from Profile Acceleration (108); Goal Velocity (104) in velocity mode -> ``world.command_qd``.
 - Torque Enable (64) on every joint servo <-> ``world.set_enabled``; enabling sets Goal := Present (hold).
 - Operating mode 5 (current-based position) with Goal Current (102) <= COMPLIANT_CURRENT on every joint
   servo (torque on) <-> ``world.set_compliant(True)``.
@@ -302,6 +303,14 @@ class DynamixelEmulator:
             self._command(targets, np.array(speeds), np.array(accels))
 
     def _command(self, targets: np.ndarray, speeds: np.ndarray, accels: np.ndarray) -> None:
+        """Each servo plans its own profile (as the real ones do: joints arrive together only because the
+        driver scales the profile velocities); a world without per-joint commands gets one synchronised move."""
+        if hasattr(self.world, "command_joint"):
+            for j, dev in enumerate(self._joint_devs()):
+                if dev.torque:
+                    self.world.command_joint(j, float(targets[j]), speed=max(float(speeds[j]), 1e-6),
+                                             accel=None if np.isinf(accels[j]) else max(float(accels[j]), 1e-6))
+            return
         accel = None if np.all(np.isinf(accels)) else np.where(np.isinf(accels), 1e9, np.maximum(accels, 1e-6))
         self.world.command_q(targets, speed=np.maximum(speeds, 1e-6), accel=accel)
 
