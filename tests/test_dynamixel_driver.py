@@ -228,3 +228,18 @@ def test_goal_refused_by_servo_position_limits_is_caught_at_once(rig):
     with pytest.raises(DeviceFault, match=r"servo id 12 \(joint 2 shoulder\) refused the goal"):
         robot.move_joints(np.array([before[0], 0.5, before[2], before[3]]), wait=False)
     assert np.allclose(world.encoder_q(), before)
+
+
+def test_xl430_arm_reads_and_moves_but_has_no_compliant_mode():
+    world = World.default(model="omx", seed=8)
+    with DynamixelEmulator(world, ids=[1, 2, 3, 4], servo="xl430", contact_id=None) as emu, \
+            open_robot(f"dynamixel://{emu.path}?model=omx&latency=50") as robot:  # ids default 1..n
+        assert [d["model"] for d in robot.identity().devices] == ["XL430-W250"] * 4
+        assert robot.touch() is None
+        robot.enable()
+        target = np.array([-0.3, 0.4, 0.2, -0.5])
+        robot.move_joints(target)
+        assert np.all(np.abs(robot.joint_positions().q - target) <= _tick(world, 0) / 2 + 1e-12)
+        with pytest.raises(ConfigError, match="no current-based position mode"):
+            robot.set_compliant(True)
+        assert robot.status().enabled
