@@ -97,19 +97,26 @@ def efficiency(name: str, trials: int, rng) -> dict:
             "ok": conv, "ms": dt * 1e3}
 
 
-def timing(n_params: int, n_poses: int, rng, repeats: int) -> dict:
-    """Instrument-measured UR5e: offsets + tcp + link geometry, plus the 6 instrument-frame unknowns."""
+def timing(n_params: int, n_poses: int, rng, repeats: int, instrument: bool) -> dict:
+    """UR5e. Touches: offsets + TCP + one unknown point = 12 unknowns (rank 10: offset.j1/j6 named).
+    Instrument: offsets, TCP, link geometry + the 6 instrument-frame unknowns (12 or 30 in all)."""
     nominal = load_model("ur5e").with_params({"tcp.x": 0.02, "tcp.y": -0.01, "tcp.z": 0.12})
-    base = ["offset.j2", "offset.j3", "offset.j4", "offset.j5", "tcp.x", "tcp.y"] if n_params <= 12 else \
-        ["offset.j2", "offset.j3", "offset.j4", "offset.j5", "tcp.x", "tcp.y", "tcp.z"]
-    extra = [n for n in nominal.select("dh") if n not in ("dh.j6.d", "dh.j6.a", "dh.j6.alpha")]
-    names = base + extra[: max(0, n_params - 6 - len(base))]
-    hidden = {n: nominal.param(n) + rng.normal(0, 1e-3) for n in names}
-    frame = {"base.x": 1.1, "base.y": -0.3, "base.z": 0.2, "base.rz": 0.5}
-    truth = nominal.with_params({**hidden, **frame})
-    q = random_q(nominal, n_poses, rng, spread=0.6, centre=UR_HOME)
-    meas = truth.position(q) + rng.normal(0, SIGMA, (n_poses, 3))
-    obs = Observations(q, measured=meas)
+    if instrument:
+        names = ["offset.j2", "offset.j3", "offset.j4", "offset.j5", "tcp.x", "tcp.y", "tcp.z"]
+        names += [n for n in nominal.select("dh") if n not in ("dh.j6.d", "dh.j6.a", "dh.j6.alpha")]
+        names = names[: n_params - 6] if n_params > 12 else names[:4] + ["tcp.x", "tcp.y"]
+        hidden = {n: nominal.param(n) + rng.normal(0, 1e-3) for n in names}
+        frame = {"base.x": 1.1, "base.y": -0.3, "base.z": 0.2, "base.rz": 0.5}
+        truth = nominal.with_params({**hidden, **frame})
+        q = random_q(nominal, n_poses, rng, spread=0.6, centre=UR_HOME)
+        obs = Observations(q, measured=truth.position(q) + rng.normal(0, SIGMA, (n_poses, 3)))
+    else:
+        names = nominal.select("offsets,tcp")
+        hidden = {n: nominal.param(n) + rng.normal(0, 1e-3) for n in names if n not in ("offset.j1", "offset.j6")}
+        truth = nominal.with_params(hidden)
+        c = truth.position(UR_HOME)
+        q = touch_q(truth, c, n_poses, rng, centre=UR_HOME, spread=0.35)
+        obs = Observations(noisy_q(truth, q, np.broadcast_to(c, q.shape[:1] + (3,)), SIGMA, rng))
     res = solve(nominal, obs, names)
     prob = Problem(nominal, obs, names, "unknown")
     act = [prob.names.index(n) for n in res.identified]
@@ -133,7 +140,8 @@ def timing(n_params: int, n_poses: int, rng, repeats: int) -> dict:
         ts3.append(time.process_time() - t0)
     ours = np.array([res.parameters[n].value for n in res.identified])
     diff = np.max(np.abs(ours - sp.x) / np.array([res.parameters[n].std for n in res.identified]))
-    return {"case": f"{prob.n_unknowns} params x {n_poses} poses", "rank": res.rank, "ours_ms": np.median(ts) * 1e3,
+    kind = "instrument" if instrument else "touches"
+    return {"case": f"{prob.n_unknowns} params x {n_poses} {kind}", "rank": res.rank, "ours_ms": np.median(ts) * 1e3,
             "scipy_ms": np.median(ts2) * 1e3, "speedup": np.median(ts2) / np.median(ts), "iters": res.iterations,
             "scipy_fused_ms": np.median(ts3) * 1e3, "speedup_fused": np.median(ts3) / np.median(ts),
             "nfev": sp.nfev, "agree_std": diff}
@@ -191,11 +199,11 @@ def main() -> None:
     print("\n(b) solve time (median, interleaved) vs scipy.optimize.least_squares(jac='2-point', trf) on the same "
           "data, start and identified set;\n    scipy A: residual through Model.position (kinematics FK), scipy B: "
           "through the solver's fused chain pass")
-    print(f"{'case':26s} {'rank':>4s} {'ours ms':>8s} {'scipyA ms':>9s} {'speedup':>8s} {'scipyB ms':>9s} "
+    print(f"{'case':30s} {'rank':>4s} {'ours ms':>8s} {'scipyA ms':>9s} {'speedup':>8s} {'scipyB ms':>9s} "
           f"{'speedup':>8s} {'iters':>5s} {'nfev':>5s} {'|diff|/std':>10s}")
-    for n_params, n_poses in ((12, 50), (30, 500)):
-        t = timing(n_params, n_poses, rng, reps)
-        print(f"{t['case']:26s} {t['rank']:4d} {t['ours_ms']:8.1f} {t['scipy_ms']:9.1f} {t['speedup']:7.1f}x "
+    for n_params, n_poses, instrument in ((12, 50, False), (12, 50, True), (30, 500, True)):
+        t = timing(n_params, n_poses, rng, reps * (3 if n_poses < 100 else 1), instrument)
+        print(f"{t['case']:30s} {t['rank']:4d} {t['ours_ms']:8.1f} {t['scipy_ms']:9.1f} {t['speedup']:7.1f}x "
               f"{t['scipy_fused_ms']:9.1f} {t['speedup_fused']:7.1f}x {t['iters']:5d} {t['nfev']:5d} "
               f"{t['agree_std']:10.2e}")
     print("\n(c) convergence from 5 mm / 2 deg errors on every identified parameter (new poses each trial; "

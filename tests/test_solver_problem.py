@@ -28,3 +28,20 @@ def test_position_jacobian_matches_kinematics(name):
     dp[k] += h
     fd = (m.position(q, dp) - m.position(q, params)) / h
     np.testing.assert_allclose(J[:, :, k], fd, atol=1e-6)
+
+
+def test_initial_point_guess_shortcut_matches_the_plain_path():
+    from station.solver import Observations
+    from station.solver.problem import Problem
+
+    m = load_model("ur5e").with_params({"tcp.z": 0.1})
+    rng = np.random.default_rng(3)
+    q = rng.uniform(-1, 1, (12, 6))
+    obs = Observations(q, ["A", "B", "C"] * 4)
+    prob = Problem(m, obs, m.select("offsets,tcp"), {"C": np.array([0.1, 0.2, 0.3])})
+    x, r, J = prob.initial_with_jacobian()
+    x2 = prob.initial()
+    r2, J2 = prob.residual_jacobian(x2)
+    np.testing.assert_allclose(x, x2, atol=1e-15)
+    np.testing.assert_allclose(r, r2, atol=1e-15)
+    np.testing.assert_allclose(J, J2, atol=1e-15)

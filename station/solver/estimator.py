@@ -62,11 +62,13 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
         raise SolverInputError(
             f"only {k} distinct pose(s) among {len(obs)} samples (readings within {POSE_TOL * 1e3:g} mrad/um count as "
             f"one): {3 * k} equations for {p} unknowns; move the robot between touches")
-    x = prob.initial()
+    x, r, J = prob.initial_with_jacobian()
     x_start = x.copy()
-    r, J = prob.residual_jacobian(x)
     r_before = r
     ana = _analyse(prob, J, x, noise or 0.0, max_std, r)
+    # Iterate to convergence on what is structurally identifiable, then decide with the fit's sigma
+    # (dependencies like "offset.j1 vs an unknown point" are exact only where the touches are consistent,
+    # i.e. at the solution; a sigma from an unconverged fit would reject good parameters).
     iterations, converged = 0, False
     for _ in range(4):
         act = ana.accepted

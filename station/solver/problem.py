@@ -121,6 +121,19 @@ class Problem:
             x[self.n_model + 3 * i: self.n_model + 3 * i + 3] = P[self.obs.point == lb].mean(axis=0)
         return x
 
+    def initial_with_jacobian(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``initial()`` with the residual and Jacobian there. Without an instrument frame one chain pass
+        serves both: the model is at nominal and the Jacobian does not depend on the point values."""
+        if self.frame_unknown:
+            x = self.initial()
+            return (x, *self.residual_jacobian(x))
+        x = self.x_nominal.copy()
+        r, J = self.residual_jacobian(x)  # points at 0: rows of unknown points are the tip positions
+        P = r.reshape(-1, 3) + self.target_fixed * (self.slot < 0)[:, None]
+        for i, lb in enumerate(self.unknown_points):
+            x[self.n_model + 3 * i: self.n_model + 3 * i + 3] = P[self.obs.point == lb].mean(axis=0)
+        return x, (P - self._targets(x)).ravel(), J
+
     def residual(self, x: np.ndarray, fused: bool = True) -> np.ndarray:
         """Stacked residual (3N,). ``fused=False`` evaluates it through the kinematics layer's public
         ``Model.position`` instead of the solver's fused chain pass (same numbers; used as the baseline in
