@@ -251,3 +251,21 @@ def test_observations_from_sample_dicts():
         observations_from_samples(samples[:2] + [{**samples[2], "measured": [0.1, 0.2, 0.3]}])
     with pytest.raises(SolverInputError, match="no joint readings"):
         observations_from_samples([{"seq": 4, "point": "A"}])
+
+
+@pytest.mark.parametrize("seed", [41, 42, 43])
+def test_scara_converges_from_5mm_2deg_on_every_parameter(seed):
+    nominal = load_model("scara").with_params({"tcp.x": 0.02})
+    names = ["offset.j1", "offset.j2", "offset.j3", "tcp.x", "tcp.y", "dh.j1.a", "dh.j2.a"]
+    rng = np.random.default_rng(seed)
+    sign = rng.choice([-1.0, 1.0], len(names))
+    hidden = {n: nominal.param(n) + s * (np.deg2rad(2.0) if n in ("offset.j1", "offset.j2") else 5e-3)
+              for n, s in zip(names, sign, strict=True)}
+    truth = nominal.with_params(hidden)
+    mid = (nominal.lower + nominal.upper) / 2
+    pts = {"A": truth.position(mid + [0.4, 0.5, 0.05, 0.0]), "B": truth.position(mid + [-0.5, 0.6, 0.1, 0.0])}
+    obs = touch_observations(truth, pts, 15, rng, centre=mid, spread=0.9)
+    res = solve(nominal, obs, ",".join(names), dict(pts))
+    assert res.converged and not res.unidentifiable
+    assert res.residuals["rms_before_m"] > 100 * res.residuals["rms_after_m"]
+    assert_within(res, hidden)
