@@ -66,19 +66,22 @@ def _rate(port_path: str, method: str, ids: list[int], seconds: float) -> tuple[
                 failed += 1
         return ok / (time.perf_counter() - t0), failed
     finally:
-        port.closePort()
+        if port.is_open:
+            port.closePort()
 
 
 def _emulator_process(model: str, n: int, return_delay: int) -> tuple[subprocess.Popen, str]:
     """``station mock dynamixel --wire-timing`` in its own process, so its timing does not share our GIL."""
     cmd = [sys.executable, "-c", "from station.cli import main; main()", "mock", "dynamixel", "--model", model,
            "--ids", f"1-{n}", "--wire-timing", "--return-delay", str(return_delay), "--contact-id", "none"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     ready, _, _ = select.select([proc.stdout], [], [], 60)
-    if not ready:
+    path = proc.stdout.readline().strip() if ready else ""
+    if not path.startswith("/dev/"):
         proc.kill()
-        raise RuntimeError("station mock dynamixel did not print its pty path")
-    return proc, proc.stdout.readline().strip()
+        err = proc.communicate()[1].strip().splitlines()
+        raise RuntimeError(f"station mock dynamixel did not print its pty path: {err[-1] if err else 'no output'}")
+    return proc, path
 
 
 def measure(model: str, n: int, method: str, seconds: float, return_delay: int = 0) -> dict:
