@@ -18,6 +18,9 @@ from station.kinematics.se3 import invert, matrix_to_pose, pose_to_matrix
 
 log = logging.getLogger("station.mocks.ur")
 
+_CONSTANTS = {"speed_scaling": 1.0, "target_speed_fraction": 1.0, "actual_main_voltage": 48.0,
+              "actual_robot_voltage": 48.0, "joint_temperatures": [30.0] * 6, "actual_joint_voltage": [48.0] * 6,
+              "actual_execution_time": 0.3, "tool_temperature": 30.0}
 PERIOD = 0.002  # e-Series controller cycle (500 Hz)
 UNLOCK_DELAY = 5.0  # s: a protective stop cannot be unlocked earlier (as on a real robot)
 
@@ -56,6 +59,8 @@ class URController:
         self.in_int0_written = time.monotonic()  # watchdog: last time a client wrote input_int_register_0
         # controller state
         self.tick_count = 0
+        self.late_ticks = 0  # cycles that started after their deadline (host scheduling), for benchmarks
+        self.max_late = 0.0
         self.runtime_state = S.STOPPED
         self.program: str | None = None  # name of the running program ("rtde_control")
         self.reg_offset = 0
@@ -89,6 +94,8 @@ class URController:
         self._running = False
         self._thread: threading.Thread | None = None
         self._state_cache: dict | None = None
+        self._pose_key: tuple | None = None
+        self._pose: list[float] = []
 
     # ---- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:
@@ -118,8 +125,11 @@ class URController:
             delay = next_t - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
-            elif delay < -0.5:  # far behind (machine stalled): resynchronise instead of bursting
-                next_t = time.monotonic()
+            else:  # behind schedule: the next packages leave back to back (clients may merge them)
+                self.late_ticks += 1
+                self.max_late = max(self.max_late, -delay)
+                if delay < -0.5:  # far behind (machine stalled): resynchronise instead of bursting
+                    next_t = time.monotonic()
 
     # ---- one controller cycle ----------------------------------------------------------------
     def tick(self) -> None:
@@ -459,39 +469,62 @@ class URController:
             bits |= S.RS_TEACH_BUTTON
         return bits
 
-    def snapshot(self) -> dict:
-        """Every output variable the emulator computes, for this cycle (cached until the next tick)."""
+    def _tcp_pose(self) -> list[float]:
+        """actual_TCP_pose from the nominal model, cached while the joints do not move (FK is the costly
+        part of a cycle)."""
+        key = (self.q_prev.tobytes(), self.tcp.tobytes())
+        if self._pose_key != key:
+            self._pose_key = key
+            self._pose = matrix_to_pose(self._tcp_T(self.q_prev)).tolist()
+        return self._pose
+
+    def value(self, name: str):
+        """One output variable for this cycle (registers by index; the rest computed on demand)."""
+        if name.startswith("output_int_register_"):
+            return self.out_int[int(name[20:])]
+        if name.startswith("output_double_register_"):
+            return self.out_double[int(name[23:])]
+        if name.startswith("input_int_register_"):
+            return self.in_int[int(name[19:])]
+        if name.startswith("input_double_register_"):
+            return self.in_double[int(name[22:])]
+        cache = self._state_cache
+        if cache is None:
+            cache = self._state_cache = {}
+        if name in cache:
+            return cache[name]
+        v = self._compute(name)
+        cache[name] = v
+        return v
+
+    def _compute(self, name: str):
+        if name == "timestamp":
+            return self.controller_time()
+        if name in ("actual_q", "target_q"):
+            return self.q_prev.tolist()
+        if name in ("actual_qd", "target_qd"):
+            return self.qd.tolist()
+        if name in ("actual_TCP_pose", "target_TCP_pose"):
+            return self._tcp_pose()
+        if name == "actual_digital_input_bits":
+            return (1 << self.contact_bit) if self.world.contact() else 0
+        if name == "robot_mode":
+            return S.ROBOT_MODE_RUNNING if self.powered else S.ROBOT_MODE_POWER_OFF
+        if name == "joint_mode":
+            return [253 if self.powered else 236] * 6  # JOINT_RUNNING_MODE / JOINT_POWER_OFF_MODE
+        if name in ("safety_mode", "safety_status"):
+            return self.safety_mode
+        if name == "runtime_state":
+            return self.runtime_state
+        if name == "robot_status_bits":
+            return self.robot_status_bits()
+        if name == "safety_status_bits":
+            return self.safety_bits
+        return _CONSTANTS.get(name)  # None: the publisher sends the type's zero
+
+    def snapshot(self, names=("timestamp", "actual_q", "actual_TCP_pose", "safety_status_bits")) -> dict:
         with self.lock:
-            if self._state_cache is not None:
-                return self._state_cache
-            q = self.q_prev
-            T = self._tcp_T(q)
-            contact = bool(self.world.contact())
-            di = (1 << self.contact_bit) if contact else 0
-            moving = bool(np.any(np.abs(self.qd) > 1e-6))
-            st = {
-                "timestamp": self.controller_time(),
-                "actual_q": q.tolist(), "target_q": q.tolist(), "actual_qd": self.qd.tolist(),
-                "target_qd": self.qd.tolist(), "actual_TCP_pose": matrix_to_pose(T).tolist(),
-                "target_TCP_pose": matrix_to_pose(T).tolist(),
-                "actual_digital_input_bits": di,
-                "robot_mode": S.ROBOT_MODE_RUNNING if self.powered else S.ROBOT_MODE_POWER_OFF,
-                "joint_mode": [253 if self.powered else 236] * 6,  # JOINT_RUNNING_MODE / POWER_OFF
-                "safety_mode": self.safety_mode, "safety_status": self.safety_mode,
-                "runtime_state": self.runtime_state, "robot_status_bits": self.robot_status_bits(),
-                "safety_status_bits": self.safety_bits, "speed_scaling": 1.0, "target_speed_fraction": 1.0,
-                "actual_main_voltage": 48.0, "actual_robot_voltage": 48.0, "joint_temperatures": [30.0] * 6,
-                "actual_joint_voltage": [48.0] * 6, "actual_execution_time": 0.3,
-                "payload": 0.0, "tool_temperature": 30.0, "tool_output_voltage": 0,
-                "moving": moving,
-            }
-            for i in range(48):
-                st[f"output_int_register_{i}"] = self.out_int[i]
-                st[f"output_double_register_{i}"] = self.out_double[i]
-                st[f"input_int_register_{i}"] = self.in_int[i]
-                st[f"input_double_register_{i}"] = self.in_double[i]
-            self._state_cache = st
-            return st
+            return {n: self.value(n) for n in names}
 
     def write_inputs(self, names: list[str], values: list) -> None:
         """One RTDE input package from a client."""

@@ -158,8 +158,9 @@ class RTDEConn(_Conn):
     def on_tick(self, ctl: URController) -> None:
         if not self.started or self.out_struct is None or ctl.tick_count % self.divider:
             return
-        snap = ctl.snapshot()
-        values = [snap.get(n, _zero(t)) for n, t in zip(self.out_names, self.out_types, strict=True)]
+        with ctl.lock:
+            values = [ctl.value(n) for n in self.out_names]
+        values = [_zero(t) if v is None else v for v, t in zip(values, self.out_types, strict=True)]
         body = self.out_struct.pack(*W.flatten(values, self.out_types))
         try:
             self.send(W.DATA_PACKAGE, (struct.pack(">B", 1) if self.version >= 2 else b"") + body)
@@ -292,6 +293,9 @@ class DashboardConn(_Conn):
             return (f"emulator: in_int {ctl.in_int[o:o + 3]} out_int {ctl.out_int[o:o + 3]} "
                     f"watchdog {ctl.watchdog_hz:g} Hz, last write {time.monotonic() - ctl.in_int0_written:.3f} s ago, "
                     f"(tick, command) {list(ctl.cmd_log)[-12:]}"
+                    ), None
+        if what == "stats":
+            return (f"emulator: ticks {ctl.tick_count} late {ctl.late_ticks} max_late_ms {ctl.max_late * 1e3:.1f}"
                     ), None
         if what == "log":
             return "emulator: " + " | ".join(ctl.messages[-20:]), None
