@@ -1,13 +1,16 @@
-"""``station jog``: the technician's terminal UI (textual). Widgets render a ``JogController``; motion runs in a
-worker thread so the stop key is always served by the UI thread."""
+"""``station jog``: the technician's terminal UI (textual). Widgets render a ``JogController``. Moves are started
+without waiting, so the UI thread is never blocked by motion and the stop key is always served at once."""
 
 from __future__ import annotations
+
+import contextlib
 
 import numpy as np
 from rich.text import Text
 from textual.app import App, ComposeResult
 from textual.binding import Binding
 from textual.containers import Horizontal, Vertical
+from textual.css.query import NoMatches
 from textual.screen import ModalScreen
 from textual.widgets import Button, DataTable, Footer, Header, Static
 
@@ -94,7 +97,7 @@ class JogApp(App):
         Binding("delete,backspace", "discard", "discard"),
         Binding("up", "select(-1)", "select", show=False),
         Binding("down", "select(1)", "select", show=False),
-        Binding("e", "enable", "enable/reset", show=False),
+        Binding("c", "enable", "clear fault", show=False),
         Binding("W", "writeback", "write back"),
         Binding("ctrl+q", "quit", "quit"),
     ]
@@ -103,7 +106,7 @@ class JogApp(App):
         super().__init__()
         self.ctl = controller
         self.poll_s = poll_s
-        self.motion_busy = False
+        self._timer = None
         n = controller.model.n_joints
         for i, (plus, minus) in enumerate(JOG_KEYS[:max(n, 6)]):
             self._bindings.bind(plus, f"jog({i},1)", show=False)
@@ -140,7 +143,7 @@ class JogApp(App):
         self.query_one("#keys", Static).update(self._keys_text())
         self.ctl.poll(block=True)
         self.refresh_view()
-        self.set_interval(self.poll_s, self._tick)
+        self._timer = self.set_interval(self.poll_s, self._tick)
 
     def _keys_text(self) -> Text:
         n = max(self.ctl.model.n_joints, 6)
@@ -150,20 +153,21 @@ class JogApp(App):
             f"[b]1 2 3[/b] step {' / '.join(f'{s:g}' for s in STEP_PRESETS)} mm|deg  [b]- +[/b] speed\n"
             "[b]p[/b] point  [b]enter[/b] record  [b]![/b] record w/o contact\n"
             "[b]↑ ↓[/b] select  [b]k[/b] retake  [b]del[/b] discard  [b]W[/b] write\n"
-            "[b][reverse] space [/reverse][/b] STOP (x)  [b]e[/b] enable/reset  [b]ctrl+q[/b] quit")
+            "[b][reverse] space [/reverse][/b] STOP (x)  [b]c[/b] clear fault  [b]ctrl+q[/b] quit")
 
     # ---- periodic refresh ------------------------------------------------------------------------------
     def _tick(self) -> None:
         if self.ctl.closed:
             return
         self.ctl.poll()
-        self.refresh_view()
+        with contextlib.suppress(NoMatches):  # a tick racing the app's shutdown: the widgets are already gone
+            self.refresh_view()
 
     def refresh_view(self) -> None:
         ctl = self.ctl
         banner = self.query_one("#banner", Static)
         if ctl.fault:
-            banner.update(f"⚠ FAULT — motion stopped: {ctl.fault}   (e: enable / reset)")
+            banner.update(f"⚠ FAULT — motion stopped: {ctl.fault}   (c: clear fault and re-enable)")
             banner.add_class("on")
         else:
             banner.remove_class("on")
@@ -199,7 +203,7 @@ class JogApp(App):
             jog.append(" ● CONTACT ", style="bold black on green")
         else:
             jog.append(" ○ no contact ", style="dim")
-        state = "moving" if (r and r.moving) or self.motion_busy else "still"
+        state = "moving" if r and r.moving else "still"
         jog.append(f"   {state}", style="yellow" if state == "moving" else "green")
         if r is not None and not r.enabled:
             jog.append("  disabled", style="red")
@@ -263,21 +267,9 @@ class JogApp(App):
         self.refresh_view()
 
     def action_jog(self, axis: int, direction: int) -> None:
-        if self.motion_busy:
-            self.ctl.message = "still moving: wait, or STOP (space)"
-            self.refresh_view()
-            return
-        self.motion_busy = True
-        self.run_worker(lambda: self._jog_worker(axis, direction), thread=True, group="motion",
-                        name=f"jog {axis} {direction}")
-
-    def _jog_worker(self, axis: int, direction: int) -> None:
-        try:
-            self.ctl.jog(axis, direction)
-            self.ctl.poll(block=True)
-        finally:
-            self.motion_busy = False
-            self.call_from_thread(self.refresh_view)
+        self.ctl.jog(axis, direction)
+        self.ctl.poll(block=True)
+        self.refresh_view()
 
     def action_toggle_mode(self) -> None:
         self.ctl.toggle_mode()
@@ -295,27 +287,17 @@ class JogApp(App):
         self.ctl.next_point(delta)
         self.refresh_view()
 
-    def _guard_motion(self) -> bool:
-        if self.motion_busy:
-            self.ctl.message = "still moving: not recorded"
-            self.refresh_view()
-            return False
-        return True
-
     def action_record(self) -> None:
-        if self._guard_motion():
-            self.ctl.record()
-            self.refresh_view()
+        self.ctl.record()
+        self.refresh_view()
 
     def action_record_forced(self) -> None:
-        if self._guard_motion():
-            self.ctl.record(force=True)
-            self.refresh_view()
+        self.ctl.record(force=True)
+        self.refresh_view()
 
     def action_retake(self) -> None:
-        if self._guard_motion():
-            self.ctl.retake()
-            self.refresh_view()
+        self.ctl.retake()
+        self.refresh_view()
 
     def action_discard(self) -> None:
         self.ctl.discard()
@@ -330,8 +312,6 @@ class JogApp(App):
         self.refresh_view()
 
     def action_writeback(self) -> None:
-        if not self._guard_motion():
-            return
         plan = self.ctl.writeback_plan()
         self.refresh_view()
         if plan is None:
@@ -347,4 +327,6 @@ class JogApp(App):
         self.push_screen(WritebackScreen(plan), done)
 
     def on_unmount(self) -> None:
+        if self._timer is not None:
+            self._timer.stop()
         self.ctl.close()

@@ -22,7 +22,8 @@ STEP_PRESETS = (0.01, 0.1, 1.0)  # mm for translations / prismatic joints, deg f
 SPEED_PRESETS_MM_S = (5.0, 10.0, 25.0, 50.0, 100.0, 250.0)  # speed override at the tool
 POINT_LABELS = tuple("ABCDEFGH")
 CART_AXES = ("X", "Y", "Z", "Rx", "Ry", "Rz")
-WRITEBACK_READBACK_TOL = 1e-6  # rad/m: a device stores whole encoder counts, far finer than this is not asked
+JOG_MAX_JOINT_SPEED = np.deg2rad(30.0)  # rad/s (m/s prismatic): manual jog never faster than this per joint
+WRITEBACK_READBACK_TOL = 1e-9  # rad/m on top of half an encoder count (devices store whole counts)
 
 
 @dataclass
@@ -83,8 +84,8 @@ def parse_reference(specs: str | list[str] | None) -> str | dict[str, np.ndarray
 
 
 class JogController:
-    """One robot, one session. Robot I/O is serialised by ``io_lock`` (the UI polls from its thread and moves
-    from a worker thread); ``stop()`` deliberately bypasses the lock so it always gets through."""
+    """One robot, one session. The UI calls everything from its own thread; ``io_lock`` only protects callers
+    that use the controller from other threads too. ``stop()`` deliberately bypasses the lock."""
 
     def __init__(self, robot, session: JogSession, *, model: Model | None = None, identify: str = "offsets,tcp",
                  reference: str | dict = "unknown", solve_fn: Callable | None = None) -> None:
@@ -162,8 +163,10 @@ class JogController:
         if isinstance(err, LimitError):
             self.message = f"refused: {err}"
             return
-        self.fault = f"{what}: {err}"
         self.message = "FAULT: motion stopped"
+        if self.fault is not None:  # already stopped and journaled; polling keeps failing until reset
+            return
+        self.fault = f"{what}: {err}"
         self.stop(quiet=True)
         try:
             self.session.event({"type": "fault", "step": what, "error": type(err).__name__, "message": str(err)})
@@ -211,9 +214,11 @@ class JogController:
 
     def jog(self, axis: int, direction: int) -> bool:
         """One step of the current preset on ``axis`` (joint index or 0..5 = X Y Z Rx Ry Rz), sign from
-        ``direction``. Target and speed come from the shared motion helpers; the driver checks again."""
+        ``direction``. Target and speed come from the shared motion helpers; the move is started without
+        waiting (``move_joints(wait=False)``), so the UI thread stays free for STOP and every bus transaction
+        stays on one thread (the Dynamixel SDK port is not thread-safe)."""
         if self.fault:
-            self.message = "clear the fault first (e)"
+            self.message = "clear the fault first (c)"
             return False
         if self.mode == "joint" and axis >= self.model.n_joints:
             self.message = f"this robot has {self.model.n_joints} joints"
@@ -223,12 +228,16 @@ class JogController:
         cap = self.speed_mm_s * 1e-3
         with self.io_lock:
             try:
+                status = self.robot.status()
+                if status.moving:
+                    self.message = "still moving: wait, or STOP (space)"
+                    return False
                 q0 = np.asarray(self.robot.joint_positions().q, dtype=float)
                 target = jog_target(self.model, q0, self.mode, axis, step)  # LimitError: nothing sent
-                # joint jog: the protocol's speed is a joint speed; Cartesian jog: the tool speed (m/s)
-                speed = (joint_speed_for_tool_cap(self.model, q0, target, None, cap=cap) if self.mode == "joint"
-                         else cap)
-                self.robot.jog(self.mode, axis, step, speed)
+                # lead-joint speed that keeps the tool at or below the override along the whole step; the
+                # joint cap keeps wrist rotations (tool point nearly still) from snapping round
+                speed = joint_speed_for_tool_cap(self.model, q0, target, JOG_MAX_JOINT_SPEED, cap=cap)
+                self.robot.move_joints(target, speed=speed, wait=False)
             except StationError as e:
                 self._on_error(e, f"jog {self.axis_names()[axis]}")
                 return False
@@ -273,7 +282,7 @@ class JogController:
         """Record the current pose as a touch of the selected reference point. Refused while faulted, moving,
         or (unless ``force``) while the cell's contact input is present and not lit."""
         if self.fault:
-            self.message = "clear the fault first (e)"
+            self.message = "clear the fault first (c)"
             return None
         if self.writeback_done is not None:
             self.message = "calibration was written back: start a new session to verify (samples would mix)"
@@ -359,7 +368,7 @@ class JogController:
     def writeback_plan(self) -> WritebackPlan | None:
         """Before/after of the device's zero offsets: ``after = before + identified offset``."""
         if self.fault:
-            self.message = "clear the fault first (e)"
+            self.message = "clear the fault first (c)"
             return None
         result = self.solve_state.result
         if result is None:
@@ -401,13 +410,23 @@ class JogController:
                 self.session.event({"type": "writeback", "stage": "failed", "before": plan.before,
                                     "after": plan.after, "applied": False, "verified": False, "error": str(e)})
                 return False
-        verified = all(abs(readback.get(k, np.nan) - v) <= WRITEBACK_READBACK_TOL for k, v in plan.after.items())
+        verified = all(abs(readback.get(k, np.nan) - v) <= self._resolution(k) for k, v in plan.after.items())
         self.session.event({"type": "writeback", "stage": "done", "before": plan.before, "after": plan.after,
                             "readback": readback, "applied": True, "verified": verified})
         self.writeback_done = {"before": plan.before, "after": plan.after, "verified": verified}
         self.message = ("written back and read back OK" if verified else
                         "written back but the read-back differs: check the robot")
         return verified
+
+    def _resolution(self, name: str) -> float:
+        """Half an encoder count of the joint behind ``offset.jN`` (what a device can store), SI."""
+        try:
+            enc = self.model.joints[int(name.rsplit("j", 1)[1]) - 1].encoder
+        except (ValueError, IndexError):
+            enc = None
+        if enc is None:
+            return WRITEBACK_READBACK_TOL
+        return 0.5 / (enc.counts_per_unit * enc.gear) + WRITEBACK_READBACK_TOL
 
     # ---- end -------------------------------------------------------------------------------------------
     def close(self) -> None:
