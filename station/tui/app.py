@@ -131,7 +131,7 @@ class JogApp(App):
     def on_mount(self) -> None:
         ident = self.ctl.session.session_id
         self.sub_title = f"{self.ctl.model.name} · session {ident}"
-        self.query_one("#joints").border_title = "joints (encoder, as reported)"
+        self.query_one("#joints").border_title = "joints (as the device reports them)"
         self.query_one("#tcp").border_title = "TCP (nominal model FK, base frame)"
         self.query_one("#jog").border_title = "jog"
         self.query_one("#keys").border_title = "keys"
@@ -141,7 +141,9 @@ class JogApp(App):
         table.border_title = f"samples → {self.ctl.session.samples_csv}"
         table.add_columns("#", "point", "touch", *[f"J{i + 1}" for i in range(self.ctl.model.n_joints)])
         self.query_one("#keys", Static).update(self._keys_text())
-        self.ctl.poll(block=True)
+        r = self.ctl.poll(block=True)
+        if r is not None and not r.enabled and not self.ctl.fault:
+            self.ctl.message = "robot disabled (torque off): press c to enable"
         self.refresh_view()
         self._timer = self.set_interval(self.poll_s, self._tick)
 
@@ -197,14 +199,16 @@ class JogApp(App):
         jog.append(" (cap 250)  point ")
         jog.append(f"{ctl.point}\n", style="bold magenta")
         jog.append("touch ")
-        if r is None or r.touch is None:
+        if ctl.stale:
+            jog.append(" ? no reading ", style="reverse red")
+        elif r is None or r.touch is None:
             jog.append(" no contact input ", style="reverse dim")
         elif r.touch:
             jog.append(" ● CONTACT ", style="bold black on green")
         else:
             jog.append(" ○ no contact ", style="dim")
-        state = "moving" if r and r.moving else "still"
-        jog.append(f"   {state}", style="yellow" if state == "moving" else "green")
+        state = "no reading" if ctl.stale else ("moving" if r and r.moving else "still")
+        jog.append(f"   {state}", style="green" if state == "still" else "yellow")
         if r is not None and not r.enabled:
             jog.append("  disabled", style="red")
         self.query_one("#jog", Static).update(jog)

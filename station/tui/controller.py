@@ -105,6 +105,7 @@ class JogController:
         self.fault: str | None = None
         self.message = "ready"
         self.readout: Readout | None = None
+        self.stale = False  # the last poll failed: the readout shows the last known values
         self.solve_state = SolveState()
         self.writeback_done: dict | None = None
         self.last_jog: dict | None = None
@@ -193,10 +194,12 @@ class JogController:
             touch = self.robot.touch()
             status = self.robot.status()
         except StationError as e:
+            self.stale = True
             self._on_error(e, "read")
             return None
         finally:
             self.io_lock.release()
+        self.stale = False
         if not status.ok and self.fault is None:
             parts = list(status.faults)
             if status.estop:
