@@ -1,0 +1,86 @@
+"""`station jog` as a technician runs it: the real command in a real (pseudo-)terminal, keys typed as bytes,
+against an emulated Dynamixel arm; quitting leaves a complete session behind."""
+
+from __future__ import annotations
+
+import os
+import select
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from station.mocks.dynamixel import DynamixelEmulator
+from station.mocks.world import World
+
+from station.engine.journal import read_journal
+
+START = [0.2, -0.3, 0.4, 0.1]
+
+
+def _read_until(fd: int, proc: subprocess.Popen, needle: bytes, timeout: float) -> bytes:
+    out = b""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end and needle not in out:
+        r, _, _ = select.select([fd], [], [], 0.1)
+        if r:
+            try:
+                out += os.read(fd, 65536)
+            except OSError:
+                break
+        elif proc.poll() is not None:
+            break
+    return out
+
+
+def _drain(fd: int, seconds: float) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        r, _, _ = select.select([fd], [], [], 0.05)
+        if r:
+            try:
+                os.read(fd, 65536)
+            except OSError:
+                return
+
+
+@pytest.mark.timeout(90)
+def test_station_jog_in_a_terminal(tmp_path):
+    world = World.default(model="omx", seed=2, start=START)
+    emu = DynamixelEmulator(world, ids=[11, 12, 13, 14])
+    path = emu.start()
+    master, slave = os.openpty()
+    env = {**os.environ, "STATION_HOME": str(tmp_path / "home"), "TERM": "xterm-256color", "COLUMNS": "140",
+           "LINES": "45"}
+    code = "import sys; from station.cli import main; sys.argv = ['station', *sys.argv[1:]]; main()"
+    proc = subprocess.Popen([sys.executable, "-c", code, "jog", "--robot",
+                             f"dynamixel://{path}?baud=1000000&ids=11-14&contact=200", "--model", "omx",
+                             "--serial", "OMX-7", "--identify", "offsets"],
+                            stdin=slave, stdout=slave, stderr=slave, env=env, start_new_session=True)
+    os.close(slave)
+    try:
+        screen = _read_until(master, proc, b"live solve", timeout=45)
+        assert b"live solve" in screen, screen[-2000:]
+        q0 = world.encoder_q()
+        for key in (b"c", b"3", b"w"):  # enable, 1 deg steps, J2 +
+            os.write(master, key)
+            _drain(master, 0.6)
+        assert world.encoder_q()[1] - q0[1] == pytest.approx(np.deg2rad(1.0), abs=2 * np.pi / 4096)
+        os.write(master, b"\x11")  # ctrl+q
+        tail = _read_until(master, proc, b"session saved", timeout=20)
+        assert proc.wait(timeout=20) == 0, tail[-2000:]
+        assert b"station solve --model omx --samples" in tail + _read_until(master, proc, b"identify", 2)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
+        os.close(master)
+        emu.stop()
+    sessions = list((tmp_path / "home" / "sessions").iterdir())
+    assert len(sessions) == 1 and sessions[0].name.startswith("jog-OMX-7-")
+    header, events = read_journal(sessions[0] / "journal.jsonl")
+    assert header["serial"] == "OMX-7" and header["model"] == "omx" and header["procedure"] == "jog"
+    assert events[-1]["type"] == "end"
+    assert (sessions[0] / "samples.csv").read_text().splitlines()[1].startswith("q1[rad],q2[rad]")
+    assert not world.is_moving()
