@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import subprocess
+import sys
 import uuid
 
 import numpy as np
@@ -168,6 +170,19 @@ def test_record_discard_retake_live_solve_and_writeback(rig):
                 value, sd = ident[name]
                 # touches are exact up to the needle radius/encoder counts; the solver's std carries that
                 assert abs(value - HIDDEN[name]) <= 4 * sd + 1e-6, (name, value, HIDDEN[name], sd)
+            # the session's samples.csv is what `station solve` reads: same data, same answer
+            out = ctl.session.folder / "offline.json"
+            code = "import sys; from station.cli import main; sys.argv = ['station', *sys.argv[1:]]; main()"
+            p = subprocess.run([sys.executable, "-c", code, "solve", "--model", "arm6", "--samples",
+                                str(ctl.session.samples_csv), "--identify", "offsets,tcp", "--out", str(out)],
+                               capture_output=True, text=True, timeout=60)
+            assert p.returncode == 0, p.stderr
+            offline = json.loads(out.read_text())
+            assert set(offline["unidentifiable"]) == {"offset.j1", "offset.j6"}
+            for name, value, _, _ in st.identified:
+                par = offline["parameters"][name]
+                v = par["value"] - par["nominal"] if name.startswith(("offset.", "tcp.")) else par["value"]
+                assert v == pytest.approx(value, rel=1e-6, abs=1e-9), name
             # discard the selected (latest) sample
             n_rows = len(ctl.session.samples)
             dropped = ctl.session.samples[-1].seq

@@ -32,3 +32,19 @@ def test_model_goes_into_the_url():
     assert url_with_model("canopen+virtual://c0?nodes=1-6", "arm6") == "canopen+virtual://c0?nodes=1-6&model=arm6"
     assert url_with_model("dynamixel:///dev/ttyUSB0?ids=1-4&model=x", "omx").endswith("ids=1-4&model=omx")
     assert url_with_model("ur://h", None) == "ur://h"
+
+
+def test_serial_must_match_the_robot(tmp_path):
+    from station.mocks.dynamixel import DynamixelEmulator
+    from station.mocks.world import World
+
+    emu = DynamixelEmulator(World.default(model="omx", seed=1), ids=[11, 12, 13, 14])
+    path = emu.start()
+    try:
+        p = _station("jog", "--robot", f"dynamixel://{path}?ids=11-14&model=omx", "--serial", "NOT-THIS-ONE",
+                     cwd=tmp_path)
+    finally:
+        emu.stop()
+    assert p.returncode == 2 and "reports serial" in p.stderr and "NOT-THIS-ONE" in p.stderr, p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "home").exists()

@@ -15,6 +15,7 @@ from station.mocks.dynamixel import DynamixelEmulator
 from station.mocks.world import World
 
 from station.engine.journal import read_journal
+from station.records import open_records
 
 START = [0.2, -0.3, 0.4, 0.1]
 
@@ -55,7 +56,7 @@ def test_station_jog_in_a_terminal(tmp_path):
            "LINES": "45"}
     code = "import sys; from station.cli import main; sys.argv = ['station', *sys.argv[1:]]; main()"
     proc = subprocess.Popen([sys.executable, "-c", code, "jog", "--robot",
-                             f"dynamixel://{path}?baud=1000000&ids=11-14&contact=200", "--model", "omx",
+                             f"dynamixel://{path}?baud=1000000&ids=11-14&contact=200&serial=OMX-7", "--model", "omx",
                              "--serial", "OMX-7", "--identify", "offsets"],
                             stdin=slave, stdout=slave, stderr=slave, env=env, start_new_session=True)
     os.close(slave)
@@ -84,3 +85,9 @@ def test_station_jog_in_a_terminal(tmp_path):
     assert events[-1]["type"] == "end"
     assert (sessions[0] / "samples.csv").read_text().splitlines()[1].startswith("q1[rad],q2[rad]")
     assert not world.is_moving()
+    records = open_records(f"sqlite:///{tmp_path / 'home' / 'station.db'}")
+    try:
+        stored = records.sessions("OMX-7")
+    finally:
+        records.close()
+    assert [r["session"] for r in stored] == [sessions[0].name]

@@ -22,7 +22,7 @@ def open_jog(url: str, *, serial: str | None = None, model: str | None = None, s
              identify: str = "offsets,tcp", reference: list[str] | str | None = None):
     """Connect, create the session (journal + samples.csv) and return ``(robot, controller)``.
     The robot is closed again when anything after connecting fails."""
-    from station.robot import open_robot
+    from station.robot import ConfigError, open_robot
     from station.tui.controller import JogController, parse_reference
     from station.tui.session import JogSession, joint_units, session_header
 
@@ -32,6 +32,9 @@ def open_jog(url: str, *, serial: str | None = None, model: str | None = None, s
     try:
         robot.model.select(identify)  # unknown group: one-line error before anything is written
         ident = robot.identity()
+        if serial and ident.serial and ident.serial != serial:  # same rule as station run: never file under
+            raise ConfigError(f"the robot reports serial {ident.serial!r}, not {serial!r} (wrong robot? on a "
+                              "bus without device serials set it in the URL: ?serial=SN)")
         sn = serial or ident.serial or "unknown"
         header = session_header(identity=ident, model_name=robot.model.name, serial=sn, identify=identify,
                                 reference=ref, url=full_url)
@@ -43,6 +46,24 @@ def open_jog(url: str, *, serial: str | None = None, model: str | None = None, s
         robot.close()
         raise
     return robot, ctl
+
+
+def store_in_records(folder: Path, db: str | None) -> bool:
+    """Project the journal into the records database. A failure is reported, not fatal: the session folder
+    (journal + samples.csv) is complete and can be stored again later."""
+    from station.engine.session_record import session_from_journal
+    from station.records import open_records
+
+    try:
+        records = open_records(db)
+        try:
+            records.store_session(session_from_journal(folder))
+        finally:
+            records.close()
+    except Exception as e:  # any database/driver error: the journal is the truth, say so and go on
+        typer.echo(f"station: warning: session not stored in the records database: {e}", err=True)
+        return False
+    return True
 
 
 def register(app: typer.Typer) -> None:
@@ -59,8 +80,11 @@ def register(app: typer.Typer) -> None:
         reference: list[str] = typer.Option(None, "--reference",
                                             help="unknown | x,y,z (point A; m, or suffix mm) | LABEL=x,y,z "
                                                  "(repeatable), as for station solve"),
+        db: str = typer.Option(None, "--db", help="records database URL (default $STATION_DB, else "
+                                                  "sqlite:///$STATION_HOME/station.db)"),
     ) -> None:
         """Jog the robot, touch reference points, record samples, watch the live solve, write back."""
+        # db: stored after the UI closes; the journal in the session folder stays the truth either way
         from station.solver import SolverInputError
         from station.tui.app import JogApp
 
@@ -75,6 +99,7 @@ def register(app: typer.Typer) -> None:
         finally:
             ctl.close()
             rob.close()
+        store_in_records(ctl.session.folder, db)
         typer.echo(f"session saved: {ctl.session.folder}\n"
                    f"  solve it: station solve --model {rob.model.name} --samples {ctl.session.samples_csv} "
                    f"--identify {identify}")

@@ -91,6 +91,7 @@ class JogApp(App):
         Binding("minus", "speed(-1)", "slower", show=False),
         Binding("plus,equals_sign", "speed(1)", "faster", show=False),
         Binding("p", "point(1)", "point"),
+        Binding("P", "point(-1)", "previous point", show=False),
         Binding("enter", "record", "record"),
         Binding("exclamation_mark", "record_forced", "record w/o contact", show=False),
         Binding("k", "retake", "retake"),
