@@ -270,6 +270,13 @@ def test_fault_shows_banner_and_stops(rig):
             await pilot.pause(0.1)
             np.testing.assert_allclose(world.encoder_q(), held, atol=1e-9)
             assert ctl.session.samples == []
+            # the EMCY was one event: a fault reset + re-enable clears it, the banner goes, jogging works again
+            await pilot.press("c")
+            await pilot.pause(0.2)
+            assert ctl.fault is None and not app.query_one("#banner").has_class("on"), ctl.fault
+            await pilot.press("plus", "plus", "plus", "1", "a")  # 0.01 deg back at 50 mm/s
+            await pilot.pause(0.3)
+            assert world.encoder_q()[0] - held[0] == pytest.approx(np.deg2rad(-0.01), abs=2 * quantum(world.nominal)[0])
         _, events = read_journal(ctl.session.folder / "journal.jsonl")
         faults = [e for e in events if e["type"] == "fault"]
         assert len(faults) == 1 and "0x4310" in faults[0]["message"]  # one event, however it was first seen
