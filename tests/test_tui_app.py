@@ -56,7 +56,8 @@ def rig(tmp_path):
                               errors={"explicit": dict(HIDDEN)})
         emu = CanopenEmulator(world, channel=chan).start()
         made.append(emu)
-        robot = open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6")
+        # heartbeat 250 ms: margin for a loaded CI machine (the watchdog itself is tested in test_canopen_*)
+        robot = open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6&heartbeat_ms=250")
         made.append(robot)
         robot.enable()
         header = session_header(identity=robot.identity(), model_name="arm6", serial="SN-T", identify=identify,

@@ -1,0 +1,92 @@
+"""The jog UI on the third bus: the UR emulator process through the real ur_rtde client. The world lives in the
+emulator process, so positions are checked on the driver's readout (which tests/test_ur_driver.py checks
+against the world's truth)."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+import pytest
+import yaml
+from station.mocks.ur.process import EmulatorProcess
+from station.mocks.world import default_doc
+
+from station.engine.journal import read_journal
+from station.robot import open_robot
+from station.tui.app import JogApp
+from station.tui.controller import JogController
+from station.tui.session import JogSession, joint_units, session_header
+
+START = [0.1, -1.45, 1.6, -1.72, -1.5708, 0.2]
+
+
+@pytest.fixture(autouse=True)
+def _no_idle_wait(monkeypatch):
+    """See tests/test_tui_app.py: background I/O threads keep the process from ever looking idle."""
+    async def yield_once(min_sleep: float = 0.0, max_sleep: float = 0.0) -> None:
+        await asyncio.sleep(0)
+
+    monkeypatch.setattr("textual.app.wait_for_idle", yield_once)
+    monkeypatch.setattr("textual.pilot.wait_for_idle", yield_once)
+
+
+@pytest.fixture
+def ur(tmp_path):
+    doc = default_doc("ur5e", seed=3)
+    doc["motion"].update(time_mode="sim", start=list(START))  # the controller's 2 ms cycle drives the world
+    doc["buses"] = {"ur": {"serial": "20235500001"}}
+    path = tmp_path / "world.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    emu = EmulatorProcess(world=path).start()
+    robot = None
+    try:
+        robot = open_robot(f"ur://{emu.host}?model=ur5e")
+        yield robot
+    finally:
+        if robot is not None:
+            robot.close()
+        emu.stop()
+
+
+async def wait_still(pilot, ctl, timeout=10.0):
+    end = time.monotonic() + timeout
+    await pilot.pause(0.1)
+    while time.monotonic() < end:
+        r = ctl.poll(block=True)
+        if r is not None and not r.moving:
+            return r
+        await pilot.pause(0.05)
+    raise AssertionError("still moving")
+
+
+@pytest.mark.timeout(120)
+def test_jog_and_record_on_ur(ur, tmp_path):
+    robot = ur
+    robot.enable()
+    header = session_header(identity=robot.identity(), model_name="ur5e", serial="20235500001",
+                            identify="offsets", reference="unknown", url="ur://")
+    ctl = JogController(robot, JogSession.create(header=header, joint_units=joint_units(robot.model),
+                                                 folder=tmp_path / "s"), identify="offsets")
+    model = robot.model
+
+    async def run():
+        app = JogApp(ctl, poll_s=0.2)
+        async with app.run_test(size=(150, 50)) as pilot:
+            q0 = (await wait_still(pilot, ctl)).q
+            await pilot.press("3", "q")  # J1 +1 deg
+            q1 = (await wait_still(pilot, ctl)).q
+            assert q1[0] - q0[0] == pytest.approx(np.deg2rad(1.0), abs=2e-4)
+            assert np.max(np.abs(q1[1:] - q0[1:])) < 2e-4
+            p0 = model.position(q1)
+            await pilot.press("m", "2", "e")  # Cartesian Z +0.1 mm
+            q2 = (await wait_still(pilot, ctl)).q
+            np.testing.assert_allclose(model.position(q2) - p0, [0, 0, 1e-4], atol=3e-5)
+            await pilot.press("exclamation_mark")  # no contact here: record anyway, marked forced
+            assert len(ctl.session.samples) == 1
+
+    asyncio.run(run())
+    _, events = read_journal(tmp_path / "s" / "journal.jsonl")
+    samples = [e for e in events if e["type"] == "sample"]
+    assert len(samples) == 1 and samples[0]["status"]["forced"] is True and samples[0]["raw_unit"] == "rad"
