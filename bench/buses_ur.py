@@ -112,8 +112,8 @@ def rows(seconds: float = 60.0, moves: int = 100) -> list[dict]:
         {"measurement": "RTDE packages missed, raw socket (controller-clock gaps)", "value": str(raw["missed"]),
          "unit": "", "target": "0", "note": f"emulator cycles started late: {late}/{ticks} (max {after[6]} ms)"},
         {"measurement": f"ur_rtde RTDEReceiveInterface recorder ({seconds:g} s)", "value": f"{s['per_s']:.1f}",
-         "unit": "1/s", "target": "500", "note": f"{s['missed']} not in its log (one row per socket read; late emulator cycles "
-         "arrive as bursts); "
+         "unit": "1/s", "target": "500",
+         "note": f"{s['missed']} not in its log (one row per socket read; late emulator cycles arrive as bursts); "
          f"largest gap {s['largest_gap_ms']:.0f} ms"},
         {"measurement": f"moveJ zero-length round trip ({moves} calls)", "value": f"{statistics.median(rt):.2f}",
          "unit": "ms median", "target": "", "note": f"p95 {p95:.2f} ms, max {rt[-1]:.2f} ms"},

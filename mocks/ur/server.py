@@ -400,6 +400,10 @@ class URServer:
 
     def _close_listeners(self) -> None:
         for s in self.listeners:
+            # shutdown first: a bare close() does not wake the thread blocked in accept(), and the kernel
+            # would keep accepting connections on the half-closed listener
+            with contextlib.suppress(OSError):
+                s.shutdown(socket.SHUT_RDWR)
             with contextlib.suppress(OSError):
                 s.close()
         self.listeners.clear()
