@@ -69,7 +69,18 @@ def test_jog_record_and_fault_on_dynamixel(rig, tmp_path):
             d = world.encoder_q() - q0
             assert d[1] == pytest.approx(np.deg2rad(1.0), abs=one[1])
             assert np.all(np.abs(d[[0, 2, 3]]) <= one[[0, 2, 3]])
-            await pilot.press("enter")
+            # Cartesian X +1 mm: the nominal tip moves 1 mm, up to the servos' tick quantisation at both ends
+            q0 = world.encoder_q()
+            await pilot.press("m", "q")
+            await pilot.pause(0.05)
+            q1 = world.encoder_q()
+            slack = 2 * np.abs(world.nominal.jacobian_q(q1)[0, :3]) @ (one / 2)
+            assert np.all(np.abs(world.nominal.position(q1) - world.nominal.position(q0) - [1e-3, 0, 0]) <= slack)
+            # a 4-joint arm cannot turn its tool about base X: refused, nothing moves
+            await pilot.press("t")
+            np.testing.assert_array_equal(world.encoder_q(), q1)
+            assert "tool position only" in ctl.message
+            await pilot.press("m", "enter")
             assert ctl.session.samples == [] and "no contact" in ctl.message
             robot.move_joints(q_touch, speed=1.0)  # jogged onto the needle
             await pilot.pause(0.3)

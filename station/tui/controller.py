@@ -5,10 +5,10 @@ write-back. Textual widgets only render this state and call these methods (and t
 from __future__ import annotations
 
 import json
+import os
 import re
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -88,13 +88,12 @@ class JogController:
     that use the controller from other threads too. ``stop()`` deliberately bypasses the lock."""
 
     def __init__(self, robot, session: JogSession, *, model: Model | None = None, identify: str = "offsets,tcp",
-                 reference: str | dict = "unknown", solve_fn: Callable | None = None) -> None:
+                 reference: str | dict = "unknown") -> None:
         self.robot = robot
         self.model: Model = model if model is not None else robot.model
         self.session = session
         self.identify = identify
         self.reference = reference
-        self._solve_fn = solve_fn
         self.io_lock = threading.RLock()
         self.mode = "joint"  # joint | cartesian
         self.axis = 0  # last axis jogged / selected
@@ -226,6 +225,10 @@ class JogController:
         if self.mode == "joint" and axis >= self.model.n_joints:
             self.message = f"this robot has {self.model.n_joints} joints"
             return False
+        if self.mode == "cartesian" and axis >= 3 and self.model.n_joints < 6:
+            # jog_target solves position only below 6 joints: a rotation step would silently do nothing
+            self.message = f"a {self.model.n_joints}-joint arm jogs its tool position only: use joint mode to turn it"
+            return False
         self.axis = axis
         step = float(np.sign(direction)) * self.step_si(axis)
         cap = self.speed_mm_s * 1e-3
@@ -347,11 +350,8 @@ class JogController:
         if not samples:
             self.solve_state = SolveState()
             return self.solve_state
-        from station.solver import Observations
+        from station.solver import Observations, solve
 
-        solve = self._solve_fn
-        if solve is None:
-            from station.solver import solve
         q = np.array([s.q for s in samples])
         labels = np.array([s.point for s in samples], dtype=object)
         t0 = time.perf_counter()
@@ -400,7 +400,11 @@ class JogController:
         if result is not None:
             self.session.event({"type": "result", "result": result.to_dict()})
         backup = self.session.folder / "calibration-backup.json"
-        backup.write_text(json.dumps({"units": "SI (m, rad)", "before": plan.before}, indent=2))
+        with open(backup, "w") as f:
+            json.dump({"units": "SI (m, rad)", "session": self.session.session_id, "before": plan.before}, f,
+                      indent=2)
+            f.flush()
+            os.fsync(f.fileno())
         self.session.event({"type": "writeback", "stage": "pre-image", "before": plan.before, "after": plan.after,
                             "applied": False, "verified": False})
         with self.io_lock:
