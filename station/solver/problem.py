@@ -13,6 +13,7 @@ import numpy as np
 
 from station.kinematics import se3
 from station.kinematics.chain import RX, RY, RZ
+from station.solver.folded import FoldedChain
 from station.solver.observations import Observations, SolverInputError
 
 _NONE = np.zeros(0, dtype=int)
@@ -50,6 +51,8 @@ class Problem:
         self.model_names = names
         self.model_idx = np.array([model.index(n) for n in names], dtype=int)
         self._want = element_columns(model.chain, self.model_idx)
+        # the chain with everything not identified folded into constant blocks, once per problem
+        self.folded = FoldedChain(model.chain, model.params, self.model_idx)
         self.kinds = ["instrument" if self.frame_unknown and n.startswith("base.") else "model" for n in names]
         ang = angle_params(model)
         self.units = ["rad" if n in ang else "m" for n in names]
@@ -78,6 +81,12 @@ class Problem:
         # sample -> unknown point slot (or -1 for a known point)
         slot = {lb: i for i, lb in enumerate(self.unknown_points)}
         self.slot = np.array([slot.get(lb, -1) for lb in obs.point], dtype=int)
+        # (row, column) of the -1 entries of the unknown points in the stacked Jacobian
+        rows = np.flatnonzero(self.slot >= 0)
+        self._point_rows = None
+        if len(rows):
+            self._point_rows = ((3 * rows[:, None] + np.arange(3)).ravel(),
+                                (self.n_model + 3 * self.slot[rows][:, None] + np.arange(3)).ravel())
         if instrument:
             self.target_fixed = obs.measured
         else:
@@ -106,7 +115,7 @@ class Problem:
         """Nominal model; unknown points at the mean nominal tip position of their touches; instrument
         frame by rigid registration (Kabsch) of nominal tip positions onto the measurements."""
         x = self.x_nominal.copy()
-        P = position_jacobian(self.model.chain, self.obs.q, self.model.params, _NONE)[0]
+        P = self.folded.evaluate(self.obs.q, self.model.params, jacobian=False)[0]
         if self.frame_unknown:
             T0 = np.eye(4)
             T0[:3, :3], T0[:3, 3] = _kabsch(P, self.obs.measured)
@@ -139,20 +148,20 @@ class Problem:
         ``Model.position`` instead of the solver's fused chain pass (same numbers; used as the baseline in
         bench/solver.py)."""
         if fused:
-            P = position_jacobian(self.model.chain, self.obs.q, self.full_params(x), _NONE, {})[0]
+            P = self.folded.evaluate(self.obs.q, self.full_params(x), jacobian=False)[0]
         else:
             P = self.model.position(self.obs.q, self.full_params(x))
         return (P - self._targets(x)).ravel()
 
     def residual_jacobian(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        P, Jm = position_jacobian(self.model.chain, self.obs.q, self.full_params(x), self.model_idx, self._want)
-        N = P.shape[0]
-        r = (P - self._targets(x)).ravel()
+        N = len(self.obs)
         J = np.zeros((3 * N, self.n_unknowns))
-        J[:, : self.n_model] = Jm.reshape(3 * N, -1)
-        rows = np.flatnonzero(self.slot >= 0)
-        for a in range(3):
-            J[3 * rows + a, self.n_model + 3 * self.slot[rows] + a] = -1.0
+        Jm = J[:, : self.n_model]
+        Jm.shape = (N, 3, self.n_model)  # a view (raises rather than copy): evaluate writes into J
+        P, _ = self.folded.evaluate(self.obs.q, self.full_params(x), out=Jm)
+        r = (P - self._targets(x)).ravel()
+        if self._point_rows is not None:
+            J[self._point_rows] = -1.0
         return r, J
 
     def _targets(self, x: np.ndarray) -> np.ndarray:

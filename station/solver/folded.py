@@ -1,0 +1,230 @@
+"""A kinematic chain compiled for one identification problem: tool positions and the position Jacobian with
+respect to a fixed set of parameters in a few whole-array operations per call.
+
+The chain ``T = E_0 E_1 ... E_{K-1}`` is cut at its joint-driven ("moving") elements into blocks. Inside a
+block every element is pose-independent, so:
+
+* runs of elements that are neither moving nor identified are multiplied into constant 4x4 matrices once,
+  when the problem is set up (a UR5e chain has 42 elements; a 12-parameter solve keeps ~20 items);
+* per call, the block products and the prefixes in front of each identified element are 4x4 products
+  (independent of the number of poses);
+* the pose-dependent work is one batched product per joint: ``G_{b+1} = G_b (S_b E_b(v))`` with
+  ``S_b E(v) = S_b + f1(v) S_b K + f2(v) S_b K^2`` (``K`` the generator of the joint's elementary motion;
+  ``f1, f2 = sin v, 1 - cos v`` for a rotation and ``v, 0`` for a translation), all joints at once;
+* the Jacobian column of an identified element is the world axis ``w`` of the frame in front of it
+  (translation) or ``w x (p_tool - o)`` (rotation), with that frame ``G_b P_k``: one batched product for
+  every column together.
+
+Same numbers as ``problem.position_jacobian`` and ``Model.jacobians`` (checked to 1e-12 in
+``tests/test_solver_folded.py``)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from station.kinematics.chain import RX, RY, RZ
+
+_EYE4 = np.eye(4)
+
+
+def _generators(axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``K`` and ``K^2`` (n, 4, 4) with ``E(v) = I + f1(v) K + f2(v) K^2`` for each element axis."""
+    n = len(axes)
+    K = np.zeros((n, 4, 4))
+    for e, ax in enumerate(axes):
+        ax = int(ax)
+        if ax < 3:
+            K[e, ax, 3] = 1.0
+        else:
+            i, j = {RX: (1, 2), RY: (2, 0), RZ: (0, 1)}[ax]
+            K[e, j, i], K[e, i, j] = 1.0, -1.0
+    return K, K @ K
+
+
+def _elementary(ax: int, val: float) -> np.ndarray:
+    E = _EYE4.copy()
+    if ax < 3:
+        E[ax, 3] = val
+        return E
+    i, j = {RX: (1, 2), RY: (2, 0), RZ: (0, 1)}[ax]
+    c, s = np.cos(val), np.sin(val)
+    E[i, i], E[i, j], E[j, i], E[j, j] = c, -s, s, c
+    return E
+
+
+class FoldedChain:
+    """``chain`` with every parameter except ``param_idx`` frozen at ``params``.
+
+    ``evaluate(q, params, jacobian=True)`` -> tool positions ``(N, 3)`` and ``d position / d
+    params[param_idx]`` as ``(N, 3, k)`` (columns in the order of ``param_idx``); ``params`` must agree
+    with the construction values outside ``param_idx`` (they are folded in)."""
+
+    def __init__(self, chain, params: np.ndarray, param_idx) -> None:
+        param_idx = np.asarray(param_idx, dtype=int)
+        col_of = {int(p): c for c, p in enumerate(param_idx)}
+        self.n_cols = len(param_idx)
+        K = chain.n_elements
+        moving = chain.joint >= 0
+        # blocks: items are ("const", 4x4) or ("want", wanted-element number); a moving element closes a block
+        blocks: list[list] = [[]]
+        want_elem: list[int] = []  # chain element of each identified, non-moving element
+        self._want_block: list[int] = []  # block of each Jacobian column's frame
+        self._want_item: list[int] = []  # -1: the frame in front of the block's moving element (full product)
+        self._want_axis: list[int] = []
+        cols: list[int] = []
+        pending = None
+        for k in range(K):
+            pk = int(chain.param[k])
+            wanted = pk in col_of
+            ax = int(chain.axis[k])
+            if (moving[k] or wanted) and pending is not None:
+                blocks[-1].append(("const", pending))
+                pending = None
+            if moving[k]:
+                if wanted:
+                    self._want_block.append(len(blocks) - 1)
+                    self._want_item.append(-1)
+                    self._want_axis.append(ax)
+                    cols.append(col_of[pk])
+                blocks.append([])
+                continue
+            if wanted:
+                self._want_block.append(len(blocks) - 1)
+                self._want_item.append(len(want_elem))
+                self._want_axis.append(ax)
+                cols.append(col_of[pk])
+                blocks[-1].append(("want", len(want_elem)))
+                want_elem.append(k)
+                continue
+            val = float(chain.const[k] + (params[pk] if pk >= 0 else 0.0))
+            if val != 0.0:
+                E = _elementary(ax, val)
+                pending = E if pending is None else pending @ E
+        if pending is not None:
+            blocks[-1].append(("const", pending))
+        self._blocks = blocks
+        # identified non-moving elements: value = const + param, elementary matrix from the generators
+        we = np.array(want_elem, dtype=int)
+        self._we_const = chain.const[we] if len(we) else np.zeros(0)
+        self._we_param = chain.param[we] if len(we) else np.zeros(0, dtype=int)
+        self._we_rot = chain.axis[we] >= 3 if len(we) else np.zeros(0, dtype=bool)
+        self._we_K, self._we_K2 = _generators(chain.axis[we])
+        # moving elements in chain order
+        mv = np.flatnonzero(moving)
+        self._mv_joint = chain.joint[mv]
+        self._mv_const = chain.const[mv]
+        self._mv_param = chain.param[mv]
+        self._mv_rot = chain.axis[mv] >= 3
+        self._mv_K, self._mv_K2 = _generators(chain.axis[mv])
+        self._n_moving = len(mv)
+        # Jacobian columns (in chain order) -> output column, rotation mask
+        self._cols = np.array(cols, dtype=int)
+        self._col_rot = np.array(self._want_axis, dtype=int) >= 3
+        self._col_sel = np.array(self._want_axis, dtype=int) % 3
+        self._col_block = np.array(self._want_block, dtype=int)
+        # columns are in chain order, so each block's columns are a contiguous range
+        edges = np.searchsorted(self._col_block, np.arange(self._n_moving + 2))
+        self._block_range = [(int(lo), int(hi)) for lo, hi in zip(edges[:-1], edges[1:], strict=True)]
+        self._rot_cols = np.flatnonzero(self._col_rot)
+        self._cols_identity = bool(np.array_equal(self._cols, np.arange(self.n_cols)))
+
+    @property
+    def n_items(self) -> int:
+        """4x4 factors left per call (constant blocks and identified elements), for tests and the docs."""
+        return sum(len(b) for b in self._blocks)
+
+    def evaluate(self, q: np.ndarray, params: np.ndarray, jacobian: bool = True, out: np.ndarray | None = None):
+        """Tool positions ``(N, 3)`` and (with ``jacobian``) the Jacobian ``(N, 3, k)``, written into ``out``
+        when given (any ``(N, 3, k)`` view, e.g. the model columns of the solver's stacked Jacobian)."""
+        q = np.atleast_2d(q)
+        N = q.shape[0]
+        nm = self._n_moving
+        nc = len(self._cols)
+        # pose-independent part: elementary matrices of the identified elements, block products, prefixes
+        if len(self._we_param):
+            v = self._we_const + params[self._we_param]
+            f1 = np.where(self._we_rot, np.sin(v), v)
+            f2 = np.where(self._we_rot, 1.0 - np.cos(v), 0.0)
+            Ew = _EYE4 + f1[:, None, None] * self._we_K + f2[:, None, None] * self._we_K2
+        prefix: list = [None] * len(self._we_param)
+        S = []
+        for items in self._blocks:
+            P = None
+            for kind, it in items:
+                if kind == "const":
+                    P = it if P is None else P @ it
+                else:
+                    prefix[it] = _EYE4 if P is None else P
+                    P = Ew[it] if P is None else P @ Ew[it]
+            S.append(_EYE4 if P is None else P)
+        want_J = jacobian and nc > 0
+        if want_J:
+            # frame in front of each column's element: homogeneous axis direction and origin, interleaved rows
+            Fs = np.array([S[b] if it < 0 else prefix[it]
+                           for it, b in zip(self._want_item, self._want_block, strict=True)])
+            VT = np.empty((nc, 2, 4))
+            VT[:, 0] = Fs[np.arange(nc), :, self._col_sel]
+            VT[:, 0, 3] = 0.0
+            VT[:, 1] = Fs[:, :, 3]
+            VT = VT.reshape(2 * nc, 4)
+            WO = np.empty((3, 2 * nc, N))
+        # pose-dependent part, (3, 4, N) layout (poses innermost). Joint b: S_b E(v) = sum_t c_t(v) S_b K^t
+        # (c = 1, f1, f2), so G_{b+1} = [S_b; S_b K; S_b K^2]^T (G_b (x) c): one element-wise product and one
+        # BLAS product per joint
+        if nm:
+            Sm = np.array(S[:nm])
+            XT = np.concatenate([Sm, Sm @ self._mv_K, Sm @ self._mv_K2], axis=1).transpose(0, 2, 1)  # (nm, 4, 12)
+            vm = self._mv_const[:, None] + q[:, self._mv_joint].T  # (nm, N)
+            has_p = self._mv_param >= 0
+            if has_p.any():
+                vm[has_p] += params[self._mv_param[has_p]][:, None]
+            rot = self._mv_rot[:, None]
+            coef = np.empty((nm, 3, N))
+            coef[:, 0] = 1.0
+            coef[:, 1] = np.where(rot, np.sin(vm), vm)
+            coef[:, 2] = np.where(rot, 1.0 - np.cos(vm), 0.0)
+        G = _G0(N)
+        for b in range(nm + 1):
+            lo, hi = self._block_range[b]
+            if want_J and hi > lo:
+                WO[:, 2 * lo: 2 * hi] = VT[2 * lo: 2 * hi] @ G
+            if b == nm:
+                break
+            G = XT[b] @ (G[:, None] * coef[b][None, :, None, :]).reshape(3, 12, N)
+        last = S[nm]
+        p = last[:3, 3] @ G[:, :3] + G[:, 3]  # (3, N)
+        P = np.ascontiguousarray(p.T)
+        if not jacobian:
+            return P, None
+        J = np.zeros((N, 3, self.n_cols)) if out is None else out
+        if not want_J:
+            J[...] = 0.0
+            return P, J
+        WO = WO.reshape(3, nc, 2, N)
+        W, O = WO[:, :, 0], WO[:, :, 1]
+        rc = self._rot_cols
+        if len(rc):
+            w, d = W[:, rc], p[:, None, :] - O[:, rc]
+            W[0, rc] = w[1] * d[2] - w[2] * d[1]
+            W[1, rc] = w[2] * d[0] - w[0] * d[2]
+            W[2, rc] = w[0] * d[1] - w[1] * d[0]
+        if self._cols_identity:
+            J[...] = W.transpose(2, 0, 1)
+        else:
+            J[:, :, self._cols] = W.transpose(2, 0, 1)
+        return P, J
+
+
+_G0_CACHE: dict[int, np.ndarray] = {}
+
+
+def _G0(N: int) -> np.ndarray:
+    """Rows 0-2 of the identity frame for N poses, (3, 4, N), read-only and cached."""
+    G = _G0_CACHE.get(N)
+    if G is None:
+        if len(_G0_CACHE) > 64:
+            _G0_CACHE.clear()
+        G = np.ascontiguousarray(np.broadcast_to(_EYE4[:3, :, None], (3, 4, N)))
+        G.flags.writeable = False
+        _G0_CACHE[N] = G
+    return G

@@ -1,0 +1,69 @@
+"""The folded chain (constant runs multiplied once per problem) gives the same positions and Jacobian as the
+unfolded chain pass and the kinematics layer, for every built-in model and several parameter subsets."""
+
+import numpy as np
+import pytest
+
+from station.kinematics import builtin_names, load_model
+from station.solver.folded import FoldedChain
+from station.solver.problem import position_jacobian
+
+
+def _subsets(m, rng):
+    n = len(m.param_names)
+    everything = np.arange(n)
+    return {
+        "all": everything,
+        "every third": everything[::3],
+        "offsets+tcp": np.array([m.index(s) for s in m.select("offsets,tcp")]),
+        "shuffled": rng.permutation(n)[: n // 2],  # columns not in chain order
+        "none": np.zeros(0, dtype=int),
+    }
+
+
+@pytest.mark.parametrize("name", builtin_names())
+def test_folded_chain_equals_unfolded_chain(name):
+    m = load_model(name)
+    rng = np.random.default_rng(1)
+    params = m.params + rng.normal(0, 0.01, m.params.shape)
+    q = rng.uniform(-1.5, 1.5, (9, m.n_joints))
+    T, _, Jp = m.jacobians(q, params)
+    for label, idx in _subsets(m, rng).items():
+        fc = FoldedChain(m.chain, params, idx)
+        P, J = fc.evaluate(q, params)
+        P0, J0 = position_jacobian(m.chain, q, params, idx)
+        np.testing.assert_allclose(P, P0, atol=1e-12, err_msg=label)
+        np.testing.assert_allclose(P, T[:, :3, 3], atol=1e-12, err_msg=label)
+        np.testing.assert_allclose(J, J0, atol=1e-12, err_msg=label)
+        np.testing.assert_allclose(J, Jp[:, :3, idx], atol=1e-12, err_msg=label)
+        Pn, Jn = fc.evaluate(q, params, jacobian=False)
+        assert Jn is None
+        np.testing.assert_allclose(Pn, P, atol=1e-15)
+        if len(idx) < len(m.param_names):
+            assert fc.n_items < m.chain.n_elements - m.n_joints  # something was folded
+
+
+def test_folded_chain_follows_the_identified_values_and_writes_into_out():
+    m = load_model("ur5e")
+    idx = np.array([m.index(s) for s in m.select("offsets,tcp,dh.j2.*")])
+    fc = FoldedChain(m.chain, m.params, idx)
+    rng = np.random.default_rng(2)
+    q = rng.uniform(-2, 2, (5, 6))
+    p = m.params.copy()
+    p[idx] += rng.normal(0, 0.05, len(idx))  # only the identified ones move: the rest is folded in
+    out = np.full((15, len(idx) + 4), np.nan)
+    view = out[:, 2: 2 + len(idx)]
+    view.shape = (5, 3, len(idx))
+    P, J = fc.evaluate(q, p, out=view)
+    assert J is view
+    T, _, Jp = m.jacobians(q, p)
+    np.testing.assert_allclose(P, T[:, :3, 3], atol=1e-12)
+    np.testing.assert_allclose(out[:, 2: 2 + len(idx)].reshape(5, 3, -1), Jp[:, :3, idx], atol=1e-12)
+    assert np.isnan(out[:, :2]).all() and np.isnan(out[:, 2 + len(idx):]).all()
+    # a single pose, and finite differences on an identified angle
+    k = int(np.flatnonzero(idx == m.index("dh.j2.alpha"))[0])
+    h = 1e-7
+    p2 = p.copy()
+    p2[idx[k]] += h
+    fd = (fc.evaluate(q[0], p2, jacobian=False)[0] - fc.evaluate(q[0], p, jacobian=False)[0]) / h
+    np.testing.assert_allclose(fd[0], J[0, :, k], atol=1e-6)
