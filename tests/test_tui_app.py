@@ -50,11 +50,11 @@ def rig(tmp_path):
     """World (instant motion) + emulated drives + the real driver + a session; yields a factory for the app."""
     made = []
 
-    def make(time_mode="instant", identify="offsets,tcp"):
+    def make(time_mode="instant", identify="offsets,tcp", **emu_kw):
         chan = f"jog-{uuid.uuid4().hex[:8]}"
         world = World.default(model="arm6", seed=5, start=START, time_mode=time_mode,
                               errors={"explicit": dict(HIDDEN)})
-        emu = CanopenEmulator(world, channel=chan).start()
+        emu = CanopenEmulator(world, channel=chan, **emu_kw).start()
         made.append(emu)
         # heartbeat 250 ms: margin for a loaded CI machine (the watchdog itself is tested in test_canopen_*)
         robot = open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6&heartbeat_ms=250")
@@ -242,6 +242,56 @@ def test_record_discard_retake_live_solve_and_writeback(rig):
     asyncio.run(run())
     _, events = read_journal(journal)
     assert events[-1]["type"] == "end"
+
+
+def test_failed_writeback_is_journaled_and_restored(rig):
+    world, robot, ctl = rig(timeout_silence=2.0)
+    journal = ctl.session.folder / "journal.jsonl"
+
+    async def run():
+        app = JogApp(ctl, poll_s=30.0)  # no background poll: the write itself must meet the silent drive
+        async with app.run_test(size=(150, 50)) as pilot:
+            for q in touch_poses(world, n=7, seed=4):
+                robot.move_joints(q, speed=1.0)
+                await pilot.press("enter")
+            assert len(ctl.session.samples) == 7 and ctl.solve_state.status == "ok"
+            original = robot.read_calibration()
+            await pilot.press("W")
+            assert app.screen.__class__.__name__ == "WritebackScreen"
+            world.faults.inject("timeout", device=4)  # drive 4 goes silent for 2 s: its SDO write fails
+            await pilot.pause(0.05)
+            await pilot.press("y")
+            await settle(pilot, app)
+            assert ctl.fault and ctl.writeback_failed and app.query_one("#banner").has_class("on"), ctl.message
+            _, events = read_journal(journal)
+            wb = [e for e in events if e["type"] == "writeback"]
+            assert [e["stage"] for e in wb] == ["pre-image", "failed"] and wb[0]["before"] == original
+            # drive 4 answers again: clear the fault, then W offers the restore of the pre-image
+            for _ in range(40):
+                await pilot.pause(0.1)
+                await pilot.press("c")
+                await settle(pilot, app)
+                if ctl.fault is None:
+                    break
+            assert ctl.fault is None, ctl.fault
+            await pilot.press("enter")  # no recording on a possibly half-written robot
+            assert len(ctl.session.samples) == 7
+            await pilot.press("W")
+            await settle(pilot, app)
+            assert app.screen.__class__.__name__ == "WritebackScreen" and app.screen.plan.kind == "restore"
+            assert app.screen.plan.after == original
+            assert app.screen.plan.before != original  # drives 2 and 3 took new offsets before drive 4 failed
+            await pilot.press("y")
+            await settle(pilot, app)
+            assert not ctl.writeback_failed and "restored" in ctl.message
+            back = robot.read_calibration()
+            for name, v in original.items():
+                assert back[name] == pytest.approx(v, abs=ctl._resolution(name))
+            robot.move_joints(touch_poses(world, n=1, seed=9)[0], speed=1.0)
+            await pilot.press("enter")  # the calibration is the original again: samples are consistent
+            assert len(ctl.session.samples) == 8
+
+    asyncio.run(run())
 
 
 def test_fault_shows_banner_and_stops(rig):

@@ -43,7 +43,10 @@ class WritebackScreen(ModalScreen[bool]):
 
     def compose(self) -> ComposeResult:
         t = Text()
-        t.append("Write joint zero offsets to the robot?\n\n", style="bold")
+        if self.plan.kind == "restore":
+            t.append("Restore the calibration the robot had before this session's write-back?\n\n", style="bold")
+        else:
+            t.append("Write joint zero offsets to the robot?\n\n", style="bold")
         t.append(f"{'parameter':<12}{'before [deg]':>16}{'correction':>14}{'after [deg]':>16}\n", style="bold")
         for name in sorted(self.plan.after, key=lambda n: (len(n), n)):
             b = self.plan.before.get(name, 0.0)
@@ -51,8 +54,11 @@ class WritebackScreen(ModalScreen[bool]):
             c = self.plan.corrections.get(name)
             mark = "" if c is None else f"{np.rad2deg(c):+14.4f}"
             t.append(f"{name:<12}{np.rad2deg(b):+16.4f}{mark:>14}{np.rad2deg(a):+16.4f}\n",
-                     style="bold yellow" if c is not None else "")
-        t.append("\nThe pre-image is journaled and saved as calibration-backup.json before writing.\n")
+                     style="bold yellow" if c is not None or a != b else "")
+        if self.plan.kind == "restore":
+            t.append("\nThe values come from this session's pre-image (calibration-backup.json).\n")
+        else:
+            t.append("\nThe pre-image is journaled and saved as calibration-backup.json before writing.\n")
         with Vertical(id="wb-box"):
             yield Static(t, id="wb-table")
             with Horizontal(id="wb-buttons"):

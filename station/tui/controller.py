@@ -50,9 +50,10 @@ class SolveState:
 
 @dataclass
 class WritebackPlan:
-    before: dict[str, float]
-    after: dict[str, float]
-    corrections: dict[str, float]
+    before: dict[str, float]  # what the device holds now
+    after: dict[str, float]  # what will be written
+    corrections: dict[str, float]  # identified offsets (empty for a restore)
+    kind: str = "write"  # "write" | "restore" (back to the pre-image after a failed write-back)
 
 
 def parse_reference(specs: str | list[str] | None) -> str | dict[str, np.ndarray]:
@@ -107,6 +108,8 @@ class JogController:
         self.stale = False  # the last poll failed: the readout shows the last known values
         self.solve_state = SolveState()
         self.writeback_done: dict | None = None
+        self.writeback_failed = False  # a write-back raised or did not read back: W then offers the restore
+        self.pre_image: dict[str, float] = {}  # the device calibration before this session's first write-back
         self.last_jog: dict | None = None
         self.closed = False
         self.model.select(identify)  # unknown group/name: fail at start, not after the first record
@@ -290,7 +293,7 @@ class JogController:
         if self.fault:
             self.message = "clear the fault first (c)"
             return None
-        if self.writeback_done is not None:
+        if self.writeback_done is not None or self.writeback_failed:
             self.message = "calibration was written back: start a new session to verify (samples would mix)"
             return None
         with self.io_lock:
@@ -369,9 +372,16 @@ class JogController:
 
     # ---- write-back ------------------------------------------------------------------------------------
     def writeback_plan(self) -> WritebackPlan | None:
-        """Before/after of the device's zero offsets: ``after = before + identified offset``."""
+        """Before/after of the device's zero offsets: ``after = before + identified offset``; after a failed
+        (or unverified) write-back, the plan restores the pre-image instead."""
         if self.fault:
             self.message = "clear the fault first (c)"
+            return None
+        if self.writeback_failed:
+            before = self._read_calibration()
+            return None if before is None else WritebackPlan(before, dict(self.pre_image), {}, "restore")
+        if self.writeback_done is not None:
+            self.message = "already written back in this session: start a new session to verify"
             return None
         result = self.solve_state.result
         if result is None:
@@ -382,47 +392,68 @@ class JogController:
         if not corr:
             self.message = "the solve identified no joint offsets: nothing to write back"
             return None
-        with self.io_lock:
-            try:
-                before = {k: float(v) for k, v in self.robot.read_calibration().items()}
-            except StationError as e:
-                self._on_error(e, "read calibration")
-                return None
+        before = self._read_calibration()
+        if before is None:
+            return None
         after = dict(before)
         for n, v in corr.items():
             after[n] = before.get(n, 0.0) + v
         return WritebackPlan(before, after, corr)
 
+    def _read_calibration(self) -> dict[str, float] | None:
+        with self.io_lock:
+            try:
+                return {k: float(v) for k, v in self.robot.read_calibration().items()}
+            except StationError as e:
+                self._on_error(e, "read calibration")
+                return None
+
     def writeback_apply(self, plan: WritebackPlan) -> bool:
-        """Only after the technician confirmed ``plan``: journal the pre-image (and keep a backup file),
-        write, read back, journal the outcome."""
-        result = self.solve_state.result
-        if result is not None:
-            self.session.event({"type": "result", "result": result.to_dict()})
-        backup = self.session.folder / "calibration-backup.json"
-        with open(backup, "w") as f:
-            json.dump({"units": "SI (m, rad)", "session": self.session.session_id, "before": plan.before}, f,
-                      indent=2)
-            f.flush()
-            os.fsync(f.fileno())
+        """Only after the technician confirmed ``plan``: journal the pre-image (and keep a backup file of the
+        first one), write, read back, journal the outcome. A failure leaves the restore plan armed."""
+        restore = plan.kind == "restore"
+        note = "restore of the pre-image after a failed write-back" if restore else "technician write-back"
+        if not restore:
+            result = self.solve_state.result
+            if result is not None:
+                self.session.event({"type": "result", "result": result.to_dict()})
+            self.pre_image = dict(plan.before)
+            backup = self.session.folder / "calibration-backup.json"
+            with open(backup, "w") as f:
+                json.dump({"units": "SI (m, rad)", "session": self.session.session_id, "before": plan.before}, f,
+                          indent=2)
+                f.flush()
+                os.fsync(f.fileno())
         self.session.event({"type": "writeback", "stage": "pre-image", "before": plan.before, "after": plan.after,
-                            "applied": False, "verified": False})
+                            "applied": False, "verified": False, "note": note})
         with self.io_lock:
             try:
                 self.robot.stop()
                 self.robot.write_calibration(plan.after)
                 readback = {k: float(v) for k, v in self.robot.read_calibration().items()}
             except StationError as e:
-                self._on_error(e, "write-back")
+                self._on_error(e, "restore" if restore else "write-back")
                 self.session.event({"type": "writeback", "stage": "failed", "before": plan.before,
-                                    "after": plan.after, "applied": False, "verified": False, "error": str(e)})
+                                    "after": plan.after, "applied": False, "verified": False, "error": str(e),
+                                    "note": note})
+                self.writeback_failed = True
+                self.message = ("FAULT during write-back: the robot may be partly written. Clear the fault (c), "
+                                "then W restores the calibration from before")
                 return False
         verified = all(abs(readback.get(k, np.nan) - v) <= self._resolution(k) for k, v in plan.after.items())
         self.session.event({"type": "writeback", "stage": "done", "before": plan.before, "after": plan.after,
-                            "readback": readback, "applied": True, "verified": verified})
-        self.writeback_done = {"before": plan.before, "after": plan.after, "verified": verified}
-        self.message = ("written back and read back OK" if verified else
-                        "written back but the read-back differs: check the robot")
+                            "readback": readback, "applied": True, "verified": verified, "note": note})
+        if restore and verified:
+            self.writeback_failed = False
+            self.writeback_done = None
+            self.message = "restored the calibration from before the write-back; recording continues"
+        elif verified:
+            self.writeback_done = {"before": plan.before, "after": plan.after, "verified": True}
+            self.message = "written back and read back OK"
+        else:
+            self.writeback_failed = True
+            self.writeback_done = {"before": plan.before, "after": plan.after, "verified": False}
+            self.message = "the read-back differs from what was written: W restores the calibration from before"
         return verified
 
     def _resolution(self, name: str) -> float:
