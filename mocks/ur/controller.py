@@ -154,6 +154,8 @@ class URController:
     def _faults(self) -> None:
         if _take(self.world, "protective_stop"):
             self.protective_stop("fault injected by the world")
+        elif getattr(self.world, "protective_stopped", False) and self.safety_mode == S.SAFETY_NORMAL:
+            self.protective_stop("the world stopped the arm")  # e.g. world.protective_stop() called directly
         if _take(self.world, "timeout"):
             self.stall(self.stall_s)
         if _take(self.world, "disconnect"):

@@ -1,0 +1,99 @@
+"""The emulated controller's cycle on a real World, without sockets: world faults reach the controller, the
+control-script register handshake drives the world (fast, deterministic: sim time, one tick = 2 ms)."""
+
+from __future__ import annotations
+
+import numpy as np
+from station.mocks.ur import state as S
+from station.mocks.ur.controller import URController
+from station.mocks.world import World
+
+SCRIPT = "def rtde_control():\n    global reg_offset_int = 0\nend\n"
+
+
+def make():
+    world = World.default("ur5e", seed=5, time_mode="sim")
+    ctl = URController(world)
+    drops: list[float] = []
+    ctl.on_drop = drops.append
+    ctl.drop = lambda seconds: drops.append(seconds)  # run the drop in this thread (no server here)
+    ctl.load_program("rtde_control", SCRIPT)
+    return world, ctl, drops
+
+
+def ticks(ctl: URController, n: int) -> None:
+    for _ in range(n):
+        ctl.tick()
+
+
+def command(ctl: URController, cmd: int, doubles=(), ints=()) -> None:
+    names = ["input_int_register_0"] + [f"input_double_register_{i}" for i in range(len(doubles))]
+    names += [f"input_int_register_{i + 1}" for i in range(len(ints))]
+    ctl.write_inputs(names, [cmd, *doubles, *ints])
+
+
+def test_register_handshake_moves_the_world():
+    world, ctl, _ = make()
+    assert ctl.runtime_state == S.PLAYING and ctl.out_int[0] == S.SCRIPT_READY
+    q0 = world.encoder_q()
+    target = q0 + 0.1
+    command(ctl, S.CMD_MOVEJ, [*target, 1.0, 2.0], [0])  # sync moveJ at 1 rad/s, 2 rad/s^2
+    ticks(ctl, 5)
+    assert world.is_moving() and ctl.out_int[0] == S.SCRIPT_READY  # still executing: no "done" yet
+    ticks(ctl, 300)
+    assert ctl.out_int[0] == S.SCRIPT_DONE
+    np.testing.assert_allclose(world.encoder_q(), target, atol=1e-12)
+    command(ctl, S.CMD_NONE)
+    ticks(ctl, 1)
+    assert ctl.out_int[0] == S.SCRIPT_READY
+    command(ctl, S.CMD_STOP_SCRIPT)
+    ticks(ctl, 1)
+    assert ctl.runtime_state == S.STOPPED and not ctl.robot_status_bits() & S.RS_PROGRAM_RUNNING
+
+
+def test_out_of_limit_target_stops_the_program_like_a_script_error():
+    world, ctl, _ = make()
+    q = world.encoder_q()
+    bad = q.copy()
+    bad[0] = 8.0
+    command(ctl, S.CMD_MOVEJ, [*bad, 1.0, 2.0], [0])
+    ticks(ctl, 2)
+    assert ctl.runtime_state == S.STOPPED and "outside joint limits" in ctl.messages[-1]
+    np.testing.assert_array_equal(world.encoder_q(), q)
+
+
+def test_world_faults_reach_the_controller():
+    world, ctl, drops = make()
+    command(ctl, S.CMD_SPEEDJ, [0.1, 0, 0, 0, 0, 0, 1.0, 0.0])
+    ticks(ctl, 20)
+    assert world.is_moving()
+    world.faults.inject("protective_stop", device="ur")
+    ticks(ctl, 1)
+    assert ctl.safety_mode == S.SAFETY_PROTECTIVE_STOP and ctl.safety_bits & S.SS_PROTECTIVE_STOPPED
+    assert ctl.runtime_state == S.PAUSED and world.protective_stopped
+    ticks(ctl, 200)
+    assert not world.is_moving()
+    assert ctl.unlock_protective_stop().startswith("Cannot unlock")  # < 5 s
+    ctl.pstop_at -= 5.0
+    assert ctl.unlock_protective_stop() == "Protective stop releasing" and not world.protective_stopped
+    world.faults.inject("timeout", device="ur")
+    world.faults.inject("disconnect", device="ur")
+    ticks(ctl, 1)
+    assert ctl.stall_until > 0 and drops == [ctl.drop_s]
+    world.protective_stop("collision")  # the world itself stopping the arm is a protective stop too
+    ticks(ctl, 1)
+    assert ctl.safety_mode == S.SAFETY_PROTECTIVE_STOP
+
+
+def test_contact_bit_and_nominal_tcp_pose():
+    world, ctl, _ = make()
+    ticks(ctl, 1)
+    pose = np.array(ctl.value("actual_TCP_pose"))
+    np.testing.assert_allclose(pose[:3], world.nominal.position(world.encoder_q()), atol=1e-12)
+    assert ctl.value("actual_digital_input_bits") == 0
+    needle = world.points["N"].position
+    ik = world.truth.ik(needle[None], world.encoder_q()[None], position_only=True, tol_pos=1e-10)
+    world.command_q(ik.q[0])
+    world.run_until_idle()
+    ticks(ctl, 1)
+    assert world.contact() and ctl.value("actual_digital_input_bits") == 1 << S.DEFAULT_CONTACT_BIT
