@@ -34,7 +34,7 @@ def test_model_goes_into_the_url():
     assert url_with_model("ur://h", None) == "ur://h"
 
 
-def test_serial_must_match_the_robot(tmp_path):
+def test_serial_and_identify_checked_before_any_session(tmp_path):
     from station.mocks.dynamixel import DynamixelEmulator
     from station.mocks.world import World
 
@@ -43,8 +43,12 @@ def test_serial_must_match_the_robot(tmp_path):
     try:
         p = _station("jog", "--robot", f"dynamixel://{path}?ids=11-14&model=omx", "--serial", "NOT-THIS-ONE",
                      cwd=tmp_path)
+        bad = _station("jog", "--robot", f"dynamixel://{path}?ids=11-14&model=omx", "--identify", "offsets,wings",
+                       cwd=tmp_path)
     finally:
         emu.stop()
+    assert bad.returncode == 2 and "--identify" in bad.stderr and "wings" in bad.stderr, bad.stderr
+    assert len(bad.stderr.strip().splitlines()) == 1
     assert p.returncode == 2 and "reports serial" in p.stderr and "NOT-THIS-ONE" in p.stderr, p.stderr
     assert len(p.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "home").exists()
