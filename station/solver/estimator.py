@@ -7,15 +7,16 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
-from station.solver.identifiability import RTOL, RankAnalysis, analyse
+from station.solver.identifiability import RTOL, Decision, RankAnalysis, analyse, decide
 from station.solver.observations import Observations, SolverInputError
 from station.solver.problem import Problem
 from station.solver.result import CalibrationResult, ParameterEstimate
 
 XTOL = 1e-11  # m (scaled step): below this a step changes nothing measurable
 FTOL = 1e-13  # relative cost decrease
+STEP_TOL = 1e-4  # standard deviations: what is left of the way to the minimum when the iteration stops
+DECIDE_TOL = 0.1  # standard deviations: close enough to the minimum to decide identifiability with its sigma
 POSE_TOL = 1e-3  # rad or m: joint readings closer than this are the same pose
 
 
@@ -65,25 +66,35 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
     x, r, J = prob.initial_with_jacobian()
     x_start = x.copy()
     r_before = r
-    ana = _analyse(prob, J, x, noise or 0.0, max_std, r)
-    # Iterate to convergence on what is structurally identifiable, then decide with the fit's sigma
-    # (dependencies like "offset.j1 vs an unknown point" are exact only where the touches are consistent,
-    # i.e. at the solution; a sigma from an unconverged fit would reject good parameters).
-    iterations, converged = 0, False
-    for _ in range(4):
-        act = ana.accepted
-        x, r, J, it, converged = _levenberg_marquardt(prob, x, act, max_iter, (r, J))
+    dec = _decide(prob, J, x, noise or 0.0, max_std, r)
+    # Iterate on what is structurally identifiable, then decide with the fit's sigma (dependencies like
+    # "offset.j1 vs an unknown point" are exact only where the touches are consistent, i.e. at the
+    # solution; a sigma from an unconverged fit would reject good parameters). The decision only needs
+    # the fit within DECIDE_TOL standard deviations of the minimum; once the identified set stands, the
+    # iteration continues to STEP_TOL and the set is checked again there.
+    iterations, converged, current = 0, False, False
+    tol, prev, exact = DECIDE_TOL, None, True
+    for _ in range(8):
+        act = sorted(dec.accepted)
+        if not exact:  # the last step was taken on the linear model: evaluate the chain there first
+            r, J = prob.residual_jacobian(x)
+        x, r, J, it, converged, rest, exact, prev = _levenberg_marquardt(prob, x, act, max_iter, (r, J), tol, prev)
         iterations += it
         dof = m - len(act)
-        sigma = math.sqrt(float(r @ r) / dof)
-        new = _analyse(prob, J, x, noise if noise is not None else sigma, max_std, r)
-        if new.accepted == act:
-            ana = new
+        sig = noise if noise is not None else math.sqrt(float(r @ r) / dof)
+        dec = _decide(prob, J, x, sig, max_std, r)
+        current = sorted(dec.accepted) == act
+        if current and (rest < STEP_TOL or not converged):
             break
-        dropped = [j for j in act if j not in new.accepted]
+        if current:
+            tol = STEP_TOL
+            continue
+        dropped = [j for j in act if j not in dec.accepted]
         x[dropped] = x_start[dropped]  # back to nominal: never keep numbers for an unseen direction
         r, J = prob.residual_jacobian(x)
-        ana = new
+        tol, prev, exact = DECIDE_TOL, None, True
+    # the reasons, condition number and observability index once, at the final Jacobian
+    ana = _analyse(prob, J, x, sig, max_std, r, dec if current else None)
     return _result(model, prob, x, r, J, r_before, ana, iterations, converged, holdout,
                    dict(identify=identify if isinstance(identify, str) else ",".join(identify),
                         reference=_ref_setting(reference), instrument_frame=instrument_frame,
@@ -104,22 +115,37 @@ def distinct_poses(q: np.ndarray, tol: float | None = None, limit: int | None = 
     return len(reps)
 
 
-def _analyse(prob: Problem, J, x, sigma, max_std, r) -> RankAnalysis:
+def _decide(prob: Problem, J, x, sigma, max_std, r) -> Decision:
+    return decide(J * prob.scale, prob.names, prob.kinds, sigma=sigma, max_std=max_std,
+                  scale_dir=prob.scale_direction(x) / prob.scale, residual=r)
+
+
+def _analyse(prob: Problem, J, x, sigma, max_std, r, decided: Decision | None = None) -> RankAnalysis:
     Js = J * prob.scale
     sd = prob.scale_direction(x) / prob.scale
     joints = prob.model.joints
     return analyse(Js, prob.names, prob.kinds, sigma=sigma, max_std=max_std, scale_dir=sd, residual=r,
-                   n_joints=len(joints), first_revolute=joints[0].revolute, last_revolute=joints[-1].revolute)
+                   n_joints=len(joints), first_revolute=joints[0].revolute, last_revolute=joints[-1].revolute,
+                   decided=decided)
 
 
-def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ):
-    """Undamped Gauss-Newton steps while they reduce the cost; Marquardt damping otherwise. Stops when a
-    step is below 1e-4 of the parameters' standard deviations (statistically nothing) or below XTOL, or
-    the cost stops decreasing. Returns ``x, r, J, iterations, converged``."""
+def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ, tol: float = STEP_TOL, prev: float | None = None):
+    """Undamped Gauss-Newton steps while they reduce the cost; Marquardt damping otherwise. Stops when the
+    rest of the way to the minimum is below ``tol`` standard deviations of the parameters. Gauss-Newton
+    converges linearly near the minimum with rate rho (faster while the error is large compared with the
+    residual), so after a step of ``s`` standard deviations at most ``s rho / (1 - rho)`` is left; rho is
+    estimated by the ratio of the last two undamped steps (``prev``: the one before this call), which
+    over-estimates it. A final step that small is taken without evaluating the chain again: over it the
+    model is linear to O(step^2), and the residual is the linear prediction. Also stops below XTOL or
+    when the cost stops decreasing.
+
+    Returns ``x, r, J, iterations, converged, rest, exact, prev``: ``rest`` is the estimate of what is
+    left (standard deviations), ``exact`` whether ``r, J`` were evaluated at ``x`` (else ``r`` is the
+    linear prediction and ``J`` the Jacobian one step back), ``prev`` the last undamped step."""
     x = x.copy()
     r, J = rJ
     if not act:
-        return x, r, J, 0, True
+        return x, r, J, 0, True, 0.0, True, None
     D = prob.scale[act]
     cost = float(r @ r)
     dof = max(r.size - len(act), 1)
@@ -132,31 +158,38 @@ def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ):
         H = Js.T @ Js
         g = Js.T @ r
         try:
-            c = cho_factor(H + lam * eye)
-            du = -cho_solve(c, g)
-            std_u = np.sqrt(cost / dof * np.diag(cho_solve(c, eye)))
-        except (LinAlgError, np.linalg.LinAlgError):
+            Li = np.linalg.inv(np.linalg.cholesky(H + lam * eye if lam else H))
+            Hi = Li.T @ Li
+            du = -(Hi @ g)
+            rel = float(np.max(np.abs(du) / np.sqrt(cost / dof * np.diagonal(Hi))))
+        except np.linalg.LinAlgError:
             du = -np.linalg.lstsq(H + lam * eye, g, rcond=None)[0]
-            std_u = np.full(len(act), np.inf)
+            rel = math.inf
         x_new = x.copy()
         x_new[act] += D * du
         step = float(np.max(np.abs(du)))
-        if lam == 0.0 and (step < XTOL or np.all(np.abs(du) < 1e-4 * std_u)):
-            # the step is statistically nothing: take it; over it the model is linear to O(step^2)
-            return x_new, r + J[:, act] @ (D * du), J, it, True
+        if lam == 0.0:
+            rho = rel / prev if prev else 1.0
+            rest = rel * rho / (1.0 - rho) if rho < 0.5 else rel
+            if step < XTOL:
+                rest = 0.0
+            if rest < tol:
+                return x_new, r + J[:, act] @ (D * du), J, it, True, rest, False, rel
         r_new, J_new = prob.residual_jacobian(x_new)
         cost_new = float(r_new @ r_new)
         if cost_new <= cost:
             small = cost - cost_new <= FTOL * cost
+            prev = rel if lam == 0.0 else None
             x, r, J, cost = x_new, r_new, J_new, cost_new
             lam = 0.0 if lam < 1e-9 * float(np.max(np.diag(H))) else lam / 10.0
             if small:
-                return x, r, J, it, True
+                return x, r, J, it, True, 0.0, True, prev
         else:
+            prev = None
             if step < XTOL:
-                return x, r, J, it, True  # at the minimum within rounding
+                return x, r, J, it, True, 0.0, True, prev  # at the minimum within rounding
             lam = max(lam * 10.0, 1e-6 * float(np.max(np.diag(H))))
-    return x, r, J, max_iter, False
+    return x, r, J, max_iter, False, math.inf, True, prev
 
 
 def _ref_setting(reference):

@@ -51,12 +51,23 @@ def priority_order(names: list[str], kinds: list[str]) -> list[int]:
     return sorted(range(len(names)), key=rank)
 
 
-def analyse(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float = 0.0, max_std: float = 1e-3,
-            scale_dir: np.ndarray | None = None, residual: np.ndarray | None = None, n_joints: int = 0,
-            first_revolute: bool = True, last_revolute: bool = True) -> RankAnalysis:
-    """``Js`` is the column-scaled Jacobian (m x p); ``scale_dir`` the uniform-scaling direction in the
-    same scaled coordinates and ``residual`` the current residual (to detect "no known length")."""
-    m, p = Js.shape
+@dataclass
+class Decision:
+    """What the data identify (before the reasons are worded): accepted columns in acceptance order, the
+    remainder norms of weak (noise-rejected) columns, and the length owner dropped for "no known length"."""
+
+    accepted: list[int]
+    weak: dict[int, float]
+    scale_hit: int | None
+    norms: np.ndarray
+    tau_struct: float
+
+
+def decide(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float = 0.0, max_std: float = 1e-3,
+           scale_dir: np.ndarray | None = None, residual: np.ndarray | None = None) -> Decision:
+    """The rank decision of ``analyse`` without the reasons and the singular values (cheap: a few
+    Householder QR factorisations); ``analyse(..., decided=...)`` completes it."""
+    p = Js.shape[1]
     norms = np.linalg.norm(Js, axis=0)
     big = norms.max() if p else 0.0
     tau_struct = RTOL * big if big > 0 else np.inf
@@ -72,6 +83,19 @@ def analyse(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float 
         if owners:
             scale_hit = max(owners, key=lambda j: abs(scale_dir[j]))
             accepted, weak = _greedy(Js, [j for j in order if j != scale_hit], tau_struct, tau_noise)
+    return Decision(accepted, weak, scale_hit, norms, tau_struct)
+
+
+def analyse(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float = 0.0, max_std: float = 1e-3,
+            scale_dir: np.ndarray | None = None, residual: np.ndarray | None = None, n_joints: int = 0,
+            first_revolute: bool = True, last_revolute: bool = True,
+            decided: Decision | None = None) -> RankAnalysis:
+    """``Js`` is the column-scaled Jacobian (m x p); ``scale_dir`` the uniform-scaling direction in the
+    same scaled coordinates and ``residual`` the current residual (to detect "no known length").
+    ``decided``: the ``decide`` result for these same arguments (not recomputed)."""
+    m, p = Js.shape
+    d = decided or decide(Js, names, kinds, sigma=sigma, max_std=max_std, scale_dir=scale_dir, residual=residual)
+    accepted, weak, norms, tau_struct = d.accepted, d.weak, d.norms, d.tau_struct
     rejected: dict[int, str] = {}
     dep = [j for j in range(p) if j not in accepted]
     if dep:
@@ -81,7 +105,7 @@ def analyse(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float 
         coef = np.linalg.solve(A.T @ A, A.T @ Js[:, dep]) if accepted else np.zeros((0, len(dep)))
         for c, j in enumerate(dep):
             rejected[j] = _reason(j, coef[:, c], accepted, names, kinds, norms, tau_struct, weak.get(j), sigma,
-                                  max_std, j == scale_hit, n_joints, first_revolute, last_revolute)
+                                  max_std, j == d.scale_hit, n_joints, first_revolute, last_revolute)
     s = singular_values(Js[:, accepted]) if accepted else np.zeros(0)
     r = len(accepted)
     cond = float(s[0] / s[-1]) if r and s[-1] > 0 else None
@@ -97,23 +121,35 @@ def singular_values(A: np.ndarray) -> np.ndarray:
 
 
 def _greedy(Js, order, tau_struct, tau_noise) -> tuple[list[int], dict[int, float]]:
-    cols = np.ascontiguousarray(Js.T)
-    Q = np.zeros((len(order), Js.shape[0]))  # accepted orthonormal directions as rows
-    k = 0
+    """Columns in ``order``; each is accepted when what remains of it after projecting out the columns
+    accepted before it exceeds both thresholds. The remainders are the diagonal of R in a Householder QR
+    of the ordered columns, valid up to the first rejected column; after a rejection the QR restarts on
+    the remaining columns projected off the accepted ones (twice: Kahan-Parlett)."""
+    thr = max(tau_struct, tau_noise)
     accepted: list[int] = []
     weak: dict[int, float] = {}
-    for j in order:
-        c = cols[j]
-        Qk = Q[:k]
-        res = c - (Qk @ c) @ Qk
-        res = res - (Qk @ res) @ Qk  # twice is enough (Kahan-Parlett)
-        nr = float(np.sqrt(res @ res))
-        if nr > max(tau_struct, tau_noise):
-            accepted.append(j)
-            Q[k] = res / nr
-            k += 1
-        elif nr > tau_struct:
-            weak[j] = nr
+    Q = None  # orthonormal basis of the accepted columns
+    cand = list(order)
+    while cand:
+        C = Js[:, cand]
+        if Q is not None:
+            C = C - Q @ (Q.T @ C)
+            C = C - Q @ (Q.T @ C)
+        Qc, R = np.linalg.qr(C)
+        rem = np.abs(np.diagonal(R))
+        if len(rem) < len(cand):  # more columns than rows: the rest cannot add rank
+            rem = np.concatenate([rem, np.zeros(len(cand) - len(rem))])
+        bad = np.flatnonzero(~(rem > thr))
+        if not len(bad):
+            accepted += cand
+            break
+        b = int(bad[0])
+        accepted += cand[:b]
+        if b:
+            Q = Qc[:, :b] if Q is None else np.hstack([Q, Qc[:, :b]])
+        if rem[b] > tau_struct:
+            weak[cand[b]] = float(rem[b])
+        cand = cand[b + 1:]
     return accepted, weak
 
 
