@@ -128,6 +128,13 @@ def test_speed_jogs_use_speedj_and_speedl_and_cap_tool_speed(tmp_path, emulator,
         robot.jog("joint", 7, 0.01)
     np.testing.assert_allclose(robot.joint_positions().q, q2, atol=1e-12)
     assert not robot.status().moving
+    goal = robot.tcp_pose() + np.array([0.03, -0.02, 0.01, 0, 0, 0])
+    robot.move_linear(goal, speed=0.1)  # moveL of the controller's TCP (its nominal model)
+    np.testing.assert_allclose(robot.tcp_pose(), goal, atol=1e-7)
+    with pytest.raises(LimitError, match="not reachable"):
+        robot.move_linear(goal + np.array([3.0, 0, 0, 0, 0, 0]))
+    with pytest.raises(LimitError, match="speed"):
+        robot.move_linear(goal, speed=2.0)
 
 
 def test_freedrive_seats_tip_in_socket(tmp_path, emulator, robots):

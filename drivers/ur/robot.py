@@ -56,7 +56,8 @@ class URRobot:
     def __init__(self, host: str, catalog: Model, *, deltas: dict[str, list[float]] | None = None,
                  export_dir: str | None = None, contact_bit: int = 16, speed: float = 0.5, accel: float = 1.0,
                  jog_speed: float = 0.2, tool_speed: float = 0.05, stale_timeout: float = 0.2,
-                 jog_watchdog: float = 10.0, url: str = "", connect: bool = True) -> None:
+                 jog_watchdog: float = 10.0, serial: str | None = None, url: str = "",
+                 connect: bool = True) -> None:
         self.host = host
         self.catalog = catalog  # published DH table
         self.deltas = deltas  # the controller's calibration.conf, if given
@@ -70,7 +71,8 @@ class URRobot:
         self._watchdog_armed = False
         self._rt_sent = self._last_kick = 0.0
         self.url = url or f"ur://{host}?model={catalog.name}"
-        self.serial = ""
+        self.url_serial = serial  # used only when the controller does not report one (PolyScope < 5.6)
+        self.serial = serial or ""
         self.firmware = ""
         self.robot_model = ""
         self.last_export: list[Path] = []
@@ -91,7 +93,8 @@ class URRobot:
         if url.port is not None:
             raise ConfigError(f"robot URL {url.raw!r}: ur:// takes no port (RTDE 30004, dashboard 29999 and "
                               "script 30003 are fixed by the controller)")
-        known = {"model", "calibration", "export", "contact_bit", "speed", "jog_speed", "tool_speed", "jog_watchdog"}
+        known = {"model", "calibration", "export", "contact_bit", "speed", "jog_speed", "tool_speed", "jog_watchdog",
+                 "serial"}
         unknown = sorted(set(url.query) - known)
         if unknown:
             raise ConfigError(f"robot URL {url.raw!r}: unknown option(s) {', '.join(unknown)}; "
@@ -121,7 +124,7 @@ class URRobot:
         args = dict(deltas=deltas, export_dir=url.get("export"), contact_bit=int(bit),
                     speed=num("speed", min(0.5, vmax), 0, vmax), jog_speed=num("jog_speed", min(0.2, vmax), 0, vmax),
                     tool_speed=num("tool_speed", 0.05, 0, MANUAL_TOOL_SPEED_CAP),
-                    jog_watchdog=num("jog_watchdog", 10.0, -1, 500), url=url.raw)
+                    jog_watchdog=num("jog_watchdog", 10.0, -1, 500), serial=url.get("serial"), url=url.raw)
         args.update(kw)
         return cls(url.host, catalog, **args)
 
@@ -130,7 +133,8 @@ class URRobot:
         rtde_receive, rtde_control = _ur_modules()
         self._dash.connect()
         self.firmware = self._dash.polyscope_version()
-        self.serial = self._dash.serial_number()
+        reported = self._dash.serial_number()
+        self.serial = reported if reported.isdigit() else (self.url_serial or "")
         self.robot_model = self._dash.robot_model()
         if self.host not in LOCAL_HOSTS and not self._dash.is_in_remote_control():
             raise ConfigError(f"ur://{self.host}: the robot is in local control; switch it to Remote Control on "
@@ -323,7 +327,33 @@ class URRobot:
             lead = float(np.max(np.abs(target - start)))
             self._wait_move(target, lead / v + 2 * v / self.accel + 5.0)
 
-    def _wait_move(self, target: np.ndarray, budget: float) -> None:
+    def move_linear(self, pose, speed: float | None = None, wait: bool = True) -> None:
+        """UR-specific: ``moveL`` of the controller's TCP to ``pose`` (x, y, z m; rx, ry, rz rotation vector, base
+        frame, as ``tcp_pose()``) at ``speed`` m/s (<= 1 m/s; default ``tool_speed``). The target must be
+        reachable within joint limits on the station's model, else LimitError and nothing is sent."""
+        from station.kinematics.se3 import pose_to_matrix
+
+        p = np.asarray(pose, dtype=float).reshape(-1)
+        if p.shape != (6,) or not np.all(np.isfinite(p)):
+            raise LimitError(f"move_linear: pose must be 6 finite numbers (x, y, z, rx, ry, rz), got {p.tolist()}")
+        v = self._check_speed(speed, self.tool_speed, 1.0, "move_linear", "m/s")
+        q0 = self.joint_positions().q
+        res = self.model.ik(pose_to_matrix(p)[None], q0[None])
+        if not res.ok[0]:
+            raise LimitError(f"move_linear: pose {np.round(p, 4).tolist()} is not reachable; nothing was sent")
+        check_joint_limits(self.model, res.q[0], "move_linear")
+        self._ready_for_motion()
+        if not self._c.moveL(p.tolist(), v, 0.5, True):
+            self._refused("moveL")
+        if wait:
+            dist = float(np.linalg.norm(p[:3] - self.tcp_pose()[:3]))
+            self._wait_move(None, dist / v + 2 * v / 0.5 + 5.0)
+            err = float(np.linalg.norm(self.tcp_pose()[:3] - p[:3]))
+            if err > 1e-4:
+                self._halt_quietly()
+                raise DeviceFault(f"ur://{self.host}: moveL ended {err * 1e3:.3f} mm from its target")
+
+    def _wait_move(self, target: np.ndarray | None, budget: float) -> None:
         deadline = time.monotonic() + budget
         while True:
             self._check_link()
@@ -346,6 +376,8 @@ class URRobot:
             snap = self.joint_positions()
         q = snap.q
         self._check_safety()
+        if target is None:
+            return
         err = float(np.max(np.abs(q - target)))
         if err > 1e-3:
             self._halt_quietly()
