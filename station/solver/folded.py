@@ -27,29 +27,31 @@ from station.kinematics.chain import RX, RY, RZ
 _EYE4 = np.eye(4)
 
 
-def _generators(axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``K`` and ``K^2`` (n, 4, 4) with ``E(v) = I + f1(v) K + f2(v) K^2`` for each element axis."""
-    n = len(axes)
-    K = np.zeros((n, 4, 4))
-    for e, ax in enumerate(axes):
-        ax = int(ax)
+def _generator_table() -> tuple[np.ndarray, np.ndarray]:
+    K = np.zeros((6, 4, 4))
+    for ax in range(6):
         if ax < 3:
-            K[e, ax, 3] = 1.0
+            K[ax, ax, 3] = 1.0
         else:
             i, j = {RX: (1, 2), RY: (2, 0), RZ: (0, 1)}[ax]
-            K[e, j, i], K[e, i, j] = 1.0, -1.0
+            K[ax, j, i], K[ax, i, j] = 1.0, -1.0
     return K, K @ K
 
 
-def _elementary(ax: int, val: float) -> np.ndarray:
-    E = _EYE4.copy()
-    if ax < 3:
-        E[ax, 3] = val
-        return E
-    i, j = {RX: (1, 2), RY: (2, 0), RZ: (0, 1)}[ax]
-    c, s = np.cos(val), np.sin(val)
-    E[i, i], E[i, j], E[j, i], E[j, j] = c, -s, s, c
-    return E
+_GEN, _GEN2 = _generator_table()  # E(v) = I + f1(v) K + f2(v) K^2 per axis TX..RZ
+
+
+def _generators(axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``K`` and ``K^2`` (n, 4, 4) for each element axis."""
+    axes = np.asarray(axes, dtype=int)
+    return _GEN[axes], _GEN2[axes]
+
+
+def _elementary_batch(axes: np.ndarray, vals: np.ndarray) -> np.ndarray:
+    rot = axes >= 3
+    f1 = np.where(rot, np.sin(vals), vals)
+    f2 = np.where(rot, 1.0 - np.cos(vals), 0.0)
+    return _EYE4 + f1[:, None, None] * _GEN[axes] + f2[:, None, None] * _GEN2[axes]
 
 
 class FoldedChain:
@@ -61,10 +63,11 @@ class FoldedChain:
 
     def __init__(self, chain, params: np.ndarray, param_idx) -> None:
         param_idx = np.asarray(param_idx, dtype=int)
-        col_of = {int(p): c for c, p in enumerate(param_idx)}
+        col_of = {p: c for c, p in enumerate(param_idx.tolist())}
         self.n_cols = len(param_idx)
         K = chain.n_elements
-        moving = chain.joint >= 0
+        moving = (chain.joint >= 0).tolist()
+        c_param, c_axis = chain.param.tolist(), chain.axis.tolist()
         # blocks: items are ("const", 4x4) or ("want", wanted-element number); a moving element closes a block
         blocks: list[list] = [[]]
         want_elem: list[int] = []  # chain element of each identified, non-moving element
@@ -73,10 +76,14 @@ class FoldedChain:
         self._want_axis: list[int] = []
         cols: list[int] = []
         pending = None
+        # every fixed element's matrix at once (the identified and moving ones are skipped below)
+        vals = chain.const + np.where(chain.param >= 0, params[np.maximum(chain.param, 0)], 0.0)
+        E_all = _elementary_batch(chain.axis, vals)
+        nonzero = (vals != 0.0).tolist()
         for k in range(K):
-            pk = int(chain.param[k])
+            pk = c_param[k]
             wanted = pk in col_of
-            ax = int(chain.axis[k])
+            ax = c_axis[k]
             if (moving[k] or wanted) and pending is not None:
                 blocks[-1].append(("const", pending))
                 pending = None
@@ -96,21 +103,18 @@ class FoldedChain:
                 blocks[-1].append(("want", len(want_elem)))
                 want_elem.append(k)
                 continue
-            val = float(chain.const[k] + (params[pk] if pk >= 0 else 0.0))
-            if val != 0.0:
-                E = _elementary(ax, val)
-                pending = E if pending is None else pending @ E
+            if nonzero[k]:
+                pending = E_all[k] if pending is None else pending @ E_all[k]
         if pending is not None:
             blocks[-1].append(("const", pending))
         self._blocks = blocks
         # identified non-moving elements: value = const + param, elementary matrix from the generators
         we = np.array(want_elem, dtype=int)
-        self._we_const = chain.const[we] if len(we) else np.zeros(0)
-        self._we_param = chain.param[we] if len(we) else np.zeros(0, dtype=int)
-        self._we_rot = chain.axis[we] >= 3 if len(we) else np.zeros(0, dtype=bool)
-        self._we_K, self._we_K2 = _generators(chain.axis[we])
+        self._we_const = chain.const[we]
+        self._we_param = chain.param[we]
+        self._we_axis = chain.axis[we]
         # moving elements in chain order
-        mv = np.flatnonzero(moving)
+        mv = np.flatnonzero(chain.joint >= 0)
         self._mv_joint = chain.joint[mv]
         self._mv_const = chain.const[mv]
         self._mv_param = chain.param[mv]
@@ -142,10 +146,7 @@ class FoldedChain:
         nc = len(self._cols)
         # pose-independent part: elementary matrices of the identified elements, block products, prefixes
         if len(self._we_param):
-            v = self._we_const + params[self._we_param]
-            f1 = np.where(self._we_rot, np.sin(v), v)
-            f2 = np.where(self._we_rot, 1.0 - np.cos(v), 0.0)
-            Ew = _EYE4 + f1[:, None, None] * self._we_K + f2[:, None, None] * self._we_K2
+            Ew = _elementary_batch(self._we_axis, self._we_const + params[self._we_param])
         prefix: list = [None] * len(self._we_param)
         S = []
         for items in self._blocks:

@@ -124,8 +124,12 @@ def _greedy(Js, order, tau_struct, tau_noise) -> tuple[list[int], dict[int, floa
     """Columns in ``order``; each is accepted when what remains of it after projecting out the columns
     accepted before it exceeds both thresholds. The remainders are the diagonal of R in a Householder QR
     of the ordered columns, valid up to the first rejected column; after a rejection the QR restarts on
-    the remaining columns projected off the accepted ones (twice: Kahan-Parlett)."""
+    the remaining columns projected off the accepted ones (twice: Kahan-Parlett). Everything runs on the
+    small triangular factor of a first QR of ``Js`` (same column geometry: ``R^T R = Js^T Js``, computed
+    backward stably), so only that first factorisation depends on the number of samples."""
     thr = max(tau_struct, tau_noise)
+    if Js.shape[0] > Js.shape[1]:
+        Js = np.linalg.qr(Js, mode="r")
     accepted: list[int] = []
     weak: dict[int, float] = {}
     Q = None  # orthonormal basis of the accepted columns

@@ -50,7 +50,6 @@ class Problem:
             names += [b for b in BASE6 if b not in names]
         self.model_names = names
         self.model_idx = np.array([model.index(n) for n in names], dtype=int)
-        self._want = element_columns(model.chain, self.model_idx)
         # the chain with everything not identified folded into constant blocks, once per problem
         self.folded = FoldedChain(model.chain, model.params, self.model_idx)
         self.kinds = ["instrument" if self.frame_unknown and n.startswith("base.") else "model" for n in names]
@@ -90,10 +89,15 @@ class Problem:
         if instrument:
             self.target_fixed = obs.measured
         else:
-            self.target_fixed = np.array([self.known.get(lb, np.zeros(3)) for lb in obs.point])
+            self.target_fixed = np.zeros((len(obs), 3))
+            for lb, xyz in self.known.items():
+                self.target_fixed[obs.point == lb] = xyz
         L = characteristic_length(model, ang)
         self.length = L
         self.scale = np.array([L if u == "rad" else 1.0 for u in self.units])
+        # lengths of the machine and the points; a prismatic offset is a zero reading, not a length
+        self._lengths = np.array([u == "m" and not n.startswith("offset.") for n, u in zip(self.names, self.units,
+                                                                                           strict=True)])
         self.x_nominal = np.concatenate([model.params[self.model_idx], np.zeros(len(self.point_names))])
 
     @property
@@ -121,7 +125,7 @@ class Problem:
             T0[:3, :3], T0[:3, 3] = _kabsch(P, self.obs.measured)
             bi = [self.model.index(b) for b in BASE6]
             Tb = T0 @ _base_matrix(self.model.params[bi])
-            rx, ry, rz = se3.matrix_to_rpy(Tb[:3, :3])
+            rx, ry, rz = _matrix_to_rpy(Tb[:3, :3])
             vals = dict(zip(BASE6, [*Tb[:3, 3], rz, ry, rx], strict=True))
             for i, n in enumerate(self.model_names):
                 if n in vals:
@@ -175,11 +179,7 @@ class Problem:
 
     def scale_direction(self, x: np.ndarray) -> np.ndarray:
         """d x / d s for a uniform scaling of every length (model lengths and points) by (1 + s)."""
-        v = np.where(np.array(self.units) == "m", x, 0.0)
-        for i, n in enumerate(self.names):
-            if n.startswith("offset.") and self.units[i] == "m":
-                v[i] = 0.0  # a prismatic offset is a zero reading, not a length of the machine
-        return v
+        return np.where(self._lengths, x, 0.0)
 
 
 def position_jacobian(chain, q: np.ndarray, params: np.ndarray, param_idx: np.ndarray, want: dict | None = None):
@@ -260,11 +260,21 @@ def element_columns(chain, param_idx) -> dict[int, int]:
 
 
 def _base_matrix(vals) -> np.ndarray:
-    x, y, z, rz, ry, rx = vals
-    T = np.eye(4)
-    T[:3, :3] = se3.rpy_to_matrix(np.array([rx, ry, rz]))
-    T[:3, 3] = [x, y, z]
-    return T
+    """The base frame ``Tx Ty Tz Rz Ry Rx`` as one matrix (``se3.rpy_to_matrix`` convention, written out:
+    this runs once per solve and scipy's Rotation costs more than the rest of the setup)."""
+    x, y, z, rz, ry, rx = (float(v) for v in vals)
+    cz, sz, cy, sy, cx, sx = math.cos(rz), math.sin(rz), math.cos(ry), math.sin(ry), math.cos(rx), math.sin(rx)
+    return np.array([[cz * cy, cz * sy * sx - sz * cx, cz * sy * cx + sz * sx, x],
+                     [sz * cy, sz * sy * sx + cz * cx, sz * sy * cx - cz * sx, y],
+                     [-sy, cy * sx, cy * cx, z],
+                     [0.0, 0.0, 0.0, 1.0]])
+
+
+def _matrix_to_rpy(R: np.ndarray) -> tuple[float, float, float]:
+    """Inverse of the rotation part of ``_base_matrix``: (rx, ry, rz); near gimbal lock via scipy."""
+    if abs(R[2, 0]) > 1.0 - 1e-9:
+        return tuple(float(v) for v in se3.matrix_to_rpy(R))
+    return math.atan2(R[2, 1], R[2, 2]), -math.asin(R[2, 0]), math.atan2(R[1, 0], R[0, 0])
 
 
 def _kabsch(P: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
