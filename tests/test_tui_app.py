@@ -396,12 +396,12 @@ def test_speed_override_and_the_250_mm_s_cap_hold_at_the_tool(rig):
         async with app.run_test(size=(150, 50)) as pilot:
             await pilot.press("3")  # 1 deg steps at the default 25 mm/s
             assert ctl.speed_mm_s == 25.0
-            peak = tool_speed_during(world, lambda: ctl.jog(1, 1), duration=2.0)
+            peak = tool_speed_during(world, lambda: ctl.jog(1, 1) or pytest.fail(ctl.message), duration=2.0)
             assert 0.6 * 0.025 < peak <= 0.025 * 1.02
             for _ in range(10):
                 await pilot.press("plus")
             assert ctl.speed_mm_s == 250.0  # the presets end at the cap
-            peak = tool_speed_during(world, lambda: ctl.jog(1, -1), duration=1.0)
+            peak = tool_speed_during(world, lambda: ctl.jog(1, -1) or pytest.fail(ctl.message), duration=1.0)
             assert 0.5 * 0.25 < peak <= 0.25 * 1.02
             print(f"peak tool speed at the 250 mm/s override: {peak * 1e3:.1f} mm/s")
 
