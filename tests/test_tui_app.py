@@ -355,6 +355,14 @@ def test_stop_key_halts_a_move(rig):
     asyncio.run(run())
 
 
+def wait_still(world, robot, timeout=3.0) -> None:
+    import time
+
+    end = time.monotonic() + timeout
+    while (world.is_moving() or robot.status().moving) and time.monotonic() < end:
+        time.sleep(0.01)
+
+
 def tool_speed_during(world, action, duration=1.0) -> float:
     """Largest tool speed (nominal model, J(q) qd of the world's joints) sampled while ``action`` runs."""
     import threading
@@ -396,11 +404,13 @@ def test_speed_override_and_the_250_mm_s_cap_hold_at_the_tool(rig):
         async with app.run_test(size=(150, 50)) as pilot:
             await pilot.press("3")  # 1 deg steps at the default 25 mm/s
             assert ctl.speed_mm_s == 25.0
+            wait_still(world, robot)
             peak = tool_speed_during(world, lambda: ctl.jog(1, 1) or pytest.fail(ctl.message), duration=2.0)
             assert 0.6 * 0.025 < peak <= 0.025 * 1.02
             for _ in range(10):
                 await pilot.press("plus")
             assert ctl.speed_mm_s == 250.0  # the presets end at the cap
+            wait_still(world, robot)
             peak = tool_speed_during(world, lambda: ctl.jog(1, -1) or pytest.fail(ctl.message), duration=1.0)
             assert 0.5 * 0.25 < peak <= 0.25 * 1.02
             print(f"peak tool speed at the 250 mm/s override: {peak * 1e3:.1f} mm/s")
