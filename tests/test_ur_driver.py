@@ -147,15 +147,19 @@ def test_freedrive_seats_tip_in_socket(tmp_path, emulator, robots):
     ik = world.nominal.ik((socket_a.position + [0, 0, 0.002])[None], q0[None], position_only=True)
     assert ik.ok[0]
     robot.move_joints(ik.q[0], speed=1.0)
+    robot.jog("joint", 5, 0.01)  # a jog arms the controller-side watchdog: freedrive must still hold
     assert np.linalg.norm(world.truth.position(robot.joint_positions().q) - socket_a.position) > 1e-4
     assert robot.touch() is False
+    expired = emu.dashboard("emulator log").count("watchdog expired")
     robot.set_compliant(True)
     assert robot.status().compliant
+    time.sleep(0.3)  # longer than the 10 Hz watchdog period
     q_seated = robot.joint_positions().q
     # the TRUE tip settles at the socket centre (seating noise 10 um per axis)
     err = np.linalg.norm(world.truth.position(q_seated) - socket_a.position)
     assert err < 5 * world.spec.seating_sigma * np.sqrt(3)
     assert robot.touch() is True  # contact input (tool DI 0) wired to the world's socket
+    assert emu.dashboard("emulator log").count("watchdog expired") == expired  # freedrive was not cut short
     robot.set_compliant(False)
     np.testing.assert_allclose(robot.joint_positions().q, q_seated, atol=1e-12)
     assert not robot.status().compliant

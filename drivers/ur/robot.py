@@ -246,6 +246,15 @@ class URRobot:
             self._c.kickWatchdog()
             self._last_kick = now
 
+    def _disarm_watchdog(self) -> None:
+        """Before anything that is not followed by kicks (freedrive, unwatched moves): end the script that
+        carries the jog watchdog; a fresh one (without it) is uploaded by _ready_for_motion."""
+        if self._watchdog_armed:
+            self._check_link()
+            if self._c.isProgramRunning():
+                self._c.stopScript()
+            self._watchdog_armed = False
+
     def _ready_for_motion(self) -> None:
         self._check_link()
         self._check_safety()
@@ -316,6 +325,8 @@ class URRobot:
     def move_joints(self, q, speed: float | None = None, wait: bool = True) -> None:
         target = check_joint_limits(self.model, q, "move_joints")
         v = self._check_speed(speed, self.speed, float(self.model.max_velocity.min()), "move_joints", "rad/s")
+        if not wait:
+            self._disarm_watchdog()  # nobody kicks while an unwatched move runs
         self._ready_for_motion()
         self._move(target, v, wait)
 
@@ -342,6 +353,8 @@ class URRobot:
         if not res.ok[0]:
             raise LimitError(f"move_linear: pose {np.round(p, 4).tolist()} is not reachable; nothing was sent")
         check_joint_limits(self.model, res.q[0], "move_linear")
+        if not wait:
+            self._disarm_watchdog()
         self._ready_for_motion()
         if not self._c.moveL(p.tolist(), v, 0.5, True):
             self._refused("moveL")
@@ -503,6 +516,8 @@ class URRobot:
 
     def set_compliant(self, on: bool) -> None:
         """Freedrive (falls back to teach mode) so the tip can settle in a socket; off keeps the position."""
+        if on:
+            self._disarm_watchdog()  # the arm rests in freedrive without kicks
         self._ready_for_motion()
         if on:
             if self._compliant_mode is not None:
