@@ -15,6 +15,7 @@ given the ones before it, would be sigma / |remainder| > max_std (default 1 mm a
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -36,6 +37,11 @@ def priority_order(names: list[str], kinds: list[str]) -> list[int]:
     """Reference points and the instrument frame first (nuisance unknowns absorb what they can), then
     the TCP, joint offsets, base, and link geometry last: when two columns are confounded, the later
     one stays at nominal."""
+    return list(_priority_order(tuple(names), tuple(kinds)))
+
+
+@lru_cache(maxsize=256)
+def _priority_order(names: tuple[str, ...], kinds: tuple[str, ...]) -> tuple[int, ...]:
 
     def rank(i: int) -> tuple[int, int]:
         n, k = names[i], kinds[i]
@@ -48,7 +54,7 @@ def priority_order(names: list[str], kinds: list[str]) -> list[int]:
                 return p, i
         return len(PRIORITY), i
 
-    return sorted(range(len(names)), key=rank)
+    return tuple(sorted(range(len(names)), key=rank))
 
 
 @dataclass
@@ -75,7 +81,7 @@ def decide(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float =
     order = priority_order(names, kinds)
     accepted, weak = _greedy(Js, order, tau_struct, tau_noise)
     scale_hit = None
-    if _scale_invisible(Js, scale_dir, residual):
+    if _scale_invisible(Js, scale_dir, residual, norms):
         # a uniform scaling of every length only scales the residual: the data have no length standard.
         # The longest link length that would be estimated keeps its nominal value instead (fixing a
         # long one pins the scale best).
@@ -122,25 +128,18 @@ def singular_values(A: np.ndarray) -> np.ndarray:
 
 def _greedy(Js, order, tau_struct, tau_noise) -> tuple[list[int], dict[int, float]]:
     """Columns in ``order``; each is accepted when what remains of it after projecting out the columns
-    accepted before it exceeds both thresholds. The remainders are the diagonal of R in a Householder QR
-    of the ordered columns, valid up to the first rejected column; after a rejection the QR restarts on
-    the remaining columns projected off the accepted ones (twice: Kahan-Parlett). Everything runs on the
-    small triangular factor of a first QR of ``Js`` (same column geometry: ``R^T R = Js^T Js``, computed
-    backward stably), so only that first factorisation depends on the number of samples."""
+    accepted before it exceeds both thresholds. Those remainders are the diagonal of R in a Householder
+    QR of the ordered columns, valid up to the first rejected column. Deleting a rejected column from R
+    leaves the trailing block ``R[b:, b+1:]`` (the later columns' coordinates orthogonal to everything
+    accepted) in Hessenberg form: its own QR gives the next remainders. Only the first factorisation
+    depends on the number of samples."""
     thr = max(tau_struct, tau_noise)
-    if Js.shape[0] > Js.shape[1]:
-        Js = np.linalg.qr(Js, mode="r")
     accepted: list[int] = []
     weak: dict[int, float] = {}
-    Q = None  # orthonormal basis of the accepted columns
     cand = list(order)
+    T = np.linalg.qr(Js[:, cand], mode="r")
     while cand:
-        C = Js[:, cand]
-        if Q is not None:
-            C = C - Q @ (Q.T @ C)
-            C = C - Q @ (Q.T @ C)
-        Qc, R = np.linalg.qr(C)
-        rem = np.abs(np.diagonal(R))
+        rem = np.abs(np.diagonal(T))
         if len(rem) < len(cand):  # more columns than rows: the rest cannot add rank
             rem = np.concatenate([rem, np.zeros(len(cand) - len(rem))])
         bad = np.flatnonzero(~(rem > thr))
@@ -149,20 +148,21 @@ def _greedy(Js, order, tau_struct, tau_noise) -> tuple[list[int], dict[int, floa
             break
         b = int(bad[0])
         accepted += cand[:b]
-        if b:
-            Q = Qc[:, :b] if Q is None else np.hstack([Q, Qc[:, :b]])
         if rem[b] > tau_struct:
             weak[cand[b]] = float(rem[b])
         cand = cand[b + 1:]
+        T = T[b:, b + 1:]
+        if cand and T.shape[0]:
+            T = np.linalg.qr(T, mode="r")
     return accepted, weak
 
 
-def _scale_invisible(Js, scale_dir, residual) -> bool:
+def _scale_invisible(Js, scale_dir, residual, norms=None) -> bool:
     """Scaling every length by (1 + s) changes the residual r into (1 + s) r exactly when no length is
     known, i.e. ``J v = r``: the data carry no length standard (seed 003d's distance argument)."""
     if scale_dir is None or residual is None or not np.any(scale_dir):
         return False
-    ref = np.sum(np.linalg.norm(Js, axis=0) * np.abs(scale_dir))
+    ref = np.sum((np.linalg.norm(Js, axis=0) if norms is None else norms) * np.abs(scale_dir))
     return bool(np.linalg.norm(Js @ scale_dir - residual) <= 1e-6 * ref)
 
 
