@@ -83,7 +83,10 @@ def test_jog_record_and_fault_on_dynamixel(rig, tmp_path):
             await pilot.press("m", "enter")
             assert ctl.session.samples == [] and "no contact" in ctl.message
             robot.move_joints(q_touch, speed=1.0)  # jogged onto the needle
-            await pilot.pause(0.3)
+            for _ in range(100):  # the UI polls every 0.1 s; a loaded machine may take longer
+                if "CONTACT" in str(app.query_one("#jog").render()):
+                    break
+                await pilot.pause(0.02)
             assert world.contact() and "CONTACT" in str(app.query_one("#jog").render())
             await pilot.press("p", "enter")  # label B
             assert [s.point for s in ctl.session.samples] == ["B"]
