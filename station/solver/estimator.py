@@ -70,8 +70,8 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
     # Iterate on what is structurally identifiable, then decide with the fit's sigma (dependencies like
     # "offset.j1 vs an unknown point" are exact only where the touches are consistent, i.e. at the
     # solution; a sigma from an unconverged fit would reject good parameters). The decision only needs
-    # the fit within DECIDE_TOL standard deviations of the minimum; once the identified set stands, the
-    # iteration continues to STEP_TOL and the set is checked again there.
+    # the fit within DECIDE_TOL standard deviations of the minimum (sigma is then within ~1e-3 of its
+    # final value); once the identified set stands, the iteration finishes to STEP_TOL on that set.
     iterations, converged, current = 0, False, False
     tol, prev, exact = DECIDE_TOL, None, True
     for _ in range(8):
@@ -80,8 +80,9 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
             r, J = prob.residual_jacobian(x)
         x, r, J, it, converged, rest, exact, prev = _levenberg_marquardt(prob, x, act, max_iter, (r, J), tol, prev)
         iterations += it
-        dof = m - len(act)
-        sig = noise if noise is not None else math.sqrt(float(r @ r) / dof)
+        if tol == STEP_TOL:  # finished on a set decided within DECIDE_TOL of this minimum
+            break
+        sig = noise if noise is not None else math.sqrt(float(r @ r) / (m - len(act)))
         dec = _decide(prob, J, x, sig, max_std, r)
         current = sorted(dec.accepted) == act
         if current and (rest < STEP_TOL or not converged):
@@ -93,6 +94,7 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
         x[dropped] = x_start[dropped]  # back to nominal: never keep numbers for an unseen direction
         r, J = prob.residual_jacobian(x)
         tol, prev, exact = DECIDE_TOL, None, True
+    sig = noise if noise is not None else math.sqrt(float(r @ r) / (m - len(dec.accepted)))
     # the reasons, condition number and observability index once, at the final Jacobian
     ana = _analyse(prob, J, x, sig, max_std, r, dec if current else None)
     return _result(model, prob, x, r, J, r_before, ana, iterations, converged, holdout,
@@ -106,13 +108,15 @@ def distinct_poses(q: np.ndarray, tol: float | None = None, limit: int | None = 
     """Number of joint configurations that differ by more than ``tol`` in some joint (greedy clustering;
     counting stops at ``limit``): repeating one pose adds no information about the geometry."""
     tol = POSE_TOL if tol is None else tol
-    reps = np.zeros((0, q.shape[1]))
+    reps = np.empty((min(len(q), limit or len(q)), q.shape[1]))
+    k = 0
     for row in q:
-        if not len(reps) or np.min(np.max(np.abs(reps - row), axis=1)) > tol:
-            reps = np.vstack([reps, row])
-            if limit is not None and len(reps) >= limit:
+        if not k or np.min(np.max(np.abs(reps[:k] - row), axis=1)) > tol:
+            reps[k] = row
+            k += 1
+            if k == len(reps):
                 break
-    return len(reps)
+    return k
 
 
 def _decide(prob: Problem, J, x, sigma, max_std, r) -> Decision:
@@ -158,10 +162,12 @@ def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ, tol: float = STEP_
         H = Js.T @ Js
         g = Js.T @ r
         try:
-            Li = np.linalg.inv(np.linalg.cholesky(H + lam * eye if lam else H))
-            Hi = Li.T @ Li
+            Hi = np.linalg.inv(H + lam * eye if lam else H)
+            d = np.diagonal(Hi)
+            if not np.all(d > 0.0):  # numerically not positive definite
+                raise np.linalg.LinAlgError
             du = -(Hi @ g)
-            rel = float(np.max(np.abs(du) / np.sqrt(cost / dof * np.diagonal(Hi))))
+            rel = float(np.max(np.abs(du) / np.sqrt(cost / dof * d)))
         except np.linalg.LinAlgError:
             du = -np.linalg.lstsq(H + lam * eye, g, rcond=None)[0]
             rel = math.inf

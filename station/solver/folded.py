@@ -113,12 +113,17 @@ class FoldedChain:
         self._we_const = chain.const[we]
         self._we_param = chain.param[we]
         self._we_axis = chain.axis[we]
+        self._we_translations = bool(np.all(self._we_axis < 3))  # e.g. tcp.x/y/z: E = I + v K
+        self._we_K = _GEN[self._we_axis]
         # moving elements in chain order
         mv = np.flatnonzero(chain.joint >= 0)
         self._mv_joint = chain.joint[mv]
         self._mv_const = chain.const[mv]
         self._mv_param = chain.param[mv]
+        self._mv_has_p = self._mv_param >= 0
+        self._mv_pidx = np.maximum(self._mv_param, 0)
         self._mv_rot = chain.axis[mv] >= 3
+        self._mv_all_rot = bool(np.all(self._mv_rot))
         self._mv_K, self._mv_K2 = _generators(chain.axis[mv])
         self._n_moving = len(mv)
         # Jacobian columns (in chain order) -> output column, rotation mask
@@ -146,7 +151,10 @@ class FoldedChain:
         nc = len(self._cols)
         # pose-independent part: elementary matrices of the identified elements, block products, prefixes
         if len(self._we_param):
-            Ew = _elementary_batch(self._we_axis, self._we_const + params[self._we_param])
+            if self._we_translations:
+                Ew = _EYE4 + (self._we_const + params[self._we_param])[:, None, None] * self._we_K
+            else:
+                Ew = _elementary_batch(self._we_axis, self._we_const + params[self._we_param])
         prefix: list = [None] * len(self._we_param)
         S = []
         for items in self._blocks:
@@ -175,23 +183,30 @@ class FoldedChain:
         if nm:
             Sm = np.array(S[:nm])
             XT = np.concatenate([Sm, Sm @ self._mv_K, Sm @ self._mv_K2], axis=1).transpose(0, 2, 1)  # (nm, 4, 12)
-            vm = self._mv_const[:, None] + q[:, self._mv_joint].T  # (nm, N)
-            has_p = self._mv_param >= 0
-            if has_p.any():
-                vm[has_p] += params[self._mv_param[has_p]][:, None]
-            rot = self._mv_rot[:, None]
+            base = self._mv_const + np.where(self._mv_has_p, params[self._mv_pidx], 0.0)
+            vm = base[:, None] + q[:, self._mv_joint].T  # (nm, N)
             coef = np.empty((nm, 3, N))
             coef[:, 0] = 1.0
-            coef[:, 1] = np.where(rot, np.sin(vm), vm)
-            coef[:, 2] = np.where(rot, 1.0 - np.cos(vm), 0.0)
+            if self._mv_all_rot:
+                np.sin(vm, out=coef[:, 1])
+                np.cos(vm, out=coef[:, 2])
+                np.subtract(1.0, coef[:, 2], out=coef[:, 2])
+            else:
+                rot = self._mv_rot[:, None]
+                coef[:, 1] = np.where(rot, np.sin(vm), vm)
+                coef[:, 2] = np.where(rot, 1.0 - np.cos(vm), 0.0)
         G = _G0(N)
         for b in range(nm + 1):
-            lo, hi = self._block_range[b]
-            if want_J and hi > lo:
-                WO[:, 2 * lo: 2 * hi] = VT[2 * lo: 2 * hi] @ G
+            if want_J:
+                lo, hi = self._block_range[b]
+                if hi > lo:
+                    WO[:, 2 * lo: 2 * hi] = VT[2 * lo: 2 * hi] @ G
             if b == nm:
                 break
-            G = XT[b] @ (G[:, None] * coef[b][None, :, None, :]).reshape(3, 12, N)
+            if b == 0:  # G_0 = I: G_1 = sum_t c_t (S_0 K^t) rows 0-2
+                G = (XT[0].T.reshape(3, 4, 4)[:, :3].reshape(3, 12).T @ coef[0]).reshape(3, 4, N)
+            else:
+                G = XT[b] @ (G[:, None] * coef[b][None, :, None, :]).reshape(3, 12, N)
         last = S[nm]
         p = last[:3, 3] @ G[:, :3] + G[:, 3]  # (3, N)
         P = np.ascontiguousarray(p.T)
