@@ -265,3 +265,35 @@ def test_write_calibration_exports_and_reads_back(tmp_path, emulator, robots):
     q = again.joint_positions().q
     np.testing.assert_allclose(again.model.fk(q), world.nominal.with_params(values).fk(q), atol=1e-12)
     np.testing.assert_allclose(again.tcp_pose()[:3], world.nominal.position(q), atol=1e-12)
+
+
+def test_local_control_is_refused_with_a_clear_message(tmp_path):
+    import rtde_control
+
+    from station.robot import ConfigError
+
+    path, _ = world_file(tmp_path)
+    with EmulatorProcess(world=path, extra=("--no-remote",)) as emu:
+        with pytest.raises(ConfigError, match="Remote Control"):
+            open_robot(f"ur://{emu.host}")
+        with pytest.raises(RuntimeError, match="remote control"):  # ur_rtde's own check, same answer
+            rtde_control.RTDEControlInterface(emu.host)
+
+
+def test_emergency_stop_then_power_on(tmp_path, emulator, robots):
+    path, world = world_file(tmp_path)
+    emu = emulator(path)
+    robot = robots(f"ur://{emu.host}")
+    q0 = robot.joint_positions().q
+    emu.dashboard("emulator estop on")
+    time.sleep(0.02)
+    st = robot.status()
+    assert st.estop and not st.enabled and not st.ok
+    with pytest.raises(SafetyStop, match="emergency stop"):
+        robot.move_joints(q0 + 0.05)
+    emu.dashboard("emulator estop off")  # the e-stop button released; the arm stays powered off
+    time.sleep(0.02)
+    assert not robot.status().enabled
+    robot.enable()  # dashboard power on + brake release, then the control script again
+    robot.move_joints(q0 + 0.05, speed=1.0)
+    np.testing.assert_allclose(robot.joint_positions().q, q0 + 0.05, atol=1e-9)
