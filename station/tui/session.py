@@ -107,7 +107,8 @@ class JogSession:
             os.fsync(f.fileno())
         os.replace(tmp, self.samples_csv)
 
-    def close(self, status: str = "closed") -> None:
+    def close(self, status: str = "completed") -> None:
+        """``end`` event; "completed" (the engine's word) also tells ``station resume`` there is nothing to do."""
         try:
             self.event({"type": "end", "status": status, "n_samples": len(self.samples)})
         finally:
