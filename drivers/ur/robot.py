@@ -137,6 +137,7 @@ class URRobot:
         self.serial = reported if reported.isdigit() else (self.url_serial or "")
         self.robot_model = self._dash.robot_model()
         if self.host not in LOCAL_HOSTS and not self._dash.is_in_remote_control():
+            self._dash.close()
             raise ConfigError(f"ur://{self.host}: the robot is in local control; switch it to Remote Control on "
                               "the teach pendant (Settings > System > Remote Control, then the pendant's top bar)")
         try:
@@ -188,7 +189,7 @@ class URRobot:
                 if self._c.isConnected() and self._c.isProgramRunning():
                     self.stop()
                     self._c.stopScript()
-            except Exception as e:  # closing must not fail; the controller stops the script anyway on drop
+            except Exception as e:  # closing must not fail (the link may already be gone)
                 log.warning("ur://%s: close: %s", self.host, e)
         self._drop_interfaces()
 
@@ -205,6 +206,16 @@ class URRobot:
         if not self._r.isConnected() or not self._c.isConnected():
             raise ConnectionLost(f"ur://{self.host}: connection to the controller lost (RTDE port 30004 closed); "
                                  "call reconnect() when the network is back")
+
+    def _check_link_moving(self) -> None:
+        """During motion: on a lost RTDE link still try to stop the program over the dashboard (it may be a
+        different failure than the network), then raise."""
+        try:
+            self._check_link()
+        except ConnectionLost:
+            with contextlib.suppress(ConnectionLost, BusError):
+                self._dash.stop_program()
+            raise
 
     def _safety_error(self, bits: int) -> SafetyStop | None:
         if bits & SS_ESTOP_MASK:
@@ -369,7 +380,7 @@ class URRobot:
     def _wait_move(self, target: np.ndarray | None, budget: float) -> None:
         deadline = time.monotonic() + budget
         while True:
-            self._check_link()
+            self._check_link_moving()
             self._check_safety()
             if not self._c.isProgramRunning():
                 self._halt_quietly()
@@ -444,6 +455,7 @@ class URRobot:
             if not ok:
                 self._refused("speed command")
             while True:
+                self._check_link_moving()
                 snap = self.joint_positions()
                 self._check_safety()
                 if remaining(snap.q) <= v * v / (2 * a) + v * 0.004:
