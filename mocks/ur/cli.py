@@ -7,6 +7,7 @@ from __future__ import annotations
 import ipaddress
 import logging
 import signal
+import sys
 import threading
 from pathlib import Path
 
@@ -68,9 +69,7 @@ def ur(host: str = typer.Option("127.0.0.1", "--host", help="Address to listen o
     signal.signal(signal.SIGTERM, lambda *_: done.set())
     signal.signal(signal.SIGINT, lambda *_: done.set())
     typer.echo(f"ur emulator ready on {host} (rtde 30004, dashboard 29999, script 30003) model {w.nominal.name} "
-               f"serial {ctl.serial} contact bit {ctl.contact_bit}", err=False)
-    import sys
-
+               f"serial {ctl.serial} contact bit {ctl.contact_bit}; robot URL ur://{host}?model={w.nominal.name}")
     sys.stdout.flush()
     try:
         while not done.wait(0.5):
