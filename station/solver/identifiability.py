@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+from scipy.linalg.lapack import dgeqrf
 
 RTOL = 1e-7
 PRIORITY = ("point.", "instrument", "tcp.", "offset.", "base.")
@@ -74,7 +75,7 @@ def decide(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float =
     """The rank decision of ``analyse`` without the reasons and the singular values (cheap: a few
     Householder QR factorisations); ``analyse(..., decided=...)`` completes it."""
     p = Js.shape[1]
-    norms = np.linalg.norm(Js, axis=0)
+    norms = np.sqrt(np.einsum("ij,ij->j", Js, Js))
     big = norms.max() if p else 0.0
     tau_struct = RTOL * big if big > 0 else np.inf
     tau_noise = sigma / max_std if max_std > 0 else 0.0
@@ -137,7 +138,9 @@ def _greedy(Js, order, tau_struct, tau_noise) -> tuple[list[int], dict[int, floa
     accepted: list[int] = []
     weak: dict[int, float] = {}
     cand = list(order)
-    T = np.linalg.qr(Js[:, cand], mode="r")
+    if not cand:
+        return accepted, weak
+    T = _qr_r(Js[:, cand])
     while cand:
         rem = np.abs(np.diagonal(T))
         if len(rem) < len(cand):  # more columns than rows: the rest cannot add rank
@@ -153,8 +156,23 @@ def _greedy(Js, order, tau_struct, tau_noise) -> tuple[list[int], dict[int, floa
         cand = cand[b + 1:]
         T = T[b:, b + 1:]
         if cand and T.shape[0]:
-            T = np.linalg.qr(T, mode="r")
+            T = _qr_r(T)
     return accepted, weak
+
+
+_LOWER: dict[tuple[int, int], np.ndarray] = {}
+
+
+def _qr_r(A: np.ndarray) -> np.ndarray:
+    """R of a Householder QR (LAPACK dgeqrf; ``numpy.linalg.qr(A, "r")`` without its Python overhead)."""
+    m, n = A.shape
+    k = min(m, n)
+    R = dgeqrf(A)[0][:k]
+    low = _LOWER.get((k, n))
+    if low is None:
+        low = _LOWER.setdefault((k, n), np.tri(k, n, -1, dtype=bool))
+    R[low] = 0.0
+    return R
 
 
 def _scale_invisible(Js, scale_dir, residual, norms=None) -> bool:
