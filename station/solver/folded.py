@@ -136,6 +136,30 @@ class FoldedChain:
         self._block_range = [(int(lo), int(hi)) for lo, hi in zip(edges[:-1], edges[1:], strict=True)]
         self._rot_cols = np.flatnonzero(self._col_rot)
         self._cols_identity = bool(np.array_equal(self._cols, np.arange(self.n_cols)))
+        # what does not depend on the identified values, computed once: products of blocks without
+        # identified elements, the joint matrices [S, S K, S K^2] behind them, the frames of their columns
+        self._var_blocks = [b for b, items in enumerate(blocks) if any(kind == "want" for kind, _ in items)]
+        self._S_fixed = []
+        for items in blocks:
+            P = _EYE4
+            for kind, it in items:
+                P = P @ it if kind == "const" else P
+            self._S_fixed.append(P)
+        nm = self._n_moving
+        Sm = np.array(self._S_fixed[:nm]) if nm else np.zeros((0, 4, 4))
+        self._XT_fixed = np.concatenate([Sm, Sm @ self._mv_K, Sm @ self._mv_K2], axis=1).transpose(0, 2, 1).copy()
+        self._var_moving = [b for b in self._var_blocks if b < nm]
+        nc = len(cols)
+        var = {b for b in self._var_blocks}
+        is_var = [it >= 0 or b in var for it, b in zip(self._want_item, self._want_block, strict=True)]
+        self._var_cols = np.flatnonzero(np.array(is_var, dtype=bool)) if nc else np.zeros(0, dtype=int)
+        self._var_col_src = [(self._want_item[c], self._want_block[c]) for c in self._var_cols]
+        self._VT_fixed = np.zeros((nc, 2, 4))
+        for c in range(nc):
+            if not is_var[c]:
+                F = self._S_fixed[self._want_block[c]]
+                self._VT_fixed[c, 0, :3] = F[:3, self._col_sel[c]]
+                self._VT_fixed[c, 1] = F[:, 3]
 
     @property
     def n_items(self) -> int:
@@ -149,40 +173,46 @@ class FoldedChain:
         N = q.shape[0]
         nm = self._n_moving
         nc = len(self._cols)
-        # pose-independent part: elementary matrices of the identified elements, block products, prefixes
-        if len(self._we_param):
+        # pose-independent part: only blocks holding identified elements change between calls
+        S = list(self._S_fixed)
+        prefix: list = [None] * len(self._we_param)
+        if self._var_blocks:
             if self._we_translations:
                 Ew = _EYE4 + (self._we_const + params[self._we_param])[:, None, None] * self._we_K
             else:
                 Ew = _elementary_batch(self._we_axis, self._we_const + params[self._we_param])
-        prefix: list = [None] * len(self._we_param)
-        S = []
-        for items in self._blocks:
-            P = None
-            for kind, it in items:
-                if kind == "const":
-                    P = it if P is None else P @ it
-                else:
-                    prefix[it] = _EYE4 if P is None else P
-                    P = Ew[it] if P is None else P @ Ew[it]
-            S.append(_EYE4 if P is None else P)
+            for b in self._var_blocks:
+                P = None
+                for kind, it in self._blocks[b]:
+                    if kind == "const":
+                        P = it if P is None else P @ it
+                    else:
+                        prefix[it] = _EYE4 if P is None else P
+                        P = Ew[it] if P is None else P @ Ew[it]
+                S[b] = _EYE4 if P is None else P
         want_J = jacobian and nc > 0
         if want_J:
             # frame in front of each column's element: homogeneous axis direction and origin, interleaved rows
-            Fs = np.array([S[b] if it < 0 else prefix[it]
-                           for it, b in zip(self._want_item, self._want_block, strict=True)])
-            VT = np.empty((nc, 2, 4))
-            VT[:, 0] = Fs[np.arange(nc), :, self._col_sel]
-            VT[:, 0, 3] = 0.0
-            VT[:, 1] = Fs[:, :, 3]
+            VT = self._VT_fixed
+            if len(self._var_cols):
+                VT = VT.copy()
+                Fs = np.array([S[b] if it < 0 else prefix[it] for it, b in self._var_col_src])
+                vc = self._var_cols
+                VT[vc, 0] = Fs[np.arange(len(vc)), :, self._col_sel[vc]]
+                VT[vc, 0, 3] = 0.0
+                VT[vc, 1] = Fs[:, :, 3]
             VT = VT.reshape(2 * nc, 4)
             WO = np.empty((3, 2 * nc, N))
         # pose-dependent part, (3, 4, N) layout (poses innermost). Joint b: S_b E(v) = sum_t c_t(v) S_b K^t
         # (c = 1, f1, f2), so G_{b+1} = [S_b; S_b K; S_b K^2]^T (G_b (x) c): one element-wise product and one
         # BLAS product per joint
         if nm:
-            Sm = np.array(S[:nm])
-            XT = np.concatenate([Sm, Sm @ self._mv_K, Sm @ self._mv_K2], axis=1).transpose(0, 2, 1)  # (nm, 4, 12)
+            XT = self._XT_fixed
+            if self._var_moving:
+                XT = XT.copy()
+                vb = self._var_moving
+                Sm = np.array([S[b] for b in vb])
+                XT[vb] = np.concatenate([Sm, Sm @ self._mv_K[vb], Sm @ self._mv_K2[vb]], axis=1).transpose(0, 2, 1)
             base = self._mv_const + np.where(self._mv_has_p, params[self._mv_pidx], 0.0)
             vm = base[:, None] + q[:, self._mv_joint].T  # (nm, N)
             coef = np.empty((nm, 3, N))
