@@ -126,6 +126,7 @@ class CanopenRobot:
         self._last_hb: dict[int, float] = {}
         self._tx_lock = threading.RLock()
         self._stop = threading.Event()
+        self._interrupt = threading.Event()  # set by stop() from any thread: ends a waited move
         self._threads: list[threading.Thread] = []
         self._compliant = False
         self._identity: Identity | None = None
@@ -480,9 +481,11 @@ class CanopenRobot:
             m[0x6071].raw = int(torque)
             m.transmit()
 
-    def _wait(self, what: str, cond, timeout: float) -> dict:
+    def _wait(self, what: str, cond, timeout: float, interruptible: bool = False) -> dict:
         end = time.monotonic() + timeout
         while True:
+            if interruptible and self._interrupt.is_set():
+                raise SafetyStop(f"canopen {self.where}: move interrupted by stop(); the arm holds where it stopped")
             snap = self._round()
             if cond(snap):
                 return snap
@@ -537,6 +540,7 @@ class CanopenRobot:
         limit = vmax * 0.25 if speed is None else np.minimum(speed, vmax)  # default 25 % of each joint's max
         if self._compliant:
             raise SafetyStop("canopen: robot is compliant (set_compliant(False) first); nothing sent")
+        self._interrupt.clear()
         snap = self._round()
         self._require_enabled(snap)
         q0 = self._to_q([snap[n][1] for n in self.nodes])
@@ -556,7 +560,8 @@ class CanopenRobot:
             self._send_rpdo1(node, CW_ENABLE)
         if wait:
             self._wait("target reached", lambda s: all(v[0] & SW_TARGET_REACHED and not v[0] & SW_SETPOINT_ACK
-                                                       for v in s.values()), 2.0 * duration + 2.0)
+                                                       for v in s.values()), 2.0 * duration + 2.0,
+                       interruptible=True)
             self._raise_fault()
 
     def jog(self, mode: str, axis: int, step: float, speed: float | None = None) -> None:
@@ -578,7 +583,9 @@ class CanopenRobot:
         self.move_joints(target, speed=lead, wait=True)
 
     def stop(self) -> None:
-        """Halt every drive (controlword bit 8): decelerate and hold, drives stay enabled."""
+        """Halt every drive (controlword bit 8): decelerate and hold, drives stay enabled; a waited move in
+        another thread ends with SafetyStop."""
+        self._interrupt.set()
         for node in getattr(self, "drives", {}).values():
             with contextlib.suppress(Exception):
                 self._send_rpdo1(node, CW_ENABLE | CW_HALT)

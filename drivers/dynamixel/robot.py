@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import threading
 import time
 
 import numpy as np
@@ -16,7 +17,7 @@ from station.drivers.dynamixel import table as T
 from station.drivers.dynamixel.bus import DxlBus, unpack
 
 from station.kinematics import Model, load_model
-from station.robot.errors import BusError, ConfigError, DeviceFault, LimitError, StationError
+from station.robot.errors import BusError, ConfigError, DeviceFault, LimitError, SafetyStop, StationError
 from station.robot.motion import MANUAL_TOOL_SPEED_CAP, check_joint_limits, jog_target, joint_speed_for_tool_cap
 from station.robot.protocol import Identity, JointSnapshot, JointState, RobotStatus
 from station.robot.registry import RobotURL, parse_ids
@@ -44,6 +45,7 @@ class DynamixelRobot:
         self.url = url
         self.bus = DxlBus(port, baud, retries, latency_ms)
         self._compliant = False
+        self._interrupt = threading.Event()  # set by stop() from any thread: ends a waited move
         self._closed = False
         try:
             self.devices = self._probe()
@@ -193,6 +195,7 @@ class DynamixelRobot:
         target = check_joint_limits(self.model, np.asarray(q, dtype=float), "move")
         if self._compliant:
             raise LimitError("move: the arm is compliant (set_compliant(False) first); nothing was sent")
+        self._interrupt.clear()
         start = self.joint_positions()
         vel, acc = self._profiles(start.q, target, speed)
         goals = [int(round(float(self._enc(j).to_counts(target[j])))) for j in range(len(self.ids))]
@@ -237,6 +240,8 @@ class DynamixelRobot:
         """Poll Moving (one sync read per poll) until every servo is in position."""
         deadline = time.monotonic() + timeout
         while True:
+            if self._interrupt.is_set():
+                raise SafetyStop("move: interrupted by stop(); the arm holds where it stopped")
             moving, errors = self._guard(self._read_all, T.MOVING, 1, False)
             self._check_alerts(errors)
             if not any(moving):
@@ -263,7 +268,8 @@ class DynamixelRobot:
         self.move_joints(target, v, wait=True)
 
     def stop(self) -> None:
-        """Every servo holds where it is now (goal := present)."""
+        """Every servo holds where it is now (goal := present); a waited move in another thread ends."""
+        self._interrupt.set()
         ticks, _ = self._read_all(T.PRESENT_POSITION, 4)
         self.bus.sync_write(T.GOAL_POSITION, 4, dict(zip(self.ids, ticks, strict=True)))
         goals, _ = self._read_all(T.GOAL_POSITION, 4)  # sync write has no status: confirm it landed

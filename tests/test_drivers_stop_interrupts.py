@@ -1,0 +1,68 @@
+"""A stop() from another thread ends a waited move at once with SafetyStop, on every bus."""
+
+import threading
+import time
+
+from station.mocks.world import World
+
+from station.robot import SafetyStop, open_robot
+
+
+def _interrupt_long_move(robot, world):
+    robot.enable()
+    q0 = robot.joint_positions().q
+    target = q0.copy()
+    target[0] += 0.6  # ~several seconds at a slow speed
+    err: list[BaseException] = []
+
+    def mover():
+        try:
+            robot.move_joints(target, speed=0.1, wait=True)
+        except BaseException as e:  # noqa: BLE001 - handed to the test thread
+            err.append(e)
+
+    t = threading.Thread(target=mover)
+    t.start()
+    time.sleep(0.8)
+    t0 = time.monotonic()
+    robot.stop()
+    t.join(5.0)
+    assert not t.is_alive(), "waited move did not end after stop()"
+    assert time.monotonic() - t0 < 2.0
+    assert err and isinstance(err[0], SafetyStop), err
+    time.sleep(0.3)
+    q_stop = world.encoder_q()[0]
+    assert q0[0] + 0.01 < q_stop < target[0] - 0.1  # stopped part-way, not at the target
+    assert not world.is_moving()
+
+
+def test_canopen_stop_interrupts_waited_move():
+    from station.mocks.canopen.emulator import CanopenEmulator
+
+    world = World.default(model="arm6", seed=3, time_mode="realtime")
+    emu = CanopenEmulator(world, interface="virtual", channel="stopint", nodes=list(range(1, 7)))
+    emu.start()
+    try:
+        robot = open_robot("canopen+virtual://stopint?nodes=1-6&model=arm6")
+        try:
+            _interrupt_long_move(robot, world)
+        finally:
+            robot.close()
+    finally:
+        emu.stop()
+
+
+def test_dynamixel_stop_interrupts_waited_move():
+    from station.mocks.dynamixel import DynamixelEmulator
+
+    world = World.default(model="omx", seed=3, time_mode="realtime")
+    emu = DynamixelEmulator(world, ids=[11, 12, 13, 14])
+    path = emu.start()
+    try:
+        robot = open_robot(f"dynamixel://{path}?ids=11-14&model=omx&latency=50")
+        try:
+            _interrupt_long_move(robot, world)
+        finally:
+            robot.close()
+    finally:
+        emu.stop()
