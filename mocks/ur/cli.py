@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import ipaddress
 import logging
+import os
 import signal
 import sys
 import threading
@@ -43,7 +44,9 @@ def ur(host: str = typer.Option("127.0.0.1", "--host", help="Address to listen o
        no_remote: bool = typer.Option(False, "--no-remote", help="Answer 'is in remote control' with false."),
        dump_script: Path | None = typer.Option(None, "--dump-script", help="Write the last URScript program "
                                                "received on port 30003 to this file (for inspection)."),
-       verbose: bool = typer.Option(False, "--verbose", "-v", help="Log controller events to stderr.")) -> None:
+       verbose: bool = typer.Option(False, "--verbose", "-v", help="Log controller events to stderr."),
+       exit_with_parent: bool = typer.Option(False, "--exit-with-parent", help="Stop when the process that "
+                                             "started this one ends (tests: no orphan after a crash).")) -> None:
     """Emulate a Universal Robots e-Series controller (RTDE, dashboard, script port) for ur_rtde."""
     from station.mocks.ur.controller import URController
     from station.mocks.ur.server import URServer
@@ -71,9 +74,11 @@ def ur(host: str = typer.Option("127.0.0.1", "--host", help="Address to listen o
     typer.echo(f"ur emulator ready on {host} (rtde 30004, dashboard 29999, script 30003) model {w.nominal.name} "
                f"serial {ctl.serial} contact bit {ctl.contact_bit}; robot URL ur://{host}?model={w.nominal.name}")
     sys.stdout.flush()
+    parent = os.getppid()
     try:
         while not done.wait(0.5):
-            pass
+            if exit_with_parent and os.getppid() != parent:
+                break
     finally:
         server.close()
 

@@ -61,7 +61,7 @@ class EmulatorProcess:
             self.args += ["--world", str(world)]
         else:
             self.args += ["--model", model]
-        self.args += list(extra)
+        self.args += ["--exit-with-parent", *extra]
         self.proc: subprocess.Popen | None = None
         self._log = tempfile.TemporaryFile()  # noqa: SIM115 - lives as long as this object; closed in stop()
         self.ready_line = ""
