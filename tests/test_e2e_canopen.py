@@ -2,7 +2,6 @@
 recovered within their uncertainty, write-back verified by a held-out check, a drive fault mid-procedure stops
 the robot and keeps the journal."""
 
-import math
 
 import pytest
 

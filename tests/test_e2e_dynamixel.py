@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from station.cli.run_cmd import BUS_OPTIONS, Emulated, demo_world
-from station.engine import read_journal, resume, start
+from station.engine import read_journal, session_from_journal, start
 from station.records import open_records
 
 TICK = 2 * math.pi / 4096  # XM430 position resolution (rad)
@@ -95,18 +95,26 @@ def test_kill_9_then_resume_keeps_every_sample(home):
         _, before = read_journal(journal)
         kept = [e for e in before if e["type"] == "sample"]
         assert len(kept) >= 6 and not any(e["type"] == "end" for e in before)
-        out = resume(journal.parent.name, db=db)
+        # resume in its own process too: the emulator thread keeps this one's interpreter to itself
+        again = _station(["resume", journal.parent.name, "-q"], env)
+        try:
+            stdout, stderr = again.communicate(timeout=120)
+        finally:
+            if again.poll() is None:
+                again.kill()
+                again.communicate()
         hidden = emu.world.hidden()
-    assert out.status == "completed" and out.passed, (out.error, out.record.get("verdict"))
+    assert again.returncode == 0 and stdout.strip().splitlines()[-1] == "PASS", stderr
+    out = session_from_journal(journal)
     _, events = read_journal(journal)
     samples = [e for e in events if e["type"] == "sample"]
     poses = [e["pose"] for e in samples]
     assert len(poses) == len(set(poses)) == 24  # nothing repeated, nothing missing
     assert samples[:len(kept)] == kept  # what was recorded before the kill is untouched
     assert any(e["type"] == "resume" for e in events)
-    assert _check_offsets(out.record, hidden) == 4
-    with open_records(db) as rec:
-        stored = rec.session(out.session)
+    assert _check_offsets(out, hidden) == 4
+    with open_records(db) as rec:  # the db URL came from the journal header
+        stored = rec.session(out["session"])
     assert len(stored["samples"]) == 24
 
 
@@ -134,3 +142,33 @@ def test_failing_verdict_exits_1_and_is_stored(home):
         stored = rec.session(s["session"])
     assert stored["verdict"]["passed"] is False
     assert np.isfinite(stored["result"]["residuals"]["rms_after_m"])
+
+
+def test_sigterm_stops_the_robot_and_journals_the_interruption(home):
+    world_path, cell_path, serial = _files(home, seed=34, time_mode="realtime", time_scale=4.0)
+    env = {**os.environ, "STATION_HOME": str(home / "home")}
+    with Emulated("dynamixel", world_path, serial) as emu:
+        proc = _station(["run", "zero_offsets", "--robot", emu.url, "--serial", serial, "--cell", str(cell_path),
+                         "--reference", "cell", "--cone", "70", "--db", f"sqlite:///{home / 'r.db'}", "-q"], env)
+        try:
+            end = time.monotonic() + 60
+            n = 0
+            while time.monotonic() < end and n < 3 and proc.poll() is None:
+                journal, n = _journal_samples(home)
+                time.sleep(0.01)
+            assert proc.poll() is None and n >= 3
+            while not emu.world.is_moving() and time.monotonic() < end:  # interrupt it mid-motion
+                time.sleep(0.002)
+            proc.send_signal(signal.SIGTERM)
+            stdout, stderr = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+        assert proc.returncode == 130, stderr
+        assert "station resume" in stderr
+        time.sleep(0.5)  # a controlled stop decelerates
+        assert not emu.world.is_moving() and not emu.world.compliant
+    _, events = read_journal(journal)
+    assert events[-1]["type"] == "end" and events[-1]["status"] == "interrupted"
+    assert any(e["type"] == "fault" and e["error"] == "Terminated" for e in events)

@@ -119,7 +119,18 @@ class Session:
             if st.estop or st.protective_stop:
                 raise SafetyStop(f"robot is in {'emergency' if st.estop else 'protective'} stop; clear it first")
             if st.faults:
-                raise DeviceFault(f"robot reports faults: {', '.join(st.faults)}")
+                # latched faults a re-enable clears (e.g. a bus watchdog that tripped when the previous run died
+                # mid-move) are journaled and cleared once; anything that persists stops the session
+                self.event({"type": "warning", "step": "check_state", "message": "clearing faults: "
+                            + "; ".join(st.faults)})
+                self.robot.enable()
+                st = self.robot.status()
+                if st.faults:  # some drives re-arm on the next command: hold where it stands (no motion)
+                    with contextlib.suppress(StationError):
+                        self.robot.move_joints(self.robot.joint_positions().q)
+                    st = self.robot.status()
+                if st.faults:
+                    raise DeviceFault(f"robot reports faults: {', '.join(st.faults)}")
             if not st.enabled:
                 self.robot.enable()
             if st.compliant:

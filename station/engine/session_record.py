@@ -35,7 +35,7 @@ def session_from_events(header: dict, events: list[dict]) -> dict:
             verdict = {"passed": bool(e.get("passed")), "measurements": e.get("measurements", [])}
         elif kind == "writeback":
             writeback = writeback or {"before": None, "after": None, "applied": False, "verified": False}
-            for key in ("before", "after", "applied", "verified", "readback", "check", "note"):
+            for key in ("before", "after", "applied", "verified", "readback", "check", "note", "files"):
                 if key in e:
                     writeback[key] = e[key]
         elif kind == "fault":

@@ -54,9 +54,16 @@ class SocketSeating:
         target = s.aimed_q(pose)
         robot.move_joints(target, speed=s.touch_speed(pose.approach_arr, target))
         robot.set_compliant(True)
-        # a robot without a touch indicator (touch() is None) is trusted to have seated once it rests
-        if _wait(lambda: robot.touch() is not False, self.settle_timeout) and _wait(
-                lambda: not robot.status().moving, self.settle_timeout):
+        # the touch indicator lights once the ball sits in the cone; a robot without one (touch() is None) is
+        # trusted to have seated once it rests
+        state = {"touch": None}
+
+        def lit() -> bool:
+            state["touch"] = robot.touch()
+            return state["touch"] is not False
+
+        if _wait(lit, self.settle_timeout) and (state["touch"] or _wait(
+                lambda: not robot.status().moving, self.settle_timeout)):
             return
         robot.set_compliant(False)
         raise TouchFailed(f"pose {pose.index}: the tip did not seat in socket {pose.point} within "

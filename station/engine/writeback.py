@@ -31,6 +31,13 @@ def write_back(s, check_pose=None) -> dict:
         raise StationError("write-back: nothing solved yet")
     offsets = {n: p.value - p.nominal for n, p in res.parameters.items()
                if n.startswith("offset.") and p.identifiable}
+    export = getattr(s.robot, "export_calibration", None)
+    if callable(export):
+        # a controller that keeps its calibration itself (UR): nothing is written to the robot; the driver
+        # exports calibration.conf / URDF for the integrator to install
+        files = [str(p) for p in export(res, s.folder / "controller-calibration") or []]
+        return s.event({"type": "writeback", "phase": "exported", "applied": False, "verified": False,
+                        "files": files, "note": "controller keeps its calibration; exported " + ", ".join(files)})
     try:
         before = s.robot.read_calibration()
     except NotImplementedError as e:
