@@ -66,3 +66,43 @@ def test_dynamixel_stop_interrupts_waited_move():
             robot.close()
     finally:
         emu.stop()
+
+
+def test_ur_stop_interrupts_waited_move(tmp_path):
+    import yaml
+    from station.mocks.ur.process import EmulatorProcess
+    from station.mocks.world import default_doc
+
+    doc = default_doc("ur5e", seed=3)
+    doc["motion"].update(time_mode="sim", start=[0.1, -1.45, 1.6, -1.72, -1.5708, 0.2])
+    path = tmp_path / "world.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    emu = EmulatorProcess(world=path).start()
+    try:
+        robot = open_robot(f"ur://{emu.host}?model=ur5e")
+        try:
+            q0 = robot.joint_positions().q
+            target = q0.copy()
+            target[0] += 0.6
+            err: list[BaseException] = []
+
+            def mover():
+                try:
+                    robot.move_joints(target, speed=0.1, wait=True)
+                except BaseException as e:  # noqa: BLE001 - handed to the test thread
+                    err.append(e)
+
+            t = threading.Thread(target=mover)
+            t.start()
+            time.sleep(1.0)
+            robot.stop()
+            t.join(5.0)
+            assert not t.is_alive(), "waited move did not end after stop()"
+            assert err and isinstance(err[0], SafetyStop), err
+            time.sleep(0.5)
+            q_stop = robot.joint_positions().q[0]
+            assert q0[0] + 0.01 < q_stop < target[0] - 0.1
+        finally:
+            robot.close()
+    finally:
+        emu.stop()

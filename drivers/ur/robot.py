@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import threading
 import time
 from pathlib import Path
 
@@ -81,6 +82,7 @@ class URRobot:
         self._dash = DashboardClient(host)
         self._compliant_mode: str | None = None  # "freedrive" | "teach"
         self._speeding = False
+        self._interrupt = threading.Event()  # set by stop() from any thread: ends a waited move
         self._last_ts: float | None = None
         if connect:
             self.connect()
@@ -338,6 +340,7 @@ class URRobot:
         v = self._check_speed(speed, self.speed, float(self.model.max_velocity.min()), "move_joints", "rad/s")
         if not wait:
             self._disarm_watchdog()  # nobody kicks while an unwatched move runs
+        self._interrupt.clear()
         self._ready_for_motion()
         self._move(target, v, wait)
 
@@ -380,6 +383,8 @@ class URRobot:
     def _wait_move(self, target: np.ndarray | None, budget: float) -> None:
         deadline = time.monotonic() + budget
         while True:
+            if self._interrupt.is_set():
+                raise SafetyStop(f"ur://{self.host}: move interrupted by stop(); the arm holds where it stopped")
             self._check_link_moving()
             self._check_safety()
             if not self._c.isProgramRunning():
@@ -473,6 +478,7 @@ class URRobot:
                     self._halt_quietly()
 
     def stop(self) -> None:
+        self._interrupt.set()
         self._check_link()
         try:
             if self._r.getSafetyStatusBits() & (SS_PROTECTIVE | SS_ESTOP_MASK | SS_SAFEGUARD):
