@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.linalg.lapack import dpotrf, dtrtri
 
 from station.solver.identifiability import RTOL, Decision, RankAnalysis, analyse, decide
 from station.solver.observations import Observations, SolverInputError
@@ -161,14 +162,11 @@ def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ, tol: float = STEP_
         # stays far from 1/eps, and any error in a step is corrected by the next iteration
         H = Js.T @ Js
         g = Js.T @ r
-        try:
-            Hi = np.linalg.inv(H + lam * eye if lam else H)
-            d = np.diagonal(Hi)
-            if not np.all(d > 0.0):  # numerically not positive definite
-                raise np.linalg.LinAlgError
-            du = -(Hi @ g)
-            rel = float(np.max(np.abs(du) / np.sqrt(cost / dof * d)))
-        except np.linalg.LinAlgError:
+        Ri = _inverse_cholesky(H + lam * eye if lam else H)
+        if Ri is not None:
+            du = -(Ri @ (Ri.T @ g))
+            rel = float(np.max(np.abs(du) / np.sqrt(cost / dof * np.einsum("ij,ij->i", Ri, Ri))))
+        else:
             du = -np.linalg.lstsq(H + lam * eye, g, rcond=None)[0]
             rel = math.inf
         x_new = x.copy()
@@ -198,6 +196,16 @@ def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ, tol: float = STEP_
     return x, r, J, max_iter, False, math.inf, True, prev
 
 
+def _inverse_cholesky(H: np.ndarray) -> np.ndarray | None:
+    """``R^-1`` (upper triangular) with ``H = R^T R``, so ``H^-1 = R^-1 R^-T``; None when ``H`` is not
+    numerically positive definite. LAPACK directly: these are small matrices, called every iteration."""
+    R, info = dpotrf(H, lower=0, clean=1)
+    if info != 0:
+        return None
+    Ri, info = dtrtri(R, lower=0)
+    return Ri if info == 0 and np.all(np.isfinite(Ri)) else None
+
+
 def _ref_setting(reference):
     if isinstance(reference, str):
         return reference
@@ -219,7 +227,8 @@ def _result(model, prob: Problem, x, r, J, r_before, ana: RankAnalysis, iteratio
     std = np.full(prob.n_unknowns, np.nan)
     if act:
         Js = J[:, act] * prob.scale[act]
-        cov_u = np.linalg.inv(Js.T @ Js) * sigma**2
+        Ri = _inverse_cholesky(Js.T @ Js)
+        cov_u = (Ri @ Ri.T if Ri is not None else np.linalg.pinv(Js.T @ Js)) * sigma**2
         cov = cov_u * np.outer(prob.scale[act], prob.scale[act])
         std[act] = np.sqrt(np.diag(cov))
     params: dict[str, ParameterEstimate] = {}

@@ -202,10 +202,10 @@ class FoldedChain:
                 VT[vc, 0, 3] = 0.0
                 VT[vc, 1] = Fs[:, :, 3]
             VT = VT.reshape(2 * nc, 4)
-            WO = np.empty((3, 2 * nc, N))
-        # pose-dependent part, (3, 4, N) layout (poses innermost). Joint b: S_b E(v) = sum_t c_t(v) S_b K^t
-        # (c = 1, f1, f2), so G_{b+1} = [S_b; S_b K; S_b K^2]^T (G_b (x) c): one element-wise product and one
-        # BLAS product per joint
+            WO = np.empty((2 * nc, 3 * N))
+        # pose-dependent part: the frame at each block start as Gt[c, i, n] = G_n[i, c] (rows 0-2), a (4, 3N)
+        # matrix. Joint b: S_b E(v) = sum_t c_t(v) S_b K^t (c = 1, f1, f2), so Gt_{b+1} =
+        # [S_b; S_b K; S_b K^2]^T (c (x) Gt_b): one element-wise product and one BLAS product per joint
         if nm:
             XT = self._XT_fixed
             if self._var_moving:
@@ -225,20 +225,20 @@ class FoldedChain:
                 rot = self._mv_rot[:, None]
                 coef[:, 1] = np.where(rot, np.sin(vm), vm)
                 coef[:, 2] = np.where(rot, 1.0 - np.cos(vm), 0.0)
-        G = _G0(N)
+        Gt = _G0t(N)
         for b in range(nm + 1):
             if want_J:
                 lo, hi = self._block_range[b]
                 if hi > lo:
-                    WO[:, 2 * lo: 2 * hi] = VT[2 * lo: 2 * hi] @ G
+                    np.matmul(VT[2 * lo: 2 * hi], Gt.reshape(4, 3 * N), out=WO[2 * lo: 2 * hi])
             if b == nm:
                 break
             if b == 0:  # G_0 = I: G_1 = sum_t c_t (S_0 K^t) rows 0-2
-                G = (XT[0].T.reshape(3, 4, 4)[:, :3].reshape(3, 12).T @ coef[0]).reshape(3, 4, N)
+                Gt = (XT[0].reshape(4, 3, 4)[:, :, :3].transpose(0, 2, 1).reshape(12, 3) @ coef[0]).reshape(4, 3, N)
             else:
-                G = XT[b] @ (G[:, None] * coef[b][None, :, None, :]).reshape(3, 12, N)
+                Gt = (XT[b] @ (coef[b][:, None, None, :] * Gt[None]).reshape(12, 3 * N)).reshape(4, 3, N)
         last = S[nm]
-        p = last[:3, 3] @ G[:, :3] + G[:, 3]  # (3, N)
+        p = (last[:3, 3] @ Gt[:3].reshape(3, 3 * N)).reshape(3, N) + Gt[3]  # (3, N)
         P = np.ascontiguousarray(p.T)
         if not jacobian:
             return P, None
@@ -246,31 +246,32 @@ class FoldedChain:
         if not want_J:
             J[...] = 0.0
             return P, J
-        WO = WO.reshape(3, nc, 2, N)
-        W, O = WO[:, :, 0], WO[:, :, 1]
+        WO = WO.reshape(nc, 2, 3, N)
+        W, O = WO[:, 0], WO[:, 1]  # (nc, 3, N) world axis and origin of each column's element
         rc = self._rot_cols
         if len(rc):
-            w, d = W[:, rc], p[:, None, :] - O[:, rc]
-            W[0, rc] = w[1] * d[2] - w[2] * d[1]
-            W[1, rc] = w[2] * d[0] - w[0] * d[2]
-            W[2, rc] = w[0] * d[1] - w[1] * d[0]
+            w, d = W[rc], p[None] - O[rc]
+            W[rc, 0] = w[:, 1] * d[:, 2] - w[:, 2] * d[:, 1]
+            W[rc, 1] = w[:, 2] * d[:, 0] - w[:, 0] * d[:, 2]
+            W[rc, 2] = w[:, 0] * d[:, 1] - w[:, 1] * d[:, 0]
+        W = W.transpose(2, 1, 0)
         if self._cols_identity:
-            J[...] = W.transpose(2, 0, 1)
+            J[...] = W
         else:
-            J[:, :, self._cols] = W.transpose(2, 0, 1)
+            J[:, :, self._cols] = W
         return P, J
 
 
 _G0_CACHE: dict[int, np.ndarray] = {}
 
 
-def _G0(N: int) -> np.ndarray:
-    """Rows 0-2 of the identity frame for N poses, (3, 4, N), read-only and cached."""
+def _G0t(N: int) -> np.ndarray:
+    """The identity frame for N poses as Gt[c, i, n] = I[i, c] (rows 0-2), (4, 3, N), read-only, cached."""
     G = _G0_CACHE.get(N)
     if G is None:
         if len(_G0_CACHE) > 64:
             _G0_CACHE.clear()
-        G = np.ascontiguousarray(np.broadcast_to(_EYE4[:3, :, None], (3, 4, N)))
+        G = np.ascontiguousarray(np.broadcast_to(_EYE4[:, :3, None], (4, 3, N)))
         G.flags.writeable = False
         _G0_CACHE[N] = G
     return G

@@ -81,7 +81,9 @@ class Problem:
         slot = {lb: i for i, lb in enumerate(self.unknown_points)}
         self.slot = np.array([slot.get(lb, -1) for lb in obs.point], dtype=int)
         # (row, column) of the -1 entries of the unknown points in the stacked Jacobian
-        rows = np.flatnonzero(self.slot >= 0)
+        self._has_slot = self.slot >= 0
+        self._all_unknown = bool(self._has_slot.all())
+        rows = np.flatnonzero(self._has_slot)
         self._point_rows = None
         if len(rows):
             self._point_rows = ((3 * rows[:, None] + np.arange(3)).ravel(),
@@ -171,10 +173,11 @@ class Problem:
     def _targets(self, x: np.ndarray) -> np.ndarray:
         if self.instrument or not self.unknown_points:
             return self.target_fixed
+        if self._all_unknown:
+            return x[self.n_model:].reshape(-1, 3)[self.slot]
         tgt = self.target_fixed.copy()
-        has = self.slot >= 0
-        pts = x[self.n_model:].reshape(-1, 3)
-        tgt[has] = pts[self.slot[has]]
+        has = self._has_slot
+        tgt[has] = x[self.n_model:].reshape(-1, 3)[self.slot[has]]
         return tgt
 
     def scale_direction(self, x: np.ndarray) -> np.ndarray:
