@@ -1,0 +1,86 @@
+"""The scripted API end to end (CANopen emulator, real canopen library): the docs/scripting.md flow, a
+technician's manual touch through the ManualTouch provider, and teardown when a script raises."""
+
+import numpy as np
+import pytest
+
+import station
+from station.cli.run_cmd import Emulated, write_demo_files
+from station.engine import ManualTouch, read_journal
+
+
+@pytest.fixture
+def cell(tmp_path, monkeypatch):
+    monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
+    world_path, cell_path, serial = write_demo_files("canopen", tmp_path, seed=61, time_mode="instant")
+    with Emulated("canopen", world_path, serial) as emu:
+        yield emu, cell_path, serial, f"sqlite:///{tmp_path / 'records.db'}"
+
+
+def test_scripted_session_like_the_docs(cell):
+    emu, cell_path, serial, db = cell
+    robot = station.connect(emu.url)
+    assert robot.identity().serial == serial
+    with station.session(robot, serial, cell=cell_path, options={"n_fit": 12, "n_holdout": 2}, db=db) as s:
+        plan = s.plan(s.points("socket"), identify="offsets")
+        for pose in s.todo(plan):
+            s.approach(pose)
+            s.seat(pose)
+            s.record(pose)
+            s.leave(pose)
+        result = s.solve(identify="offsets")
+        s.measure_result()
+        s.measure("socket_height", float(result.points()["A"][2]), "length")  # informational: no limit
+        verdict = s.judge()
+    assert verdict["passed"]  # no limits section for this script: nothing can fail but measured limits
+    assert s.outcome.status == "completed" and s.outcome.stored and s.outcome.report.exists()
+    hidden = emu.world.hidden()
+    for name, p in result.parameters.items():
+        if name.startswith("offset.") and p.identifiable:
+            assert abs(p.value - hidden[name]) <= 4 * p.std
+    header, events = read_journal(s.folder / "journal.jsonl")
+    assert header["procedure"] == "test_e2e_scripting" and len(header["procedure_sha256"]) == 64
+    assert sum(e["type"] == "sample" for e in events) == 14
+
+
+def test_manual_touch_by_a_technician(cell):
+    emu, cell_path, serial, db = cell
+    robot = station.connect(emu.url)
+    prompts = []
+    target = emu.world.points["A"].position  # the technician sees the socket
+
+    def technician(text):
+        prompts.append(text)
+        if "onto point" in text:  # jog down towards the socket, then push it in by hand (freedrive)
+            q = robot.joint_positions().q
+            r = robot.model.ik(target, q, position_only=True)
+            robot.move_joints(r.q[0])
+            robot.set_compliant(True)
+
+    with station.session(robot, serial, cell=cell_path, options={"n_fit": 8, "n_holdout": 0}, db=db,
+                         touch=ManualTouch(prompt=technician, timeout=2.0)) as s:
+        plan = s.plan(s.points("socket"), identify="offsets")
+        for pose in s.todo(plan):
+            s.seat(pose)
+            s.record(pose)
+            s.leave(pose)
+    assert len(s.samples()) == 8 and all(x["status"]["touch"] for x in s.samples())
+    assert sum("onto point A" in p for p in prompts) == 8 and sum("clear of point" in p for p in prompts) == 8
+    tips = emu.world.truth.position(np.array([x["q"] for x in s.samples()]))
+    assert np.abs(tips - target).max() < 1e-4  # every recorded touch is in the socket
+
+
+def test_script_error_stops_robot_and_keeps_the_journal(cell):
+    emu, cell_path, serial, db = cell
+    with pytest.raises(RuntimeError, match="operator aborted"), \
+            station.session(emu.url, serial, cell=cell_path, db=db) as s:
+        plan = s.plan(s.points("socket"), identify="offsets")
+        pose = next(s.todo(plan))
+        s.approach(pose)
+        s.seat(pose)
+        s.record(pose)
+        raise RuntimeError("operator aborted")
+    assert not emu.world.is_moving() and not emu.world.compliant
+    _, events = read_journal(s.folder / "journal.jsonl")
+    assert [e["type"] for e in events][-2:] == ["fault", "end"] and events[-1]["status"] == "error"
+    assert s.outcome.stored and len(s.outcome.record["samples"]) == 1
