@@ -377,14 +377,23 @@ def run_demo(bus: str, *, time_mode: str = "instant", seed: int = 5, quiet: bool
     typer.echo("")
     typer.echo("joint zero offsets: hidden truth (world file) vs. recovered (deg)")
     typer.echo(f"  {'parameter':12s} {'truth':>10s} {'recovered':>10s} {'± 1σ':>8s} {'error':>9s}  ")
+    from station.kinematics import load_model
+
+    model = load_model(BUS_MODELS[bus])
     for name, p in res["parameters"].items():
         if not name.startswith("offset."):
             continue
         truth = math.degrees(hidden.get(name, 0.0))
         if p["identifiable"]:
             v, sd = math.degrees(p["value"]), math.degrees(p["std"])
+            enc = model.joints[int(name[8:]) - 1].encoder
+            count = math.degrees(1 / (enc.counts_per_unit * enc.gear)) if enc else 0.0
+            # a joint that hardly moves between poses reads with the same rounding every time: half an encoder
+            # count is a floor under the error that no spread of poses shows in sigma
+            ok = abs(v - truth) <= 3 * sd + count / 2
             typer.echo(f"  {name:12s} {truth:10.4f} {v:10.4f} {sd:8.4f} {v - truth:+9.4f}  "
-                       f"({abs(v - truth) / sd if sd else 0:.1f} σ)")
+                       f"({abs(v - truth) / sd if sd else 0:.1f} σ{'' if count < 1e-3 else f', count {count:.3f}'})"
+                       f" {'ok' if ok else 'OFF'}")
         else:
             typer.echo(f"  {name:12s} {truth:10.4f} {'—':>10s}  not identifiable: {p.get('reason') or ''}"[:118])
     typer.echo("")

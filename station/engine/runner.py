@@ -73,6 +73,19 @@ def _versions() -> dict:
     return out
 
 
+def _db_for_journal(db: str | None) -> str | None:
+    """The records URL for the journal header, so resume stores where the run did, but never a password
+    (a URL with one is left out; resume then needs --db or $STATION_DB)."""
+    if not db:
+        return None
+    from urllib.parse import urlsplit
+
+    try:
+        return None if urlsplit(db).password else db
+    except ValueError:
+        return None
+
+
 def _cell_from_header(d: dict | None) -> Cell | None:
     if not d:
         return None
@@ -137,7 +150,7 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
         "limits": {"path": lim.path, "version": lim.version, "sha256": lim.sha256},
         "cell": None if the_cell is None else {"path": the_cell.path, "model": the_cell.model, "tool": the_cell.tool,
                                                "points": [p.to_dict() for p in the_cell.points.values()]},
-        "options": opts, "db": db, "versions": _versions(),
+        "options": opts, "db": _db_for_journal(db), "versions": _versions(),
     }
     journal = Journal.create(folder / "journal.jsonl", header)
     return Session(journal, robot, limits=table, limits_version=lim.version, cell=the_cell, options=opts,
