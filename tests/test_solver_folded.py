@@ -67,3 +67,25 @@ def test_folded_chain_follows_the_identified_values_and_writes_into_out():
     p2[idx[k]] += h
     fd = (fc.evaluate(q[0], p2, jacobian=False)[0] - fc.evaluate(q[0], p, jacobian=False)[0]) / h
     np.testing.assert_allclose(fd[0], J[0, :, k], atol=1e-6)
+
+
+def test_compiled_cache_is_per_model_and_selection():
+    from station.solver.problem import compiled
+
+    m = load_model("ur5e")
+    idx = np.array([m.index(s) for s in m.select("offsets,tcp")])
+    a = compiled(m, idx)
+    assert compiled(m, idx.copy()) is a  # same model, same selection: compiled once
+    assert compiled(m, idx[:-1]) is not a
+    m2 = m.with_params({"dh.j2.a": m.param("dh.j2.a") + 0.01})
+    f2 = compiled(m2, idx)[0]
+    assert f2 is not a[0]
+    q = np.random.default_rng(0).uniform(-1, 1, (4, 6))
+    np.testing.assert_allclose(f2.evaluate(q, m2.params)[0], m2.position(q), atol=1e-12)
+    # a parameter array changed in place (models are immutable by contract, but never serve stale numbers)
+    m3 = m.with_params({})
+    f3 = compiled(m3, idx)[0]
+    m3.params[m3.index("dh.j3.a")] += 0.02
+    f3b = compiled(m3, idx)[0]
+    assert f3b is not f3
+    np.testing.assert_allclose(f3b.evaluate(q, m3.params)[0], m3.position(q), atol=1e-12)

@@ -213,7 +213,8 @@ def _ref_setting(reference):
 
 
 def _stats(r: np.ndarray) -> tuple[float, float]:
-    d = np.linalg.norm(r.reshape(-1, 3), axis=1)
+    r = r.reshape(-1, 3)
+    d = np.sqrt(np.einsum("ij,ij->i", r, r))
     return float(np.sqrt(np.mean(d**2))), float(d.max())
 
 

@@ -197,7 +197,8 @@ def _reason(j, a, accepted, names, kinds, norms, tau_struct, weak_norm, sigma, m
         return "changing it does not move the tool tip in any of these poses"
     contrib = np.abs(a) * norms[accepted]
     order = np.argsort(-contrib)
-    partners = [names[accepted[k]] for k in order if contrib[k] > 0.2 * contrib.max()][:4]
+    cut = 0.2 * contrib.max() if len(contrib) else 0.0
+    partners = [names[accepted[k]] for k in order[:4] if contrib[k] > cut]
     if name == "offset.j1" and first_revolute:
         if any(p.startswith("point.") for p in partners):
             return "a rotation about joint 1 moves the unknown point with the robot"

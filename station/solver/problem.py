@@ -8,6 +8,8 @@ the model's ``base.*`` frame is the instrument-to-robot-base transform, a nuisan
 from __future__ import annotations
 
 import math
+import threading
+from collections import OrderedDict
 
 import numpy as np
 
@@ -35,6 +37,31 @@ def characteristic_length(model, ang: set[str] | None = None) -> float:
     return max(float(total), 0.1)
 
 
+_COMPILED: OrderedDict = OrderedDict()
+_COMPILED_LOCK = threading.Lock()
+COMPILED_CACHE_SIZE = 16
+
+
+def compiled(model, model_idx: np.ndarray) -> tuple[FoldedChain, set[str], float]:
+    """(folded chain, angle parameter names, characteristic length) of ``model`` for the identified
+    parameters ``model_idx``: pure functions of the (immutable) model and the selection, kept for the
+    last few selections so that repeated solves (re-solves while touching, Monte-Carlo) compile once.
+    An entry holds the model itself and a copy of its parameter values: a hit is always the same model."""
+    key = (id(model), model_idx.tobytes())
+    with _COMPILED_LOCK:  # solves may run in worker threads (engine, TUI)
+        hit = _COMPILED.get(key)
+        if hit is not None and hit[0] is model and np.array_equal(hit[1], model.params):
+            _COMPILED.move_to_end(key)
+            return hit[2]
+    ang = angle_params(model)
+    out = (FoldedChain(model.chain, model.params, model_idx), ang, characteristic_length(model, ang))
+    with _COMPILED_LOCK:
+        _COMPILED[key] = (model, model.params.copy(), out)
+        while len(_COMPILED) > COMPILED_CACHE_SIZE:
+            _COMPILED.popitem(last=False)
+    return out
+
+
 class Problem:
     def __init__(self, model, obs: Observations, model_names: list[str], reference,
                  instrument_frame: str = "unknown") -> None:
@@ -50,10 +77,10 @@ class Problem:
             names += [b for b in BASE6 if b not in names]
         self.model_names = names
         self.model_idx = np.array([model.index(n) for n in names], dtype=int)
-        # the chain with everything not identified folded into constant blocks, once per problem
-        self.folded = FoldedChain(model.chain, model.params, self.model_idx)
+        # the chain with everything not identified folded into constant blocks (compiled once per model
+        # and parameter selection)
+        self.folded, ang, L = compiled(model, self.model_idx)
         self.kinds = ["instrument" if self.frame_unknown and n.startswith("base.") else "model" for n in names]
-        ang = angle_params(model)
         self.units = ["rad" if n in ang else "m" for n in names]
         # reference points
         labels = obs.labels
@@ -94,7 +121,6 @@ class Problem:
             self.target_fixed = np.zeros((len(obs), 3))
             for lb, xyz in self.known.items():
                 self.target_fixed[obs.point == lb] = xyz
-        L = characteristic_length(model, ang)
         self.length = L
         self.scale = np.array([L if u == "rad" else 1.0 for u in self.units])
         # lengths of the machine and the points; a prismatic offset is a zero reading, not a length
