@@ -230,7 +230,7 @@ def _part_b(reps: int, rng) -> None:
           f"{'cold':>6s} {'scipyB ms':>9s} {'speedup':>8s} {'iters':>5s} {'nfev':>5s} {'|diff|/std':>10s} "
           f"{'cost_sp/ours-1':>14s}")
     for n_params, n_poses, instrument in ((12, 50, False), (12, 50, True), (30, 500, True)):
-        t = timing(n_params, n_poses, rng, reps * (3 if n_poses < 100 else 1), instrument)
+        t = timing(n_params, n_poses, rng, reps * (9 if n_poses < 100 else 1), instrument)
         print(f"{t['case']:30s} {t['rank']:4d} {t['ours_ms']:8.2f} {t['cold_ms']:8.2f} {t['scipy_ms']:9.1f} "
               f"{t['speedup']:7.1f}x {t['speedup_cold']:5.1f}x {t['scipy_fused_ms']:9.1f} {t['speedup_fused']:7.1f}x "
               f"{t['iters']:5d} {t['nfev']:5d} {t['agree_std']:10.2e} {t['dcost']:14.1e}")

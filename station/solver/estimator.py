@@ -24,7 +24,7 @@ POSE_TOL = 1e-3  # rad or m: joint readings closer than this are the same pose
 def select_names(model, identify) -> list[str]:
     """Model parameter names of ``identify`` (groups, names, globs); the ``points`` group is implicit."""
     spec = identify.split(",") if isinstance(identify, str) else list(identify)
-    spec = [s.strip() for s in spec if s.strip() and s.strip() != "points"]
+    spec = [t for t in (s.strip() for s in spec) if t and t != "points"]
     if not spec:
         return []
     try:
@@ -109,6 +109,12 @@ def distinct_poses(q: np.ndarray, tol: float | None = None, limit: int | None = 
     """Number of joint configurations that differ by more than ``tol`` in some joint (greedy clustering;
     counting stops at ``limit``): repeating one pose adds no information about the geometry."""
     tol = POSE_TOL if tol is None else tol
+    k = min(len(q), limit or len(q))
+    if k <= 64:  # usually the first rows already differ pairwise: one vectorised check
+        head = q[:k]
+        d = np.max(np.abs(head[:, None] - head[None]), axis=2)
+        if np.all(d[np.triu_indices(k, 1)] > tol):
+            return k
     reps = np.empty((min(len(q), limit or len(q)), q.shape[1]))
     k = 0
     for row in q:
@@ -152,12 +158,13 @@ def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ, tol: float = STEP_
     if not act:
         return x, r, J, 0, True, 0.0, True, None
     D = prob.scale[act]
+    every = len(act) == J.shape[1]  # act is sorted: all columns, no selection copy
     cost = float(r @ r)
     dof = max(r.size - len(act), 1)
     eye = np.eye(len(act))
     lam = 0.0
     for it in range(1, max_iter + 1):
-        Js = J[:, act] * D
+        Js = (J if every else J[:, act]) * D
         # normal equations on the column-scaled, full-rank (after the rank analysis) Jacobian: cond(J)^2
         # stays far from 1/eps, and any error in a step is corrected by the next iteration
         H = Js.T @ Js
@@ -169,8 +176,9 @@ def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ, tol: float = STEP_
         else:
             du = -np.linalg.lstsq(H + lam * eye, g, rcond=None)[0]
             rel = math.inf
+        Ddu = D * du
         x_new = x.copy()
-        x_new[act] += D * du
+        x_new[act] += Ddu
         step = float(np.max(np.abs(du)))
         if lam == 0.0:
             rho = rel / prev if prev else 1.0
@@ -178,14 +186,15 @@ def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ, tol: float = STEP_
             if step < XTOL:
                 rest = 0.0
             if rest < tol:
-                return x_new, r + J[:, act] @ (D * du), J, it, True, rest, False, rel
+                return x_new, r + (J if every else J[:, act]) @ Ddu, J, it, True, rest, False, rel
         r_new, J_new = prob.residual_jacobian(x_new)
         cost_new = float(r_new @ r_new)
         if cost_new <= cost:
             small = cost - cost_new <= FTOL * cost
             prev = rel if lam == 0.0 else None
             x, r, J, cost = x_new, r_new, J_new, cost_new
-            lam = 0.0 if lam < 1e-9 * float(np.max(np.diag(H))) else lam / 10.0
+            if lam:
+                lam = 0.0 if lam < 1e-9 * float(np.max(np.diag(H))) else lam / 10.0
             if small:
                 return x, r, J, it, True, 0.0, True, prev
         else:

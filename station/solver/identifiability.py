@@ -104,16 +104,18 @@ def analyse(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float 
     d = decided or decide(Js, names, kinds, sigma=sigma, max_std=max_std, scale_dir=scale_dir, residual=residual)
     accepted, weak, norms, tau_struct = d.accepted, d.weak, d.norms, d.tau_struct
     rejected: dict[int, str] = {}
-    dep = [j for j in range(p) if j not in accepted]
+    acc = set(accepted)
+    dep = [j for j in range(p) if j not in acc]
+    A = Js[:, accepted]
+    AtA = A.T @ A
     if dep:
-        A = Js[:, accepted]
         # each dependent column as a combination of the accepted ones (its null-space vector)
         # (normal equations: A has full column rank by construction; the coefficients only rank partners)
-        coef = np.linalg.solve(A.T @ A, A.T @ Js[:, dep]) if accepted else np.zeros((0, len(dep)))
+        coef = np.linalg.solve(AtA, A.T @ Js[:, dep]) if accepted else np.zeros((0, len(dep)))
         for c, j in enumerate(dep):
             rejected[j] = _reason(j, coef[:, c], accepted, names, kinds, norms, tau_struct, weak.get(j), sigma,
                                   max_std, j == d.scale_hit, n_joints, first_revolute, last_revolute)
-    s = singular_values(Js[:, accepted]) if accepted else np.zeros(0)
+    s = np.sqrt(np.maximum(np.linalg.eigvalsh(AtA)[::-1], 0.0)) if accepted else np.zeros(0)  # singular_values(A)
     r = len(accepted)
     cond = float(s[0] / s[-1]) if r and s[-1] > 0 else None
     o1 = float(np.exp(np.mean(np.log(s))) / np.sqrt(m)) if r and s[-1] > 0 else None
