@@ -113,7 +113,8 @@ def distinct_poses(q: np.ndarray, tol: float | None = None, limit: int | None = 
     if k <= 64:  # usually the first rows already differ pairwise: one vectorised check
         head = q[:k]
         d = np.max(np.abs(head[:, None] - head[None]), axis=2)
-        if np.all(d[np.triu_indices(k, 1)] > tol):
+        d.flat[:: k + 1] = np.inf  # a pose is not a repeat of itself
+        if d.min() > tol:
             return k
     reps = np.empty((min(len(q), limit or len(q)), q.shape[1]))
     k = 0
