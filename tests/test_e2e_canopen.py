@@ -80,3 +80,37 @@ def test_fault_mid_procedure_stops_robot_and_keeps_journal(cell):
         assert [s["q"] for s in done.record["samples"][:len(samples)]] == [s["q"] for s in samples]
     else:  # a drive that latched its fault stays faulted until power-cycled: resume refuses, one line
         assert "\n" not in str(done.error)
+
+
+def test_guarded_approach_stops_at_first_contact(tmp_path, monkeypatch):
+    """A needle on the contact input (a 2 mm contact sphere): step down until the contact closes, bisect. Every
+    sample is taken with the contact just closed: the true tip on the sphere's surface, to the bisection step.
+    (Where on the sphere depends on the lateral aim error, so a contact sphere limits a TCP calibration to that
+    error: the shipped 0.1 mm limits fail it, honestly.)"""
+    import numpy as np
+    import yaml
+    from station.mocks.world import World
+
+    from station.cli.run_cmd import demo_world
+    from station.engine.touch import GuardedApproach
+
+    monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
+    doc = demo_world("canopen", 71)
+    doc["robot"]["tool"] = {"x": 0.01, "y": 0.0, "z": 0.05, "rx": 0.0, "ry": 0.0, "rz": 0.0}
+    doc["errors"] = {"explicit": {"tcp.x": 0.3e-3, "tcp.y": -0.2e-3, "tcp.z": 0.25e-3}}
+    radius = 0.002
+    doc["cell"] = {"contact_radius": radius, "points": [
+        {"label": "N", "kind": "needle", "position": [0.40, 0.0, 0.70], "approach": [0, 0, 1]}]}
+    world_path, cell_path = tmp_path / "w.yaml", tmp_path / "c.yaml"
+    world_path.write_text(yaml.safe_dump(doc))
+    cell_path.write_text(yaml.safe_dump(World.from_file(world_path).station_cell()))
+    with Emulated("canopen", world_path, "NEEDLE-1") as emu:
+        out = start("tcp_4point", emu.url, "NEEDLE-1", cell=cell_path, touch=GuardedApproach(fine=0.01e-3),
+                    options={"n_fit": 6, "n_holdout": 1})
+        world = emu.world
+    assert out.status == "completed", out.error
+    samples = out.record["samples"]
+    assert len(samples) == 7 and all(x["status"]["touch"] for x in samples)
+    tips = world.truth.position(np.array([x["q"] for x in samples]))
+    dist = np.linalg.norm(tips - world.points["N"].position, axis=1)
+    assert np.all(dist <= radius + 1e-9) and np.all(dist > radius - 0.03e-3)  # just inside: first contact

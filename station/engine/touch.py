@@ -76,47 +76,64 @@ class SocketSeating:
 
 class GuardedApproach:
     """Automatic, for a needle on the contact input: from the approach pose, step along the approach axis until
-    the contact closes, then back off and come again in fine steps (the contact point is then known to the
-    fine step size)."""
+    the contact closes, then bisect the last step until the contact point is known to ``fine``."""
 
-    def __init__(self, coarse: float = 0.5e-3, fine: float = 0.02e-3, travel: float = 0.05) -> None:
-        self.coarse, self.fine, self.travel = coarse, fine, travel
+    def __init__(self, coarse: float = 1.0e-3, fine: float = 0.01e-3, travel: float = 0.05,
+                 standoff: float = 5e-3) -> None:
+        self.coarse, self.fine, self.travel, self.standoff = coarse, fine, travel, standoff
 
-    def _step_until_contact(self, s: Session, pose: PlannedPose, start: np.ndarray, step: float,
-                            travel: float) -> np.ndarray | None:
-        model, robot = s.model, s.robot
-        pt = s.point(pose.point)
+    def _at(self, s: Session, pose: PlannedPose, depth: float, seed: np.ndarray) -> np.ndarray:
+        """Joint target ``depth`` metres past the approach pose along the approach axis (same orientation)."""
+        model = s.model
+        T = model.fk(pose.approach_arr)
+        T[:3, 3] -= s.point(pose.point).approach * depth
         full = model.n_joints >= 6
-        T0 = model.fk(start)
-        q = start
-        for k in range(1, int(travel / step) + 2):
-            T = T0.copy()
-            T[:3, 3] -= pt.approach * step * k
-            r = model.ik(T if full else T[:3, 3], q, position_only=not full)
-            if not r.ok[0]:
-                return None
-            q = r.q[0]
-            robot.move_joints(q, speed=s.touch_speed(start, q))
-            if robot.touch():
-                return q
-        return None
+        r = model.ik(T if full else T[:3, 3], seed, position_only=not full)
+        if not r.ok[0]:
+            raise TouchFailed(f"pose {pose.index}: the approach towards {pose.point} leaves the reachable space "
+                              f"{depth * 1e3:.2f} mm down")
+        return r.q[0]
 
     def bring_to(self, s: Session, pose: PlannedPose) -> None:
-        start = pose.approach_arr
-        hit = self._step_until_contact(s, pose, start, self.coarse, self.travel)
-        if hit is None:
-            raise TouchFailed(f"pose {pose.index}: no contact with needle {pose.point} within "
-                              f"{self.travel * 1e3:g} mm of travel")
-        model = s.model
-        pt = s.point(pose.point)
-        T = model.fk(hit)
-        T[:3, 3] += pt.approach * 2 * self.coarse
-        full = model.n_joints >= 6
-        r = model.ik(T if full else T[:3, 3], hit, position_only=not full)
-        back = r.q[0]
-        s.robot.move_joints(back)
-        if self._step_until_contact(s, pose, back, self.fine, 3 * self.coarse) is None:
-            raise TouchFailed(f"pose {pose.index}: needle {pose.point} lost on the fine approach")
+        robot = s.robot
+        q = pose.approach_arr
+        # straight to a standoff above where the model puts the point, then in steps
+        clearance = float((s.current_plan.settings if s.current_plan else {}).get("clearance_m", 0.03))
+        depth = max(0.0, clearance - self.standoff)
+        if depth > 0:
+            q_next = self._at(s, pose, depth, q)
+            robot.move_joints(q_next, speed=s.touch_speed(q, q_next))
+            q = q_next
+            if robot.touch():
+                raise TouchFailed(f"pose {pose.index}: contact with {pose.point} already {self.standoff * 1e3:g} mm "
+                                  "before the nominal point; check the cell file")
+        lo, hi = depth, None
+        while depth < self.travel:
+            depth = min(depth + self.coarse, self.travel)
+            q_next = self._at(s, pose, depth, q)
+            robot.move_joints(q_next, speed=s.touch_speed(q, q_next))
+            q = q_next
+            if robot.touch():
+                hi = depth
+                break
+            lo = depth
+        if hi is None:
+            raise TouchFailed(f"pose {pose.index}: no contact with {pose.point} within {self.travel * 1e3:g} mm "
+                              "of travel")
+        while hi - lo > self.fine:  # contact closes somewhere in (lo, hi]: halve it
+            mid = (lo + hi) / 2
+            q_mid = self._at(s, pose, mid, q)
+            robot.move_joints(q_mid, speed=s.touch_speed(q, q_mid))
+            q = q_mid
+            if robot.touch():
+                hi = mid
+            else:
+                lo = mid
+        if not robot.touch():
+            q_hi = self._at(s, pose, hi, q)
+            robot.move_joints(q_hi, speed=s.touch_speed(q, q_hi))
+            if not robot.touch():
+                raise TouchFailed(f"pose {pose.index}: contact with {pose.point} lost on the fine approach")
 
     def release(self, s: Session, pose: PlannedPose) -> None:
         s.robot.move_joints(pose.approach_arr)
