@@ -114,3 +114,34 @@ def test_guarded_approach_stops_at_first_contact(tmp_path, monkeypatch):
     tips = world.truth.position(np.array([x["q"] for x in samples]))
     dist = np.linalg.norm(tips - world.points["N"].position, axis=1)
     assert np.all(dist <= radius + 1e-9) and np.all(dist > radius - 0.03e-3)  # just inside: first contact
+
+
+def test_resume_after_power_loss_in_the_middle_of_write_back(cell, tmp_path):
+    """The journal ends right after the pre-image: the write may or may not have reached the drives. Resume
+    reads what they hold and finishes the write-back either way, never writing on top of an unknown state."""
+    import station
+
+    emu, cell_path, serial, db = cell
+    out = start("zero_offsets", emu.url, serial, cell=cell_path, db=db, apply=True,
+                options={"n_fit": 12, "n_holdout": 2})
+    assert out.status == "completed" and out.record["writeback"]["verified"], out.error
+    before, after = out.record["writeback"]["before"], out.record["writeback"]["after"]
+    lines = (out.folder / "journal.jsonl").read_bytes().splitlines(keepends=True)
+    cut = next(i for i, ln in enumerate(lines) if b'"type":"writeback"' in ln and b'"phase":"before"' in ln) + 1
+    for variant in ("written", "not-written"):
+        robot = station.connect(emu.url)
+        robot.write_calibration(after if variant == "written" else before)
+        robot.close()
+        folder = tmp_path / "crash" / variant
+        folder.mkdir(parents=True)
+        (folder / "journal.jsonl").write_bytes(b"".join(lines[:cut]))  # same session: its record is updated
+        done = resume(folder, db=db)
+        assert done.status == "completed", done.error
+        wb = done.record["writeback"]
+        assert wb["applied"] and wb["verified"] and wb["before"] == before
+        robot = station.connect(emu.url)
+        held = robot.read_calibration()
+        robot.close()
+        assert all(abs(held[k] - after[k]) < 1e-6 for k in after)
+        _, events = read_journal(folder / "journal.jsonl")
+        assert sum(e["type"] == "sample" for e in events) == 14  # no sample retaken

@@ -139,11 +139,13 @@ class Session:
             q = self.robot.joint_positions().q
             prior = self.events("state")
             if prior and cal is not None and prior[0].get("calibration") is not None:
-                expected = self._expected_calibration(prior[0]["calibration"])
-                bad = [k for k, v in expected.items() if abs(cal.get(k, math.nan) - v) > self._cal_tol(k)]
-                if bad:
-                    raise ResumeMismatch(f"resume: device calibration {bad[0]} is {cal.get(bad[0])!r}, the journal "
-                                         f"expects {expected[bad[0]]!r}; the recorded samples no longer apply")
+                allowed = self._expected_calibrations(prior[0]["calibration"])
+                mismatch = [[k for k, v in exp.items() if abs(cal.get(k, math.nan) - v) > self._cal_tol(k)]
+                            for exp in allowed]
+                if all(mismatch):
+                    k = mismatch[0][0]
+                    raise ResumeMismatch(f"resume: device calibration {k} is {cal.get(k)!r}, the journal expects "
+                                         f"{allowed[0][k]!r}; the recorded samples no longer apply")
             out = {"enabled": True, "calibration": cal, "q": q.tolist()}
             self.event({"type": "state", **out})
             return out
@@ -155,12 +157,16 @@ class Session:
             return None
         return {k: float(v) for k, v in (cal or {}).items()} or None
 
-    def _expected_calibration(self, first: dict) -> dict:
-        # after a completed write (journaled), the device holds the new values
-        for ev in reversed(self.events("writeback")):
-            if ev.get("phase") in ("written", "verified") and ev.get("after"):
-                return dict(ev["after"])
-        return dict(first)
+    def _expected_calibrations(self, first: dict) -> list[dict]:
+        """What the device may hold now: after a journaled write, the new values; while a write was under way
+        (pre-image journaled, outcome not), either the pre-image or the new values."""
+        wb = self.events("writeback")
+        if any(e.get("phase") in ("written", "verified") for e in wb):
+            return [dict(next(e["after"] for e in reversed(wb) if e.get("after")))]
+        pending = [e for e in wb if e.get("phase") == "before"]
+        if pending:
+            return [dict(pending[-1]["before"]), dict(pending[-1]["after"])]
+        return [dict(first)]
 
     def _cal_tol(self, name: str) -> float:
         try:
