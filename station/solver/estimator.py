@@ -64,7 +64,7 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
         raise SolverInputError(
             f"only {k} distinct pose(s) among {len(obs)} samples (readings within {POSE_TOL * 1e3:g} mrad/um count as "
             f"one): {3 * k} equations for {p} unknowns; move the robot between touches")
-    x, r, J = prob.initial_with_jacobian()
+    x, r, J = prob.initial_with_jacobian(scaled=True)  # J column-scaled throughout (angles times L)
     x_start = x.copy()
     r_before = r
     dec = _decide(prob, J, x, noise or 0.0, max_std, r)
@@ -78,7 +78,7 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
     for _ in range(8):
         act = sorted(dec.accepted)
         if not exact:  # the last step was taken on the linear model: evaluate the chain there first
-            r, J = prob.residual_jacobian(x)
+            r, J = prob.residual_jacobian(x, scaled=True)
         x, r, J, it, converged, rest, exact, prev = _levenberg_marquardt(prob, x, act, max_iter, (r, J), tol, prev)
         iterations += it
         if tol == STEP_TOL:  # finished on a set decided within DECIDE_TOL of this minimum
@@ -93,7 +93,7 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
             continue
         dropped = [j for j in act if j not in dec.accepted]
         x[dropped] = x_start[dropped]  # back to nominal: never keep numbers for an unseen direction
-        r, J = prob.residual_jacobian(x)
+        r, J = prob.residual_jacobian(x, scaled=True)
         tol, prev, exact = DECIDE_TOL, None, True
     sig = noise if noise is not None else math.sqrt(float(r @ r) / (m - len(dec.accepted)))
     # the reasons, condition number and observability index once, at the final Jacobian
@@ -128,12 +128,12 @@ def distinct_poses(q: np.ndarray, tol: float | None = None, limit: int | None = 
 
 
 def _decide(prob: Problem, J, x, sigma, max_std, r) -> Decision:
-    return decide(J * prob.scale, prob.names, prob.kinds, sigma=sigma, max_std=max_std,
+    return decide(J, prob.names, prob.kinds, sigma=sigma, max_std=max_std,
                   scale_dir=prob.scale_direction(x) / prob.scale, residual=r)
 
 
 def _analyse(prob: Problem, J, x, sigma, max_std, r, decided: Decision | None = None) -> RankAnalysis:
-    Js = J * prob.scale
+    Js = J
     sd = prob.scale_direction(x) / prob.scale
     joints = prob.model.joints
     return analyse(Js, prob.names, prob.kinds, sigma=sigma, max_std=max_std, scale_dir=sd, residual=r,
@@ -165,7 +165,7 @@ def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ, tol: float = STEP_
     eye = np.eye(len(act))
     lam = 0.0
     for it in range(1, max_iter + 1):
-        Js = (J if every else J[:, act]) * D
+        Js = J if every else J[:, act]
         # normal equations on the column-scaled, full-rank (after the rank analysis) Jacobian: cond(J)^2
         # stays far from 1/eps, and any error in a step is corrected by the next iteration
         H = Js.T @ Js
@@ -177,9 +177,8 @@ def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ, tol: float = STEP_
         else:
             du = -np.linalg.lstsq(H + lam * eye, g, rcond=None)[0]
             rel = math.inf
-        Ddu = D * du
         x_new = x.copy()
-        x_new[act] += Ddu
+        x_new[act] += D * du
         step = float(np.max(np.abs(du)))
         if lam == 0.0:
             rho = rel / prev if prev else 1.0
@@ -187,8 +186,8 @@ def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ, tol: float = STEP_
             if step < XTOL:
                 rest = 0.0
             if rest < tol:
-                return x_new, r + (J if every else J[:, act]) @ Ddu, J, it, True, rest, False, rel
-        r_new, J_new = prob.residual_jacobian(x_new)
+                return x_new, r + Js @ du, J, it, True, rest, False, rel
+        r_new, J_new = prob.residual_jacobian(x_new, scaled=True)
         cost_new = float(r_new @ r_new)
         if cost_new <= cost:
             small = cost - cost_new <= FTOL * cost
@@ -237,9 +236,9 @@ def _result(model, prob: Problem, x, r, J, r_before, ana: RankAnalysis, iteratio
     cov = None
     std = np.full(prob.n_unknowns, np.nan)
     if act:
-        Js = J[:, act] * prob.scale[act]
-        Ri = _inverse_cholesky(Js.T @ Js)
-        cov_u = (Ri @ Ri.T if Ri is not None else np.linalg.pinv(Js.T @ Js)) * sigma**2
+        H = ana.gram if ana.gram is not None and ana.gram.shape[0] == len(act) else J[:, act].T @ J[:, act]
+        Ri = _inverse_cholesky(H)
+        cov_u = (Ri @ Ri.T if Ri is not None else np.linalg.pinv(H)) * sigma**2
         cov = cov_u * np.outer(prob.scale[act], prob.scale[act])
         std[act] = np.sqrt(np.diag(cov))
     params: dict[str, ParameterEstimate] = {}

@@ -32,6 +32,7 @@ class RankAnalysis:
     condition_number: float | None
     observability_index: float | None  # O1 = (s1 ... sr)^(1/r) / sqrt(m) of the scaled Jacobian
     singular_values: np.ndarray
+    gram: np.ndarray | None = None  # Js[:, accepted]^T Js[:, accepted] (column-scaled), for the covariance
 
 
 def priority_order(names: list[str], kinds: list[str]) -> list[int]:
@@ -106,6 +107,7 @@ def analyse(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float 
     rejected: dict[int, str] = {}
     acc = set(accepted)
     dep = [j for j in range(p) if j not in acc]
+    accepted = sorted(accepted)
     A = Js[:, accepted]
     AtA = A.T @ A
     if dep:
@@ -119,7 +121,7 @@ def analyse(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float 
     r = len(accepted)
     cond = float(s[0] / s[-1]) if r and s[-1] > 0 else None
     o1 = float(np.exp(np.mean(np.log(s))) / np.sqrt(m)) if r and s[-1] > 0 else None
-    return RankAnalysis(sorted(accepted), rejected, r, cond, o1, s)
+    return RankAnalysis(accepted, rejected, r, cond, o1, s, AtA)
 
 
 def singular_values(A: np.ndarray) -> np.ndarray:

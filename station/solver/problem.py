@@ -123,6 +123,7 @@ class Problem:
                 self.target_fixed[obs.point == lb] = xyz
         self.length = L
         self.scale = np.array([L if u == "rad" else 1.0 for u in self.units])
+        self._angle_cols = np.flatnonzero(self.scale != 1.0)
         # lengths of the machine and the points; a prismatic offset is a zero reading, not a length
         self._lengths = np.array([u == "m" and not n.startswith("offset.") for n, u in zip(self.names, self.units,
                                                                                            strict=True)])
@@ -162,14 +163,14 @@ class Problem:
             x[self.n_model + 3 * i: self.n_model + 3 * i + 3] = P[self.obs.point == lb].mean(axis=0)
         return x
 
-    def initial_with_jacobian(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def initial_with_jacobian(self, scaled: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``initial()`` with the residual and Jacobian there. Without an instrument frame one chain pass
         serves both: the model is at nominal and the Jacobian does not depend on the point values."""
         if self.frame_unknown:
             x = self.initial()
-            return (x, *self.residual_jacobian(x))
+            return (x, *self.residual_jacobian(x, scaled))
         x = self.x_nominal.copy()
-        r, J = self.residual_jacobian(x)  # points at 0: rows of unknown points are the tip positions
+        r, J = self.residual_jacobian(x, scaled)  # points at 0: rows of unknown points are the tip positions
         P = r.reshape(-1, 3) + self.target_fixed * (self.slot < 0)[:, None]
         for i, lb in enumerate(self.unknown_points):
             x[self.n_model + 3 * i: self.n_model + 3 * i + 3] = P[self.obs.point == lb].mean(axis=0)
@@ -185,7 +186,9 @@ class Problem:
             P = self.model.position(self.obs.q, self.full_params(x))
         return (P - self._targets(x)).ravel()
 
-    def residual_jacobian(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def residual_jacobian(self, x: np.ndarray, scaled: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Residual (3N,) and Jacobian (3N, n_unknowns); ``scaled``: columns times ``self.scale`` (angles
+        times the characteristic length, the units of the rank analysis and of the solver's steps)."""
         N = len(self.obs)
         J = np.zeros((3 * N, self.n_unknowns))
         Jm = J[:, : self.n_model]
@@ -194,6 +197,8 @@ class Problem:
         r = (P - self._targets(x)).ravel()
         if self._point_rows is not None:
             J[self._point_rows] = -1.0
+        if scaled and len(self._angle_cols):
+            J[:, self._angle_cols] *= self.length
         return r, J
 
     def _targets(self, x: np.ndarray) -> np.ndarray:
