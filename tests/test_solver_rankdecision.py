@@ -2,23 +2,26 @@
 the columns that a plain projection in priority order does, with the same remainder norms."""
 
 import numpy as np
+import pytest
 
 from station.solver.identifiability import _greedy
 
 
 def _reference(Js, order, tau_struct, tau_noise):
-    acc, weak = [], {}
+    acc, weak, margin = [], {}, np.inf
+    thr = max(tau_struct, tau_noise)
     for j in order:
         c = Js[:, j]
         if acc:
             A = Js[:, acc]
             c = c - A @ np.linalg.lstsq(A, c, rcond=None)[0]
         nr = float(np.linalg.norm(c))
+        margin = min(margin, nr / thr if nr > thr else (thr / nr if nr else np.inf))
         if nr > max(tau_struct, tau_noise):
             acc.append(j)
         elif nr > tau_struct:
             weak[j] = nr
-    return acc, weak
+    return acc, weak, margin
 
 
 def test_greedy_matches_plain_projection():
@@ -41,8 +44,9 @@ def test_greedy_matches_plain_projection():
         order = list(rng.permutation(p))
         big = float(np.linalg.norm(Js, axis=0).max())
         tau_s, tau_n = 1e-7 * big, float(rng.choice([0.0, 1e-3 * np.sqrt(m), 0.05 * big]))
-        acc, weak = _greedy(Js, order, tau_s, tau_n)
-        acc0, weak0 = _reference(Js, order, tau_s, tau_n)
+        acc, weak, margin = _greedy(Js, order, tau_s, tau_n)
+        acc0, weak0, margin0 = _reference(Js, order, tau_s, tau_n)
+        assert margin == pytest.approx(margin0, rel=1e-6) or margin0 > 1e6
         assert acc == acc0, (trial, acc, acc0)
         assert weak.keys() == weak0.keys()
         for j in weak:
@@ -55,5 +59,5 @@ def test_greedy_matches_plain_projection():
 def test_greedy_with_more_columns_than_rows():
     rng = np.random.default_rng(1)
     Js = rng.normal(size=(4, 7))
-    acc, weak = _greedy(Js, list(range(7)), 1e-9, 0.0)
+    acc, weak, _ = _greedy(Js, list(range(7)), 1e-9, 0.0)
     assert acc == [0, 1, 2, 3] and not weak

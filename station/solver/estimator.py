@@ -18,6 +18,7 @@ XTOL = 1e-11  # m (scaled step): below this a step changes nothing measurable
 FTOL = 1e-13  # relative cost decrease
 STEP_TOL = 1e-4  # standard deviations: what is left of the way to the minimum when the iteration stops
 DECIDE_TOL = 0.1  # standard deviations: close enough to the minimum to decide identifiability with its sigma
+DECIDE_MARGIN = 2.0  # remainders this far (factor) from the threshold: a decision that re-solving cannot flip
 POSE_TOL = 1e-3  # rad or m: joint readings closer than this are the same pose
 
 
@@ -74,7 +75,7 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
     # the fit within DECIDE_TOL standard deviations of the minimum (sigma is then within ~1e-3 of its
     # final value); once the identified set stands, the iteration finishes to STEP_TOL on that set.
     iterations, converged, current = 0, False, False
-    tol, prev, exact = DECIDE_TOL, None, True
+    tol, prev, exact, settled = DECIDE_TOL, None, True, False
     for _ in range(8):
         act = sorted(dec.accepted)
         if not exact:  # the last step was taken on the linear model: evaluate the chain there first
@@ -83,14 +84,20 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
         iterations += it
         if tol == STEP_TOL:  # finished on a set decided within DECIDE_TOL of this minimum
             break
-        sig = noise if noise is not None else math.sqrt(float(r @ r) / (m - len(act)))
-        dec = _decide(prob, J, x, sig, max_std, r)
-        current = sorted(dec.accepted) == act
+        if settled:
+            # the last decision dropped columns with every remainder at least DECIDE_MARGIN away from the
+            # threshold: re-solving without them moves sigma and the Jacobian far less than that
+            current = True
+        else:
+            sig = noise if noise is not None else math.sqrt(float(r @ r) / (m - len(act)))
+            dec = _decide(prob, J, x, sig, max_std, r)
+            current = sorted(dec.accepted) == act
         if current and (rest < STEP_TOL or not converged):
             break
         if current:
             tol = STEP_TOL
             continue
+        settled = dec.margin >= DECIDE_MARGIN and all(j in act for j in dec.accepted)
         dropped = [j for j in act if j not in dec.accepted]
         x[dropped] = x_start[dropped]  # back to nominal: never keep numbers for an unseen direction
         r, J = prob.residual_jacobian(x, scaled=True)

@@ -69,6 +69,7 @@ class Decision:
     scale_hit: int | None
     norms: np.ndarray
     tau_struct: float
+    margin: float = 1.0  # smallest factor by which a remainder clears the threshold, either way (>= 1)
 
 
 def decide(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float = 0.0, max_std: float = 1e-3,
@@ -81,7 +82,7 @@ def decide(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float =
     tau_struct = RTOL * big if big > 0 else np.inf
     tau_noise = sigma / max_std if max_std > 0 else 0.0
     order = priority_order(names, kinds)
-    accepted, weak = _greedy(Js, order, tau_struct, tau_noise)
+    accepted, weak, margin = _greedy(Js, order, tau_struct, tau_noise)
     scale_hit = None
     if _scale_invisible(Js, scale_dir, residual, norms):
         # a uniform scaling of every length only scales the residual: the data have no length standard.
@@ -90,8 +91,8 @@ def decide(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float =
         owners = [j for j in accepted if kinds[j] == "model" and scale_dir[j] != 0.0]
         if owners:
             scale_hit = max(owners, key=lambda j: abs(scale_dir[j]))
-            accepted, weak = _greedy(Js, [j for j in order if j != scale_hit], tau_struct, tau_noise)
-    return Decision(accepted, weak, scale_hit, norms, tau_struct)
+            accepted, weak, margin = _greedy(Js, [j for j in order if j != scale_hit], tau_struct, tau_noise)
+    return Decision(accepted, weak, scale_hit, norms, tau_struct, margin)
 
 
 def analyse(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float = 0.0, max_std: float = 1e-3,
@@ -131,19 +132,21 @@ def singular_values(A: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(ev, 0.0))
 
 
-def _greedy(Js, order, tau_struct, tau_noise) -> tuple[list[int], dict[int, float]]:
+def _greedy(Js, order, tau_struct, tau_noise) -> tuple[list[int], dict[int, float], float]:
     """Columns in ``order``; each is accepted when what remains of it after projecting out the columns
     accepted before it exceeds both thresholds. Those remainders are the diagonal of R in a Householder
     QR of the ordered columns, valid up to the first rejected column. Deleting a rejected column from R
     leaves the trailing block ``R[b:, b+1:]`` (the later columns' coordinates orthogonal to everything
     accepted) in Hessenberg form: its own QR gives the next remainders. Only the first factorisation
-    depends on the number of samples."""
+    depends on the number of samples. Also returns the margin: the smallest factor by which any
+    remainder is above (accepted) or below (rejected) the threshold."""
     thr = max(tau_struct, tau_noise)
     accepted: list[int] = []
     weak: dict[int, float] = {}
+    margin = np.inf
     cand = list(order)
     if not cand:
-        return accepted, weak
+        return accepted, weak, margin
     T = _qr_r(Js[:, cand])
     while cand:
         rem = np.abs(np.diagonal(T))
@@ -152,16 +155,18 @@ def _greedy(Js, order, tau_struct, tau_noise) -> tuple[list[int], dict[int, floa
         bad = np.flatnonzero(~(rem > thr))
         if not len(bad):
             accepted += cand
+            margin = min(margin, float(rem.min()) / thr)
             break
         b = int(bad[0])
         accepted += cand[:b]
+        margin = min(margin, float(rem[:b].min()) / thr if b else np.inf, thr / float(rem[b]) if rem[b] else np.inf)
         if rem[b] > tau_struct:
             weak[cand[b]] = float(rem[b])
         cand = cand[b + 1:]
         T = T[b:, b + 1:]
         if cand and T.shape[0]:
             T = _qr_r(T)
-    return accepted, weak
+    return accepted, weak, margin
 
 
 _LOWER: dict[tuple[int, int], np.ndarray] = {}

@@ -159,9 +159,18 @@ class Problem:
             for i, n in enumerate(self.model_names):
                 if n in vals:
                     x[i] = vals[n]
-        for i, lb in enumerate(self.unknown_points):
-            x[self.n_model + 3 * i: self.n_model + 3 * i + 3] = P[self.obs.point == lb].mean(axis=0)
+        self._point_means(x, P)
         return x
+
+    def _point_means(self, x: np.ndarray, P: np.ndarray) -> None:
+        """Unknown points at the mean tip position of their touches (in place)."""
+        n = len(self.unknown_points)
+        if n == 1:
+            x[self.n_model: self.n_model + 3] = P.mean(axis=0) if self._all_unknown else P[self._has_slot].mean(axis=0)
+        elif n:
+            sums = np.zeros((n, 3))
+            np.add.at(sums, self.slot[self._has_slot], P[self._has_slot])
+            x[self.n_model:] = (sums / np.bincount(self.slot[self._has_slot], minlength=n)[:, None]).ravel()
 
     def initial_with_jacobian(self, scaled: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``initial()`` with the residual and Jacobian there. Without an instrument frame one chain pass
@@ -172,8 +181,7 @@ class Problem:
         x = self.x_nominal.copy()
         r, J = self.residual_jacobian(x, scaled)  # points at 0: rows of unknown points are the tip positions
         P = r.reshape(-1, 3) + self.target_fixed * (self.slot < 0)[:, None]
-        for i, lb in enumerate(self.unknown_points):
-            x[self.n_model + 3 * i: self.n_model + 3 * i + 3] = P[self.obs.point == lb].mean(axis=0)
+        self._point_means(x, P)
         return x, (P - self._targets(x)).ravel(), J
 
     def residual(self, x: np.ndarray, fused: bool = True) -> np.ndarray:
