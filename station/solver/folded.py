@@ -25,6 +25,7 @@ import numpy as np
 from station.kinematics.chain import RX, RY, RZ
 
 _EYE4 = np.eye(4)
+_C1, _C2 = np.array([1, 2, 0]), np.array([2, 0, 1])
 
 
 def _generator_table() -> tuple[np.ndarray, np.ndarray]:
@@ -169,7 +170,8 @@ class FoldedChain:
     def evaluate(self, q: np.ndarray, params: np.ndarray, jacobian: bool = True, out: np.ndarray | None = None):
         """Tool positions ``(N, 3)`` and (with ``jacobian``) the Jacobian ``(N, 3, k)``, written into ``out``
         when given (any ``(N, 3, k)`` view, e.g. the model columns of the solver's stacked Jacobian)."""
-        q = np.atleast_2d(q)
+        if q.ndim != 2:
+            q = np.atleast_2d(q)
         N = q.shape[0]
         nm = self._n_moving
         nc = len(self._cols)
@@ -250,10 +252,8 @@ class FoldedChain:
         W, O = WO[:, 0], WO[:, 1]  # (nc, 3, N) world axis and origin of each column's element
         rc = self._rot_cols
         if len(rc):
-            w, d = W[rc], p[None] - O[rc]
-            W[rc, 0] = w[:, 1] * d[:, 2] - w[:, 2] * d[:, 1]
-            W[rc, 1] = w[:, 2] * d[:, 0] - w[:, 0] * d[:, 2]
-            W[rc, 2] = w[:, 0] * d[:, 1] - w[:, 1] * d[:, 0]
+            w, d = W[rc], p[None] - O[rc]  # w x d, component-wise with cyclic index permutations
+            W[rc] = w[:, _C1] * d[:, _C2] - w[:, _C2] * d[:, _C1]
         W = W.transpose(2, 1, 0)
         if self._cols_identity:
             J[...] = W
