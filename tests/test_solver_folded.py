@@ -89,3 +89,31 @@ def test_compiled_cache_is_per_model_and_selection():
     f3b = compiled(m3, idx)[0]
     assert f3b is not f3
     np.testing.assert_allclose(f3b.evaluate(q, m3.params)[0], m3.position(q), atol=1e-12)
+
+
+def test_first_joint_shift_equals_a_chain_pass():
+    """Changing the first joint's offset is a rigid motion of every tool position and model column: the
+    shortcut the solver takes when only that offset is dropped equals a fresh evaluation."""
+    from station.solver import Observations
+    from station.solver.problem import Problem
+
+    m = load_model("ur5e").with_params({"tcp.z": 0.1})
+    rng = np.random.default_rng(3)
+    q = rng.uniform(-1, 1, (12, 6))
+    obs = Observations(q, ["A", "B", "C"] * 4)
+    for ref in ("unknown", {"C": np.array([0.1, 0.2, 0.3])}):
+        prob = Problem(m, obs, m.select("offsets,tcp,dh.j3.*"), ref)
+        c = prob.first_joint_offset_column()
+        assert prob.names[c] == "offset.j1"
+        x = prob.initial() + rng.normal(0, 1e-3, prob.n_unknowns)
+        for scaled in (False, True):
+            r, J = prob.residual_jacobian(x, scaled)
+            r2, J2 = prob.shift_first_joint(x, r, J, 0.05)
+            x2 = x.copy()
+            x2[c] += 0.05
+            r3, J3 = prob.residual_jacobian(x2, scaled)
+            np.testing.assert_allclose(r2, r3, atol=1e-12)
+            np.testing.assert_allclose(J2, J3, atol=1e-12)
+    # not applicable when an identified element precedes the first joint (instrument frame base.*)
+    prob = Problem(m, Observations(q, measured=m.position(q)), m.select("offsets,tcp"), "unknown")
+    assert prob.first_joint_offset_column() == -1

@@ -76,11 +76,13 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
     # final value); once the identified set stands, the iteration finishes to STEP_TOL on that set.
     iterations, converged, current = 0, False, False
     tol, prev, exact, settled = DECIDE_TOL, None, True, False
+    first = prob.first_joint_offset_column()
     for _ in range(8):
         act = sorted(dec.accepted)
         if not exact:  # the last step was taken on the linear model: evaluate the chain there first
             r, J = prob.residual_jacobian(x, scaled=True)
-        x, r, J, it, converged, rest, exact, prev = _levenberg_marquardt(prob, x, act, max_iter, (r, J), tol, prev)
+        x, r, J, it, converged, rest, exact, prev, (xe, re) = _levenberg_marquardt(prob, x, act, max_iter, (r, J),
+                                                                                  tol, prev)
         iterations += it
         if tol == STEP_TOL:  # finished on a set decided within DECIDE_TOL of this minimum
             break
@@ -99,8 +101,16 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
             continue
         settled = dec.margin >= DECIDE_MARGIN and all(j in act for j in dec.accepted)
         dropped = [j for j in act if j not in dec.accepted]
-        x[dropped] = x_start[dropped]  # back to nominal: never keep numbers for an unseen direction
-        r, J = prob.residual_jacobian(x, scaled=True)
+        # back to nominal: never keep numbers for an unseen direction
+        if dropped == [first] and first >= 0:
+            # only the first joint's offset (e.g. with an unknown point): from the last evaluated point
+            # that is a rigid motion of the tool positions and model columns, no chain pass needed
+            x = xe.copy()
+            r, J = prob.shift_first_joint(xe, re, J, x_start[first] - xe[first])
+            x[first] = x_start[first]
+        else:
+            x[dropped] = x_start[dropped]
+            r, J = prob.residual_jacobian(x, scaled=True)
         tol, prev, exact = DECIDE_TOL, None, True
     sig = noise if noise is not None else math.sqrt(float(r @ r) / (m - len(dec.accepted)))
     # the reasons, condition number and observability index once, at the final Jacobian
@@ -158,13 +168,14 @@ def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ, tol: float = STEP_
     model is linear to O(step^2), and the residual is the linear prediction. Also stops below XTOL or
     when the cost stops decreasing.
 
-    Returns ``x, r, J, iterations, converged, rest, exact, prev``: ``rest`` is the estimate of what is
-    left (standard deviations), ``exact`` whether ``r, J`` were evaluated at ``x`` (else ``r`` is the
-    linear prediction and ``J`` the Jacobian one step back), ``prev`` the last undamped step."""
+    Returns ``x, r, J, iterations, converged, rest, exact, prev, (xe, re)``: ``rest`` is the estimate of
+    what is left (standard deviations), ``exact`` whether ``r, J`` were evaluated at ``x`` (else ``r`` is
+    the linear prediction and ``J`` the Jacobian one step back), ``prev`` the last undamped step, ``xe,
+    re`` the point where ``J`` was evaluated and the residual there."""
     x = x.copy()
     r, J = rJ
     if not act:
-        return x, r, J, 0, True, 0.0, True, None
+        return x, r, J, 0, True, 0.0, True, None, (x, r)
     D = prob.scale[act]
     every = len(act) == J.shape[1]  # act is sorted: all columns, no selection copy
     cost = float(r @ r)
@@ -180,7 +191,7 @@ def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ, tol: float = STEP_
         Ri = _inverse_cholesky(H + lam * eye if lam else H)
         if Ri is not None:
             du = -(Ri @ (Ri.T @ g))
-            rel = float(np.max(np.abs(du) / np.sqrt(cost / dof * np.einsum("ij,ij->i", Ri, Ri))))
+            rel = math.sqrt(float(np.max(du * du / np.einsum("ij,ij->i", Ri, Ri))) * dof / cost) if cost else 0.0
         else:
             du = -np.linalg.lstsq(H + lam * eye, g, rcond=None)[0]
             rel = math.inf
@@ -193,7 +204,7 @@ def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ, tol: float = STEP_
             if step < XTOL:
                 rest = 0.0
             if rest < tol:
-                return x_new, r + Js @ du, J, it, True, rest, False, rel
+                return x_new, r + Js @ du, J, it, True, rest, False, rel, (x, r)
         r_new, J_new = prob.residual_jacobian(x_new, scaled=True)
         cost_new = float(r_new @ r_new)
         if cost_new <= cost:
@@ -203,13 +214,13 @@ def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ, tol: float = STEP_
             if lam:
                 lam = 0.0 if lam < 1e-9 * float(np.max(np.diag(H))) else lam / 10.0
             if small:
-                return x, r, J, it, True, 0.0, True, prev
+                return x, r, J, it, True, 0.0, True, prev, (x, r)
         else:
             prev = None
             if step < XTOL:
-                return x, r, J, it, True, 0.0, True, prev  # at the minimum within rounding
+                return x, r, J, it, True, 0.0, True, prev, (x, r)  # at the minimum within rounding
             lam = max(lam * 10.0, 1e-6 * float(np.max(np.diag(H))))
-    return x, r, J, max_iter, False, math.inf, True, prev
+    return x, r, J, max_iter, False, math.inf, True, prev, (x, r)
 
 
 def _inverse_cholesky(H: np.ndarray) -> np.ndarray | None:
@@ -219,7 +230,7 @@ def _inverse_cholesky(H: np.ndarray) -> np.ndarray | None:
     if info != 0:
         return None
     Ri, info = dtrtri(R, lower=0)
-    return Ri if info == 0 and np.all(np.isfinite(Ri)) else None
+    return Ri if info == 0 else None
 
 
 def _ref_setting(reference):

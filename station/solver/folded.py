@@ -124,6 +124,9 @@ class FoldedChain:
         self._mv_has_p = self._mv_param >= 0
         self._mv_pidx = np.maximum(self._mv_param, 0)
         self._mv_rot = chain.axis[mv] >= 3
+        self._mv_axis = chain.axis[mv]
+        # the parameter of the first joint-driven element (its offset), -1 if none
+        self.first_joint_param = int(chain.param[mv[0]]) if len(mv) else -1
         self._mv_all_rot = bool(np.all(self._mv_rot))
         self._mv_K, self._mv_K2 = _generators(chain.axis[mv])
         self._n_moving = len(mv)
@@ -161,6 +164,18 @@ class FoldedChain:
                 F = self._S_fixed[self._want_block[c]]
                 self._VT_fixed[c, 0, :3] = F[:3, self._col_sel[c]]
                 self._VT_fixed[c, 1] = F[:, 3]
+
+    def first_joint_motion(self, delta: float) -> np.ndarray | None:
+        """The rigid motion ``T`` (4x4) that adding ``delta`` to the value of the first joint-driven
+        element applies to every tool position, or None when it is not one: ``E(v + d) = E(v) E(d)`` for
+        one axis, so with only fixed elements before it (``S_0``), the tool frame becomes
+        ``S_0 E(d) S_0^-1`` times the old one. Valid when no identified element precedes that joint."""
+        if not self._n_moving or any(b == 0 and it >= 0 for b, it in zip(self._want_block, self._want_item,
+                                                                         strict=True)):
+            return None
+        S0 = self._S_fixed[0]
+        E = _elementary_batch(self._mv_axis[:1], np.array([float(delta)]))[0]
+        return S0 @ E @ np.linalg.inv(S0)
 
     @property
     def n_items(self) -> int:

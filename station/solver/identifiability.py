@@ -14,6 +14,7 @@ given the ones before it, would be sigma / |remainder| > max_std (default 1 mm a
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -121,7 +122,7 @@ def analyse(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float 
     s = np.sqrt(np.maximum(np.linalg.eigvalsh(AtA)[::-1], 0.0)) if accepted else np.zeros(0)  # singular_values(A)
     r = len(accepted)
     cond = float(s[0] / s[-1]) if r and s[-1] > 0 else None
-    o1 = float(np.exp(np.mean(np.log(s))) / np.sqrt(m)) if r and s[-1] > 0 else None
+    o1 = math.exp(float(np.log(s).mean())) / math.sqrt(m) if r and s[-1] > 0 else None
     return RankAnalysis(accepted, rejected, r, cond, o1, s, AtA)
 
 

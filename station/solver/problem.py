@@ -209,6 +209,33 @@ class Problem:
             J[:, self._angle_cols] *= self.length
         return r, J
 
+    def first_joint_offset_column(self) -> int:
+        """Column of the first joint's offset among the unknowns when ``shift_first_joint`` applies to it
+        (identified, no identified element before that joint), else -1."""
+        pj = self.folded.first_joint_param
+        hit = np.flatnonzero(self.model_idx == pj) if pj >= 0 else []
+        if not len(hit) or self.folded.first_joint_motion(0.0) is None:
+            return -1
+        return int(hit[0])
+
+    def shift_first_joint(self, x: np.ndarray, r: np.ndarray, J: np.ndarray, delta: float):
+        """``residual_jacobian`` at ``x`` with the first joint's offset changed by ``delta`` from the values
+        ``r, J`` at ``x`` (scaled or not), without a chain pass: every tool position and every model
+        column (all at or after that joint) moves by the same rigid motion ``T``; point columns do not
+        change. Exact (to rounding); ``tests/test_solver_folded.py`` compares it with a fresh pass."""
+        T = self.folded.first_joint_motion(delta)
+        N = len(self.obs)
+        R, t = T[:3, :3], T[:3, 3]
+        P = r.reshape(N, 3) + self._targets(x)
+        x2 = x.copy()
+        x2[self.first_joint_offset_column()] += delta
+        r2 = (P @ R.T + t - self._targets(x2)).ravel()
+        J2 = J.copy()
+        Jm = J2[:, : self.n_model]
+        Jm.shape = (N, 3, self.n_model)
+        Jm[...] = np.einsum("ij,njk->nik", R, Jm)
+        return r2, J2
+
     def _targets(self, x: np.ndarray) -> np.ndarray:
         if self.instrument or not self.unknown_points:
             return self.target_fixed
