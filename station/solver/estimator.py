@@ -76,7 +76,6 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
     # final value); once the identified set stands, the iteration finishes to STEP_TOL on that set.
     iterations, converged, current = 0, False, False
     tol, prev, exact, settled = DECIDE_TOL, None, True, False
-    first = prob.first_joint_offset_column()
     for _ in range(8):
         act = sorted(dec.accepted)
         if not exact:  # the last step was taken on the linear model: evaluate the chain there first
@@ -102,11 +101,12 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
         settled = dec.margin >= DECIDE_MARGIN and all(j in act for j in dec.accepted)
         dropped = [j for j in act if j not in dec.accepted]
         # back to nominal: never keep numbers for an unseen direction
-        if dropped == [first] and first >= 0:
+        if len(dropped) == 1 and dropped[0] == prob.first_joint_offset_column():
+            first = dropped[0]
             # only the first joint's offset (e.g. with an unknown point): from the last evaluated point
             # that is a rigid motion of the tool positions and model columns, no chain pass needed
             x = xe.copy()
-            r, J = prob.shift_first_joint(xe, re, J, x_start[first] - xe[first])
+            r, J = prob.shift_first_joint(xe, re, J, x_start[first] - xe[first], first)
             x[first] = x_start[first]
         else:
             x[dropped] = x_start[dropped]
@@ -191,7 +191,7 @@ def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ, tol: float = STEP_
         Ri = _inverse_cholesky(H + lam * eye if lam else H)
         if Ri is not None:
             du = -(Ri @ (Ri.T @ g))
-            rel = math.sqrt(float(np.max(du * du / np.einsum("ij,ij->i", Ri, Ri))) * dof / cost) if cost else 0.0
+            rel = math.sqrt(float(np.max(du * du / (Ri * Ri).sum(axis=1))) * dof / cost) if cost else 0.0
         else:
             du = -np.linalg.lstsq(H + lam * eye, g, rcond=None)[0]
             rel = math.inf

@@ -158,6 +158,10 @@ class FoldedChain:
         is_var = [it >= 0 or b in var for it, b in zip(self._want_item, self._want_block, strict=True)]
         self._var_cols = np.flatnonzero(np.array(is_var, dtype=bool)) if nc else np.zeros(0, dtype=int)
         self._var_col_src = [(self._want_item[c], self._want_block[c]) for c in self._var_cols]
+        # a change of the first joint's value is a rigid motion when nothing identified precedes it
+        self.first_joint_shiftable = bool(nm) and not any(b == 0 and it >= 0 for b, it in zip(
+            self._want_block, self._want_item, strict=True))
+        self._S0_inv = np.linalg.inv(self._S_fixed[0]) if self.first_joint_shiftable else None
         self._VT_fixed = np.zeros((nc, 2, 4))
         for c in range(nc):
             if not is_var[c]:
@@ -170,12 +174,10 @@ class FoldedChain:
         element applies to every tool position, or None when it is not one: ``E(v + d) = E(v) E(d)`` for
         one axis, so with only fixed elements before it (``S_0``), the tool frame becomes
         ``S_0 E(d) S_0^-1`` times the old one. Valid when no identified element precedes that joint."""
-        if not self._n_moving or any(b == 0 and it >= 0 for b, it in zip(self._want_block, self._want_item,
-                                                                         strict=True)):
+        if not self.first_joint_shiftable:
             return None
-        S0 = self._S_fixed[0]
         E = _elementary_batch(self._mv_axis[:1], np.array([float(delta)]))[0]
-        return S0 @ E @ np.linalg.inv(S0)
+        return self._S_fixed[0] @ E @ self._S0_inv
 
     @property
     def n_items(self) -> int:

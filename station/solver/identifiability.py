@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy.linalg.lapack import dgeqrf
+from scipy.linalg.lapack import dgeqrf, dpotrf, dpotrs, dsyev
 
 RTOL = 1e-7
 PRIORITY = ("point.", "instrument", "tcp.", "offset.", "base.")
@@ -115,11 +115,11 @@ def analyse(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float 
     if dep:
         # each dependent column as a combination of the accepted ones (its null-space vector)
         # (normal equations: A has full column rank by construction; the coefficients only rank partners)
-        coef = np.linalg.solve(AtA, A.T @ Js[:, dep]) if accepted else np.zeros((0, len(dep)))
+        coef = _spd_solve(AtA, A.T @ Js[:, dep]) if accepted else np.zeros((0, len(dep)))
         for c, j in enumerate(dep):
             rejected[j] = _reason(j, coef[:, c], accepted, names, kinds, norms, tau_struct, weak.get(j), sigma,
                                   max_std, j == d.scale_hit, n_joints, first_revolute, last_revolute)
-    s = np.sqrt(np.maximum(np.linalg.eigvalsh(AtA)[::-1], 0.0)) if accepted else np.zeros(0)  # singular_values(A)
+    s = np.sqrt(np.maximum(dsyev(AtA, compute_v=0)[0][::-1], 0.0)) if accepted else np.zeros(0)  # singular values
     r = len(accepted)
     cond = float(s[0] / s[-1]) if r and s[-1] > 0 else None
     o1 = math.exp(float(np.log(s).mean())) / math.sqrt(m) if r and s[-1] > 0 else None
@@ -168,6 +168,16 @@ def _greedy(Js, order, tau_struct, tau_noise) -> tuple[list[int], dict[int, floa
         if cand and T.shape[0]:
             T = _qr_r(T)
     return accepted, weak, margin
+
+
+def _spd_solve(H: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``H^-1 B`` for a symmetric positive definite ``H`` (Cholesky, LAPACK directly); general solve if not."""
+    c, info = dpotrf(H, lower=0, clean=1)
+    if info == 0:
+        X, info = dpotrs(c, B, lower=0)
+        if info == 0:
+            return X
+    return np.linalg.lstsq(H, B, rcond=None)[0]
 
 
 _LOWER: dict[tuple[int, int], np.ndarray] = {}

@@ -214,11 +214,11 @@ class Problem:
         (identified, no identified element before that joint), else -1."""
         pj = self.folded.first_joint_param
         hit = np.flatnonzero(self.model_idx == pj) if pj >= 0 else []
-        if not len(hit) or self.folded.first_joint_motion(0.0) is None:
+        if not len(hit) or not self.folded.first_joint_shiftable:
             return -1
         return int(hit[0])
 
-    def shift_first_joint(self, x: np.ndarray, r: np.ndarray, J: np.ndarray, delta: float):
+    def shift_first_joint(self, x: np.ndarray, r: np.ndarray, J: np.ndarray, delta: float, col: int | None = None):
         """``residual_jacobian`` at ``x`` with the first joint's offset changed by ``delta`` from the values
         ``r, J`` at ``x`` (scaled or not), without a chain pass: every tool position and every model
         column (all at or after that joint) moves by the same rigid motion ``T``; point columns do not
@@ -228,12 +228,12 @@ class Problem:
         R, t = T[:3, :3], T[:3, 3]
         P = r.reshape(N, 3) + self._targets(x)
         x2 = x.copy()
-        x2[self.first_joint_offset_column()] += delta
+        x2[self.first_joint_offset_column() if col is None else col] += delta
         r2 = (P @ R.T + t - self._targets(x2)).ravel()
         J2 = J.copy()
-        Jm = J2[:, : self.n_model]
-        Jm.shape = (N, 3, self.n_model)
-        Jm[...] = np.einsum("ij,njk->nik", R, Jm)
+        src, dst = J[:, : self.n_model], J2[:, : self.n_model]
+        src.shape = dst.shape = (N, 3, self.n_model)  # views
+        np.matmul(R, src, out=dst)
         return r2, J2
 
     def _targets(self, x: np.ndarray) -> np.ndarray:
