@@ -173,6 +173,36 @@ def test_default_socket_reachable_from_wide_orientation_spread(model):
     assert ok.mean() >= 0.85, f"{model}: only {ok.sum()}/{len(poses)} tool orientations reach socket A"
 
 
+def test_arm6_default_socket_conditions_the_zero_offsets():
+    """From the tool cone of the reach test, seated with the world's seating noise, the zero offsets a single
+    unknown socket can show (joints 2-5) come out below the zero_offsets limit on their standard deviation
+    (linearised, nominal model). The old placement (600, 0, 300) mm gave 0.056 deg for joint 2."""
+    from pathlib import Path
+
+    import yaml
+
+    w = World.default("arm6")
+    A = w.points["A"].position
+    poses = np.array([_down_pose(A, np.radians(t), np.radians(az)) for t in (0, 20, 35)
+                      for az in range(0, 360, 60)])
+    ok, q = np.zeros(len(poses), bool), np.zeros((len(poses), 6))
+    for _ in range(8):
+        todo = np.flatnonzero(~ok)
+        if not len(todo):
+            break
+        r = w.nominal.ik(poses[todo], _seeds(w.nominal, len(todo)))
+        q[todo[r.ok]] = r.q[r.ok]
+        ok[todo] = r.ok
+    q = q[ok]
+    Jp = w.nominal.jacobian_params(q, names=[f"offset.j{i}" for i in (2, 3, 4, 5)])[:, :3].reshape(-1, 4)
+    J = np.hstack([Jp, -np.tile(np.eye(3), (len(q), 1))])  # the socket position is unknown
+    std = w.spec.seating_sigma * np.sqrt(np.diag(np.linalg.inv(J.T @ J)))[:4]
+    limits = yaml.safe_load((Path(__file__).parents[1] / "procedures" / "limits.yaml").read_text())
+    limit = limits["models"]["*"]["zero_offsets"]["offset_std_max"]
+    assert limit["unit"] == "deg"
+    assert np.degrees(std).max() < limit["high"], np.degrees(std)
+
+
 @pytest.mark.parametrize("model", ["omx", "scara"])
 def test_default_socket_reachable_by_small_arms(model):
     w = World.default(model)
