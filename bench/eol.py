@@ -64,6 +64,7 @@ class TimedRobot:
     def __init__(self, robot) -> None:
         self._robot = robot
         self.calls: list[tuple[float, float]] = []  # wall-clock (start, end) of every call
+        self.named: list[tuple[str, float, float]] = []  # (method, start, end)
 
     def __getattr__(self, name):
         attr = getattr(self._robot, name)
@@ -75,12 +76,34 @@ class TimedRobot:
             try:
                 return attr(*a, **kw)
             finally:
-                self.calls.append((t, time.time()))
+                t_end = time.time()
+                self.calls.append((t, t_end))
+                self.named.append((name, t, t_end))
 
         return timed
 
     def until(self, t: float) -> float:
         return sum(min(b, t) - a for a, b in self.calls if a < t)
+
+    def breakdown(self, meter: MotionMeter, t_end: float) -> list[tuple[str, int, float, float]]:
+        """Per robot method up to ``t_end``: (name, calls, seconds inside, seconds inside while not moving)."""
+        import bisect
+
+        when = [w for w, _ in meter.samples]
+        cum = [0.0]
+        for _, dt in meter.samples:
+            cum.append(cum[-1] + dt)
+        out: dict[str, list] = {}
+        for name, a, b in self.named:
+            if a >= t_end:
+                continue
+            b = min(b, t_end)
+            moving = cum[bisect.bisect_right(when, b)] - cum[bisect.bisect_right(when, a)]
+            row = out.setdefault(name, [0, 0.0, 0.0])
+            row[0] += 1
+            row[1] += b - a
+            row[2] += max(0.0, (b - a) - moving)
+        return sorted(((k, *v) for k, v in out.items()), key=lambda r: -r[3])
 
 
 def _ur_motion(url: str):
@@ -115,7 +138,7 @@ def _emulator(bus: str, world, serial: str, sync_ms: float | None = None):
 
 
 def run_bus(bus: str, folder: Path, poses: int, time_scale: float, seed: int = 7,
-            sync_ms: float | None = None) -> dict:
+            sync_ms: float | None = None, calls: bool = False) -> dict:
     from station.mocks.world import World
 
     from station.cli.run_cmd import BUS_OPTIONS, demo_world
@@ -159,6 +182,11 @@ def run_bus(bus: str, folder: Path, poses: int, time_scale: float, seed: int = 7
     loop_over = (t_last - t0) - motion
     # the engine's own share (planning, IK, journal fsyncs): loop time outside robot calls
     engine = (t_last - t0) - robot.until(t_last)
+    if calls:
+        print(f"# {bus}: robot calls up to the last sample (s inside / s inside while nothing moves)")
+        for name, n, inside, still in robot.breakdown(meter, t_last):
+            print(f"#   {name:16s} {n:5d} calls  {inside:7.2f} s  {still:6.2f} s not moving  "
+                  f"({1e3 * still / n:6.1f} ms/call)")
     return {
         "bus": bus + ("" if sync_ms is None else f" (sync {sync_ms:g} ms)"), "model": world.nominal.name,
         "samples": len(samples), "verdict": "PASS" if out.passed else "FAIL",
@@ -178,16 +206,19 @@ def main() -> int:
     ap.add_argument("--poses", type=int, default=20, help="fit poses (4 held-out poses are added)")
     ap.add_argument("--time-scale", type=float, default=1.0, help="world seconds per wall second (1 = real time)")
     ap.add_argument("--canopen-sync-ms", type=float, default=None,
-                    help="also run CANopen with this SYNC period (URL sync_ms; the driver's default is 10 ms)")
+                    help="also run CANopen with this SYNC period (URL sync_ms; the driver's default is 4 ms)")
+    ap.add_argument("--calls", action="store_true",
+                    help="print each robot method's calls and its time inside while nothing moves")
     args = ap.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         os.environ["STATION_HOME"] = tmp
         for bus in [b.strip() for b in args.only.split(",") if b.strip()]:
-            rows.append(run_bus(bus, Path(tmp), args.poses, args.time_scale))
+            rows.append(run_bus(bus, Path(tmp), args.poses, args.time_scale, calls=args.calls))
             print(f"# {bus} done", flush=True)
             if bus == "canopen" and args.canopen_sync_ms:
-                rows.append(run_bus(bus, Path(tmp), args.poses, args.time_scale, sync_ms=args.canopen_sync_ms))
+                rows.append(run_bus(bus, Path(tmp), args.poses, args.time_scale, sync_ms=args.canopen_sync_ms,
+                                    calls=args.calls))
     cols = list(rows[0])
     widths = {c: max(len(c), *(len(str(r[c])) for r in rows)) for c in cols}
     print(" | ".join(c.ljust(widths[c]) for c in cols))

@@ -89,8 +89,8 @@ class CanopenRobot:
     """A CiA 402 arm, one drive per joint (node order = joint order). Fulfils ``station.robot.Robot``."""
 
     def __init__(self, model: Model, nodes: list[int], *, interface: str, channel: str, host: str | None = None,
-                 port: int | None = None, sync_period: float = 0.01, heartbeat_ms: int = 100,
-                 touch_ms: int = 20, contact: int | None | str = "auto", eds: str | None = None,
+                 port: int | None = None, sync_period: float = 0.004, heartbeat_ms: int = 100,
+                 touch_ms: int = 10, contact: int | None | str = "auto", eds: str | None = None,
                  serial: str | None = None, error_frame_limit: int = 1, url: str = "") -> None:
         if len(nodes) != model.n_joints:
             raise ConfigError(f"canopen: {len(nodes)} node ids {nodes} for model {model.name} with "
@@ -121,6 +121,7 @@ class CanopenRobot:
         self._fault_lock = threading.Lock()
         self._cv = threading.Condition()
         self._seq = 0
+        self._contact: tuple[float, bytes] | None = None  # (monotonic, data) of the last contact TPDO2
         self._history: dict[int, dict[int, tuple[int, int, int, float]]] = {n: {} for n in nodes}
         self._latest: dict[int, tuple[int, int, int, int, float]] = {}
         self._last_hb: dict[int, float] = {}
@@ -129,6 +130,8 @@ class CanopenRobot:
         self._interrupt = threading.Event()  # set by stop() from any thread: ends a waited move
         self._threads: list[threading.Thread] = []
         self._compliant = False
+        self._cmd_seq = 0  # SYNC count when the last RPDO was sent: rounds after it reflect every command
+        self._changed_at = 0.0  # monotonic: last RPDO sent or command confirmed (a touch reading must be newer)
         self._identity: Identity | None = None
         self._closed = False
         self.sync_frames = 0
@@ -145,8 +148,8 @@ class CanopenRobot:
     @classmethod
     def from_url(cls, url: RobotURL, **kw) -> CanopenRobot:
         """``canopen+virtual://CHANNEL?nodes=1-6&model=arm6`` or
-        ``canopen+socketcand://HOST:PORT?channel=can0&nodes=1-6&model=arm6``; optional ``sync_ms`` (10),
-        ``heartbeat_ms`` (100), ``touch_ms`` (20), ``contact`` (node id | none | auto), ``eds`` (file),
+        ``canopen+socketcand://HOST:PORT?channel=can0&nodes=1-6&model=arm6``; optional ``sync_ms`` (4),
+        ``heartbeat_ms`` (100), ``touch_ms`` (10), ``contact`` (node id | none | auto), ``eds`` (file),
         ``serial``, ``error_frames`` (error frames tolerated before BusError, 1)."""
         q = url.query
         known = {"nodes", "model", "channel", "sync_ms", "heartbeat_ms", "touch_ms", "contact", "eds", "serial",
@@ -163,9 +166,9 @@ class CanopenRobot:
             raise ConfigError(f"robot URL {url.raw!r}: model {q['model']!r}: {e}") from None
         nodes = parse_ids(q.get("nodes", f"1-{model.n_joints}"))
         try:
-            sync_ms = float(q.get("sync_ms", 10))
+            sync_ms = float(q.get("sync_ms", 4))
             hb = int(q.get("heartbeat_ms", 100))
-            touch = int(q.get("touch_ms", 20))
+            touch = int(q.get("touch_ms", 10))
             frames = int(q.get("error_frames", 1))
         except ValueError:
             raise ConfigError(f"robot URL {url.raw!r}: sync_ms, heartbeat_ms, touch_ms, error_frames are "
@@ -228,6 +231,8 @@ class CanopenRobot:
             self._configure_pdos(node, node_id == self.contact_node)
             node.setup_402_state_machine(read_pdos=False)
             node.tpdo[1].add_callback(lambda m, n=node_id: self._on_tpdo1(n, m))
+            if node_id == self.contact_node:
+                node.tpdo[2].add_callback(self._on_tpdo2)
             node.emcy.add_callback(lambda e, n=node_id: self._on_emcy(n, e))
             node.nmt.add_heartbeat_callback(lambda s, n=node_id: self._on_heartbeat(n, s))
             self._sdo_write(node, 0x1017, self.heartbeat_ms)
@@ -347,6 +352,10 @@ class CanopenRobot:
             self._latest[node_id] = (seq, sw, pos, mode, now)
             self._cv.notify_all()
 
+    def _on_tpdo2(self, m) -> None:
+        with self._cv:
+            self._contact = (time.monotonic(), bytes(m.data))
+
     def _complete_after(self, s0: int):
         seqs = None
         for hist in self._history.values():
@@ -393,6 +402,14 @@ class CanopenRobot:
             self._latch(err)
             raise err
         return snap
+
+    def _recent(self) -> dict[int, tuple[int, int, int, float]]:
+        """The newest complete SYNC round if it already reflects every command sent so far and is at most one
+        cycle old (the drives' state and position as of now, to within one cycle); otherwise the next round."""
+        with self._cv:
+            floor = max(self._cmd_seq, self._seq - 2)
+            snap = self._complete_after(floor)
+        return snap if snap is not None else self._round()
 
     # ---- faults -------------------------------------------------------------------------------
     def _latch(self, err: StationError) -> None:
@@ -467,6 +484,7 @@ class CanopenRobot:
     # ---- RPDO helpers -------------------------------------------------------------------------
     def _send_rpdo1(self, node, cw: int, target: int | None = None) -> None:
         with self._tx_lock:
+            self._cmd_seq, self._changed_at = self._seq, time.monotonic()
             m = node.rpdo[1]
             if target is not None:
                 m[0x607A].raw = int(target)
@@ -475,6 +493,7 @@ class CanopenRobot:
 
     def _send_rpdo2(self, node, mode: int, velocity: int, torque: int) -> None:
         with self._tx_lock:
+            self._cmd_seq, self._changed_at = self._seq, time.monotonic()
             m = node.rpdo[2]
             m[0x6060].raw = mode
             m[0x6081].raw = max(0, min(int(velocity), 0xFFFFFFFF))
@@ -488,6 +507,7 @@ class CanopenRobot:
                 raise SafetyStop(f"canopen {self.where}: move interrupted by stop(); the arm holds where it stopped")
             snap = self._round()
             if cond(snap):
+                self._changed_at = time.monotonic()
                 return snap
             if time.monotonic() > end:
                 self.stop()  # whatever did not happen, nothing keeps moving
@@ -495,8 +515,8 @@ class CanopenRobot:
                 raise DeviceFault(f"canopen {self.where}: {what} not confirmed within {timeout:.1f} s "
                                   f"(node(s) {bad})", device=f"node {bad[0]}" if bad else None)
 
-    def _wait_mode(self, mode: int) -> None:
-        self._wait(f"mode of operation {mode}", lambda s: all(v[2] == mode for v in s.values()), 1.0)
+    def _wait_mode(self, mode: int) -> dict:
+        return self._wait(f"mode of operation {mode}", lambda s: all(v[2] == mode for v in s.values()), 1.0)
 
     # ---- Robot protocol -----------------------------------------------------------------------
     def identity(self) -> Identity:
@@ -541,7 +561,9 @@ class CanopenRobot:
         if self._compliant:
             raise SafetyStop("canopen: robot is compliant (set_compliant(False) first); nothing sent")
         self._interrupt.clear()
-        snap = self._round()
+        # state and start position from the newest round (<= 1 cycle old): the profile velocities only scale
+        # the joints to arrive together, each stays <= its limit whatever the start, so a cycle-old start is safe
+        snap = self._recent()
         self._require_enabled(snap)
         q0 = self._to_q([snap[n][1] for n in self.nodes])
         dq = np.abs(target - q0)
@@ -608,15 +630,38 @@ class CanopenRobot:
             node.rpdo[1][0x607A].raw = snap[node_id][1]
             self._send_rpdo2(node, MODE_PP, 0, 0)
         self._compliant = False
-        for node_id, node in self.drives.items():
-            try:
-                node.state = "OPERATION ENABLED"
-            except (RuntimeError, ValueError) as e:
-                err = DeviceFault(f"canopen node {node_id}: cannot enable ({e}; state {node.state})",
-                                  device=f"node {node_id}")
-                self._latch(err)
-                raise err from None
+        self._enable_all(snap)
         self._raise_fault()
+
+    def _enable_all(self, snap, timeout: float = 1.0) -> None:
+        """CiA 402 power state machine of every drive at once: each round, every drive not yet OPERATION
+        ENABLED gets the controlword of its next transition (fault reset 2-edge, shutdown, switch on, enable
+        operation), and the next SYNC round confirms it; a drive needs up to 4 rounds, all drives together too
+        (one drive after another waited up to 3 rounds each)."""
+        step = {"FAULT": 0x80, "SWITCH ON DISABLED": CW_SHUTDOWN, "READY TO SWITCH ON": 0x07,
+                "SWITCHED ON": CW_ENABLE, "QUICK STOP ACTIVE": CW_ENABLE}
+        last: dict[int, int] = {}
+        end = time.monotonic() + timeout
+        while True:
+            pending = {n: state_of(snap[n][0]) for n in self.nodes if state_of(snap[n][0]) != "OPERATION ENABLED"}
+            if not pending:
+                self._changed_at = time.monotonic()
+                return
+            if time.monotonic() > end:
+                n, st = next(iter(pending.items()))
+                err = DeviceFault(f"canopen node {n}: cannot enable (stays in {st} after {timeout:g} s; "
+                                  f"node(s) {sorted(pending)} not enabled)", device=f"node {n}")
+                self._latch(err)
+                raise err
+            for n, st in pending.items():
+                cw = step.get(st)
+                if cw is None:
+                    continue  # NOT READY / FAULT REACTION ACTIVE pass by themselves
+                if cw == 0x80 and last.get(n) == 0x80:
+                    cw = 0x00  # the fault reset acts on a rising edge: drop the bit, set it again next round
+                last[n] = cw
+                self._send_rpdo1(self.drives[n], cw)
+            snap = self._round()
 
     def disable(self) -> None:
         self.stop()
@@ -647,12 +692,19 @@ class CanopenRobot:
         if self.contact_node is None:
             return None
         self._raise_fault()
-        pdo = self.drives[self.contact_node].tpdo[2]
-        if pdo.wait_for_reception(timeout=max(0.2, 5 * self.touch_ms / 1000.0)) is None:
-            self._raise_fault()
-            raise ConnectionLost(f"canopen node {self.contact_node}: no digital-input TPDO within "
-                                 f"{5 * self.touch_ms} ms")
-        value = struct.unpack_from("<I", bytes(pdo.data).ljust(4, b"\0"))[0]
+        # the input as the drive sampled it after the last command took effect (a move that ended, a mode
+        # switch) and within one event period of now: the newest TPDO2 if it is such, else the next one
+        with self._cv:
+            last = self._contact
+        now = time.monotonic()
+        if last is None or last[0] <= self._changed_at or now - last[0] > 1.5 * self.touch_ms / 1000.0:
+            pdo = self.drives[self.contact_node].tpdo[2]
+            if pdo.wait_for_reception(timeout=max(0.2, 5 * self.touch_ms / 1000.0)) is None:
+                self._raise_fault()
+                raise ConnectionLost(f"canopen node {self.contact_node}: no digital-input TPDO within "
+                                     f"{5 * self.touch_ms} ms")
+            last = (now, bytes(pdo.data))  # canopen stores the data before it runs our callback
+        value = struct.unpack_from("<I", last[1].ljust(4, b"\0"))[0]
         return bool(value >> CONTACT_BIT & 1)
 
     def set_compliant(self, on: bool) -> None:
@@ -660,18 +712,18 @@ class CanopenRobot:
         drive, so the arm yields and a socket can seat the tip. Off: hold the present position in profile
         position mode."""
         self._raise_fault()
-        snap = self._round()
-        self._require_enabled(snap)
+        self._require_enabled(self._recent())
         if on:
             for node in self.drives.values():
                 self._send_rpdo2(node, MODE_PT, 0, COMPLIANT_TORQUE)
-            self._wait_mode(MODE_PT)
+            self._wait_mode(MODE_PT)  # confirmed: a lost frame would leave the arm stiff while seating
             self._compliant = True
             return
         for node in self.drives.values():
             self._send_rpdo2(node, MODE_PP, 0, 0)
-        self._wait_mode(MODE_PP)
-        snap = self._round()
+        # confirmed: a lost frame would leave a joint limp; the drive holds the position it had at the switch,
+        # and the confirming round carries it (no extra round to read it)
+        snap = self._wait_mode(MODE_PP)
         for node_id, node in self.drives.items():
             self._send_rpdo1(node, CW_ENABLE, snap[node_id][1])
         self._compliant = False
