@@ -75,7 +75,7 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
     # the fit within DECIDE_TOL standard deviations of the minimum (sigma is then within ~1e-3 of its
     # final value); once the identified set stands, the iteration finishes to STEP_TOL on that set.
     iterations, converged, current = 0, False, False
-    tol, prev, exact, settled = DECIDE_TOL, None, True, False
+    tol, prev, exact, settled, finishing = DECIDE_TOL, None, True, False, False
     for _ in range(8):
         act = sorted(dec.accepted)
         if not exact:  # the last step was taken on the linear model: evaluate the chain there first
@@ -83,7 +83,7 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
         x, r, J, it, converged, rest, exact, prev, (xe, re) = _levenberg_marquardt(prob, x, act, max_iter, (r, J),
                                                                                   tol, prev)
         iterations += it
-        if tol == STEP_TOL:  # finished on a set decided within DECIDE_TOL of this minimum
+        if finishing:  # finished on a set decided within DECIDE_TOL of this minimum
             break
         if settled:
             # the last decision dropped columns with every remainder at least DECIDE_MARGIN away from the
@@ -96,7 +96,7 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
         if current and (rest < STEP_TOL or not converged):
             break
         if current:
-            tol = STEP_TOL
+            tol, finishing = STEP_TOL, True
             continue
         settled = dec.margin >= DECIDE_MARGIN and all(j in act for j in dec.accepted)
         dropped = [j for j in act if j not in dec.accepted]
@@ -115,6 +115,8 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
     sig = noise if noise is not None else math.sqrt(float(r @ r) / (m - len(dec.accepted)))
     # the reasons, condition number and observability index once, at the final Jacobian
     ana = _analyse(prob, J, x, sig, max_std, r, dec if current else None)
+    if not current:  # the identified set never settled within the rounds: not a minimum of the final set
+        converged = False
     return _result(model, prob, x, r, J, r_before, ana, iterations, converged, holdout,
                    dict(identify=identify if isinstance(identify, str) else ",".join(identify),
                         reference=_ref_setting(reference), instrument_frame=instrument_frame,
