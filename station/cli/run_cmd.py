@@ -212,11 +212,6 @@ def demo_world(bus: str, seed: int, time_mode: str = "instant", sigma_deg: float
     doc["errors"] = {"explicit": {f"offset.j{i + 1}": float(rng.normal(0, math.radians(sigma_deg)))
                                   if j.revolute else float(rng.normal(0, 0.1e-3)) for i, j in enumerate(m.joints)}}
     doc["motion"]["time_mode"] = time_mode
-    if bus == "canopen":
-        # the default arm6 cell puts the socket at the shoulder's limit (j2 hardly varies: ~0.02 deg spread of
-        # the estimate); a tall fixture lets the shoulder swing and the zero of joint 2 shows
-        doc["cell"] = {"points": [{"label": "A", "kind": "socket", "position": [0.40, 0.0, 0.70],
-                                   "approach": [0, 0, 1]}]}
     doc["buses"] = {"ur": {"serial": f"2023550{seed:04d}"}, "dynamixel": {"ids": [11, 12, 13, 14]},
                     "canopen": {"nodes": list(range(1, m.n_joints + 1))}}
     return doc

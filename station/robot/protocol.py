@@ -61,8 +61,9 @@ JogMode = Literal["joint", "cartesian"]
 class Robot(Protocol):
     """Fulfilled by every driver. Methods raise typed errors from ``station.robot.errors``.
 
-    A raised fault always leaves the robot stopped. ``speed`` arguments are joint speed in rad/s
-    (or m/s for prismatic) for joint motion and tool speed in m/s for Cartesian motion.
+    A raised fault always leaves the robot stopped. For joint motion ``speed`` is the speed of the joint
+    that moves most, per joint in its own unit (rad/s, m/s for a prismatic joint), every joint capped at
+    its own maximum; for Cartesian motion it is the tool speed in m/s (jogs never above 0.25 m/s).
     """
 
     model: Model  # nominal kinematic model the driver converts with
