@@ -191,6 +191,10 @@ def resume(session_ref: str | Path, *, db: str | None = None, touch=None,
         raise ConfigError(str(e)) from None
     if any(e.get("type") == "end" and e.get("status") == "completed" for e in events):
         raise ConfigError(f"session {header.get('session')} already completed; start a new one with station run")
+    if not header.get("procedure_path"):
+        kind = header.get("procedure") or "this kind of session"
+        raise ConfigError(f"session {header.get('session')} ({kind}) has no procedure file to resume; its samples "
+                          f"are kept in {path} (use station solve on its samples.csv, or start a new session)")
     proc = load_procedure(header["procedure_path"])
     if proc.sha256 != header.get("procedure_sha256"):
         raise ProcedureError(f"procedure {proc.path} changed since session {header['session']} started "
