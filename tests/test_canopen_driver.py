@@ -231,3 +231,40 @@ def test_no_drives_on_the_bus_is_connection_lost():
     chan = f"d-{uuid.uuid4().hex[:8]}"
     with pytest.raises(ConnectionLost, match="node 1 .*does not answer"):
         open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6")
+
+
+def test_enable_switches_all_drives_together_and_resets_faults(cell):
+    """All six drives walk the CiA 402 power state machine in the same SYNC rounds (3 transitions: a handful
+    of rounds, not 3 per drive one after another), and a drive in FAULT is reset on the way."""
+    world, emu, robot, chan = cell
+    emu.drives[4].fault(0x4310)
+    t0 = time.monotonic()
+    while not robot.status().faults and time.monotonic() - t0 < 1.0:
+        time.sleep(0.01)
+    before = robot.sync_frames
+    robot.enable()
+    rounds = robot.sync_frames - before
+    st = robot.status()
+    assert st.enabled and not st.faults
+    assert all(emu.drives[n].state == "OPERATION ENABLED" for n in range(1, 7))
+    assert rounds <= 12, rounds  # sequential enabling took >= 3 rounds per drive (18 for six)
+    target = np.array(START) + 0.05
+    robot.move_joints(target, speed=1.0)
+    assert np.max(np.abs(world.encoder_q() - target)) < 1e-5
+
+
+def test_touch_right_after_a_move_is_read_after_the_move(cell):
+    """The contact TPDO is event-timed (touch_ms): a reading from before the last command is never reused, even
+    a young one (instant world: the move onto the needle takes a few SYNC rounds, less than one event period)."""
+    world, emu, robot, chan = cell
+    robot.enable()
+    guess = np.array([0, -0.5, 0.5, 0, 0.5, 0])
+    q_needle = world.truth.ik(world.points["N"].position, guess, position_only=True).q[0]
+    q_off = world.truth.ik(world.points["N"].position + np.array([0, 0, 0.01]), q_needle, position_only=True).q[0]
+    robot.move_joints(q_off, speed=1.0)
+    for _ in range(3):
+        assert robot.touch() is False  # the newest reading is fresh and cached
+        robot.move_joints(q_needle, speed=2.0)
+        assert world.contact() and robot.touch() is True
+        robot.move_joints(q_off, speed=2.0)
+        assert not world.contact() and robot.touch() is False

@@ -180,7 +180,10 @@ def test_compliant_mode_seats_in_socket_and_touch_reads_contact(rig):
     assert res.ok[0]
     robot.move_joints(res.q[0])
     assert robot.touch() is False
+    n0 = robot.bus.transactions
     robot.set_compliant(True)
+    # torque off, mode, goal current, torque on (sync writes), one read-back of 64..135 and one of the mode
+    assert robot.bus.transactions - n0 == 6
     assert robot.status().compliant
     assert [emu.devices[i].get("operating_mode") for i in IDS] == [5] * 4
     assert world.seated == "A"

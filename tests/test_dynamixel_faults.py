@@ -131,3 +131,31 @@ def test_disconnect_mid_move_bus_watchdog_stops_the_arm():
         assert not world.is_moving()
         assert np.max(np.abs(world.encoder_q() - TARGET)) > 0.3
         assert all(emu.devices[i].get("bus_watchdog") == 255 for i in IDS)
+
+
+def _trip_watchdogs(emu, robot):
+    """Arm every servo's bus watchdog (20 ms) and keep the bus quiet: they trip (98 reads 255)."""
+    robot.bus.sync_write(98, 1, {i: 1 for i in IDS})
+    end = time.monotonic() + 2.0
+    while not all(emu.devices[i].get("bus_watchdog") == 255 for i in IDS) and time.monotonic() < end:
+        time.sleep(0.05)
+    assert all(emu.devices[i].get("bus_watchdog") == 255 for i in IDS)
+
+
+def test_enable_clears_a_tripped_bus_watchdog():
+    """After a run died mid-move the watchdogs are tripped and refuse goals; enable() clears them (no move
+    needed), confirmed by its read-back."""
+    world = World.default(model="omx", seed=4, time_mode="realtime")
+    with DynamixelEmulator(world, ids=IDS) as emu, \
+            open_robot(f"dynamixel://{emu.path}?ids=11-14&model=omx&latency=50") as robot:
+        robot.enable()
+        _trip_watchdogs(emu, robot)
+        st = robot.status()
+        assert len(st.faults) == 4 and all("bus watchdog tripped" in f for f in st.faults)
+        robot.enable()
+        assert not robot.status().faults
+        assert all(emu.devices[i].get("bus_watchdog") == 0 for i in IDS)
+        robot.move_joints(TARGET, speed=2.0)
+        assert np.max(np.abs(robot.joint_positions().q - TARGET)) < 2e-3
+        assert all(emu.devices[i].get("bus_watchdog") == 0 for i in IDS)  # disarmed after the move
+

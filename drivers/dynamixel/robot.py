@@ -45,6 +45,12 @@ class DynamixelRobot:
         self.url = url
         self.bus = DxlBus(port, baud, retries, latency_ms)
         self._compliant = False
+        self._wd_clear = False  # every servo's bus watchdog known to be 0 (not armed, not tripped)
+        self._maybe_moving = True  # a move not waited for (or cut short) may still run
+        self._current_limits: dict[int, int] | None = None  # Current Limit (38, EEPROM): read once
+        # Present Position (ticks) read while the arm rests holding under torque with nothing commanded since
+        # (end of a waited move, torque on): the next move starts from it instead of reading again
+        self._rest: list[int] | None = None
         self._interrupt = threading.Event()  # set by stop() from any thread: ends a waited move
         self._closed = False
         try:
@@ -196,29 +202,45 @@ class DynamixelRobot:
         if self._compliant:
             raise LimitError("move: the arm is compliant (set_compliant(False) first); nothing was sent")
         self._interrupt.clear()
-        start = self.joint_positions()
-        vel, acc = self._profiles(start.q, target, speed)
+        # the start only scales the joints' profile velocities so they arrive together (each stays within
+        # its limit whatever the start): a resting position read since the last command is good for it
+        rest, self._rest = self._rest, None
+        if rest is None:
+            start_q = self.joint_positions().q
+        else:
+            start_q = np.array([float(self._enc(j).to_si(k)) for j, k in enumerate(rest)])
+        vel, acc = self._profiles(start_q, target, speed)
         goals = [int(round(float(self._enc(j).to_counts(target[j])))) for j in range(len(self.ids))]
         payload = {i: b"".join(int(x).to_bytes(4, "little", signed=True) for x in (acc[k], vel[k], goals[k]))
                    for k, i in enumerate(self.ids)}
         if not wait:
+            self._maybe_moving = True
+            self._rest = None
             self._send_goals(payload, goals)
             return
-        # while we watch the move, the servos' bus watchdog stops them if the bus goes quiet
-        # (0 first: a servo whose watchdog tripped earlier only re-arms from 0)
-        self._guard(self.bus.sync_write, T.BUS_WATCHDOG, 1, {i: 0 for i in self.ids})
+        # while we watch the move, the servos' bus watchdog stops them if the bus goes quiet. A tripped
+        # watchdog only re-arms from 0: the 0 is written first unless the last move (or enable()) left every
+        # watchdog at 0
+        if not self._wd_clear:
+            self._guard(self.bus.sync_write, T.BUS_WATCHDOG, 1, {i: 0 for i in self.ids})
+        self._wd_clear = False
         self._guard(self.bus.sync_write, T.BUS_WATCHDOG, 1, {i: T.WATCHDOG_UNITS for i in self.ids})
         done = False
+        self._maybe_moving = True
         try:
-            self._send_goals(payload, goals)
-            lead_k = int(np.argmax(np.abs(target - start.q)))
-            lead = float(abs(target[lead_k] - start.q[lead_k]))
+            self._guard(self.bus.sync_write, T.PROFILE_ACCELERATION, 12, payload)
+            lead_k = int(np.argmax(np.abs(target - start_q)))
+            lead = float(abs(target[lead_k] - start_q[lead_k]))
             v = vel[lead_k] * T.VELOCITY_UNIT / self._enc(lead_k).gear
-            self._wait(goals, timeout=3.0 * lead / v + 2.0)
+            a = acc[lead_k] * T.ACCEL_UNIT / self._enc(lead_k).gear
+            expected = lead / v + v / a if lead > 0 else 0.0  # trapezoid (an upper bound for a triangle)
+            self._wait(goals, timeout=3.0 * lead / v + 2.0, expected=expected)
             done = True
         finally:
             if done:
                 self._guard(self.bus.sync_write, T.BUS_WATCHDOG, 1, {i: 0 for i in self.ids})
+                self._wd_clear = True  # see docs/hardware-dynamixel.md: a lost 0 shows as a refused next goal
+                self._maybe_moving = False
             else:
                 with contextlib.suppress(StationError):
                     self.bus.sync_write(T.BUS_WATCHDOG, 1, {i: 0 for i in self.ids})
@@ -236,24 +258,41 @@ class DynamixelRobot:
                               "(outside its min/max position limits 52/48, or bus watchdog tripped); stopped",
                               device=f"dynamixel:{refused[0]}")
 
-    def _wait(self, goals: list[int], timeout: float) -> None:
-        """Poll Moving (one sync read per poll) until every servo is in position."""
-        deadline = time.monotonic() + timeout
+    def _wait(self, goals: list[int], timeout: float, expected: float = 0.0) -> None:
+        """Poll until every servo is in position: one sync read of Goal Position .. Present Position (116..135)
+        per poll. The first poll, right after the Sync Write, is its confirmation (Sync Write has no status):
+        a refused goal (position limits 48/52, tripped bus watchdog, hardware error) is caught there. Polls are
+        sparse while the profile still runs (``expected`` s) and every 2 ms near its end."""
+        t0 = time.monotonic()
+        deadline = t0 + timeout
+        first = True
         while True:
             if self._interrupt.is_set():
                 raise SafetyStop("move: interrupted by stop(); the arm holds where it stopped")
-            moving, errors = self._guard(self._read_all, T.MOVING, 1, False)
-            self._check_alerts(errors)
-            if not any(moving):
-                snap = self.joint_positions()
-                off = [abs(int(r) - g) for r, g in zip(snap.raw, goals, strict=True)]
-                if max(off) <= 10:  # the servo's default moving threshold (ticks)
-                    return
-            if time.monotonic() > deadline:
-                self._halt_quietly()
+            out = self._guard(self.bus.sync_read, T.GOAL_POSITION, T.POLL_SIZE, self.ids, self.fast)
+            data = [out[i][0] for i in self.ids]
+            back = [unpack(d[0:4]) for d in data]
+            present = [unpack(d[T.POLL_PRESENT:T.POLL_PRESENT + 4]) for d in data]
+            self._check_alerts([out[i][1] for i in self.ids], present)
+            if first:
+                first = False
+                refused = [i for i, b, g in zip(self.ids, back, goals, strict=True) if b != g]
+                if refused:
+                    self._halt_quietly(present)
+                    raise DeviceFault(f"move: {', '.join(self._name(i) for i in refused)} refused the goal "
+                                      "position (outside its min/max position limits 52/48, or bus watchdog "
+                                      "tripped); stopped", device=f"dynamixel:{refused[0]}")
+            if not any(d[T.POLL_MOVING] for d in data) and max(
+                    abs(p - g) for p, g in zip(present, goals, strict=True)) <= 10:  # the moving threshold
+                self._rest = present
+                return
+            now = time.monotonic()
+            if now > deadline:
+                self._halt_quietly(present)
                 raise DeviceFault(f"move: the arm did not reach its target within {timeout:.1f} s "
                                   "(blocked or torque off?); it was stopped", device="dynamixel")
-            time.sleep(0.01)
+            # half the expected remaining time, 2..50 ms (the bus watchdog needs a packet every 200 ms)
+            time.sleep(min(0.05, max(0.002, (t0 + expected - now) / 2)))
 
     def jog(self, mode: str, axis: int, step: float, speed: float | None = None) -> None:
         snap = self.joint_positions()
@@ -270,16 +309,20 @@ class DynamixelRobot:
     def stop(self) -> None:
         """Every servo holds where it is now (goal := present); a waited move in another thread ends."""
         self._interrupt.set()
+        self._rest = None
         ticks, _ = self._read_all(T.PRESENT_POSITION, 4)
         self.bus.sync_write(T.GOAL_POSITION, 4, dict(zip(self.ids, ticks, strict=True)))
         goals, _ = self._read_all(T.GOAL_POSITION, 4)  # sync write has no status: confirm it landed
         late = [i for i, g, t in zip(self.ids, goals, ticks, strict=True) if abs(g - t) > 10]
+        if not late:
+            self._maybe_moving = False
         if late:
             raise DeviceFault(f"stop: {', '.join(self._name(i) for i in late)} did not take the hold position "
                               "(bus watchdog or hardware error?)", device=f"dynamixel:{late[0]}")
 
     def _torque(self, on: bool, ids: list[int] | None = None) -> None:
         ids = self.ids if ids is None else ids
+        self._rest = None
         self._guard(self.bus.sync_write, T.TORQUE_ENABLE, 1, {i: int(on) for i in ids})
         state, errors = self._guard(self._read_all, T.TORQUE_ENABLE, 1, False)
         wrong = [i for i, s in zip(self.ids, state, strict=True) if i in ids and bool(s) != on]
@@ -289,7 +332,44 @@ class DynamixelRobot:
                               device=f"dynamixel:{wrong[0]}")
 
     def enable(self) -> None:
-        self._torque(True)
+        """Torque on every servo (goal := present: it holds) and every bus watchdog cleared to 0 (one that
+        tripped when a previous run lost the bus mid-move refuses goals until then), confirmed by one read."""
+        self._guard(self.bus.sync_write, T.BUS_WATCHDOG, 1, {i: 0 for i in self.ids})
+        self._guard(self.bus.sync_write, T.TORQUE_ENABLE, 1, {i: 1 for i in self.ids})
+        self._confirm(torque=True)
+        self._wd_clear = True
+        self._maybe_moving = False
+
+    def _confirm(self, torque: bool, mode: int | None = None, current: dict[int, int] | None = None) -> None:
+        """Read back what was sync-written (no status packets): torque, bus watchdog 0 and Goal Current from
+        one read of 64..103, the operating mode (EEPROM, 11) from a second one if it was switched."""
+        self._rest = None
+        out = self._guard(self.bus.sync_read, T.TORQUE_ENABLE, T.CONFIRM_SIZE, self.ids, self.fast, False)
+        data = {i: out[i][0] for i in self.ids}
+        errors = [out[i][1] for i in self.ids]
+        wrong = [i for i in self.ids if bool(data[i][0]) != torque]
+        if wrong:
+            self._check_alerts(errors)
+            raise DeviceFault(f"torque {'on' if torque else 'off'} refused by "
+                              f"{', '.join(self._name(i) for i in wrong)}", device=f"dynamixel:{wrong[0]}")
+        tripped = [i for i in self.ids if data[i][T.BUS_WATCHDOG - T.TORQUE_ENABLE] != 0]
+        if tripped:
+            raise DeviceFault(f"bus watchdog of {', '.join(self._name(i) for i in tripped)} did not clear "
+                              "(still armed or tripped)", device=f"dynamixel:{tripped[0]}")
+        if current is not None:
+            k = T.GOAL_CURRENT - T.TORQUE_ENABLE
+            off = [i for i in self.ids if unpack(data[i][k:k + 2]) != current[i]]
+            if off:
+                raise DeviceFault(f"goal current not taken by {', '.join(self._name(i) for i in off)}",
+                                  device=f"dynamixel:{off[0]}")
+        if mode is not None:
+            modes, _ = self._guard(self._read_all, T.OPERATING_MODE, 1, False)
+            if any(m != mode for m in modes):
+                raise DeviceFault(f"set_compliant: operating mode {mode} not accepted (read back {modes})",
+                                  device="dynamixel")
+        if torque and mode != T.MODE_CURRENT_POSITION:  # torque on sets goal := present: it holds there
+            k = T.PRESENT_POSITION - T.TORQUE_ENABLE
+            self._rest = [unpack(data[i][k:k + 4]) for i in self.ids]
 
     def disable(self) -> None:
         self._torque(False)
@@ -307,7 +387,7 @@ class DynamixelRobot:
                 fault = f"hardware error 0x{hw[k]:02X} ({T.describe_hardware_error(hw[k])})"
                 faults.append(f"{self._name(i)}: {fault}")
             elif watchdog[k] == 255:
-                fault = "bus watchdog tripped (the bus went quiet during a move): it holds; next move re-arms"
+                fault = "bus watchdog tripped (the bus went quiet during a move): it holds; enable() clears it"
                 faults.append(f"{self._name(i)}: {fault}")
             joints.append(JointState(self.model.joints[k].name, bool(torque[k]), bool(moving[k]), fault))
         return RobotStatus(enabled=all(torque), moving=any(moving), faults=tuple(faults),
@@ -327,20 +407,23 @@ class DynamixelRobot:
         if no_current:
             raise ConfigError(f"set_compliant: {', '.join(self._name(i) for i in no_current)} has no "
                               "current-based position mode (XL430 has no current sensing)")
-        self.stop()
-        self._torque(False)
+        if self._maybe_moving:
+            self.stop()  # a move not waited for may still run: hold before the torque goes off
         mode = T.MODE_CURRENT_POSITION if on else T.MODE_POSITION
-        self._guard(self.bus.sync_write, T.OPERATING_MODE, 1, {i: mode for i in self.ids})
         if on:
-            self._guard(self.bus.sync_write, T.GOAL_CURRENT, 2, {i: T.COMPLIANT_GOAL_CURRENT for i in self.ids})
+            current = {i: T.COMPLIANT_GOAL_CURRENT for i in self.ids}
         else:
-            limits, _ = self._guard(self._read_all, T.CURRENT_LIMIT, 2, False)
-            self._guard(self.bus.sync_write, T.GOAL_CURRENT, 2, dict(zip(self.ids, limits, strict=True)))
-        modes, _ = self._guard(self._read_all, T.OPERATING_MODE, 1, False)
-        if any(m != mode for m in modes):
-            raise DeviceFault(f"set_compliant: operating mode {mode} not accepted (read back {modes})",
-                              device="dynamixel")
-        self._torque(True)  # enabling sets goal := present: the arm holds where it is
+            if self._current_limits is None:
+                limits, _ = self._guard(self._read_all, T.CURRENT_LIMIT, 2, False)
+                self._current_limits = dict(zip(self.ids, limits, strict=True))
+            current = dict(self._current_limits)
+        # four sync writes, confirmed once at the end: a lost torque-off makes the servo refuse the mode
+        # (EEPROM), a lost mode / current / torque-on write shows in the read-back; either raises DeviceFault
+        self._guard(self.bus.sync_write, T.TORQUE_ENABLE, 1, {i: 0 for i in self.ids})
+        self._guard(self.bus.sync_write, T.OPERATING_MODE, 1, {i: mode for i in self.ids})
+        self._guard(self.bus.sync_write, T.GOAL_CURRENT, 2, current)
+        self._guard(self.bus.sync_write, T.TORQUE_ENABLE, 1, {i: 1 for i in self.ids})  # goal := present: holds
+        self._confirm(torque=True, mode=mode, current=current)
         self._compliant = bool(on)
 
     def _offset_si(self, j: int, ticks: int) -> float:
@@ -406,6 +489,7 @@ class DynamixelRobot:
             if not 0 <= k < len(self.ids):
                 raise ConfigError(f"reboot: joint index {joint} outside 0..{len(self.ids) - 1}")
         i = self.ids[k]
+        self._rest = None
         self.bus.reboot(i)
         deadline = time.monotonic() + 2.0  # a real servo needs ~0.5 s to come back
         while True:

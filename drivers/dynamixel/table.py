@@ -13,6 +13,11 @@ HOMING_OFFSET, CURRENT_LIMIT, MAX_POSITION_LIMIT, MIN_POSITION_LIMIT = 20, 38, 4
 TORQUE_ENABLE, HARDWARE_ERROR_STATUS, BUS_WATCHDOG, GOAL_CURRENT = 64, 70, 98, 102
 PROFILE_ACCELERATION, PROFILE_VELOCITY, GOAL_POSITION = 108, 112, 116
 MOVING, PRESENT_POSITION = 122, 132
+# one poll of a waited move: Goal Position .. Present Position (116..135), offsets of Moving and Present Position
+POLL_SIZE, POLL_MOVING, POLL_PRESENT = 20, MOVING - GOAL_POSITION, PRESENT_POSITION - GOAL_POSITION
+# read-back after torque / compliance switches: 64..135, torque .. hardware error .. bus watchdog .. goal current
+# .. present position
+CONFIRM_SIZE = PRESENT_POSITION + 4 - TORQUE_ENABLE
 # contact sensor device (this project's, model 0x5A01): 1 while the tool touches a needle / sits in a socket
 CONTACT = 128
 
