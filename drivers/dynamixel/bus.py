@@ -6,6 +6,8 @@ port left behind by a failed call) are retried ``retries`` times, then raised as
 
 from __future__ import annotations
 
+import contextlib
+import select
 import threading
 from collections.abc import Callable
 
@@ -25,6 +27,19 @@ class DxlPort(sdk.PortHandler):
     def __init__(self, port_name: str, latency_ms: float = sdk.port_handler.LATENCY_TIMER) -> None:
         super().__init__(port_name)
         self.latency_ms = float(latency_ms)
+
+    def readPort(self, length):  # noqa: N802 - SDK method name
+        """The SDK calls this in a tight loop until the answer is complete or its packet timeout passes (the
+        port is non-blocking): with nothing to read yet, wait in ``select`` for the next byte (at most 5 ms,
+        so the SDK's timeout checks stay on time) instead of spinning, which held a core and the GIL."""
+        data = self.ser.read(length)
+        if data or length <= 0:
+            return data
+        left_ms = self.packet_timeout - self.getTimeSinceStart()
+        if left_ms > 0:
+            with contextlib.suppress(OSError, ValueError):
+                select.select([self.ser.fileno()], [], [], min(left_ms / 1000.0, 0.005))
+        return self.ser.read(length)
 
     def setPacketTimeout(self, packet_length):  # noqa: N802 - SDK method name
         self.packet_start_time = self.getCurrentTime()
