@@ -10,7 +10,9 @@ The Dynamixel and CANopen emulators run in this process (threads) so the world's
 UR emulator is a separate process (``station mock ur``) whose motion is observed over a second RTDE client.
 The station talks to each over the real wire (pty, python-can virtual bus, loopback TCP with ur_rtde).
 
-Run: ``.venv/bin/python bench/eol.py [--only ur,canopen,dynamixel] [--poses 20] [--time-scale 1]``"""
+Run: ``.venv/bin/python bench/eol.py [--only ur,canopen,dynamixel] [--poses 20] [--time-scale 1]
+[--canopen-sync-ms 10] [--calls]``; ``--calls`` also prints, per robot method, the calls and the time spent
+inside them while nothing moves (where the driver+bus share goes)."""
 
 from __future__ import annotations
 
