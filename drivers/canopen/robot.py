@@ -221,7 +221,7 @@ class CanopenRobot:
             node.sdo.RESPONSE_TIMEOUT = 0.3
             self.drives[node_id] = node
         for node_id, node in self.drives.items():
-            dtype = self._sdo_read(node, 0x1000)
+            dtype = self._first_contact(node)
             if dtype & 0xFFFF != 402:
                 raise ConfigError(f"canopen node {node_id} on {self.where} is not a CiA 402 drive "
                                   f"(device type 0x{dtype:08X})")
@@ -249,6 +249,17 @@ class CanopenRobot:
             node.rpdo[1][0x607A].raw = snap[node_id][1]
             self._send_rpdo2(node, MODE_PP, 0, 0)
         self._wait_mode(MODE_PP)
+
+    def _first_contact(self, node, attempts: int = 3) -> int:
+        """Device type 0x1000, asked up to ``attempts`` times: a drive still booting (power-up, or NMT reset just
+        before the station connects) ignores SDO requests until its boot-up message."""
+        for attempt in range(attempts):
+            try:
+                return self._sdo_read(node, 0x1000)
+            except ConnectionLost:
+                if attempt == attempts - 1:
+                    raise
+        raise AssertionError("unreachable")
 
     def _find_contact(self) -> int | None:
         if self._contact_arg != "auto":
