@@ -10,6 +10,8 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from table import print_table  # noqa: E402 - bench/ is not a package
 
 
 def _load(name: str):
@@ -29,14 +31,7 @@ def main() -> int:
         module = _load(bus.strip())
         kw = {"seconds": args.ur_seconds} if bus.strip() == "ur" else {}
         rows.extend({"bus": bus.strip(), **r} for r in module.rows(**kw))
-    cols: list[str] = []
-    for r in rows:
-        cols.extend(k for k in r if k not in cols)
-    widths = {c: max(len(c), *(len(str(r.get(c, ""))) for r in rows)) for c in cols}
-    print(" | ".join(c.ljust(widths[c]) for c in cols))
-    print("-|-".join("-" * widths[c] for c in cols))
-    for r in rows:
-        print(" | ".join(str(r.get(c, "")).ljust(widths[c]) for c in cols))
+    print_table(rows)
     return 0
 
 

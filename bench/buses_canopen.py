@@ -13,6 +13,7 @@ import argparse
 import sys
 import time
 import uuid
+from pathlib import Path
 
 import can
 from station.mocks.canopen.emulator import CanopenEmulator
@@ -20,6 +21,9 @@ from station.mocks.canopen.hub import SocketcandHub
 from station.mocks.world import World
 
 from station.robot import open_robot
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from table import print_table  # noqa: E402 - bench/ is not a package
 
 N_NODES = 6
 
@@ -95,12 +99,7 @@ def main() -> int:
     ap.add_argument("--snapshots", type=int, default=200)
     args = ap.parse_args()
     table = rows(args.snapshots)
-    cols = list(table[0])
-    widths = {c: max(len(c), *(len(str(r[c])) for r in table)) for c in cols}
-    print(" | ".join(c.ljust(widths[c]) for c in cols))
-    print("-|-".join("-" * widths[c] for c in cols))
-    for r in table:
-        print(" | ".join(str(r[c]).ljust(widths[c]) for c in cols))
+    print_table(table)
     return 0
 
 

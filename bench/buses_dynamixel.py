@@ -14,10 +14,14 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import dynamixel_sdk as sdk
 from station.mocks.dynamixel import DynamixelEmulator
 from station.mocks.world import World
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from table import print_table  # noqa: E402 - bench/ is not a package
 
 BAUD = 1_000_000
 
@@ -135,12 +139,7 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=0.5, help="measuring time per row")
     args = ap.parse_args()
     table = rows(args.seconds)
-    cols = list(table[0])
-    widths = {c: max(len(c), *(len(str(r[c])) for r in table)) for c in cols}
-    print(" | ".join(c.ljust(widths[c]) for c in cols))
-    print("-|-".join("-" * widths[c] for c in cols))
-    for r in table:
-        print(" | ".join(str(r[c]).ljust(widths[c]) for c in cols))
+    print_table(table)
     return 0
 
 

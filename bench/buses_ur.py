@@ -15,6 +15,9 @@ import threading
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from table import print_table  # noqa: E402 - bench/ is not a package
+
 PERIOD = 0.002  # e-Series cycle
 
 
@@ -132,12 +135,7 @@ def main() -> int:
     ap.add_argument("--moves", type=int, default=100, help="zero-length moveJ calls to time")
     args = ap.parse_args()
     table = rows(args.seconds, args.moves)
-    cols = list(table[0])
-    widths = {c: max(len(c), *(len(str(r[c])) for r in table)) for c in cols}
-    print(" | ".join(c.ljust(widths[c]) for c in cols))
-    print("-|-".join("-" * widths[c] for c in cols))
-    for r in table:
-        print(" | ".join(str(r[c]).ljust(widths[c]) for c in cols))
+    print_table(table)
     return 0
 
 

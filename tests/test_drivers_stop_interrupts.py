@@ -8,8 +8,8 @@ from station.mocks.world import World
 from station.robot import SafetyStop, open_robot
 
 
-def _interrupt_long_move(robot, world):
-    robot.enable()
+def _interrupt_long_move(robot, joint0, idle=lambda: True):
+    """Start a slow waited move in a thread, stop() from here; ``joint0()`` reads joint 1 afterwards."""
     q0 = robot.joint_positions().q
     target = q0.copy()
     target[0] += 0.6  # ~several seconds at a slow speed
@@ -23,17 +23,17 @@ def _interrupt_long_move(robot, world):
 
     t = threading.Thread(target=mover)
     t.start()
-    time.sleep(0.8)
+    time.sleep(1.0)
     t0 = time.monotonic()
     robot.stop()
     t.join(5.0)
     assert not t.is_alive(), "waited move did not end after stop()"
     assert time.monotonic() - t0 < 2.0
     assert err and isinstance(err[0], SafetyStop), err
-    time.sleep(0.3)
-    q_stop = world.encoder_q()[0]
+    time.sleep(0.5)
+    q_stop = joint0()
     assert q0[0] + 0.01 < q_stop < target[0] - 0.1  # stopped part-way, not at the target
-    assert not world.is_moving()
+    assert idle()
 
 
 def test_canopen_stop_interrupts_waited_move():
@@ -45,7 +45,8 @@ def test_canopen_stop_interrupts_waited_move():
     try:
         robot = open_robot("canopen+virtual://stopint?nodes=1-6&model=arm6")
         try:
-            _interrupt_long_move(robot, world)
+            robot.enable()
+            _interrupt_long_move(robot, lambda: world.encoder_q()[0], lambda: not world.is_moving())
         finally:
             robot.close()
     finally:
@@ -61,7 +62,8 @@ def test_dynamixel_stop_interrupts_waited_move():
     try:
         robot = open_robot(f"dynamixel://{path}?ids=11-14&model=omx&latency=50")
         try:
-            _interrupt_long_move(robot, world)
+            robot.enable()
+            _interrupt_long_move(robot, lambda: world.encoder_q()[0], lambda: not world.is_moving())
         finally:
             robot.close()
     finally:
@@ -81,27 +83,7 @@ def test_ur_stop_interrupts_waited_move(tmp_path):
     try:
         robot = open_robot(f"ur://{emu.host}?model=ur5e")
         try:
-            q0 = robot.joint_positions().q
-            target = q0.copy()
-            target[0] += 0.6
-            err: list[BaseException] = []
-
-            def mover():
-                try:
-                    robot.move_joints(target, speed=0.1, wait=True)
-                except BaseException as e:  # noqa: BLE001 - handed to the test thread
-                    err.append(e)
-
-            t = threading.Thread(target=mover)
-            t.start()
-            time.sleep(1.0)
-            robot.stop()
-            t.join(5.0)
-            assert not t.is_alive(), "waited move did not end after stop()"
-            assert err and isinstance(err[0], SafetyStop), err
-            time.sleep(0.5)
-            q_stop = robot.joint_positions().q[0]
-            assert q0[0] + 0.01 < q_stop < target[0] - 0.1
+            _interrupt_long_move(robot, lambda: robot.joint_positions().q[0])
         finally:
             robot.close()
     finally:
