@@ -390,7 +390,7 @@ def run_demo(bus: str, *, time_mode: str = "instant", seed: int = 5, quiet: bool
                        f"({abs(v - truth) / sd if sd else 0:.1f} σ{'' if count < 1e-3 else f', count {count:.3f}'})"
                        f" {'ok' if ok else 'OFF'}")
         else:
-            typer.echo(f"  {name:12s} {truth:10.4f} {'—':>10s}  not identifiable: {p.get('reason') or ''}"[:118])
+            typer.echo(f"  {name:12s} {truth:10.4f} {'—':>10s}  not identifiable: {p.get('reason') or ''}")
     typer.echo("")
     summary(out)
     typer.echo(f"time:     {time.monotonic() - t0:.1f} s")
