@@ -238,6 +238,14 @@ class URRobot:
             self._halt_quietly()
             raise err
 
+    def _why_script_stopped(self, window: float = 0.05) -> None:
+        """The control connection can see the script stop a package or two before the receive stream shows
+        why (a protective stop pauses the program): watch the safety bits for a few cycles, raise what they say."""
+        end = time.monotonic() + window
+        while time.monotonic() < end:
+            self._check_safety()
+            time.sleep(0.004)
+
     def _halt_quietly(self, dashboard: bool = False) -> None:
         """Leave the robot stopped after a fault, whatever state the link is in. ``dashboard``: stop the
         program over port 29999 (when RTDE data is stale, a control command would wait for its answer)."""
@@ -388,6 +396,7 @@ class URRobot:
             self._check_link_moving()
             self._check_safety()
             if not self._c.isProgramRunning():
+                self._why_script_stopped()
                 self._halt_quietly()
                 raise DeviceFault(f"ur://{self.host}: the control script stopped during the move")
             if self._c.getAsyncOperationProgress() < 0:
