@@ -1,4 +1,4 @@
-"""Bus benchmark table: one row per bus/measurement, from each bus's own bench module.
+"""Bus benchmark tables, one per bus, from each bus's own bench module (bench/buses_<bus>.py).
 
 Run: ``.venv/bin/python bench/buses.py [--only dynamixel,canopen,ur] [--ur-seconds 60]``"""
 
@@ -26,12 +26,11 @@ def main() -> int:
     ap.add_argument("--only", default="dynamixel,canopen,ur")
     ap.add_argument("--ur-seconds", type=float, default=60.0)
     args = ap.parse_args()
-    rows: list[dict] = []
-    for bus in args.only.split(","):
-        module = _load(bus.strip())
-        kw = {"seconds": args.ur_seconds} if bus.strip() == "ur" else {}
-        rows.extend({"bus": bus.strip(), **r} for r in module.rows(**kw))
-    print_table(rows)
+    for i, bus in enumerate(b.strip() for b in args.only.split(",")):
+        module = _load(bus)
+        kw = {"seconds": args.ur_seconds} if bus == "ur" else {}
+        print(("\n" if i else "") + f"## {bus}")
+        print_table(module.rows(**kw))  # each bus has its own columns: one table per bus
     return 0
 
 
