@@ -15,11 +15,5 @@ PROVIDERS = ("station.mocks.world.cli", "station.mocks.dynamixel.cli", "station.
 
 def register(app: typer.Typer) -> None:
     for name in PROVIDERS:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as e:
-            if e.name != name:  # a real import error inside the provider is a bug: surface it
-                raise
-            continue  # provider not built yet
-        module.register(mock_app)
+        importlib.import_module(name).register(mock_app)
     app.add_typer(mock_app, name="mock")
