@@ -10,7 +10,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import yaml
 from station.mocks.world.cell import DEFAULTS, KINDS
 
 from station.robot.errors import ConfigError
@@ -319,13 +318,6 @@ def spec_to_dict(s: WorldSpec, model, length: str = "m", angle: str = "rad") -> 
 
 
 def load_world_doc(path: str | Path) -> dict:
-    path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except OSError as e:
-        raise WorldFileError(f"{path}: cannot read ({e.strerror})") from None
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        line = f" line {mark.line + 1}" if mark else ""
-        raise WorldFileError(f"{path}:{line} not valid YAML") from None
-    return doc
+    from station.yamlfile import load_yaml
+
+    return load_yaml(path, WorldFileError)

@@ -20,7 +20,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from station.robot.errors import ConfigError
 
@@ -86,14 +85,10 @@ def _vec(where: str, v, scale: float, unit: bool = False) -> np.ndarray:
 
 
 def load_cell(path: str | Path | None = None) -> Cell:
+    from station.yamlfile import load_yaml
+
     path = Path(path) if path else default_cell_path()
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except OSError as e:
-        raise CellError(f"cell file {path}: {e.strerror or e} (pass --cell FILE or set STATION_CELL)") from None
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        raise CellError(f"cell file {path}{f' line {mark.line + 1}' if mark else ''}: not valid YAML") from None
+    doc = load_yaml(path, CellError, "cell file", " (pass --cell FILE or set STATION_CELL)")
     return cell_from_dict(doc, str(path))
 
 

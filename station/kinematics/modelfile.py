@@ -111,16 +111,9 @@ def model_from_dict(doc: dict, where: str = "<model>") -> Model:
 
 
 def load_model_file(path: str | Path) -> Model:
-    path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except OSError as e:
-        raise ModelFileError(f"{path}: cannot read ({e.strerror})") from None
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        line = f" line {mark.line + 1}" if mark else ""
-        raise ModelFileError(f"{path}:{line} not valid YAML") from None
-    return model_from_dict(doc, str(path))
+    from station.yamlfile import load_yaml
+
+    return model_from_dict(load_yaml(path, ModelFileError), str(path))
 
 
 def model_to_dict(model: Model, length: str = "m", angle: str = "rad") -> dict:

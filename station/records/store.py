@@ -19,6 +19,7 @@ from sqlalchemy.engine import URL, Connection, Engine, make_url
 from sqlalchemy.exc import ArgumentError, DBAPIError, NoSuchModuleError, SQLAlchemyError
 
 from station.records import schema as S
+from station.records.verdict import finite_or_none as _float
 from station.records.verdict import measurement_status
 from station.robot.errors import ConfigError, StationError
 
@@ -128,16 +129,6 @@ def _dumps(obj) -> str:
 
 def _loads(text: str | None):
     return None if text is None else json.loads(text)
-
-
-def _float(x) -> float | None:
-    if x is None or isinstance(x, bool):
-        return None
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        return None
-    return v if math.isfinite(v) else None
 
 
 def _time(text, what: str) -> datetime | None:

@@ -7,7 +7,8 @@ import math
 STATUSES = ("PASS", "MARGINAL", "FAIL")
 
 
-def _num(x) -> float | None:
+def finite_or_none(x) -> float | None:
+    """``x`` as a finite float, else None (None, bools, text, NaN and infinities)."""
     if x is None or isinstance(x, bool):
         return None
     try:
@@ -26,7 +27,7 @@ def measurement_status(m: dict) -> str:
     status = str(m.get("status") or "").upper()
     if status in STATUSES:
         return status
-    value, low, high = _num(m.get("value")), _num(m.get("low")), _num(m.get("high"))
+    value, low, high = finite_or_none(m.get("value")), finite_or_none(m.get("low")), finite_or_none(m.get("high"))
     passed = m.get("passed")
     if passed is None:
         if value is None:
@@ -37,7 +38,7 @@ def measurement_status(m: dict) -> str:
     marginal = m.get("marginal")
     if marginal is True:
         return "MARGINAL"
-    band = _num(marginal)
+    band = finite_or_none(marginal)
     if band and value is not None and (
             (high is not None and value > high - band) or (low is not None and value < low + band)):
         return "MARGINAL"
