@@ -33,10 +33,23 @@ def fail(message: str, code: int = 2) -> typer.Exit:
     return typer.Exit(code)
 
 
+def _quiet_bus_libraries() -> None:
+    """Bus libraries log each failed transfer at ERROR; the typed error the station raises already says what
+    happened in one line, so their narration is kept for ``STATION_DEBUG=1``."""
+    import logging
+    import os
+
+    logging.basicConfig(level=logging.WARNING, format="station: %(name)s: %(message)s")
+    debug = bool(os.environ.get("STATION_DEBUG"))
+    for name in ("can", "canopen"):
+        logging.getLogger(name).setLevel(logging.DEBUG if debug else logging.CRITICAL)
+
+
 def main() -> None:
     from station.kinematics.modelfile import ModelFileError
     from station.robot.errors import StationError
 
+    _quiet_bus_libraries()
     try:
         # in non-standalone mode click *returns* the code of a raised Exit instead of exiting
         rc = app(standalone_mode=False)

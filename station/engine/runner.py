@@ -166,7 +166,9 @@ def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, lim
     from station.robot import open_robot
 
     proc = procedure if isinstance(procedure, Procedure) else load_procedure(procedure)
-    load_limits(limits)  # a bad limits file fails before the robot is opened
+    load_limits(limits)  # a bad limits or cell file fails before the robot is opened
+    if cell is not None:
+        load_cell(cell)
     robot = robot or open_robot(robot_url)
     try:
         s = create_session(robot, serial, procedure=proc, limits=limits, db=db, apply=apply, cell=cell,
