@@ -41,8 +41,9 @@ def test_serial_and_identify_checked_before_any_session(tmp_path):
     emu = DynamixelEmulator(World.default(model="omx", seed=1), ids=[11, 12, 13, 14])
     path = emu.start()
     try:
-        p = _station("jog", "--robot", f"dynamixel://{path}?ids=11-14&model=omx", "--serial", "NOT-THIS-ONE",
-                     cwd=tmp_path)
+        # a serial the URL configures must match (a serial derived from servo ids is no robot serial)
+        p = _station("jog", "--robot", f"dynamixel://{path}?ids=11-14&model=omx&serial=OMX-7", "--serial",
+                     "NOT-THIS-ONE", cwd=tmp_path)
         bad = _station("jog", "--robot", f"dynamixel://{path}?ids=11-14&model=omx", "--identify", "offsets,wings",
                        cwd=tmp_path)
     finally:

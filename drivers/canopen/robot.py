@@ -543,7 +543,8 @@ class CanopenRobot:
             serial = self._serial or f"{first['vendor_id']:08X}-{first['serial']:08X}"
             self._identity = Identity(vendor=f"{first['name']} (CiA vendor 0x{first['vendor_id']:08X})",
                                       model=self.model.name, serial=serial, firmware=first["firmware"],
-                                      devices=tuple(devices), url=self.url)
+                                      devices=tuple(devices), url=self.url,
+                                      serial_source="url" if self._serial else "derived")
         return self._identity
 
     def _to_q(self, counts) -> np.ndarray:

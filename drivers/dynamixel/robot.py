@@ -58,6 +58,7 @@ class DynamixelRobot:
         except BaseException:
             self.bus.close()
             raise
+        self._serial_from_url = bool(serial)
         self.serial = serial or f"DXL-{self.model.name.upper()}-" + ".".join(str(i) for i in self.ids)
 
     @classmethod
@@ -167,6 +168,7 @@ class DynamixelRobot:
     def identity(self) -> Identity:
         fws = sorted({str(d["firmware"]) for d in self.devices if d["joint"] is not None})
         return Identity(vendor="ROBOTIS", model=self.model.name, serial=self.serial, firmware=",".join(fws),
+                        serial_source="url" if self._serial_from_url else "derived",
                         devices=tuple(dict(d) for d in self.devices), url=self.url)
 
     def joint_positions(self) -> JointSnapshot:

@@ -306,6 +306,7 @@ class URRobot:
     # ---- Robot protocol ----------------------------------------------------------------------
     def identity(self) -> Identity:
         return Identity(vendor=self.vendor, model=self.model.name, serial=self.serial, firmware=self.firmware,
+                        serial_source="robot" if self.serial and self.serial != self.url_serial else "url",
                         devices=({"controller": self.robot_model, "software": self.firmware,
                                   "serial": self.serial},), url=self.url)
 

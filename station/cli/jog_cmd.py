@@ -22,7 +22,7 @@ def open_jog(url: str, *, serial: str | None = None, model: str | None = None, s
              identify: str = "offsets,tcp", reference: list[str] | str | None = None):
     """Connect, create the session (journal + samples.csv) and return ``(robot, controller)``.
     The robot is closed again when anything after connecting fails."""
-    from station.robot import ConfigError, open_robot
+    from station.robot import adopt_serial, open_robot
     from station.tui.controller import JogController, parse_reference
     from station.tui.session import JogSession, joint_units, session_header
 
@@ -31,10 +31,7 @@ def open_jog(url: str, *, serial: str | None = None, model: str | None = None, s
     robot = open_robot(full_url)
     try:
         robot.model.select(identify)  # unknown group: one-line error before anything is written
-        ident = robot.identity()
-        if serial and ident.serial and ident.serial != serial:  # same rule as station run: never file under
-            raise ConfigError(f"the robot reports serial {ident.serial!r}, not {serial!r} (wrong robot? on a "
-                              "bus without device serials set it in the URL: ?serial=SN)")
+        ident = adopt_serial(robot.identity(), serial)  # same rule as station run
         sn = serial or ident.serial or "unknown"
         header = session_header(identity=ident, model_name=robot.model.name, serial=sn, identify=identify,
                                 reference=ref, url=full_url)

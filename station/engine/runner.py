@@ -25,6 +25,7 @@ from station.engine.limits import load_limits
 from station.engine.procedure import Procedure, ProcedureError, load_procedure
 from station.engine.session import Session
 from station.robot.errors import ConfigError
+from station.robot.protocol import adopt_serial
 
 
 class Terminated(KeyboardInterrupt):
@@ -124,10 +125,7 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
     the_cell = cell if isinstance(cell, Cell) else _optional_cell(cell)
     if not serial or not str(serial).strip():
         raise ConfigError("--serial is required: the record is filed under the robot's serial number")
-    ident = robot.identity()
-    if ident.serial and ident.serial != str(serial):
-        raise ConfigError(f"the robot reports serial {ident.serial!r}, not {serial!r} (wrong robot? on a bus "
-                          "without device serials set it in the URL: ?serial=SN)")
+    ident = adopt_serial(robot.identity(), str(serial))  # the wrong robot fails here, before anything is journaled
     try:
         table = lim.for_procedure(robot.model.name, name)
     except ConfigError:

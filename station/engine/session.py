@@ -20,6 +20,7 @@ from station.engine.session_record import live_samples, session_from_events
 from station.engine.touch import TouchProvider, provider_for
 from station.kinematics import Model
 from station.robot.errors import ConfigError, DeviceFault, SafetyStop, StationError
+from station.robot.protocol import adopt_serial
 
 APPROACH_TOOL_SPEED = 0.10  # m/s at the tool on the last centimetres to a reference (seating, contact)
 
@@ -98,12 +99,8 @@ class Session:
     def connect(self) -> dict:
         """Connect and identify: the robot must be the one the session is for (serial, model)."""
         with self.step("connect"):
-            ident = self.robot.identity()
+            ident = adopt_serial(self.robot.identity(), self.journal.header.get("serial"))
             d = _identity_dict(ident)
-            want = self.journal.header.get("serial")
-            if ident.serial and want and ident.serial != want:
-                raise ConfigError(f"the robot reports serial {ident.serial!r} but the session is for {want!r} "
-                                  "(wrong robot? on a bus without device serials set it in the URL: ?serial=SN)")
             first = self.events("identity")
             if first and (first[0]["robot"].get("serial"), first[0]["robot"].get("model")) != (d["serial"], d["model"]):
                 raise ResumeMismatch(f"resume: robot is {d['model']} {d['serial']!r}, the session was recorded on "

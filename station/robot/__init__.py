@@ -9,11 +9,11 @@ from station.robot.errors import (
     SafetyStop,
     StationError,
 )
-from station.robot.protocol import Identity, JointSnapshot, JointState, Robot, RobotStatus
+from station.robot.protocol import Identity, JointSnapshot, JointState, Robot, RobotStatus, adopt_serial
 from station.robot.registry import BACKENDS, RobotURL, open_robot, parse_ids, parse_url
 
 __all__ = [
     "BACKENDS", "BusError", "ConfigError", "ConnectionLost", "DeviceFault", "Identity", "JointSnapshot",
     "JointState", "LimitError", "Robot", "RobotStatus", "RobotURL", "SafetyStop", "StationError",
-    "open_robot", "parse_ids", "parse_url",
+    "adopt_serial", "open_robot", "parse_ids", "parse_url",
 ]

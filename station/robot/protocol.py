@@ -52,6 +52,27 @@ class Identity:
     firmware: str = ""
     devices: tuple[dict, ...] = field(default_factory=tuple)  # per-joint/device ids, serials, firmware
     url: str = ""
+    # where ``serial`` comes from: "robot" (the controller reports it), "url" (configured ``?serial=``),
+    # "derived" (made from device ids: no robot serial exists on the bus), "operator" (adopted, see below)
+    serial_source: str = "robot"
+
+
+def adopt_serial(ident: Identity, serial: str | None) -> Identity:
+    """The identity a session files under ``serial``. A serial the robot reports or the URL configures must
+    match (else it is the wrong robot); one the driver derived from device ids is no robot serial, so the
+    operator's replaces it (the device ids stay in ``devices``)."""
+    from dataclasses import replace
+
+    from station.robot.errors import ConfigError
+
+    if not serial:
+        return ident
+    if ident.serial_source == "derived" or not ident.serial:
+        return replace(ident, serial=str(serial), serial_source="operator")
+    if ident.serial != str(serial):
+        raise ConfigError(f"the robot reports serial {ident.serial!r}, not {serial!r} (wrong robot? "
+                          f"serial from the {'URL' if ident.serial_source == 'url' else 'controller'})")
+    return ident
 
 
 JogMode = Literal["joint", "cartesian"]
