@@ -5,14 +5,21 @@ Hayati beta where axes are near-parallel) are identified together; every point o
 unknown. What several fixed points cannot show is named unidentifiable. Samples may also carry external
 instrument measurements (``s.record(pose, measured=xyz)``), in which case the instrument frame is solved."""
 
+from station.engine import PlanError
+
 IDENTIFY = "offsets,dh"
 DEFAULTS = {"n_holdout": 6}
+MIN_POINTS = 3  # from one or two unknown points most link parameters of a 6R arm stay unobservable
 
 
 def checklist(s):
     s.connect()                                  # 1. connect and identify
     s.check_state()                              # 2. state OK
     points = (s.cell.of_kind("socket") if s.cell else []) or s.points()   # 3. every reference point
+    if len(points) < MIN_POINTS:                 #    (at least three, spread over the workspace)
+        raise PlanError(f"dh_full needs at least {MIN_POINTS} reference sockets in the cell, found "
+                        f"{len(points)} ({', '.join(p.label for p in points) or 'none'}): from fewer points the "
+                        "link geometry is not observable; add sockets or run zero_offsets")
     plan = s.plan(points, identify=IDENTIFY)     # 4. poses spread over all points, ordered for short motion
     for pose in s.todo(plan):
         s.approach(pose)

@@ -30,3 +30,45 @@ def test_silent_bus_is_one_line_without_library_logging(tmp_path):
     rc, lines = _run("run", "zero_offsets", "--robot", ABSENT_ARM, "--serial", "S1", "--cell", str(cell), env=env)
     assert rc == 2
     assert len(lines) == 1 and lines[0].startswith("station: error:") and "does not answer" in lines[0], lines
+
+
+def test_serial_rules():
+    """A serial the robot reports or the URL configures must match; one derived from device ids is replaced."""
+    import pytest
+
+    from station.robot import ConfigError, Identity, adopt_serial
+
+    derived = Identity(vendor="v", model="arm6", serial="00000A5E-5A100001", serial_source="derived")
+    assert adopt_serial(derived, "LINE3-0042").serial == "LINE3-0042"
+    assert adopt_serial(derived, "LINE3-0042").serial_source == "operator"
+    for source in ("robot", "url"):
+        ident = Identity(vendor="v", model="ur5e", serial="20235500000", serial_source=source)
+        assert adopt_serial(ident, "20235500000") is ident
+        with pytest.raises(ConfigError, match="reports serial"):
+            adopt_serial(ident, "OTHER")
+
+
+def test_dh_full_with_one_socket_is_refused_with_a_reason(tmp_path, monkeypatch):
+    """Full link geometry from one unknown point is unobservable: the procedure says so instead of a FAIL."""
+    import uuid
+
+    from station.mocks.canopen.emulator import CanopenEmulator
+    from station.mocks.world import World
+
+    from station.engine import start
+
+    monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
+    world = World.default(model="arm6", seed=5, time_mode="instant")
+    cell = tmp_path / "cell.yaml"
+    import yaml
+
+    cell.write_text(yaml.safe_dump(world.station_cell()))
+    channel = f"one{uuid.uuid4().hex[:8]}"
+    emu = CanopenEmulator(world, "virtual", channel).start()
+    try:
+        out = start("dh_full", f"canopen+virtual://{channel}?nodes=1-6&model=arm6", "A6-1", cell=cell,
+                    db=f"sqlite:///{tmp_path / 'r.db'}")
+    finally:
+        emu.stop()
+    assert out.status == "error" and out.exit_code == 2
+    assert "at least 3 reference sockets" in str(out.error)
