@@ -60,13 +60,7 @@ def cell(file: Path = typer.Argument(..., help="World file (station-world/1)."),
     text = ("# station cell (station-cell/1): reference points in the robot base frame, lengths in m, unit\n"
             "# approach vectors point from the point towards the tool. Positions are surveyed, not exact.\n"
             + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None))
-    if out is None:
-        typer.echo(text, nl=False)
-    else:
-        try:
-            out.write_text(text)
-        except OSError as e:
-            raise _fail(f"{out}: cannot write ({e.strerror})") from None
+    if _emit(text, out):
         typer.echo(f"wrote {out} ({len(doc['points'])} points)", err=True)
 
 
@@ -79,13 +73,19 @@ def freeze(file: Path = typer.Argument(..., help="World file (station-world/1)."
     text = ("# station simulated world (station-world/1), random errors frozen; lengths mm, angles deg\n"
             + yaml.safe_dump(_load(file).to_dict("mm", "deg", frozen=True), sort_keys=False,
                            default_flow_style=None))
+    _emit(text, out)
+
+
+def _emit(text: str, out: Path | None) -> bool:
+    """Print ``text``, or write it to ``out`` (True when written); a write error is one line, exit 2."""
     if out is None:
         typer.echo(text, nl=False)
-    else:
-        try:
-            out.write_text(text)
-        except OSError as e:
-            raise _fail(f"{out}: cannot write ({e.strerror})") from None
+        return False
+    try:
+        out.write_text(text)
+    except OSError as e:
+        raise _fail(f"{out}: cannot write ({e.strerror})") from None
+    return True
 
 
 def register(mock_app: typer.Typer) -> None:
