@@ -7,8 +7,8 @@ the solver, results, reports, records and write-back:
 ``offset.jN``; ``dh.jN.{d,a,alpha,beta}`` (``dh.jN.theta`` for prismatic joints);
 ``mdh.jN.{alpha,a,beta,d}`` (``mdh.jN.theta`` for prismatic); ``poe.jN.{x,y,z,rz,ry,rx}`` and
 ``poe.flange.*`` for local POE frames; ``base.{x,y,z,rz,ry,rx}``; ``tcp.{x,y,z,rz,ry,rx}``;
-``compliance.jN`` (revolute joints, rad per N*m: the joint turns by ``compliance.jN * tau_N(q)`` under the
-gravity torque of the model's link masses and payload, see ``station.kinematics.gravity``).
+``compliance.jN`` (revolute joints of a model with link masses or a payload, rad per N*m: the joint turns by
+``compliance.jN * tau_N(q)`` under their gravity torque, see ``station.kinematics.gravity``).
 """
 
 from __future__ import annotations
@@ -159,8 +159,10 @@ class Model:
     def _with_load(self, load: gravity.Load | None) -> Model:
         groups = dict(self.groups)
         groups["compliance"] = _compliance_group(self.chain, self.frames, load, self.joints)
-        m = replace(self, load=load, groups=groups)
-        return m
+        names, values = list(self.param_names), list(self.params)
+        if load is not None:  # a weightless model has no compliance parameters: nothing would load them
+            _add_compliance(names, values, self.joints)
+        return replace(self, load=load, groups=groups, param_names=tuple(names), params=np.array(values))
 
     @cached_property
     def compliance_index(self) -> tuple[np.ndarray, np.ndarray]:
@@ -316,11 +318,10 @@ def _finish(b: _Builder, name, convention, joints, groups, base, tool, descripti
     ``masses`` ``{k: (kg, com)}`` in link k's frame, ``payload`` ``(kg, com in the tool frame)``,
     ``gravity_vector`` (m/s^2, base frame; default -9.81 along z)."""
     n = len(joints)
-    compliance = compliance or [0.0] * n
-    for i, jt in enumerate(joints):  # after every chain parameter: the chain's indices stay as they are
-        if jt.revolute:
-            b.names.append(f"compliance.j{i + 1}")
-            b.values.append(float(compliance[i]))
+    chain = b.chain()
+    load = gravity.make_load(n, np.array(b.values), masses, payload, gravity_vector)
+    if load is not None or any(compliance or []):
+        _add_compliance(b.names, b.values, joints, compliance)
     groups = {k: tuple(v) for k, v in groups.items()}
     groups["offsets"] = tuple(f"offset.j{i + 1}" for i in range(n))
     groups["tcp"] = ("tcp.x", "tcp.y", "tcp.z")
@@ -330,11 +331,17 @@ def _finish(b: _Builder, name, convention, joints, groups, base, tool, descripti
     groups["links"] = groups["dh"]
     # every geometric parameter a position measurement can see: the tool orientation cannot (tcp6 adds it)
     groups["full"] = groups["offsets"] + groups["dh"] + groups["tcp"] + groups["base"]
-    chain, values = b.chain(), np.array(b.values)
-    load = gravity.make_load(n, values, masses, payload, gravity_vector)
     groups["compliance"] = _compliance_group(chain, b.frames, load, joints)
-    return Model(name, convention, tuple(joints), chain, tuple(b.names), values, groups, description,
+    return Model(name, convention, tuple(joints), chain, tuple(b.names), np.array(b.values), groups, description,
                  {**source, "base": base or {}, "tool": tool or {}}, tuple(b.frames), load)
+
+
+def _add_compliance(names: list[str], values: list[float], joints, compliance=None) -> None:
+    """``compliance.jN`` of every revolute joint, after every chain parameter (the chain's indices stay)."""
+    for i, jt in enumerate(joints):
+        if jt.revolute and f"compliance.j{i + 1}" not in names:
+            names.append(f"compliance.j{i + 1}")
+            values.append(float(compliance[i]) if compliance else 0.0)
 
 
 def _compliance_group(chain: Chain, frames, load, joints) -> tuple[str, ...]:
