@@ -433,7 +433,17 @@ def model_from_chain(ch: UrdfChain) -> Model:
         merged = {kk: (sum(mm for mm, _ in v), sum(mm * c for mm, c in v) / sum(mm for mm, _ in v))
                   for kk, v in masses.items()}
         m = m.with_masses(merged)
-    src = {**m.source, "urdf": {"path": robot.path, "base_link": ch.base, "tip_link": ch.tip,
+    # each URDF link frame in its station link frame (fixed: both are attached to the same body), for export
+    _, prefix = forward(m.chain, np.zeros((1, n)), m.params, keep_prefix=True)
+    poses_k = []
+    W = np.eye(4)
+    for j in ch.path:
+        W = W @ j.origin
+        if j.movable:
+            poses_k.append(W.copy())
+    link_in_frame = [se3.invert(prefix[0, e + 1]) @ Wk for e, Wk in zip(m.frames, poses_k, strict=True)]
+    src = {**m.source, "urdf": {"path": robot.path, "base_link": ch.base, "tip_link": ch.tip, "chain": ch,
+                                "link_in_frame": link_in_frame,
                                 "calibration": {j.name: j.calibration for j in mov if j.calibration}}}
     from dataclasses import replace
 
