@@ -15,7 +15,7 @@ exact, cheap function of q and the parameters, with compliance entering linearly
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -52,23 +52,24 @@ class Load:
         """Mass (kg) and centre of mass (m, link frame) of link k (1-based)."""
         return self._one(self.link == k)
 
-    @property
-    def total_mass(self) -> float:
-        return float(self.mass.sum())
-
 
 def make_load(n_links: int, params: np.ndarray, masses: dict[int, tuple[float, np.ndarray]] | None = None,
               payload: tuple[float, np.ndarray] | None = None, gravity=None) -> Load | None:
     """A load from per-link ``{k: (mass, com)}`` (k = 1..n), a payload ``(mass, com in the tool frame)``;
     None when there is no mass at all (a rigid, weightless model)."""
     links, ms, coms = [], [], []
-    for k, (m, c) in sorted((masses or {}).items()):
-        if not 1 <= k <= n_links:
-            raise ValueError(f"link {k} outside 1..{n_links}")
+    items = [(k, m, c, f"link {k}") for k, (m, c) in sorted((masses or {}).items())]
+    if payload is not None:
+        items.append((n_links + 1, payload[0], payload[1], "payload"))
+    for k, m, c, what in items:
+        c = np.asarray(c, dtype=float)
+        if not 1 <= k <= n_links + 1:
+            raise ValueError(f"mass of link {k}: the links are 1..{n_links}")
+        if not (np.isfinite(m) and m >= 0) or c.shape != (3,) or not np.isfinite(c).all():
+            raise ValueError(f"{what}: mass {m!r} kg at {c.tolist()!r}: need a finite mass >= 0 and a finite "
+                             f"[x, y, z]")
         if m > 0:
-            links.append(k), ms.append(float(m)), coms.append(np.asarray(c, dtype=float))
-    if payload is not None and payload[0] > 0:
-        links.append(n_links + 1), ms.append(float(payload[0])), coms.append(np.asarray(payload[1], dtype=float))
+            links.append(k), ms.append(float(m)), coms.append(c)
     g = np.asarray(STANDARD_GRAVITY if gravity is None else gravity, dtype=float)
     if not ms:
         return None
@@ -83,11 +84,6 @@ def with_payload(load: Load | None, n_links: int, params: np.ndarray, mass: floa
     g = gravity if gravity is not None else (None if load is None else load.gravity)
     base = params if load is None else load.params
     return make_load(n_links, base, masses, (float(mass), np.asarray(com, dtype=float)), g)
-
-
-def retarget(load: Load, params: np.ndarray) -> Load:
-    """The same masses on another frozen geometry (e.g. after a model's nominal values were re-set)."""
-    return replace(load, params=np.asarray(params, dtype=float).copy())
 
 
 def torques(chain: Chain, frames: np.ndarray, load: Load, q: np.ndarray, derivative: bool = False):
