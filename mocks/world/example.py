@@ -51,8 +51,9 @@ errors:                        # hidden: truth = nominal + error (the station do
 
 joints:                        # mechanics between motor encoder and link; all off by default
   backlash: {{}}                 # e.g. {{{sj}: 0.02}}: full dead band, deg (mm for prismatic joints)
-  compliance: {{}}               # e.g. {{{sj}: 0.0001}}: deg per N*m of gravity torque from the payload
-  payload: 0                   # kg at the tool tip (loads the compliant joints)
+  compliance: {{}}               # e.g. {{{sj}: 0.0001}}: deg per N*m of gravity torque (default: the model's)
+  masses: {{}}                   # e.g. {{{sj}: {{mass: 8.0, com: [212, 0, 113]}}}}: kg, centre in the link frame (mm)
+  payload: 0                   # kg at the tool tip, or {{mass: kg, com: [x, y, z]}} (loads the compliant joints)
   gravity: [0, 0, -9.81]       # m/s^2 in the robot base frame
 
 motion:

@@ -4,8 +4,9 @@ Every emulator serves this object's state over its wire; tests read the hidden t
 public methods take one re-entrant lock, so emulator threads may call them concurrently.
 
 Joint state is the motor/encoder position ``q`` (SI). The true joint value seen by the kinematics is
-``q_joint = q - side * backlash/2 + C * J(q)^T * m g`` (backlash and gravity compliance, off by default),
-and the true tip is ``truth.fk(q_joint)``."""
+``q_joint = theta`` with ``theta = q - side * backlash/2 + C * tau(theta)`` (backlash, and gravity compliance
+under the torque ``tau`` of the link masses and payload: ``physics.Gravity``; off by default), and the true
+tip is ``truth.fk(q_joint)`` (``truth`` is rigid: its compliance parameters are zero)."""
 
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ import numpy as np
 from station.mocks.world import motion
 from station.mocks.world.cell import CELL_FORMAT, DEFAULTS, CellPoint
 from station.mocks.world.faults import Faults
+from station.mocks.world.physics import Gravity
 from station.mocks.world.worldfile import (
     FORMAT,
     TIME_MODES,
@@ -73,7 +75,7 @@ class World:
     def __init__(self, spec: WorldSpec) -> None:
         self.spec = spec
         self._lock = threading.RLock()
-        nominal = load_model(spec.model)
+        nominal = load_model(spec.model, tip_link=spec.tip_link, base_link=spec.base_link)
         if spec.tool:
             nominal = nominal.with_params({f"tcp.{k}": v for k, v in spec.tool.items()})
         self.nominal: Model = nominal
@@ -85,7 +87,7 @@ class World:
         z = g_err.standard_normal(len(nominal.param_names))
         chosen: dict[str, tuple[int, str, float]] = {}
         for sel, sl, sa in spec.random:
-            names = nominal.select(sel)
+            names = [n for n in nominal.select(sel) if not n.startswith("compliance.")]
             for name in names:
                 sigma = (sl if param_kind(nominal, name) == "length" else sa) or 0.0
                 key = (len(names), sel, sigma)
@@ -95,8 +97,16 @@ class World:
         errors.update(spec.explicit)
         errors = {n: errors[n] for n in nominal.param_names if n in errors}  # model order
         self._errors = {n: v for n, v in errors.items() if v != 0.0}
-        self.truth: Model = nominal.with_params({n: nominal.param(n) + v for n, v in self._errors.items()})
         n = nominal.n_joints
+        # the robot's own compliance (joints.compliance, else the model's compliance.jN) acts through physics:
+        # the truth model itself is rigid
+        self._compliance = np.zeros(n)
+        for i in range(n):
+            name = f"compliance.j{i + 1}"
+            self._compliance[i] = spec.compliance.get(i, nominal.param(name) if name in nominal.param_names else 0.0)
+        rigid = {c: 0.0 for c in nominal.param_names if c.startswith("compliance.")}
+        self.truth: Model = nominal.with_params({**rigid, **{n_: nominal.param(n_) + v
+                                                             for n_, v in self._errors.items()}})
         self.n_joints = n
         self._vmax = np.array([j.max_velocity for j in self.truth.joints])
         self._amax = np.array([j.max_acceleration for j in self.truth.joints])
@@ -104,10 +114,7 @@ class World:
         self._backlash = np.zeros(n)
         for i, b in spec.backlash.items():
             self._backlash[i] = b
-        self._compliance = np.zeros(n)
-        for i, c in spec.compliance.items():
-            self._compliance[i] = c
-        self._weight = spec.payload * np.asarray(spec.gravity, dtype=float)  # N, base frame
+        self.gravity = self._gravity_truth(spec, nominal)
         self.points: dict[str, CellPoint] = {}
         self._survey: dict[str, np.ndarray] = {}
         for p in spec.points:
@@ -266,13 +273,21 @@ class World:
             self._cache = (key, qj, self.truth.position(qj))
         return self._cache[1], self._cache[2]
 
+    def _gravity_truth(self, spec: WorldSpec, nominal: Model) -> Gravity:
+        """Link masses (the model's, replaced per link by joints.masses), payload (joints.payload, else the
+        model's) on the TRUE geometry."""
+        n = nominal.n_joints
+        load = nominal.load
+        masses = {k: load.link_mass(k) for k in range(1, n + 1)} if load is not None else {}
+        masses.update({k: (m, np.asarray(c, dtype=float)) for k, (m, c) in spec.masses.items()})
+        if spec.payload is not None:
+            payload = (spec.payload, np.asarray(spec.payload_com or (0.0, 0.0, 0.0), dtype=float))
+        else:
+            payload = load.payload if load is not None else (0.0, np.zeros(3))
+        return Gravity(self.truth, masses, payload, spec.gravity, self._compliance)
+
     def _deflect(self, q: np.ndarray, side: np.ndarray) -> np.ndarray:
-        qj = q - side * self._backlash / 2
-        if self._compliance.any() and self._weight.any():
-            _, Jq, _ = self.truth.jacobians(qj)
-            tau = Jq[0, :3].T @ self._weight  # gravity load of the payload on each joint
-            qj = qj + self._compliance * tau
-        return qj
+        return self.gravity.deflect(q - side * self._backlash / 2)
 
     def _undeflect(self, qj: np.ndarray, side: np.ndarray) -> np.ndarray:
         """Encoder positions that put the joints at ``qj`` (fixed point; the deflection is small)."""
@@ -592,9 +607,14 @@ class World:
 
     def hidden(self) -> dict[str, float]:
         """TRUE values of every perturbed parameter (SI), and always every ``offset.jN`` (the true zero
-        offsets, 0.0 where not perturbed)."""
+        offsets, 0.0 where not perturbed); with gravity deflection, ``compliance.jN`` of the compliant
+        revolute joints."""
         names = [n for n in self.truth.param_names if n in self._errors or n.startswith("offset.j")]
-        return {n: self.truth.param(n) for n in names}
+        out = {n: self.truth.param(n) for n in names}
+        if self.gravity.active:  # the true gravity compliance of every compliant revolute joint (rad per N m)
+            out.update({f"compliance.j{i + 1}": float(c) for i, (c, j) in
+                        enumerate(zip(self._compliance, self.truth.joints, strict=True)) if c and j.revolute})
+        return out
 
     def true_offsets(self) -> np.ndarray:
         """True zero offsets ``(n,)`` (SI): ``theta_i = q_i + offset_i`` on the true robot."""
