@@ -122,9 +122,9 @@ class ParallelModel:
         length = np.linalg.norm(leg, axis=2)
         return length - g["offset"][None], leg, length, ra
 
-    def ik_closed(self, target, params=None) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    def ik_closed(self, target, params=None, check_limits: bool = True) -> tuple[np.ndarray, np.ndarray, list[str]]:
         """``(q (N,n), ok (N,), reasons)`` for tool poses ``(N,4,4)`` or, planar, positions ``(N,2|3)``.
-        Not ok: outside the actuator limits, or in another assembly mode than the model's."""
+        Not ok: in another assembly mode than the model's, or (``check_limits``) outside the actuator limits."""
         g = self.geometry(params)
         target = np.asarray(target, dtype=float)
         if self.type == GOUGH_STEWART:
@@ -143,7 +143,7 @@ class ParallelModel:
             q = np.linalg.norm(h[:, None, :] - c[None], axis=2) - g["offset"][None]
             side = _cross2(c[1] - c[0], h - c[0])
             mode_ok = np.sign(side) == self.branch
-        inside = self.within_limits(q, -LIMIT_TOL)
+        inside = self.within_limits(q, -LIMIT_TOL) if check_limits else np.ones(len(q), dtype=bool)
         reasons = []
         for i in range(len(q)):
             if not mode_ok[i]:
