@@ -147,7 +147,10 @@ class ParallelModel:
         reasons = []
         for i in range(len(q)):
             if not mode_ok[i]:
-                reasons.append("the pose needs another assembly mode (other side of a singularity)")
+                reasons.append("the pose needs another assembly mode (other side of a singularity)"
+                               if self.type == GOUGH_STEWART else
+                               f"the hinge would lie on the other side of the pivot line (assembly branch "
+                               f"{-self.branch}; the model has {self.branch})")
             elif not inside[i]:
                 k = int(np.flatnonzero((q[i] < self.lower - LIMIT_TOL) | (q[i] > self.upper + LIMIT_TOL))[0])
                 reasons.append(f"actuator {k + 1} would be {q[i, k]:.6g} m, outside its limits "
@@ -198,16 +201,16 @@ class ParallelModel:
         n = np.array([-e[1], e[0]])  # left of pivot1 -> pivot2
         a = (L[:, 0] ** 2 - L[:, 1] ** 2 + d * d) / (2 * d)
         h2 = L[:, 0] ** 2 - a * a
-        scale = max(d, float(np.max(np.abs(L), initial=0.0)))
+        tol = max(d, float(np.max(np.abs(L), initial=0.0))) / SINGULAR_COND ** 0.5  # hinge height called singular
         N = len(q)
         ok = np.ones(N, dtype=bool)
         reason = [""] * N
         for i in range(N):
             if np.any(L[i] <= 0):
                 ok[i], reason[i] = False, "a strut length is not positive"
-            elif h2[i] < 0:
+            elif h2[i] < -tol * tol:
                 ok[i], reason[i] = False, "the struts cannot meet (outside the workspace)"
-            elif np.sqrt(max(h2[i], 0.0)) < scale / SINGULAR_COND ** 0.5:
+            elif h2[i] < tol * tol:
                 ok[i], reason[i] = False, "singular: both struts lie on the pivot line"
         h = np.sqrt(np.maximum(h2, 0.0))
         pos = c[0][None] + a[:, None] * e[None] + (self.branch * h)[:, None] * n[None]

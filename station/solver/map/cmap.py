@@ -147,12 +147,12 @@ class CorrectionMap:
         x = np.atleast_2d(np.asarray(x, dtype=float))
         return np.any((x < self.domain_lower) | (x > self.domain_upper) | ~np.isfinite(x), axis=1)
 
-    def _check_inside(self, x: np.ndarray, what: str) -> None:
+    def _check_inside(self, x: np.ndarray, what: str, why: str = "") -> None:
         out = self.outside(x)
         if out.any():
             i = int(np.flatnonzero(out)[0])
             k = int(np.flatnonzero((x[i] < self.domain_lower) | (x[i] > self.domain_upper) | ~np.isfinite(x[i]))[0])
-            raise MapError(f"{what} {i + 1}: x{k + 1} = {x[i, k]:.9g} {self._unit(k)} is outside the map "
+            raise MapError(f"{what} {i + 1}: {why}x{k + 1} = {x[i, k]:.9g} {self._unit(k)} is outside the map "
                            f"({self.domain_lower[k]:.9g} .. {self.domain_upper[k]:.9g} {self._unit(k)})", i)
 
     def _unit(self, k: int) -> str:
@@ -174,7 +174,7 @@ class CorrectionMap:
         cols = check_columns(model, tuple(cols), "targets")
         targets = np.atleast_2d(np.asarray(targets, dtype=float))
         x_p = self._ik(model, targets, cols)
-        self._check_inside(x_p, "target")
+        self._check_inside(x_p, "target", "unreachable: its inverse kinematics gives ")
         c = x_p + self.summand(x_p, "target")  # the seed's first-order command
         for _ in range(FIXED_POINT_ITER):
             inside = ~self.outside(c)
