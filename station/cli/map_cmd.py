@@ -176,6 +176,20 @@ def _human(v: float, revolute: bool) -> str:
     return f"{np.degrees(v):.4f} deg" if revolute else f"{v * 1e3:.4f} mm"
 
 
+def _q_values(grid: str, m, exclude_ends: bool) -> list[int]:
+    """``--grid Q`` or ``Q1,...,QN``, one Q per actuator."""
+    try:
+        qs = [int(v) for v in grid.split(",")]
+    except ValueError:
+        raise _fail(f"--grid {grid!r}: expected an integer Q or one per actuator (Q1,...,Q{m.n_joints})") from None
+    if len(qs) not in (1, m.n_joints):
+        raise _fail(f"--grid {grid!r}: one Q or {m.n_joints} (one per actuator)")
+    if any(q < 1 for q in qs) or (exclude_ends and any(q < 2 for q in qs)):
+        raise _fail(f"--grid {grid!r}: Q must be at least {2 if exclude_ends else 1}"
+                    f"{' without the interval ends' if exclude_ends else ''}")
+    return qs * m.n_joints if len(qs) == 1 else qs
+
+
 # ---- commands ------------------------------------------------------------------------------------
 @map_app.command("plan")
 def plan_command(
@@ -194,16 +208,7 @@ def plan_command(
     if mesh not in MESHES:
         raise _fail(f"--mesh {mesh!r}: expected grid or simplex")
     try:
-        qs = [int(v) for v in grid.split(",")]
-    except ValueError:
-        raise _fail(f"--grid {grid!r}: expected an integer Q or one per actuator (Q1,...,Q{m.n_joints})") from None
-    if len(qs) not in (1, m.n_joints):
-        raise _fail(f"--grid {grid!r}: one Q or {m.n_joints} (one per actuator)")
-    if any(q < 1 for q in qs) or (exclude_ends and any(q < 2 for q in qs)):
-        raise _fail(f"--grid {grid!r}: Q must be at least {2 if exclude_ends else 1}"
-                    f"{' without the interval ends' if exclude_ends else ''}")
-    try:
-        p = plan(m, qs if len(qs) > 1 else qs[0], exclude_ends=exclude_ends, mesh=mesh)
+        p = plan(m, _q_values(grid, m, exclude_ends), exclude_ends=exclude_ends, mesh=mesh)
     except ValueError as e:
         raise _fail(str(e)) from None
     if len(p.x) == 0:
@@ -230,15 +235,24 @@ def build_command(
     samples: Path = typer.Option(..., "--samples", help="CSV: x1..xN and the measured pose (base frame)"),
     calibration: Path = typer.Option(None, "--calibration", help="result JSON of station solve: map on top of it"),
     mesh: str = typer.Option("grid", "--mesh", help="grid (multilinear) or simplex (barycentric): as planned"),
+    grid: str = typer.Option(None, "--grid", help="the plan's Q (checks every sample is on its grid); "
+                                                  "default: the grid is read off the samples"),
+    exclude_ends: bool = typer.Option(False, "--exclude-ends", help="with --grid: the plan left out the ends"),
     out: Path = typer.Option(..., "--out", help="the map (station-map/1 JSON)"),
 ) -> None:
     """Correction summands KSF_PM(x) = x - IK(GDK(x)) at the samples, extended to the configuration space."""
     from station.solver import CalibrationResult
-    from station.solver.map import MESHES, MapError, build_map
+    from station.solver.map import MESHES, MapError, build_map, grid_levels
 
     m = _model(model)
     if mesh not in MESHES:
         raise _fail(f"--mesh {mesh!r}: expected grid or simplex")
+    levels = None
+    if grid is not None:
+        try:
+            levels = grid_levels(m.lower, m.upper, _q_values(grid, m, exclude_ends), exclude_ends)
+        except ValueError as e:
+            raise _fail(f"--grid {grid!r}: {e}") from None
     cal, source = None, None
     if calibration is not None:
         try:
@@ -255,7 +269,7 @@ def build_command(
     x = _actuators(t, m)
     pose, cols = _pose(t, m, "samples")
     try:
-        cmap = build_map(m, x, pose, cols, mesh=mesh, calibration=cal, calibration_source=source)
+        cmap = build_map(m, x, pose, cols, mesh=mesh, levels=levels, calibration=cal, calibration_source=source)
     except MapError as e:
         raise _row_error(e, t) from None
     cost = _lookup_cost(cmap)

@@ -85,13 +85,22 @@ def second_configurations(model, x: np.ndarray, measured: np.ndarray, cols: tupl
 
 def infer_levels(x: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> list[np.ndarray]:
     """Grid levels from sample configurations: per actuator, values closer than 1e-3 of its range form one
-    level (encoder readings scatter around the commanded level)."""
+    level (encoder readings scatter around the commanded level). A level holding less than a quarter of the
+    average share of samples is a configuration off the grid, not a level: MapError names it."""
     out = []
     for i in range(x.shape[1]):
-        v = np.sort(x[:, i])
+        order = np.argsort(x[:, i], kind="stable")
+        v = x[order, i]
         tol = 1e-3 * max(float(upper[i] - lower[i]), 1e-12)
         cuts = np.flatnonzero(np.diff(v) > tol) + 1
-        out.append(np.array([c.mean() for c in np.split(v, cuts)]))
+        groups = np.split(np.arange(len(v)), cuts)
+        share = len(v) / len(groups)
+        for g in groups:
+            if len(groups) > 1 and len(g) < 0.25 * share:
+                row = int(order[g[0]])
+                raise MapError(f"sample {row + 1}: configuration is not on the grid: x{i + 1} = {v[g[0]]:.9g} is a "
+                               f"level of only {len(g)} sample(s), the others hold {share:.0f} on average", row)
+        out.append(np.array([v[g].mean() for g in groups]))
     return out
 
 
