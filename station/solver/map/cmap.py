@@ -161,7 +161,8 @@ class CorrectionMap:
         if out.any():
             i = int(np.flatnonzero(out)[0])
             k = int(np.flatnonzero((x[i] < self.domain_lower) | (x[i] > self.domain_upper) | ~np.isfinite(x[i]))[0])
-            raise MapError(f"{what} {i + 1}: {why}x{k + 1} = {x[i, k]:.9g} {self._unit(k)} is outside the map "
+            raise MapError(f"{what} {i + 1}: {why}x{k + 1} = {x[i, k]:.9g} {self._unit(k)}{', which' if why else ''} "
+                           f"is outside the map "
                            f"({self.domain_lower[k]:.9g} .. {self.domain_upper[k]:.9g} {self._unit(k)})", i)
 
     def _unit(self, k: int) -> str:
