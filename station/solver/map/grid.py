@@ -107,16 +107,27 @@ class Grid:
     # ---- interpolation ----------------------------------------------------------------------
     def multilinear(self, values: np.ndarray, x: np.ndarray) -> np.ndarray:
         """``values (M, k)`` at the nodes -> ``(N, k)`` at ``x (N, n)``."""
+        return _chunked(self._multilinear, values, x)
+
+    def _multilinear(self, values: np.ndarray, x: np.ndarray) -> np.ndarray:
         base, t = self.locate(x)
-        corners = np.array(list(itertools.product((0, 1), repeat=self.n)), dtype=np.int64)  # (C, n)
-        w = np.prod(np.where(corners[None, :, :] == 1, t[:, None, :], 1.0 - t[:, None, :]), axis=2)  # (N, C)
-        idx = (base @ self.strides)[:, None] + corners @ self._steps()  # (N, C)
-        return np.einsum("nc,nck->nk", w, values[idx])
+        N = t.shape[0]
+        # corner weights built one axis at a time (corner c: bit i of its index <-> upper node along axis i)
+        w = np.ones((N, 1))
+        idx = (base @ self.strides)[:, None]
+        for i, step in enumerate(self._steps()):
+            ti = t[:, i:i + 1]
+            w = np.concatenate([w * (1.0 - ti), w * ti], axis=1)
+            idx = np.concatenate([idx, idx + step], axis=1)
+        return (w[:, None, :] @ values[idx])[:, 0]
 
     def barycentric(self, values: np.ndarray, x: np.ndarray) -> np.ndarray:
         """Linear interpolation in the Kuhn simplex holding each point: sort the local coordinates
         descending, t_(1) >= ... >= t_(n); the simplex's vertices walk from the cell's base corner one
         axis at a time in that order, with weights 1 - t_(1), t_(1) - t_(2), ..., t_(n)."""
+        return _chunked(self._barycentric, values, x)
+
+    def _barycentric(self, values: np.ndarray, x: np.ndarray) -> np.ndarray:
         base, t = self.locate(x)
         N = t.shape[0]
         order = np.argsort(-t, axis=1, kind="stable")
@@ -126,9 +137,10 @@ class Grid:
         w[:, 1:-1] = ts[:, :-1] - ts[:, 1:]
         w[:, -1] = ts[:, -1]
         steps = self._steps()[order]  # (N, n)
-        idx = np.concatenate([np.zeros((N, 1), dtype=np.int64), np.cumsum(steps, axis=1)], axis=1)
-        idx += (base @ self.strides)[:, None]
-        return np.einsum("nc,nck->nk", w, values[idx])
+        idx = np.empty((N, self.n + 1), dtype=np.int64)
+        idx[:, 0] = base @ self.strides
+        idx[:, 1:] = idx[:, :1] + np.cumsum(steps, axis=1)
+        return (w[:, None, :] @ values[idx])[:, 0]
 
     def interpolate(self, values: np.ndarray, x: np.ndarray, mesh: str) -> np.ndarray:
         if mesh == "grid":
@@ -211,6 +223,16 @@ class Grid:
             return sp.csr_matrix((0, self.size))
         return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                              shape=(r, self.size))
+
+
+CHUNK = 4096  # query points per pass: the gathered corner values stay in cache
+
+
+def _chunked(fn, values: np.ndarray, x: np.ndarray) -> np.ndarray:
+    x = np.atleast_2d(np.asarray(x, dtype=float))
+    if len(x) <= CHUNK:
+        return fn(values, x)
+    return np.concatenate([fn(values, x[i:i + CHUNK]) for i in range(0, len(x), CHUNK)])
 
 
 def _affine_fit(x: np.ndarray, v: np.ndarray, at: np.ndarray) -> np.ndarray:
