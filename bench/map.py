@@ -134,14 +134,14 @@ def arm_world(seed: int) -> World:
                                                     "backlash": {"j1": 3e-4, "j2": 3e-4, "j3": 3e-4}, "payload": 15.0})
 
 
-BOX_LO = np.radians([-20, -70, 10, -30, 20, -30])
-BOX_HI = np.radians([20, -40, 40, 30, 60, 30])
+BOX_LO = np.radians([-20, -10, -10, -30, -70, -30])
+BOX_HI = np.radians([20, 30, 30, 30, -30, 30])
 
 
 def part_b(quick: bool, rng) -> None:
     print("\n(b) 6R arm (arm6) with hidden geometry (World.default sigmas), gravity compliance (15 kg payload on j2, "
-          "j3, j5) and backlash (0.017 deg on j1-j3);\n    work box j1 +-20, j2 -70..-40, j3 10..40, j4 +-30, j5 "
-          "20..60, j6 +-30 deg; exact pose measurements; every move approaches from below unless stated")
+          "j3, j5) and backlash (0.017 deg on j1-j3);\n    work box j1 +-20, j2 -10..30, j3 -10..30, j4 +-30, j5 "
+          "-70..-30, j6 +-30 deg; exact pose measurements; every move approaches from below unless stated")
     w = arm_world(3)
     nom = w.nominal
 

@@ -193,8 +193,8 @@ def test_hexapod_q2_removes_99_percent_of_the_error(mesh):
 
 # ---- serial arm: compliance and backlash the parametric model cannot hold ----------------------------------
 def test_serial_arm_map_corrects_compliance_and_backlash():
-    box_lo = np.radians([-20, -70, 10, -30, 20, -30])
-    box_hi = np.radians([20, -40, 40, 30, 60, 30])
+    box_lo = np.radians([-20, -10, -10, -30, -70, -30])
+    box_hi = np.radians([20, 30, 30, 30, -30, 30])
     w = World.default("arm6", seed=4, errors={"explicit": {}},
                       joints={"compliance": {"j2": 2e-5, "j3": 3e-5}, "backlash": {"j2": 3e-4, "j4": 2e-4},
                               "payload": 15.0})

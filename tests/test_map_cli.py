@@ -215,7 +215,7 @@ def test_map_on_top_of_a_parametric_calibration(tmp_path):
                                                              "dh.j2.a": 4e-4, "dh.j3.a": -3e-4}},
                       joints={"compliance": {"j2": 3e-5, "j3": 3e-5}, "payload": 20.0})
     nom = w.nominal
-    lo, hi = np.radians([-20, -70, 10, -30, 20, -30]), np.radians([20, -40, 40, 30, 60, 30])
+    lo, hi = np.radians([-20, -10, -10, -30, -70, -30]), np.radians([20, 30, 30, 30, -30, 30])
     rng = np.random.default_rng(1)
     qs = lo + (hi - lo) * rng.uniform(0, 1, (60, 6))
 

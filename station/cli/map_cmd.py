@@ -221,7 +221,8 @@ def plan_command(
     typer.echo(f"plan: {len(p.x)} configurations of {m.name} ({levels} levels, mesh {mesh}"
                f"{', without interval ends' if exclude_ends else ''}) -> {out}")
     if len(p.dropped):
-        typer.echo(f"left out: {len(p.dropped)} configurations the nominal model cannot assemble safely:")
+        typer.echo(f"left out: {len(p.dropped)} configurations (not assemblable, or too near the workspace boundary "
+                   f"or a singularity):")
         for x, why in list(zip(p.dropped, p.reasons, strict=True))[:10]:
             vals = ", ".join(_human(v, r) for v, r in zip(x, kinds, strict=True))
             typer.echo(f"  [{vals}]: {why}")

@@ -27,6 +27,7 @@ class Plan:
 
 
 BOUNDARY_MARGIN = 0.02  # of the actuator range: nodes this close to the workspace boundary are left out
+SERIAL_COND = 1e3  # serial arms: nodes whose joint Jacobian is worse conditioned are left out (near a singularity)
 
 
 def plan(model, q, *, exclude_ends: bool = False, mesh: str = "grid", lower=None, upper=None,
@@ -34,11 +35,13 @@ def plan(model, q, *, exclude_ends: bool = False, mesh: str = "grid", lower=None
     """The sample set over the actuator box ``[lower, upper]`` (default: the model's limits). ``q``: one Q
     for every actuator or one per actuator (Q sub-intervals, Q + 1 levels; Q - 1 without the ends).
 
-    A parallel robot's workspace is not a box in actuator space: nodes the nominal model cannot assemble are
-    left out, and so are nodes within ``margin`` (a fraction of the actuator range) of the workspace
-    boundary, where the real robot, whose geometry differs, may not assemble: the actuators are moved by
-    that much both ways along the direction the platform follows worst (the largest singular direction of
-    the forward Jacobian) and both must assemble."""
+    A serial arm assembles everywhere, but near a singularity IK(GDK(x)) is not unique and a small pose error
+    becomes a large summand: nodes whose joint Jacobian (rotation rows scaled by the reach) has a condition
+    number above ``SERIAL_COND`` are left out. A parallel robot's workspace is not a box in actuator space:
+    nodes the nominal model cannot assemble are left out, and so are nodes within ``margin`` (a fraction of
+    the actuator range) of the workspace boundary, where the real robot, whose geometry differs, may not
+    assemble: the actuators are moved by that much both ways along the direction the platform follows worst
+    (the largest singular direction of the forward Jacobian) and both must assemble."""
     if mesh not in MESHES:
         raise ValueError(f"mesh must be one of {', '.join(MESHES)}, got {mesh!r}")
     lo = model.lower if lower is None else np.asarray(lower, dtype=float)
@@ -66,5 +69,15 @@ def plan(model, q, *, exclude_ends: bool = False, mesh: str = "grid", lower=None
                         ok[i] = False
                         reasons[i] = (f"within {step:.4g} m of the workspace boundary (the real robot may not "
                                       f"assemble there)")
+    else:
+        T, Jq, _ = model.jacobians(nodes)
+        reach = max(float(np.max(np.linalg.norm(T[:, :3, 3], axis=1))), 1e-3)
+        J = Jq if model.n_joints > 3 else Jq[:, :3]
+        if model.n_joints > 3:
+            J = J * np.r_[np.ones(3), np.full(3, reach)][None, :, None]
+        s = np.linalg.svd(J, compute_uv=False)
+        cond = s[:, 0] / np.maximum(s[:, -1], 1e-300)
+        ok = cond <= SERIAL_COND
+        reasons = ["" if k else f"near a singularity (condition number {c:.3g})" for k, c in zip(ok, cond, strict=True)]
     return Plan(model.name, mesh, qs, bool(exclude_ends), levels, nodes[ok], nodes[~ok],
                 tuple(r for r, k in zip(reasons, ok, strict=True) if not k))
