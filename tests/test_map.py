@@ -302,3 +302,23 @@ def test_map_on_top_of_an_exact_calibration_has_nothing_left_to_correct():
 def test_grid_corner_order_is_c_order():
     g = Grid.of([[0, 1], [0, 1, 2]])
     assert [tuple(v) for v in g.nodes()] == list(itertools.product([0, 1], [0, 1, 2]))
+
+
+# ---- the instrument's measurement model (bench and, later, the tracker emulator) ----------------------------
+def test_tracker_noise_has_the_stated_sigma_in_its_own_frame():
+    from station.mocks.world.tracker import measure_points, measure_poses, sigma
+
+    tracker = se3.pose_to_matrix(np.array([2.0, 1.0, 0.5, 0.0, 0.0, 0.7]), "rotvec")
+    p = np.array([0.3, -0.2, 0.8])
+    rng = np.random.default_rng(2)
+    local = np.linalg.inv(tracker) @ np.r_[p, 1.0]
+    readings = measure_points(np.broadcast_to(p, (4000, 3)), tracker, rng)
+    d = float(np.linalg.norm(local[:3]))
+    np.testing.assert_allclose(readings.mean(axis=0), local[:3], atol=4 * sigma(d) / np.sqrt(4000))
+    np.testing.assert_allclose(readings.std(axis=0), sigma(d), rtol=0.06)  # 15 um + 6 um/m, per axis
+    assert sigma(d) == pytest.approx(15e-6 + 6e-6 * d)
+    refl = np.array([[0.1, 0, 0], [-0.05, 0.0866, 0], [-0.05, -0.0866, 0.0]])
+    T = se3.pose_to_matrix(np.array([0.2, 0.1, 0.6, 0.1, -0.2, 0.3]), "rotvec")
+    poses = tracker @ measure_poses(np.broadcast_to(T, (300, 4, 4)), refl, tracker, rng)
+    err = np.linalg.norm(poses[:, :3, 3] - T[:3, 3], axis=1)
+    assert 0.5 * sigma(d) < rms(err) < 2.5 * sigma(d)  # centroid of 3 readings: ~sigma
