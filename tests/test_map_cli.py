@@ -173,6 +173,7 @@ def _struts_file(pivot2_x):
             f"  branch: 1\n")
 
 
+@pytest.mark.slow
 def test_hexapod_with_mm_deg_files_and_the_installed_command(tmp_path):
     w = World.default("hexapod", seed=2)
     ok("map", "plan", "--model", "hexapod", "--grid", "1", "--mesh", "simplex", "--out", tmp_path / "plan.csv")
@@ -205,6 +206,7 @@ def test_hexapod_with_mm_deg_files_and_the_installed_command(tmp_path):
     assert np.sqrt(np.mean(np.sum((pose[:, :3] - v[:, :3]) ** 2, axis=1))) < 0.1 * np.sqrt(np.mean(before ** 2))
 
 
+@pytest.mark.slow
 def test_map_on_top_of_a_parametric_calibration(tmp_path):
     """arm6 with hidden geometry and a gravity-loaded compliant shoulder: station solve identifies the geometry,
     the map is built on top of that result (and, for comparison, on the nominal model); both reach held-out

@@ -214,6 +214,7 @@ def test_bad_parallel_files_fail_in_one_line(tmp_path, edit, message):
     assert len(lines) == 1 and lines[0].startswith("station: error:") and str(f) in lines[0], lines
 
 
+@pytest.mark.slow
 def test_installed_command_shows_parallel_models():
     for name in ("hexapod", "struts2"):
         p = subprocess.run([STATION, "model", "show", name], capture_output=True, text=True, timeout=120)
