@@ -254,3 +254,14 @@ def test_world_holds_a_parallel_truth():
     with pytest.raises(ValueError, match="no such parameter"):
         World.from_dict({"format": "station-world/1", "units": {"length": "mm", "angle": "deg"},
                          "robot": {"model": "hexapod"}, "errors": {"explicit": {"leg.7.offset": 1}}})
+
+
+@pytest.mark.parametrize("name", ["hexapod", "struts2"])
+def test_world_example_and_show_for_parallel_robots(tmp_path, name):
+    rc, text, err = station("mock", "world", "example", "--model", name)
+    assert rc == 0, err
+    f = tmp_path / "w.yaml"
+    f.write_text(text)
+    rc, out, err = station("mock", "world", "show", f)
+    assert rc == 0, err
+    assert f"model {name} (parallel)" in out and ".offset" in out
