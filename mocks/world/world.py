@@ -595,7 +595,8 @@ class World:
             pts.append({"label": label, "kind": p.kind, "position": [round(float(x), 4) for x in pos],
                         "approach": [round(float(x), 6) for x in p.approach],
                         "radius": round(p.radius, 6)})
-        tool = {k: round(self.nominal.param(f"tcp.{k}"), 6) for k in ("x", "y", "z", "rx", "ry", "rz")}
+        tool = {k: round(self.nominal.param(f"tcp.{k}"), 6) for k in ("x", "y", "z", "rx", "ry", "rz")
+                if f"tcp.{k}" in self.nominal.param_names}  # the planar parallel robot has no tool frame
         return {"format": CELL_FORMAT, "units": {"length": "m", "angle": "rad"}, "frame": "robot base",
                 "model": self.nominal.name, "tool": tool, "survey_sigma": self.spec.survey_sigma,
                 "points": pts}

@@ -22,7 +22,7 @@ TIME_MODES = ("instant", "sim", "realtime")
 SECTIONS = {"format", "units", "seed", "robot", "errors", "joints", "motion", "cell", "noise", "buses",
             "description"}
 ANGLE_SUFFIX = {"alpha", "beta", "theta", "rx", "ry", "rz"}
-LENGTH_SUFFIX = {"a", "d", "x", "y", "z"}
+LENGTH_SUFFIX = {"a", "d", "x", "y", "z", "offset"}  # offset: leg.K.offset, strut.K.offset (parallel robots)
 
 # defaults (SI)
 CONTACT_RADIUS = 50e-6

@@ -41,6 +41,11 @@ def show(name: str = NAME, units: str = UNITS, tip_link: str = TIP_LINK, base_li
             typer.echo(f"# URDF <calibration> of {joint}: " + ", ".join(f"{k}={v:g}" for k, v in cal.items()))
     typer.echo(f"# parameters ({len(m.param_names)}): " + ", ".join(m.param_names))
     typer.echo("# groups: " + "; ".join(f"{g}={','.join(v)}" for g, v in sorted(m.groups.items())))
+    if getattr(m, "kind", "serial") == "parallel":  # q = 0 cannot be assembled: show the home configuration
+        q = m.home_q
+        typer.echo(f"# actuators at home (m): {np.round(q, 6).tolist()}")
+        typer.echo(f"# tool position at home (m): {np.round(m.position(q), 6).tolist()}")
+        return
     typer.echo(f"# tool position at q=0 (m): {np.round(m.position(np.zeros(m.n_joints)), 6).tolist()}")
 
 

@@ -34,6 +34,12 @@ def model_from_dict(doc: dict, where: str = "<model>") -> Model:
         raise ModelFileError(f"{where}: not a mapping")
     if doc.get("format", FORMAT) != FORMAT:
         raise ModelFileError(f"{where}: format {doc.get('format')!r} is not {FORMAT!r}")
+    if doc.get("kind", "serial") != "serial":  # parallel robots: station/kinematics/parallelfile.py
+        if doc["kind"] != "parallel":
+            raise ModelFileError(f"{where}: kind must be serial or parallel, got {doc['kind']!r}")
+        from station.kinematics.parallelfile import parallel_from_dict
+
+        return parallel_from_dict(doc, where)
     units = doc.get("units") or {}
     lu, au = units.get("length"), units.get("angle")
     if lu not in LENGTH or au not in ANGLE:
@@ -150,6 +156,10 @@ def load_model_file(path: str | Path) -> Model:
 
 def model_to_dict(model: Model, length: str = "m", angle: str = "rad") -> dict:
     """Current parameter values (nominal or calibrated) in the stated units."""
+    if getattr(model, "kind", "serial") == "parallel":
+        from station.kinematics.parallelfile import parallel_to_dict
+
+        return parallel_to_dict(model, length, angle)
     L, A = 1 / LENGTH[length], 1 / ANGLE[angle]
     p = model.param_dict()
 
