@@ -15,6 +15,17 @@ STEP = 1e-6  # rad (m for prismatic joints): central-difference step of the pote
 FIXED_POINT_TOL = 1e-13  # rad
 
 
+class Rigid:
+    """No gravity deflection: parallel robots (their legs are axial actuators; the world models no sag)."""
+
+    active = False
+    masses: dict = {}
+    payload = (0.0, np.zeros(3))
+
+    def deflect(self, q: np.ndarray) -> np.ndarray:
+        return q
+
+
 class Gravity:
     """Point masses ``{k: (kg, com)}`` on links k = 1..n (com in the model's link frame k), a payload
     ``(kg, com in the tool frame)``, gravity (m/s^2, base frame) and per-joint compliance (rad/(N m), m/N

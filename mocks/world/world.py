@@ -22,7 +22,7 @@ import numpy as np
 from station.mocks.world import motion
 from station.mocks.world.cell import CELL_FORMAT, DEFAULTS, CellPoint
 from station.mocks.world.faults import Faults
-from station.mocks.world.physics import Gravity
+from station.mocks.world.physics import Gravity, Rigid
 from station.mocks.world.worldfile import (
     FORMAT,
     TIME_MODES,
@@ -273,9 +273,11 @@ class World:
             self._cache = (key, qj, self.truth.position(qj))
         return self._cache[1], self._cache[2]
 
-    def _gravity_truth(self, spec: WorldSpec, nominal: Model) -> Gravity:
+    def _gravity_truth(self, spec: WorldSpec, nominal: Model) -> Gravity | Rigid:
         """Link masses (the model's, replaced per link by joints.masses), payload (joints.payload, else the
         model's) on the TRUE geometry."""
+        if getattr(nominal, "kind", "serial") == "parallel":
+            return Rigid()
         n = nominal.n_joints
         load = nominal.load
         masses = {k: load.link_mass(k) for k in range(1, n + 1)} if load is not None else {}

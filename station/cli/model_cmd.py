@@ -33,7 +33,7 @@ def show(name: str = NAME, units: str = UNITS, tip_link: str = TIP_LINK, base_li
     length, angle = _units(units)
     m = load_cli_model(name, tip_link, base_link, payload)
     typer.echo(dump_model(m, length, angle), nl=False)
-    urdf = m.source.get("urdf")
+    urdf = (getattr(m, "source", None) or {}).get("urdf")  # parallel models have no URDF source
     if urdf:
         typer.echo(f"# from URDF {urdf['path']}: chain {urdf['base_link']} -> {urdf['tip_link']} "
                    f"(joints {', '.join(j.name for j in m.joints)})")
