@@ -10,8 +10,7 @@ import threading
 from pathlib import Path
 
 import typer
-
-from station.robot.errors import ConfigError
+from station.mocks.errors import MockError
 
 
 def _load_eeprom(path: Path | None) -> dict[int, bytes]:
@@ -21,7 +20,7 @@ def _load_eeprom(path: Path | None) -> dict[int, bytes]:
         doc = json.loads(path.read_text())
         return {int(k): bytes.fromhex(v) for k, v in doc["eeprom"].items()}
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
-        raise ConfigError(f"{path}: not a dynamixel EEPROM file ({e})") from None
+        raise MockError(f"{path}: not a dynamixel EEPROM file ({e})") from None
 
 
 def _save_eeprom(path: Path, images: dict[int, bytes]) -> None:
@@ -35,7 +34,8 @@ def _save_eeprom(path: Path, images: dict[int, bytes]) -> None:
 def build_emulator(world_file: Path | None, model: str, ids: str | None, baud: int | None, wire_timing: bool,
                    return_delay: int | None, contact_id: str | None, servo: str | None, eeprom: Path | None,
                    seed: int = 0):
-    from station.mocks.dynamixel.emulator import DEFAULT_CONTACT_ID, DynamixelEmulator, parse_id_list
+    from station.mocks.dynamixel.emulator import DEFAULT_CONTACT_ID, DynamixelEmulator
+    from station.mocks.ids import parse_id_list
     from station.mocks.world import World, WorldFileError
 
 
@@ -43,12 +43,12 @@ def build_emulator(world_file: Path | None, model: str, ids: str | None, baud: i
         world = World.from_file(world_file) if world_file else World.default(model=model, seed=seed,
                                                                              time_mode="realtime")
     except (WorldFileError, ValueError, OSError) as e:
-        raise ConfigError(f"world: {e}") from None
+        raise MockError(f"world: {e}") from None
     cfg = world.bus_config("dynamixel")
     try:
         id_list = parse_id_list(ids) if ids else (parse_id_list(cfg["ids"]) if cfg.get("ids") else None)
     except (ValueError, TypeError):
-        raise ConfigError(f"bad servo id list {ids or cfg.get('ids')!r}: expected e.g. 11-14 or 11,12,13,14") from None
+        raise MockError(f"bad servo id list {ids or cfg.get('ids')!r}: expected e.g. 11-14 or 11,12,13,14") from None
     c = contact_id if contact_id is not None else cfg.get("contact_id", DEFAULT_CONTACT_ID)
     c = None if c is None or str(c).lower() in ("none", "off", "") else int(c)
     try:
@@ -59,7 +59,7 @@ def build_emulator(world_file: Path | None, model: str, ids: str | None, baud: i
                                  wire_timing=wire_timing or bool(cfg.get("wire_timing", False)),
                                  contact_id=c, eeprom=_load_eeprom(eeprom))
     except ValueError as e:
-        raise ConfigError(str(e)) from None
+        raise MockError(str(e)) from None
 
 
 def register(mock_app: typer.Typer) -> None:

@@ -47,6 +47,7 @@ def _quiet_bus_libraries() -> None:
 
 def main() -> None:
     from station.kinematics.modelfile import ModelFileError
+    from station.mocks.errors import MockError
     from station.robot.errors import StationError
 
     _quiet_bus_libraries()
@@ -57,7 +58,7 @@ def main() -> None:
             sys.exit(rc)
     except typer.Exit as e:
         sys.exit(e.exit_code)
-    except (StationError, ModelFileError) as e:
+    except (StationError, ModelFileError, MockError) as e:
         typer.echo(f"station: error: {e}", err=True)
         sys.exit(2)
     except KeyboardInterrupt:

@@ -19,6 +19,7 @@ from station.engine.plan import PlannedPose, PosePlan, generate_plan, plan_from_
 from station.engine.session_record import live_samples, session_from_events
 from station.engine.touch import TouchProvider, provider_for
 from station.kinematics import Model
+from station.robot.capabilities import CalibrationStore
 from station.robot.errors import ConfigError, DeviceFault, SafetyStop, StationError
 from station.robot.protocol import adopt_serial
 
@@ -148,10 +149,9 @@ class Session:
             return out
 
     def _read_calibration(self) -> dict[str, float] | None:
-        try:
-            cal = self.robot.read_calibration()
-        except (NotImplementedError, AttributeError):
+        if not isinstance(self.robot, CalibrationStore):
             return None
+        cal = self.robot.read_calibration()
         return {k: float(v) for k, v in (cal or {}).items()} or None
 
     def _expected_calibrations(self, first: dict) -> list[dict]:
