@@ -128,6 +128,13 @@ class DynamixelEmulator:
             return parse_id_list(cfg["ids"])
         return list(range(1, n + 1))
 
+    def url(self, path: str | None = None) -> str:
+        """The robot URL of this bus at ``path`` (default: the started pty)."""
+        ids = ",".join(str(i) for i in self.joint_ids)
+        extra = "" if self.contact_id is None else f"&contact={self.contact_id}"
+        extra += "" if self.baud() == 1_000_000 else f"&baud={self.baud()}"
+        return f"dynamixel://{path or self.path}?model={self.model.name}&ids={ids}{extra}"
+
     # ---- lifecycle ----------------------------------------------------------------------------
     def start(self) -> str:
         self._master, self._slave = os.openpty()

@@ -15,7 +15,7 @@ _EXPORTS = {
     "station.robot.protocol": ("Identity", "JointSnapshot", "JointState", "Robot", "RobotStatus", "adopt_serial"),
     "station.robot.capabilities": ("CalibrationExport", "CalibrationStore", "CartesianMotion", "Compliant",
                                    "ContactSensor", "FaultRecovery", "Reboot", "Reconnect", "UnlockProtectiveStop",
-                                   "capabilities"),
+                                   "capabilities_of"),
     "station.robot.registry": ("open_robot", "schemes"),
     "station.robot.url": ("RobotURL", "parse_ids", "parse_url"),
 }

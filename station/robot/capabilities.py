@@ -94,6 +94,6 @@ CAPABILITIES = (CalibrationStore, CalibrationExport, ContactSensor, Compliant, C
                 Reboot, Reconnect)
 
 
-def capabilities(robot: object) -> list[str]:
+def capabilities_of(robot: object) -> list[str]:
     """Names of the capabilities ``robot`` fulfils (for ``station`` output and logs)."""
     return [c.__name__ for c in CAPABILITIES if isinstance(robot, c)]

@@ -149,7 +149,7 @@ def either(*words: str, otherwise: Kind | None = None, none: tuple[str, ...] = (
         if otherwise is None:
             raise ValueError
         return otherwise.parse(s)
-    forms = [*words, *none] + ([otherwise.form] if otherwise else [])
+    forms = [w for w in (*words, *none) if w] + ([otherwise.form] if otherwise else [])
     return Kind(" / ".join(forms), parse)
 
 
