@@ -62,10 +62,11 @@ def dashboard(host: str, command: str, timeout: float = 3.0) -> str:
 
 class Emulator:
     """A running emulator: ``url`` (what the station opens), ``world`` (in-process emulators: the ``World`` they
-    serve), ``host`` (UR), ``emulator`` (the in-process emulator object), ``proc`` (a child process)."""
+    serve), ``host`` (UR), ``port`` (Dynamixel pty path), ``emulator`` (the in-process emulator object),
+    ``proc`` (a child process started with ``extra`` command-line options)."""
 
     def __init__(self, bus: str, world=None, *, serial: str | None = None, process: bool | None = None,
-                 model: str = "ur5e", host: str | None = None, extra: tuple[str, ...] = ()) -> None:
+                 model: str | None = None, host: str | None = None, extra: tuple[str, ...] = ()) -> None:
         if bus not in BUSES:
             from station.mocks.errors import MockError
 
@@ -78,9 +79,10 @@ class Emulator:
             raise ValueError("launch the CANopen emulator in-process (station mock canopen serves socketcand)")
         self.world_path = None if world is None or not isinstance(world, str | os.PathLike) else Path(world)
         self.world = None if self.world_path is not None else world
-        self.model = model  # default world of a UR child without a world file
+        self.model = model  # a child without a world file serves the default world of this model
         self.host = host or (free_loopback() if bus == "ur" else "")
         self.url = ""
+        self.port = ""  # dynamixel: the pty path
         self.ready_line = ""
         self.emulator = None
         self.proc: subprocess.Popen | None = None
@@ -104,35 +106,39 @@ class Emulator:
         if self.world is None:
             from station.mocks.world import World
 
-            self.world = World.from_file(self.world_path)
+            if self.world_path is None and not self.model:
+                raise ValueError(f"{self.bus} emulator: give a world (file or World) or a model")
+            self.world = (World.from_file(self.world_path) if self.world_path is not None
+                          else World.default(model=self.model))
         return self.world
 
     def _with_serial(self, url: str) -> str:
         return url + (f"&serial={self.serial}" if self.serial else "")
 
+    def _world_args(self) -> list[str]:
+        if self.world_path is not None:
+            return ["--world", str(self.world_path)]
+        if self.world is not None:
+            raise ValueError("an emulator in a child process serves a world file, not a World object")
+        return ["--model", self.model] if self.model else []
+
     def _start_ur(self, timeout: float) -> None:
-        args = ["mock", "ur", "--host", self.host]
-        args += ["--world", str(self.world_path)] if self.world_path else ["--model", self.model]
-        self.ready_line = self._spawn([*args, "--exit-with-parent", *self.extra], timeout)
+        args = ["mock", "ur", "--host", self.host, *self._world_args(), "--exit-with-parent", *self.extra]
         # "ur emulator ready on HOST ...; robot URL ur://HOST?model=NAME"
+        self.ready_line = self._spawn(args, timeout)[0]
         self.url = self.ready_line.rsplit("robot URL ", 1)[-1].strip()
 
     def _start_dynamixel(self, timeout: float) -> None:
-        from station.mocks.dynamixel.emulator import DynamixelEmulator
-
         if self.process:
-            if self.world_path is None:
-                raise ValueError("a dynamixel emulator in a child process needs a world file")
-            from station.mocks.dynamixel.cli import build_emulator
+            # the pty path, then "robot URL dynamixel://PATH?model=...&ids=..."
+            self.port, url_line = self._spawn(["mock", "dynamixel", *self._world_args(), *self.extra], timeout, 2)
+            self.url = self._with_serial(url_line.rsplit("robot URL ", 1)[-1].strip())
+            return
+        from station.mocks.dynamixel.cli import emulator_for
 
-            # the settings the child derives from the same world file (ids, contact id, baud): for the URL only
-            settings = build_emulator(self.world_path, "omx", None, None, False, None, None, None, None)
-            self.world = None
-            port = self._spawn(["mock", "dynamixel", "--world", str(self.world_path)], timeout)
-        else:
-            settings = self.emulator = DynamixelEmulator(self._load_world())
-            port = self.emulator.start()
-        self.url = self._with_serial(settings.url(port))
+        self.emulator = emulator_for(self._load_world())  # the world's buses.dynamixel settings, as the CLI
+        self.port = self.emulator.start()
+        self.url = self._with_serial(self.emulator.url(self.port))
 
     def _start_canopen(self) -> None:
         from station.mocks.canopen.emulator import CanopenEmulator
@@ -143,8 +149,8 @@ class Emulator:
         nodes = ",".join(str(n) for n in self.emulator.nodes)
         self.url = self._with_serial(f"canopen+virtual://{channel}?nodes={nodes}&model={world.nominal.name}")
 
-    def _spawn(self, args: list[str], timeout: float) -> str:
-        """Start ``station ARGS`` and return its first stdout line (the emulator's ready line)."""
+    def _spawn(self, args: list[str], timeout: float, lines: int = 1) -> list[str]:
+        """Start ``station ARGS`` and return its first ``lines`` stdout lines (the emulator's ready lines)."""
         self._log = tempfile.TemporaryFile()  # noqa: SIM115 - kept after close(): stderr() stays readable
         self.proc = subprocess.Popen([sys.executable, "-c", _CLI, *args], stdout=subprocess.PIPE,
                                      stderr=self._log, stdin=subprocess.DEVNULL)
@@ -153,7 +159,7 @@ class Emulator:
         deadline = time.monotonic() + timeout
         buf = b""
         try:
-            while b"\n" not in buf:
+            while buf.count(b"\n") < lines:
                 if self.proc.poll() is not None or time.monotonic() > deadline:
                     raise RuntimeError(f"emulator `station {' '.join(args[:2])}` did not start: "
                                        f"{self.stderr().strip()[-2000:]}")
@@ -161,7 +167,7 @@ class Emulator:
                     buf += os.read(self.proc.stdout.fileno(), 4096)
         finally:
             sel.close()
-        return buf.decode(errors="replace").splitlines()[0].strip()
+        return [line.strip() for line in buf.decode(errors="replace").splitlines()[:lines]]
 
     # ---- while running ----------------------------------------------------------------------------------
     def stderr(self) -> str:

@@ -34,16 +34,24 @@ def _save_eeprom(path: Path, images: dict[int, bytes]) -> None:
 def build_emulator(world_file: Path | None, model: str, ids: str | None, baud: int | None, wire_timing: bool,
                    return_delay: int | None, contact_id: str | None, servo: str | None, eeprom: Path | None,
                    seed: int = 0):
-    from station.mocks.dynamixel.emulator import DEFAULT_CONTACT_ID, DynamixelEmulator
-    from station.mocks.ids import parse_id_list
     from station.mocks.world import World, WorldFileError
-
 
     try:
         world = World.from_file(world_file) if world_file else World.default(model=model, seed=seed,
                                                                              time_mode="realtime")
     except (WorldFileError, ValueError, OSError) as e:
         raise MockError(f"world: {e}") from None
+    return emulator_for(world, ids, baud, wire_timing, return_delay, contact_id, servo, _load_eeprom(eeprom))
+
+
+def emulator_for(world, ids: str | None = None, baud: int | None = None, wire_timing: bool = False,
+                 return_delay: int | None = None, contact_id: str | None = None, servo: str | None = None,
+                 eeprom: dict[int, bytes] | None = None):
+    """The emulator for ``world``: options given here win over the world file's ``buses.dynamixel`` section,
+    which wins over the defaults (ids 1..n, contact sensor id 200, XM430, 1 Mbaud)."""
+    from station.mocks.dynamixel.emulator import DEFAULT_CONTACT_ID, DynamixelEmulator
+    from station.mocks.ids import parse_id_list
+
     cfg = world.bus_config("dynamixel")
     try:
         id_list = parse_id_list(ids) if ids else (parse_id_list(cfg["ids"]) if cfg.get("ids") else None)
@@ -57,7 +65,7 @@ def build_emulator(world_file: Path | None, model: str, ids: str | None, baud: i
                                  return_delay=int(return_delay if return_delay is not None
                                                   else cfg.get("return_delay", 0)),
                                  wire_timing=wire_timing or bool(cfg.get("wire_timing", False)),
-                                 contact_id=c, eeprom=_load_eeprom(eeprom))
+                                 contact_id=c, eeprom=eeprom or {})
     except ValueError as e:
         raise MockError(str(e)) from None
 
@@ -76,14 +84,14 @@ def register(mock_app: typer.Typer) -> None:
         servo: str = typer.Option(None, "--servo", help="xm430 (default) or xl430"),
         eeprom: Path = typer.Option(None, "--eeprom", help="EEPROM file: loaded at start, saved at exit"),
     ) -> None:
-        """Emulated Dynamixel servos (Protocol 2.0) on a pseudo-terminal; prints the pty path."""
+        """Emulated Dynamixel servos (Protocol 2.0) on a pseudo-terminal; prints the pty path, then the robot URL."""
         emu = build_emulator(world, model, ids, baud, wire_timing, return_delay, contact, servo, eeprom, seed)
         done = threading.Event()
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: done.set())
         path = emu.start()
         try:
-            sys.stdout.write(path + "\n")
+            sys.stdout.write(f"{path}\nrobot URL {emu.url(path)}\n")
             sys.stdout.flush()
             while not done.wait(0.5):
                 pass
