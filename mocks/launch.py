@@ -27,6 +27,7 @@ import tempfile
 import time
 import uuid
 from pathlib import Path
+from urllib.parse import quote
 
 UR_PORTS = (30004, 29999, 30003)
 BUSES = ("ur", "canopen", "dynamixel")
@@ -113,7 +114,7 @@ class Emulator:
         return self.world
 
     def _with_serial(self, url: str) -> str:
-        return url + (f"&serial={self.serial}" if self.serial else "")
+        return url + (f"&serial={quote(self.serial, safe='')}" if self.serial else "")
 
     def _world_args(self) -> list[str]:
         if self.world_path is not None:
@@ -131,7 +132,8 @@ class Emulator:
     def _start_dynamixel(self, timeout: float) -> None:
         if self.process:
             # the pty path, then "robot URL dynamixel://PATH?model=...&ids=..."
-            self.port, url_line = self._spawn(["mock", "dynamixel", *self._world_args(), *self.extra], timeout, 2)
+            args = ["mock", "dynamixel", *self._world_args(), "--exit-with-parent", *self.extra]
+            self.port, url_line = self._spawn(args, timeout, 2)
             self.url = self._with_serial(url_line.rsplit("robot URL ", 1)[-1].strip())
             return
         from station.mocks.dynamixel.cli import emulator_for

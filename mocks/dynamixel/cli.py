@@ -4,6 +4,7 @@ until SIGTERM/SIGINT."""
 from __future__ import annotations
 
 import json
+import os
 import signal
 import sys
 import threading
@@ -83,6 +84,8 @@ def register(mock_app: typer.Typer) -> None:
         contact: str = typer.Option(None, "--contact-id", help="contact sensor id (default 200, 'none': off)"),
         servo: str = typer.Option(None, "--servo", help="xm430 (default) or xl430"),
         eeprom: Path = typer.Option(None, "--eeprom", help="EEPROM file: loaded at start, saved at exit"),
+        exit_with_parent: bool = typer.Option(False, "--exit-with-parent", help="Stop when the process that "
+                                              "started this one ends (tests: no orphan after a crash)."),
     ) -> None:
         """Emulated Dynamixel servos (Protocol 2.0) on a pseudo-terminal; prints the pty path, then the robot URL."""
         emu = build_emulator(world, model, ids, baud, wire_timing, return_delay, contact, servo, eeprom, seed)
@@ -90,11 +93,13 @@ def register(mock_app: typer.Typer) -> None:
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: done.set())
         path = emu.start()
+        parent = os.getppid()
         try:
             sys.stdout.write(f"{path}\nrobot URL {emu.url(path)}\n")
             sys.stdout.flush()
             while not done.wait(0.5):
-                pass
+                if exit_with_parent and os.getppid() != parent:
+                    break
         finally:
             emu.stop()
             if eeprom is not None:
