@@ -64,7 +64,7 @@ def driver_class(scheme: str) -> type:
         if not known:
             raise ConfigError(f"no robot drivers are registered (entry-point group {GROUP} is empty): the "
                               "station package is not installed properly; reinstall it (make venv)")
-        raise ConfigError(f"unknown robot URL scheme {scheme!r}; known: {', '.join(known)}")
+        raise ConfigError(f"unknown scheme {scheme!r}; known: {', '.join(known)}")
     try:
         return ep.load()
     except ModuleNotFoundError as e:  # a plug-in driver that did not wrap its bus library import
