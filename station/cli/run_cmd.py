@@ -253,7 +253,7 @@ def run_demo(bus: str, *, time_mode: str = "instant", seed: int = 5, quiet: bool
     hidden = World.from_file(world_path).hidden()
     typer.echo(f"demo: {BUS_MODELS[bus]} on {bus}, hidden errors in {world_path}")
     t0 = time.monotonic()
-    with launch(bus, world_path, serial=serial, process=(bus == "dynamixel")) as emu:
+    with launch(bus, world_path, serial=serial, process=bus != "canopen") as emu:  # realtime: own GIL
         typer.echo(f"demo: emulator up, robot URL {emu.url}")
         cb, bar = _progress_bar(quiet)
         with bar:
