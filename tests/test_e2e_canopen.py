@@ -4,8 +4,9 @@ the robot and keeps the journal."""
 
 
 import pytest
+from station.mocks.launch import launch
 
-from station.cli.run_cmd import BUS_OPTIONS, Emulated, write_demo_files
+from station.cli.run_cmd import BUS_OPTIONS, write_demo_files
 from station.engine import read_journal, resume, start
 from station.records import open_records
 
@@ -14,7 +15,7 @@ from station.records import open_records
 def cell(tmp_path, monkeypatch):
     monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
     world_path, cell_path, serial = write_demo_files("canopen", tmp_path, seed=21, time_mode="instant")
-    with Emulated("canopen", world_path, serial) as emu:
+    with launch("canopen", world_path, serial=serial) as emu:
         yield emu, cell_path, serial, f"sqlite:///{tmp_path / 'records.db'}"
 
 
@@ -104,7 +105,7 @@ def test_guarded_approach_stops_at_first_contact(tmp_path, monkeypatch):
     world_path, cell_path = tmp_path / "w.yaml", tmp_path / "c.yaml"
     world_path.write_text(yaml.safe_dump(doc))
     cell_path.write_text(yaml.safe_dump(World.from_file(world_path).station_cell()))
-    with Emulated("canopen", world_path, "NEEDLE-1") as emu:
+    with launch("canopen", world_path, serial="NEEDLE-1") as emu:
         out = start("tcp_4point", emu.url, "NEEDLE-1", cell=cell_path, touch=GuardedApproach(fine=0.01e-3),
                     options={"n_fit": 6, "n_holdout": 1})
         world = emu.world

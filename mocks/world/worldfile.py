@@ -11,9 +11,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from station.mocks.errors import MockError
 from station.mocks.world.cell import DEFAULTS, KINDS
-
-from station.robot.errors import ConfigError
 
 FORMAT = "station-world/1"
 LENGTH = {"m": 1.0, "mm": 1e-3}
@@ -30,9 +29,9 @@ CAPTURE_RADIUS = 8e-3
 SEATING_SIGMA = 10e-6
 
 
-class WorldFileError(ConfigError, ValueError):
-    """Malformed world file; the message names the file and the field. A ``ConfigError`` too, so the
-    ``station`` command prints it as one line and exits 2 wherever a world file is read."""
+class WorldFileError(MockError, ValueError):
+    """Malformed world file; the message names the file and the field. A ``MockError``, so the ``station``
+    command prints it as one line and exits 2 wherever a world file is read."""
 
 
 @dataclass

@@ -49,6 +49,7 @@ def _quiet_bus_libraries() -> None:
 def main() -> None:
     from station.kinematics.modelfile import ModelFileError
     from station.kinematics.parallel import ParallelKinematicsError
+    from station.mocks.errors import MockError
     from station.robot.errors import StationError
 
     _quiet_bus_libraries()
@@ -59,7 +60,7 @@ def main() -> None:
             sys.exit(rc)
     except typer.Exit as e:
         sys.exit(e.exit_code)
-    except (StationError, ModelFileError, ParallelKinematicsError) as e:
+    except (StationError, ModelFileError, ParallelKinematicsError, MockError) as e:
         typer.echo(f"station: error: {e}", err=True)
         sys.exit(2)
     except KeyboardInterrupt:

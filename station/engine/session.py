@@ -19,6 +19,7 @@ from station.engine.plan import PlannedPose, PosePlan, generate_plan, plan_from_
 from station.engine.session_record import live_samples, session_from_events
 from station.engine.touch import TouchProvider, provider_for
 from station.kinematics import Model
+from station.robot.capabilities import CalibrationStore, Compliant, ContactSensor
 from station.robot.errors import ConfigError, DeviceFault, SafetyStop, StationError
 from station.robot.protocol import adopt_serial
 
@@ -148,10 +149,9 @@ class Session:
             return out
 
     def _read_calibration(self) -> dict[str, float] | None:
-        try:
-            cal = self.robot.read_calibration()
-        except (NotImplementedError, AttributeError):
+        if not isinstance(self.robot, CalibrationStore):
             return None
+        cal = self.robot.read_calibration()
         return {k: float(v) for k, v in (cal or {}).items()} or None
 
     def _expected_calibrations(self, first: dict) -> list[dict]:
@@ -286,7 +286,7 @@ class Session:
     def record(self, pose: PlannedPose | None = None, point: str | None = None, measured=None) -> dict:
         """Read all joints in one transaction and journal the sample (fsynced before the next motion)."""
         snap = self.robot.joint_positions()
-        touch = self.robot.touch()
+        touch = self.robot.touch() if isinstance(self.robot, ContactSensor) else None
         if touch is False:
             raise DeviceFault(f"record: touch indicator is off at pose {pose.index if pose else '?'}; the tip is "
                               "not on the reference")
@@ -419,7 +419,10 @@ class Session:
     def safe_state(self) -> list[str]:
         """Stop motion, leave compliant mode. Best effort: every action is tried, failures are returned."""
         problems = []
-        for what, fn in (("stop", self.robot.stop), ("compliance off", lambda: self.robot.set_compliant(False))):
+        actions = [("stop", self.robot.stop)]
+        if isinstance(self.robot, Compliant):
+            actions.append(("compliance off", lambda: self.robot.set_compliant(False)))
+        for what, fn in actions:
             try:
                 fn()
             except Exception as e:  # teardown must try everything; the caller journals what failed

@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 
+from station.robot.capabilities import CalibrationExport, CalibrationStore
 from station.robot.errors import DeviceFault, StationError
 
 
@@ -31,19 +32,16 @@ def write_back(s, check_pose=None) -> dict:
         raise StationError("write-back: nothing solved yet")
     offsets = {n: p.value - p.nominal for n, p in res.parameters.items()
                if n.startswith("offset.") and p.identifiable}
-    export = getattr(s.robot, "export_calibration", None)
-    if callable(export):
+    if isinstance(s.robot, CalibrationExport):
         # a controller that keeps its calibration itself (UR): nothing is written to the robot; the driver
         # exports calibration.conf / URDF for the integrator to install
-        files = [str(p) for p in export(res, s.folder / "controller-calibration") or []]
+        files = [str(p) for p in s.robot.export_calibration(res, s.folder / "controller-calibration") or []]
         return s.event({"type": "writeback", "phase": "exported", "applied": False, "verified": False,
                         "files": files, "note": "controller keeps its calibration; exported " + ", ".join(files)})
-    try:
-        before = s.robot.read_calibration()
-    except NotImplementedError as e:
-        ev = s.event({"type": "writeback", "phase": "unsupported", "applied": False, "verified": False,
-                      "note": f"device keeps its calibration itself: {e}"})
-        return ev
+    if not isinstance(s.robot, CalibrationStore):
+        return s.event({"type": "writeback", "phase": "unsupported", "applied": False, "verified": False,
+                        "note": "the robot stores no joint calibration the station can write"})
+    before = s.robot.read_calibration()
     before = {k: float(v) for k, v in (before or {}).items()}
     if not before:
         return s.event({"type": "writeback", "phase": "unsupported", "applied": False, "verified": False,

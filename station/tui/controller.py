@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from station.kinematics import Model, se3
+from station.robot.capabilities import CalibrationStore, ContactSensor
 from station.robot.errors import LimitError, StationError
 from station.robot.motion import MANUAL_TOOL_SPEED_CAP, jog_target, joint_speed_for_tool_cap
 from station.tui.session import JogSample, JogSession
@@ -193,7 +194,7 @@ class JogController:
             return None
         try:
             snap = self.robot.joint_positions()
-            touch = self.robot.touch()
+            touch = self.robot.touch() if isinstance(self.robot, ContactSensor) else None
             status = self.robot.status()
         except StationError as e:
             self.stale = True
@@ -299,7 +300,7 @@ class JogController:
         with self.io_lock:
             try:
                 status = self.robot.status()
-                touch = self.robot.touch()
+                touch = self.robot.touch() if isinstance(self.robot, ContactSensor) else None
                 snap = self.robot.joint_positions()
             except StationError as e:
                 self._on_error(e, "record")
@@ -401,6 +402,9 @@ class JogController:
         return WritebackPlan(before, after, corr)
 
     def _read_calibration(self) -> dict[str, float] | None:
+        if not isinstance(self.robot, CalibrationStore):
+            self.message = "this robot stores no joint calibration the station can write"
+            return None
         with self.io_lock:
             try:
                 return {k: float(v) for k, v in self.robot.read_calibration().items()}
