@@ -152,7 +152,7 @@ def run(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Run a procedure end of line: unattended, PASS/FAIL, exit 0 pass / 1 fail / 2 error."""
-    from station.engine import start
+    from station.api import run as start
 
     cb, bar = _progress_bar(quiet)
     with bar:
@@ -168,7 +168,7 @@ def resume_cmd(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Continue an interrupted session: robot re-verified, recorded samples kept, nothing repeated."""
-    from station.engine import resume
+    from station.api import resume
 
     cb, bar = _progress_bar(quiet)
     with bar:
@@ -348,7 +348,7 @@ def run_demo(bus: str, *, time_mode: str = "instant", seed: int = 5, quiet: bool
     import os
     import time
 
-    from station.engine import start
+    from station.api import run as start
     from station.mocks.world import World
 
     if time_mode not in ("instant", "realtime"):
