@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import yaml
 
+from station.api import run as start
 from station.cli.run_cmd import Emulated, demo_world
-from station.engine import start
 
 
 @pytest.fixture
