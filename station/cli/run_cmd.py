@@ -70,7 +70,7 @@ def _fmt(value: float | None, unit: str) -> str:
 
 def summary(out, echo=typer.echo) -> None:
     """Print result, verdict table, report path (no PASS/FAIL line: the caller prints it last)."""
-    import math
+    from station.units import human_of
 
     rec = out.record
     res = rec.get("result")
@@ -79,8 +79,7 @@ def summary(out, echo=typer.echo) -> None:
         for name, p in res["parameters"].items():
             if p.get("kind") == "point":
                 continue
-            angle = p.get("unit") == "rad"
-            k, u = (180 / math.pi, "deg") if angle else (1e3, "mm")
+            u, k = human_of(p.get("unit") or "m")
             if p["identifiable"]:
                 echo(f"  {name:14s} {(p['value'] - p['nominal']) * k:+10.4f} {u} ± {(p['std'] or 0) * k:.4f}")
             else:
