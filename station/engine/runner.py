@@ -108,7 +108,8 @@ def _optional_cell(cell_path) -> Cell | None:
     return load_cell(p) if p.exists() else None
 
 
-def _find_session(ref: str | Path) -> Path:
+def find_session(ref: str | Path) -> Path:
+    """The journal of a session id (in ``$STATION_HOME/sessions``), folder or journal path."""
     p = Path(ref)
     for cand in (p, p / "journal.jsonl", station_home() / "sessions" / str(ref) / "journal.jsonl"):
         if cand.is_file():
@@ -184,18 +185,13 @@ def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, lim
     return out
 
 
-def find_session(ref: str | Path) -> Path:
-    """The journal of a session id (in ``$STATION_HOME/sessions``), folder or journal path."""
-    return _find_session(ref)
-
-
 def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int, str], None] | None = None,
            log: Callable[[str], None] | None = None, robot=None) -> Outcome:
     """Continue an interrupted session: same procedure file (hash checked), same plan, recorded samples kept.
     The outcome's ``db`` is the records URL the journal names."""
     from station.robot import open_robot
 
-    path = _find_session(session_ref)
+    path = find_session(session_ref)
     try:
         header, events = read_journal(path)
     except JournalError as e:
