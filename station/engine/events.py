@@ -43,10 +43,11 @@ class Event:
         return self.TYPE
 
     def to_dict(self) -> dict:
-        """The JSON object of the journal line (``type`` first, then every field)."""
+        """The JSON object of the journal line (``type`` first, then every field; values are the event's own,
+        not copies)."""
         out: dict[str, Any] = {"type": self.type}
-        for f in fields(self):
-            out[f.name] = _plain(getattr(self, f.name))
+        for name, _, _ in _spec(type(self))[1]:
+            out[name] = getattr(self, name)
         return out
 
     # events also read like the plain dicts of journal /1, for scripts written against it (``sample["q"]``)
@@ -264,8 +265,7 @@ class Custom(Event):
         return self.custom_type
 
     def to_dict(self) -> dict:
-        return {"type": self.custom_type, "seq": self.seq, "t": self.t, "session": self.session,
-                **_plain(self.data)}
+        return {"type": self.custom_type, "seq": self.seq, "t": self.t, "session": self.session, **self.data}
 
     def __getitem__(self, key: str):
         if key in ("type", "seq", "t", "session"):
@@ -283,29 +283,25 @@ def from_dict(d: dict, *, strict: bool = True) -> Event:
     """The typed event of a journal object. ``strict``: every required field present, no unknown field (how
     ``station-journal/2`` lines are read); otherwise unknown fields are an error too but ``seq``/``t`` may be
     missing (an event about to be appended). Raises :class:`SchemaError` naming the field."""
-    if not isinstance(d, dict):
+    if type(d) is not dict:
         raise SchemaError("", f"expected a JSON object, got {type(d).__name__}")
     kind = d.get("type")
     if not isinstance(kind, str) or not kind:
         raise SchemaError("type", "missing (every event needs a type)")
     cls = EVENT_TYPES.get(kind)
     if cls is None:
-        base = {k: _check(d.get(k), tp, k) for k, tp in (("seq", int), ("t", float | None),
-                                                         ("session", str | None)) if k in d}
+        base = {k: _checker(tp)(d[k], k) for k, tp in (("seq", int), ("t", float | None), ("session", str | None))
+                if k in d}
         return Custom(kind, {k: v for k, v in d.items() if k not in ("type", "seq", "t", "session")}, **base)
-    hints = _hints(cls)
-    names = _field_names(cls)
-    unknown = [k for k in d if k != "type" and k not in names]
-    if unknown:
-        raise SchemaError(unknown[0], f"unknown field of a {kind} event")
+    names, spec = _spec(cls)
+    if len(d) > len(names) or any(k not in names for k in d):
+        raise SchemaError(next(k for k in d if k not in names), f"unknown field of a {kind} event")
     kw = {}
-    for f in fields(cls):
-        if f.name in d:
-            kw[f.name] = _check(d[f.name], hints[f.name], f.name)
-        else:
-            required = f.default is MISSING and f.default_factory is MISSING
-            if required or (strict and f.name in ("seq", "t") and cls is not Header):
-                raise SchemaError(f.name, f"missing from a {kind} event")
+    for name, check, required in spec:
+        if name in d:
+            kw[name] = check(d[name], name)
+        elif required or (strict and name in ("seq", "t") and cls is not Header):
+            raise SchemaError(name, f"missing from a {kind} event")
     return cls(**kw)
 
 
@@ -315,68 +311,126 @@ def make(event: "Event | dict") -> Event:
     if isinstance(event, Custom):
         if event.type in EVENT_TYPES:
             raise SchemaError("type", f"{event.type!r} is a known event type; build it as such")
-        return event
-    d = event.to_dict() if isinstance(event, Event) else _plain(event)
-    return from_dict(d, strict=False)
+        return Custom(event.type, _plain(event.data), seq=event.seq, t=event.t, session=event.session)
+    return from_dict(_plain(event.to_dict() if isinstance(event, Event) else event), strict=False)
 
 
-def _check(v, tp, where: str):
-    """``v`` checked against annotation ``tp``; returns it normalised (ints as floats where floats are due)."""
+_SPECS: dict[type, tuple[frozenset, tuple]] = {}
+_CHECKERS: dict = {}
+
+
+def _spec(cls) -> tuple[frozenset, tuple]:
+    """(field names incl. ``type``, ((name, checker, required), ...)) of an event class, built once."""
+    if cls not in _SPECS:
+        hints = typing.get_type_hints(cls)
+        fs = fields(cls)
+        _SPECS[cls] = (frozenset(["type", *(f.name for f in fs)]),
+                       tuple((f.name, _checker(hints[f.name]), f.default is MISSING and f.default_factory is MISSING)
+                             for f in fs))
+    return _SPECS[cls]
+
+
+def _field_names(cls) -> frozenset:
+    return _spec(cls)[0] - {"type"}
+
+
+def _checker(tp):
+    """``check(value, where) -> value`` for annotation ``tp``, compiled once per annotation: returns the value
+    normalised (ints as floats where floats are due), raises SchemaError naming ``where``."""
+    c = _CHECKERS.get(tp)
+    if c is None:
+        c = _CHECKERS[tp] = _compile(tp)
+    return c
+
+
+def _fail(where: str, what: str, v):
+    raise SchemaError(where, f"expected {what}, got {_got(v)}")
+
+
+def _compile(tp):
     if tp is Any:
-        return v
+        return lambda v, where: v
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
         args = typing.get_args(tp)
-        if v is None and type(None) in args:
-            return None
-        rest = [a for a in args if a is not type(None)]
-        errors = []
-        for a in rest:
-            try:
-                return _check(v, a, where)
-            except SchemaError as e:
-                errors.append(e)
+        nullable = type(None) in args
+        rest = [_checker(a) for a in args if a is not type(None)]
         if len(rest) == 1:
-            raise errors[0]
-        raise SchemaError(where, f"expected {_name(tp)}, got {_got(v)}")
+            inner = rest[0]
+            return (lambda v, where: None if v is None else inner(v, where)) if nullable else inner
+
+        def union(v, where):
+            if v is None and nullable:
+                return None
+            for c in rest:
+                try:
+                    return c(v, where)
+                except SchemaError:
+                    pass
+            _fail(where, _name(tp), v)
+        return union
     if origin is Literal:
-        if v not in typing.get_args(tp):
-            raise SchemaError(where, f"{v!r} is not one of {', '.join(map(str, typing.get_args(tp)))}")
-        return v
+        allowed = typing.get_args(tp)
+
+        def literal(v, where):
+            if type(v) is str and v in allowed:
+                return v
+            raise SchemaError(where, f"{v!r} is not one of {', '.join(map(str, allowed))}")
+        return literal
     if tp is float:
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise SchemaError(where, f"expected a number, got {_got(v)}")
-        if not math.isfinite(v):
-            raise SchemaError(where, f"not a finite number ({v})")
-        return float(v)
+        def number(v, where):
+            t = type(v)
+            if t is float:
+                if math.isfinite(v):
+                    return v
+                raise SchemaError(where, f"not a finite number ({v})")
+            if t is int:
+                return float(v)
+            _fail(where, "a number", v)
+        return number
     if tp is int:
-        if isinstance(v, bool) or not isinstance(v, int):
-            if isinstance(v, float) and v.is_integer():
+        def integer(v, where):
+            if type(v) is int:
+                return v
+            if type(v) is float and v.is_integer():
                 return int(v)
-            raise SchemaError(where, f"expected an integer, got {_got(v)}")
-        return v
+            _fail(where, "an integer", v)
+        return integer
     if tp is bool:
-        if not isinstance(v, bool):
-            raise SchemaError(where, f"expected true or false, got {_got(v)}")
-        return v
+        def boolean(v, where):
+            if type(v) is bool:
+                return v
+            _fail(where, "true or false", v)
+        return boolean
     if tp is str:
-        if not isinstance(v, str):
-            raise SchemaError(where, f"expected text, got {_got(v)}")
-        return v
+        def text(v, where):
+            if type(v) is str:
+                return v
+            _fail(where, "text", v)
+        return text
     if tp is dict or origin is dict:
-        if not isinstance(v, dict):
-            raise SchemaError(where, f"expected an object, got {_got(v)}")
-        if origin is dict:
-            _, vt = typing.get_args(tp)
-            return {str(k): _check(x, vt, f"{where}.{k}") for k, x in v.items()}
-        return v
+        inner = _checker(typing.get_args(tp)[1]) if origin is dict else None
+
+        def mapping(v, where):
+            if type(v) is not dict:
+                _fail(where, "an object", v)
+            if inner is None:
+                return v
+            return {str(k): inner(x, f"{where}.{k}") for k, x in v.items()}
+        return mapping
     if tp is list or origin is list:
-        if not isinstance(v, (list, tuple)):
-            raise SchemaError(where, f"expected a list, got {_got(v)}")
-        if origin is list:
-            (et,) = typing.get_args(tp)
-            return [_check(x, et, f"{where}[{i}]") for i, x in enumerate(v)]
-        return list(v)
+        inner = _checker(typing.get_args(tp)[0]) if origin is list else None
+
+        def sequence(v, where):
+            if type(v) is not list and type(v) is not tuple:
+                _fail(where, "a list", v)
+            if inner is None:
+                return list(v)
+            try:
+                return [inner(x, where) for x in v]
+            except SchemaError:  # again, naming the element (errors are rare: no index strings on the way)
+                return [inner(x, f"{where}[{i}]") for i, x in enumerate(v)]
+        return sequence
     raise TypeError(f"events: no check for {tp!r}")  # a schema bug, not bad data
 
 
@@ -391,33 +445,29 @@ def _got(v) -> str:
     return f"{type(v).__name__} {text[:40]}{'...' if len(text) > 40 else ''}"
 
 
-_HINTS: dict[type, dict] = {}
-_NAMES: dict[type, frozenset] = {}
-
-
-def _hints(cls) -> dict:
-    if cls not in _HINTS:
-        _HINTS[cls] = typing.get_type_hints(cls)
-    return _HINTS[cls]
-
-
-def _field_names(cls) -> frozenset:
-    if cls not in _NAMES:
-        _NAMES[cls] = frozenset(f.name for f in fields(cls))
-    return _NAMES[cls]
+_SCALARS = (str, int, bool, type(None))
 
 
 def _plain(obj):
     """JSON-safe copy: numpy scalars/arrays to Python; NaN/inf become null (JSON has no NaN: a value that does
     not exist, such as the position of a point the data could not see, is stored as null)."""
+    t = type(obj)
+    if t is float:
+        return obj if math.isfinite(obj) else None
+    if t in _SCALARS:
+        return obj
+    if t is dict:
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if t is list or t is tuple:
+        return [_plain(v) for v in obj]
     if isinstance(obj, dict):
         return {str(k): _plain(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [_plain(v) for v in obj]
     if hasattr(obj, "tolist"):  # numpy array or scalar
         return _plain(obj.tolist())
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
+    if isinstance(obj, float):
+        return float(obj) if math.isfinite(obj) else None
     return obj
 
 
