@@ -122,8 +122,9 @@ def run_bus(bus: str, folder: Path, poses: int, time_scale: float, seed: int = 7
             sync_ms: float | None = None, calls: bool = False) -> dict:
     from station.mocks.world import World
 
+    from station.api import run as start
     from station.cli.run_cmd import BUS_OPTIONS, demo_world
-    from station.engine import read_journal, start
+    from station.engine import read_journal
 
     doc = demo_world(bus, seed, "realtime")
     doc["motion"]["time_scale"] = time_scale
@@ -156,8 +157,8 @@ def run_bus(bus: str, folder: Path, poses: int, time_scale: float, seed: int = 7
     if out.status != "completed":
         raise SystemExit(f"{bus}: {out.status}: {out.error}")
     _, events = read_journal(out.folder / "journal.jsonl")
-    samples = [e for e in events if e["type"] == "sample"]
-    t_last = samples[-1]["t"]
+    samples = [e for e in events if e.type == "sample"]
+    t_last = samples[-1].t  # when the last sample was journaled
     total = t1 - t0
     motion = meter.until(t_last)  # up to the last sample: the last retreat belongs to the tail
     loop_over = (t_last - t0) - motion

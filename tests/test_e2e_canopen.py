@@ -6,8 +6,10 @@ the robot and keeps the journal."""
 import pytest
 from station.mocks.launch import launch
 
+from station.api import resume
+from station.api import run as start
 from station.cli.run_cmd import BUS_OPTIONS, write_demo_files
-from station.engine import read_journal, resume, start
+from station.engine import read_journal
 from station.records import open_records
 
 
@@ -128,7 +130,7 @@ def test_resume_after_power_loss_in_the_middle_of_write_back(cell, tmp_path):
     assert out.status == "completed" and out.record["writeback"]["verified"], out.error
     before, after = out.record["writeback"]["before"], out.record["writeback"]["after"]
     lines = (out.folder / "journal.jsonl").read_bytes().splitlines(keepends=True)
-    cut = next(i for i, ln in enumerate(lines) if b'"type":"writeback"' in ln and b'"phase":"before"' in ln) + 1
+    cut = next(i for i, ln in enumerate(lines) if b'"type":"writeback"' in ln and b'"phase":"pre-image"' in ln) + 1
     for variant in ("written", "not-written"):
         robot = station.connect(emu.url)
         robot.write_calibration(after if variant == "written" else before)

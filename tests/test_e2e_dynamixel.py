@@ -15,8 +15,9 @@ import pytest
 import yaml
 from station.mocks.launch import launch
 
+from station.api import run as start
 from station.cli.run_cmd import BUS_OPTIONS, demo_world
-from station.engine import read_journal, session_from_journal, start
+from station.engine import read_journal, session_from_journal
 from station.records import open_records
 
 TICK = 2 * math.pi / 4096  # XM430 position resolution (rad)

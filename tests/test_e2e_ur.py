@@ -10,8 +10,8 @@ import pytest
 import yaml
 from station.mocks.launch import launch
 
+from station.api import run as start
 from station.cli.run_cmd import demo_world
-from station.engine import start
 
 
 @pytest.fixture

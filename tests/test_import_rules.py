@@ -131,7 +131,6 @@ def test_parts_never_import_what_the_architecture_forbids():
     assert _violations(rules) == []
 
 
-@pytest.mark.xfail(strict=True, reason="engine->records/report split lands with the journal branch")
 def test_engine_does_not_import_records_or_report():
     assert _violations({"station.engine": ENGINE_LATER}) == []
 

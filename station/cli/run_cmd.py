@@ -70,7 +70,7 @@ def _fmt(value: float | None, unit: str) -> str:
 
 def summary(out, echo=typer.echo) -> None:
     """Print result, verdict table, report path (no PASS/FAIL line: the caller prints it last)."""
-    import math
+    from station.units import human_of
 
     rec = out.record
     res = rec.get("result")
@@ -79,8 +79,7 @@ def summary(out, echo=typer.echo) -> None:
         for name, p in res["parameters"].items():
             if p.get("kind") == "point":
                 continue
-            angle = p.get("unit") == "rad"
-            k, u = (180 / math.pi, "deg") if angle else (1e3, "mm")
+            u, k = human_of(p.get("unit") or "m")
             if p["identifiable"]:
                 echo(f"  {name:14s} {(p['value'] - p['nominal']) * k:+10.4f} {u} ± {(p['std'] or 0) * k:.4f}")
             else:
@@ -152,7 +151,7 @@ def run(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Run a procedure end of line: unattended, PASS/FAIL, exit 0 pass / 1 fail / 2 error."""
-    from station.engine import start
+    from station.api import run as start
 
     cb, bar = _progress_bar(quiet)
     with bar:
@@ -168,7 +167,7 @@ def resume_cmd(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Continue an interrupted session: robot re-verified, recorded samples kept, nothing repeated."""
-    from station.engine import resume
+    from station.api import resume
 
     cb, bar = _progress_bar(quiet)
     with bar:
@@ -239,7 +238,7 @@ def run_demo(bus: str, *, time_mode: str = "instant", seed: int = 5, quiet: bool
     import os
     import time
 
-    from station.engine import start
+    from station.api import run as start
     from station.mocks.launch import launch
     from station.mocks.world import World
     from station.robot.errors import ConfigError

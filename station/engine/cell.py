@@ -22,9 +22,11 @@ from pathlib import Path
 import numpy as np
 
 from station.robot.errors import ConfigError
+from station.units import ANGLE_UNITS, LENGTH_UNITS
 
 FORMAT = "station-cell/1"
-LENGTH = {"m": 1.0, "mm": 1e-3}
+LENGTH = {u: LENGTH_UNITS[u] for u in ("m", "mm")}  # the units a cell file may state
+ANGLE = {u: ANGLE_UNITS[u] for u in ("rad", "deg")}
 
 
 class CellError(ConfigError):
@@ -124,7 +126,7 @@ def cell_from_dict(doc, where: str = "cell") -> Cell:
     if tool is not None:
         if not isinstance(tool, dict) or set(tool) - {"x", "y", "z", "rx", "ry", "rz"}:
             raise CellError(f"{where}: tool must map x, y, z (length unit), rx, ry, rz (rad) to numbers")
-        angle = {"rad": 1.0, "deg": math.pi / 180}.get((units or {}).get("angle", "rad"))
+        angle = ANGLE.get((units or {}).get("angle", "rad"))
         if angle is None:
             raise CellError(f"{where}: units.angle must be rad or deg")
         try:
