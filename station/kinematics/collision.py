@@ -1,0 +1,388 @@
+"""Link envelopes (capsules) and keep-out volumes: how close every link of the arm comes to the mounting plane,
+a fixture or a fence, vectorised over N joint configurations. Pure numpy, SI (m, rad), no I/O.
+
+The arm's body is approximated by capsules along its kinematic chain: every translation of the chain (a DH
+``d`` and ``a``, a POE frame's offset) is a segment, owned by the link the preceding joint moves, with that
+link's radius; the tool is a capsule from the flange towards the TCP. Two ends are trimmed so the envelope
+does not invent material: the last link ends at the flange face (not a radius beyond it), and the tool
+envelope stops ``tool_free`` short of the TCP (the tip is meant to touch the references).
+
+An obstacle is a half-space (``Plane``: the allowed side is where ``normal . x >= offset``) or an oriented
+box (``Box``). The mounting plane is the half-space the robot stands on; links that cannot change their
+distance to it whatever the joints do (the base column of a table arm: it stands on the plane by design)
+are not checked against it. Every obstacle has a clearance: a link closer than that is a violation."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from station.kinematics.chain import TZ, _apply
+
+DEFAULT_CLEARANCE = 0.01  # m: links keep 10 mm from a keep-out unless the cell says otherwise
+PATH_STEP = 0.005  # m: no point of the arm moves more than this between two checked samples of a path
+
+
+# ---- obstacles ---------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Plane:
+    """Half-space keep-out: everything on the side ``normal . x < offset`` is forbidden (``normal`` points
+    into the free side, unit, base frame; ``offset`` m)."""
+
+    name: str
+    normal: np.ndarray
+    offset: float
+    clearance: float = DEFAULT_CLEARANCE
+
+    @classmethod
+    def through(cls, name: str, point, normal, clearance: float = DEFAULT_CLEARANCE) -> Plane:
+        n = np.asarray(normal, float)
+        n = n / np.linalg.norm(n)
+        return cls(name, n, float(n @ np.asarray(point, float)), float(clearance))
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "plane": {"normal": self.normal.tolist(), "offset": self.offset},
+                "clearance": self.clearance}
+
+
+@dataclass(frozen=True)
+class Box:
+    """Oriented box keep-out: centre (m), ``rotation`` (3x3, columns = box axes in the base frame), ``half``
+    extents along those axes (m). An axis-aligned box has the identity rotation."""
+
+    name: str
+    center: np.ndarray
+    half: np.ndarray
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    clearance: float = DEFAULT_CLEARANCE
+
+    @classmethod
+    def from_corners(cls, name: str, lo, hi, clearance: float = DEFAULT_CLEARANCE) -> Box:
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        return cls(name, (lo + hi) / 2, np.abs(hi - lo) / 2, np.eye(3), float(clearance))
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "box": {"center": self.center.tolist(), "size": (2 * self.half).tolist(),
+                                           "rotation": self.rotation.tolist()}, "clearance": self.clearance}
+
+
+Obstacle = Plane | Box
+
+
+@dataclass(frozen=True)
+class KeepOut:
+    """Everything the links must stay clear of: the mounting plane (None: the arm is not standing on a plane
+    the station knows, e.g. a wall or ceiling mount described as an ordinary keep-out) and the obstacles."""
+
+    mounting: Plane | None = None
+    obstacles: tuple[Obstacle, ...] = ()
+
+    @classmethod
+    def default(cls, clearance: float = DEFAULT_CLEARANCE) -> KeepOut:
+        """A table-mounted arm: nothing below the plane its base stands on (z = 0 of the base frame)."""
+        return cls(Plane("mounting plane", np.array([0.0, 0.0, 1.0]), 0.0, clearance), ())
+
+    @classmethod
+    def none(cls) -> KeepOut:
+        return cls(None, ())
+
+    @property
+    def all(self) -> tuple[Obstacle, ...]:
+        return ((self.mounting,) if self.mounting is not None else ()) + tuple(self.obstacles)
+
+    def __bool__(self) -> bool:
+        return bool(self.all)
+
+    def to_dict(self) -> dict:
+        return {"mounting": None if self.mounting is None else self.mounting.to_dict(),
+                "keep_out": [o.to_dict() for o in self.obstacles]}
+
+
+# ---- the arm's envelope ------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Envelope:
+    """Capsule segments of one model: key points are origins after chain elements ``element`` (-1: the base
+    origin); segment s runs from key point ``a[s]`` to ``b[s]`` (end pulled back by ``trim[s]`` m towards
+    the start), belongs to ``link[s]`` (1..n the joint that moves it, n+1 the tool) with ``radius[s]``."""
+
+    element: np.ndarray  # (K,) chain element index after which key point k is taken, -1 = robot base origin
+    a: np.ndarray  # (S,)
+    b: np.ndarray  # (S,)
+    link: np.ndarray  # (S,)
+    radius: np.ndarray  # (S,)
+    trim: np.ndarray  # (S,)
+    names: tuple[str, ...]  # (n + 1,) link names "shoulder-elbow" (joint i to joint i+1, the last to "flange"), "tool"
+    reach: np.ndarray  # (n,) upper bound of the distance from joint i's axis to any envelope point (m)
+
+
+def radii_of(model) -> tuple[np.ndarray, float, float]:
+    """``(link_radii (n,), tool_radius, tool_free)`` in m: from the model file's ``collision`` section, or a
+    default from the arm's size (6 % of its reach, 15..80 mm) when the file has none."""
+    c = model.source.get("collision") or {}
+    n = model.n_joints
+    if "link_radii" in c:
+        radii = np.asarray(c["link_radii"], float)
+    else:
+        reach = _reach_total(model)
+        radii = np.full(n, float(np.clip(0.06 * reach, 0.015, 0.08)))
+    return radii, float(c.get("tool_radius", 0.01)), float(c.get("tool_free", 0.02))
+
+
+def _reach_total(model) -> float:
+    P = _origins(model, np.zeros((1, model.n_joints)), np.arange(model.chain.n_elements))
+    return float(np.sum(np.linalg.norm(np.diff(P[0], axis=0), axis=1)))
+
+
+def _frame_prefix(name: str) -> str | None:
+    """``base.x`` -> ``base``: translations of one fixed frame (x, y, z) are one straight segment."""
+    head, _, tail = name.rpartition(".")
+    return head if tail in ("x", "y", "z") else None
+
+
+def envelope(model) -> Envelope:
+    ch = model.chain
+    names = model.param_names
+    n = model.n_joints
+    radii, tool_r, tool_free = radii_of(model)
+    pname = [names[p] if p >= 0 else "" for p in ch.param]
+    # the robot starts after the base frame; the tool after the last joint's block, at the first tcp element
+    first_joint = int(np.flatnonzero(ch.joint >= 0)[0])
+    tcp_start = next((k for k in range(ch.n_elements) if pname[k].startswith("tcp.")), ch.n_elements)
+    keys: list[int] = [first_joint - 1]
+    owner: list[int] = []  # owner of the segment ending at key point k (k >= 1)
+    link = 0
+    for k in range(first_joint, ch.n_elements):
+        if ch.joint[k] >= 0:
+            link = int(ch.joint[k]) + 1
+        if k == tcp_start:
+            keys.append(k - 1)  # the flange
+            owner.append(link)
+            link = n + 1
+        if ch.axis[k] > TZ:
+            continue
+        pre = _frame_prefix(pname[k])
+        if pre is not None and k + 1 < ch.n_elements and ch.axis[k + 1] <= TZ and _frame_prefix(pname[k + 1]) == pre:
+            continue  # same fixed frame continues: one straight segment
+        keys.append(k)
+        owner.append(link)
+    if tcp_start == ch.n_elements:  # no tool frame in the chain
+        keys.append(ch.n_elements - 1)
+        owner.append(link)
+    keys_a = np.array(keys)
+    a, b, own = np.arange(len(keys) - 1), np.arange(1, len(keys)), np.array(owner)
+    # segment lengths over the joint range (a prismatic joint's segment changes length): drop what is not there
+    # (a zero DH a or d: a point, covered by the neighbouring capsules' caps)
+    P = _origins(model, _spread(model), keys_a)
+    longest = np.max(np.linalg.norm(P[:, b] - P[:, a], axis=2), axis=0)
+    keep = longest > 1e-3
+    a, b, own, longest = a[keep], b[keep], own[keep], longest[keep]
+    r = np.where(own <= n, radii[np.clip(own - 1, 0, n - 1)], tool_r)
+    trim = np.zeros(len(a))
+    arm = np.flatnonzero(own <= n)
+    if arm.size:
+        trim[arm[-1]] = r[arm[-1]]  # the last link ends at the flange face
+    trim[own == n + 1] = tool_r + tool_free  # the tool envelope stops tool_free short of the TCP
+    # distance bound from joint i's axis to anything it moves: the chain length after it plus the largest radius
+    reach = np.array([longest[own >= i + 1].sum() + (r.max() if r.size else 0.0) for i in range(n)])
+    ends = [j.name for j in model.joints] + ["flange"]
+    names = tuple(f"{ends[i]}-{ends[i + 1]}" for i in range(n)) + ("tool",)
+    return Envelope(keys_a, a, b, own, r, trim, names, reach)
+
+
+def _spread(model, n: int = 16) -> np.ndarray:
+    """Fixed, spread-out configurations inside the joint limits (zero, lower and upper limits first)."""
+    lo, hi = np.maximum(model.lower, -np.pi), np.minimum(model.upper, np.pi)
+    Q = lo + (hi - lo) * np.random.default_rng(0).random((n, model.n_joints))
+    Q[0] = np.clip(0.0, model.lower, model.upper)
+    Q[1], Q[2] = model.lower, model.upper
+    return Q
+
+
+def _origins(model, Q: np.ndarray, elements: np.ndarray, params=None) -> np.ndarray:
+    """Origins ``(N, K, 3)`` of the frames after each chain element in ``elements`` (-1: before the first)."""
+    ch = model.chain
+    p = model.params if params is None else params
+    Q = np.atleast_2d(np.asarray(Q, float))
+    N = Q.shape[0]
+    v = ch.values(Q, p)
+    T = np.broadcast_to(np.eye(4), (N, 4, 4)).copy()
+    want = {int(e): i for i, e in enumerate(elements)}
+    out = np.empty((N, len(elements), 3))
+    if -1 in want:
+        out[:, want[-1]] = 0.0
+    last = int(max(elements)) if len(elements) else -1
+    for k in range(last + 1):
+        _apply(T, int(ch.axis[k]), v[:, k])
+        if k in want:
+            out[:, want[k]] = T[:, :3, 3]
+    return out
+
+
+def capsules(model, Q, env: Envelope | None = None, params=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Capsule axes ``A, B (N, S, 3)`` (m, base frame) and radii ``(S,)`` at configurations ``Q (N, n)``."""
+    env = env or envelope(model)
+    P = _origins(model, Q, env.element, params)
+    A, B = P[:, env.a], P[:, env.b]
+    if np.any(env.trim > 0):
+        d = B - A
+        L = np.linalg.norm(d, axis=2, keepdims=True)
+        cut = np.minimum(env.trim[None, :, None], L)  # a segment shorter than its trim shrinks to its start
+        B = B - d * np.divide(cut, L, out=np.zeros_like(L), where=L > 1e-12)
+    return A, B, env.radius
+
+
+# ---- distances ---------------------------------------------------------------------------------
+def _plane_distance(A, B, plane: Plane) -> np.ndarray:
+    """Signed distance of segments to the free side's boundary (negative: some part is beyond the plane)."""
+    return np.minimum(A @ plane.normal, B @ plane.normal) - plane.offset
+
+
+def _box_sdf(P, box: Box) -> np.ndarray:
+    """Signed distance of points ``(..., 3)`` to a box (negative inside)."""
+    local = np.abs((P - box.center) @ box.rotation) - box.half
+    outside = np.linalg.norm(np.maximum(local, 0.0), axis=-1)
+    inside = np.minimum(np.max(local, axis=-1), 0.0)
+    return outside + inside
+
+
+def _box_distance(A, B, box: Box, iters: int = 40) -> np.ndarray:
+    """Signed distance of segments to a box: the signed distance of a convex set is convex along a line, so a
+    golden-section search over the segment parameter finds its minimum (to ~1e-8 of the segment length)."""
+    g = (np.sqrt(5.0) - 1) / 2
+    d = B - A
+
+    def f(t):
+        return _box_sdf(A + d * t[..., None], box)
+
+    lo, hi = np.zeros(A.shape[:-1]), np.ones(A.shape[:-1])
+    c, e = hi - g, lo + g
+    fc, fe = f(c), f(e)
+    for _ in range(iters):
+        left = fc < fe  # the minimum lies in [lo, e]
+        hi = np.where(left, e, hi)
+        lo = np.where(left, lo, c)
+        x = np.where(left, hi - g * (hi - lo), lo + g * (hi - lo))  # the one new point of each search
+        fx = f(x)
+        c, e, fc, fe = (np.where(left, x, e), np.where(left, c, x),
+                        np.where(left, fx, fe), np.where(left, fc, fx))
+    return np.minimum.reduce([f(np.zeros_like(lo)), f(np.ones_like(lo)), fc, fe])
+
+
+def _fixed_to_plane(model, env: Envelope, plane: Plane) -> np.ndarray:
+    """Per segment: its distance to the plane is the same in every configuration (it stands on the plane by
+    design, e.g. the base column), so checking it would only re-discover how the robot is built."""
+    A, B, _ = capsules(model, _spread(model), env)
+    da, db = A @ plane.normal, B @ plane.normal
+    return (np.ptp(da, axis=0) < 1e-9) & (np.ptp(db, axis=0) < 1e-9)
+
+
+@dataclass(frozen=True)
+class Hit:
+    """The worst violation of one configuration: ``link`` (1..n, n+1 = tool), its name, the obstacle, and the
+    envelope's signed distance to it (m; negative = inside) against the obstacle's clearance."""
+
+    link: int
+    link_name: str
+    obstacle: str
+    distance: float
+    clearance: float
+
+    def describe(self) -> str:
+        what = "tool" if self.link_name == "tool" else f"link {self.link} ({self.link_name})"
+        if self.distance < 0:
+            return (f"{what} would be {-self.distance * 1e3:.0f} mm inside obstacle '{self.obstacle}' "
+                    f"(clearance {self.clearance * 1e3:.0f} mm)")
+        return (f"{what} would come within {self.distance * 1e3:.0f} mm of obstacle '{self.obstacle}' "
+                f"(clearance {self.clearance * 1e3:.0f} mm)")
+
+
+class Checker:
+    """Precomputed envelope and checked (segment, obstacle) pairs for one model and keep-out; call it on
+    configurations. Build once per plan, not per pose."""
+
+    def __init__(self, model, keep_out: KeepOut | None) -> None:
+        self.model = model
+        self.keep_out = KeepOut.default() if keep_out is None else keep_out
+        self.env = envelope(model)
+        self.obstacles = self.keep_out.all
+        S = len(self.env.a)
+        self.mask = np.ones((S, len(self.obstacles)), bool)
+        if self.keep_out.mounting is not None:
+            self.mask[:, 0] = ~_fixed_to_plane(model, self.env, self.keep_out.mounting)
+        self.clearance = np.array([o.clearance for o in self.obstacles])
+
+    def margins(self, Q, chunk: int = 4096) -> np.ndarray:
+        """``(N, S, O)``: envelope distance minus required clearance (negative = violation; +inf = unchecked)."""
+        Q = np.atleast_2d(np.asarray(Q, float))
+        out = np.full((len(Q), len(self.env.a), len(self.obstacles)), np.inf)
+        if not self.obstacles:
+            return out
+        for s in range(0, len(Q), chunk):
+            A, B, r = capsules(self.model, Q[s:s + chunk], self.env)
+            for o, ob in enumerate(self.obstacles):
+                d = _plane_distance(A, B, ob) if isinstance(ob, Plane) else _box_distance(A, B, ob)
+                m = d - r[None, :] - ob.clearance
+                out[s:s + chunk, :, o] = np.where(self.mask[None, :, o], m, np.inf)
+        return out
+
+    def clear(self, Q) -> np.ndarray:
+        """``(N,)`` bool: no link within any obstacle's clearance."""
+        M = self.margins(Q)
+        return np.all(M >= 0, axis=(1, 2)) if M.size else np.ones(len(np.atleast_2d(Q)), bool)
+
+    def hits(self, Q) -> list[Hit | None]:
+        """Per configuration: the worst violation, or None when clear."""
+        M = self.margins(Q)
+        out: list[Hit | None] = []
+        for m in M:
+            if m.size == 0 or m.min() >= 0:
+                out.append(None)
+                continue
+            s, o = np.unravel_index(int(np.argmin(m)), m.shape)
+            out.append(self._hit(int(s), int(o), float(m[s, o])))
+        return out
+
+    def _hit(self, s: int, o: int, margin: float) -> Hit:
+        k = int(self.env.link[s])
+        ob = self.obstacles[o]
+        return Hit(k, self.env.names[k - 1], ob.name, margin + ob.clearance, ob.clearance)
+
+    # ---- paths ----------------------------------------------------------------------------------
+    def samples(self, qa, qb, step: float = PATH_STEP) -> int:
+        """Samples of the straight joint path qa -> qb so that no envelope point moves more than ``step``."""
+        dq = np.abs(np.asarray(qb, float) - np.asarray(qa, float))
+        rev = np.array([j.revolute for j in self.model.joints])
+        travel = float(np.sum(np.where(rev, dq * self.env.reach, dq)))
+        return max(2, int(np.ceil(travel / step)) + 1)
+
+    def path_hit(self, qa, qb, step: float = PATH_STEP) -> Hit | None:
+        """The first violation along the straight joint path ``qa -> qb`` (both ends included), or None."""
+        qa, qb = np.asarray(qa, float), np.asarray(qb, float)
+        n = self.samples(qa, qb, step)
+        for s0 in range(0, n, 2048):  # in chunks: the first violation usually comes early
+            t = np.linspace(0.0, 1.0, n)[s0:s0 + 2048, None]
+            M = self.margins(qa + t * (qb - qa))
+            bad = np.flatnonzero(np.any(M < 0, axis=(1, 2))) if M.size else []
+            if len(bad):
+                m = M[bad[0]]
+                s, o = np.unravel_index(int(np.argmin(m)), m.shape)
+                return self._hit(int(s), int(o), float(m[s, o]))
+        return None
+
+    def paths_clear(self, QA, QB, step: float = PATH_STEP) -> np.ndarray:
+        """``(M,)`` bool for M straight joint paths at once."""
+        QA, QB = np.atleast_2d(QA), np.atleast_2d(QB)
+        counts = [self.samples(a, b, step) for a, b in zip(QA, QB, strict=True)]
+        idx = np.repeat(np.arange(len(QA)), counts)
+        t = np.concatenate([np.linspace(0.0, 1.0, c) for c in counts])[:, None]
+        ok = self.clear(QA[idx] + t * (QB[idx] - QA[idx]))
+        out = np.ones(len(QA), bool)
+        np.logical_and.at(out, idx, ok)
+        return out
+
+
+def first_hit(model, keep_out: KeepOut | None, q) -> Hit | None:
+    """The worst violation at one configuration ``q`` (None: clear). ``keep_out=None``: the default (nothing
+    below the base plane)."""
+    return Checker(model, keep_out).hits(np.asarray(q, float)[None])[0]
