@@ -5,6 +5,9 @@ Ground truth for "below the plane" is computed here, independently of station.ki
 is the origin of the frame before the elbow joint's rotation (on the elbow axis), read from the kinematic
 chain's own frames; link capsules are checked against the plane from the DH frame origins by hand."""
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -43,10 +46,11 @@ def _demo_plan(m, cell, **kw):
                          seed=0, **kw)
 
 
-def test_the_checker_finds_every_elbow_below_the_base_in_todays_demo_plan(demo):
-    m, cell = demo
-    plan = _demo_plan(m, cell)
-    q = np.array([p.q for p in plan.poses])
+def test_the_checker_finds_every_elbow_below_the_base_in_the_plan_before_keepouts(demo):
+    """The demo plan of the planner before this change (recorded: tests/data), as the issue saw it."""
+    m, _ = demo
+    rec = json.loads((Path(__file__).parent / "data" / "ur5e_demo_plan_before_keepout.json").read_text())
+    q = np.array(rec["q"])
     elbow_z = _joint_points(m, q)[:, 2, 2]  # joint 3 (elbow) axis point, height above the base plane
     below = elbow_z < 0
     assert len(q) == 28 and below.sum() == 14 and -0.27 < elbow_z.min() < -0.25
@@ -55,6 +59,9 @@ def test_the_checker_finds_every_elbow_below_the_base_in_todays_demo_plan(demo):
     assert flagged[below].all()
     for h in (h for h, b in zip(hits, below, strict=True) if b):
         assert h.obstacle == "mounting plane" and h.link == 2 and h.distance < -0.2
+        assert "link 2 (shoulder-elbow)" in h.describe() and "'mounting plane'" in h.describe()
+    # the approach poses as well: they differ from the touch poses by 30 mm at the tool
+    assert sum(h is not None for h in Checker(m, None).hits(np.array(rec["approach_q"]))) >= 14
 
 
 def test_demo_plan_keeps_every_link_above_the_mounting_plane(demo):

@@ -9,19 +9,28 @@ File format (``station-cell/1``, YAML; written for emulated cells by ``station m
     points:
       - {label: A, kind: socket, position: [450, 0, 50], approach: [0, 0, 1], radius: 3}
 
+    mounting: {normal: [0, 0, 1], offset: 0, clearance: 10}   # optional: the plane the arm stands on
+    keep_out:                      # optional: volumes no link may enter (each keeps its clearance)
+      - {name: fixture, box: {min: [300, -400, 0], max: [600, 400, 40]}}
+      - {name: mast, box: {center: [0, 500, 400], size: [100, 100, 800], rotation: {rz: 30}}, clearance: 20}
+      - {name: wall, plane: {point: [0, -600, 0], normal: [0, 1, 0]}}
+
 ``position`` is approximate, in the robot base frame; ``approach`` the unit vector from the point towards where
-the tool comes from (up for a socket in a table); ``radius`` the socket capture / needle contact radius."""
+the tool comes from (up for a socket in a table); ``radius`` the socket capture / needle contact radius.
+Without ``mounting`` the arm stands on the plane z = 0 of its base frame (10 mm clearance); ``mounting: none``
+for an arm not standing on a plane. Format and semantics: docs/formats.md."""
 
 from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from station.robot.errors import ConfigError
+from station.kinematics.collision import DEFAULT_CLEARANCE, Box, Checker, KeepOut, Plane
+from station.robot.errors import ConfigError, LimitError
 
 FORMAT = "station-cell/1"
 LENGTH = {"m": 1.0, "mm": 1e-3}
@@ -55,6 +64,7 @@ class Cell:
     points: dict[str, RefPoint]
     model: str | None = None
     tool: dict[str, float] | None = None  # nominal TCP on the flange (m, rad: x y z rx ry rz), if the cell says
+    keep_out: KeepOut = field(default_factory=KeepOut.default)  # mounting plane + volumes no link may enter
 
     def point(self, label: str) -> RefPoint:
         if label not in self.points:
@@ -131,4 +141,104 @@ def cell_from_dict(doc, where: str = "cell") -> Cell:
             tool = {k: float(v) * (angle if k.startswith("r") else scale) for k, v in tool.items()}
         except (TypeError, ValueError):
             raise CellError(f"{where}: tool values must be numbers") from None
-    return Cell(where, points, doc.get("model"), tool)
+    angle = {"rad": 1.0, "deg": math.pi / 180}.get((units or {}).get("angle", "rad"))
+    if angle is None:
+        raise CellError(f"{where}: units.angle must be rad or deg")
+    return Cell(where, points, doc.get("model"), tool, keep_out_from_dict(doc, where, scale, angle))
+
+
+# ---- keep-out ----------------------------------------------------------------------------------------------
+def _clearance(d: dict, w: str, scale: float) -> float:
+    c = d.get("clearance", DEFAULT_CLEARANCE / scale)
+    if isinstance(c, bool) or not isinstance(c, (int, float)) or not math.isfinite(c) or c < 0:
+        raise CellError(f"{w}.clearance: expected a length >= 0, got {c!r}")
+    return float(c) * scale
+
+
+def _plane(name: str, d, w: str, scale: float, clearance: float, defaults: dict | None = None) -> Plane:
+    if isinstance(d, dict):
+        d = {**(defaults or {}), **d}
+    if not isinstance(d, dict) or set(d) - {"normal", "point", "offset"}:
+        raise CellError(f"{w}: a plane is {{normal: [x, y, z], point: [x, y, z]}} or {{normal: [..], offset: d}}")
+    if "normal" not in d or ("point" in d) == ("offset" in d):
+        raise CellError(f"{w}: give normal and either point or offset")
+    normal = _vec(f"{w}.normal", d["normal"], 1.0, unit=True)
+    if "point" in d:
+        return Plane.through(name, _vec(f"{w}.point", d["point"], scale), normal, clearance)
+    off = d["offset"]
+    if isinstance(off, bool) or not isinstance(off, (int, float)) or not math.isfinite(off):
+        raise CellError(f"{w}.offset: expected a number (length unit), got {off!r}")
+    return Plane(name, normal, float(off) * scale, clearance)
+
+
+def _box(name: str, d, w: str, scale: float, angle: float, clearance: float) -> Box:
+    if not isinstance(d, dict):
+        raise CellError(f"{w}: a box is {{min: [..], max: [..]}} or {{center: [..], size: [..], rotation: {{..}}}}")
+    if set(d) <= {"min", "max"} and len(d) == 2:
+        lo, hi = _vec(f"{w}.min", d["min"], scale), _vec(f"{w}.max", d["max"], scale)
+        if np.any(hi <= lo):
+            raise CellError(f"{w}: max must exceed min on every axis")
+        return Box.from_corners(name, lo, hi, clearance)
+    if set(d) - {"center", "size", "rotation"} or not {"center", "size"} <= set(d):
+        raise CellError(f"{w}: a box is {{min: [..], max: [..]}} or {{center: [..], size: [..], rotation: {{..}}}}")
+    size = _vec(f"{w}.size", d["size"], scale)
+    if np.any(size <= 0):
+        raise CellError(f"{w}.size: every edge must be positive")
+    rot = d.get("rotation") or {}
+    if not isinstance(rot, dict) or set(rot) - {"rx", "ry", "rz"}:
+        raise CellError(f"{w}.rotation: expected {{rx, ry, rz}} (angle unit, R = Rz Ry Rx)")
+    try:
+        rpy = np.array([float(rot.get(k, 0.0)) * angle for k in ("rx", "ry", "rz")])
+    except (TypeError, ValueError):
+        raise CellError(f"{w}.rotation: values must be numbers") from None
+    from station.kinematics.se3 import rpy_to_matrix
+
+    return Box(name, _vec(f"{w}.center", d["center"], scale), size / 2, rpy_to_matrix(rpy), clearance)
+
+
+def keep_out_from_dict(doc: dict, where: str, scale: float, angle: float) -> KeepOut:
+    """``mounting`` and ``keep_out`` of a cell document (lengths in ``scale`` m, angles in ``angle`` rad)."""
+    m = doc.get("mounting", {})
+    w = f"{where}: mounting"
+    if m == "none":
+        mounting = None
+    elif isinstance(m, dict):
+        mounting = _plane("mounting plane", {k: v for k, v in m.items() if k != "clearance"}, w, scale,
+                          _clearance(m, w, scale), {"normal": [0, 0, 1]} if "point" in m else
+                          {"normal": [0, 0, 1], "offset": 0})
+    else:
+        raise CellError(f"{w}: expected {{normal, offset|point, clearance}} or the word none (no mounting plane)")
+    raw = doc.get("keep_out") or []
+    if not isinstance(raw, list):
+        raise CellError(f"{where}: keep_out must be a list of {{name, plane|box, clearance}}")
+    obstacles: list = []
+    for i, d in enumerate(raw):
+        w = f"{where}: keep_out[{i}]"
+        if not isinstance(d, dict) or set(d) - {"name", "plane", "box", "clearance"} or ("plane" in d) == ("box" in d):
+            raise CellError(f"{w}: expected {{name, plane: {{..}} or box: {{..}}, clearance}}")
+        name = str(d.get("name") or f"keep_out[{i}]")
+        if name in [o.name for o in obstacles] or name == "mounting plane":
+            raise CellError(f"{w}: name {name!r} is used twice (messages name the obstacle)")
+        w = f"{w} ({name})"
+        c = _clearance(d, w, scale)
+        obstacles.append(_plane(name, d["plane"], f"{w}.plane", scale, c) if "plane" in d
+                         else _box(name, d["box"], f"{w}.box", scale, angle, c))
+    return KeepOut(mounting, tuple(obstacles))
+
+
+def check_clear(model, keep_out: KeepOut | Cell | None, q, what: str = "target") -> None:
+    """Refuse a joint target that brings a link capsule of ``model`` into a keep-out or within its clearance
+    (``keep_out`` None: the default mounting plane). Raises ``LimitError`` naming the link and the obstacle."""
+    ko = keep_out.keep_out if isinstance(keep_out, Cell) else keep_out
+    hit = Checker(model, ko).hits(np.asarray(q, float)[None])[0]
+    if hit is not None:
+        raise LimitError(f"{what}: {hit.describe()}; refused")
+
+
+def check_path_clear(model, keep_out: KeepOut | Cell | None, q_from, q_to, what: str = "move") -> None:
+    """As :func:`check_clear` along the straight joint path ``q_from -> q_to`` (sampled so that no point of the
+    arm moves more than 5 mm between checks)."""
+    ko = keep_out.keep_out if isinstance(keep_out, Cell) else keep_out
+    hit = Checker(model, ko).path_hit(q_from, q_to)
+    if hit is not None:
+        raise LimitError(f"{what}: {hit.describe()} on the way; refused")
