@@ -349,6 +349,21 @@ def route(checker: Checker, q_from, targets: list, home=None, what: str = "move"
     return out
 
 
+RUN_SLACK = 0.002  # m: at run time a move may come this much closer than the clearance the plan kept
+_checkers: dict = {}
+
+
+def route_from(model: Model, keep_out: KeepOut | None, q_now, targets: list, what: str = "move") -> list[np.ndarray]:
+    """The run-time check before a plan's moves: :func:`route` from where the arm stands (a resumed or jogged
+    arm may stand anywhere), with ``RUN_SLACK`` less clearance than the plan kept."""
+    key = (id(model), id(keep_out))
+    if key not in _checkers:
+        if len(_checkers) > 8:
+            _checkers.clear()
+        _checkers[key] = (model, keep_out, Checker(model, keep_out, slack=RUN_SLACK))  # refs keep the ids valid
+    return route(_checkers[key][2], q_now, targets, what=what)
+
+
 def _route_plan(model: Model, checker: Checker, poses: list[PlannedPose], q_start) -> list[PlannedPose]:
     """Order-preserving: give each pose the vias its inter-pose path needs (from the previous approach pose,
     or the start). The start pose is the home for vias: the arm stood there."""

@@ -301,7 +301,9 @@ class Checker:
     """Precomputed envelope and checked (segment, obstacle) pairs for one model and keep-out; call it on
     configurations. Build once per plan, not per pose."""
 
-    def __init__(self, model, keep_out: KeepOut | None) -> None:
+    def __init__(self, model, keep_out: KeepOut | None, slack: float = 0.0) -> None:
+        """``slack`` (m): accept this much less than each obstacle's clearance (a check at run time of poses
+        planned with the full clearance: encoder noise and seating must not make a planned move fail)."""
         self.model = model
         self.keep_out = KeepOut.default() if keep_out is None else keep_out
         self.env = envelope(model)
@@ -310,7 +312,7 @@ class Checker:
         self.mask = np.ones((S, len(self.obstacles)), bool)
         if self.keep_out.mounting is not None:
             self.mask[:, 0] = ~_fixed_to_plane(model, self.env, self.keep_out.mounting)
-        self.clearance = np.array([o.clearance for o in self.obstacles])
+        self.need = np.array([max(o.clearance - slack, 0.0) for o in self.obstacles])
 
     def margins(self, Q, chunk: int = 4096) -> np.ndarray:
         """``(N, S, O)``: envelope distance minus required clearance (negative = violation; +inf = unchecked)."""
@@ -322,7 +324,7 @@ class Checker:
             A, B, r = capsules(self.model, Q[s:s + chunk], self.env)
             for o, ob in enumerate(self.obstacles):
                 d = _plane_distance(A, B, ob) if isinstance(ob, Plane) else _box_distance(A, B, ob)
-                m = d - r[None, :] - ob.clearance
+                m = d - r[None, :] - self.need[o]
                 out[s:s + chunk, :, o] = np.where(self.mask[None, :, o], m, np.inf)
         return out
 
@@ -346,7 +348,7 @@ class Checker:
     def _hit(self, s: int, o: int, margin: float) -> Hit:
         k = int(self.env.link[s])
         ob = self.obstacles[o]
-        return Hit(k, self.env.names[k - 1], ob.name, margin + ob.clearance, ob.clearance)
+        return Hit(k, self.env.names[k - 1], ob.name, margin + self.need[o], ob.clearance)
 
     # ---- paths ----------------------------------------------------------------------------------
     def samples(self, qa, qb, step: float = PATH_STEP) -> int:
