@@ -29,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from station.kinematics.collision import DEFAULT_CLEARANCE, Box, Checker, KeepOut, Plane
+from station.kinematics.collision import Checker, KeepOut, KeepOutError
+from station.kinematics.collision import keep_out_from_dict as parse_keep_out
 from station.robot.errors import ConfigError, LimitError
 
 FORMAT = "station-cell/1"
@@ -148,82 +149,12 @@ def cell_from_dict(doc, where: str = "cell") -> Cell:
 
 
 # ---- keep-out ----------------------------------------------------------------------------------------------
-def _clearance(d: dict, w: str, scale: float) -> float:
-    c = d.get("clearance", DEFAULT_CLEARANCE / scale)
-    if isinstance(c, bool) or not isinstance(c, (int, float)) or not math.isfinite(c) or c < 0:
-        raise CellError(f"{w}.clearance: expected a length >= 0, got {c!r}")
-    return float(c) * scale
-
-
-def _plane(name: str, d, w: str, scale: float, clearance: float, defaults: dict | None = None) -> Plane:
-    if isinstance(d, dict):
-        d = {**(defaults or {}), **d}
-    if not isinstance(d, dict) or set(d) - {"normal", "point", "offset"}:
-        raise CellError(f"{w}: a plane is {{normal: [x, y, z], point: [x, y, z]}} or {{normal: [..], offset: d}}")
-    if "normal" not in d or ("point" in d) == ("offset" in d):
-        raise CellError(f"{w}: give normal and either point or offset")
-    normal = _vec(f"{w}.normal", d["normal"], 1.0, unit=True)
-    if "point" in d:
-        return Plane.through(name, _vec(f"{w}.point", d["point"], scale), normal, clearance)
-    off = d["offset"]
-    if isinstance(off, bool) or not isinstance(off, (int, float)) or not math.isfinite(off):
-        raise CellError(f"{w}.offset: expected a number (length unit), got {off!r}")
-    return Plane(name, normal, float(off) * scale, clearance)
-
-
-def _box(name: str, d, w: str, scale: float, angle: float, clearance: float) -> Box:
-    if not isinstance(d, dict):
-        raise CellError(f"{w}: a box is {{min: [..], max: [..]}} or {{center: [..], size: [..], rotation: {{..}}}}")
-    if set(d) <= {"min", "max"} and len(d) == 2:
-        lo, hi = _vec(f"{w}.min", d["min"], scale), _vec(f"{w}.max", d["max"], scale)
-        if np.any(hi <= lo):
-            raise CellError(f"{w}: max must exceed min on every axis")
-        return Box.from_corners(name, lo, hi, clearance)
-    if set(d) - {"center", "size", "rotation"} or not {"center", "size"} <= set(d):
-        raise CellError(f"{w}: a box is {{min: [..], max: [..]}} or {{center: [..], size: [..], rotation: {{..}}}}")
-    size = _vec(f"{w}.size", d["size"], scale)
-    if np.any(size <= 0):
-        raise CellError(f"{w}.size: every edge must be positive")
-    rot = d.get("rotation") or {}
-    if not isinstance(rot, dict) or set(rot) - {"rx", "ry", "rz"}:
-        raise CellError(f"{w}.rotation: expected {{rx, ry, rz}} (angle unit, R = Rz Ry Rx)")
-    try:
-        rpy = np.array([float(rot.get(k, 0.0)) * angle for k in ("rx", "ry", "rz")])
-    except (TypeError, ValueError):
-        raise CellError(f"{w}.rotation: values must be numbers") from None
-    from station.kinematics.se3 import rpy_to_matrix
-
-    return Box(name, _vec(f"{w}.center", d["center"], scale), size / 2, rpy_to_matrix(rpy), clearance)
-
-
 def keep_out_from_dict(doc: dict, where: str, scale: float, angle: float) -> KeepOut:
     """``mounting`` and ``keep_out`` of a cell document (lengths in ``scale`` m, angles in ``angle`` rad)."""
-    m = doc.get("mounting", {})
-    w = f"{where}: mounting"
-    if m == "none":
-        mounting = None
-    elif isinstance(m, dict):
-        mounting = _plane("mounting plane", {k: v for k, v in m.items() if k != "clearance"}, w, scale,
-                          _clearance(m, w, scale), {"normal": [0, 0, 1]} if "point" in m else
-                          {"normal": [0, 0, 1], "offset": 0})
-    else:
-        raise CellError(f"{w}: expected {{normal, offset|point, clearance}} or the word none (no mounting plane)")
-    raw = doc.get("keep_out") or []
-    if not isinstance(raw, list):
-        raise CellError(f"{where}: keep_out must be a list of {{name, plane|box, clearance}}")
-    obstacles: list = []
-    for i, d in enumerate(raw):
-        w = f"{where}: keep_out[{i}]"
-        if not isinstance(d, dict) or set(d) - {"name", "plane", "box", "clearance"} or ("plane" in d) == ("box" in d):
-            raise CellError(f"{w}: expected {{name, plane: {{..}} or box: {{..}}, clearance}}")
-        name = str(d.get("name") or f"keep_out[{i}]")
-        if name in [o.name for o in obstacles] or name == "mounting plane":
-            raise CellError(f"{w}: name {name!r} is used twice (messages name the obstacle)")
-        w = f"{w} ({name})"
-        c = _clearance(d, w, scale)
-        obstacles.append(_plane(name, d["plane"], f"{w}.plane", scale, c) if "plane" in d
-                         else _box(name, d["box"], f"{w}.box", scale, angle, c))
-    return KeepOut(mounting, tuple(obstacles))
+    try:
+        return parse_keep_out(doc, where, scale, angle)
+    except KeepOutError as e:
+        raise CellError(str(e)) from None
 
 
 def check_clear(model, keep_out: KeepOut | Cell | None, q, what: str = "target") -> None:

@@ -351,40 +351,216 @@ class Checker:
         return Hit(k, self.env.names[k - 1], ob.name, margin + self.need[o], ob.clearance)
 
     # ---- paths ----------------------------------------------------------------------------------
+    def travel(self, qa, qb) -> np.ndarray:
+        """``(M,)`` m: how far any point of the envelope can move along the straight joint paths ``qa -> qb``
+        (a bound: each joint's travel times the farthest the envelope reaches from its axis)."""
+        dq = np.abs(np.atleast_2d(np.asarray(qb, float)) - np.atleast_2d(np.asarray(qa, float)))
+        rev = np.array([j.revolute for j in self.model.joints])
+        return np.sum(np.where(rev, dq * self.env.reach, dq), axis=1)
+
     def samples(self, qa, qb, step: float = PATH_STEP) -> int:
         """Samples of the straight joint path qa -> qb so that no envelope point moves more than ``step``."""
-        dq = np.abs(np.asarray(qb, float) - np.asarray(qa, float))
-        rev = np.array([j.revolute for j in self.model.joints])
-        travel = float(np.sum(np.where(rev, dq * self.env.reach, dq)))
-        return max(2, int(np.ceil(travel / step)) + 1)
+        return max(2, int(np.ceil(float(self.travel(qa, qb)[0]) / step)) + 1)
+
+    def _worst(self, Q) -> tuple[np.ndarray, np.ndarray]:
+        """Per configuration: the smallest margin and its flat (segment, obstacle) index."""
+        M = self.margins(Q).reshape(len(Q), -1)
+        if M.shape[1] == 0:
+            return np.full(len(Q), np.inf), np.zeros(len(Q), int)
+        k = np.argmin(M, axis=1)
+        return M[np.arange(len(Q)), k], k
+
+    def scan(self, QA, QB, step: float = PATH_STEP) -> list[Hit | None]:
+        """Per straight joint path ``QA[i] -> QB[i]`` (ends included): the worst violation found, or None.
+
+        Equivalent to checking samples no farther apart than ``step`` of envelope motion, but adaptive: a
+        margin cannot change faster than the envelope moves (Lipschitz in the path parameter with constant
+        ``travel``), so an interval whose end margins prove it clear is not sampled further."""
+        QA, QB = np.atleast_2d(np.asarray(QA, float)), np.atleast_2d(np.asarray(QB, float))
+        P = len(QA)
+        L = self.travel(QA, QB)
+        n0 = np.clip(np.ceil(L / step).astype(int) + 1, 2, 9)
+        path = np.repeat(np.arange(P), n0)
+        t = np.concatenate([np.linspace(0.0, 1.0, k) for k in n0])
+        m, k = self._worst(QA[path] + t[:, None] * (QB[path] - QA[path]))
+        bad_m = np.full(P, np.inf)  # per path: the worst violating margin seen, and where
+        bad_k = np.zeros(P, int)
+
+        def record(pp, mm, kk):
+            neg = mm < 0
+            for a, b, c in zip(pp[neg], mm[neg], kk[neg], strict=True):
+                if b < bad_m[a]:
+                    bad_m[a], bad_k[a] = b, c
+
+        record(path, m, k)
+        # intervals between neighbouring samples of one path; a blocked path is not refined further
+        same = path[:-1] == path[1:]
+        ip, t0, t1, m0, m1 = path[:-1][same], t[:-1][same], t[1:][same], m[:-1][same], m[1:][same]
+        while len(ip):
+            width = (t1 - t0) * L[ip]
+            keep = ((m0 + m1 - width) / 2 < 0) & (width > step) & ~np.isfinite(bad_m[ip])
+            ip, t0, t1, m0, m1 = ip[keep], t0[keep], t1[keep], m0[keep], m1[keep]
+            if not len(ip):
+                break
+            tm = (t0 + t1) / 2
+            mm, kk = self._worst(QA[ip] + tm[:, None] * (QB[ip] - QA[ip]))
+            record(ip, mm, kk)
+            ip, t0, t1, m0, m1 = (np.concatenate([ip, ip]), np.concatenate([t0, tm]), np.concatenate([tm, t1]),
+                                  np.concatenate([m0, mm]), np.concatenate([mm, m1]))
+        out: list[Hit | None] = []
+        O = max(len(self.obstacles), 1)
+        for i in range(P):
+            if np.isfinite(bad_m[i]):
+                s_, o = divmod(int(bad_k[i]), O)
+                out.append(self._hit(s_, o, float(bad_m[i])))
+            else:
+                out.append(None)
+        return out
 
     def path_hit(self, qa, qb, step: float = PATH_STEP) -> Hit | None:
-        """The first violation along the straight joint path ``qa -> qb`` (both ends included), or None."""
-        qa, qb = np.asarray(qa, float), np.asarray(qb, float)
-        n = self.samples(qa, qb, step)
-        for s0 in range(0, n, 2048):  # in chunks: the first violation usually comes early
-            t = np.linspace(0.0, 1.0, n)[s0:s0 + 2048, None]
-            M = self.margins(qa + t * (qb - qa))
-            bad = np.flatnonzero(np.any(M < 0, axis=(1, 2))) if M.size else []
-            if len(bad):
-                m = M[bad[0]]
-                s, o = np.unravel_index(int(np.argmin(m)), m.shape)
-                return self._hit(int(s), int(o), float(m[s, o]))
-        return None
+        """The worst violation along the straight joint path ``qa -> qb`` (both ends included), or None."""
+        return self.scan(qa, qb, step)[0]
 
     def paths_clear(self, QA, QB, step: float = PATH_STEP) -> np.ndarray:
         """``(M,)`` bool for M straight joint paths at once."""
-        QA, QB = np.atleast_2d(QA), np.atleast_2d(QB)
-        counts = [self.samples(a, b, step) for a, b in zip(QA, QB, strict=True)]
-        idx = np.repeat(np.arange(len(QA)), counts)
-        t = np.concatenate([np.linspace(0.0, 1.0, c) for c in counts])[:, None]
-        ok = self.clear(QA[idx] + t * (QB[idx] - QA[idx]))
-        out = np.ones(len(QA), bool)
-        np.logical_and.at(out, idx, ok)
-        return out
+        return np.array([h is None for h in self.scan(QA, QB, step)], bool)
 
 
 def first_hit(model, keep_out: KeepOut | None, q) -> Hit | None:
     """The worst violation at one configuration ``q`` (None: clear). ``keep_out=None``: the default (nothing
     below the base plane)."""
     return Checker(model, keep_out).hits(np.asarray(q, float)[None])[0]
+
+
+# ---- the keep-out part of a cell document (station-cell/1, and the simulated world's cell section) --------
+class KeepOutError(ValueError):
+    """A malformed ``mounting`` or ``keep_out`` entry; the message names the field."""
+
+
+def _number(v, w: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+        raise KeepOutError(f"{w}: expected a number, got {v!r}")
+    return float(v)
+
+
+def _vec3(v, w: str, scale: float = 1.0) -> np.ndarray:
+    if not isinstance(v, (list, tuple)) or len(v) != 3:
+        raise KeepOutError(f"{w}: expected 3 numbers, got {v!r}")
+    return np.array([_number(x, w) for x in v]) * scale
+
+
+def _unit(v, w: str) -> np.ndarray:
+    a = _vec3(v, w)
+    n = float(np.linalg.norm(a))
+    if n < 1e-9:
+        raise KeepOutError(f"{w}: the normal is zero")
+    return a / n
+
+
+def _clearance_of(d: dict, w: str, scale: float, default: float) -> float:
+    if "clearance" not in d:
+        return default
+    c = _number(d["clearance"], f"{w}.clearance")
+    if c < 0:
+        raise KeepOutError(f"{w}.clearance: must not be negative")
+    return c * scale
+
+
+def _plane_of(name: str, d, w: str, scale: float, clearance: float) -> Plane:
+    if not isinstance(d, dict) or set(d) - {"normal", "point", "offset"} or "normal" not in d \
+            or ("point" in d) == ("offset" in d):
+        raise KeepOutError(f"{w}: a plane is {{normal: [x, y, z], point: [x, y, z]}} or {{normal: [..], offset: d}}")
+    normal = _unit(d["normal"], f"{w}.normal")
+    if "point" in d:
+        return Plane.through(name, _vec3(d["point"], f"{w}.point", scale), normal, clearance)
+    return Plane(name, normal, _number(d["offset"], f"{w}.offset") * scale, clearance)
+
+
+def _box_of(name: str, d, w: str, scale: float, angle: float, clearance: float) -> Box:
+    shape = f"{w}: a box is {{min: [..], max: [..]}} or {{center: [..], size: [..], rotation: {{rx, ry, rz}}}}"
+    if not isinstance(d, dict):
+        raise KeepOutError(shape)
+    if set(d) == {"min", "max"}:
+        lo, hi = _vec3(d["min"], f"{w}.min", scale), _vec3(d["max"], f"{w}.max", scale)
+        if np.any(hi <= lo):
+            raise KeepOutError(f"{w}: max must exceed min on every axis")
+        return Box.from_corners(name, lo, hi, clearance)
+    if set(d) - {"center", "size", "rotation"} or not {"center", "size"} <= set(d):
+        raise KeepOutError(shape)
+    size = _vec3(d["size"], f"{w}.size", scale)
+    if np.any(size <= 0):
+        raise KeepOutError(f"{w}.size: every edge must be positive")
+    rot = d.get("rotation") or {}
+    if not isinstance(rot, dict) or set(rot) - {"rx", "ry", "rz"}:
+        raise KeepOutError(f"{w}.rotation: expected {{rx, ry, rz}} (angle unit; R = Rz Ry Rx)")
+    from station.kinematics.se3 import rpy_to_matrix
+
+    rpy = np.array([_number(rot.get(k, 0.0), f"{w}.rotation.{k}") * angle for k in ("rx", "ry", "rz")])
+    return Box(name, _vec3(d["center"], f"{w}.center", scale), size / 2, rpy_to_matrix(rpy), clearance)
+
+
+def keep_out_from_dict(doc: dict, where: str, scale: float, angle: float,
+                       default_clearance: float = DEFAULT_CLEARANCE) -> KeepOut:
+    """``mounting`` and ``keep_out`` of a cell document; lengths in units of ``scale`` m, angles of ``angle``
+    rad, clearances default to ``default_clearance`` (m). No ``mounting``: the plane z = 0 of the base frame
+    (a table arm); ``mounting: none``: no mounting plane."""
+    m = doc.get("mounting", {})
+    w = f"{where}: mounting"
+    if m == "none":
+        mounting = None
+    elif isinstance(m, dict):
+        plane = {k: v for k, v in m.items() if k != "clearance"}
+        plane.setdefault("normal", [0, 0, 1])
+        if "point" not in plane:
+            plane.setdefault("offset", 0)
+        mounting = _plane_of("mounting plane", plane, w, scale, _clearance_of(m, w, scale, default_clearance))
+    else:
+        raise KeepOutError(f"{w}: expected {{normal, offset|point, clearance}} or the word none (no mounting plane)")
+    raw = doc.get("keep_out") or []
+    if not isinstance(raw, list):
+        raise KeepOutError(f"{where}: keep_out must be a list of {{name, plane|box, clearance}}")
+    obstacles: list[Obstacle] = []
+    for i, d in enumerate(raw):
+        w = f"{where}: keep_out[{i}]"
+        if not isinstance(d, dict) or set(d) - {"name", "plane", "box", "clearance"} or ("plane" in d) == ("box" in d):
+            raise KeepOutError(f"{w}: expected {{name, plane: {{..}} or box: {{..}}, clearance}}")
+        name = str(d.get("name") or f"keep_out[{i}]")
+        if name in [o.name for o in obstacles] or name == "mounting plane":
+            raise KeepOutError(f"{w}: name {name!r} is used twice (messages name the obstacle)")
+        w = f"{w} ({name})"
+        c = _clearance_of(d, w, scale, default_clearance)
+        obstacles.append(_plane_of(name, d["plane"], f"{w}.plane", scale, c) if "plane" in d
+                         else _box_of(name, d["box"], f"{w}.box", scale, angle, c))
+    return KeepOut(mounting, tuple(obstacles))
+
+
+def keep_out_to_doc(ko: KeepOut, length_scale: float = 1.0, angle_scale: float = 1.0,
+                    clearance: float | None = None) -> dict:
+    """``{mounting, keep_out}`` for a cell document whose length unit is ``length_scale`` m and angle unit
+    ``angle_scale`` rad. ``clearance``: write this clearance (m) instead of each obstacle's own."""
+    from station.kinematics.se3 import matrix_to_rpy
+
+    def r(x):
+        return float(round(x, 9))
+
+    def c(o):
+        return r((o.clearance if clearance is None else clearance) / length_scale)
+
+    def plane(p: Plane) -> dict:
+        return {"normal": [r(x) for x in p.normal], "offset": r(p.offset / length_scale)}
+
+    out: dict = {"mounting": "none" if ko.mounting is None else {**plane(ko.mounting), "clearance": c(ko.mounting)}}
+    items = []
+    for o in ko.obstacles:
+        if isinstance(o, Plane):
+            items.append({"name": o.name, "plane": plane(o), "clearance": c(o)})
+        else:
+            items.append({"name": o.name, "box": {"center": [r(x / length_scale) for x in o.center],
+                                                  "size": [r(2 * x / length_scale) for x in o.half],
+                                                  "rotation": dict(zip(("rx", "ry", "rz"),
+                                                                       (r(x / angle_scale) for x in
+                                                                        matrix_to_rpy(o.rotation)),
+                                                                       strict=True))},
+                          "clearance": c(o)})
+    out["keep_out"] = items
+    return out
