@@ -64,7 +64,8 @@ def test_mm_deg_and_m_rad_give_the_same_keep_out():
     ({"keep_out": [{"name": "w", "plane": {"normal": [0, 0, 1]}}]}, r"keep_out\[0\] \(w\)\.plane: give|a plane is"),
     ({"keep_out": [{"name": "w", "plane": {"normal": [0, 0, 1], "offset": 0}, "box": {}}]}, r"keep_out\[0\]"),
     ({"keep_out": [{"name": "a", "plane": {"normal": [0, 0, 1], "offset": 0}},
-                   {"name": "a", "plane": {"normal": [0, 1, 0], "offset": 0}}]}, r"keep_out\[1\]: name 'a' is used twice"),
+                   {"name": "a", "plane": {"normal": [0, 1, 0], "offset": 0}}]},
+     r"keep_out\[1\]: name 'a' is used twice"),
     ({"keep_out": [{"name": "w", "plane": {"normal": [0, 0, 1], "offset": 0}, "clearance": -1}]}, r"clearance"),
     ({"keep_out": {"name": "w"}}, r"keep_out must be a list"),
     ({"mounting": None}, r"mounting: expected .* or the word none"),
@@ -83,8 +84,9 @@ def test_station_run_refuses_a_bad_keep_out_before_touching_the_robot(tmp_path):
     cell.write_text(yaml.safe_dump({"format": "station-cell/1", "units": {"length": "mm"}, "points": POINTS,
                                     "keep_out": [{"name": "fixture", "box": {"min": [0, 0, 0], "max": [0, 1, 1]}}]}))
     r = subprocess.run([sys.executable, "-c", "from station.cli import main; main()", "run", "zero_offsets",
-                        "--robot", "ur://127.0.0.1:1?model=ur5e", "--serial", "X1", "--cell", str(cell)], capture_output=True, text=True,
-                       timeout=120, env={"STATION_HOME": str(tmp_path), "PATH": "/usr/bin:/bin"})
+                        "--robot", "ur://127.0.0.1:1?model=ur5e", "--serial", "X1", "--cell", str(cell)],
+                       capture_output=True, text=True, timeout=120,
+                       env={"STATION_HOME": str(tmp_path), "PATH": "/usr/bin:/bin"})
     assert r.returncode == 2, r.stderr
     assert r.stderr.strip().startswith("station: error: ") and "keep_out[0] (fixture).box: max" in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1

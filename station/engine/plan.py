@@ -364,12 +364,14 @@ def route_from(model: Model, keep_out: KeepOut | None, q_now, targets: list, wha
     return route(_checkers[key][2], q_now, targets, what=what)
 
 
-def _route_plan(model: Model, checker: Checker, poses: list[PlannedPose], q_start) -> list[PlannedPose]:
+def _route_plan(model: Model, checker: Checker, poses: list[PlannedPose], q_start,
+                known_clear: list[bool] | None = None) -> list[PlannedPose]:
     """Order-preserving: give each pose the vias its inter-pose path needs (from the previous approach pose,
-    or the start). The start pose is the home for vias: the arm stood there."""
+    or the start). The start pose is the home for vias: the arm stood there. ``known_clear[i]``: the path into
+    pose i was checked already."""
     prev = None if q_start is None else np.asarray(q_start, float)
     for i, p in enumerate(poses):
-        if prev is not None:
+        if prev is not None and not (known_clear and known_clear[i]):
             via = find_via(checker, prev, p.approach_arr, q_start)
             if via is None:
                 frm = "the start pose" if i == 0 else f"pose {i - 1}"
@@ -380,8 +382,10 @@ def _route_plan(model: Model, checker: Checker, poses: list[PlannedPose], q_star
     return poses
 
 
-def _order_clear(model: Model, checker: Checker, QA: np.ndarray, q_start: np.ndarray, qs: np.ndarray) -> list[int]:
-    """Tour order (by ``qs``) that avoids blocked approach-to-approach paths where another order can."""
+def _order_clear(model: Model, checker: Checker, QA: np.ndarray, q_start: np.ndarray,
+                 qs: np.ndarray) -> tuple[list[int], list[bool]]:
+    """Tour order (by ``qs``) that avoids blocked approach-to-approach paths where another order can; and per
+    tour step, whether its path is known to be clear."""
     blocked: set[frozenset] = set()
     seen: set[frozenset] = set()
     tour = order_for_short_motion(model, qs, q_start)
@@ -390,16 +394,17 @@ def _order_clear(model: Model, checker: Checker, QA: np.ndarray, q_start: np.nda
         new = [e for e in edges if e not in seen]
         if not new:
             break
-        for e in new:
+        ends = [sorted(e) for e in new]
+        hits = checker.scan(np.array([q_start if i < 0 else QA[i] for i, _ in ends]), QA[[j for _, j in ends]])
+        for e, h in zip(new, hits, strict=True):
             seen.add(e)
-            i, j = sorted(e)
-            a = q_start if i < 0 else QA[i]
-            if checker.path_hit(a, QA[j]) is not None:
+            if h is not None:
                 blocked.add(e)
         if not any(e in blocked for e in edges):
             break
         tour = order_for_short_motion(model, qs, q_start, blocked)
-    return tour
+    edges = [frozenset((a, b)) for a, b in zip([-1] + tour, tour, strict=False)]
+    return tour, [e in seen and e not in blocked for e in edges]
 
 
 def _start_clear(checker: Checker, q_start) -> None:
@@ -464,12 +469,12 @@ def generate_plan(model: Model, points: list[RefPoint], q_start, *, identify: st
     # holdout poses: every point that is held out was also fitted (the solver needs its position)
     chosen = fit + hold
     qs = Q[chosen]
-    tour = _order_clear(model, checker, QA[chosen], q_start, qs)
+    tour, known = _order_clear(model, checker, QA[chosen], q_start, qs)
     poses = []
     for i, t in enumerate(tour):
         c = chosen[t]
         poses.append(PlannedPose(i, labels[c], Q[c].tolist(), QA[c].tolist(), "fit" if t < n_fit else "holdout"))
-    _route_plan(model, checker, poses, q_start)
+    _route_plan(model, checker, poses, q_start, known)
     return PosePlan(poses, {"generated": True, "identify": identify, "n_fit": n_fit, "n_holdout": n_holdout,
                             "cone_deg": cone_deg, "clearance_m": clearance, "seed": seed,
                             "points": [p.to_dict() for p in points], "keep_out": checker.keep_out.to_dict(),
@@ -506,12 +511,12 @@ def plan_from_joints(model: Model, entries: list[dict], points: dict[str, RefPoi
         poses.append(PlannedPose(i, pt.label, q.tolist(), r.q[0].tolist(), e.get("set", "fit")))
     if q_start is not None:
         _start_clear(checker, q_start)
-        tour = _order_clear(model, checker, np.array([p.approach_q for p in poses]), np.asarray(q_start, float),
-                            np.array([p.q for p in poses]))
+        tour, known = _order_clear(model, checker, np.array([p.approach_q for p in poses]),
+                                   np.asarray(q_start, float), np.array([p.q for p in poses]))
         poses = [poses[t] for t in tour]
         for i, p in enumerate(poses):
             p.index = i
-    _route_plan(model, checker, poses, q_start)
+    _route_plan(model, checker, poses, q_start, known if q_start is not None else None)
     return PosePlan(poses, {"generated": False, "keep_out": checker.keep_out.to_dict()})
 
 
