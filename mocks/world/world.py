@@ -373,6 +373,8 @@ class World:
                 # a synchronised move is a straight joint path: a controller that knows the cell stops before it
                 self._collided(f"command_q refused: {hit.describe()}")
                 return x
+            if self.time_mode == "instant" and hit is None:
+                self._watched_q = target.copy()  # checked just now: the watch need not scan it again
             if self.time_mode == "instant":
                 new_side = np.where(np.abs(target - x) > motion.EPS, np.sign(target - x), side)
                 tracks = [motion.hold(t, float(target[i]), float(new_side[i])) for i in range(self.n_joints)]

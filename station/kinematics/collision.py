@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from station.kinematics.chain import TZ, _apply
+from station.kinematics.chain import TZ
 
 DEFAULT_CLEARANCE = 0.01  # m: links keep 10 mm from a keep-out unless the cell says otherwise
 PATH_STEP = 0.005  # m: no point of the arm moves more than this between two checked samples of a path
@@ -199,30 +199,87 @@ def _spread(model, n: int = 16) -> np.ndarray:
     return Q
 
 
-def _origins(model, Q: np.ndarray, elements: np.ndarray, params=None) -> np.ndarray:
-    """Origins ``(N, K, 3)`` of the frames after each chain element in ``elements`` (-1: before the first)."""
+def _element_matrix(axis: int, v: float) -> np.ndarray:
+    E = np.eye(4)
+    if axis <= TZ:
+        E[axis, 3] = v
+        return E
+    c, s_ = np.cos(v), np.sin(v)
+    i, j = {3: (1, 2), 4: (2, 0), 5: (0, 1)}[axis]
+    E[i, i], E[i, j], E[j, i], E[j, j] = c, -s_, s_, c
+    return E
+
+
+def _compile(model, elements: np.ndarray, params) -> list[tuple]:
+    """The chain folded for key-point FK: runs of fixed elements become one constant transform (the model's
+    parameters are fixed during a check), with the key points inside a run as constant offsets."""
     ch = model.chain
-    p = model.params if params is None else params
+    v = ch.const + np.where(ch.param >= 0, params[np.maximum(ch.param, 0)], 0.0)
+    want = {int(e): i for i, e in enumerate(elements)}
+    ops: list[tuple] = []
+    acc = np.eye(4)
+    pending: list[tuple[int, np.ndarray]] = []  # (slot, offset in the frame where the run started)
+    last = int(max(elements)) if len(elements) else -1
+
+    def flush():
+        nonlocal acc, pending
+        if pending or not np.allclose(acc, np.eye(4)):
+            ops.append(("const", acc.copy(), [(sl, off.copy()) for sl, off in pending]))
+        acc, pending = np.eye(4), []
+
+    if -1 in want:
+        pending.append((want[-1], np.zeros(3)))
+    for k in range(last + 1):
+        if ch.joint[k] >= 0:
+            flush()
+            ops.append(("joint", int(ch.axis[k]), int(ch.joint[k]), float(v[k])))
+        else:
+            acc = acc @ _element_matrix(int(ch.axis[k]), float(v[k]))
+        if k in want:
+            if ch.joint[k] >= 0:
+                ops.append(("const", np.eye(4), [(want[k], np.zeros(3))]))
+            else:
+                pending.append((want[k], acc[:3, 3].copy()))
+    flush()
+    return ops
+
+
+def _origins(model, Q: np.ndarray, elements: np.ndarray, params=None, ops: list | None = None) -> np.ndarray:
+    """Origins ``(N, K, 3)`` of the frames after each chain element in ``elements`` (-1: before the first)."""
+    p = model.params if params is None else np.asarray(params, float)
+    ops = ops if ops is not None else _compile(model, elements, p)
     Q = np.atleast_2d(np.asarray(Q, float))
     N = Q.shape[0]
-    v = ch.values(Q, p)
-    T = np.broadcast_to(np.eye(4), (N, 4, 4)).copy()
-    want = {int(e): i for i, e in enumerate(elements)}
+    R = np.broadcast_to(np.eye(3), (N, 3, 3)).copy()
+    t = np.zeros((N, 3))
     out = np.empty((N, len(elements), 3))
-    if -1 in want:
-        out[:, want[-1]] = 0.0
-    last = int(max(elements)) if len(elements) else -1
-    for k in range(last + 1):
-        _apply(T, int(ch.axis[k]), v[:, k])
-        if k in want:
-            out[:, want[k]] = T[:, :3, 3]
+    for op in ops:
+        if op[0] == "joint":
+            _, axis, j, c = op
+            x = Q[:, j] + c
+            if axis <= TZ:
+                t += x[:, None] * R[:, :, axis]
+            else:
+                cs, sn = np.cos(x)[:, None], np.sin(x)[:, None]
+                i, k = {3: (1, 2), 4: (2, 0), 5: (0, 1)}[axis]
+                ci, ck = R[:, :, i].copy(), R[:, :, k]
+                R[:, :, i] = cs * ci + sn * ck
+                R[:, :, k] = -sn * ci + cs * ck
+        else:
+            _, C, keys = op
+            for slot, off in keys:
+                out[:, slot] = t + R @ off
+            t = t + R @ C[:3, 3]
+            R = R @ C[:3, :3]
     return out
 
 
-def capsules(model, Q, env: Envelope | None = None, params=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Capsule axes ``A, B (N, S, 3)`` (m, base frame) and radii ``(S,)`` at configurations ``Q (N, n)``."""
+def capsules(model, Q, env: Envelope | None = None, params=None,
+             ops: list | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Capsule axes ``A, B (N, S, 3)`` (m, base frame) and radii ``(S,)`` at configurations ``Q (N, n)``
+    (``ops``: the chain compiled for ``env`` and these parameters, see ``_compile``)."""
     env = env or envelope(model)
-    P = _origins(model, Q, env.element, params)
+    P = _origins(model, Q, env.element, params, ops)
     A, B = P[:, env.a], P[:, env.b]
     if np.any(env.trim > 0):
         d = B - A
@@ -248,8 +305,8 @@ def _box_sdf(P, box: Box) -> np.ndarray:
 
 def _box_distance(A, B, box: Box, iters: int = 22) -> np.ndarray:
     """Signed distance of segments to a box: the signed distance of a convex set is convex along a line, so a
-    golden-section search over the segment parameter finds its minimum (to ~3e-5 of the segment length, the
-    distance to as much: it changes no faster than the segment parameter moves along the segment)."""
+    golden-section search over the segment parameter finds its minimum; what the search leaves open (~3e-5 of
+    the segment length) is subtracted, so the result never overstates the distance."""
     g = (np.sqrt(5.0) - 1) / 2
     d = B - A
 
@@ -267,7 +324,9 @@ def _box_distance(A, B, box: Box, iters: int = 22) -> np.ndarray:
         fx = f(x)
         c, e, fc, fe = (np.where(left, x, e), np.where(left, c, x),
                         np.where(left, fx, fe), np.where(left, fc, fx))
-    return np.minimum.reduce([f(np.zeros_like(lo)), f(np.ones_like(lo)), fc, fe])
+    # the minimum lies in [lo, hi]; the distance changes no faster than the point moves: a lower bound
+    best = np.minimum.reduce([f(np.zeros_like(lo)), f(np.ones_like(lo)), fc, fe])
+    return best - (hi - lo) * np.linalg.norm(d, axis=-1)
 
 
 def _fixed_to_plane(model, env: Envelope, plane: Plane) -> np.ndarray:
@@ -308,6 +367,7 @@ class Checker:
         self.model = model
         self.keep_out = KeepOut.default() if keep_out is None else keep_out
         self.env = envelope(model)
+        self._ops = _compile(model, self.env.element, model.params)
         self.obstacles = self.keep_out.all
         S = len(self.env.a)
         self.mask = np.ones((S, len(self.obstacles)), bool)
@@ -322,7 +382,7 @@ class Checker:
         if not self.obstacles:
             return out
         for s in range(0, len(Q), chunk):
-            A, B, r = capsules(self.model, Q[s:s + chunk], self.env)
+            A, B, r = capsules(self.model, Q[s:s + chunk], self.env, ops=self._ops)
             for o, ob in enumerate(self.obstacles):
                 d = _plane_distance(A, B, ob) if isinstance(ob, Plane) else self._box(A, B, r, ob)
                 m = d - r[None, :] - self.need[o]
@@ -394,7 +454,7 @@ class Checker:
         if P == 0:
             return []
         L = self.travel(QA, QB)
-        n0 = np.clip(np.ceil(L / step).astype(int) + 1, 2, 9)
+        n0 = np.clip(np.ceil(L / step).astype(int) + 1, 2, 33)  # one batch: numpy's overhead, not the count
         path = np.repeat(np.arange(P), n0)
         t = np.concatenate([np.linspace(0.0, 1.0, k) for k in n0])
         m, k = self._worst(QA[path] + t[:, None] * (QB[path] - QA[path]))
