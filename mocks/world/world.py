@@ -36,6 +36,7 @@ from station.kinematics import Model, load_model
 from station.kinematics.modelfile import ModelFileError
 
 log = logging.getLogger("station.mocks.world")
+WATCH_PERIOD = 0.01  # s of world time between two looks of the keep-out watch while the arm moves
 
 # sigmas of the hidden errors of World.default (SI)
 DEFAULT_SIGMAS = {"offsets": {"length": 0.1e-3, "angle": math.radians(0.1)},
@@ -132,7 +133,8 @@ class World:
         self._version = 0
         self._cache: tuple | None = None  # (key, q_joint): FK-free reads while the arm stands still
         self._tracks = [motion.hold(0.0, float(x)) for x in q0]
-        self._watched_q = q0.copy()  # where the keep-out watch last saw the arm
+        self._watched_q = q0.copy()  # where the keep-out watch last saw the arm, and when
+        self._watched_t = 0.0
         self._enabled = np.full(n, bool(spec.enabled))
         self._compliant = False
         self._seated: str | None = None
@@ -364,7 +366,7 @@ class World:
                 self._event(f"command_q clamped to joint limits: {', '.join(bad)}")
             if self._refused("command_q"):
                 return self._state()[0]
-            self._watch()
+            self._watch(force=True)  # the path so far, before the motion changes
             t = self.now()
             x, v, side = self._state(t)
             target = np.where(self._enabled, target, x)
@@ -546,14 +548,18 @@ class World:
         if self._compliant and self._seated is None and not self.is_moving():
             self._try_seat()
 
-    def _watch(self) -> None:
+    def _watch(self, force: bool = False) -> None:
         """The links along the path the arm took since it was last observed (a straight joint path: exact for
-        an instant move, the sampled trajectory while moving). Every contact is recorded; with ``collision:
-        stop`` the arm also stops where it is and the world is in protective stop (a UR controller reports it;
-        other buses see their moves refused)."""
+        an instant move, the trajectory sampled every ``WATCH_PERIOD`` while moving; ``force``: look now).
+        Every contact is recorded; with ``collision: stop`` the arm also stops where it is and the world is in
+        protective stop (a UR controller reports it; other buses see their moves refused)."""
         q = self._state()[0]
         if np.array_equal(q, self._watched_q):
             return
+        t = self.now()
+        if not force and self.time_mode != "instant" and t - self._watched_t < WATCH_PERIOD and self.is_moving():
+            return  # emulators read many times per ms of motion: look every WATCH_PERIOD (the path in between)
+        self._watched_t = t
         hit = self.keep_out.path(self._watched_q, q)
         self._watched_q = q
         if hit is None:

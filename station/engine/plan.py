@@ -140,7 +140,7 @@ def _candidates(model: Model, point: RefPoint, q_start, n, cone, clearance, roll
         Ta[:, :3, 3] = back
         ra = model.ik(Ta, q_touch, max_iter=80)
     else:
-        seeds = _seeds(model, q_start, n, rng, p)
+        seeds = _seeds(model, q_start, n, rng)  # position only: seeds around the start as they are
         res = model.ik(np.repeat(p[None], n, axis=0), seeds, position_only=True, max_iter=150)
         q_touch, ok = res.q, res.ok
         ra = model.ik(np.repeat(back[None], n, axis=0), q_touch, position_only=True, max_iter=80)
