@@ -135,6 +135,7 @@ class World:
         self._tracks = [motion.hold(0.0, float(x)) for x in q0]
         self._watched_q = q0.copy()  # where the keep-out watch last saw the arm, and when
         self._watched_t = 0.0
+        self._watched_rest: int | None = None  # motion version at which the watch last saw the arm at rest
         self._enabled = np.full(n, bool(spec.enabled))
         self._compliant = False
         self._seated: str | None = None
@@ -553,13 +554,17 @@ class World:
         an instant move, the trajectory sampled every ``WATCH_PERIOD`` while moving; ``force``: look now).
         Every contact is recorded; with ``collision: stop`` the arm also stops where it is and the world is in
         protective stop (a UR controller reports it; other buses see their moves refused)."""
-        q = self._state()[0]
+        if self._watched_rest == self._version:
+            return  # no command since the arm was last seen at rest where it is
+        t = self.now()
+        moving = self.is_moving()
+        if not force and moving and self.time_mode != "instant" and t - self._watched_t < WATCH_PERIOD:
+            return  # emulators read many times per ms of motion: look every WATCH_PERIOD (the path in between)
+        q = self._state(t)[0]
+        self._watched_t = t
+        self._watched_rest = None if moving else self._version
         if np.array_equal(q, self._watched_q):
             return
-        t = self.now()
-        if not force and self.time_mode != "instant" and t - self._watched_t < WATCH_PERIOD and self.is_moving():
-            return  # emulators read many times per ms of motion: look every WATCH_PERIOD (the path in between)
-        self._watched_t = t
         hit = self.keep_out.path(self._watched_q, q)
         self._watched_q = q
         if hit is None:
