@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 from station.mocks.world import motion
-from station.mocks.world.cell import CELL_FORMAT, DEFAULTS, CellPoint
+from station.mocks.world.cell import CELL_FORMAT, DEFAULTS, CellPoint, KeepOutTruth
 from station.mocks.world.faults import Faults
 from station.mocks.world.physics import Gravity, Rigid
 from station.mocks.world.worldfile import (
@@ -38,6 +38,7 @@ from station.kinematics import Model, load_model
 from station.kinematics.modelfile import ModelFileError
 
 log = logging.getLogger("station.mocks.world")
+WATCH_PERIOD = 0.01  # s of world time between two looks of the keep-out watch while the arm moves
 
 # sigmas of the hidden errors of World.default (SI)
 DEFAULT_SIGMAS = {"offsets": {"length": 0.1e-3, "angle": math.radians(0.1)},
@@ -123,6 +124,8 @@ class World:
                                                 float(radius), np.array(p["approach"], dtype=float))
             self._survey[p["label"]] = g_survey.normal(0.0, spec.survey_sigma, 3)
         self.faults = Faults()
+        self.keep_out = KeepOutTruth(self.truth, spec.keep_out)  # the floor and fixtures the links can hit
+        self.collisions: list[str] = []  # every contact of a link with them, in order (the truth tests read)
         self.events: deque[tuple[float, str]] = deque(maxlen=500)
         # time
         if spec.time_mode not in TIME_MODES:
@@ -137,6 +140,9 @@ class World:
         self._version = 0
         self._cache: tuple | None = None  # (key, q_joint): FK-free reads while the arm stands still
         self._tracks = [motion.hold(0.0, float(x)) for x in q0]
+        self._watched_q = q0.copy()  # where the keep-out watch last saw the arm, and when
+        self._watched_t = 0.0
+        self._watched_rest: int | None = None  # motion version at which the watch last saw the arm at rest
         self._enabled = np.full(n, bool(spec.enabled))
         self._compliant = False
         self._seated: str | None = None
@@ -378,9 +384,17 @@ class World:
                 self._event(f"command_q clamped to joint limits: {', '.join(bad)}")
             if self._refused("command_q"):
                 return self._state()[0]
+            self._watch(force=True)  # the path so far, before the motion changes
             t = self.now()
             x, v, side = self._state(t)
             target = np.where(self._enabled, target, x)
+            hit = self.keep_out.path(x, target)
+            if hit is not None and self.spec.collision == "stop":
+                # a synchronised move is a straight joint path: a controller that knows the cell stops before it
+                self._collided(f"command_q refused: {hit.describe()}")
+                return x
+            if self.time_mode == "instant" and hit is None:
+                self._watched_q = target.copy()  # checked just now: the watch need not scan it again
             if self.time_mode == "instant":
                 new_side = np.where(np.abs(target - x) > motion.EPS, np.sign(target - x), side)
                 tracks = [motion.hold(t, float(target[i]), float(new_side[i])) for i in range(self.n_joints)]
@@ -459,7 +473,7 @@ class World:
             self._event(f"left socket {self._seated}")
             self._seated = None
             self._seat_target = None
-        self._update()
+        self._update(watch=False)  # joint-by-joint commands of one move: watched when the arm is next observed
 
     # ---- power, compliance, faults ------------------------------------------------------------
     def _joints(self, joints) -> list[int]:
@@ -544,10 +558,45 @@ class World:
         return self._pstop
 
     # ---- cell ---------------------------------------------------------------------------------
-    def _update(self) -> None:
-        """Lazy world rules evaluated whenever state is read: socket seating while compliant."""
+    def _update(self, watch: bool = True) -> None:
+        """Lazy world rules evaluated whenever state is read: socket seating while compliant, and (``watch``)
+        the links against the floor and keep-outs."""
+        if watch:
+            self._watch()
         if self._compliant and self._seated is None and not self.is_moving():
             self._try_seat()
+
+    def _watch(self, force: bool = False) -> None:
+        """The links along the path the arm took since it was last observed (a straight joint path: exact for
+        an instant move, the trajectory sampled every ``WATCH_PERIOD`` while moving; ``force``: look now).
+        Every contact is recorded; with ``collision: stop`` the arm also stops where it is and the world is in
+        protective stop (a UR controller reports it; other buses see their moves refused)."""
+        if self._watched_rest == self._version:
+            return  # no command since the arm was last seen at rest where it is
+        t = self.now()
+        moving = self.is_moving()
+        if not force and moving and self.time_mode != "instant" and t - self._watched_t < WATCH_PERIOD:
+            return  # emulators read many times per ms of motion: look every WATCH_PERIOD (the path in between)
+        q = self._state(t)[0]
+        self._watched_t = t
+        self._watched_rest = None if moving else self._version
+        if np.array_equal(q, self._watched_q):
+            return
+        hit = self.keep_out.path(self._watched_q, q)
+        self._watched_q = q
+        if hit is None:
+            return
+        if self.spec.collision == "stop":
+            t = self.now()
+            self._tracks = [motion.hold(t, float(x), float(sd)) for x, sd in zip(q, self._state(t)[2], strict=True)]
+            self._watched_q = self._state(t)[0]
+        self._collided(f"collision: {hit.describe()}")
+
+    def _collided(self, msg: str) -> None:
+        self.collisions.append(msg)
+        if self.spec.collision == "stop":
+            self._pstop = True
+        self._event(msg)
 
     def _try_seat(self) -> None:
         q, _, side = self._state()
@@ -599,9 +648,12 @@ class World:
                         "radius": round(p.radius, 6)})
         tool = {k: round(self.nominal.param(f"tcp.{k}"), 6) for k in ("x", "y", "z", "rx", "ry", "rz")
                 if f"tcp.{k}" in self.nominal.param_names}  # the planar parallel robot has no tool frame
+        from station.kinematics.collision import DEFAULT_CLEARANCE, keep_out_to_doc
+
+        # the floor and fixtures as built (no survey error), with the station's default clearance around them
         return {"format": CELL_FORMAT, "units": {"length": "m", "angle": "rad"}, "frame": "robot base",
                 "model": self.nominal.name, "tool": tool, "survey_sigma": self.spec.survey_sigma,
-                "points": pts}
+                "points": pts, **keep_out_to_doc(self.spec.keep_out, clearance=DEFAULT_CLEARANCE)}
 
     # ---- truth --------------------------------------------------------------------------------
     def errors(self) -> dict[str, float]:

@@ -14,6 +14,8 @@ import numpy as np
 from station.mocks.errors import MockError
 from station.mocks.world.cell import DEFAULTS, KINDS
 
+from station.kinematics.collision import KeepOut, KeepOutError, keep_out_from_dict, keep_out_to_doc
+
 FORMAT = "station-world/1"
 LENGTH = {"m": 1.0, "mm": 1e-3}
 ANGLE = {"rad": 1.0, "deg": math.pi / 180}
@@ -63,6 +65,8 @@ class WorldSpec:
     survey_sigma: float = 0.0
     encoder_sigma: float = 0.0
     buses: dict = field(default_factory=dict)
+    keep_out: KeepOut = field(default_factory=lambda: KeepOut.default(0.0))  # truth: contact is a collision
+    collision: str = "record"  # a link touching a keep-out: "record" it (world.collisions) or also "stop"
 
 
 def param_kind(model, name: str) -> str:
@@ -250,7 +254,15 @@ def spec_from_dict(doc, where: str = "<world>") -> WorldSpec:
     elif model.name in DEFAULTS:
         s.start = list(DEFAULTS[model.name]["start"])
 
-    cell = r.mapping(doc.get("cell"), "cell", {"contact_radius", "capture_radius", "points"})
+    cell = r.mapping(doc.get("cell"), "cell", {"contact_radius", "capture_radius", "points", "mounting", "keep_out",
+                                               "collision"})
+    s.collision = str(cell.get("collision", "record"))
+    if s.collision not in ("record", "stop"):
+        raise r.fail("cell.collision", f"expected record or stop, got {s.collision!r}")
+    try:
+        s.keep_out = keep_out_from_dict(cell, f"{where}: cell", L, A, default_clearance=0.0)
+    except KeepOutError as e:
+        raise WorldFileError(str(e)) from None
     s.contact_radius = r.num(cell.get("contact_radius", CONTACT_RADIUS / L), "cell.contact_radius",
                              positive=True) * L
     s.capture_radius = r.num(cell.get("capture_radius", CAPTURE_RADIUS / L), "cell.capture_radius",
@@ -346,7 +358,8 @@ def spec_to_dict(s: WorldSpec, model, length: str = "m", angle: str = "rad") -> 
             d["radius"] = r(p["radius"] * L)
         pts.append(d)
     doc["cell"] = {"contact_radius": r(s.contact_radius * L), "capture_radius": r(s.capture_radius * L),
-                   "points": pts}
+                   "points": pts, **keep_out_to_doc(s.keep_out, 1 / L, 1 / A),
+                   "collision": s.collision}
     doc["noise"] = {"seating": r(s.seating_sigma * L), "survey": r(s.survey_sigma * L),
                     "encoder": r(s.encoder_sigma * A)}
     doc["buses"] = s.buses

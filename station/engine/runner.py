@@ -26,6 +26,7 @@ from station.engine.journal import Journal, JournalError, read_journal
 from station.engine.limits import load_limits
 from station.engine.procedure import Procedure, ProcedureError, load_procedure
 from station.engine.session import Session
+from station.kinematics.collision import keep_out_to_doc
 from station.robot.errors import ConfigError
 from station.robot.protocol import adopt_serial
 from station.samplesfile import joint_units, write_samples_csv
@@ -95,8 +96,10 @@ def _db_for_journal(db: str | None) -> str | None:
 def _cell_from_header(d: dict | None) -> Cell | None:
     if not d:
         return None
+    from station.engine.cell import keep_out_from_dict
+
     return Cell(d.get("path", "journal"), {p["label"]: RefPoint.from_dict(p) for p in d["points"]}, d.get("model"),
-                d.get("tool"))
+                d.get("tool"), keep_out_from_dict(d, "journal cell", 1.0, 1.0))  # SI; none journaled: the table
 
 
 def _optional_cell(cell_path) -> Cell | None:
@@ -152,7 +155,8 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
         url=robot_url or getattr(robot, "url", "") or ident.url, model=robot.model.name, robot=_identity_dict(ident),
         limits={"path": lim.path, "version": lim.version, "sha256": lim.sha256},
         cell=None if the_cell is None else {"path": the_cell.path, "model": the_cell.model, "tool": the_cell.tool,
-                                            "points": [p.to_dict() for p in the_cell.points.values()]},
+                                            "points": [p.to_dict() for p in the_cell.points.values()],
+                                            **keep_out_to_doc(the_cell.keep_out)},
         options=opts, db=_db_for_journal(db), versions=_versions())
     journal = Journal.create(folder / "journal.jsonl", header)
     return Session(journal, robot, limits=table, limits_version=lim.version, cell=the_cell, options=opts,

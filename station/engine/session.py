@@ -213,13 +213,15 @@ class Session:
             n_fit = n_fit or opt.get("n_fit")
             n_holdout = opt.get("n_holdout", 4) if n_holdout is None else n_holdout
             rotate = kw.pop("rotate_joint", None)
+            kw.setdefault("keep_out", self.cell.keep_out if self.cell else None)  # None: nothing below the base
             if rotate is not None:
                 from station.engine.plan import generate_rotation_plan
 
                 plan = generate_rotation_plan(self.model, (points or self.points("socket"))[0], q0, joint=rotate,
                                               n_fit=n_fit or 8, n_holdout=n_holdout, **kw)
             elif listed is not None:
-                plan = plan_from_joints(self.model, listed, self.cell.points if self.cell else {}, q_start=q0)
+                plan = plan_from_joints(self.model, listed, self.cell.points if self.cell else {}, q_start=q0,
+                                        keep_out=kw["keep_out"])
             else:
                 for key in ("cone_deg", "clearance", "roll_deg", "margin_deg"):
                     if key in opt:
@@ -250,8 +252,13 @@ class Session:
         self.robot.move_joints(np.asarray(q, float), speed=speed)
 
     def approach(self, pose: PlannedPose) -> None:
-        """Move above the reference (approach pose of the plan)."""
-        self.robot.move_joints(pose.approach_arr)
+        """Move above the reference (approach pose of the plan) through the plan's via poses; the path from where
+        the arm stands (e.g. after a resume) is checked against the keep-outs first, refused in one line."""
+        from station.engine.plan import route_from
+
+        for q in route_from(self.model, self.cell.keep_out if self.cell else None, self.robot.joint_positions().q,
+                            [*pose.via, pose.approach_q], what=f"pose {pose.index}"):
+            self.robot.move_joints(q)
 
     def touch_speed(self, q_from, q_to) -> float:
         from station.robot.motion import joint_speed_for_tool_cap

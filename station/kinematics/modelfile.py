@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -139,13 +140,37 @@ def model_from_dict(doc: dict, where: str = "<model>") -> Model:
               payload=payload, gravity_vector=grav)
     name = str(doc.get("name", Path(where).stem))
     if conv == "dh":
-        return from_dh(name, joints, links, **kw)
-    if conv == "mdh":
-        return from_mdh(name, joints, links, **kw)
-    h = frame(doc.get("home"), "home")
-    from station.kinematics.model import _pose
+        model = from_dh(name, joints, links, **kw)
+    elif conv == "mdh":
+        model = from_mdh(name, joints, links, **kw)
+    else:
+        h = frame(doc.get("home"), "home")
+        from station.kinematics.model import _pose
 
-    return from_poe(name, joints, links, _pose(h), **kw)
+        model = from_poe(name, joints, links, _pose(h), **kw)
+    return _with_collision(model, doc.get("collision"), f"{where}: collision", L)
+
+
+def _with_collision(model: Model, c, where: str, L: float) -> Model:
+    """The optional ``collision`` section: ``link_radii`` (one per joint: the capsule radius of the link that
+    joint moves), ``tool_radius``, ``tool_free`` (the last part of the tool before the TCP, not checked: it
+    touches the references); length units. Kept in ``model.source["collision"]`` in m."""
+    if c is None:
+        return model
+    if not isinstance(c, dict) or set(c) - {"link_radii", "tool_radius", "tool_free"}:
+        raise ModelFileError(f"{where}: expected a mapping of link_radii, tool_radius, tool_free")
+    out = {}
+    if "link_radii" in c:
+        r = c["link_radii"]
+        if not isinstance(r, list) or len(r) != model.n_joints:
+            raise ModelFileError(f"{where}.link_radii: expected {model.n_joints} radii (one per joint)")
+        out["link_radii"] = [_num(x, f"{where}.link_radii") * L for x in r]
+    for key in ("tool_radius", "tool_free"):
+        if key in c:
+            out[key] = _num(c[key], f"{where}.{key}") * L
+    if any(v < 0 for v in out.get("link_radii", []) + [out.get("tool_radius", 0), out.get("tool_free", 0)]):
+        raise ModelFileError(f"{where}: radii and lengths must not be negative")
+    return replace(model, source={**model.source, "collision": out})
 
 
 def load_model_file(path: str | Path) -> Model:
@@ -220,6 +245,9 @@ def model_to_dict(model: Model, length: str = "m", angle: str = "rad") -> dict:
         if pm > 0:
             doc["payload"] = {"mass": r(pm), "com": [r(x * L) for x in pc]}
         doc["gravity"] = [r(x) for x in model.load.gravity]
+    col = model.source.get("collision")
+    if col:
+        doc["collision"] = {k: [r(x * L) for x in v] if isinstance(v, list) else r(v * L) for k, v in col.items()}
     return doc
 
 
