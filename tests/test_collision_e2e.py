@@ -8,9 +8,11 @@ import numpy as np
 import pytest
 import yaml
 
-from station.cli.run_cmd import Emulated, demo_world
-from station.engine import read_journal, start
+from station.api import run as start
+from station.cli.run_cmd import demo_world
+from station.engine import read_journal
 from station.kinematics.collision import Checker
+from station.mocks.launch import launch
 
 
 def _run(tmp_path, monkeypatch, station_cell_edit=None):
@@ -27,7 +29,7 @@ def _run(tmp_path, monkeypatch, station_cell_edit=None):
         station_cell_edit(cell)
     cell_path.write_text(yaml.safe_dump(cell))
     serial = doc["buses"]["ur"]["serial"]
-    with Emulated("ur", world_path, serial) as emu:
+    with launch("ur", world_path, serial=serial) as emu:
         out = start("zero_offsets", emu.url, serial, cell=cell_path, db=f"sqlite:///{tmp_path / 'r.db'}")
     return world, out
 

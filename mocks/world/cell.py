@@ -90,7 +90,10 @@ class KeepOutTruth:
         from station.kinematics.collision import Checker
 
         self.keep_out = keep_out
-        self._checker = Checker(truth, keep_out) if keep_out else None
+        # link capsules exist for serial chains; a parallel robot's legs are not modelled as bodies (yet), so its
+        # world watches nothing rather than refusing to exist
+        serial = getattr(truth, "kind", "serial") != "parallel"
+        self._checker = Checker(truth, keep_out) if keep_out and serial else None
 
     def path(self, q_from, q_to):
         """The first contact along ``q_from -> q_to`` (a ``Hit``), or None. An arm already in contact may move
