@@ -7,12 +7,12 @@ an accident of the test."""
 import numpy as np
 import pytest
 import yaml
+from station.mocks.launch import launch
 
 from station.api import run as start
 from station.cli.run_cmd import demo_world
 from station.engine import read_journal
 from station.kinematics.collision import Checker
-from station.mocks.launch import launch
 
 
 def _run(tmp_path, monkeypatch, station_cell_edit=None):

@@ -10,8 +10,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 ROOT = Path(__file__).resolve().parents[1]
 FOLDERS = {"station": "station", "drivers": "station.drivers", "mocks": "station.mocks",
            "procedures": "station.procedures"}
