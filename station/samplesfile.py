@@ -16,9 +16,10 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
+from station.lazy import lazy_module
 from station.units import ANGLE_UNITS, LENGTH_UNITS, joint_unit
+
+np = lazy_module("numpy")  # imported on first use (station.lazy: start-up of every command)
 
 _HEADER = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_.]*)\s*(?:\[\s*([A-Za-z]+)\s*\])?\s*$")
 _JOINT = re.compile(r"^q(\d+)$")

@@ -1,8 +1,21 @@
 """Universal Robots e-Series controller emulator (RTDE 30004, dashboard 29999, script port 30003) backed by
 the simulated world; the real ``ur_rtde`` client talks to it unchanged. Run it in its own process:
-``station mock ur --host 127.0.0.2 [--world FILE]`` (ur_rtde's constructors hold the GIL)."""
+``station mock ur --host 127.0.0.2 [--world FILE]`` (ur_rtde's constructors hold the GIL).
 
-from station.mocks.ur.controller import URController
-from station.mocks.ur.server import URServer
+Names are imported on first use (PEP 562), so registering `station mock ur` costs no numpy."""
 
-__all__ = ["URController", "URServer"]
+from __future__ import annotations
+
+import importlib
+
+_WHERE = {"URController": "station.mocks.ur.controller", "URServer": "station.mocks.ur.server"}
+
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str):
+    if name not in _WHERE:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(_WHERE[name]), name)
+    globals()[name] = value
+    return value

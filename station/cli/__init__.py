@@ -46,12 +46,18 @@ def _quiet_bus_libraries() -> None:
         logging.getLogger(name).setLevel(logging.DEBUG if debug else logging.CRITICAL)
 
 
-def main() -> None:
-    from station.kinematics.modelfile import ModelFileError
-    from station.kinematics.parallel import ParallelKinematicsError
-    from station.mocks.errors import MockError
-    from station.robot.errors import StationError
+# the station's own one-line errors: module -> class
+INPUT_ERRORS = {"station.robot.errors": "StationError", "station.kinematics.modelfile": "ModelFileError",
+                "station.kinematics.parallel": "ParallelKinematicsError", "station.mocks.errors": "MockError"}
 
+
+def _input_errors() -> tuple[type[BaseException], ...]:
+    """The error classes of INPUT_ERRORS whose modules are imported: a class whose module was never imported
+    cannot have been raised, and importing them up front would cost every command numpy and the kinematics."""
+    return tuple(getattr(sys.modules[m], n) for m, n in INPUT_ERRORS.items() if m in sys.modules)
+
+
+def main() -> None:
     _quiet_bus_libraries()
     try:
         # in non-standalone mode click *returns* the code of a raised Exit instead of exiting
@@ -60,7 +66,7 @@ def main() -> None:
             sys.exit(rc)
     except typer.Exit as e:
         sys.exit(e.exit_code)
-    except (StationError, ModelFileError, ParallelKinematicsError, MockError) as e:
+    except _input_errors() as e:  # evaluated only when something was raised
         typer.echo(f"station: error: {e}", err=True)
         sys.exit(2)
     except KeyboardInterrupt:

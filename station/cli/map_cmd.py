@@ -15,11 +15,13 @@ import re
 import time
 from pathlib import Path
 
-import numpy as np
 import typer
 
+from station.lazy import lazy_module
 from station.robot.errors import ConfigError
 from station.samplesfile import ANGLE_UNITS, LENGTH_UNITS, SamplesFileError, Table, read_table
+
+np = lazy_module("numpy")  # imported on first use (station.lazy: start-up of every command)
 
 map_app = typer.Typer(no_args_is_help=True,
                       help="Configuration-space correction map (seed 004): plan, build, apply, correct.")

@@ -6,11 +6,12 @@ import json
 import os
 from pathlib import Path
 
-import numpy as np
 import typer
 
 from station.cli.model_options import BASE_LINK, PAYLOAD, TIP_LINK, load_cli_model
-from station.kinematics import builtin_names, dump_model, load_model
+from station.lazy import lazy_module
+
+np = lazy_module("numpy")  # imported on first use (station.lazy: start-up of every command)
 
 model_app = typer.Typer(no_args_is_help=True, help="Kinematic models: built-in, model files, URDF (show, export, "
                                                    "import).")
@@ -21,6 +22,8 @@ UNITS = typer.Option("mm,deg", help="length,angle units: m|mm, rad|deg")
 @model_app.command("list")
 def list_models() -> None:
     """List built-in models."""
+    from station.kinematics import builtin_names, load_model
+
     for name in builtin_names():
         m = load_model(name)
         typer.echo(f"{name:8s} {m.n_joints} joints  {m.convention.upper():4s} {m.description}")
@@ -30,6 +33,8 @@ def list_models() -> None:
 def show(name: str = NAME, units: str = UNITS, tip_link: str = TIP_LINK, base_link: str = BASE_LINK,
          payload: str = PAYLOAD) -> None:
     """Print a model: joints, limits, geometry table, masses and parameter names."""
+    from station.kinematics import dump_model
+
     length, angle = _units(units)
     m = load_cli_model(name, tip_link, base_link, payload)
     typer.echo(dump_model(m, length, angle), nl=False)
@@ -59,6 +64,7 @@ def export(name: str = NAME,
     """Write a model file (or a URDF) of the nominal or calibrated robot; a model file can be edited and
     passed back as --model FILE."""
     from station.cli import fail
+    from station.kinematics import dump_model
 
     if fmt not in ("yaml", "urdf"):
         raise fail(f"--format {fmt!r}: expected yaml or urdf")
@@ -85,6 +91,7 @@ def import_urdf(urdf: Path = typer.Argument(..., help="URDF file"),
                 out: Path = typer.Option(None, "--out", "-o", help="model file to write (default ROBOT.yaml)"),
                 units: str = UNITS, tip_link: str = TIP_LINK, base_link: str = BASE_LINK) -> None:
     """Convert the chain of a URDF into a station-model/1 file (modified DH, masses from <inertial>)."""
+    from station.kinematics import dump_model
     from station.kinematics.catalog import is_urdf
     from station.robot.errors import ConfigError
 

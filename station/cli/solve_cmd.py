@@ -12,12 +12,14 @@ import re
 import sys
 from pathlib import Path
 
-import numpy as np
 import typer
 
 from station.cli.model_options import BASE_LINK, MODEL, PAYLOAD, TIP_LINK
+from station.lazy import lazy_module
 from station.robot.errors import ConfigError
 from station.samplesfile import LENGTH_UNITS, SamplesFileError, read_joints, read_samples
+
+np = lazy_module("numpy")  # imported on first use (station.lazy: start-up of every command)
 
 
 def _fail(msg: str) -> ConfigError:
@@ -182,10 +184,11 @@ def fk_command(
 ) -> None:
     """Tool pose (x, y, z in m; rx, ry, rz rotation vector in rad) for each row of joint readings."""
     from station.kinematics import se3
-    from station.solver import CalibrationResult
 
     m = _load_model(model, tool, tip_link, base_link, payload)
     if calibration is not None:
+        from station.solver import CalibrationResult  # the solver (scipy) only when a result is applied
+
         try:
             doc = json.loads(Path(calibration).read_text())
             cal = CalibrationResult.from_dict(doc)

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 def rot_x(a: float) -> np.ndarray:
@@ -25,24 +22,78 @@ def rot_z(a: float) -> np.ndarray:
 
 def rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:
     """Fixed-axis roll-pitch-yaw: ``R = Rz(rz) Ry(ry) Rx(rx)``; input ``(..., 3)`` as (rx, ry, rz)."""
-    return Rotation.from_euler("ZYX", np.asarray(rpy)[..., ::-1]).as_matrix()
+    rpy = np.asarray(rpy, dtype=float)
+    cx, cy, cz = np.cos(rpy[..., 0]), np.cos(rpy[..., 1]), np.cos(rpy[..., 2])
+    sx, sy, sz = np.sin(rpy[..., 0]), np.sin(rpy[..., 1]), np.sin(rpy[..., 2])
+    R = np.empty(rpy.shape[:-1] + (3, 3))
+    R[..., 0, 0], R[..., 0, 1], R[..., 0, 2] = cz * cy, cz * sy * sx - sz * cx, cz * sy * cx + sz * sx
+    R[..., 1, 0], R[..., 1, 1], R[..., 1, 2] = sz * cy, sz * sy * sx + cz * cx, sz * sy * cx - cz * sx
+    R[..., 2, 0], R[..., 2, 1], R[..., 2, 2] = -sy, cy * sx, cy * cx
+    return R
 
 
 def matrix_to_rpy(R: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`rpy_to_matrix`, returns ``(..., 3)`` as (rx, ry, rz). At pitch +-90 deg (gimbal
-    lock) roll and yaw are not unique: scipy sets one of them to zero, still an exact decomposition."""
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Gimbal lock detected")
-        return Rotation.from_matrix(R).as_euler("ZYX")[..., ::-1]
+    """Inverse of :func:`rpy_to_matrix`, returns ``(..., 3)`` as (rx, ry, rz), ry in [-90, 90] deg. At pitch
+    +-90 deg (gimbal lock) roll and yaw are not unique: roll is set to zero, still an exact decomposition."""
+    R = np.asarray(R, dtype=float)
+    cy = np.hypot(R[..., 0, 0], R[..., 1, 0])
+    ry = np.arctan2(-R[..., 2, 0], cy)
+    lock = cy < 1e-9
+    rx = np.where(lock, 0.0, np.arctan2(R[..., 2, 1], R[..., 2, 2]))
+    # locked: R = Rz(rz) Ry(+-90): R01 = -sin(rz), R11 = cos(rz) with roll 0
+    rz = np.where(lock, np.arctan2(-R[..., 0, 1], R[..., 1, 1]), np.arctan2(R[..., 1, 0], R[..., 0, 0]))
+    return np.stack([rx, ry, rz], axis=-1)
 
 
 def rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:
-    """Axis-angle rotation vector (as a UR controller reports rx, ry, rz) to rotation matrix."""
-    return Rotation.from_rotvec(rv).as_matrix()
+    """Axis-angle rotation vector (as a UR controller reports rx, ry, rz) to rotation matrix (Rodrigues)."""
+    rv = np.asarray(rv, dtype=float)
+    th2 = np.sum(rv * rv, axis=-1)
+    th = np.sqrt(th2)
+    small = th < 1e-6
+    safe = np.where(small, 1.0, th)
+    # sin(t)/t and (1 - cos t)/t^2, with their series where t is tiny (no 0/0)
+    a = np.where(small, 1.0 - th2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
+    K = np.zeros(rv.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -rv[..., 2], rv[..., 1], -rv[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = rv[..., 2], -rv[..., 1], rv[..., 0]
+    return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
 
 
 def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
-    return Rotation.from_matrix(R).as_rotvec()
+    """Rotation matrix to rotation vector, angle in [0, pi]: through the unit quaternion (Shepperd's choice of
+    the largest component, so it stays accurate near 180 deg where the axis comes from the symmetric part)."""
+    R = np.asarray(R, dtype=float)
+    tr = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
+    d = np.stack([R[..., 0, 0], R[..., 1, 1], R[..., 2, 2], tr], axis=-1)
+    k = np.argmax(d, axis=-1)
+    q = np.empty(R.shape[:-2] + (4,))  # x, y, z, w
+    for i in range(3):
+        j, m = (i + 1) % 3, (i + 2) % 3
+        sel = k == i
+        if np.any(sel):
+            Rs = R[sel]
+            qi = np.sqrt(np.maximum(1.0 + 2.0 * Rs[:, i, i] - tr[sel], 0.0)) / 2.0
+            qs = np.empty((len(Rs), 4))
+            qs[:, i] = qi
+            qs[:, j] = (Rs[:, j, i] + Rs[:, i, j]) / (4.0 * qi)
+            qs[:, m] = (Rs[:, m, i] + Rs[:, i, m]) / (4.0 * qi)
+            qs[:, 3] = (Rs[:, m, j] - Rs[:, j, m]) / (4.0 * qi)
+            q[sel] = qs
+    sel = k == 3
+    if np.any(sel):
+        Rs = R[sel]
+        w = np.sqrt(np.maximum(1.0 + tr[sel], 0.0)) / 2.0
+        q[sel] = np.stack([(Rs[:, 2, 1] - Rs[:, 1, 2]) / (4 * w), (Rs[:, 0, 2] - Rs[:, 2, 0]) / (4 * w),
+                           (Rs[:, 1, 0] - Rs[:, 0, 1]) / (4 * w), w], axis=-1)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    q = np.where(q[..., 3:4] < 0, -q, q)  # w >= 0: angle in [0, pi]
+    v = np.linalg.norm(q[..., :3], axis=-1)
+    angle = 2.0 * np.arctan2(v, q[..., 3])
+    small = v < 1e-12
+    scale = np.where(small, 2.0 / np.where(small, q[..., 3], 1.0), angle / np.where(small, 1.0, v))
+    return q[..., :3] * scale[..., None]
 
 
 def pose_to_matrix(pose: np.ndarray, rotation: str = "rotvec") -> np.ndarray:
@@ -74,4 +125,4 @@ def invert(T: np.ndarray) -> np.ndarray:
 
 def orientation_error(R_target: np.ndarray, R: np.ndarray) -> np.ndarray:
     """World-frame rotation vector taking ``R`` to ``R_target``."""
-    return Rotation.from_matrix(R_target @ np.swapaxes(R, -1, -2)).as_rotvec()
+    return matrix_to_rotvec(R_target @ np.swapaxes(R, -1, -2))

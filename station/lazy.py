@@ -1,0 +1,28 @@
+"""Deferred imports for the command line: a module named here is imported on its first attribute access.
+
+`station --help`, `station records` and `station mock` never touch numpy, yet the command modules that define
+`station solve`/`fk`/`map` use it at module level; importing it eagerly would make every command pay ~0.1-0.5 s
+of start-up (issue 8, fast start; `bench/startup.py` measures it)."""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import sys
+from types import ModuleType
+
+
+def lazy_module(name: str) -> ModuleType:
+    """``name`` as a module object that imports itself on first use (``importlib.util.LazyLoader``); the real
+    module if it is already imported."""
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.find_spec(name)
+    if spec is None or spec.loader is None:
+        return importlib.import_module(name)  # the normal error
+    loader = importlib.util.LazyLoader(spec.loader)
+    spec.loader = loader
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    loader.exec_module(module)
+    return module
