@@ -18,9 +18,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from station.mocks.errors import MockError
 
 from station.kinematics import se3
-from station.mocks.errors import MockError
 
 DEFAULT_POSE = (2.5, 0.0, 1.0, 0.0, 0.0, np.pi / 2)  # m, rad (x, y, z, rx, ry, rz fixed-axis rpy)
 DEFAULT_REFLECTORS = ((0.10, 0.0, 0.02), (-0.05, 0.0866, 0.02), (-0.05, -0.0866, 0.02))  # m, tool frame

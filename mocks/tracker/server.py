@@ -22,10 +22,10 @@ import threading
 import time
 
 import numpy as np
-
-from station.kinematics import se3
 from station.mocks.tracker.config import TrackerConfig
 from station.mocks.world.tracker import SIGMA_0, SIGMA_PER_M, measure_poses
+
+from station.kinematics import se3
 
 PROTOCOL = "station-tracker/1"
 DEVICE = "tracker"

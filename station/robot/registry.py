@@ -96,5 +96,6 @@ def open_instrument(url: str, **kw):
     scheme = str(url).split("://", 1)[0].lower() if "://" in str(url) else ""
     eps = {ep.name.lower(): ep for ep in metadata.entry_points(group=INSTRUMENT_GROUP)}
     if scheme not in eps:
-        raise ConfigError(f"instrument URL {url!r}: unknown scheme {scheme!r}; known: {', '.join(sorted(eps)) or 'none'}")
+        known = ", ".join(sorted(eps)) or "none"
+        raise ConfigError(f"instrument URL {url!r}: unknown scheme {scheme!r}; known: {known}")
     return eps[scheme].load().from_url(str(url), **kw)
