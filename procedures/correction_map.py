@@ -31,7 +31,7 @@ def checklist(s):
     try:
         todo = map_plan(s)                       # 4. grid of actuator levels + held-out configurations
         for pose in s.todo(todo):                # 5. every configuration not yet measured:
-            s.move_to(pose.q)                    #    drive the actuators there
+            move(s, pose)                        #    drive the actuators there (keep-outs checked)
             measure(s, tracker, pose)            #    read actuators and tracker at rest, journal the sample
     finally:
         tracker.close()
@@ -74,8 +74,15 @@ def map_plan(s) -> PosePlan:
         if len(p.x) == 0:
             raise ConfigError(f"correction_map: none of the grid configurations of {m.name} can be assembled")
         held = holdout_configurations(m, p, int(s.options.get("n_holdout", 12)), int(s.options.get("seed", 0)))
-        poses = [PlannedPose(i, "map", x.tolist(), x.tolist(), "fit") for i, x in enumerate(p.x)]
-        poses += [PlannedPose(len(p.x) + i, "map", x.tolist(), x.tolist(), "holdout") for i, x in enumerate(held)]
+        x, clash = clear_of_keep_outs(s, p.x)
+        held, _ = clear_of_keep_outs(s, held)
+        if not len(x):
+            raise ConfigError(f"correction_map: every grid configuration of {m.name} meets a keep-out")
+        if clash:
+            s.event(ev.Warn(step="plan", message=f"{clash} grid configurations left out: a link would meet the "
+                                                 "mounting plane or a keep-out"))
+        poses = [PlannedPose(i, "map", q.tolist(), q.tolist(), "fit") for i, q in enumerate(x)]
+        poses += [PlannedPose(len(x) + i, "map", q.tolist(), q.tolist(), "holdout") for i, q in enumerate(held)]
         settings = {"generated": True, "map": {"grid": q, "mesh": mesh, "levels": [lv.tolist() for lv in p.levels],
                                                "left_out": len(p.dropped)}}
         plan_ = PosePlan(poses, settings)
@@ -103,6 +110,36 @@ def holdout_configurations(m, p, n: int, seed: int) -> np.ndarray:
             cand = cand[m.fk_solve(cand).ok]
         out.extend(cand[: n - len(out)])
     return np.array(out[:n]).reshape(-1, m.n_joints)
+
+
+def _serial(m) -> bool:
+    return getattr(m, "kind", "serial") != "parallel"
+
+
+def clear_of_keep_outs(s, x: np.ndarray) -> tuple[np.ndarray, int]:
+    """A serial arm's configurations whose link capsules stay clear of the mounting plane and the cell's
+    keep-outs (a parallel robot's legs have no capsules: all kept), and how many were left out."""
+    if not _serial(s.model) or not len(x):
+        return x, 0
+    from station.kinematics.collision import Checker, KeepOut
+
+    ko = s.cell.keep_out if s.cell else None
+    hits = Checker(s.model, KeepOut.default() if ko is None else ko).hits(x)
+    keep = np.array([h is None for h in hits])
+    return x[keep], int((~keep).sum())
+
+
+def move(s, pose: PlannedPose) -> None:
+    """A serial arm moves along a path checked against the keep-outs (vias where the straight one is
+    blocked; refused in one line if none is clear); a parallel robot moves straight in actuator space."""
+    if not _serial(s.model):
+        s.move_to(pose.q)
+        return
+    from station.engine.plan import route_from
+
+    for q in route_from(s.model, s.cell.keep_out if s.cell else None, s.robot.joint_positions().q, [pose.q],
+                        what=f"configuration {pose.index}"):
+        s.move_to(q)
 
 
 def measure(s, tracker, pose: PlannedPose) -> ev.Sample:
@@ -151,8 +188,12 @@ def build(s, reg):
         except MapError as e:
             raise DeviceFault(f"correction_map: {e}") from None
         s.measure("samples", float(len(x)), "number")
-        st = cmap.statistics
-        s.measure("summand_max", float(np.max(st["summand_max"])))
+        big = np.asarray(cmap.statistics["summand_max"], float)  # largest correction per actuator (m or rad)
+        rev = np.array([j.revolute for j in s.model.joints])
+        if (~rev).any():
+            s.measure("summand_max_length", float(np.max(big[~rev])))
+        if rev.any():
+            s.measure("summand_max_angle", float(np.max(big[rev])), "angle")
     return cmap
 
 
