@@ -104,3 +104,47 @@ def test_resume_after_interruption_measures_no_pose_twice(cell):
     assert [s.seq for s in samples[:25]] == [s.seq for s in first]  # the first 25 kept as journaled
     assert trk.measurements == seen["n"]  # the tracker measured no configuration twice
     assert len([e for e in events if e.type == "plan"]) == 1  # the same plan, not a new one
+
+
+def test_without_or_with_a_dead_tracker_nothing_moves(cell):
+    world, cfg, emu, trk, db = cell
+    q0 = world.encoder_q().copy()
+    out = start("correction_map", emu.url, SERIAL, db=db, options={"grid": 1}, report=False)
+    assert out.status == "error" and out.exit_code == 2
+    assert str(out.error) == "correction_map needs a measuring instrument: --tracker tcp://HOST:PORT"
+    import socket
+
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out = start("correction_map", emu.url, SERIAL, db=db, options={"grid": 1, "tracker": f"tcp://127.0.0.1:{port}"},
+                report=False)
+    assert out.status == "error" and "cannot connect" in str(out.error) and "\n" not in str(out.error)
+    assert np.array_equal(world.encoder_q(), q0)  # the robot did not move
+
+
+def test_command_line_over_socketcand_and_tcp(tmp_path):
+    """The documented commands: `station mock tracker --world W --canopen` (one process: drives + tracker), then
+    `station run correction_map --robot URL --tracker URL` through python-can's socketcand interface."""
+    import subprocess
+    import sys
+
+    world = tmp_path / "w.yaml"
+    with world.open("w") as f:
+        subprocess.run([sys.executable, "-m", "station.cli", "mock", "world", "example", "--model", "hexapod"],
+                       stdout=f, check=True)
+    proc = subprocess.Popen([sys.executable, "-m", "station.cli", "mock", "tracker", "--world", str(world),
+                             "--canopen"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        trk = proc.stdout.readline().split()[3]
+        robot = proc.stdout.readline().split()[5]
+        env = {**__import__("os").environ, "STATION_HOME": str(tmp_path / "home")}
+        r = subprocess.run([sys.executable, "-m", "station.cli", "run", "correction_map", "--robot", robot,
+                            "--serial", "HX-9", "--tracker", trk, "--grid", "1", "-q", "--db",
+                            f"sqlite:///{tmp_path / 'r.db'}"], capture_output=True, text=True, timeout=300, env=env)
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.strip().splitlines()
+    assert lines[-1] == "PASS" and any(line.split()[0] == "holdout_rms" for line in lines if line.strip())
