@@ -217,6 +217,13 @@ def verify(s, cmap, reg):
         s.measure("holdout_rms", float(np.sqrt(np.mean(e_map ** 2))))
         s.measure("holdout_max", float(np.max(e_map)))
         s.measure("holdout_rotation_rms", float(np.sqrt(np.mean(r_map ** 2))), "angle")
+        spec = (s.events("instrument") or [None])[-1]
+        spec = spec.data.get("spec", {}) if spec is not None else {}
+        try:  # the instrument's own noise at these distances: 3-D RMS of one reflector reading (the floor)
+            sig = float(spec["sigma0_m"]) + float(spec["sigma_per_m"]) * np.linalg.norm(meas[:, :3], axis=1)
+            s.measure("tracker_noise_rms", float(np.sqrt(np.mean(3 * sig ** 2))))
+        except (KeyError, TypeError, ValueError):
+            pass  # an instrument that does not state its noise: nothing to compare with
 
 
 def store(s, cmap, reg):
