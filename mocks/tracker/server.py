@@ -115,7 +115,10 @@ class TrackerServer:
                 return "ERR beam: beam interrupted, reacquire the target", False
             if self.world.is_moving():
                 return "ERR moving: the target is moving; measure when it stands still", False
-            return "OK " + " ".join(f"{v:.9g}" for v in self.measure()), False
+            try:
+                return "OK " + " ".join(f"{v:.9g}" for v in self.measure()), False
+            except ValueError as e:  # the world cannot place the tool (e.g. a parallel robot that does not assemble)
+                return f"ERR target: no reflector in view ({str(e)[:80]})", False
         return f"ERR unknown command {request[:40]!r} (ID, MEASURE, QUIT)", False
 
     def measure(self) -> np.ndarray:
