@@ -67,8 +67,9 @@ def map_plan(s) -> PosePlan:
         except (TypeError, ValueError):
             raise ConfigError(f"correction_map: grid must be an integer Q, got {s.options.get('grid')!r}") from None
         mesh = str(s.options.get("mesh", "simplex"))
+        lower, upper = work_box(s)
         try:
-            p = plan(m, q, mesh=mesh)
+            p = plan(m, q, mesh=mesh, lower=lower, upper=upper)
         except ValueError as e:
             raise ConfigError(f"correction_map: {e}") from None
         if len(p.x) == 0:
@@ -92,6 +93,20 @@ def map_plan(s) -> PosePlan:
                                                  "or too near the workspace boundary)"))
     s.current_plan = plan_
     return plan_
+
+
+def work_box(s):
+    """The actuator box the grid covers: a parallel robot's whole actuator range; a serial arm's joints
+    +-``span_deg`` (default 20) around where the technician left it (jog it to the middle of the work zone
+    first), inside the joint limits."""
+    m = s.model
+    if not _serial(m):
+        return None, None
+    span = np.radians(float(s.options.get("span_deg", 20.0)))
+    q0 = np.asarray(s.robot.joint_positions().q, float)
+    half = np.array([span if j.revolute else 0.1 for j in m.joints])  # prismatic: +-100 mm
+    lo, hi = np.maximum(q0 - half, m.lower), np.minimum(q0 + half, m.upper)
+    return lo, hi
 
 
 def holdout_configurations(m, p, n: int, seed: int) -> np.ndarray:
