@@ -37,16 +37,24 @@ def register(mock_app: typer.Typer) -> None:
                                                          "instrument, docs/map.md); default: built-in world"),
         model: str = typer.Option("hexapod", "--model", help="model of the default world"),
         seed: int = typer.Option(0, "--seed", help="seed of the default world's hidden errors and of the noise"),
-        host: str = typer.Option("127.0.0.1", "--host", help="address the tracker listens on (loopback)"),
+        host: str = typer.Option("127.0.0.1", "--host", help="loopback address the tracker listens on"),
         port: int = typer.Option(0, "--port", help="TCP port of the tracker (0: any free port)"),
         canopen: bool = typer.Option(False, "--canopen", help="also serve the world's CiA 402 drives (socketcand)"),
         can_port: int = typer.Option(0, "--can-port", help="with --canopen: TCP port of the socketcand hub"),
         channel: str = typer.Option("can0", "--channel", help="with --canopen: bus name clients open"),
     ) -> None:
         """Emulated laser tracker (6-DoF probe on the tool, 15 um + 6 um/m); prints its tcp:// URL."""
+        import ipaddress
+
         from station.mocks.tracker.config import tracker_config
         from station.mocks.tracker.server import TrackerServer
 
+        try:
+            loopback = ipaddress.ip_address(host).is_loopback
+        except ValueError:
+            loopback = host == "localhost"
+        if not loopback:
+            raise MockError(f"--host {host}: the emulated tracker has no authentication; it listens on loopback only")
         w = _world(world, model, seed)
         cfg = tracker_config(w.bus_config("tracker"))
         done = threading.Event()
