@@ -133,6 +133,33 @@ def _pose(t: Table, model, what: str) -> tuple[np.ndarray, tuple[str, ...]]:
     return np.column_stack([_column(t, c, "angle" if c.startswith("r") else "length") for c in cols]), cols
 
 
+def _instrument(t: Table, model, x: np.ndarray, samples: Path, frame: str):
+    """Poses of an instrument's CSV export (its own frame) -> base frame: (pose, columns, Registration|None)."""
+    from station.solver.map import FULL, MapError, to_vectors
+    from station.solver.map.register import register
+
+    if frame not in ("fit", "base"):
+        raise _fail(f"--frame {frame!r}: expected fit or base")
+    if len(t.rows) != len(x):
+        raise _fail(f"{t.path}: {len(t.rows)} measurements for {len(x)} samples in {samples}: give one row per "
+                    "sample, in the same order")
+    pose, cols = _pose(t, model, "measurements")
+    if frame == "base":
+        return pose, cols, None
+    try:
+        if cols not in (FULL, ("x", "y", "z")):
+            raise MapError("registration of a planar robot's measurements is not supported: give --frame base")
+        res = model.fk_solve(x) if getattr(model, "kind", "") == "parallel" else None
+        if res is not None and not res.ok.all():
+            i = int(np.flatnonzero(~res.ok)[0])
+            raise MapError(f"sample {i + 1}: {res.reason[i]}", i)
+        nominal = to_vectors(res.T if res is not None else model.fk(x), FULL)
+        reg = register(nominal if cols == FULL else nominal[:, :3], pose, cols)
+    except MapError as e:
+        raise _row_error(e, t) from None
+    return reg.to_base(pose, cols), cols, reg
+
+
 def _model(name: str):
     from station.kinematics import load_model
 
@@ -241,6 +268,11 @@ def build_command(
     grid: str = typer.Option(None, "--grid", help="the plan's Q (checks every sample is on its grid); "
                                                   "default: the grid is read off the samples"),
     exclude_ends: bool = typer.Option(False, "--exclude-ends", help="with --grid: the plan left out the ends"),
+    measurements: Path = typer.Option(None, "--measurements", help="an instrument's CSV export (x,y,z[,rx,ry,rz] "
+                                      "in ITS frame, one row per samples row, same order); --samples then needs "
+                                      "only x1..xN"),
+    frame: str = typer.Option("fit", "--frame", help="with --measurements: fit (register the instrument frame to "
+                              "the base frame by best fit) or base (already in the base frame)"),
     out: Path = typer.Option(..., "--out", help="the map (station-map/1 JSON)"),
 ) -> None:
     """Correction summands KSF_PM(x) = x - IK(GDK(x)) at the samples, extended to the configuration space."""
@@ -270,11 +302,18 @@ def build_command(
         cal, source = res.values("model"), calibration.name
     t = _read(samples)
     x = _actuators(t, m)
-    pose, cols = _pose(t, m, "samples")
+    registration = None
+    if measurements is None:
+        pose, cols = _pose(t, m, "samples")
+    else:
+        t = _read(measurements)
+        pose, cols, registration = _instrument(t, m, x, samples, frame)
     try:
         cmap = build_map(m, x, pose, cols, mesh=mesh, levels=levels, calibration=cal, calibration_source=source)
     except MapError as e:
         raise _row_error(e, t) from None
+    if registration is not None:
+        cmap.statistics["registration"] = registration.to_dict()
     cost = _lookup_cost(cmap)
     cmap.statistics["lookup_seconds_per_query"] = cost
     try:
@@ -290,6 +329,11 @@ def build_command(
                f"{', on top of calibration ' + source if source else ''}")
     typer.echo("largest correction: " + ", ".join(
         f"x{k + 1} {_human(v, kinds[k])}" for k, v in enumerate(s["summand_max"])))
+    if registration is not None:
+        v = registration.to_dict()["instrument_in_base"]
+        typer.echo(f"instrument frame in the base frame (best fit of {registration.n} frames, RMS "
+                   f"{registration.rms * 1e3:.4f} mm): x,y,z {', '.join(f'{a * 1e3:.3f}' for a in v[:3])} mm, "
+                   f"rotation vector {', '.join(f'{np.degrees(a):.4f}' for a in v[3:])} deg")
     typer.echo(f"build {s['build_seconds'] * 1e3:.1f} ms; lookup {cost * 1e6:.2f} us per query (vectorised) -> {out}")
 
 

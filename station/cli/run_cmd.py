@@ -45,8 +45,12 @@ def _progress_bar(quiet: bool):
     return cb, prog
 
 
-def _options(poses, holdout, cone, reference, seed) -> dict:
+def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None) -> dict:
     opts = {}
+    if tracker is not None:
+        opts["tracker"] = tracker  # correction_map: the measuring instrument's URL
+    if grid is not None:
+        opts["grid"] = grid  # correction_map: Q sub-intervals per actuator
     if poses is not None:
         opts["n_fit"] = poses
     if holdout is not None:
@@ -148,6 +152,9 @@ def run(
     holdout: int = typer.Option(None, "--holdout", help="Number of held-out poses."),
     cone: float = typer.Option(None, "--cone", help="Half-angle (deg) of the tool orientation cone."),
     seed: int = typer.Option(None, "--seed", help="Seed of the pose plan."),
+    tracker: str = typer.Option(None, "--tracker", help="Measuring instrument URL (correction_map), e.g. "
+                                "tcp://127.0.0.1:5300 (station mock tracker)."),
+    grid: int = typer.Option(None, "--grid", help="correction_map: Q sub-intervals per actuator (Q+1 levels)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Run a procedure end of line: unattended, PASS/FAIL, exit 0 pass / 1 fail / 2 error."""
@@ -156,7 +163,7 @@ def run(
     cb, bar = _progress_bar(quiet)
     with bar:
         out = start(procedure, robot, serial, limits=limits, db=db, apply=apply, cell=cell, operator=operator,
-                    options=_options(poses, holdout, cone, reference, seed), touch=touch, progress=cb,
+                    options=_options(poses, holdout, cone, reference, seed, tracker, grid), touch=touch, progress=cb,
                     log=lambda s: typer.echo(s, err=True))
     _finish(out)
 

@@ -147,6 +147,7 @@ class Sample(Event):
     t_read: float | None = None  # host time the joints were read (t is when the sample was journaled)
     t_device: float | None = None  # the device's own clock at the reading (s), where it has one
     measured: list[float] | None = None  # external instrument measurement of the tip [x, y, z], m
+    measured_rotation: list[float] | None = None  # 6-DoF instrument: tool orientation, rotation vector, rad
     pose: int | None = None  # index in the pose plan (the jog UI numbers its touches)
     set: Literal["fit", "holdout"] = "fit"
     status: dict = field(default_factory=dict)  # touch indicator, forced record, enabled...

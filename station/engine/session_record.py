@@ -55,8 +55,11 @@ def session_from_events(header: ev.Header, events: list[ev.Event]) -> dict:
     finished = None
     end_status = None
     faults = []
+    cmap = None  # the correction_map procedure's map (station-map/1) and instrument registration, if any
     for e in events:
-        if isinstance(e, ev.Result):
+        if isinstance(e, ev.Custom) and e.type == "correction_map":
+            cmap = dict(e.data)
+        elif isinstance(e, ev.Result):
             result = e.result
         elif isinstance(e, ev.Verdict):
             verdict = {"passed": e.passed, "measurements": e.measurements}
@@ -65,7 +68,7 @@ def session_from_events(header: ev.Header, events: list[ev.Event]) -> dict:
         elif isinstance(e, ev.End):
             finished = iso(e.t)
             end_status = e.status
-    return {
+    record = {
         "session": header.session,
         "serial": header.serial,
         "procedure": header.procedure,
@@ -84,6 +87,9 @@ def session_from_events(header: ev.Header, events: list[ev.Event]) -> dict:
         "writeback": writeback_summary(events),
         "faults": faults,
     }
+    if cmap is not None:
+        record["correction_map"] = cmap
+    return record
 
 
 def session_from_journal(path: str | Path) -> dict:

@@ -1,0 +1,257 @@
+"""Correction map (seed 004): measure the tool pose at every configuration of the sample grid with a laser
+tracker, build the configuration-space correction map, verify it on held-out configurations.
+
+Technician: mount the 6-DoF probe on the tool, set the tracker up with a free line of sight to the whole
+workspace and give its address (``--tracker tcp://HOST:PORT``). The robot is driven through the grid of
+actuator levels (``--grid Q``, default 2: Q + 1 levels per actuator) and a few random held-out configurations;
+each is read and measured at rest and journaled before the next move, so a resumed session measures only what
+is missing. The tracker's frame is registered to the base frame by a best fit on the grid samples; the
+held-out configurations are never used to build or register. Limits: ``procedures/limits.yaml``, section
+``correction_map``. The map (``station-map/1``) is written to the session folder as ``map.json`` and stored in
+the record (``correction_map``)."""
+
+import numpy as np
+
+from station.engine import events as ev
+from station.engine.plan import PlannedPose, PosePlan
+from station.kinematics import se3
+from station.robot.errors import ConfigError, DeviceFault
+from station.robot.registry import open_instrument
+from station.solver.map import FULL, MapError, build_map, plan, to_vectors
+from station.solver.map.register import register
+
+DEFAULTS = {"grid": 2, "mesh": "simplex", "n_holdout": 12}
+HOLDOUT_INSET = 0.1  # held-out configurations are drawn this fraction of each actuator range inside the grid box
+
+
+def checklist(s):
+    s.connect()                                  # 1. connect and identify the robot (serial must match)
+    s.check_state()                              # 2. no fault or stop, powered
+    tracker = connect_tracker(s)                 # 3. connect and identify the tracker (journaled)
+    try:
+        todo = map_plan(s)                       # 4. grid of actuator levels + held-out configurations
+        for pose in s.todo(todo):                # 5. every configuration not yet measured:
+            move(s, pose)                        #    drive the actuators there (keep-outs checked)
+            measure(s, tracker, pose)            #    read actuators and tracker at rest, journal the sample
+    finally:
+        tracker.close()
+    reg = register_tracker(s)                    # 6. tracker frame -> base frame (best fit, grid samples only)
+    cmap = build(s, reg)                         # 7. correction summands KSF_PM, the map KSF_KR
+    verify(s, cmap, reg)                         # 8. held-out: nominal vs. mapped pose against the tracker
+    store(s, cmap, reg)                          # 9. map.json in the session folder and in the record
+    s.judge()                                    # 10. PASS / FAIL
+
+
+# ---- the steps ---------------------------------------------------------------------------------------------
+def connect_tracker(s):
+    url = s.options.get("tracker")
+    if not url:
+        raise ConfigError("correction_map needs a measuring instrument: --tracker tcp://HOST:PORT")
+    with s.step("connect_tracker", url=url):
+        tracker = open_instrument(url)
+        s.event({"type": "instrument", "url": url, "serial": tracker.serial, "spec": tracker.spec})
+    return tracker
+
+
+def map_plan(s) -> PosePlan:
+    """The sample grid of the nominal model (``station.solver.map.plan``) in grid order, then the held-out
+    configurations; journaled once (a resumed session reuses it)."""
+    old = s.events("plan")
+    if old:
+        s.current_plan = PosePlan.from_dict(old[-1].plan)
+        return s.current_plan
+    with s.step("plan"):
+        m = s.model
+        try:
+            q = int(s.options.get("grid", 2))
+        except (TypeError, ValueError):
+            raise ConfigError(f"correction_map: grid must be an integer Q, got {s.options.get('grid')!r}") from None
+        mesh = str(s.options.get("mesh", "simplex"))
+        lower, upper = work_box(s)
+        try:
+            p = plan(m, q, mesh=mesh, lower=lower, upper=upper)
+        except ValueError as e:
+            raise ConfigError(f"correction_map: {e}") from None
+        if len(p.x) == 0:
+            raise ConfigError(f"correction_map: none of the grid configurations of {m.name} can be assembled")
+        held = holdout_configurations(m, p, int(s.options.get("n_holdout", 12)), int(s.options.get("seed", 0)))
+        x, clash = clear_of_keep_outs(s, p.x)
+        held, _ = clear_of_keep_outs(s, held)
+        if not len(x):
+            raise ConfigError(f"correction_map: every grid configuration of {m.name} meets a keep-out")
+        if clash:
+            s.event(ev.Warn(step="plan", message=f"{clash} grid configurations left out: a link would meet the "
+                                                 "mounting plane or a keep-out"))
+        poses = [PlannedPose(i, "map", q.tolist(), q.tolist(), "fit") for i, q in enumerate(x)]
+        poses += [PlannedPose(len(x) + i, "map", q.tolist(), q.tolist(), "holdout") for i, q in enumerate(held)]
+        settings = {"generated": True, "map": {"grid": q, "mesh": mesh, "levels": [lv.tolist() for lv in p.levels],
+                                               "left_out": len(p.dropped)}}
+        plan_ = PosePlan(poses, settings)
+        s.event(ev.Plan(plan=plan_.to_dict()))
+        if len(p.dropped):
+            s.event(ev.Warn(step="plan", message=f"{len(p.dropped)} grid configurations left out (not assemblable "
+                                                 "or too near the workspace boundary)"))
+    s.current_plan = plan_
+    return plan_
+
+
+def work_box(s):
+    """The actuator box the grid covers: a parallel robot's whole actuator range; a serial arm's joints
+    +-``span_deg`` (default 20) around where the technician left it (jog it to the middle of the work zone
+    first), inside the joint limits."""
+    m = s.model
+    if not _serial(m):
+        return None, None
+    span = np.radians(float(s.options.get("span_deg", 20.0)))
+    q0 = np.asarray(s.robot.joint_positions().q, float)
+    half = np.array([span if j.revolute else 0.1 for j in m.joints])  # prismatic: +-100 mm
+    lo, hi = np.maximum(q0 - half, m.lower), np.minimum(q0 + half, m.upper)
+    return lo, hi
+
+
+def holdout_configurations(m, p, n: int, seed: int) -> np.ndarray:
+    """``n`` random configurations inside the grid box (inset), off the grid nodes, that the nominal model
+    assembles; seeded, so the plan is reproducible."""
+    rng = np.random.default_rng(seed + 1004)
+    lo = np.array([lv[0] for lv in p.levels])
+    hi = np.array([lv[-1] for lv in p.levels])
+    inset = HOLDOUT_INSET * (hi - lo)
+    out = []
+    for _ in range(50):
+        if len(out) >= n:
+            break
+        cand = rng.uniform(lo + inset, hi - inset, (4 * n, m.n_joints))
+        if getattr(m, "kind", "serial") == "parallel":
+            cand = cand[m.fk_solve(cand).ok]
+        out.extend(cand[: n - len(out)])
+    return np.array(out[:n]).reshape(-1, m.n_joints)
+
+
+def _serial(m) -> bool:
+    return getattr(m, "kind", "serial") != "parallel"
+
+
+def clear_of_keep_outs(s, x: np.ndarray) -> tuple[np.ndarray, int]:
+    """A serial arm's configurations whose link capsules stay clear of the mounting plane and the cell's
+    keep-outs (a parallel robot's legs have no capsules: all kept), and how many were left out."""
+    if not _serial(s.model) or not len(x):
+        return x, 0
+    from station.kinematics.collision import Checker, KeepOut
+
+    ko = s.cell.keep_out if s.cell else None
+    hits = Checker(s.model, KeepOut.default() if ko is None else ko).hits(x)
+    keep = np.array([h is None for h in hits])
+    return x[keep], int((~keep).sum())
+
+
+def move(s, pose: PlannedPose) -> None:
+    """A serial arm moves along a path checked against the keep-outs (vias where the straight one is
+    blocked; refused in one line if none is clear); a parallel robot moves straight in actuator space."""
+    if not _serial(s.model):
+        s.move_to(pose.q)
+        return
+    from station.engine.plan import route_from
+
+    for q in route_from(s.model, s.cell.keep_out if s.cell else None, s.robot.joint_positions().q, [pose.q],
+                        what=f"configuration {pose.index}"):
+        s.move_to(q)
+
+
+def measure(s, tracker, pose: PlannedPose) -> ev.Sample:
+    """Read all actuators, then the tracker (it answers only once the probe stands still), then the actuators
+    again: a reading that moved in between is a fault, not a sample. Journaled (fsynced) before the next move."""
+    snap = s.robot.joint_positions()
+    m = tracker.measure()
+    again = s.robot.joint_positions()
+    q, q2 = np.asarray(snap.q, float), np.asarray(again.q, float)
+    if not np.all(np.isfinite(q)) or np.max(np.abs(q2 - q)) > 1e-6:
+        raise DeviceFault(f"measure: the robot moved while the tracker measured configuration {pose.index} "
+                          f"(actuators changed by {np.max(np.abs(q2 - q)):.3g})")
+    return s.event(ev.Sample(
+        point=pose.point, q=q.tolist(), raw=list(snap.raw), raw_unit=snap.raw_unit, t_read=snap.t,
+        t_device=snap.t_device, measured=list(m.xyz), measured_rotation=list(m.rv), pose=pose.index, set=pose.set,
+        status={"instrument": tracker.serial, "t_instrument": m.t}))
+
+
+def _arrays(s, which: str):
+    smp = s.samples(which)
+    if not smp:
+        raise ConfigError(f"correction_map: no {which} samples recorded")
+    if any(x.measured is None or x.measured_rotation is None for x in smp):
+        raise ConfigError(f"correction_map: a {which} sample has no 6-DoF tracker measurement")
+    x = np.array([x.q for x in smp])
+    meas = np.array([[*x.measured, *x.measured_rotation] for x in smp])
+    return x, meas
+
+
+def register_tracker(s):
+    with s.step("register_tracker"):
+        x, meas = _arrays(s, "fit")
+        reg = register(to_vectors(s.model.fk(x), FULL), meas, FULL)
+        s.measure("registration_rms", reg.rms)
+    return reg
+
+
+def build(s, reg):
+    with s.step("build_map"):
+        x, meas = _arrays(s, "fit")
+        cfg = (s.current_plan.settings or {}).get("map", {})
+        levels = [np.asarray(lv, float) for lv in cfg["levels"]]
+        try:
+            cmap = build_map(s.model, x, reg.to_base(meas, FULL), FULL, mesh=cfg.get("mesh", "simplex"),
+                             levels=levels)
+        except MapError as e:
+            raise DeviceFault(f"correction_map: {e}") from None
+        s.measure("samples", float(len(x)), "number")
+        big = np.asarray(cmap.statistics["summand_max"], float)  # largest correction per actuator (m or rad)
+        rev = np.array([j.revolute for j in s.model.joints])
+        if (~rev).any():
+            s.measure("summand_max_length", float(np.max(big[~rev])))
+        if rev.any():
+            s.measure("summand_max_angle", float(np.max(big[rev])), "angle")
+    return cmap
+
+
+def verify(s, cmap, reg):
+    """Held-out configurations: position error of the nominal model and of the map's measuring kinematics
+    DK(x - KSF(x)) against the tracker (registered to the base frame)."""
+    with s.step("verify"):
+        x, meas = _arrays(s, "holdout")
+        truth = reg.to_base(meas, FULL)
+        nominal = to_vectors(s.model.fk(x), FULL)
+        try:
+            mapped, _ = cmap.measure(s.model, x)
+        except MapError as e:
+            raise DeviceFault(f"correction_map: held-out {e}") from None
+        e_nom = np.linalg.norm(nominal[:, :3] - truth[:, :3], axis=1)
+        e_map = np.linalg.norm(mapped[:, :3] - truth[:, :3], axis=1)
+        r_map = np.linalg.norm(se3.orientation_error(se3.rotvec_to_matrix(truth[:, 3:]),
+                                                     se3.rotvec_to_matrix(mapped[:, 3:])), axis=1)
+        s.measure("holdout", float(len(x)), "number")
+        s.measure("holdout_nominal_rms", float(np.sqrt(np.mean(e_nom ** 2))))
+        s.measure("holdout_rms", float(np.sqrt(np.mean(e_map ** 2))))
+        s.measure("holdout_max", float(np.max(e_map)))
+        s.measure("holdout_rotation_rms", float(np.sqrt(np.mean(r_map ** 2))), "angle")
+        spec = (s.events("instrument") or [None])[-1]
+        spec = spec.data.get("spec", {}) if spec is not None else {}
+        try:  # the instrument's own noise at these distances: 3-D RMS of one reflector reading (the floor)
+            sig = float(spec["sigma0_m"]) + float(spec["sigma_per_m"]) * np.linalg.norm(meas[:, :3], axis=1)
+            s.measure("tracker_noise_rms", float(np.sqrt(np.mean(3 * sig ** 2))))
+        except (KeyError, TypeError, ValueError):
+            pass  # an instrument that does not state its noise: nothing to compare with
+
+
+def store(s, cmap, reg):
+    import json
+    import os
+
+    with s.step("store_map"):
+        path = s.folder / "map.json"
+        tmp = path.with_name("map.json.tmp")
+        with open(tmp, "w") as f:
+            f.write(cmap.dumps())
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+        s.event({"type": "correction_map", "file": path.name, "registration": reg.to_dict(),
+                 "map": json.loads(cmap.dumps())})
