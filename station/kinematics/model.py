@@ -70,6 +70,8 @@ class Model:
     groups: dict[str, tuple[str, ...]] = field(default_factory=dict)
     description: str = ""
     source: dict = field(default_factory=dict)  # convention table as given, for export
+    # manufacturing tolerances (selector, std SI, quantity) from the model file: see kinematics/tolerances.py
+    tolerances: tuple = ()
 
     # ---- basic facts -------------------------------------------------------------------------
     @property

@@ -101,13 +101,30 @@ def model_from_dict(doc: dict, where: str = "<model>") -> Model:
               description=str(doc.get("description", "")))
     name = str(doc.get("name", Path(where).stem))
     if conv == "dh":
-        return from_dh(name, joints, links, **kw)
-    if conv == "mdh":
-        return from_mdh(name, joints, links, **kw)
-    h = frame(doc.get("home"), "home")
-    from station.kinematics.model import _pose
+        model = from_dh(name, joints, links, **kw)
+    elif conv == "mdh":
+        model = from_mdh(name, joints, links, **kw)
+    else:
+        h = frame(doc.get("home"), "home")
+        from station.kinematics.model import _pose
 
-    return from_poe(name, joints, links, _pose(h), **kw)
+        model = from_poe(name, joints, links, _pose(h), **kw)
+    return _with_tolerances(model, doc, where, L, A)
+
+
+def _with_tolerances(model: Model, doc: dict, where: str, L: float, A: float) -> Model:
+    """``tolerances:`` (prior standard deviations for calibration), selectors checked against the model."""
+    from dataclasses import replace
+
+    from station.kinematics.tolerances import parse_tolerances
+
+    try:
+        tols = parse_tolerances(doc.get("tolerances"), where, L, A)
+        for sel, _, _ in tols:
+            model.select([sel])
+    except (ValueError, KeyError) as e:
+        raise ModelFileError(f"{where}: tolerances: {e.args[0]}" if isinstance(e, KeyError) else str(e)) from None
+    return replace(model, tolerances=tols) if tols else model
 
 
 def load_model_file(path: str | Path) -> Model:
@@ -167,6 +184,10 @@ def model_to_dict(model: Model, length: str = "m", angle: str = "rad") -> dict:
     doc["joints"] = joints
     doc["base"] = frame("base")
     doc["tool"] = frame("tcp")
+    if model.tolerances:
+        from station.kinematics.tolerances import tolerances_to_doc
+
+        doc["tolerances"] = tolerances_to_doc(model.tolerances, length, angle)
     return doc
 
 

@@ -1,7 +1,9 @@
-"""Calibration solver: observations in, ``CalibrationResult`` out. Pure (numpy/scipy), SI, no I/O.
+"""Calibration solver: observations in, ``CalibrationResult`` out. Pure (numpy only at import), SI, no I/O.
 
-``solve`` (iterated Levenberg-Marquardt with identifiability and covariance) and the closed-form TCP
-methods ``tcp_from_flange_poses``, ``tcp_scara_4point``, ``tcp_circle_fit``. See docs/solver.md."""
+``solve`` (maximum a-posteriori Levenberg-Marquardt with priors, identifiability, posterior covariance,
+outliers and the refusal of untrustworthy results), ``predict`` (the plan-time check: posterior std of
+every parameter from planned poses, before anything moves) and the closed-form TCP methods
+``tcp_from_flange_poses``, ``tcp_scara_4point``, ``tcp_circle_fit``. See docs/solver.md."""
 
 from station.solver.estimator import select_names, solve
 from station.solver.observations import Observations, SolverInputError, observations_from_samples

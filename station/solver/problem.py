@@ -194,20 +194,40 @@ class Problem:
             P = self.model.position(self.obs.q, self.full_params(x))
         return (P - self._targets(x)).ravel()
 
-    def residual_jacobian(self, x: np.ndarray, scaled: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def residual_jacobian(self, x: np.ndarray, scaled: bool = False, q: np.ndarray | None = None
+                          ) -> tuple[np.ndarray, np.ndarray]:
         """Residual (3N,) and Jacobian (3N, n_unknowns); ``scaled``: columns times ``self.scale`` (angles
-        times the characteristic length, the units of the rank analysis and of the solver's steps)."""
+        times the characteristic length). ``q``: other joint readings for the same touches (the
+        identifiability analysis evaluates the Jacobian where the touches are exactly consistent)."""
         N = len(self.obs)
         J = np.zeros((3 * N, self.n_unknowns))
         Jm = J[:, : self.n_model]
         Jm.shape = (N, 3, self.n_model)  # a view (raises rather than copy): evaluate writes into J
-        P, _ = self.folded.evaluate(self.obs.q, self.full_params(x), out=Jm)
+        P, _ = self.folded.evaluate(self.obs.q if q is None else q, self.full_params(x), out=Jm)
         r = (P - self._targets(x)).ravel()
         if self._point_rows is not None:
             J[self._point_rows] = -1.0
         if scaled and len(self._angle_cols):
             J[:, self._angle_cols] *= self.length
         return r, J
+
+    def consistent_q(self, x: np.ndarray, steps: int = 2) -> np.ndarray:
+        """Joint readings near the recorded ones at which every touch is exactly on its target with the
+        parameters ``x`` (Newton steps ``dq = -Jq^+ r_i`` per touch; residuals are small against the reach,
+        so two steps leave ~|r|^3/L^2). Exact dependencies such as "a rotation about joint 1 moves the
+        unknown point" hold only for consistent touches; measured ones break them by the noise."""
+        offs = [self.model.index(f"offset.j{i + 1}") for i in range(self.model.n_joints)]
+        # every parameter that may differ from the model's value must be a column of the folded chain
+        idx = np.array(list(self.model_idx) + [o for o in offs if o not in set(self.model_idx.tolist())], dtype=int)
+        cols = [int(np.flatnonzero(idx == o)[0]) for o in offs]
+        fold = compiled(self.model, idx)[0]  # d tip / d offset_k == d tip / d q_k
+        params = self.full_params(x)
+        tgt = self._targets(x)
+        q = self.obs.q.copy()
+        for _ in range(steps):
+            P, J = fold.evaluate(q, params)
+            q -= np.einsum("nij,nj->ni", np.linalg.pinv(J[:, :, cols], rcond=1e-10), P - tgt)
+        return q
 
     def first_joint_offset_column(self) -> int:
         """Column of the first joint's offset among the unknowns when ``shift_first_joint`` applies to it
