@@ -167,6 +167,8 @@ class _Estimation:
             BtB = self._btb(J)
             if first:
                 self._conflicts(x, BtB, A, sigma)
+                rw = r * self._row_weights()
+                self.first = (float(rw @ rw), len(A))  # cost and size of the (nearly) unconstrained fit
                 first = False
             dec = decide(BtB, S, self.order, [], sigma, self.prior, self.tool, self.max_std, tfac)
             stable = dec.accepted == A and abs(sigma / sigma_w - 1.0) < SIGMA_TOL
@@ -176,7 +178,7 @@ class _Estimation:
                 if self.loss == "linear" and self.threshold is not None and self._reject(r, J, A, BtB, sigma):
                     sigma_w = sigma
                     continue
-                st = structure(prob, x, self.w > 0, keep=S)
+                st = structure(prob, x, self.w > 0, keep=self.struct, steps=1)
                 if sorted(st.accepted) != S and restructured < 2:  # the structure at the solution differs
                     restructured += 1
                     self.struct, S = st, sorted(st.accepted)
@@ -350,6 +352,22 @@ class _Estimation:
         if run:
             more = f" and {len(run) - 3} more" if len(run) > 3 else ""
             self.failure.append(f"collapse or runaway: {', '.join(run[:3])}{more} from nominal")
+        # the parameters left at nominal as weak must not be what the data need: were they within their
+        # tolerances, fixing them would raise the cost per dropped parameter by at most (delta/std)^2 sigma^2
+        # <= (RUNAWAY / MAX_RATIO)^2 sigma^2 for delta up to RUNAWAY prior std (F statistic against the fit of
+        # everything the structure allows)
+        c1, n1 = getattr(self, "first", (None, 0))
+        k = n1 - len(self.accepted)
+        m = 3 * int(np.count_nonzero(self.w > 0))
+        if c1 is not None and k > 0 and m > n1 and not self.outliers and c1 > 0:
+            rw = self.r * self._row_weights()
+            F = ((float(rw @ rw) - c1) / k) / (c1 / (m - n1))
+            if F > (RUNAWAY / MAX_RATIO) ** 2 and not self.conflict:
+                self.failure.append(
+                    f"prior-data conflict: the {k} parameter(s) left at nominal as poorly observed are what the data "
+                    f"need (fit residual {math.sqrt(c1 / (m - n1)) * 1e3:.4f} mm per axis with them, "
+                    f"{math.sqrt(float(rw @ rw) / max(m - len(self.accepted), 1)) * 1e3:.4f} mm without): the model "
+                    "is wrong or its tolerances too tight; widen the prior or take more varied poses")
         if dof <= 0:
             self.failure.append("no degrees of freedom left to judge the fit")
 

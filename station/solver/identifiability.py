@@ -39,6 +39,7 @@ class Null:
 class Structure:
     accepted: list[int]  # columns that perfect touches at these poses would identify (acceptance order)
     nulls: dict[int, Null] = field(default_factory=dict)  # column -> cause
+    scale_owner: int | None = None  # the length kept at nominal because no length is known
 
 
 def priority_order(names: list[str], kinds: list[str]) -> list[int]:
@@ -65,20 +66,23 @@ def _priority_order(names: tuple[str, ...], kinds: tuple[str, ...]) -> tuple[int
     return tuple(sorted(range(len(names)), key=rank))
 
 
-def structure(prob, x: np.ndarray, rows: np.ndarray | None = None, keep: list[int] | None = None) -> Structure:
+def structure(prob, x: np.ndarray, rows: np.ndarray | None = None, keep: Structure | None = None,
+              steps: int = 2) -> Structure:
     """The structural analysis of ``prob`` at parameters ``x`` over the touches ``rows`` (bool, per touch).
     ``keep``: a set chosen before (e.g. at the start); it stays the accepted set if it is still
     independent here and nothing else became identifiable (in a redundant group any member can carry
-    the group's error, but only the one the fit started with is known to reach this solution)."""
-    q = prob.consistent_q(x)
+    the group's error, but only the one the fit started with is known to reach this solution).
+    ``steps``: Newton steps to consistent touches (one suffices at a fitted solution)."""
+    q = prob.consistent_q(x, steps)
     _, J = prob.residual_jacobian(x, q=q)
     if rows is not None and not rows.all():
         J = J[np.repeat(rows, 3)]
         q = q[rows]
-    return analyse(J, prob, x, q, keep)
+    return analyse(J, prob, x, q, None if keep is None else keep.accepted, None if keep is None else keep.scale_owner)
 
 
-def analyse(J: np.ndarray, prob, x: np.ndarray, q: np.ndarray, keep: list[int] | None = None) -> Structure:
+def analyse(J: np.ndarray, prob, x: np.ndarray, q: np.ndarray, keep: list[int] | None = None,
+            keep_scale: int | None = None) -> Structure:
     names, kinds = prob.names, prob.kinds
     p = J.shape[1]
     norms = np.sqrt(np.einsum("ij,ij->j", J, J))
@@ -103,9 +107,9 @@ def analyse(J: np.ndarray, prob, x: np.ndarray, q: np.ndarray, keep: list[int] |
         kept, _, _ = _greedy(Jn, [j for j in order if j in set(keep)], RTOL, 0.0)
         if len(kept) == len(keep):
             accepted = kept
-            if scale_owner is not None and scale_owner in set(keep):
-                scale_owner = None
-    out = Structure(accepted)
+            if scale_owner is not None:  # the scale stays with the length that carried it before
+                scale_owner = keep_scale if keep_scale is not None and keep_scale not in set(keep) else None
+    out = Structure(accepted, scale_owner=scale_owner)
     acc = sorted(accepted)
     dep = [j for j in range(p) if j not in set(accepted)]
     if not dep:

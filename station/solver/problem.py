@@ -226,7 +226,13 @@ class Problem:
         q = self.obs.q.copy()
         for _ in range(steps):
             P, J = fold.evaluate(q, params)
-            q -= np.einsum("nij,nj->ni", np.linalg.pinv(J[:, :, cols], rcond=1e-10), P - tgt)
+            Jq = J[:, :, cols]
+            # minimum-norm dq = Jq^T (Jq Jq^T)^-1 r (damped by 1e-12 of the trace: a robot whose tip cannot
+            # move in some direction keeps that part of the residual)
+            A = Jq @ Jq.transpose(0, 2, 1)
+            A += (1e-12 * np.trace(A, axis1=1, axis2=2))[:, None, None] * np.eye(3)
+            y = np.linalg.solve(A, (P - tgt)[:, :, None])
+            q -= (Jq.transpose(0, 2, 1) @ y)[:, :, 0]
         return q
 
     def first_joint_offset_column(self) -> int:
