@@ -21,6 +21,7 @@ import time
 import numpy as np
 
 from station.solver import holdout as holdout_mod
+from station.solver.noise import NoiseModel, joint_noise_of, quantisation, resolution_of
 from station.solver.identifiability import RTOL, Null, Structure, priority_order, structure
 from station.solver.observations import Observations, SolverInputError
 from station.solver.posterior import MAX_RATIO, decide, posterior, t_factor
@@ -56,7 +57,7 @@ def select_names(model, identify) -> list[str]:
 def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown", holdout: Observations | None = None,
           *, instrument_frame: str = "unknown", noise: float | None = None, priors=None,
           max_std: float | None = None, loss: str = "linear", outlier_threshold: float | None = OUTLIER_THRESHOLD,
-          distances: dict | None = None, max_iter: int = 100) -> CalibrationResult:
+          distances: dict | None = None, joint_noise=None, max_iter: int = 100) -> CalibrationResult:
     """Identify ``identify`` of ``model`` from touch observations (MAP estimate with priors).
 
     ``reference``: ``"unknown"`` (every touched point is a nuisance unknown ``point.LABEL.{x,y,z}``) or
@@ -73,7 +74,9 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
     ``outlier_threshold`` are excluded and the fit repeated; None: keep every touch), ``huber`` or
     ``soft_l1`` (robust losses by iteratively reweighted least squares; nothing excluded).
     ``distances``: ``{(label_a, label_b): metres}`` known distances between points, used to score the
-    holdout. A result carries ``trusted``; an untrusted one says why in ``failure``."""
+    holdout. ``joint_noise`` (rad or m, one number or one per joint): std of the joint readings; default:
+    the quantisation of the model's encoders (``station.solver.noise``); 0: none. A result carries
+    ``trusted``; an untrusted one says why in ``failure``."""
     t0 = time.perf_counter()
     if not isinstance(obs, Observations):
         raise SolverInputError("obs must be an Observations")
@@ -101,7 +104,10 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
             f"only {k} distinct pose(s) among {len(obs)} samples (readings within {POSE_TOL * 1e3:g} mrad/um count as "
             f"one): {3 * k} equations for {p} unknowns; move the robot between touches")
     prior = _prior_vector(prob, priors)
-    est = _Estimation(prob, prior, noise, max_std, loss, outlier_threshold, max_iter)
+    try:
+        est = _Estimation(prob, prior, noise, max_std, loss, outlier_threshold, max_iter, joint_noise)
+    except ValueError as e:
+        raise SolverInputError(str(e)) from None
     est.run()
     res = est.result()
     if holdout is not None:
@@ -129,7 +135,7 @@ def _prior_vector(prob: Problem, priors) -> np.ndarray:
 class _Estimation:
     """The state of one solve: decide, fit, re-decide; outliers; final statistics."""
 
-    def __init__(self, prob: Problem, prior, noise, max_std, loss, threshold, max_iter) -> None:
+    def __init__(self, prob: Problem, prior, noise, max_std, loss, threshold, max_iter, joint_noise=None) -> None:
         self.prob, self.prior, self.noise, self.max_std = prob, prior, noise, max_std
         self.loss, self.threshold, self.max_iter = loss, threshold, max_iter
         self.x0 = prob.x_nominal
@@ -137,6 +143,12 @@ class _Estimation:
         self.order = priority_order(prob.names, prob.kinds)
         N = len(prob.obs)
         self.w = np.ones(N)  # touch weights: 0 excluded (outlier), IRLS weights for robust losses
+        sq = joint_noise_of(prob.model, joint_noise)
+        self.resolution = resolution_of(prob.model)
+        _, self.tick_groups = quantisation(prob.obs.q, self.resolution)
+        var = np.broadcast_to(sq**2, (N, len(sq)))
+        self.noise_model = NoiseModel(prob.joint_jacobian(prob.x_nominal) if np.any(var > 0) else None, var, N)
+        self.joint_noise = sq
         self.outliers: list[int] = []
         self.iterations = 0
         self.converged = True
@@ -160,15 +172,16 @@ class _Estimation:
         restructured = 0
         first = True
         for _ in range(MAX_ROUNDS):
-            x, r, J, it, conv = _fit(prob, x, A, self._row_weights(), sigma_w, self.prior, self.x0, self.max_iter)
+            self.noise_model.set(sigma=sigma_w, w=self.w)
+            x, r, J, it, conv = _fit(prob, x, A, self.noise_model, sigma_w, self.prior, self.x0, self.max_iter)
             self.iterations += it
             self.converged = conv
             sigma, tfac, dof = self._sigma(r, len(A))
+            self.noise_model.set(sigma=sigma)  # the whitening that goes with this sigma
             BtB = self._btb(J)
             if first:
                 self._conflicts(x, BtB, A, sigma)
-                rw = r * self._row_weights()
-                self.first = (float(rw @ rw), len(A))  # cost and size of the (nearly) unconstrained fit
+                self.first = (r.copy(), len(A))  # residual and size of the (nearly) unconstrained fit
                 first = False
             dec = decide(BtB, S, self.order, [], sigma, self.prior, self.tool, self.max_std, tfac)
             stable = dec.accepted == A and abs(sigma / sigma_w - 1.0) < SIGMA_TOL
@@ -214,40 +227,51 @@ class _Estimation:
                                 "that is real, widen the prior (--prior NAME=VALUE), else the model or the data are "
                                 "wrong")
 
-    def _row_weights(self) -> np.ndarray:
-        return np.repeat(np.sqrt(self.w), 3)
-
     def _btb(self, J: np.ndarray) -> np.ndarray:
-        Jw = J * self._row_weights()[:, None]
+        Jw = self.noise_model.jacobian(J)
         return Jw.T @ Jw
 
     def _sigma(self, r: np.ndarray, n_est: int) -> tuple[float, float, int]:
         """(sigma used for the uncertainty, Student-t factor, degrees of freedom). The declared noise is
         used unless the fitted residual contradicts it (chi-square, 0.1 % level): then the fitted one."""
-        rw = r * self._row_weights()
         m = 3 * int(np.count_nonzero(self.w > 0))
         dof = max(m - n_est, 0)
-        fitted = max(math.sqrt(float(rw @ rw) / dof), 1e-12) if dof else math.inf
-        self.sigma_fit = fitted
+        nm = self.noise_model
         if self.noise is not None:
-            if dof and fitted > self.noise * math.sqrt(_chi2_upper(dof) / dof):
+            sd = nm.declare(self.noise)  # the declared isotropic noise plus the modelled joint noise
+            rw = nm.residual(r)
+            self.sigma_fit = math.sqrt(float(rw @ rw) / dof) if dof else math.inf
+            if dof and self.sigma_fit > sd * math.sqrt(_chi2_upper(dof) / dof):
                 self.noise_contradicted = True
-                return fitted, t_factor(dof), dof
+                self.sigma_fit = max(nm.fit_sigma(r, dof), 1e-12)
+                return self.sigma_fit, t_factor(dof), dof
             self.noise_contradicted = False
-            return self.noise, 1.0, dof
+            self.sigma_declared = sd
+            return sd, 1.0, dof
+        fitted = max(nm.fit_sigma(r, dof), 1e-12) if dof else math.inf
+        self.sigma_fit = fitted
         return fitted, t_factor(dof), dof
 
     def _standardised(self, r: np.ndarray, J: np.ndarray, A: list[int], BtB: np.ndarray, sigma: float):
-        """Per touch: the largest internally studentised residual of its three axes, and the sigma of the
-        test (declared noise, or a robust estimate: 1.4826 x median absolute studentised residual)."""
+        """Per touch: the largest externally studentised residual of its three axes, ``|r_ik| / (s_(i)
+        sqrt(1 - h_ik))`` with ``s_(i)`` the residual std without touch i (one slipped touch cannot hide
+        itself by inflating sigma), or the declared noise when the fit agrees with it."""
         post = posterior(BtB, A, [], sigma, self.prior)
-        Ja = J[:, post.cols]
-        h = np.einsum("ij,jk,ik->i", Ja, post.info_inv, Ja) / sigma**2  # leverage of each row
-        s = r / np.sqrt(np.clip(1.0 - h, 1e-6, None))
-        act = np.repeat(self.w > 0, 3)
-        rob = 1.4826 * float(np.median(np.abs(s[act])))
-        st = max(rob, self.noise) if self.noise is not None else rob
-        return np.abs(s).reshape(-1, 3).max(axis=1) / max(st, 1e-300), st
+        nm = self.noise_model
+        Ja = nm.jacobian(J[:, post.cols], weighted=False)
+        h = np.clip(np.einsum("ij,jk,ik->i", Ja, post.info_inv, Ja) / sigma**2, 0.0, 1.0 - 1e-6)
+        rt = nm.residual(r, weighted=False)
+        act = self.w > 0
+        e = (rt**2 / (1.0 - h)).reshape(-1, 3).sum(axis=1)  # each touch's share of the residual sum
+        m = 3 * int(act.sum())
+        dof = m - len(A)
+        rss = float(np.sum(e[act]))
+        if self.noise is not None and not getattr(self, "noise_contradicted", False):
+            st = np.full(len(e), self.sigma_declared)
+        else:
+            st = np.sqrt(np.maximum(rss - np.where(act, e, 0.0), 1e-300) / max(dof - 3, 1))
+        z = (np.abs(rt) / np.sqrt(1.0 - h)).reshape(-1, 3).max(axis=1) / np.maximum(st, 1e-300)
+        return z, float(np.median(st[act]))
 
     def _reject(self, r, J, A, BtB, sigma) -> bool:
         """Exclude touches above the threshold (all at once); True when any were excluded."""
@@ -268,7 +292,8 @@ class _Estimation:
     def _reweight(self, r, J, A, sigma) -> bool:
         """IRLS weights of the robust loss from the current residuals; True when they changed."""
         _, st = self._standardised(r, J, A, self._btb(J), sigma)
-        z = (np.linalg.norm(r.reshape(-1, 3), axis=1) / (3.0 * st)) ** 2  # soft margin at 3 sigma per touch
+        rt = self.noise_model.residual(r, weighted=False).reshape(-1, 3)
+        z = (np.linalg.norm(rt, axis=1) / (3.0 * st)) ** 2  # soft margin at 3 sigma per touch
         w = np.where(z <= 1.0, 1.0, 1.0 / np.sqrt(z)) if self.loss == "huber" else 1.0 / np.sqrt(1.0 + z)
         changed = bool(np.max(np.abs(w - self.w)) > 1e-3)
         self.w = w
@@ -279,16 +304,21 @@ class _Estimation:
         prob, x, r, J, A = self.prob, self.x, self.r, self.J, self.accepted
         sigma, tfac, dof = self._sigma(r, len(A))
         self.sigma = sigma
+        self.noise_model.set(sigma=sigma, w=self.w)
         BtB = self._btb(J)
         # final decision bookkeeping: which kept parameters were weak (and how weak)
         dec = decide(BtB, self.S, self.order, [], sigma, self.prior, self.tool, self.max_std, tfac)
         kept = [j for j in range(prob.n_unknowns) if j not in A]
-        post = posterior(BtB, A, kept, sigma, self.prior, tfac) if A else None
+        extra = self._resolution(x, J)
+        post = posterior(BtB, A, kept, sigma, self.prior, tfac, extra) if A else None
         std = np.full(prob.n_unknowns, np.nan)
         cov = None
         if post is not None:
-            std[post.cols] = post.std
-            cov = post.cov * tfac**2
+            cov = post.cov
+            k = self._sandwich(post, J, r, sigma, tfac)
+            if k is not None:  # noise of another shape than the model's: the robust covariance is larger
+                cov = cov * np.outer(k, k)
+            std[post.cols] = np.sqrt(np.maximum(np.diag(cov), 0.0))
         params: dict[str, ParameterEstimate] = {}
         for i, n in enumerate(prob.names):
             kind, unit = prob.kinds[i], prob.units[i]
@@ -335,8 +365,59 @@ class _Estimation:
             outliers=self._outlier_list(sigma),
             noise={"sigma_m": sigma, "source": "declared" if self.noise is not None and not getattr(
                 self, "noise_contradicted", False) else "fitted", "declared_m": self.noise,
-                "fitted_m": self.sigma_fit, "dof": dof, "t_factor": tfac})
+                "fitted_m": self.sigma_fit, "dof": dof, "t_factor": tfac,
+                "joint": [float(v) for v in self.joint_noise],
+                "resolution": [float(v) for v in self.resolution]})
         return res
+
+    def _sandwich(self, post, J, r, sigma, tfac) -> np.ndarray | None:
+        """Per-parameter factors >= 1 by which the robust ("sandwich") covariance exceeds the model's.
+
+        The model says every touch has covariance sigma^2 I (after whitening). Real touch noise is often
+        anisotropic and varies from pose to pose (encoder rounding seen through the joint Jacobian,
+        a socket stiffer in one direction). The sandwich ``H^-1 (sum_i B_i^T e_i e_i^T B_i / sigma^4 +
+        Lambda) H^-1`` uses each touch's own residual (leverage-corrected, HC3: ``e_i = (I - H_ii)^-1
+        r_i``) instead; where it is larger, the reported std is raised to it (correlations kept)."""
+        cols = post.cols
+        N = len(self.prob.obs)
+        act = self.w > 0
+        if int(act.sum()) < 4:
+            return None
+        Hi = post.info_inv
+        B = self.noise_model.jacobian(J[:, cols]).reshape(N, 3, len(cols))[act]
+        e = self.noise_model.residual(r).reshape(N, 3)[act]
+        Hii = np.einsum("nip,pq,njq->nij", B, Hi, B) / sigma**2
+        e = np.linalg.solve(np.eye(3) - np.clip(Hii, -0.99, 0.99) * (np.abs(Hii) < 1), e[:, :, None])[:, :, 0]
+        g = np.einsum("nip,ni->np", B, e)  # B_i^T e_i
+        lam = np.where(np.isfinite(self.prior[cols]), 1.0 / np.where(np.isfinite(self.prior[cols]),
+                                                                     self.prior[cols], 1.0) ** 2, 0.0)
+        meat = g.T @ g / sigma**4 + np.diag(lam)
+        var_sw = np.diag(Hi @ meat @ Hi) * tfac**2
+        var_model = np.diag(Hi) * tfac**2
+        # raise the noise part only: the propagated (consider) variances are not from the residuals
+        base = np.diag(post.cov)
+        new = base + np.maximum(var_sw - var_model, 0.0)
+        k = np.sqrt(new / np.maximum(base, 1e-300))
+        return k if np.any(k > 1.0 + 1e-9) else None
+
+    def _resolution(self, x, J):
+        """Consider errors for the encoders' quantisation shared by touches on one tick (``noise.quantisation``)."""
+        if not self.tick_groups:
+            return None
+        Jq = self.prob.joint_jacobian(x)  # (N, 3, n)
+        cols, var = [], []
+        for j, g in self.tick_groups:
+            g = g & (self.w > 0)
+            if g.sum() < 1:
+                continue
+            col = np.zeros_like(Jq[:, :, 0])
+            col[g] = Jq[g, :, j]
+            cols.append(col.ravel())
+            var.append(self.resolution[j] ** 2)
+        if not cols:
+            return None
+        E = self.noise_model.jacobian(np.array(cols).T)
+        return self.noise_model.jacobian(J).T @ E, np.array(var)
 
     def _trust(self, params: dict[str, ParameterEstimate], dof: int) -> None:
         if not self.converged:
@@ -356,11 +437,12 @@ class _Estimation:
         # tolerances, fixing them would raise the cost per dropped parameter by at most (delta/std)^2 sigma^2
         # <= (RUNAWAY / MAX_RATIO)^2 sigma^2 for delta up to RUNAWAY prior std (F statistic against the fit of
         # everything the structure allows)
-        c1, n1 = getattr(self, "first", (None, 0))
+        r1, n1 = getattr(self, "first", (None, 0))
         k = n1 - len(self.accepted)
         m = 3 * int(np.count_nonzero(self.w > 0))
-        if c1 is not None and k > 0 and m > n1 and not self.outliers and c1 > 0:
-            rw = self.r * self._row_weights()
+        c1 = float(np.sum(self.noise_model.residual(r1) ** 2)) if r1 is not None else 0.0  # same whitening
+        if r1 is not None and k > 0 and m > n1 and not self.outliers and c1 > 0:
+            rw = self.noise_model.residual(self.r)
             F = ((float(rw @ rw) - c1) / k) / (c1 / (m - n1))
             if F > (RUNAWAY / MAX_RATIO) ** 2 and not self.conflict:
                 self.failure.append(
@@ -425,12 +507,13 @@ def _chi2_upper(dof: int, z: float = 3.090232) -> float:
     return dof * (1.0 - a + z * math.sqrt(a)) ** 3
 
 
-def _fit(prob: Problem, x, act, sw, sigma_w, prior, x0, max_iter):
-    """MAP fit of the columns ``act``: minimise ``|W r|^2 + sigma_w^2 sum ((x_j - x0_j) / prior_j)^2``.
-    Undamped Gauss-Newton steps while they reduce the cost, Marquardt damping otherwise, columns
-    equilibrated. Stops when a step is below STEP_TOL standard deviations in every parameter: that step
-    is taken without another chain evaluation (the model is linear over it to O(step^2); the residual is
-    the linear prediction and the Jacobian the one a step back). Returns ``x, r, J, iterations, converged``."""
+def _fit(prob: Problem, x, act, noise: NoiseModel, sigma_w, prior, x0, max_iter):
+    """MAP fit of the columns ``act``: minimise ``|W r|^2 + sigma_w^2 sum ((x_j - x0_j) / prior_j)^2``
+    (``W`` the whitening of ``noise``). Undamped Gauss-Newton steps while they reduce the cost, Marquardt
+    damping otherwise, columns equilibrated. Stops when a step is below STEP_TOL standard deviations in
+    every parameter: that step is taken without another chain evaluation (the model is linear over it to
+    O(step^2); the residual is the linear prediction and the Jacobian the one a step back). Returns
+    ``x, r, J, iterations, converged``."""
     x = x.copy()
     r, J = prob.residual_jacobian(x)
     act = sorted(act)
@@ -440,7 +523,7 @@ def _fit(prob: Problem, x, act, sw, sigma_w, prior, x0, max_iter):
     lam = np.where(np.isfinite(pa), sigma_w**2 / np.where(np.isfinite(pa), pa, 1.0) ** 2, 0.0)
 
     def cost(rr, xx):
-        rw = rr * sw
+        rw = noise.residual(rr)
         dx = xx[act] - x0[act]
         return float(rw @ rw) + float(np.sum(lam * dx * dx))
 
@@ -449,9 +532,9 @@ def _fit(prob: Problem, x, act, sw, sigma_w, prior, x0, max_iter):
     n = len(act)
     eye = np.eye(n)
     for it in range(1, max_iter + 1):
-        Ja = J[:, act] * sw[:, None]
+        Ja = noise.jacobian(J[:, act])
         H = Ja.T @ Ja + np.diag(lam)
-        g = Ja.T @ (r * sw) + lam * (x[act] - x0[act])
+        g = Ja.T @ noise.residual(r) + lam * (x[act] - x0[act])
         d = np.sqrt(np.diag(H))
         d = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 1.0)
         Hs = H * np.outer(d, d)

@@ -47,26 +47,33 @@ def spd_inverse(H: np.ndarray) -> np.ndarray:
 @dataclass
 class Posterior:
     cols: list[int]  # estimated columns A (sorted)
-    cov: np.ndarray  # consider covariance over cols (SI)
+    cov: np.ndarray  # consider covariance over cols (SI), noise part times the Student-t factor squared
     info_inv: np.ndarray  # H_A^-1: the covariance if everything kept were exactly at nominal
-    std: np.ndarray  # sqrt(diag(cov)) times the Student-t factor
+    std: np.ndarray  # sqrt(diag(cov))
 
 
 def posterior(BtB: np.ndarray, cols: list[int], kept: list[int], sigma: float, prior: np.ndarray,
-              tfac: float = 1.0) -> Posterior:
-    """``BtB`` = B^T W B over every unknown (row weights W applied); ``prior`` the prior std per unknown
-    (inf for nuisance). ``kept``: columns held at nominal whose prior variance is propagated."""
+              tfac: float = 1.0, extra: tuple[np.ndarray, np.ndarray] | None = None) -> Posterior:
+    """``BtB`` = B^T W B over every unknown (whitened, weighted); ``prior`` the prior std per unknown (inf
+    for nuisance). ``kept``: columns held at nominal whose prior variance is propagated. ``extra``:
+    further consider errors ``(B^T E, variances)``, E their (whitened) columns - the joints' systematic
+    reading errors. ``tfac`` (Student-t) scales the noise part ``H_A^-1`` only: the propagated
+    variances do not come from the estimated sigma."""
     cols = sorted(cols)
     lam = np.where(np.isfinite(prior[cols]), 1.0 / np.where(np.isfinite(prior[cols]), prior[cols], 1.0) ** 2, 0.0)
     H = BtB[np.ix_(cols, cols)] / sigma**2 + np.diag(lam)
     Hi = spd_inverse(H)
-    cov = Hi
+    cov = Hi * tfac**2
     if kept:
         kp = prior[kept]
         kv = np.where(np.isfinite(kp), kp, NUISANCE_STD) ** 2
         G = -Hi @ BtB[np.ix_(cols, kept)] / sigma**2
-        cov = Hi + (G * kv) @ G.T
-    std = np.sqrt(np.maximum(np.diag(cov), 0.0)) * tfac
+        cov = cov + (G * kv) @ G.T
+    if extra is not None:
+        BtE, ev = extra
+        G = -Hi @ BtE[cols] / sigma**2
+        cov = cov + (G * ev) @ G.T
+    std = np.sqrt(np.maximum(np.diag(cov), 0.0))
     return Posterior(cols, cov, Hi, std)
 
 

@@ -211,16 +211,25 @@ class Problem:
             J[:, self._angle_cols] *= self.length
         return r, J
 
+    def _joint_chain(self):
+        """The folded chain with every joint's offset as a column (plus the identified parameters, which
+        may differ from the model's values): d tip / d offset_k == d tip / d q_k."""
+        offs = [self.model.index(f"offset.j{i + 1}") for i in range(self.model.n_joints)]
+        idx = np.array(list(self.model_idx) + [o for o in offs if o not in set(self.model_idx.tolist())], dtype=int)
+        cols = [int(np.flatnonzero(idx == o)[0]) for o in offs]
+        return compiled(self.model, idx)[0], cols
+
+    def joint_jacobian(self, x: np.ndarray, q: np.ndarray | None = None) -> np.ndarray:
+        """d tip / d q ``(N, 3, n)`` at the touches' joint readings (or ``q``)."""
+        fold, cols = self._joint_chain()
+        return fold.evaluate(self.obs.q if q is None else q, self.full_params(x))[1][:, :, cols]
+
     def consistent_q(self, x: np.ndarray, steps: int = 2) -> np.ndarray:
         """Joint readings near the recorded ones at which every touch is exactly on its target with the
         parameters ``x`` (Newton steps ``dq = -Jq^+ r_i`` per touch; residuals are small against the reach,
         so two steps leave ~|r|^3/L^2). Exact dependencies such as "a rotation about joint 1 moves the
         unknown point" hold only for consistent touches; measured ones break them by the noise."""
-        offs = [self.model.index(f"offset.j{i + 1}") for i in range(self.model.n_joints)]
-        # every parameter that may differ from the model's value must be a column of the folded chain
-        idx = np.array(list(self.model_idx) + [o for o in offs if o not in set(self.model_idx.tolist())], dtype=int)
-        cols = [int(np.flatnonzero(idx == o)[0]) for o in offs]
-        fold = compiled(self.model, idx)[0]  # d tip / d offset_k == d tip / d q_k
+        fold, cols = self._joint_chain()
         params = self.full_params(x)
         tgt = self._targets(x)
         q = self.obs.q.copy()
