@@ -20,6 +20,8 @@ packages, package_dir = _packages()
 setup(
     packages=packages,
     package_dir=package_dir,
-    package_data={"": ["*.yaml", "*.yml", "*.eds", "*.html", "*.css", "*.json", "*.txt"]},
+    # data the code finds through importlib.resources (shipped procedures' limits, built-in models, templates)
+    package_data={"": ["*.yaml", "*.yml", "*.eds", "*.html", "*.css", "*.json", "*.txt"],
+                  "station.kinematics": ["models/*.yaml"]},
     include_package_data=True,
 )

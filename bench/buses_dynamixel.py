@@ -9,15 +9,13 @@ of this host through the SDK against ``station mock dynamixel --wire-timing`` (a
 from __future__ import annotations
 
 import argparse
-import select
-import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import dynamixel_sdk as sdk
 from station.mocks.dynamixel import DynamixelEmulator
+from station.mocks.launch import launch
 from station.mocks.world import World
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -74,20 +72,6 @@ def _rate(port_path: str, method: str, ids: list[int], seconds: float) -> tuple[
             port.closePort()
 
 
-def _emulator_process(model: str, n: int, return_delay: int) -> tuple[subprocess.Popen, str]:
-    """``station mock dynamixel --wire-timing`` in its own process, so its timing does not share our GIL."""
-    cmd = [sys.executable, "-c", "from station.cli import main; main()", "mock", "dynamixel", "--model", model,
-           "--ids", f"1-{n}", "--wire-timing", "--return-delay", str(return_delay), "--contact-id", "none"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    ready, _, _ = select.select([proc.stdout], [], [], 60)
-    path = proc.stdout.readline().strip() if ready else ""
-    if not path.startswith("/dev/"):
-        proc.kill()
-        err = proc.communicate()[1].strip().splitlines()
-        raise RuntimeError(f"station mock dynamixel did not print its pty path: {err[-1] if err else 'no output'}")
-    return proc, path
-
-
 def measure(model: str, n: int, method: str, seconds: float, return_delay: int = 0) -> dict:
     ids = list(range(1, n + 1))
     # bytes and transactions, counted by an in-process emulator
@@ -111,12 +95,10 @@ def measure(model: str, n: int, method: str, seconds: float, return_delay: int =
         port.closePort()
         emu.stop()
     # rate, against an emulator process answering after the wire time
-    proc, path = _emulator_process(model, n, return_delay)
-    try:
-        hz, failed = _rate(path, method, ids, seconds)
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(timeout=10)
+    # (``station mock dynamixel --wire-timing`` in its own process, so its timing does not share our GIL)
+    with launch("dynamixel", process=True, model=model, extra=("--ids", f"1-{n}", "--wire-timing", "--return-delay",
+                                                                str(return_delay), "--contact-id", "none")) as emu:
+        hz, failed = _rate(emu.port, method, ids, seconds)
     # fast sync read: one return delay (the later devices append back-to-back); otherwise one per answer
     delays = 1 if method == "fast_sync_read" else n
     wire_s = per * 10 / BAUD + delays * return_delay * 2e-6

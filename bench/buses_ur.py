@@ -99,9 +99,9 @@ def round_trips(host: str, n: int) -> list[float]:
 
 
 def rows(seconds: float = 60.0, moves: int = 100) -> list[dict]:
-    from station.mocks.ur.process import EmulatorProcess
+    from station.mocks.launch import launch
 
-    with EmulatorProcess(model="ur5e") as emu:
+    with launch("ur", model="ur5e") as emu:
         # both readers over the same minute: a raw socket counting every package, and ur_rtde's own recorder
         before = emu.dashboard("emulator stats").split()
         box: dict = {}

@@ -118,33 +118,13 @@ def _ur_motion(url: str):
     return (lambda: max(abs(v) for v in r.getActualQd()) > 1e-5), r.disconnect
 
 
-def _emulator(bus: str, world, serial: str, sync_ms: float | None = None):
-    """Start an in-process emulator for ``world``; returns (url, stop)."""
-    from station.cli.run_cmd import BUS_MODELS
-
-    model = BUS_MODELS[bus]
-    if bus == "dynamixel":
-        from station.mocks.dynamixel.emulator import DynamixelEmulator
-
-        emu = DynamixelEmulator(world)
-        port = emu.start()
-        return f"dynamixel://{port}?model={model}&ids=11-14&contact=200&serial={serial}", emu.stop
-    if bus == "canopen":
-        from station.mocks.canopen.emulator import CanopenEmulator
-
-        emu = CanopenEmulator(world, "virtual", f"bench{os.getpid()}").start()
-        sync = "" if sync_ms is None else f"&sync_ms={sync_ms:g}"
-        return (f"canopen+virtual://bench{os.getpid()}?nodes=1-{world.nominal.n_joints}&model={model}"
-                f"&serial={serial}{sync}", emu.stop)
-    raise ValueError(f"no in-process emulator for {bus}")
-
-
 def run_bus(bus: str, folder: Path, poses: int, time_scale: float, seed: int = 7,
             sync_ms: float | None = None, calls: bool = False) -> dict:
     from station.mocks.world import World
 
+    from station.api import run as start
     from station.cli.run_cmd import BUS_OPTIONS, demo_world
-    from station.engine import read_journal, start
+    from station.engine import read_journal
 
     doc = demo_world(bus, seed, "realtime")
     doc["motion"]["time_scale"] = time_scale
@@ -153,14 +133,14 @@ def run_bus(bus: str, folder: Path, poses: int, time_scale: float, seed: int = 7
     world_path.write_text(yaml.safe_dump(doc))
     world = World.from_file(world_path)
     cell_path.write_text(yaml.safe_dump(world.station_cell()))
-    if bus == "ur":
-        from station.cli.run_cmd import Emulated
+    from station.mocks.launch import launch
 
-        emu = Emulated("ur", world_path, serial).__enter__()
-        url, stop = emu.url, emu.close
+    # UR: a child process serving the world file; the others in this process, serving ``world`` itself
+    emu = launch(bus, world_path if bus == "ur" else world, serial=None if bus == "ur" else serial).start()
+    url, stop = emu.url + ("" if sync_ms is None else f"&sync_ms={sync_ms:g}"), emu.close
+    if bus == "ur":
         is_moving, close_meter = _ur_motion(url)
     else:
-        url, stop = _emulator(bus, world, serial, sync_ms)
         is_moving, close_meter = world.is_moving, (lambda: None)
     from station.robot import open_robot
 
@@ -177,8 +157,8 @@ def run_bus(bus: str, folder: Path, poses: int, time_scale: float, seed: int = 7
     if out.status != "completed":
         raise SystemExit(f"{bus}: {out.status}: {out.error}")
     _, events = read_journal(out.folder / "journal.jsonl")
-    samples = [e for e in events if e["type"] == "sample"]
-    t_last = samples[-1]["t"]
+    samples = [e for e in events if e.type == "sample"]
+    t_last = samples[-1].t  # when the last sample was journaled
     total = t1 - t0
     motion = meter.until(t_last)  # up to the last sample: the last retreat belongs to the tail
     loop_over = (t_last - t0) - motion

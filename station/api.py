@@ -25,6 +25,7 @@ from station.engine import Outcome, Session, load_procedure
 from station.engine import resume as _resume
 from station.engine import start as _start
 from station.engine.runner import create_session, finish
+from station.publish import publish
 
 
 def connect(url: str, **kwargs):
@@ -63,20 +64,25 @@ def session(robot, serial: str, *, name: str | None = None, cell=None, limits=No
     except Exception as e:
         status, err = "error", e
     finally:
-        s.outcome = finish(s, status, err, db=db, report=report, store=store)
+        s.outcome = publish(finish(s, status, err), db=db, store=store, report=report, log=s.log)
     if err is not None:
         raise err
 
 
-def run(procedure: str | Path, robot_url: str, serial: str, **kwargs) -> Outcome:
-    """Run a shipped procedure (by name) or a procedure file, like ``station run``. Returns the outcome
-    (``status``, ``passed``, ``record``, ``report``, ``exit_code``)."""
-    return _start(procedure, robot_url, serial, **kwargs)
+def run(procedure: str | Path, robot_url: str, serial: str, *, db: str | None = None, report: bool = True,
+        store: bool = True, **kwargs) -> Outcome:
+    """Run a shipped procedure (by name) or a procedure file, like ``station run``: the record is stored in the
+    records database (``db``) and the report written before it returns. Returns the outcome (``status``,
+    ``passed``, ``record``, ``report``, ``stored``, ``exit_code``)."""
+    out = _start(procedure, robot_url, serial, db=db, **kwargs)
+    return publish(out, db=db, store=store, report=report, log=kwargs.get("log"))
 
 
-def resume(session_id: str | Path, **kwargs) -> Outcome:
-    """Continue an interrupted session, like ``station resume``."""
-    return _resume(session_id, **kwargs)
+def resume(session_id: str | Path, *, db: str | None = None, report: bool = True, store: bool = True,
+           **kwargs) -> Outcome:
+    """Continue an interrupted session, like ``station resume`` (stored where the session names, or ``db``)."""
+    out = _resume(session_id, **kwargs)
+    return publish(out, db=db, store=store, report=report, log=kwargs.get("log"))
 
 
 def solve(model, obs, **kwargs):

@@ -1,4 +1,5 @@
-"""CSV files of touch samples and joint readings, with units in the headers. Pure: text in, SI arrays out.
+"""CSV files of touch samples and joint readings, with units in the headers: the reader (text in, SI arrays
+out) and the one writer of a session's ``samples.csv`` (the engine and the jog UI).
 
 Columns: ``q1..qN`` (joint readings; radians or metres unless the header says ``q1[deg]``, ``q3[mm]``),
 optional ``point`` (label of the reference point touched; default ``A``), optional ``x,y,z`` (instrument
@@ -10,14 +11,15 @@ from __future__ import annotations
 import csv
 import io
 import math
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "um": 1e-6}
-ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0, "mrad": 1e-3}
+from station.units import ANGLE_UNITS, LENGTH_UNITS, joint_unit
+
 _HEADER = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_.]*)\s*(?:\[\s*([A-Za-z]+)\s*\])?\s*$")
 _JOINT = re.compile(r"^q(\d+)$")
 
@@ -182,3 +184,33 @@ def read_samples(path: str | Path, joints) -> Samples:
             for i in range(len(t.rows)):
                 measured[i, a] = _number(t, i, col, k) * f
     return Samples(q, point, measured, list(t.lines), t.path)
+
+
+# ---- writing a session's samples.csv ----------------------------------------------------------------------
+def joint_units(model) -> list[str]:
+    """SI unit of each joint's column: rad, or m for a prismatic joint."""
+    return [joint_unit(j.revolute) for j in model.joints]
+
+
+def write_samples_csv(path: str | Path, samples, units: list[str], *, comment: str) -> Path:
+    """A session's kept samples (``station.engine.events.Sample``) as the file ``station solve --samples``
+    reads: ``q1[rad]..qN[..], point, seq, set`` and ``x[m], y[m], z[m]`` when every sample has an instrument
+    measurement. Rewritten whole and atomically (temp file, fsync, rename): a crash leaves the old or the new
+    file, never a torn one; the journal stays the truth either way."""
+    path = Path(path)
+    samples = list(samples)
+    meas = bool(samples) and all(x.measured is not None for x in samples)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", newline="") as fh:
+        fh.write(f"# station samples: {comment}; joints in rad (m if prismatic), measured x,y,z in m; "
+                 "seq = journal sequence number, set = fit|holdout\n")
+        w = csv.writer(fh)
+        w.writerow([f"q{i + 1}[{u}]" for i, u in enumerate(units)] + ["point", "seq", "set"]
+                   + (["x[m]", "y[m]", "z[m]"] if meas else []))
+        for x in samples:
+            w.writerow([repr(float(v)) for v in x.q] + [x.point, x.seq, x.set]
+                       + ([repr(float(v)) for v in x.measured] if meas else []))
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    return path

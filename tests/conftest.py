@@ -158,6 +158,24 @@ def make_session(seed: int = 0, n: int = 16, n_holdout: int = 4, noise: float = 
     return session, dict(HIDDEN)
 
 
+@pytest.fixture
+def emulators():
+    """Factory ``emulators(bus, world, **kw) -> Emulator`` (``station.mocks.launch``, started): ``.url`` is what
+    the station opens; ``world`` a world file or, in-process, a ``World``. Every one is closed at teardown."""
+    from station.mocks.launch import launch
+
+    started = []
+
+    def start(bus: str, world=None, **kw):
+        emu = launch(bus, world, **kw)
+        started.append(emu)
+        return emu.start()
+
+    yield start
+    for emu in reversed(started):
+        emu.close()
+
+
 @pytest.fixture(scope="session")
 def session_factory():
     """``make_session(seed=..., ...) -> (session dict, hidden truth)``; see ``make_session``."""

@@ -212,7 +212,7 @@ def test_url_errors():
         open_robot("canopen+virtual://x?nodes=1-6")
     with pytest.raises(ConfigError, match="one node per joint"):
         open_robot("canopen+virtual://x?nodes=1-3&model=arm6")
-    with pytest.raises(ConfigError, match="unknown parameter"):
+    with pytest.raises(ConfigError, match="unknown option"):
         open_robot("canopen+virtual://x?nodes=1-6&model=arm6&bitrat=5")
     t = time.monotonic()
     with pytest.raises(ConnectionLost, match="cannot open"):
@@ -241,9 +241,9 @@ def test_enable_switches_all_drives_together_and_resets_faults(cell):
     t0 = time.monotonic()
     while not robot.status().faults and time.monotonic() - t0 < 1.0:
         time.sleep(0.01)
-    before = robot.sync_frames
+    before = robot.bus.sync_frames
     robot.enable()
-    rounds = robot.sync_frames - before
+    rounds = robot.bus.sync_frames - before
     st = robot.status()
     assert st.enabled and not st.faults
     assert all(emu.drives[n].state == "OPERATION ENABLED" for n in range(1, 7))

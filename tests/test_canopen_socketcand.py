@@ -126,7 +126,7 @@ def test_hub_gone_is_connection_lost(hub_rig):
         while time.monotonic() < end and not any("closed the connection" in f for f in robot.status().faults):
             time.sleep(0.02)
         assert any("closed the connection" in f for f in robot.status().faults)
-        assert robot.network.notifier._stopped  # no receive thread left spinning on the dead socket
+        assert robot.bus.network.notifier._stopped  # no receive thread left spinning on the dead socket
     finally:
         robot.close()
 

@@ -55,7 +55,7 @@ def test_dh_full_with_one_socket_is_refused_with_a_reason(tmp_path, monkeypatch)
     from station.mocks.canopen.emulator import CanopenEmulator
     from station.mocks.world import World
 
-    from station.engine import start
+    from station.api import run as start
 
     monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
     world = World.default(model="arm6", seed=5, time_mode="instant")

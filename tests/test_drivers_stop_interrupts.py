@@ -36,55 +36,36 @@ def _interrupt_long_move(robot, joint0, idle=lambda: True):
     assert idle()
 
 
-def test_canopen_stop_interrupts_waited_move():
-    from station.mocks.canopen.emulator import CanopenEmulator
-
+def test_canopen_stop_interrupts_waited_move(emulators):
     world = World.default(model="arm6", seed=3, time_mode="realtime")
-    emu = CanopenEmulator(world, interface="virtual", channel="stopint", nodes=list(range(1, 7)))
-    emu.start()
+    robot = open_robot(emulators("canopen", world).url)
     try:
-        robot = open_robot("canopen+virtual://stopint?nodes=1-6&model=arm6")
-        try:
-            robot.enable()
-            _interrupt_long_move(robot, lambda: world.encoder_q()[0], lambda: not world.is_moving())
-        finally:
-            robot.close()
+        robot.enable()
+        _interrupt_long_move(robot, lambda: world.encoder_q()[0], lambda: not world.is_moving())
     finally:
-        emu.stop()
+        robot.close()
 
 
-def test_dynamixel_stop_interrupts_waited_move():
-    from station.mocks.dynamixel import DynamixelEmulator
-
+def test_dynamixel_stop_interrupts_waited_move(emulators):
     world = World.default(model="omx", seed=3, time_mode="realtime")
-    emu = DynamixelEmulator(world, ids=[11, 12, 13, 14])
-    path = emu.start()
+    robot = open_robot(emulators("dynamixel", world).url + "&latency=50")
     try:
-        robot = open_robot(f"dynamixel://{path}?ids=11-14&model=omx&latency=50")
-        try:
-            robot.enable()
-            _interrupt_long_move(robot, lambda: world.encoder_q()[0], lambda: not world.is_moving())
-        finally:
-            robot.close()
+        robot.enable()
+        _interrupt_long_move(robot, lambda: world.encoder_q()[0], lambda: not world.is_moving())
     finally:
-        emu.stop()
+        robot.close()
 
 
-def test_ur_stop_interrupts_waited_move(tmp_path):
+def test_ur_stop_interrupts_waited_move(tmp_path, emulators):
     import yaml
-    from station.mocks.ur.process import EmulatorProcess
     from station.mocks.world import default_doc
 
     doc = default_doc("ur5e", seed=3)
     doc["motion"].update(time_mode="sim", start=[0.1, -1.45, 1.6, -1.72, -1.5708, 0.2])
     path = tmp_path / "world.yaml"
     path.write_text(yaml.safe_dump(doc))
-    emu = EmulatorProcess(world=path).start()
+    robot = open_robot(emulators("ur", path).url)
     try:
-        robot = open_robot(f"ur://{emu.host}?model=ur5e")
-        try:
-            _interrupt_long_move(robot, lambda: robot.joint_positions().q[0])
-        finally:
-            robot.close()
+        _interrupt_long_move(robot, lambda: robot.joint_positions().q[0])
     finally:
-        emu.stop()
+        robot.close()

@@ -117,7 +117,10 @@ def test_jog_joint_and_cartesian_with_tool_speed_cap(rig):
     assert abs(robot.joint_positions().q[2] - (q0[2] + 0.1)) <= _tick(world, 2)
     q1 = robot.joint_positions().q
     p0 = world.nominal.position(q1)
-    robot.jog("cartesian", 2, 0.01, speed=5.0)  # asks 5 m/s: capped at 0.25 m/s
+    with pytest.raises(LimitError, match="speed"):
+        robot.jog("cartesian", 2, 0.01, speed=5.0)  # above the 0.25 m/s manual cap: refused, nothing sent
+    np.testing.assert_array_equal(robot.joint_positions().q, q1)
+    robot.jog("cartesian", 2, 0.01)  # default: the 0.25 m/s cap itself
     q2 = robot.joint_positions().q
     d = world.nominal.position(q2) - p0
     # bound from tick quantisation: half a tick per joint through the position Jacobian

@@ -4,9 +4,12 @@ the robot and keeps the journal."""
 
 
 import pytest
+from station.mocks.launch import launch
 
-from station.cli.run_cmd import BUS_OPTIONS, Emulated, write_demo_files
-from station.engine import read_journal, resume, start
+from station.api import resume
+from station.api import run as start
+from station.cli.run_cmd import BUS_OPTIONS, write_demo_files
+from station.engine import read_journal
 from station.records import open_records
 
 
@@ -14,7 +17,7 @@ from station.records import open_records
 def cell(tmp_path, monkeypatch):
     monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
     world_path, cell_path, serial = write_demo_files("canopen", tmp_path, seed=21, time_mode="instant")
-    with Emulated("canopen", world_path, serial) as emu:
+    with launch("canopen", world_path, serial=serial) as emu:
         yield emu, cell_path, serial, f"sqlite:///{tmp_path / 'records.db'}"
 
 
@@ -104,7 +107,7 @@ def test_guarded_approach_stops_at_first_contact(tmp_path, monkeypatch):
     world_path, cell_path = tmp_path / "w.yaml", tmp_path / "c.yaml"
     world_path.write_text(yaml.safe_dump(doc))
     cell_path.write_text(yaml.safe_dump(World.from_file(world_path).station_cell()))
-    with Emulated("canopen", world_path, "NEEDLE-1") as emu:
+    with launch("canopen", world_path, serial="NEEDLE-1") as emu:
         out = start("tcp_4point", emu.url, "NEEDLE-1", cell=cell_path, touch=GuardedApproach(fine=0.01e-3),
                     options={"n_fit": 6, "n_holdout": 1})
         world = emu.world
@@ -127,7 +130,7 @@ def test_resume_after_power_loss_in_the_middle_of_write_back(cell, tmp_path):
     assert out.status == "completed" and out.record["writeback"]["verified"], out.error
     before, after = out.record["writeback"]["before"], out.record["writeback"]["after"]
     lines = (out.folder / "journal.jsonl").read_bytes().splitlines(keepends=True)
-    cut = next(i for i, ln in enumerate(lines) if b'"type":"writeback"' in ln and b'"phase":"before"' in ln) + 1
+    cut = next(i for i, ln in enumerate(lines) if b'"type":"writeback"' in ln and b'"phase":"pre-image"' in ln) + 1
     for variant in ("written", "not-written"):
         robot = station.connect(emu.url)
         robot.write_calibration(after if variant == "written" else before)

@@ -22,7 +22,7 @@ import yaml
 from station.mocks.canopen.emulator import CanopenEmulator
 from station.mocks.world import World
 
-from station.engine import start
+from station.api import run as start
 
 SEATING = 10e-6  # m per axis: where a compliant ball settles in a socket (the world's seating noise)
 SOCKETS = [("A", [0.35, 0.0, 0.75]), ("B", [0.30, 0.35, 0.60]), ("C", [0.45, -0.30, 0.55])]

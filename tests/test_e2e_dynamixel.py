@@ -13,9 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from station.mocks.launch import launch
 
-from station.cli.run_cmd import BUS_OPTIONS, Emulated, demo_world
-from station.engine import read_journal, session_from_journal, start
+from station.api import run as start
+from station.cli.run_cmd import BUS_OPTIONS, demo_world
+from station.engine import read_journal, session_from_journal
 from station.records import open_records
 
 TICK = 2 * math.pi / 4096  # XM430 position resolution (rad)
@@ -51,7 +53,7 @@ def _check_offsets(record, hidden):
 
 def test_zero_offsets_recovers_hidden_offsets(home):
     world_path, cell_path, serial = _files(home, seed=31)
-    with Emulated("dynamixel", world_path, serial) as emu:
+    with launch("dynamixel", world_path, serial=serial) as emu:
         out = start("zero_offsets", emu.url, serial, cell=cell_path, options=dict(BUS_OPTIONS["dynamixel"]),
                     db=f"sqlite:///{home / 'r.db'}")
         hidden = emu.world.hidden()
@@ -76,7 +78,7 @@ def test_kill_9_then_resume_keeps_every_sample(home):
     world_path, cell_path, serial = _files(home, seed=32, time_mode="realtime", time_scale=4.0)
     db = f"sqlite:///{home / 'r.db'}"
     env = {**os.environ, "STATION_HOME": str(home / "home")}
-    with Emulated("dynamixel", world_path, serial) as emu:
+    with launch("dynamixel", world_path, serial=serial) as emu:
         proc = _station(["run", "zero_offsets", "--robot", emu.url, "--serial", serial, "--cell", str(cell_path),
                          "--reference", "cell", "--cone", "70", "--db", db, "-q"], env)
         try:
@@ -125,7 +127,7 @@ def test_failing_verdict_exits_1_and_is_stored(home):
                       "      fit_rms: {high: 0.001, unit: mm}\n")
     db = f"sqlite:///{home / 'r.db'}"
     env = {**os.environ, "STATION_HOME": str(home / "home")}
-    with Emulated("dynamixel", world_path, serial) as emu:
+    with launch("dynamixel", world_path, serial=serial) as emu:
         proc = _station(["run", "zero_offsets", "--robot", emu.url, "--serial", serial, "--cell", str(cell_path),
                          "--reference", "cell", "--cone", "70", "--db", db, "--limits", str(strict), "-q",
                          "--poses", "12", "--holdout", "2"], env)
@@ -147,7 +149,7 @@ def test_failing_verdict_exits_1_and_is_stored(home):
 def test_sigterm_stops_the_robot_and_journals_the_interruption(home):
     world_path, cell_path, serial = _files(home, seed=34, time_mode="realtime", time_scale=4.0)
     env = {**os.environ, "STATION_HOME": str(home / "home")}
-    with Emulated("dynamixel", world_path, serial) as emu:
+    with launch("dynamixel", world_path, serial=serial) as emu:
         proc = _station(["run", "zero_offsets", "--robot", emu.url, "--serial", serial, "--cell", str(cell_path),
                          "--reference", "cell", "--cone", "70", "--db", f"sqlite:///{home / 'r.db'}", "-q"], env)
         try:

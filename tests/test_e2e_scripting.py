@@ -3,9 +3,10 @@ technician's manual touch through the ManualTouch provider, and teardown when a 
 
 import numpy as np
 import pytest
+from station.mocks.launch import launch
 
 import station
-from station.cli.run_cmd import Emulated, write_demo_files
+from station.cli.run_cmd import write_demo_files
 from station.engine import ManualTouch, read_journal
 
 
@@ -13,7 +14,7 @@ from station.engine import ManualTouch, read_journal
 def cell(tmp_path, monkeypatch):
     monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
     world_path, cell_path, serial = write_demo_files("canopen", tmp_path, seed=61, time_mode="instant")
-    with Emulated("canopen", world_path, serial) as emu:
+    with launch("canopen", world_path, serial=serial) as emu:
         yield emu, cell_path, serial, f"sqlite:///{tmp_path / 'records.db'}"
 
 

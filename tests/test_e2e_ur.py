@@ -8,9 +8,10 @@ import sys
 import numpy as np
 import pytest
 import yaml
+from station.mocks.launch import launch
 
-from station.cli.run_cmd import Emulated, demo_world
-from station.engine import start
+from station.api import run as start
+from station.cli.run_cmd import demo_world
 
 
 @pytest.fixture
@@ -42,7 +43,7 @@ def test_zero_offsets_on_ur(home):
     doc = demo_world("ur", seed=41)
     world_path, cell_path, hidden = _world(home, doc)
     serial = doc["buses"]["ur"]["serial"]
-    with Emulated("ur", world_path, serial) as emu:
+    with launch("ur", world_path, serial=serial) as emu:
         out = start("zero_offsets", emu.url, serial, cell=cell_path, db=f"sqlite:///{home / 'r.db'}")
     assert out.status == "completed" and out.passed, (out.error, out.record.get("verdict"))
     assert _within(out.record, hidden, "offset.") == ["offset.j2", "offset.j3", "offset.j4", "offset.j5"]
@@ -56,7 +57,7 @@ def test_tcp_methods_on_ur(home):
     doc["errors"] = {"explicit": {"tcp.x": 0.4e-3, "tcp.y": -0.3e-3, "tcp.z": 0.6e-3}}
     world_path, cell_path, hidden = _world(home, doc)
     serial = doc["buses"]["ur"]["serial"]
-    with Emulated("ur", world_path, serial) as emu:
+    with launch("ur", world_path, serial=serial) as emu:
         four = start("tcp_4point", emu.url, serial, cell=cell_path, db=f"sqlite:///{home / 'r.db'}")
         circle = start("tcp_circle", emu.url, serial, cell=cell_path, db=f"sqlite:///{home / 'r.db'}")
     assert four.status == "completed" and four.passed, (four.error, four.record.get("verdict"))

@@ -85,6 +85,7 @@ def test_installed_command_exit_code_for_unknown_serial(db):
 
 
 def _write_journal(folder: Path, session: dict) -> Path:
+    from station.engine import events as ev
     from station.engine.journal import Journal
 
     header = {k: session[k] for k in ("session", "serial", "procedure", "procedure_sha256", "station", "operator",
@@ -95,8 +96,12 @@ def _write_journal(folder: Path, session: dict) -> Path:
             j.append({k: v for k, v in s.items() if k != "seq"})
         j.append({"type": "result", "result": session["result"]})
         j.append({"type": "verdict", **session["verdict"]})
-        j.append({"type": "writeback", **session["writeback"]})
-        j.append({"type": "end", "status": "passed"})
+        wb = session["writeback"]
+        j.append(ev.Writeback(phase="pre-image", before=wb["before"], after=wb["after"]))
+        j.append(ev.Writeback(phase="written", before=wb["before"], after=wb["after"], readback=wb["after"],
+                              applied=True))
+        j.append(ev.Writeback(phase="verified", verified=wb["verified"], check={"passed": wb["verified"]}))
+        j.append(ev.End(status="completed", passed=session["verdict"]["passed"]))
     return path
 
 

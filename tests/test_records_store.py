@@ -204,16 +204,18 @@ def test_stored_session_survives_kill_9_right_after_store(tmp_path, session_fact
 
 
 def test_version_1_database_is_migrated_without_loss(tmp_path, session_factory):
-    """A database written by schema version 1 (no sessions.status) is upgraded in place when opened."""
+    """A database written by schema version 1 (no sessions.status, no samples.t_read) is upgraded in place when
+    opened."""
     url = f"sqlite:///{tmp_path / 'old.db'}"
     s, _ = session_factory(seed=14)
     with open_records(url) as r:
         r.store_session(s)
         with r.engine.begin() as c:  # turn it back into what version 1 left on disk
             c.execute(sa.text("ALTER TABLE sessions DROP COLUMN status"))
+            c.execute(sa.text("ALTER TABLE samples DROP COLUMN t_read"))
             c.execute(sa.text("UPDATE station_schema SET version = 1"))
     with open_records(url) as r:
-        assert r.schema_version() == SCHEMA_VERSION == 2
+        assert r.schema_version() == SCHEMA_VERSION == 3
         assert _canon(r.session(s["session"])) == _canon(s)
         assert r.sessions()[0]["status"] is None
         s2 = {**copy.deepcopy(s), "status": "passed"}
@@ -221,4 +223,16 @@ def test_version_1_database_is_migrated_without_loss(tmp_path, session_factory):
         assert r.sessions()[0]["status"] == "passed"
         with r.engine.connect() as c:
             notes = c.execute(sa.text("SELECT version, note FROM station_schema ORDER BY version")).all()
-    assert [tuple(n) for n in notes] == [(1, "created"), (2, "migrated from 1")]
+    assert [tuple(n) for n in notes] == [(1, "created"), (2, "migrated from 1"), (3, "migrated from 2")]
+
+
+def test_sample_reading_time_and_journal_time_are_kept_apart(tmp_path, session_factory):
+    """Journal /2: ``t`` is when a sample was journaled, ``t_read`` when the joints were read."""
+    s, _ = session_factory(seed=15)
+    for i, smp in enumerate(s["samples"]):
+        smp["t_read"] = smp["t"] - 0.25 - i * 1e-3
+    with open_records(f"sqlite:///{tmp_path / 'r.db'}") as r:
+        r.store_session(s)
+        with r.engine.connect() as c:
+            rows = c.execute(sa.text("SELECT t, t_read FROM samples ORDER BY seq")).all()
+    assert [(a, b) for a, b in rows] == [(x["t"], x["t_read"]) for x in s["samples"]]

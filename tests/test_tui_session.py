@@ -49,7 +49,8 @@ def test_samples_journaled_and_csv_readable(tmp_path):
     assert [e["seq"] for e in events if e["type"] == "sample"] == [k.seq for k in kept]
     s.discard(kept[1], reason="technician")
     _, events = read_journal(s.folder / "journal.jsonl")
-    assert events[-1] == {**events[-1], "type": "discard", "sample": kept[1].seq}
+    assert events[-1].type == "discard" and events[-1].sample == kept[1].seq
+    assert all(e.session == s.session_id for e in events)
     record = session_from_journal(s.folder)
     assert [e["seq"] for e in record["samples"]] == [kept[0].seq, kept[2].seq]
     samples = read_samples(s.samples_csv, model.joints)
@@ -57,7 +58,10 @@ def test_samples_journaled_and_csv_readable(tmp_path):
     assert list(samples.point) == ["A", "A"]
     s.close()
     header, events = read_journal(s.folder / "journal.jsonl")
-    assert header["procedure"] == "jog" and header["serial"] == "SN7"
+    assert header.procedure == "jog" and header.serial == "SN7" and header.mode == "technician"
+    assert header.options == {"identify": "offsets", "reference": "unknown"} and header.url == "test://"
+    # the reading time the UI gave is the sample's t_read; t is when it was journaled
+    assert [e.t_read for e in events if e.type == "sample"] == [1.0, 2.0, 3.0]
     assert events[-1]["type"] == "end"
 
 

@@ -10,7 +10,6 @@ import time
 import numpy as np
 import pytest
 import yaml
-from station.mocks.ur.process import EmulatorProcess
 from station.mocks.world import default_doc
 
 from station.engine.journal import read_journal
@@ -33,21 +32,17 @@ def _no_idle_wait(monkeypatch):
 
 
 @pytest.fixture
-def ur(tmp_path):
+def ur(tmp_path, emulators):
     doc = default_doc("ur5e", seed=3)
     doc["motion"].update(time_mode="sim", start=list(START))  # the controller's 2 ms cycle drives the world
     doc["buses"] = {"ur": {"serial": "20235500001"}}
     path = tmp_path / "world.yaml"
     path.write_text(yaml.safe_dump(doc))
-    emu = EmulatorProcess(world=path).start()
-    robot = None
+    robot = open_robot(emulators("ur", path).url)
     try:
-        robot = open_robot(f"ur://{emu.host}?model=ur5e")
         yield robot
     finally:
-        if robot is not None:
-            robot.close()
-        emu.stop()
+        robot.close()
 
 
 async def wait_still(pilot, ctl, timeout=10.0):

@@ -71,9 +71,9 @@ def test_bad_calibration_conf_names_file_and_line(tmp_path):
     ("ur://", "needs the controller's address"),
     ("ur://127.0.0.1:30004", "takes no port"),
     ("ur://127.0.0.1?bogus=1", "unknown option"),
-    ("ur://127.0.0.1?contact_bit=x", "not a number"),
+    ("ur://127.0.0.1?contact_bit=x", r"contact_bit='x' is not a valid value \(expected integer 0\.\.63\)"),
     ("ur://127.0.0.1?speed=9", "must be in"),
-    ("ur://127.0.0.1?tool_speed=0.3", "must be in"),
+    ("ur://127.0.0.1?tool_speed=0.3", r"tool_speed='0.3' is not a valid value \(expected number in \(0, 0.25\] m/s\)"),
     ("ur://127.0.0.1?model=nosuchrobot", "model 'nosuchrobot'"),
 ])
 def test_bad_ur_urls_are_config_errors(url, message):

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 import yaml
-from station.mocks.ur.process import EmulatorProcess
+from station.mocks.launch import Emulator, launch
 from station.mocks.world import World, default_doc
 
 from station.robot import BusError, ConnectionLost, LimitError, SafetyStop, open_robot
@@ -28,18 +28,9 @@ def world_file(tmp_path, seed: int = 7, serial: str = "20235512345", start=START
 
 
 @pytest.fixture
-def emulator(request):
-    """Factory: start an emulator for a world file; every one is terminated at teardown."""
-    procs: list[EmulatorProcess] = []
-
-    def start(path) -> EmulatorProcess:
-        emu = EmulatorProcess(world=path)
-        procs.append(emu)
-        return emu.start()
-
-    yield start
-    for emu in procs:
-        emu.stop()
+def emulator(emulators):
+    """Factory: start a UR emulator for a world file; every one is terminated at teardown."""
+    return lambda path: emulators("ur", path)
 
 
 @pytest.fixture
@@ -56,7 +47,7 @@ def robots():
         r.close()
 
 
-def commands_seen(emu: EmulatorProcess) -> list[int]:
+def commands_seen(emu: Emulator) -> list[int]:
     """Command ids the controller received in input_int_register_0 (emulator-only read-back)."""
     reply = emu.dashboard("emulator registers")
     return [int(c) for c in reply.split("(tick, command)")[1].replace("(", "").replace(")", "").replace("[", "")
@@ -273,7 +264,7 @@ def test_local_control_is_refused_with_a_clear_message(tmp_path):
     from station.robot import ConfigError
 
     path, _ = world_file(tmp_path)
-    with EmulatorProcess(world=path, extra=("--no-remote",)) as emu:
+    with launch("ur", path, extra=("--no-remote",)) as emu:
         with pytest.raises(ConfigError, match="Remote Control"):
             open_robot(f"ur://{emu.host}")
         with pytest.raises(RuntimeError, match="remote control"):  # ur_rtde's own check, same answer

@@ -14,7 +14,7 @@ import pytest
 import rtde_control
 import rtde_receive
 import yaml
-from station.mocks.ur.process import EmulatorProcess, dashboard
+from station.mocks.launch import dashboard, launch
 from station.mocks.world import World, default_doc
 
 
@@ -25,7 +25,7 @@ def emu(tmp_path):
     doc["buses"] = {"ur": {"serial": "20235577777", "contact_bit": 17}}
     path = tmp_path / "world.yaml"
     path.write_text(yaml.safe_dump(doc))
-    with EmulatorProcess(world=path) as e:
+    with launch("ur", path) as e:
         e.world = World.from_file(path)
         yield e
 

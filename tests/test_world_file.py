@@ -183,9 +183,9 @@ def test_malformed_world_file_one_line_error_naming_file_and_field(tmp_path, cha
     assert msg.startswith(f"{f}: ")
     assert field in msg
     assert isinstance(e.value, ValueError)
-    from station.robot.errors import ConfigError
+    from station.mocks.errors import MockError
 
-    assert isinstance(e.value, ConfigError)  # the station command prints it as one line, exit 2
+    assert isinstance(e.value, MockError)  # the station command prints it as one line, exit 2
 
 
 def test_unreadable_and_invalid_yaml(tmp_path):

@@ -11,9 +11,13 @@ import select
 import threading
 from collections.abc import Callable
 
-import dynamixel_sdk as sdk
-
 from station.robot.errors import BusError, ConfigError, ConnectionLost
+from station.robot.registry import bus_library
+
+with bus_library("pyserial"):
+    import serial  # noqa: F401 - dynamixel_sdk's transport: named here so a missing one is named right
+with bus_library("dynamixel-sdk"):
+    import dynamixel_sdk as sdk
 
 RETRYABLE = (sdk.COMM_RX_TIMEOUT, sdk.COMM_RX_CORRUPT, sdk.COMM_RX_FAIL, sdk.COMM_PORT_BUSY)
 

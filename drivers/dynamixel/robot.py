@@ -1,9 +1,9 @@
 """``DynamixelRobot``: the Robot protocol over a Dynamixel Protocol 2.0 bus (one servo per joint).
 
 URL: ``dynamixel:///dev/ttyUSB0?baud=1000000&ids=11-14&model=omx[&contact=200][&serial=SN][&fast=1]
-[&retries=3][&latency=16]``. Ids map to the model's joints in order. Joint snapshot = one (Fast) Sync Read of
-Present Position; goals = one Sync Write of Profile Acceleration + Profile Velocity + Goal Position.
-Ticks <-> SI through each joint's encoder scaling in the kinematic model."""
+[&retries=3][&latency=16]`` (options: ``DynamixelRobot.options``). Ids map to the model's joints in order.
+Joint snapshot = one (Fast) Sync Read of Present Position; goals = one Sync Write of Profile Acceleration +
+Profile Velocity + Goal Position. Ticks <-> SI through each joint's encoder scaling in the kinematic model."""
 
 from __future__ import annotations
 
@@ -17,16 +17,33 @@ from station.drivers.dynamixel import table as T
 from station.drivers.dynamixel.bus import DxlBus, unpack
 
 from station.kinematics import Model, load_model
+from station.robot.base import RobotBase
 from station.robot.errors import BusError, ConfigError, DeviceFault, LimitError, SafetyStop, StationError
-from station.robot.motion import MANUAL_TOOL_SPEED_CAP, check_joint_limits, jog_target, joint_speed_for_tool_cap
+from station.robot.motion import MANUAL_TOOL_SPEED_CAP
 from station.robot.protocol import Identity, JointSnapshot, JointState, RobotStatus
-from station.robot.registry import RobotURL, parse_ids
-
-URL_KEYS = {"baud", "ids", "model", "contact", "serial", "fast", "retries", "latency"}
+from station.robot.url import Option, Options, RobotURL, either, flag, id_list, integer, number, text
 
 
-class DynamixelRobot:
+class DynamixelRobot(RobotBase):
     """A serial arm of Dynamixel X-series servos. SI units at the interface (rad, rad/s, m/s)."""
+
+    options = Options(
+        Option("baud", integer(1), 1_000_000, "bus baud rate (a rate the SDK accepts: 57600, 115200, 1000000, "
+               "2000000, ...)"),
+        Option("ids", id_list(), None, "servo ids **in joint order** (`11-14`, `1,2,5,6`); one per joint of the "
+               "model", default_doc="1..n"),
+        Option("model", text(), "omx", "kinematic model name or file; its joints' `encoder` gives ticks <-> rad"),
+        Option("contact", either(none=("none", ""), otherwise=integer(0, 252)), None,
+               "id of the contact-sensor device; without it `touch()` returns None"),
+        Option("serial", text(), None, "robot serial number for records; without it `DXL-<MODEL>-<ids>` "
+               "(deterministic)", default_doc="derived"),
+        Option("fast", flag(), True, "`1`: Fast Sync Read snapshots, `0`: plain Sync Read"),
+        Option("retries", integer(0, 100), 3, "retries after a COMM_RX_TIMEOUT / corrupt answer, per transaction"),
+        Option("latency", number(0, 1000, unit="ms"), 16.0,
+               "the latency term of the SDK's answer timeout (`bytes x byte time + 2 x latency + 2 ms`); `1` with "
+               "the adapter's latency timer at 1 ms detects a lost answer sooner, a larger value (tests use 50) "
+               "keeps a loaded host's scheduling delays from counting as lost answers", default_doc="16 (SDK)"),
+    )
 
     def __init__(self, port: str, *, ids: list[int], model: Model | str = "omx", baud: int = 1_000_000,
                  contact_id: int | None = None, serial: str | None = None, fast: bool = True, retries: int = 3,
@@ -44,7 +61,6 @@ class DynamixelRobot:
         self.fast = fast
         self.url = url
         self.bus = DxlBus(port, baud, retries, latency_ms)
-        self._compliant = False
         self._wd_clear = False  # every servo's bus watchdog known to be 0 (not armed, not tripped)
         self._maybe_moving = True  # a move not waited for (or cut short) may still run
         self._current_limits: dict[int, int] | None = None  # Current Limit (38, EEPROM): read once
@@ -52,44 +68,25 @@ class DynamixelRobot:
         # (end of a waited move, torque on): the next move starts from it instead of reading again
         self._rest: list[int] | None = None
         self._interrupt = threading.Event()  # set by stop() from any thread: ends a waited move
-        self._closed = False
         try:
             self.devices = self._probe()
         except BaseException:
+            self._closed = True  # nothing was commanded: release the port without a stop on a silent bus
             self.bus.close()
             raise
         self._serial_from_url = bool(serial)
         self.serial = serial or f"DXL-{self.model.name.upper()}-" + ".".join(str(i) for i in self.ids)
 
     @classmethod
-    def from_url(cls, url: RobotURL, **kw) -> DynamixelRobot:
-        unknown = set(url.query) - URL_KEYS
-        if unknown:
-            raise ConfigError(f"robot URL {url.raw!r}: unknown option(s) {', '.join(sorted(unknown))}; "
-                              f"known: {', '.join(sorted(URL_KEYS))}")
+    def from_url(cls, url: RobotURL, **overrides) -> DynamixelRobot:
+        o = cls.options.parse(url)
         if not url.path:
             raise ConfigError(f"robot URL {url.raw!r}: no serial port path (dynamixel:///dev/ttyUSB0?...)")
-        model = kw.pop("model", None) or url.get("model") or "omx"
-        try:
-            m = load_model(model) if isinstance(model, str) else model
-        except (KeyError, ValueError, OSError) as e:
-            raise ConfigError(f"robot URL {url.raw!r}: model {model!r}: {e}") from None
-        ids = parse_ids(url.get("ids")) if url.get("ids") else list(range(1, m.n_joints + 1))
-        try:
-            baud = int(url.get("baud", "1000000"))
-            contact = url.get("contact")
-            contact_id = int(contact) if contact not in (None, "", "none") else None
-            retries = int(url.get("retries", "3"))
-            latency = float(url.get("latency", "16"))
-            if not (math.isfinite(latency) and 0 <= latency <= 1000):
-                raise ValueError
-        except ValueError:
-            raise ConfigError(f"robot URL {url.raw!r}: baud, contact and retries must be integers, latency "
-                              "a number of ms in 0..1000") from None
-        fast = url.get("fast", "1").lower() not in ("0", "false", "no")
-        args = {"ids": ids, "model": m, "baud": baud, "contact_id": contact_id, "serial": url.get("serial"),
-                "fast": fast, "retries": retries, "latency_ms": latency, "url": url.raw}
-        args.update(kw)
+        model = cls.load_url_model(url, overrides.pop("model", None) or o["model"])
+        args = {"ids": o["ids"] or list(range(1, model.n_joints + 1)), "model": model, "baud": o["baud"],
+                "contact_id": o["contact"], "serial": o["serial"], "fast": o["fast"], "retries": o["retries"],
+                "latency_ms": o["latency"], "url": url.raw}
+        args.update(overrides)
         return cls(url.path, **args)
 
     # ---- helpers --------------------------------------------------------------------------------
@@ -184,8 +181,6 @@ class DynamixelRobot:
         lead = float(dq.max())
         vmax = self.model.max_velocity
         amax = np.array([j.max_acceleration for j in self.model.joints])
-        if speed is not None and (not math.isfinite(speed) or speed <= 0):
-            raise LimitError(f"move: speed must be a positive number of rad/s, got {speed!r}; nothing was sent")
         v = 0.5 * float(vmax.min()) if speed is None else float(speed)
         if lead <= 0:
             return [1] * len(self.ids), [1] * len(self.ids)
@@ -200,9 +195,9 @@ class DynamixelRobot:
         return vel, acc
 
     def move_joints(self, q: np.ndarray, speed: float | None = None, wait: bool = True) -> None:
-        target = check_joint_limits(self.model, np.asarray(q, dtype=float), "move")
-        if self._compliant:
-            raise LimitError("move: the arm is compliant (set_compliant(False) first); nothing was sent")
+        target = self._checked_target(q, "move")
+        speed = self._checked_speed(speed, "move")
+        self._check_stiff("move")
         self._interrupt.clear()
         # the start only scales the joints' profile velocities so they arrive together (each stays within
         # its limit whatever the start): a resting position read since the last command is good for it
@@ -298,14 +293,8 @@ class DynamixelRobot:
 
     def jog(self, mode: str, axis: int, step: float, speed: float | None = None) -> None:
         snap = self.joint_positions()
-        target = jog_target(self.model, snap.q, mode, axis, step)
-        if mode == "joint":
-            v = joint_speed_for_tool_cap(self.model, snap.q, target, speed)
-        else:
-            cap = MANUAL_TOOL_SPEED_CAP if speed is None else min(float(speed), MANUAL_TOOL_SPEED_CAP)
-            if not cap > 0:
-                raise LimitError(f"jog: tool speed must be positive, got {speed!r}; nothing was sent")
-            v = joint_speed_for_tool_cap(self.model, snap.q, target, None, cap=cap)
+        target, v = self._jog_plan(snap.q, mode, axis, step, speed, joint_default=None,
+                                   tool_default=MANUAL_TOOL_SPEED_CAP)
         self.move_joints(target, v, wait=True)
 
     def stop(self) -> None:
@@ -507,19 +496,11 @@ class DynamixelRobot:
             raise DeviceFault(f"{self._name(i)} still reports hardware error 0x{bits:02X} "
                               f"({T.describe_hardware_error(bits)}) after reboot", device=f"dynamixel:{i}", code=bits)
 
-    def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
+    def _shutdown(self) -> None:
+        """Every servo holds where it is (torque stays on: an arm must not drop), then the port is released."""
         try:
             self.stop()
         except StationError:
             pass  # closing a robot on a dead bus must still release the port
         finally:
             self.bus.close()
-
-    def __enter__(self) -> DynamixelRobot:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()

@@ -1,5 +1,6 @@
 """``ur://HOST[?model=ur5e&calibration=PATH&export=DIR&contact_bit=16&speed=0.5]``: a Universal Robots
-e-Series arm over RTDE (ur_rtde's RTDEReceiveInterface + RTDEControlInterface) and the dashboard server.
+e-Series arm over RTDE (ur_rtde's RTDEReceiveInterface + RTDEControlInterface) and the dashboard server
+(options: ``URRobot.options``).
 
 Units: joints in rad, joint speed rad/s, tool speed m/s. Every motion command checks limits first (a refused
 command sends nothing) and is then watched: protective/emergency stop -> SafetyStop, lost link ->
@@ -23,10 +24,17 @@ from station.drivers.ur.calibration import (
 )
 from station.drivers.ur.dashboard import DashboardClient
 
-from station.kinematics import Model, ModelFileError, load_model
+from station.kinematics import Model
+from station.robot.base import RobotBase
 from station.robot.errors import BusError, ConfigError, ConnectionLost, DeviceFault, LimitError, SafetyStop
-from station.robot.motion import MANUAL_TOOL_SPEED_CAP, check_joint_limits, jog_target, joint_speed_for_tool_cap
+from station.robot.motion import MANUAL_TOOL_SPEED_CAP, check_joint_limits, joint_speed_for_tool_cap
 from station.robot.protocol import Identity, JointSnapshot, JointState, RobotStatus
+from station.robot.registry import bus_library
+from station.robot.url import Option, Options, RobotURL, integer, number, text
+
+with bus_library("ur-rtde"):
+    import rtde_control
+    import rtde_receive
 
 log = logging.getLogger("station.drivers.ur")
 
@@ -40,19 +48,33 @@ ROBOT_MODE_RUNNING = 7
 LOCAL_HOSTS = ("localhost", "127.0.0.1")  # ur_rtde skips its remote-control check only for these
 
 
-def _ur_modules():
-    try:
-        import rtde_control
-        import rtde_receive
-    except ImportError as e:  # pragma: no cover - dependency of the project
-        raise ConfigError(f"ur:// needs the ur-rtde package ({e})") from None
-    return rtde_receive, rtde_control
-
-
-class URRobot:
-    """Fulfils ``station.robot.Robot`` for UR e-Series controllers."""
+class URRobot(RobotBase):
+    """Fulfils ``station.robot.Robot`` for UR e-Series controllers; capabilities: calibration export (and
+    read/write of the ``calibration.conf`` the station uses), contact input, freedrive, Cartesian motion,
+    protective-stop unlock, reconnect."""
 
     vendor = "Universal Robots"
+    options = Options(
+        Option("model", text(), "ur5e", "kinematic model (`ur3e`, `ur5e`, `ur10e` or a model file)",
+               default_doc="`ur5e`"),
+        Option("calibration", text(), None, "the controller's `calibration.conf`: its `[mounting]` deltas are added "
+               "to the model (the station then believes what the controller believes) and `read_calibration()` "
+               "returns `delta_theta`", default_doc="none: zeros"),
+        Option("export", text(), None, "folder for `write_calibration()` exports",
+               default_doc="`./ur-calibration-SERIAL/`"),
+        Option("contact_bit", integer(0, 63), 16, "bit of `actual_digital_input_bits` wired to the contact sensor "
+               "(0-7 DI, 8-15 CI, 16-17 tool DI)", default_doc="`16` = tool DI 0"),
+        Option("speed", number(0, unit="rad/s", open_low=True), None, "default joint speed of `move_joints`, at "
+               "most the slowest joint's maximum", default_doc="`0.5`"),
+        Option("jog_speed", number(0, unit="rad/s", open_low=True), None, "default joint jog speed, at most the "
+               "slowest joint's maximum", default_doc="`0.2`"),
+        Option("tool_speed", number(0, MANUAL_TOOL_SPEED_CAP, unit="m/s", open_low=True), 0.05,
+               "default tool speed of Cartesian jogs and `move_linear`"),
+        Option("jog_watchdog", number(0, 500, unit="Hz"), 10.0, "controller-side RTDE watchdog during speed jogs "
+               "(0 = off)"),
+        Option("serial", text(), None, "serial number to use only if the controller does not report one "
+               "(PolyScope < 5.6)"),
+    )
 
     def __init__(self, host: str, catalog: Model, *, deltas: dict[str, list[float]] | None = None,
                  export_dir: str | None = None, contact_bit: int = 16, speed: float = 0.5, accel: float = 1.0,
@@ -89,50 +111,28 @@ class URRobot:
 
     # ---- construction ------------------------------------------------------------------------
     @classmethod
-    def from_url(cls, url, **kw) -> URRobot:
+    def from_url(cls, url: RobotURL, **overrides) -> URRobot:
+        o = cls.options.parse(url)
         if not url.host:
             raise ConfigError(f"robot URL {url.raw!r}: ur:// needs the controller's address, e.g. ur://192.168.0.10")
         if url.port is not None:
             raise ConfigError(f"robot URL {url.raw!r}: ur:// takes no port (RTDE 30004, dashboard 29999 and "
                               "script 30003 are fixed by the controller)")
-        known = {"model", "calibration", "export", "contact_bit", "speed", "jog_speed", "tool_speed", "jog_watchdog",
-                 "serial"}
-        unknown = sorted(set(url.query) - known)
-        if unknown:
-            raise ConfigError(f"robot URL {url.raw!r}: unknown option(s) {', '.join(unknown)}; "
-                              f"known: {', '.join(sorted(known))}")
-        name = url.get("model", "ur5e")
-        try:
-            catalog = load_model(name)
-        except (ModelFileError, FileNotFoundError, KeyError) as e:
-            raise ConfigError(f"robot URL {url.raw!r}: model {name!r}: {e}") from None
-        calibration = url.get("calibration")
-        deltas = read_calibration_conf(calibration, catalog.n_joints) if calibration else None
-
-        def num(key: str, default: float, lo: float, hi: float) -> float:
-            text = url.get(key)
-            try:
-                v = default if text is None else float(text)
-            except ValueError:
-                raise ConfigError(f"robot URL {url.raw!r}: {key}={text!r} is not a number") from None
-            if not (math.isfinite(v) and lo < v <= hi):
-                raise ConfigError(f"robot URL {url.raw!r}: {key}={v:g} must be in ({lo:g}, {hi:g}]")
-            return v
-
+        catalog = cls.load_url_model(url, o["model"])
+        deltas = read_calibration_conf(o["calibration"], catalog.n_joints) if o["calibration"] else None
         vmax = float(catalog.max_velocity.min())
-        bit = num("contact_bit", 16, -1, 63)
-        if bit != int(bit):
-            raise ConfigError(f"robot URL {url.raw!r}: contact_bit must be an integer 0..63")
-        args = dict(deltas=deltas, export_dir=url.get("export"), contact_bit=int(bit),
-                    speed=num("speed", min(0.5, vmax), 0, vmax), jog_speed=num("jog_speed", min(0.2, vmax), 0, vmax),
-                    tool_speed=num("tool_speed", 0.05, 0, MANUAL_TOOL_SPEED_CAP),
-                    jog_watchdog=num("jog_watchdog", 10.0, -1, 500), serial=url.get("serial"), url=url.raw)
-        args.update(kw)
+        for key in ("speed", "jog_speed"):  # bounded by the model: checked once it is known
+            if o[key] is not None and o[key] > vmax:
+                raise ConfigError(f"robot URL {url.raw!r}: {key}={o[key]:g} must be in (0, {vmax:g}] rad/s "
+                                  f"(model {catalog.name})")
+        args = dict(deltas=deltas, export_dir=o["export"], contact_bit=o["contact_bit"],
+                    speed=o["speed"] or min(0.5, vmax), jog_speed=o["jog_speed"] or min(0.2, vmax),
+                    tool_speed=o["tool_speed"], jog_watchdog=o["jog_watchdog"], serial=o["serial"], url=url.raw)
+        args.update(overrides)
         return cls(url.host, catalog, **args)
 
     # ---- connection --------------------------------------------------------------------------
     def connect(self) -> None:
-        rtde_receive, rtde_control = _ur_modules()
         self._dash.connect()
         self.firmware = self._dash.polyscope_version()
         reported = self._dash.serial_number()
@@ -172,6 +172,7 @@ class URRobot:
 
     def reconnect(self, timeout: float = 10.0) -> None:
         """Re-open every channel after a ConnectionLost (retries until ``timeout`` s)."""
+        self._check_open("reconnect")
         self._drop_interfaces()
         deadline = time.monotonic() + timeout
         while True:
@@ -184,7 +185,7 @@ class URRobot:
                     raise ConnectionLost(f"ur://{self.host}: reconnect failed for {timeout:g} s: {e}") from None
                 time.sleep(0.25)
 
-    def close(self) -> None:
+    def _shutdown(self) -> None:
         """Stop motion, end the control script on the controller, close every channel."""
         if self._c is not None:
             try:
@@ -194,12 +195,6 @@ class URRobot:
             except Exception as e:  # closing must not fail (the link may already be gone)
                 log.warning("ur://%s: close: %s", self.host, e)
         self._drop_interfaces()
-
-    def __enter__(self) -> URRobot:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     # ---- link and safety checks --------------------------------------------------------------
     def _check_link(self) -> None:
@@ -338,15 +333,9 @@ class URRobot:
         self._check_link()
         return np.asarray(self._r.getActualTCPPose(), dtype=float)
 
-    def _check_speed(self, speed: float | None, default: float, vmax: float, what: str, unit: str) -> float:
-        v = default if speed is None else float(speed)
-        if not (math.isfinite(v) and 0 < v <= vmax):
-            raise LimitError(f"{what}: speed {v:g} {unit} outside (0, {vmax:g}] {unit}; nothing was sent")
-        return v
-
     def move_joints(self, q, speed: float | None = None, wait: bool = True) -> None:
-        target = check_joint_limits(self.model, q, "move_joints")
-        v = self._check_speed(speed, self.speed, float(self.model.max_velocity.min()), "move_joints", "rad/s")
+        target = self._checked_target(q, "move_joints")
+        v = self._checked_speed(speed, "move_joints", "rad/s", float(self.model.max_velocity.min())) or self.speed
         if not wait:
             self._disarm_watchdog()  # nobody kicks while an unwatched move runs
         self._interrupt.clear()
@@ -370,7 +359,8 @@ class URRobot:
         p = np.asarray(pose, dtype=float).reshape(-1)
         if p.shape != (6,) or not np.all(np.isfinite(p)):
             raise LimitError(f"move_linear: pose must be 6 finite numbers (x, y, z, rx, ry, rz), got {p.tolist()}")
-        v = self._check_speed(speed, self.tool_speed, 1.0, "move_linear", "m/s")
+        self._check_open("move_linear")
+        v = self._checked_speed(speed, "move_linear", "m/s", 1.0) or self.tool_speed
         q0 = self.joint_positions().q
         res = self.model.ik(pose_to_matrix(p)[None], q0[None])
         if not res.ok[0]:
@@ -426,13 +416,13 @@ class URRobot:
         """One jog step with speedJ (joints, Cartesian rotations) or speedL (Cartesian translations), watched
         by a deadline; the tool never exceeds 0.25 m/s. Ends with a short moveJ onto the exact target."""
         q0 = self.joint_positions().q
-        target = jog_target(self.model, q0, mode, axis, step)
+        target = self._jog_target(q0, mode, axis, step)
         if mode == "cartesian" and axis < 3:
-            v = self._check_speed(speed, self.tool_speed, MANUAL_TOOL_SPEED_CAP, "jog", "m/s")
+            v = self._checked_speed(speed, "jog", "m/s", MANUAL_TOOL_SPEED_CAP) or self.tool_speed
         elif mode == "cartesian":
             v = joint_speed_for_tool_cap(self.model, q0, target, None)
         else:
-            v = self._check_speed(speed, self.jog_speed, float(self.model.max_velocity[axis]), "jog", "rad/s")
+            v = self._checked_speed(speed, "jog", "rad/s", float(self.model.max_velocity[axis])) or self.jog_speed
         self._ready_for_motion()
         if mode == "cartesian" and axis < 3:
             p0 = self.model.position(q0)

@@ -12,31 +12,32 @@ import threading
 from pathlib import Path
 
 import typer
-
-from station.robot.errors import ConfigError
+from station.mocks.errors import MockError
 
 
 def build(world_file: Path | None, model: str, seed: int, nodes: str | None, contact: str | None,
           store: Path | None, channel: str):
     from station.mocks.canopen.emulator import CanopenEmulator
+    from station.mocks.ids import parse_id_list
     from station.mocks.world import World, WorldFileError
-
-    from station.robot.registry import parse_ids
 
     try:
         world = World.from_file(world_file) if world_file else World.default(model=model, seed=seed,
                                                                              time_mode="realtime")
     except (WorldFileError, ValueError, OSError) as e:
-        raise ConfigError(f"world: {e}") from None
+        raise MockError(f"world: {e}") from None
     cfg = world.bus_config("canopen")
-    node_list = parse_ids(nodes) if nodes else None
+    try:
+        node_list = parse_id_list(nodes) if nodes else None
+    except ValueError:
+        raise MockError(f"bad node id list {nodes!r}: expected e.g. 1-6 or 1,2,4") from None
     c = contact if contact is not None else cfg.get("contact_node", -1)
     c = None if c is None or str(c).lower() in ("none", "off", "") else int(c)
     try:
         return CanopenEmulator(world, interface="virtual", channel=channel, nodes=node_list, contact_node=c,
                                store_path=store)
     except ValueError as e:
-        raise ConfigError(str(e)) from None
+        raise MockError(str(e)) from None
 
 
 def register(mock_app: typer.Typer) -> None:
@@ -68,7 +69,7 @@ def register(mock_app: typer.Typer) -> None:
             hub.start()
         except OSError as e:
             emu.stop()
-            raise ConfigError(str(e)) from None
+            raise MockError(str(e)) from None
         try:
             ids = ",".join(str(n) for n in emu.nodes)
             url = (f"canopen+socketcand://{host}:{hub.port}?channel={bus}&nodes={ids}"

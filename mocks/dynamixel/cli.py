@@ -4,14 +4,14 @@ until SIGTERM/SIGINT."""
 from __future__ import annotations
 
 import json
+import os
 import signal
 import sys
 import threading
 from pathlib import Path
 
 import typer
-
-from station.robot.errors import ConfigError
+from station.mocks.errors import MockError
 
 
 def _load_eeprom(path: Path | None) -> dict[int, bytes]:
@@ -21,7 +21,7 @@ def _load_eeprom(path: Path | None) -> dict[int, bytes]:
         doc = json.loads(path.read_text())
         return {int(k): bytes.fromhex(v) for k, v in doc["eeprom"].items()}
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
-        raise ConfigError(f"{path}: not a dynamixel EEPROM file ({e})") from None
+        raise MockError(f"{path}: not a dynamixel EEPROM file ({e})") from None
 
 
 def _save_eeprom(path: Path, images: dict[int, bytes]) -> None:
@@ -35,20 +35,29 @@ def _save_eeprom(path: Path, images: dict[int, bytes]) -> None:
 def build_emulator(world_file: Path | None, model: str, ids: str | None, baud: int | None, wire_timing: bool,
                    return_delay: int | None, contact_id: str | None, servo: str | None, eeprom: Path | None,
                    seed: int = 0):
-    from station.mocks.dynamixel.emulator import DEFAULT_CONTACT_ID, DynamixelEmulator, parse_id_list
     from station.mocks.world import World, WorldFileError
-
 
     try:
         world = World.from_file(world_file) if world_file else World.default(model=model, seed=seed,
                                                                              time_mode="realtime")
     except (WorldFileError, ValueError, OSError) as e:
-        raise ConfigError(f"world: {e}") from None
+        raise MockError(f"world: {e}") from None
+    return emulator_for(world, ids, baud, wire_timing, return_delay, contact_id, servo, _load_eeprom(eeprom))
+
+
+def emulator_for(world, ids: str | None = None, baud: int | None = None, wire_timing: bool = False,
+                 return_delay: int | None = None, contact_id: str | None = None, servo: str | None = None,
+                 eeprom: dict[int, bytes] | None = None):
+    """The emulator for ``world``: options given here win over the world file's ``buses.dynamixel`` section,
+    which wins over the defaults (ids 1..n, contact sensor id 200, XM430, 1 Mbaud)."""
+    from station.mocks.dynamixel.emulator import DEFAULT_CONTACT_ID, DynamixelEmulator
+    from station.mocks.ids import parse_id_list
+
     cfg = world.bus_config("dynamixel")
     try:
         id_list = parse_id_list(ids) if ids else (parse_id_list(cfg["ids"]) if cfg.get("ids") else None)
     except (ValueError, TypeError):
-        raise ConfigError(f"bad servo id list {ids or cfg.get('ids')!r}: expected e.g. 11-14 or 11,12,13,14") from None
+        raise MockError(f"bad servo id list {ids or cfg.get('ids')!r}: expected e.g. 11-14 or 11,12,13,14") from None
     c = contact_id if contact_id is not None else cfg.get("contact_id", DEFAULT_CONTACT_ID)
     c = None if c is None or str(c).lower() in ("none", "off", "") else int(c)
     try:
@@ -57,9 +66,9 @@ def build_emulator(world_file: Path | None, model: str, ids: str | None, baud: i
                                  return_delay=int(return_delay if return_delay is not None
                                                   else cfg.get("return_delay", 0)),
                                  wire_timing=wire_timing or bool(cfg.get("wire_timing", False)),
-                                 contact_id=c, eeprom=_load_eeprom(eeprom))
+                                 contact_id=c, eeprom=eeprom or {})
     except ValueError as e:
-        raise ConfigError(str(e)) from None
+        raise MockError(str(e)) from None
 
 
 def register(mock_app: typer.Typer) -> None:
@@ -75,18 +84,22 @@ def register(mock_app: typer.Typer) -> None:
         contact: str = typer.Option(None, "--contact-id", help="contact sensor id (default 200, 'none': off)"),
         servo: str = typer.Option(None, "--servo", help="xm430 (default) or xl430"),
         eeprom: Path = typer.Option(None, "--eeprom", help="EEPROM file: loaded at start, saved at exit"),
+        exit_with_parent: bool = typer.Option(False, "--exit-with-parent", help="Stop when the process that "
+                                              "started this one ends (tests: no orphan after a crash)."),
     ) -> None:
-        """Emulated Dynamixel servos (Protocol 2.0) on a pseudo-terminal; prints the pty path."""
+        """Emulated Dynamixel servos (Protocol 2.0) on a pseudo-terminal; prints the pty path, then the robot URL."""
         emu = build_emulator(world, model, ids, baud, wire_timing, return_delay, contact, servo, eeprom, seed)
         done = threading.Event()
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: done.set())
         path = emu.start()
+        parent = os.getppid()
         try:
-            sys.stdout.write(path + "\n")
+            sys.stdout.write(f"{path}\nrobot URL {emu.url(path)}\n")
             sys.stdout.flush()
             while not done.wait(0.5):
-                pass
+                if exit_with_parent and os.getppid() != parent:
+                    break
         finally:
             emu.stop()
             if eeprom is not None:

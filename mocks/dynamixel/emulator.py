@@ -44,6 +44,7 @@ from station.mocks.dynamixel.tables import (
     HW_OVERLOAD,
     VELOCITY_UNIT,
 )
+from station.mocks.ids import parse_id_list
 
 INST_PING, INST_READ, INST_WRITE, INST_REG_WRITE, INST_ACTION, INST_FACTORY_RESET = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
 INST_REBOOT, INST_CLEAR, INST_SYNC_READ, INST_FAST_SYNC_READ = 0x08, 0x10, 0x82, 0x8A
@@ -54,22 +55,6 @@ INST_NAMES = {INST_PING: "ping", INST_READ: "read", INST_WRITE: "write", INST_RE
               INST_SYNC_WRITE: "sync_write", INST_BULK_READ: "bulk_read", INST_BULK_WRITE: "bulk_write",
               INST_FAST_BULK_READ: "fast_bulk_read"}
 DEFAULT_CONTACT_ID = 200
-
-
-def parse_id_list(ids) -> list[int]:
-    """``[11, 12]``, ``"11-14"`` or ``"11,12,14"`` -> list of ints (ValueError on anything else)."""
-    if not isinstance(ids, str):
-        return [int(i) for i in ids]
-    out: list[int] = []
-    for part in (p.strip() for p in ids.split(",")):
-        if "-" in part:
-            lo, hi = (int(x) for x in part.split("-", 1))
-            if hi < lo:
-                raise ValueError(f"bad id range {part!r}")
-            out.extend(range(lo, hi + 1))
-        elif part:
-            out.append(int(part))
-    return out
 
 
 def _u16(b: bytes, i: int) -> int:
@@ -142,6 +127,13 @@ class DynamixelEmulator:
         if isinstance(cfg, dict) and cfg.get("ids"):
             return parse_id_list(cfg["ids"])
         return list(range(1, n + 1))
+
+    def url(self, path: str | None = None) -> str:
+        """The robot URL of this bus at ``path`` (default: the started pty)."""
+        ids = ",".join(str(i) for i in self.joint_ids)
+        extra = "" if self.contact_id is None else f"&contact={self.contact_id}"
+        extra += "" if self.baud() == 1_000_000 else f"&baud={self.baud()}"
+        return f"dynamixel://{path or self.path}?model={self.model.name}&ids={ids}{extra}"
 
     # ---- lifecycle ----------------------------------------------------------------------------
     def start(self) -> str:

@@ -77,3 +77,30 @@ DEFAULTS: dict[str, dict] = {
         ],
     },
 }
+
+
+class KeepOutTruth:
+    """The floor and the fixtures as the TRUE robot meets them: the truth model's link capsules against the
+    world's mounting plane and keep-out volumes with zero clearance (touching is a collision). The world asks
+    it about every motion the arm makes (the straight joint path between two observed configurations)."""
+
+    STEP = 0.002  # m: no point of the arm moves more than this between two checked samples
+
+    def __init__(self, truth, keep_out) -> None:
+        from station.kinematics.collision import Checker
+
+        self.keep_out = keep_out
+        # link capsules exist for serial chains; a parallel robot's legs are not modelled as bodies (yet), so its
+        # world watches nothing rather than refusing to exist
+        serial = getattr(truth, "kind", "serial") != "parallel"
+        self._checker = Checker(truth, keep_out) if keep_out and serial else None
+
+    def path(self, q_from, q_to):
+        """The first contact along ``q_from -> q_to`` (a ``Hit``), or None. An arm already in contact may move
+        (out of it: the fault was latched when it got there)."""
+        if self._checker is None:
+            return None
+        q_from, q_to = np.asarray(q_from, float), np.asarray(q_to, float)
+        if self._checker.hits(q_from[None])[0] is not None:
+            return None
+        return self._checker.path_hit(q_from, q_to, step=self.STEP)

@@ -10,10 +10,10 @@ world_app = typer.Typer(no_args_is_help=True, help="Simulated world: robot with 
 
 
 def _fail(message: str) -> Exception:
-    # a StationError: station.cli.main prints "station: error: ..." and exits 2
-    from station.robot.errors import ConfigError
+    # station.cli.main prints "station: error: ..." and exits 2
+    from station.mocks.errors import MockError
 
-    return ConfigError(message)
+    return MockError(message)
 
 
 def _load(path: Path):

@@ -17,7 +17,7 @@ def example_text(model: str = "ur5e", seed: int = 0) -> str:
 
     m = load_model(model)
     ref = m.name if model in builtin_names() else str(model)  # a model file: keep its path
-    d = DEFAULTS.get(m.name, {"start": [0.0] * m.n_joints, "points": []})
+    d = DEFAULTS.get(m.name, {"start": list(getattr(m, "home_q", [0.0] * m.n_joints)), "points": []})  # parallel: home
     start = ", ".join(f"{math.degrees(x):g}" if j.revolute else _mm(x) for x, j in zip(d["start"], m.joints,
                                                                                        strict=True))
     pts = "\n".join(
@@ -25,7 +25,11 @@ def example_text(model: str = "ur5e", seed: int = 0) -> str:
         f"approach: [{', '.join(f'{a:g}' for a in p['approach'])}]}}" for p in d["points"]) or "    []"
     sj = m.joints[1].name
     o, dh, tcp = DEFAULT_SIGMAS["offsets"], DEFAULT_SIGMAS["dh"], DEFAULT_SIGMAS["tcp"]
-    link = next((n for n in m.param_names if n.endswith(".a") and abs(m.param(n)) > 0), m.param_names[7])
+    link = next((n for n in m.param_names if n.endswith(".a") and abs(m.param(n)) > 0),
+                m.param_names[7] if len(m.param_names) > 7 else m.groups["dh"][-1])
+    off = m.groups["offsets"][1]  # offset.j2 (serial), leg.2.offset / strut.2.offset (parallel)
+    off_line = (f"{off}: 0.05            # deg: joint zero offset (theta = q + offset)" if m.joints[1].revolute else
+                f"{off}: 0.05       # mm: actuator zero offset (length = q + offset)")
     return f"""\
 # station simulated world (station-world/1): the robot the emulators serve, with errors only you know.
 # Use it with any emulator:  station mock <bus> --world THIS_FILE ; inspect it:  station mock world show THIS_FILE
@@ -41,7 +45,7 @@ robot:
 
 errors:                        # hidden: truth = nominal + error (the station does not know them)
   explicit:                    # by parameter name (station model show {m.name} lists them); mm or deg by kind
-    offset.j2: 0.05            # deg: joint zero offset (theta = q + offset)
+    {off_line}
     {link}: 0.3               # mm
   random:                      # group, name or glob -> sigma of a zero-mean normal draw per parameter
     offsets: {{length: {_mm(o['length'])}, angle: {math.degrees(o['angle']):g}}}   # mm for prismatic, deg for revolute
@@ -51,8 +55,9 @@ errors:                        # hidden: truth = nominal + error (the station do
 
 joints:                        # mechanics between motor encoder and link; all off by default
   backlash: {{}}                 # e.g. {{{sj}: 0.02}}: full dead band, deg (mm for prismatic joints)
-  compliance: {{}}               # e.g. {{{sj}: 0.0001}}: deg per N*m of gravity torque from the payload
-  payload: 0                   # kg at the tool tip (loads the compliant joints)
+  compliance: {{}}               # e.g. {{{sj}: 0.0001}}: deg per N*m of gravity torque (default: the model's)
+  masses: {{}}                   # e.g. {{{sj}: {{mass: 8.0, com: [212, 0, 113]}}}}: kg, centre in the link frame (mm)
+  payload: 0                   # kg at the tool tip, or {{mass: kg, com: [x, y, z]}} (loads the compliant joints)
   gravity: [0, 0, -9.81]       # m/s^2 in the robot base frame
 
 motion:

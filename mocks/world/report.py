@@ -27,8 +27,15 @@ def truth_report(world, length: str = "mm", angle: str = "deg") -> str:
             mech.append(f"  backlash {j.name}: {s.backlash[i] * u:.6f} {unit} (full width)")
         if s.compliance.get(i):
             mech.append(f"  compliance {j.name}: {s.compliance[i] * u:.3e} {unit}/(N*m)")
-    if mech:
-        lines += ["", f"joint mechanics (payload {s.payload:g} kg):", *mech]
+    grav = world.gravity
+    for k, (m, c) in sorted(grav.masses.items()):
+        if m > 0:
+            mech.append(f"  mass of link {k} ({world.truth.joints[k - 1].name}): {m:g} kg at "
+                        f"[{', '.join(f'{x * L:.4f}' for x in c)}] {length} (link frame)")
+    if mech or grav.payload[0] > 0:
+        pc = ", ".join(f"{x * L:.4f}" for x in grav.payload[1])
+        lines += ["", f"joint mechanics (payload {grav.payload[0]:g} kg at [{pc}] {length} in the tool frame; "
+                      f"gravity deflection {'on' if grav.active else 'off'}):", *mech]
     cell = world.station_cell()
     station = {p["label"]: p for p in cell["points"]}
     lines += ["", f"cell points (true and station-side positions in {length}; survey sigma "

@@ -4,8 +4,9 @@ Every emulator serves this object's state over its wire; tests read the hidden t
 public methods take one re-entrant lock, so emulator threads may call them concurrently.
 
 Joint state is the motor/encoder position ``q`` (SI). The true joint value seen by the kinematics is
-``q_joint = q - side * backlash/2 + C * J(q)^T * m g`` (backlash and gravity compliance, off by default),
-and the true tip is ``truth.fk(q_joint)``."""
+``q_joint = theta`` with ``theta = q - side * backlash/2 + C * tau(theta)`` (backlash, and gravity compliance
+under the torque ``tau`` of the link masses and payload: ``physics.Gravity``; off by default), and the true
+tip is ``truth.fk(q_joint)`` (``truth`` is rigid: its compliance parameters are zero)."""
 
 from __future__ import annotations
 
@@ -19,8 +20,9 @@ from pathlib import Path
 
 import numpy as np
 from station.mocks.world import motion
-from station.mocks.world.cell import CELL_FORMAT, DEFAULTS, CellPoint
+from station.mocks.world.cell import CELL_FORMAT, DEFAULTS, CellPoint, KeepOutTruth
 from station.mocks.world.faults import Faults
+from station.mocks.world.physics import Gravity, Rigid
 from station.mocks.world.worldfile import (
     FORMAT,
     TIME_MODES,
@@ -36,6 +38,7 @@ from station.kinematics import Model, load_model
 from station.kinematics.modelfile import ModelFileError
 
 log = logging.getLogger("station.mocks.world")
+WATCH_PERIOD = 0.01  # s of world time between two looks of the keep-out watch while the arm moves
 
 # sigmas of the hidden errors of World.default (SI)
 DEFAULT_SIGMAS = {"offsets": {"length": 0.1e-3, "angle": math.radians(0.1)},
@@ -73,7 +76,7 @@ class World:
     def __init__(self, spec: WorldSpec) -> None:
         self.spec = spec
         self._lock = threading.RLock()
-        nominal = load_model(spec.model)
+        nominal = load_model(spec.model, tip_link=spec.tip_link, base_link=spec.base_link)
         if spec.tool:
             nominal = nominal.with_params({f"tcp.{k}": v for k, v in spec.tool.items()})
         self.nominal: Model = nominal
@@ -85,7 +88,7 @@ class World:
         z = g_err.standard_normal(len(nominal.param_names))
         chosen: dict[str, tuple[int, str, float]] = {}
         for sel, sl, sa in spec.random:
-            names = nominal.select(sel)
+            names = [n for n in nominal.select(sel) if not n.startswith("compliance.")]
             for name in names:
                 sigma = (sl if param_kind(nominal, name) == "length" else sa) or 0.0
                 key = (len(names), sel, sigma)
@@ -95,8 +98,16 @@ class World:
         errors.update(spec.explicit)
         errors = {n: errors[n] for n in nominal.param_names if n in errors}  # model order
         self._errors = {n: v for n, v in errors.items() if v != 0.0}
-        self.truth: Model = nominal.with_params({n: nominal.param(n) + v for n, v in self._errors.items()})
         n = nominal.n_joints
+        # the robot's own compliance (joints.compliance, else the model's compliance.jN) acts through physics:
+        # the truth model itself is rigid
+        self._compliance = np.zeros(n)
+        for i in range(n):
+            name = f"compliance.j{i + 1}"
+            self._compliance[i] = spec.compliance.get(i, nominal.param(name) if name in nominal.param_names else 0.0)
+        rigid = {c: 0.0 for c in nominal.param_names if c.startswith("compliance.")}
+        self.truth: Model = nominal.with_params({**rigid, **{n_: nominal.param(n_) + v
+                                                             for n_, v in self._errors.items()}})
         self.n_joints = n
         self._vmax = np.array([j.max_velocity for j in self.truth.joints])
         self._amax = np.array([j.max_acceleration for j in self.truth.joints])
@@ -104,10 +115,7 @@ class World:
         self._backlash = np.zeros(n)
         for i, b in spec.backlash.items():
             self._backlash[i] = b
-        self._compliance = np.zeros(n)
-        for i, c in spec.compliance.items():
-            self._compliance[i] = c
-        self._weight = spec.payload * np.asarray(spec.gravity, dtype=float)  # N, base frame
+        self.gravity = self._gravity_truth(spec, nominal)
         self.points: dict[str, CellPoint] = {}
         self._survey: dict[str, np.ndarray] = {}
         for p in spec.points:
@@ -116,6 +124,8 @@ class World:
                                                 float(radius), np.array(p["approach"], dtype=float))
             self._survey[p["label"]] = g_survey.normal(0.0, spec.survey_sigma, 3)
         self.faults = Faults()
+        self.keep_out = KeepOutTruth(self.truth, spec.keep_out)  # the floor and fixtures the links can hit
+        self.collisions: list[str] = []  # every contact of a link with them, in order (the truth tests read)
         self.events: deque[tuple[float, str]] = deque(maxlen=500)
         # time
         if spec.time_mode not in TIME_MODES:
@@ -130,6 +140,9 @@ class World:
         self._version = 0
         self._cache: tuple | None = None  # (key, q_joint): FK-free reads while the arm stands still
         self._tracks = [motion.hold(0.0, float(x)) for x in q0]
+        self._watched_q = q0.copy()  # where the keep-out watch last saw the arm, and when
+        self._watched_t = 0.0
+        self._watched_rest: int | None = None  # motion version at which the watch last saw the arm at rest
         self._enabled = np.full(n, bool(spec.enabled))
         self._compliant = False
         self._seated: str | None = None
@@ -266,13 +279,23 @@ class World:
             self._cache = (key, qj, self.truth.position(qj))
         return self._cache[1], self._cache[2]
 
+    def _gravity_truth(self, spec: WorldSpec, nominal: Model) -> Gravity | Rigid:
+        """Link masses (the model's, replaced per link by joints.masses), payload (joints.payload, else the
+        model's) on the TRUE geometry."""
+        if getattr(nominal, "kind", "serial") == "parallel":
+            return Rigid()
+        n = nominal.n_joints
+        load = nominal.load
+        masses = {k: load.link_mass(k) for k in range(1, n + 1)} if load is not None else {}
+        masses.update({k: (m, np.asarray(c, dtype=float)) for k, (m, c) in spec.masses.items()})
+        if spec.payload is not None:
+            payload = (spec.payload, np.asarray(spec.payload_com or (0.0, 0.0, 0.0), dtype=float))
+        else:
+            payload = load.payload if load is not None else (0.0, np.zeros(3))
+        return Gravity(self.truth, masses, payload, spec.gravity, self._compliance)
+
     def _deflect(self, q: np.ndarray, side: np.ndarray) -> np.ndarray:
-        qj = q - side * self._backlash / 2
-        if self._compliance.any() and self._weight.any():
-            _, Jq, _ = self.truth.jacobians(qj)
-            tau = Jq[0, :3].T @ self._weight  # gravity load of the payload on each joint
-            qj = qj + self._compliance * tau
-        return qj
+        return self.gravity.deflect(q - side * self._backlash / 2)
 
     def _undeflect(self, qj: np.ndarray, side: np.ndarray) -> np.ndarray:
         """Encoder positions that put the joints at ``qj`` (fixed point; the deflection is small)."""
@@ -361,9 +384,17 @@ class World:
                 self._event(f"command_q clamped to joint limits: {', '.join(bad)}")
             if self._refused("command_q"):
                 return self._state()[0]
+            self._watch(force=True)  # the path so far, before the motion changes
             t = self.now()
             x, v, side = self._state(t)
             target = np.where(self._enabled, target, x)
+            hit = self.keep_out.path(x, target)
+            if hit is not None and self.spec.collision == "stop":
+                # a synchronised move is a straight joint path: a controller that knows the cell stops before it
+                self._collided(f"command_q refused: {hit.describe()}")
+                return x
+            if self.time_mode == "instant" and hit is None:
+                self._watched_q = target.copy()  # checked just now: the watch need not scan it again
             if self.time_mode == "instant":
                 new_side = np.where(np.abs(target - x) > motion.EPS, np.sign(target - x), side)
                 tracks = [motion.hold(t, float(target[i]), float(new_side[i])) for i in range(self.n_joints)]
@@ -442,7 +473,7 @@ class World:
             self._event(f"left socket {self._seated}")
             self._seated = None
             self._seat_target = None
-        self._update()
+        self._update(watch=False)  # joint-by-joint commands of one move: watched when the arm is next observed
 
     # ---- power, compliance, faults ------------------------------------------------------------
     def _joints(self, joints) -> list[int]:
@@ -527,10 +558,45 @@ class World:
         return self._pstop
 
     # ---- cell ---------------------------------------------------------------------------------
-    def _update(self) -> None:
-        """Lazy world rules evaluated whenever state is read: socket seating while compliant."""
+    def _update(self, watch: bool = True) -> None:
+        """Lazy world rules evaluated whenever state is read: socket seating while compliant, and (``watch``)
+        the links against the floor and keep-outs."""
+        if watch:
+            self._watch()
         if self._compliant and self._seated is None and not self.is_moving():
             self._try_seat()
+
+    def _watch(self, force: bool = False) -> None:
+        """The links along the path the arm took since it was last observed (a straight joint path: exact for
+        an instant move, the trajectory sampled every ``WATCH_PERIOD`` while moving; ``force``: look now).
+        Every contact is recorded; with ``collision: stop`` the arm also stops where it is and the world is in
+        protective stop (a UR controller reports it; other buses see their moves refused)."""
+        if self._watched_rest == self._version:
+            return  # no command since the arm was last seen at rest where it is
+        t = self.now()
+        moving = self.is_moving()
+        if not force and moving and self.time_mode != "instant" and t - self._watched_t < WATCH_PERIOD:
+            return  # emulators read many times per ms of motion: look every WATCH_PERIOD (the path in between)
+        q = self._state(t)[0]
+        self._watched_t = t
+        self._watched_rest = None if moving else self._version
+        if np.array_equal(q, self._watched_q):
+            return
+        hit = self.keep_out.path(self._watched_q, q)
+        self._watched_q = q
+        if hit is None:
+            return
+        if self.spec.collision == "stop":
+            t = self.now()
+            self._tracks = [motion.hold(t, float(x), float(sd)) for x, sd in zip(q, self._state(t)[2], strict=True)]
+            self._watched_q = self._state(t)[0]
+        self._collided(f"collision: {hit.describe()}")
+
+    def _collided(self, msg: str) -> None:
+        self.collisions.append(msg)
+        if self.spec.collision == "stop":
+            self._pstop = True
+        self._event(msg)
 
     def _try_seat(self) -> None:
         q, _, side = self._state()
@@ -580,10 +646,14 @@ class World:
             pts.append({"label": label, "kind": p.kind, "position": [round(float(x), 4) for x in pos],
                         "approach": [round(float(x), 6) for x in p.approach],
                         "radius": round(p.radius, 6)})
-        tool = {k: round(self.nominal.param(f"tcp.{k}"), 6) for k in ("x", "y", "z", "rx", "ry", "rz")}
+        tool = {k: round(self.nominal.param(f"tcp.{k}"), 6) for k in ("x", "y", "z", "rx", "ry", "rz")
+                if f"tcp.{k}" in self.nominal.param_names}  # the planar parallel robot has no tool frame
+        from station.kinematics.collision import DEFAULT_CLEARANCE, keep_out_to_doc
+
+        # the floor and fixtures as built (no survey error), with the station's default clearance around them
         return {"format": CELL_FORMAT, "units": {"length": "m", "angle": "rad"}, "frame": "robot base",
                 "model": self.nominal.name, "tool": tool, "survey_sigma": self.spec.survey_sigma,
-                "points": pts}
+                "points": pts, **keep_out_to_doc(self.spec.keep_out, clearance=DEFAULT_CLEARANCE)}
 
     # ---- truth --------------------------------------------------------------------------------
     def errors(self) -> dict[str, float]:
@@ -592,9 +662,14 @@ class World:
 
     def hidden(self) -> dict[str, float]:
         """TRUE values of every perturbed parameter (SI), and always every ``offset.jN`` (the true zero
-        offsets, 0.0 where not perturbed)."""
+        offsets, 0.0 where not perturbed); with gravity deflection, ``compliance.jN`` of the compliant
+        revolute joints."""
         names = [n for n in self.truth.param_names if n in self._errors or n.startswith("offset.j")]
-        return {n: self.truth.param(n) for n in names}
+        out = {n: self.truth.param(n) for n in names}
+        if self.gravity.active:  # the true gravity compliance of every compliant revolute joint (rad per N m)
+            out.update({f"compliance.j{i + 1}": float(c) for i, (c, j) in
+                        enumerate(zip(self._compliance, self.truth.joints, strict=True)) if c and j.revolute})
+        return out
 
     def true_offsets(self) -> np.ndarray:
         """True zero offsets ``(n,)`` (SI): ``theta_i = q_i + offset_i`` on the true robot."""

@@ -1,7 +1,8 @@
 """World files (YAML, ``format: station-world/1``): parse with explicit units into SI, write back.
 
 The format is documented in docs/world.md. Every length is in ``units.length`` (m|mm), every angle in
-``units.angle`` (rad|deg); time in s, mass in kg, joint compliance in ``units.angle`` per N*m."""
+``units.angle`` (rad|deg); time in s, mass in kg, joint compliance in ``units.angle`` per N*m, centres of
+mass (link masses, payload) in ``units.length``."""
 
 from __future__ import annotations
 
@@ -10,9 +11,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from station.mocks.errors import MockError
 from station.mocks.world.cell import DEFAULTS, KINDS
 
-from station.robot.errors import ConfigError
+from station.kinematics.collision import KeepOut, KeepOutError, keep_out_from_dict, keep_out_to_doc
 
 FORMAT = "station-world/1"
 LENGTH = {"m": 1.0, "mm": 1e-3}
@@ -21,7 +23,7 @@ TIME_MODES = ("instant", "sim", "realtime")
 SECTIONS = {"format", "units", "seed", "robot", "errors", "joints", "motion", "cell", "noise", "buses",
             "description"}
 ANGLE_SUFFIX = {"alpha", "beta", "theta", "rx", "ry", "rz"}
-LENGTH_SUFFIX = {"a", "d", "x", "y", "z"}
+LENGTH_SUFFIX = {"a", "d", "x", "y", "z", "offset"}  # offset: leg.K.offset, strut.K.offset (parallel robots)
 
 # defaults (SI)
 CONTACT_RADIUS = 50e-6
@@ -29,9 +31,9 @@ CAPTURE_RADIUS = 8e-3
 SEATING_SIGMA = 10e-6
 
 
-class WorldFileError(ConfigError, ValueError):
-    """Malformed world file; the message names the file and the field. A ``ConfigError`` too, so the
-    ``station`` command prints it as one line and exits 2 wherever a world file is read."""
+class WorldFileError(MockError, ValueError):
+    """Malformed world file; the message names the file and the field. A ``MockError``, so the ``station``
+    command prints it as one line and exits 2 wherever a world file is read."""
 
 
 @dataclass
@@ -39,6 +41,8 @@ class WorldSpec:
     """A parsed world file, SI throughout. Random errors are kept as sigmas (drawn by the World)."""
 
     model: str = "ur5e"
+    tip_link: str | None = None  # URDF model: chain end (default: the end of the only longest chain)
+    base_link: str | None = None  # URDF model: chain start (default: the root)
     seed: int = 0
     description: str = ""
     tool: dict[str, float] | None = None  # nominal tool frame override {x,y,z,rx,ry,rz}
@@ -46,7 +50,9 @@ class WorldSpec:
     random: list[tuple[str, float | None, float | None]] = field(default_factory=list)  # (selector, σL, σA)
     backlash: dict[int, float] = field(default_factory=dict)  # joint index -> full width
     compliance: dict[int, float] = field(default_factory=dict)  # joint index -> rad/(N*m) or m/N
-    payload: float = 0.0  # kg at the tool tip, loads the compliant joints
+    masses: dict[int, tuple[float, list[float]]] = field(default_factory=dict)  # link k -> (kg, com in its frame)
+    payload: float | None = None  # kg at the tool (None: the model's payload), loads the compliant joints
+    payload_com: list[float] | None = None  # m, in the tool frame (default: the tool centre point)
     gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)  # m/s^2 in the base frame
     start: list[float] | None = None
     enabled: bool = True
@@ -59,6 +65,8 @@ class WorldSpec:
     survey_sigma: float = 0.0
     encoder_sigma: float = 0.0
     buses: dict = field(default_factory=dict)
+    keep_out: KeepOut = field(default_factory=lambda: KeepOut.default(0.0))  # truth: contact is a collision
+    collision: str = "record"  # a link touching a keep-out: "record" it (world.collisions) or also "stop"
 
 
 def param_kind(model, name: str) -> str:
@@ -66,6 +74,8 @@ def param_kind(model, name: str) -> str:
     if name.startswith("offset.j"):
         i = int(name.split(".j")[1]) - 1
         return "angle" if model.joints[i].revolute else "length"
+    if name.startswith("compliance."):
+        return "compliance"
     last = name.rsplit(".", 1)[-1]
     if last in ANGLE_SUFFIX:
         return "angle"
@@ -147,15 +157,17 @@ def spec_from_dict(doc, where: str = "<world>") -> WorldSpec:
         raise r.fail("seed", f"expected a non-negative integer, got {seed!r}")
     s.seed = seed
 
-    robot = r.mapping(doc.get("robot"), "robot", {"model", "tool"})
+    robot = r.mapping(doc.get("robot"), "robot", {"model", "tool", "tip_link", "base_link"})
     s.model = str(robot.get("model", "ur5e"))
+    s.tip_link = None if robot.get("tip_link") is None else str(robot["tip_link"])
+    s.base_link = None if robot.get("base_link") is None else str(robot["base_link"])
     model_name = s.model
     if not Path(model_name).is_absolute() and where not in ("<world>",) and not _is_builtin(model_name):
         cand = Path(where).parent / model_name
         if cand.exists():
             s.model = str(cand.resolve())  # absolute: to_dict() output may be written elsewhere
     try:
-        model = load_model(s.model)
+        model = load_model(s.model, tip_link=s.tip_link, base_link=s.base_link)
     except ModelFileError as e:
         raise r.fail("robot.model", str(e)) from None
     if robot.get("tool") is not None:
@@ -165,6 +177,8 @@ def spec_from_dict(doc, where: str = "<world>") -> WorldSpec:
 
     errors = r.mapping(doc.get("errors"), "errors", {"explicit", "random"})
     for name, v in r.mapping(errors.get("explicit"), "errors.explicit").items():
+        if name.startswith("compliance."):
+            raise r.fail(f"errors.explicit.{name}", "the world's joint compliance is set in joints.compliance")
         if name not in model.param_names:
             raise r.fail(f"errors.explicit.{name}", f"no such parameter in model {model.name} "
                                                     f"(names like offset.j2, {model.param_names[7]}, tcp.z)")
@@ -175,6 +189,11 @@ def spec_from_dict(doc, where: str = "<world>") -> WorldSpec:
             names = model.select(str(sel))
         except KeyError as e:
             raise r.fail(f, str(e).strip("'\"")) from None
+        if any(n.startswith("compliance.") for n in names):  # globs may sweep them in: the world's are elsewhere
+            names = [n for n in names if not n.startswith("compliance.")]
+            if not names:
+                raise r.fail(f, "selects compliance parameters: the world's joint compliance is set in "
+                                "joints.compliance")
         kinds = {param_kind(model, n) for n in names}
         if isinstance(v, dict):
             v = r.mapping(v, f, {"length", "angle"})
@@ -190,7 +209,7 @@ def spec_from_dict(doc, where: str = "<world>") -> WorldSpec:
             sl, sa = (x * L, None) if kinds == {"length"} else (None, x * A)
         s.random.append((str(sel), sl, sa))
 
-    joints = r.mapping(doc.get("joints"), "joints", {"backlash", "compliance", "payload", "gravity"})
+    joints = r.mapping(doc.get("joints"), "joints", {"backlash", "compliance", "payload", "gravity", "masses"})
     for k, v in r.mapping(joints.get("backlash"), "joints.backlash").items():
         i = _joint_index(model, k, r, f"joints.backlash.{k}")
         s.backlash[i] = r.num(v, f"joints.backlash.{k}", nonneg=True) * (A if model.joints[i].revolute else L)
@@ -198,7 +217,21 @@ def spec_from_dict(doc, where: str = "<world>") -> WorldSpec:
         i = _joint_index(model, k, r, f"joints.compliance.{k}")
         s.compliance[i] = r.num(v, f"joints.compliance.{k}", nonneg=True) * (A if model.joints[i].revolute
                                                                              else L)
-    s.payload = r.num(joints.get("payload", 0.0), "joints.payload", nonneg=True)
+    for k, v in r.mapping(joints.get("masses"), "joints.masses").items():
+        i = _joint_index(model, k, r, f"joints.masses.{k}")
+        v = r.mapping(v, f"joints.masses.{k}", {"mass", "com"})
+        if "mass" not in v:
+            raise r.fail(f"joints.masses.{k}", "expected {mass: kg, com: [x, y, z]}")
+        s.masses[i + 1] = (r.num(v["mass"], f"joints.masses.{k}.mass", nonneg=True),
+                           r.vec3(v.get("com", [0, 0, 0]), f"joints.masses.{k}.com", L))
+    pay = joints.get("payload")
+    if isinstance(pay, dict):
+        pay = r.mapping(pay, "joints.payload", {"mass", "com"})
+        if "com" in pay:
+            s.payload_com = r.vec3(pay["com"], "joints.payload.com", L)
+        pay = pay.get("mass", 0.0)
+    if pay is not None:
+        s.payload = r.num(pay, "joints.payload", nonneg=True)
     if "gravity" in joints:
         s.gravity = tuple(r.vec3(joints["gravity"], "joints.gravity", 1.0))
 
@@ -221,7 +254,15 @@ def spec_from_dict(doc, where: str = "<world>") -> WorldSpec:
     elif model.name in DEFAULTS:
         s.start = list(DEFAULTS[model.name]["start"])
 
-    cell = r.mapping(doc.get("cell"), "cell", {"contact_radius", "capture_radius", "points"})
+    cell = r.mapping(doc.get("cell"), "cell", {"contact_radius", "capture_radius", "points", "mounting", "keep_out",
+                                               "collision"})
+    s.collision = str(cell.get("collision", "record"))
+    if s.collision not in ("record", "stop"):
+        raise r.fail("cell.collision", f"expected record or stop, got {s.collision!r}")
+    try:
+        s.keep_out = keep_out_from_dict(cell, f"{where}: cell", L, A, default_clearance=0.0)
+    except KeepOutError as e:
+        raise WorldFileError(str(e)) from None
     s.contact_radius = r.num(cell.get("contact_radius", CONTACT_RADIUS / L), "cell.contact_radius",
                              positive=True) * L
     s.capture_radius = r.num(cell.get("capture_radius", CAPTURE_RADIUS / L), "cell.capture_radius",
@@ -283,6 +324,7 @@ def spec_to_dict(s: WorldSpec, model, length: str = "m", angle: str = "rad") -> 
     doc: dict = {"format": FORMAT, "description": s.description,
                  "units": {"length": length, "angle": angle, "time": "s", "mass": "kg"}, "seed": s.seed}
     robot: dict = {"model": s.model}
+    robot.update({k: v for k, v in (("tip_link", s.tip_link), ("base_link", s.base_link)) if v is not None})
     if s.tool:
         robot["tool"] = {k: r(v * (A if k.startswith("r") else L)) for k, v in s.tool.items()}
     doc["robot"] = robot
@@ -297,7 +339,13 @@ def spec_to_dict(s: WorldSpec, model, length: str = "m", angle: str = "rad") -> 
                      "random": random}
     doc["joints"] = {"backlash": {f"j{i + 1}": r(v * jscale(i)) for i, v in s.backlash.items()},
                      "compliance": {f"j{i + 1}": r(v * jscale(i)) for i, v in s.compliance.items()},
-                     "payload": r(s.payload), "gravity": [r(g) for g in s.gravity]}
+                     "gravity": [r(g) for g in s.gravity]}
+    if s.masses:
+        doc["joints"]["masses"] = {f"j{k}": {"mass": r(m), "com": [r(x * L) for x in c]}
+                                   for k, (m, c) in s.masses.items()}
+    if s.payload is not None:
+        doc["joints"]["payload"] = (r(s.payload) if s.payload_com is None else
+                                    {"mass": r(s.payload), "com": [r(x * L) for x in s.payload_com]})
     motion: dict = {"time_mode": s.time_mode, "time_scale": r(s.time_scale), "enabled": s.enabled}
     if s.start is not None:
         motion["start"] = [r(x * jscale(i)) for i, x in enumerate(s.start)]
@@ -310,7 +358,8 @@ def spec_to_dict(s: WorldSpec, model, length: str = "m", angle: str = "rad") -> 
             d["radius"] = r(p["radius"] * L)
         pts.append(d)
     doc["cell"] = {"contact_radius": r(s.contact_radius * L), "capture_radius": r(s.capture_radius * L),
-                   "points": pts}
+                   "points": pts, **keep_out_to_doc(s.keep_out, 1 / L, 1 / A),
+                   "collision": s.collision}
     doc["noise"] = {"seating": r(s.seating_sigma * L), "survey": r(s.survey_sigma * L),
                     "encoder": r(s.encoder_sigma * A)}
     doc["buses"] = s.buses

@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "station.cli.run_cmd",  # station run, resume, demo
     "station.cli.jog_cmd",  # station jog
     "station.cli.records_cmd",  # station records list|show, report
+    "station.cli.map_cmd",  # station map plan|build|apply|correct (seed 004 correction map)
 )
 
 for _name in COMMAND_MODULES:
@@ -47,6 +48,8 @@ def _quiet_bus_libraries() -> None:
 
 def main() -> None:
     from station.kinematics.modelfile import ModelFileError
+    from station.kinematics.parallel import ParallelKinematicsError
+    from station.mocks.errors import MockError
     from station.robot.errors import StationError
 
     _quiet_bus_libraries()
@@ -57,7 +60,7 @@ def main() -> None:
             sys.exit(rc)
     except typer.Exit as e:
         sys.exit(e.exit_code)
-    except (StationError, ModelFileError) as e:
+    except (StationError, ModelFileError, ParallelKinematicsError, MockError) as e:
         typer.echo(f"station: error: {e}", err=True)
         sys.exit(2)
     except KeyboardInterrupt:

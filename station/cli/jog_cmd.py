@@ -49,14 +49,10 @@ def store_in_records(folder: Path, db: str | None) -> bool:
     """Project the journal into the records database. A failure is reported, not fatal: the session folder
     (journal + samples.csv) is complete and can be stored again later."""
     from station.engine.session_record import session_from_journal
-    from station.records import open_records
+    from station.publish import store_record
 
     try:
-        records = open_records(db)
-        try:
-            records.store_session(session_from_journal(folder))
-        finally:
-            records.close()
+        store_record(session_from_journal(folder), db)
     except Exception as e:  # any database/driver error: the journal is the truth, say so and go on
         typer.echo(f"station: warning: session not stored in the records database: {e}", err=True)
         return False

@@ -1,15 +1,21 @@
-"""``station model list|show|export``: built-in kinematic models."""
+"""``station model list|show|export|import``: built-in models, model files and URDFs."""
 
 from __future__ import annotations
 
+import json
+import os
 from pathlib import Path
 
 import numpy as np
 import typer
 
+from station.cli.model_options import BASE_LINK, PAYLOAD, TIP_LINK, load_cli_model
 from station.kinematics import builtin_names, dump_model, load_model
 
-model_app = typer.Typer(no_args_is_help=True, help="Built-in kinematic models (show, export).")
+model_app = typer.Typer(no_args_is_help=True, help="Kinematic models: built-in, model files, URDF (show, export, "
+                                                   "import).")
+NAME = typer.Argument(..., help="built-in model name, model file or URDF")
+UNITS = typer.Option("mm,deg", help="length,angle units: m|mm, rad|deg")
 
 
 @model_app.command("list")
@@ -21,25 +27,97 @@ def list_models() -> None:
 
 
 @model_app.command("show")
-def show(name: str, units: str = typer.Option("mm,deg", help="length,angle units: m|mm, rad|deg")) -> None:
-    """Print a model: joints, limits, geometry table and parameter names."""
+def show(name: str = NAME, units: str = UNITS, tip_link: str = TIP_LINK, base_link: str = BASE_LINK,
+         payload: str = PAYLOAD) -> None:
+    """Print a model: joints, limits, geometry table, masses and parameter names."""
     length, angle = _units(units)
-    m = load_model(name)
+    m = load_cli_model(name, tip_link, base_link, payload)
     typer.echo(dump_model(m, length, angle), nl=False)
+    urdf = (getattr(m, "source", None) or {}).get("urdf")  # parallel models have no URDF source
+    if urdf:
+        typer.echo(f"# from URDF {urdf['path']}: chain {urdf['base_link']} -> {urdf['tip_link']} "
+                   f"(joints {', '.join(j.name for j in m.joints)})")
+        for joint, cal in urdf["calibration"].items():
+            typer.echo(f"# URDF <calibration> of {joint}: " + ", ".join(f"{k}={v:g}" for k, v in cal.items()))
     typer.echo(f"# parameters ({len(m.param_names)}): " + ", ".join(m.param_names))
     typer.echo("# groups: " + "; ".join(f"{g}={','.join(v)}" for g, v in sorted(m.groups.items())))
+    if getattr(m, "kind", "serial") == "parallel":  # q = 0 cannot be assembled: show the home configuration
+        q = m.home_q
+        typer.echo(f"# actuators at home (m): {np.round(q, 6).tolist()}")
+        typer.echo(f"# tool position at home (m): {np.round(m.position(q), 6).tolist()}")
+        return
     typer.echo(f"# tool position at q=0 (m): {np.round(m.position(np.zeros(m.n_joints)), 6).tolist()}")
 
 
 @model_app.command("export")
-def export(name: str, out: Path = typer.Option(None, "--out", "-o", help="file to write (default NAME.yaml)"),
-           units: str = typer.Option("mm,deg", help="length,angle units: m|mm, rad|deg")) -> None:
-    """Write a model file that can be edited and passed back as --model FILE."""
+def export(name: str = NAME,
+           out: Path = typer.Option(None, "--out", "-o", help="file to write (default NAME.yaml / NAME.urdf)"),
+           fmt: str = typer.Option("yaml", "--format", help="yaml (station-model/1) or urdf"),
+           calibration: Path = typer.Option(None, "--calibration", help="result JSON of station solve: write the "
+                                                                        "calibrated robot"),
+           units: str = UNITS, tip_link: str = TIP_LINK, base_link: str = BASE_LINK, payload: str = PAYLOAD) -> None:
+    """Write a model file (or a URDF) of the nominal or calibrated robot; a model file can be edited and
+    passed back as --model FILE."""
+    from station.cli import fail
+
+    if fmt not in ("yaml", "urdf"):
+        raise fail(f"--format {fmt!r}: expected yaml or urdf")
     length, angle = _units(units)
-    m = load_model(name)
-    out = out or Path(f"{m.name}.yaml")
-    out.write_text(dump_model(m, length, angle))
+    m = load_cli_model(name, tip_link, base_link, payload)
+    note = ""
+    if calibration is not None:
+        m = _calibrated(m, calibration)
+        note = f"Calibrated: {calibration}."
+    out = out or Path(f"{m.name}.{fmt}")
+    if Path(name).exists() and out.resolve() == Path(name).resolve():
+        raise fail(f"--out {out}: that is the model being read; write somewhere else")
+    if fmt == "urdf":
+        from station.kinematics.urdfexport import urdf_text
+
+        _write(out, urdf_text(m, note))
+    else:
+        _write(out, dump_model(m, length, angle))
     typer.echo(str(out))
+
+
+@model_app.command("import")
+def import_urdf(urdf: Path = typer.Argument(..., help="URDF file"),
+                out: Path = typer.Option(None, "--out", "-o", help="model file to write (default ROBOT.yaml)"),
+                units: str = UNITS, tip_link: str = TIP_LINK, base_link: str = BASE_LINK) -> None:
+    """Convert the chain of a URDF into a station-model/1 file (modified DH, masses from <inertial>)."""
+    from station.kinematics.catalog import is_urdf
+    from station.robot.errors import ConfigError
+
+    if urdf.exists() and not is_urdf(urdf):
+        raise ConfigError(f"{urdf}: not a URDF (expected XML with a <robot> root)")
+    length, angle = _units(units)
+    m = load_cli_model(str(urdf), tip_link, base_link)
+    out = out or Path(f"{m.name}.yaml")
+    _write(out, dump_model(m, length, angle))
+    typer.echo(f"{out}: {m.name}, {m.n_joints} joints ({', '.join(j.name for j in m.joints)}), "
+               f"{m.source['urdf']['base_link']} -> {m.source['urdf']['tip_link']}")
+
+
+def _calibrated(m, path: Path):
+    from station.robot.errors import ConfigError
+    from station.solver import CalibrationResult
+
+    try:
+        cal = CalibrationResult.from_dict(json.loads(path.read_text()))
+        return cal.calibrated(m)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such file") from None
+    except (json.JSONDecodeError, ValueError, KeyError, AttributeError) as e:
+        raise ConfigError(f"{path}: {e}") from None
+
+
+def _write(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
 
 
 def _units(text: str) -> tuple[str, str]:

@@ -11,6 +11,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from station.units import human_of
+
 records_app = typer.Typer(no_args_is_help=True, help="Calibration records per robot serial (list, show).")
 
 DB_HELP = "records database URL (default $STATION_DB, else sqlite:///$STATION_HOME/station.db)"
@@ -34,11 +36,11 @@ def _mm(v) -> str:
 def _human(v, unit: str | None) -> str:
     if v is None or not math.isfinite(float(v)):
         return ""
-    return f"{math.degrees(float(v)):.4f}" if unit == "rad" else f"{float(v) * 1e3:.4f}"
+    return f"{float(v) * human_of(unit or 'm')[1]:.4f}"
 
 
 def _hunit(unit: str | None) -> str:
-    return {"rad": "deg", "m": "mm"}.get(unit or "", unit or "")
+    return human_of(unit)[0]
 
 
 def _verdict(passed) -> str:
@@ -210,16 +212,13 @@ def report(source: Path = typer.Argument(..., help="session folder (holding jour
     journal = source / "journal.jsonl" if source.is_dir() else source
     if not journal.is_file():
         raise fail(f"{source}: no journal.jsonl in this folder")
-    try:
-        from station.engine.journal import session_from_journal
-    except ImportError:
-        try:
-            from station.engine.session_record import session_from_journal
-        except ImportError:
-            raise fail("reading a journal needs station.engine (session_from_journal), which is not "
-                       "installed") from None
+    from station.engine.journal import JournalError
+    from station.engine.session_record import session_from_journal
+
     try:
         session = session_from_journal(journal)
+    except JournalError as e:  # names the journal, the line and the field
+        raise fail(str(e)) from None
     except (ValueError, OSError) as e:
         raise fail(f"{journal}: {e}") from None
     try:

@@ -70,7 +70,7 @@ def _fmt(value: float | None, unit: str) -> str:
 
 def summary(out, echo=typer.echo) -> None:
     """Print result, verdict table, report path (no PASS/FAIL line: the caller prints it last)."""
-    import math
+    from station.units import human_of
 
     rec = out.record
     res = rec.get("result")
@@ -79,8 +79,7 @@ def summary(out, echo=typer.echo) -> None:
         for name, p in res["parameters"].items():
             if p.get("kind") == "point":
                 continue
-            angle = p.get("unit") == "rad"
-            k, u = (180 / math.pi, "deg") if angle else (1e3, "mm")
+            u, k = human_of(p.get("unit") or "m")
             if p["identifiable"]:
                 echo(f"  {name:14s} {(p['value'] - p['nominal']) * k:+10.4f} {u} ± {(p['std'] or 0) * k:.4f}")
             else:
@@ -152,7 +151,7 @@ def run(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Run a procedure end of line: unattended, PASS/FAIL, exit 0 pass / 1 fail / 2 error."""
-    from station.engine import start
+    from station.api import run as start
 
     cb, bar = _progress_bar(quiet)
     with bar:
@@ -168,7 +167,7 @@ def resume_cmd(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Continue an interrupted session: robot re-verified, recorded samples kept, nothing repeated."""
-    from station.engine import resume
+    from station.api import resume
 
     cb, bar = _progress_bar(quiet)
     with bar:
@@ -186,9 +185,8 @@ def demo(
     _exit(run_demo(robot, time_mode=time_mode, seed=seed))
 
 
-# ---- emulated robots (demo, benchmark, end-to-end tests) -----------------------------------------------
-# The station side never imports the mocks; this glue starts an emulator for a world file and yields the URL
-# the real client library connects to.
+# ---- the demo: a world with hidden errors, an emulator for it (station.mocks.launch), zero_offsets ----------
+# The station side never imports the mocks; this glue (the CLI) does.
 BUS_MODELS = {"ur": "ur5e", "canopen": "arm6", "dynamixel": "omx"}
 # Dynamixel: one socket on a 4-axis arm cannot separate the first two zeros from the socket's position; the
 # surveyed cell position is used instead (see docs/procedures.md)
@@ -217,114 +215,6 @@ def demo_world(bus: str, seed: int, time_mode: str = "instant", sigma_deg: float
     return doc
 
 
-def _free_loopback() -> str:
-    import random
-    import socket
-
-    for _ in range(50):
-        host = f"127.0.{random.randint(1, 250)}.{random.randint(2, 250)}"
-        with socket.socket() as sk:
-            try:
-                sk.bind((host, 30004))
-            except OSError:
-                continue
-            return host
-    raise RuntimeError("no free loopback address for the UR emulator")
-
-
-class Emulated:
-    """An emulator serving the world file ``world_path`` on ``bus``: ``with Emulated(...) as e: e.url``.
-
-    ur: ``station mock ur`` as a separate process on a free 127.x.y.z (ur_rtde's ports are fixed);
-    canopen: in-process drives on a python-can virtual channel; dynamixel: in-process pty (``process=True``:
-    ``station mock dynamixel`` as a separate process)."""
-
-    def __init__(self, bus: str, world_path: Path, serial: str, process: bool = False) -> None:
-        if bus not in BUS_MODELS:
-            from station.robot.errors import ConfigError
-
-            raise ConfigError(f"--robot must be one of {', '.join(BUS_MODELS)}, got {bus!r}")
-        self.bus, self.world_path, self.serial, self.process = bus, Path(world_path), serial, process
-        self.url = ""
-        self.world = None  # in-process emulators: the World they serve
-        self._proc = None
-        self._emu = None
-
-    def _spawn(self, args: list[str], ready) -> str:
-        import subprocess
-        import time
-
-        exe = Path(sys.executable).with_name("station")
-        cmd = [str(exe)] if exe.exists() else [sys.executable, "-c", "from station.cli import main; main()"]
-        self._proc = subprocess.Popen(cmd + args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        end = time.monotonic() + 30
-        while time.monotonic() < end:
-            line = self._proc.stdout.readline()
-            if not line:
-                break
-            if ready(line):
-                return line.strip()
-        err = self._proc.stderr.read() if self._proc.poll() is not None else ""
-        self.close()
-        raise RuntimeError(f"emulator {' '.join(args[:2])} did not start: {err.strip()[-300:]}")
-
-    def __enter__(self) -> Emulated:
-        model = BUS_MODELS[self.bus]
-        try:
-            if self.bus == "ur":
-                host = _free_loopback()
-                self._spawn(["mock", "ur", "--host", host, "--world", str(self.world_path)],
-                            lambda line: "ready" in line)
-                self.url = f"ur://{host}?model={model}"
-            elif self.bus == "dynamixel" and self.process:
-                port = self._spawn(["mock", "dynamixel", "--world", str(self.world_path)],
-                                   lambda line: line.startswith("/dev/"))
-                self.url = f"dynamixel://{port}?model={model}&ids=11-14&contact=200&serial={self.serial}"
-            else:
-                from station.mocks.world import World
-
-                self.world = World.from_file(self.world_path)
-                if self.bus == "dynamixel":
-                    from station.mocks.dynamixel.emulator import DynamixelEmulator
-
-                    self._emu = DynamixelEmulator(self.world)
-                    port = self._emu.start()
-                    self.url = f"dynamixel://{port}?model={model}&ids=11-14&contact=200&serial={self.serial}"
-                else:
-                    import uuid
-
-                    from station.mocks.canopen.emulator import CanopenEmulator
-
-                    channel = f"demo{uuid.uuid4().hex[:8]}"
-                    self._emu = CanopenEmulator(self.world, "virtual", channel).start()
-                    n = self.world.nominal.n_joints
-                    self.url = f"canopen+virtual://{channel}?nodes=1-{n}&model={model}&serial={self.serial}"
-        except BaseException:
-            self.close()
-            raise
-        return self
-
-    def close(self) -> None:
-        if self._emu is not None:
-            emu, self._emu = self._emu, None
-            emu.stop()
-        if self._proc is not None:
-            proc, self._proc = self._proc, None
-            if proc.poll() is None:
-                proc.terminate()
-                try:
-                    proc.wait(timeout=10)
-                except Exception:
-                    proc.kill()
-                    proc.wait()
-            for f in (proc.stdout, proc.stderr):
-                if f:
-                    f.close()
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
 def write_demo_files(bus: str, folder: Path, seed: int, time_mode: str) -> tuple[Path, Path, str]:
     """World file (the hidden truth) and the station's cell file for it; returns (world, cell, serial)."""
     import yaml
@@ -348,19 +238,21 @@ def run_demo(bus: str, *, time_mode: str = "instant", seed: int = 5, quiet: bool
     import os
     import time
 
-    from station.engine import start
+    from station.api import run as start
+    from station.mocks.launch import launch
     from station.mocks.world import World
+    from station.robot.errors import ConfigError
 
     if time_mode not in ("instant", "realtime"):
-        from station.robot.errors import ConfigError
-
         raise ConfigError(f"--time must be instant or realtime, got {time_mode!r}")
+    if bus not in BUS_MODELS:
+        raise ConfigError(f"--robot must be one of {', '.join(BUS_MODELS)}, got {bus!r}")
     home = Path(os.environ.get("STATION_HOME") or "./station-data")
     world_path, cell_path, serial = write_demo_files(bus, home / "demo", seed, time_mode)
     hidden = World.from_file(world_path).hidden()
     typer.echo(f"demo: {BUS_MODELS[bus]} on {bus}, hidden errors in {world_path}")
     t0 = time.monotonic()
-    with Emulated(bus, world_path, serial, process=(bus == "dynamixel")) as emu:
+    with launch(bus, world_path, serial=serial, process=bus != "canopen") as emu:  # realtime: own GIL
         typer.echo(f"demo: emulator up, robot URL {emu.url}")
         cb, bar = _progress_bar(quiet)
         with bar:

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
+from station.cli.model_options import BASE_LINK, MODEL, PAYLOAD, TIP_LINK
 from station.robot.errors import ConfigError
 from station.samplesfile import LENGTH_UNITS, SamplesFileError, read_joints, read_samples
 
@@ -44,10 +45,11 @@ def parse_xyz(text: str, option: str) -> np.ndarray:
     return v
 
 
-def _load_model(name: str, tool: str | None):
-    from station.kinematics import load_model
+def _load_model(name: str, tool: str | None, tip_link: str | None = None, base_link: str | None = None,
+                payload: str | None = None):
+    from station.cli.model_options import load_cli_model
 
-    model = load_model(name)  # ModelFileError -> one-line error in station.cli.main
+    model = load_cli_model(name, tip_link, base_link, payload)  # ModelFileError -> one-line error, exit 2
     if tool:
         t = parse_xyz(tool, "--tool")
         model = model.with_params({"tcp.x": t[0], "tcp.y": t[1], "tcp.z": t[2]})
@@ -121,7 +123,10 @@ def summary(res) -> str:
 
 
 def solve_command(
-    model: str = typer.Option(..., "--model", help="built-in model name or model file"),
+    model: str = MODEL,
+    tip_link: str = TIP_LINK,
+    base_link: str = BASE_LINK,
+    payload: str = PAYLOAD,
     samples: Path = typer.Option(..., "--samples", help="CSV: q1..qN [point] [x,y,z]; units in headers"),
     identify: str = typer.Option("offsets,tcp", "--identify", help="groups/names/globs, e.g. offsets,tcp,dh"),
     reference: list[str] = typer.Option(None, "--reference",
@@ -136,7 +141,7 @@ def solve_command(
     """Identify joint offsets, TCP, link geometry from touch samples."""
     from station.solver import Observations, SolverInputError, solve
 
-    m = _load_model(model, tool)
+    m = _load_model(model, tool, tip_link, base_link, payload)
     try:
         s = read_samples(samples, m)
         obs = Observations(s.q, s.point, s.measured)
@@ -166,7 +171,10 @@ def solve_command(
 
 
 def fk_command(
-    model: str = typer.Option(..., "--model", help="built-in model name or model file"),
+    model: str = MODEL,
+    tip_link: str = TIP_LINK,
+    base_link: str = BASE_LINK,
+    payload: str = PAYLOAD,
     joints: Path = typer.Option(..., "--joints", help="CSV with q1..qN (units in headers: q1[deg], q3[mm])"),
     calibration: Path = typer.Option(None, "--calibration", help="result JSON of station solve"),
     tool: str = typer.Option(None, "--tool", help="nominal TCP x,y,z (m, or suffix mm), before the calibration"),
@@ -176,7 +184,7 @@ def fk_command(
     from station.kinematics import se3
     from station.solver import CalibrationResult
 
-    m = _load_model(model, tool)
+    m = _load_model(model, tool, tip_link, base_link, payload)
     if calibration is not None:
         try:
             doc = json.loads(Path(calibration).read_text())

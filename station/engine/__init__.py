@@ -1,20 +1,32 @@
 """Procedure engine: sessions and steps, runner with guaranteed teardown, pose plans, limits and verdicts,
-the session journal and resume. Imports the robot protocol/registry, solver and kinematics only."""
+the session journal and its event schema, resume, write-back. Imports the robot protocol/registry, solver and
+kinematics only (never records, report, CLI, UI or a driver: tests/test_import_rules_engine.py).
 
-from station.engine.cell import Cell, CellError, RefPoint, cell_from_dict, load_cell
-from station.engine.journal import Journal, JournalError, read_journal
-from station.engine.limits import Limit, Limits, LimitsError, load_limits
-from station.engine.plan import PlanError, PlannedPose, PosePlan, generate_plan, plan_from_joints
-from station.engine.procedure import Procedure, ProcedureError, load_procedure, shipped_names
-from station.engine.runner import Outcome, resume, start
-from station.engine.session import ResumeMismatch, Session
-from station.engine.session_record import session_from_events, session_from_journal
-from station.engine.touch import GuardedApproach, ManualTouch, SocketSeating, TouchFailed, TouchProvider
+Names are loaded on first use, so that ``station.engine.events`` and ``station.engine.journal`` stay cheap to
+import for readers of a journal (records, report, tools) that need no numpy or kinematics."""
 
-__all__ = [
-    "Cell", "CellError", "GuardedApproach", "Journal", "JournalError", "Limit", "Limits", "LimitsError",
-    "ManualTouch", "Outcome", "PlanError", "PlannedPose", "PosePlan", "Procedure", "ProcedureError", "RefPoint",
-    "ResumeMismatch", "Session", "SocketSeating", "TouchFailed", "TouchProvider", "cell_from_dict",
-    "generate_plan", "load_cell", "load_limits", "load_procedure", "plan_from_joints", "read_journal", "resume",
-    "session_from_events", "session_from_journal", "shipped_names", "start",
-]
+from importlib import import_module
+
+_WHERE = {
+    "Cell": "cell", "CellError": "cell", "RefPoint": "cell", "cell_from_dict": "cell", "load_cell": "cell",
+    "Journal": "journal", "JournalError": "journal", "read_journal": "journal",
+    "Limit": "limits", "Limits": "limits", "LimitsError": "limits", "load_limits": "limits",
+    "PlanError": "plan", "PlannedPose": "plan", "PosePlan": "plan", "generate_plan": "plan",
+    "plan_from_joints": "plan",
+    "Procedure": "procedure", "ProcedureError": "procedure", "load_procedure": "procedure",
+    "shipped_names": "procedure",
+    "Outcome": "runner", "resume": "runner", "start": "runner",
+    "ResumeMismatch": "session", "Session": "session",
+    "session_from_events": "session_record", "session_from_journal": "session_record",
+    "GuardedApproach": "touch", "ManualTouch": "touch", "SocketSeating": "touch", "TouchFailed": "touch",
+    "TouchProvider": "touch",
+}
+
+
+def __getattr__(name: str):
+    if name in _WHERE:
+        return getattr(import_module(f"station.engine.{_WHERE[name]}"), name)
+    raise AttributeError(f"module 'station.engine' has no attribute {name!r}")
+
+
+__all__ = sorted(_WHERE)

@@ -9,22 +9,34 @@ File format (``station-cell/1``, YAML; written for emulated cells by ``station m
     points:
       - {label: A, kind: socket, position: [450, 0, 50], approach: [0, 0, 1], radius: 3}
 
+    mounting: {normal: [0, 0, 1], offset: 0, clearance: 10}   # optional: the plane the arm stands on
+    keep_out:                      # optional: volumes no link may enter (each keeps its clearance)
+      - {name: fixture, box: {min: [300, -400, 0], max: [600, 400, 40]}}
+      - {name: mast, box: {center: [0, 500, 400], size: [100, 100, 800], rotation: {rz: 30}}, clearance: 20}
+      - {name: wall, plane: {point: [0, -600, 0], normal: [0, 1, 0]}}
+
 ``position`` is approximate, in the robot base frame; ``approach`` the unit vector from the point towards where
-the tool comes from (up for a socket in a table); ``radius`` the socket capture / needle contact radius."""
+the tool comes from (up for a socket in a table); ``radius`` the socket capture / needle contact radius.
+Without ``mounting`` the arm stands on the plane z = 0 of its base frame (10 mm clearance); ``mounting: none``
+for an arm not standing on a plane. Format and semantics: docs/formats.md."""
 
 from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from station.robot.errors import ConfigError
+from station.kinematics.collision import Checker, KeepOut, KeepOutError
+from station.kinematics.collision import keep_out_from_dict as parse_keep_out
+from station.robot.errors import ConfigError, LimitError
+from station.units import ANGLE_UNITS, LENGTH_UNITS
 
 FORMAT = "station-cell/1"
-LENGTH = {"m": 1.0, "mm": 1e-3}
+LENGTH = {u: LENGTH_UNITS[u] for u in ("m", "mm")}  # the units a cell file may state
+ANGLE = {u: ANGLE_UNITS[u] for u in ("rad", "deg")}
 
 
 class CellError(ConfigError):
@@ -55,6 +67,7 @@ class Cell:
     points: dict[str, RefPoint]
     model: str | None = None
     tool: dict[str, float] | None = None  # nominal TCP on the flange (m, rad: x y z rx ry rz), if the cell says
+    keep_out: KeepOut = field(default_factory=KeepOut.default)  # mounting plane + volumes no link may enter
 
     def point(self, label: str) -> RefPoint:
         if label not in self.points:
@@ -124,11 +137,41 @@ def cell_from_dict(doc, where: str = "cell") -> Cell:
     if tool is not None:
         if not isinstance(tool, dict) or set(tool) - {"x", "y", "z", "rx", "ry", "rz"}:
             raise CellError(f"{where}: tool must map x, y, z (length unit), rx, ry, rz (rad) to numbers")
-        angle = {"rad": 1.0, "deg": math.pi / 180}.get((units or {}).get("angle", "rad"))
+        angle = ANGLE.get((units or {}).get("angle", "rad"))
         if angle is None:
             raise CellError(f"{where}: units.angle must be rad or deg")
         try:
             tool = {k: float(v) * (angle if k.startswith("r") else scale) for k, v in tool.items()}
         except (TypeError, ValueError):
             raise CellError(f"{where}: tool values must be numbers") from None
-    return Cell(where, points, doc.get("model"), tool)
+    angle = {"rad": 1.0, "deg": math.pi / 180}.get((units or {}).get("angle", "rad"))
+    if angle is None:
+        raise CellError(f"{where}: units.angle must be rad or deg")
+    return Cell(where, points, doc.get("model"), tool, keep_out_from_dict(doc, where, scale, angle))
+
+
+# ---- keep-out ----------------------------------------------------------------------------------------------
+def keep_out_from_dict(doc: dict, where: str, scale: float, angle: float) -> KeepOut:
+    """``mounting`` and ``keep_out`` of a cell document (lengths in ``scale`` m, angles in ``angle`` rad)."""
+    try:
+        return parse_keep_out(doc, where, scale, angle)
+    except KeepOutError as e:
+        raise CellError(str(e)) from None
+
+
+def check_clear(model, keep_out: KeepOut | Cell | None, q, what: str = "target") -> None:
+    """Refuse a joint target that brings a link capsule of ``model`` into a keep-out or within its clearance
+    (``keep_out`` None: the default mounting plane). Raises ``LimitError`` naming the link and the obstacle."""
+    ko = keep_out.keep_out if isinstance(keep_out, Cell) else keep_out
+    hit = Checker(model, ko).hits(np.asarray(q, float)[None])[0]
+    if hit is not None:
+        raise LimitError(f"{what}: {hit.describe()}; refused")
+
+
+def check_path_clear(model, keep_out: KeepOut | Cell | None, q_from, q_to, what: str = "move") -> None:
+    """As :func:`check_clear` along the straight joint path ``q_from -> q_to`` (sampled so that no point of the
+    arm moves more than 5 mm between checks)."""
+    ko = keep_out.keep_out if isinstance(keep_out, Cell) else keep_out
+    hit = Checker(model, ko).path_hit(q_from, q_to)
+    if hit is not None:
+        raise LimitError(f"{what}: {hit.describe()} on the way; refused")

@@ -22,19 +22,19 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
-
+from station import units
 from station.robot.errors import ConfigError
 
 FORMAT = "station-limits/1"
-DEFAULT_LIMITS = Path(__file__).resolve().parents[2] / "procedures" / "limits.yaml"
+# the units a limit may be stated in (station.units), by quantity
+UNITS = ("m", "mm", "um", "rad", "deg", "mrad", "count", "1")
 
-# unit -> (quantity, SI value of one unit)
-UNITS: dict[str, tuple[str, float]] = {
-    "m": ("length", 1.0), "mm": ("length", 1e-3), "um": ("length", 1e-6),
-    "rad": ("angle", 1.0), "deg": ("angle", math.pi / 180), "mrad": ("angle", 1e-3),
-    "count": ("number", 1.0), "1": ("number", 1.0),
-}
+
+def default_limits() -> Path:
+    """The shipped ``limits.yaml`` (package data of ``station.procedures``)."""
+    from station.engine.procedure import shipped_folder
+
+    return shipped_folder() / "limits.yaml"
 
 
 class LimitsError(ConfigError):
@@ -51,10 +51,10 @@ class Limit:
 
     @property
     def quantity(self) -> str:
-        return UNITS[self.unit][0]
+        return units.quantity_of(self.unit)
 
     def from_si(self, value: float) -> float:
-        return value / UNITS[self.unit][1]
+        return units.from_si(value, self.unit)
 
     def judge(self, value_si: float | None, quantity: str) -> dict:
         """The measurement dict of the session record: name, value (in ``unit``), unit, low, high, marginal,
@@ -129,18 +129,14 @@ def load_limits(path: str | Path | None = None) -> Limits:
     """Read and check a limits file (default: the shipped ``procedures/limits.yaml``)."""
     import hashlib
 
-    path = Path(path) if path else DEFAULT_LIMITS
+    from station.yamlfile import parse_yaml
+
+    path = Path(path) if path else default_limits()
     try:
         text = path.read_bytes()
     except OSError as e:
         raise LimitsError(f"limits file {path}: {e.strerror or e}") from None
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark else ""
-        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
-        raise LimitsError(f"limits file {path}{where}: not valid YAML ({problem})") from None
+    doc = parse_yaml(text, LimitsError, f"limits file {path}")
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise LimitsError(f"limits file {path}: expected 'format: {FORMAT}' at the top")
     version = doc.get("version")

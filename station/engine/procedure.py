@@ -8,19 +8,26 @@ A procedure file defines::
         s.connect()
         ...
 
-Shipped procedures live in ``procedures/`` (import name ``station.procedures``) and are found by name; any
-other file is given by path. The file's SHA-256 goes into the journal header; a resume refuses a changed file."""
+Shipped procedures live in ``procedures/`` (import name ``station.procedures``, package data of the wheel,
+found through ``importlib.resources``) and are found by name; any other file is given by path. The file's
+SHA-256 goes into the journal header; a resume refuses a changed file."""
 
 from __future__ import annotations
 
 import hashlib
 import types
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 
 from station.robot.errors import ConfigError
 
-SHIPPED = Path(__file__).resolve().parents[2] / "procedures"
+
+def shipped_folder() -> Path:
+    """The folder of the shipped procedures and default limits (``station.procedures``), wherever the package
+    is installed (source tree, editable or wheel install)."""
+    return Path(str(resources.files("station.procedures")))
+
 
 
 class ProcedureError(ConfigError):
@@ -44,7 +51,7 @@ class Procedure:
 
 
 def shipped_names() -> list[str]:
-    return sorted(p.stem for p in SHIPPED.glob("*.py") if not p.name.startswith("_"))
+    return sorted(p.stem for p in shipped_folder().glob("*.py") if not p.name.startswith("_"))
 
 
 def find_procedure(name_or_path: str) -> Path:
@@ -53,7 +60,7 @@ def find_procedure(name_or_path: str) -> Path:
         if not p.is_file():
             raise ProcedureError(f"procedure file {p} does not exist")
         return p
-    cand = SHIPPED / f"{name_or_path}.py"
+    cand = shipped_folder() / f"{name_or_path}.py"
     if not cand.is_file() or name_or_path.startswith("_"):
         raise ProcedureError(f"unknown procedure {name_or_path!r}; shipped: {', '.join(shipped_names())} "
                              "(or give a .py file)")

@@ -1,8 +1,10 @@
-"""Run a procedure on a robot with guaranteed teardown, then store the record and write the report.
+"""Run a procedure on a robot with guaranteed teardown; the outcome carries the session record.
 
 Whatever happens inside the checklist (a fault, a bus error, Ctrl-C, SIGTERM), the robot is stopped and left
-non-compliant, the fault is journaled, and the session record (projected from the journal) is stored, so a
-resume can continue. A verdict is only returned once the record is durably stored."""
+non-compliant, the fault and the end are journaled and ``samples.csv`` is written, so a resume can continue.
+The engine stores nothing in the records database and writes no report: the caller hands the outcome on
+(``station.publish.publish``, used by ``station.run``/``station resume``/the CLI), and shows a verdict only
+once the record is stored."""
 
 from __future__ import annotations
 
@@ -13,19 +15,21 @@ import platform
 import signal
 import socket
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
+from station.engine import events as ev
 from station.engine.cell import Cell, RefPoint, load_cell
 from station.engine.journal import Journal, JournalError, read_journal
 from station.engine.limits import load_limits
 from station.engine.procedure import Procedure, ProcedureError, load_procedure
 from station.engine.session import Session
+from station.kinematics.collision import keep_out_to_doc
 from station.robot.errors import ConfigError
 from station.robot.protocol import adopt_serial
+from station.samplesfile import joint_units, write_samples_csv
 
 
 class Terminated(KeyboardInterrupt):
@@ -42,6 +46,7 @@ class Outcome:
     report: Path | None = None
     error: BaseException | None = field(repr=False, default=None)
     stored: bool = False
+    db: str | None = None  # the records URL the session names (None: the default database)
 
     @property
     def exit_code(self) -> int:
@@ -57,6 +62,7 @@ def station_home() -> Path:
 
 
 def new_session_id(procedure: str, serial: str) -> str:
+    """``PROCEDURE-SERIAL-UTCSTAMP``, the session's folder name under ``$STATION_HOME/sessions``."""
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
     safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in serial) or "unknown"
     return f"{procedure}-{safe}-{stamp}"
@@ -90,8 +96,10 @@ def _db_for_journal(db: str | None) -> str | None:
 def _cell_from_header(d: dict | None) -> Cell | None:
     if not d:
         return None
+    from station.engine.cell import keep_out_from_dict
+
     return Cell(d.get("path", "journal"), {p["label"]: RefPoint.from_dict(p) for p in d["points"]}, d.get("model"),
-                d.get("tool"))
+                d.get("tool"), keep_out_from_dict(d, "journal cell", 1.0, 1.0))  # SI; none journaled: the table
 
 
 def _optional_cell(cell_path) -> Cell | None:
@@ -103,7 +111,8 @@ def _optional_cell(cell_path) -> Cell | None:
     return load_cell(p) if p.exists() else None
 
 
-def _find_session(ref: str | Path) -> Path:
+def find_session(ref: str | Path) -> Path:
+    """The journal of a session id (in ``$STATION_HOME/sessions``), folder or journal path."""
     p = Path(ref)
     for cand in (p, p / "journal.jsonl", station_home() / "sessions" / str(ref) / "journal.jsonl"):
         if cand.is_file():
@@ -117,7 +126,8 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
                    cell: str | Path | Cell | None = None, operator: str | None = None, options: dict | None = None,
                    touch=None, progress: Callable[[int, int, str], None] | None = None,
                    log: Callable[[str], None] | None = None, robot_url: str = "") -> Session:
-    """A new session on a connected robot: checks serial and limits, writes the journal header."""
+    """A new session on a connected robot: checks serial and limits, writes the journal header. ``db`` is only
+    noted in the header (so that a resume stores where the run did); the engine does not open it."""
     from station.engine.session import _identity_dict
 
     name = procedure.name if procedure else (name or "script")
@@ -137,19 +147,17 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
         opts["touch"] = touch
     sid = new_session_id(name, str(serial))
     folder = station_home() / "sessions" / sid
-    header = {
-        "session": sid, "procedure": name,
-        "procedure_path": str(procedure.path.resolve()) if procedure else path,
-        "procedure_sha256": procedure.sha256 if procedure else sha256,
-        "procedure_title": procedure.title if procedure else title, "serial": str(serial),
-        "operator": operator or getpass.getuser(), "station": socket.gethostname(),
-        "url": robot_url or getattr(robot, "url", "") or ident.url,
-        "model": robot.model.name, "robot": _identity_dict(ident),
-        "limits": {"path": lim.path, "version": lim.version, "sha256": lim.sha256},
-        "cell": None if the_cell is None else {"path": the_cell.path, "model": the_cell.model, "tool": the_cell.tool,
-                                               "points": [p.to_dict() for p in the_cell.points.values()]},
-        "options": opts, "db": _db_for_journal(db), "versions": _versions(),
-    }
+    header = ev.Header(
+        session=sid, procedure=name, procedure_path=str(procedure.path.resolve()) if procedure else path,
+        procedure_sha256=procedure.sha256 if procedure else sha256,
+        procedure_title=procedure.title if procedure else title, mode="procedure" if procedure else "script",
+        serial=str(serial), operator=operator or getpass.getuser(), station=socket.gethostname(),
+        url=robot_url or getattr(robot, "url", "") or ident.url, model=robot.model.name, robot=_identity_dict(ident),
+        limits={"path": lim.path, "version": lim.version, "sha256": lim.sha256},
+        cell=None if the_cell is None else {"path": the_cell.path, "model": the_cell.model, "tool": the_cell.tool,
+                                            "points": [p.to_dict() for p in the_cell.points.values()],
+                                            **keep_out_to_doc(the_cell.keep_out)},
+        options=opts, db=_db_for_journal(db), versions=_versions())
     journal = Journal.create(folder / "journal.jsonl", header)
     return Session(journal, robot, limits=table, limits_version=lim.version, cell=the_cell, options=opts,
                    progress=progress, touch=None if isinstance(touch, str) else touch, log=log)
@@ -159,8 +167,9 @@ def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, lim
           db: str | None = None, apply: bool = False, cell: str | Path | Cell | None = None,
           operator: str | None = None, options: dict | None = None, touch=None,
           progress: Callable[[int, int, str], None] | None = None, log: Callable[[str], None] | None = None,
-          report: bool = True, robot=None) -> Outcome:
-    """Start a new session of ``procedure`` on the robot at ``robot_url`` and run it to the end."""
+          robot=None) -> Outcome:
+    """Start a new session of ``procedure`` on the robot at ``robot_url`` and run it to the end (teardown
+    included). Stores nothing: ``station.run`` does that with the outcome."""
     from station.robot import open_robot
 
     proc = procedure if isinstance(procedure, Procedure) else load_procedure(procedure)
@@ -175,46 +184,49 @@ def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, lim
     except BaseException:
         robot.close()
         raise
-    return _execute(s, proc.checklist, db=db, report=report)
+    out = _execute(s, proc.checklist)
+    out.db = db
+    return out
 
 
-def resume(session_ref: str | Path, *, db: str | None = None, touch=None,
-           progress: Callable[[int, int, str], None] | None = None, log: Callable[[str], None] | None = None,
-           report: bool = True, robot=None) -> Outcome:
-    """Continue an interrupted session: same procedure file (hash checked), same plan, recorded samples kept."""
+def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int, str], None] | None = None,
+           log: Callable[[str], None] | None = None, robot=None) -> Outcome:
+    """Continue an interrupted session: same procedure file (hash checked), same plan, recorded samples kept.
+    The outcome's ``db`` is the records URL the journal names."""
     from station.robot import open_robot
 
-    path = _find_session(session_ref)
+    path = find_session(session_ref)
     try:
         header, events = read_journal(path)
     except JournalError as e:
         raise ConfigError(str(e)) from None
-    if any(e.get("type") == "end" and e.get("status") == "completed" for e in events):
-        raise ConfigError(f"session {header.get('session')} already completed; start a new one with station run")
-    if not header.get("procedure_path"):
-        kind = header.get("procedure") or "this kind of session"
-        raise ConfigError(f"session {header.get('session')} ({kind}) has no procedure file to resume; its samples "
+    if any(isinstance(e, ev.End) and e.status == "completed" for e in events):
+        raise ConfigError(f"session {header.session} already completed; start a new one with station run")
+    if not header.procedure_path:
+        kind = header.procedure or "this kind of session"
+        raise ConfigError(f"session {header.session} ({kind}) has no procedure file to resume; its samples "
                           f"are kept in {path} (use station solve on its samples.csv, or start a new session)")
-    proc = load_procedure(header["procedure_path"])
-    if proc.sha256 != header.get("procedure_sha256"):
-        raise ProcedureError(f"procedure {proc.path} changed since session {header['session']} started "
+    proc = load_procedure(header.procedure_path)
+    if proc.sha256 != header.procedure_sha256:
+        raise ProcedureError(f"procedure {proc.path} changed since session {header.session} started "
                              "(sha256 differs); resuming would mix two procedures")
-    lim_info = header.get("limits") or {}
+    lim_info = header.limits or {}
     lim = load_limits(lim_info.get("path"))
     if lim.sha256 != lim_info.get("sha256"):
-        raise ConfigError(f"limits file {lim.path} changed since session {header['session']} started")
-    robot = robot or open_robot(header["url"])
+        raise ConfigError(f"limits file {lim.path} changed since session {header.session} started")
+    robot = robot or open_robot(header.url)
     try:
         table = lim.for_procedure(robot.model.name, proc.name)
         journal = Journal.open(path)
     except BaseException:
         robot.close()
         raise
-    opts = dict(header.get("options") or {})
-    s = Session(journal, robot, limits=table, limits_version=lim.version, cell=_cell_from_header(header.get("cell")),
-                options=opts, replay=events, progress=progress, touch=touch, log=log)
-    s.event({"type": "resume", "samples_kept": len(s.samples()), "events_before": len(events)})
-    return _execute(s, proc.checklist, db=db if db is not None else header.get("db"), report=report)
+    s = Session(journal, robot, limits=table, limits_version=lim.version, cell=_cell_from_header(header.cell),
+                options=dict(header.options), replay=events, progress=progress, touch=touch, log=log)
+    s.event(ev.Resume(samples_kept=len(s.samples()), events_before=len(events)))
+    out = _execute(s, proc.checklist)
+    out.db = header.db
+    return out
 
 
 def _install_sigterm():
@@ -230,8 +242,7 @@ def _install_sigterm():
         return None
 
 
-def _execute(s: Session, body: Callable[[Session], None], *, db: str | None, report: bool,
-             store: bool = True) -> Outcome:
+def _execute(s: Session, body: Callable[[Session], None]) -> Outcome:
     status, err = "completed", None
     old = _install_sigterm()
     try:
@@ -241,87 +252,37 @@ def _execute(s: Session, body: Callable[[Session], None], *, db: str | None, rep
             status, err = "interrupted", e
         except Exception as e:
             status, err = "error", e
-        return finish(s, status, err, db=db, report=report, store=store)
+        return finish(s, status, err)
     finally:
         if old is not None:
             signal.signal(signal.SIGTERM, old)
 
 
-def finish(s: Session, status: str, err: BaseException | None, *, db: str | None, report: bool,
-           store: bool = True) -> Outcome:
-    """Teardown (stop, compliance off) whatever happened, journal the fault and the end, close, then store the
-    record and write the report. Used by the runner and by scripted sessions."""
+def finish(s: Session, status: str, err: BaseException | None) -> Outcome:
+    """Teardown (stop, compliance off) whatever happened, journal the fault and the end, close, write
+    ``samples.csv``. Used by the runner and by scripted sessions; the caller stores and reports the outcome."""
     try:
         problems = s.safe_state()  # first: the robot stops, whatever the journal can still do
         if err is not None:
-            s.event({"type": "fault", "step": _failed_step(s), "error": type(err).__name__,
-                     "message": str(err) or type(err).__name__, "teardown": problems})
+            s.event(ev.Fault(step=_failed_step(s), error=type(err).__name__, message=str(err) or type(err).__name__,
+                             teardown=problems))
         elif problems:
-            s.event({"type": "fault", "step": "teardown", "error": "teardown", "message": "; ".join(problems)})
-        s.event({"type": "end", "status": status,
-                 "passed": None if s.verdict is None else bool(s.verdict["passed"])})
+            s.event(ev.Fault(step="teardown", error="teardown", message="; ".join(problems)))
+        s.event(ev.End(status=status, passed=None if s.verdict is None else bool(s.verdict["passed"]),
+                       n_samples=len(s.samples())))
     finally:
         with contextlib.suppress(Exception):  # closing a dead connection must not hide the original outcome
             s.robot.close()
         s.journal.close()
     record = s.record_dict()
-    out = Outcome(s.id, s.folder, status, None if s.verdict is None else bool(s.verdict["passed"]), record,
-                  error=err)
-    _write_samples_csv(s)
-    try:
-        if store:
-            _store(record, db)
-            out.stored = True
-        if report:
-            from station.report import write_report
-
-            out.report = Path(write_report(record, s.folder))
-    except Exception as e:
-        if out.error is None:
-            out.status, out.error = "error", e
-        else:
-            s.log(f"could not store/report the failed session: {e}")
-    return out
+    write_samples_csv(s.folder / "samples.csv", s.samples(), joint_units(s.model),
+                      comment=f"session {s.id}, model {s.model.name}")
+    return Outcome(s.id, s.folder, status, None if s.verdict is None else bool(s.verdict["passed"]), record,
+                   error=err, db=s.journal.header.db)
 
 
 def _failed_step(s: Session) -> str | None:
     for e in reversed(s.events("step")):
-        if e.get("status") in ("start", "failed"):
-            return e.get("name")
+        if e.status in ("start", "failed"):
+            return e.name
     return None
-
-
-def _store(record: dict, db: str | None) -> None:
-    from station.records import open_records
-
-    records = open_records(db)
-    try:
-        records.store_session(record)
-    finally:
-        records.close()
-
-
-def _write_samples_csv(s: Session) -> None:
-    """``samples.csv`` next to the journal, the format ``station solve`` reads (a projection, rewritten whole)."""
-    import csv
-
-    smp = s.samples()
-    units = ["rad" if j.revolute else "m" for j in s.model.joints]
-    tmp = s.folder / "samples.csv.tmp"
-    with open(tmp, "w", newline="") as fh:
-        fh.write(f"# station samples: session {s.id}, model {s.model.name}; joints in rad (m if prismatic), "
-                 "measured x,y,z in m; seq = journal sequence number, set = fit|holdout\n")
-        w = csv.writer(fh)
-        meas = bool(smp) and all(x.get("measured") is not None for x in smp)
-        w.writerow([f"q{i + 1}[{u}]" for i, u in enumerate(units)] + ["point", "seq", "set"]
-                   + (["x[m]", "y[m]", "z[m]"] if meas else []))
-        for x in smp:
-            w.writerow([repr(float(v)) for v in x["q"]] + [x["point"], x["seq"], x.get("set", "fit")]
-                       + ([repr(float(v)) for v in x["measured"]] if meas else []))
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, s.folder / "samples.csv")
-
-
-def wall() -> float:
-    return time.time()

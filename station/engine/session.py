@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from station.engine import events as ev
 from station.engine.cell import Cell, RefPoint
 from station.engine.journal import Journal
 from station.engine.limits import Limit, LimitsError
@@ -19,8 +20,10 @@ from station.engine.plan import PlannedPose, PosePlan, generate_plan, plan_from_
 from station.engine.session_record import live_samples, session_from_events
 from station.engine.touch import TouchProvider, provider_for
 from station.kinematics import Model
+from station.robot.capabilities import CalibrationStore, Compliant, ContactSensor
 from station.robot.errors import ConfigError, DeviceFault, SafetyStop, StationError
 from station.robot.protocol import adopt_serial
+from station.units import human, param_quantity
 
 APPROACH_TOOL_SPEED = 0.10  # m/s at the tool on the last centimetres to a reference (seating, contact)
 
@@ -47,7 +50,7 @@ class Session:
         self.limits_version = limits_version
         self.cell = cell
         self.options = dict(options or {})
-        self.replay = list(replay or [])  # events of the interrupted run (resume); empty for a new session
+        self.replay: list[ev.Event] = list(replay or [])  # events of the interrupted run (resume)
         self.progress = progress or (lambda done, total, text: None)
         self.log = log or (lambda text: None)
         self._touch = touch
@@ -55,7 +58,7 @@ class Session:
         self.result = None  # CalibrationResult of the last solve
         self.measurements: list[dict] = []
         self.verdict: dict | None = None
-        self._events: list[dict] = list(self.replay)
+        self._events: list[ev.Event] = list(self.replay)
         self._aim: dict[str, list[np.ndarray]] = {}
 
     # ---- journal ---------------------------------------------------------------------------------
@@ -71,13 +74,19 @@ class Session:
     def resumed(self) -> bool:
         return bool(self.replay)
 
-    def event(self, event: dict) -> dict:
-        ev = self.journal.append({"session": self.id, **event})
-        self._events.append(ev)
-        return ev
+    def event(self, event: ev.Event | dict) -> ev.Event:
+        """Journal one event (a typed ``station.engine.events`` record, or a dict of one; a dict of a type the
+        schema does not know is kept as a custom event). Fsynced when it returns."""
+        if isinstance(event, dict):
+            event = {**event, "session": self.id}
+        else:
+            event.session = self.id
+        e = self.journal.append(event)
+        self._events.append(e)
+        return e
 
-    def events(self, kind: str | None = None) -> list[dict]:
-        return [e for e in self._events if kind is None or e.get("type") == kind]
+    def events(self, kind: str | None = None) -> list[ev.Event]:
+        return [e for e in self._events if kind is None or e.type == kind]
 
     def record_dict(self) -> dict:
         """The session record (what ``station.records`` stores), projected from the journal so far."""
@@ -86,14 +95,13 @@ class Session:
     @contextlib.contextmanager
     def step(self, name: str, **info) -> Iterator[None]:
         """An OpenHTF-style phase: journaled start and outcome; a failure names the step."""
-        self.event({"type": "step", "name": name, "status": "start", **info})
+        self.event(ev.Step(name=name, status="start", info=info))
         try:
             yield
         except BaseException as e:
-            self.event({"type": "step", "name": name, "status": "failed", "error": type(e).__name__,
-                        "message": str(e)[:500]})
+            self.event(ev.Step(name=name, status="failed", error=type(e).__name__, message=str(e)[:500]))
             raise
-        self.event({"type": "step", "name": name, "status": "done"})
+        self.event(ev.Step(name=name, status="done"))
 
     # ---- connect and check -----------------------------------------------------------------------
     def connect(self) -> dict:
@@ -102,10 +110,10 @@ class Session:
             ident = adopt_serial(self.robot.identity(), self.journal.header.get("serial"))
             d = _identity_dict(ident)
             first = self.events("identity")
-            if first and (first[0]["robot"].get("serial"), first[0]["robot"].get("model")) != (d["serial"], d["model"]):
+            if first and (first[0].robot.get("serial"), first[0].robot.get("model")) != (d["serial"], d["model"]):
                 raise ResumeMismatch(f"resume: robot is {d['model']} {d['serial']!r}, the session was recorded on "
-                                     f"{first[0]['robot'].get('model')} {first[0]['robot'].get('serial')!r}")
-            self.event({"type": "identity", "robot": d})
+                                     f"{first[0].robot.get('model')} {first[0].robot.get('serial')!r}")
+            self.event(ev.Identity(robot=d))
             return d
 
     def check_state(self) -> dict:
@@ -118,8 +126,7 @@ class Session:
             if st.faults:
                 # latched faults a re-enable clears (e.g. a bus watchdog that tripped when the previous run died
                 # mid-move) are journaled and cleared once; anything that persists stops the session
-                self.event({"type": "warning", "step": "check_state", "message": "clearing faults: "
-                            + "; ".join(st.faults)})
+                self.event(ev.Warn(step="check_state", message="clearing faults: " + "; ".join(st.faults)))
                 self.robot.enable()
                 st = self.robot.status()
                 if st.faults:  # some drives re-arm on the next command: hold where it stands (no motion)
@@ -135,44 +142,46 @@ class Session:
             cal = self._read_calibration()
             q = self.robot.joint_positions().q
             prior = self.events("state")
-            if prior and cal is not None and prior[0].get("calibration") is not None:
-                allowed = self._expected_calibrations(prior[0]["calibration"])
-                mismatch = [[k for k, v in exp.items() if abs(cal.get(k, math.nan) - v) > self._cal_tol(k)]
+            if prior and cal is not None and prior[0].calibration is not None:
+                allowed = self._expected_calibrations(prior[0].calibration)
+                mismatch = [[k for k, v in exp.items() if abs(cal.get(k, math.nan) - v) > self.cal_tolerance(k)]
                             for exp in allowed]
                 if all(mismatch):
                     k = mismatch[0][0]
                     raise ResumeMismatch(f"resume: device calibration {k} is {cal.get(k)!r}, the journal expects "
                                          f"{allowed[0][k]!r}; the recorded samples no longer apply")
             out = {"enabled": True, "calibration": cal, "q": q.tolist()}
-            self.event({"type": "state", **out})
+            self.event(ev.State(**out))
             return out
 
     def _read_calibration(self) -> dict[str, float] | None:
-        try:
-            cal = self.robot.read_calibration()
-        except (NotImplementedError, AttributeError):
+        if not isinstance(self.robot, CalibrationStore):
             return None
+        cal = self.robot.read_calibration()
         return {k: float(v) for k, v in (cal or {}).items()} or None
 
     def _expected_calibrations(self, first: dict) -> list[dict]:
         """What the device may hold now: after a journaled write, the new values; while a write was under way
         (pre-image journaled, outcome not), either the pre-image or the new values."""
-        wb = self.events("writeback")
-        if any(e.get("phase") in ("written", "verified") for e in wb):
-            return [dict(next(e["after"] for e in reversed(wb) if e.get("after")))]
-        pending = [e for e in wb if e.get("phase") == "before"]
+        wb = [e for e in self.events("writeback") if e.kind == "write"]
+        if any(e.phase in ("written", "verified") for e in wb):
+            return [dict(next(e.after for e in reversed(wb) if e.after))]
+        pending = [e for e in wb if e.phase == "pre-image"]
         if pending:
-            return [dict(pending[-1]["before"]), dict(pending[-1]["after"])]
+            return [dict(pending[-1].before), dict(pending[-1].after)]
         return [dict(first)]
 
-    def _cal_tol(self, name: str) -> float:
-        try:
-            j = self.model.joints[int(name.split(".j")[1]) - 1]
-        except (IndexError, ValueError):
-            return 1e-9
-        if j.encoder is None:
-            return 1e-9
-        return 1.5 / (j.encoder.counts_per_unit * j.encoder.gear)  # one count (plus rounding)
+    def cal_tolerance(self, name: str) -> float:
+        """How far a device calibration read now may be from one journaled earlier: one count plus rounding."""
+        from station.engine.writeback import count_tolerance
+
+        return count_tolerance(self.model, name, 1.5)
+
+    def readback_tolerance(self, name: str) -> float:
+        """How far a written value may read back: one encoder count (devices store whole counts)."""
+        from station.engine.writeback import count_tolerance
+
+        return count_tolerance(self.model, name, 1.0)
 
     # ---- reference points and plans -------------------------------------------------------------
     def point(self, label: str) -> RefPoint:
@@ -196,7 +205,7 @@ class Session:
         session reuses exactly the same poses."""
         old = self.events("plan")
         if old:
-            self.current_plan = PosePlan.from_dict(old[-1]["plan"])
+            self.current_plan = PosePlan.from_dict(old[-1].plan)
             return self.current_plan
         with self.step("plan"):
             q0 = self.robot.joint_positions().q
@@ -204,20 +213,22 @@ class Session:
             n_fit = n_fit or opt.get("n_fit")
             n_holdout = opt.get("n_holdout", 4) if n_holdout is None else n_holdout
             rotate = kw.pop("rotate_joint", None)
+            kw.setdefault("keep_out", self.cell.keep_out if self.cell else None)  # None: nothing below the base
             if rotate is not None:
                 from station.engine.plan import generate_rotation_plan
 
                 plan = generate_rotation_plan(self.model, (points or self.points("socket"))[0], q0, joint=rotate,
                                               n_fit=n_fit or 8, n_holdout=n_holdout, **kw)
             elif listed is not None:
-                plan = plan_from_joints(self.model, listed, self.cell.points if self.cell else {}, q_start=q0)
+                plan = plan_from_joints(self.model, listed, self.cell.points if self.cell else {}, q_start=q0,
+                                        keep_out=kw["keep_out"])
             else:
                 for key in ("cone_deg", "clearance", "roll_deg", "margin_deg"):
                     if key in opt:
                         kw.setdefault(key, float(opt[key]))
                 plan = generate_plan(self.model, points or self.points("socket")[:1], q0, identify=identify,
                                      n_fit=n_fit, n_holdout=n_holdout, seed=int(opt.get("seed", 0)), **kw)
-            self.event({"type": "plan", "plan": plan.to_dict()})
+            self.event(ev.Plan(plan=plan.to_dict()))
         self.current_plan = plan
         return plan
 
@@ -234,15 +245,20 @@ class Session:
         self.progress(total, total, "all poses recorded")
 
     def _recorded_poses(self) -> set[int]:
-        return {s.get("pose") for s in live_samples(self._events)}
+        return {s.pose for s in live_samples(self._events)}
 
     # ---- motion ----------------------------------------------------------------------------------
     def move_to(self, q, speed: float | None = None) -> None:
         self.robot.move_joints(np.asarray(q, float), speed=speed)
 
     def approach(self, pose: PlannedPose) -> None:
-        """Move above the reference (approach pose of the plan)."""
-        self.robot.move_joints(pose.approach_arr)
+        """Move above the reference (approach pose of the plan) through the plan's via poses; the path from where
+        the arm stands (e.g. after a resume) is checked against the keep-outs first, refused in one line."""
+        from station.engine.plan import route_from
+
+        for q in route_from(self.model, self.cell.keep_out if self.cell else None, self.robot.joint_positions().q,
+                            [*pose.via, pose.approach_q], what=f"pose {pose.index}"):
+            self.robot.move_joints(q)
 
     def touch_speed(self, q_from, q_to) -> float:
         from station.robot.motion import joint_speed_for_tool_cap
@@ -251,8 +267,8 @@ class Session:
 
     def aimed_q(self, pose: PlannedPose) -> np.ndarray:
         """Touch target corrected by where earlier seatings put this point in the nominal model."""
-        seen = self._aim.get(pose.point) or [self.model.position(np.asarray(s["q"]))
-                                             for s in live_samples(self._events) if s.get("point") == pose.point]
+        seen = self._aim.get(pose.point) or [self.model.position(np.asarray(s.q))
+                                             for s in live_samples(self._events) if s.point == pose.point]
         if not seen or self.cell is None or pose.point not in self.cell.points:
             return pose.q_arr
         self._aim[pose.point] = list(seen)
@@ -283,31 +299,31 @@ class Session:
         self.toucher.release(self, pose)
 
     # ---- samples ---------------------------------------------------------------------------------
-    def record(self, pose: PlannedPose | None = None, point: str | None = None, measured=None) -> dict:
+    def record(self, pose: PlannedPose | None = None, point: str | None = None, measured=None) -> ev.Sample:
         """Read all joints in one transaction and journal the sample (fsynced before the next motion)."""
         snap = self.robot.joint_positions()
-        touch = self.robot.touch()
+        touch = self.robot.touch() if isinstance(self.robot, ContactSensor) else None
         if touch is False:
             raise DeviceFault(f"record: touch indicator is off at pose {pose.index if pose else '?'}; the tip is "
                               "not on the reference")
         q = np.asarray(snap.q, float)
         if not np.all(np.isfinite(q)):
             raise DeviceFault(f"record: joint reading is not finite: {q.tolist()}")
-        ev = self.event({
-            "type": "sample", "point": point or (pose.point if pose else "A"), "q": q.tolist(),
-            "raw": list(snap.raw), "raw_unit": snap.raw_unit, "t_read": snap.t, "t_device": snap.t_device,
-            "measured": None if measured is None else np.asarray(measured, float).tolist(),
-            "pose": None if pose is None else pose.index, "set": pose.set if pose else "fit",
-            "status": {"touch": touch}})
+        sample = self.event(ev.Sample(
+            point=point or (pose.point if pose else "A"), q=q.tolist(), raw=list(snap.raw), raw_unit=snap.raw_unit,
+            t_read=snap.t, t_device=snap.t_device,
+            measured=None if measured is None else np.asarray(measured, float).tolist(),
+            pose=None if pose is None else pose.index, set=pose.set if pose else "fit", status={"touch": touch}))
         if pose is not None:
             self._aim.setdefault(pose.point, []).append(self.model.position(q))
-        return ev
+        return sample
 
     def discard(self, seq: int, reason: str = "") -> None:
-        self.event({"type": "discard", "sample": int(seq), "reason": reason})
+        self.event(ev.Discard(sample=int(seq), reason=reason))
 
-    def samples(self, which: str | None = None) -> list[dict]:
-        return [s for s in live_samples(self._events) if which is None or s.get("set", "fit") == which]
+    def samples(self, which: str | None = None) -> list[ev.Sample]:
+        """The kept samples (``station.engine.events.Sample``), of one set (``fit``/``holdout``) if given."""
+        return [s for s in live_samples(self._events) if which is None or s.set == which]
 
     # ---- solve, measure, judge ------------------------------------------------------------------
     def observations(self, which: str = "fit"):
@@ -316,10 +332,9 @@ class Session:
         smp = self.samples(which)
         if not smp:
             return None
-        meas = [s.get("measured") for s in smp]
+        meas = [s.measured for s in smp]
         measured = np.array(meas, float) if all(m is not None for m in meas) else None
-        return Observations(np.array([s["q"] for s in smp]), np.array([s["point"] for s in smp], dtype=object),
-                            measured)
+        return Observations(np.array([s.q for s in smp]), np.array([s.point for s in smp], dtype=object), measured)
 
     def solve(self, identify: str = "offsets", reference: str | dict | None = None, **kw):
         """Identify ``identify`` from the fit samples, check on the held-out samples; journals the result."""
@@ -334,7 +349,7 @@ class Session:
                 ref = {lb: p.position for lb, p in self.cell.points.items()} if self.cell else "unknown"
             self.result = solve(self.model, fit, identify=identify, reference=ref,
                                 holdout=self.observations("holdout"), **kw)
-            self.event({"type": "result", "result": self.result.to_dict()})
+            self.event(ev.Result(result=self.result.to_dict()))
         return self.result
 
     def measure(self, name: str, value_si: float | None, quantity: str = "length") -> dict:
@@ -343,12 +358,12 @@ class Session:
         if lim is not None:
             m = lim.judge(value_si, quantity)
         else:
-            unit, k = {"length": ("mm", 1e3), "angle": ("deg", 180 / math.pi)}.get(quantity, ("count", 1.0))
+            unit, k = human(quantity)
             m = {"name": name, "value": None if value_si is None else value_si * k, "unit": unit,
                  "low": None, "high": None, "marginal": False, "passed": True, "note": "no limit (informational)"}
         m["quantity"] = quantity
         self.measurements = [x for x in self.measurements if x["name"] != name] + [m]
-        self.event({"type": "measurement", **m})
+        self.event({"type": "measurement", **m})  # checked against events.Measurement
         return m
 
     def measure_result(self, result=None) -> list[dict]:
@@ -364,7 +379,7 @@ class Session:
             out += [self.measure("holdout_rms", res.holdout.get("rms_m")),
                     self.measure("holdout_max", res.holdout.get("max_m"))]
         offs = {n: p for n, p in res.parameters.items() if n.startswith("offset.") and p.identifiable}
-        rev = [p for n, p in offs.items() if p.unit == "rad"]
+        rev = [p for n, p in offs.items() if param_quantity(n, self.model) == "angle"]
         if rev:
             out.append(self.measure("offset_abs_max", max(abs(p.value - p.nominal) for p in rev), "angle"))
             out.append(self.measure("offset_std_max", max(p.std or 0.0 for p in rev), "angle"))
@@ -374,8 +389,8 @@ class Session:
         """Held-out check without solving: with the robot's current calibration, the nominal model must put
         the tip on the same spot at every touch of a point (spread about each point's centroid)."""
         d = []
-        for label in dict.fromkeys(s["point"] for s in self.samples()):
-            q = np.array([s["q"] for s in self.samples() if s["point"] == label])
+        for label in dict.fromkeys(s.point for s in self.samples()):
+            q = np.array([s.q for s in self.samples() if s.point == label])
             P = self.model.position(q)
             d.extend(np.linalg.norm(P - P.mean(axis=0), axis=1).tolist())
         if not d:
@@ -397,7 +412,7 @@ class Session:
             passed = all(m["passed"] for m in self.measurements)
             self.verdict = {"passed": passed, "measurements": self.measurements,
                             "limits_version": self.limits_version}
-            self.event({"type": "verdict", **self.verdict})
+            self.event(ev.Verdict(**self.verdict))
         return self.verdict
 
     # ---- write-back ------------------------------------------------------------------------------
@@ -407,10 +422,10 @@ class Session:
         from station.engine.writeback import write_back
 
         if not self.options.get("apply"):
-            self.event({"type": "step", "name": "write_back", "status": "skipped", "reason": "not requested (--apply)"})
+            self.event(ev.Step(name="write_back", status="skipped", reason="not requested (--apply)"))
             return None
         if self.verdict is not None and not self.verdict["passed"]:
-            self.event({"type": "step", "name": "write_back", "status": "skipped", "reason": "verdict FAIL"})
+            self.event(ev.Step(name="write_back", status="skipped", reason="verdict FAIL"))
             return None
         with self.step("write_back"):
             return write_back(self, check_pose)
@@ -419,7 +434,10 @@ class Session:
     def safe_state(self) -> list[str]:
         """Stop motion, leave compliant mode. Best effort: every action is tried, failures are returned."""
         problems = []
-        for what, fn in (("stop", self.robot.stop), ("compliance off", lambda: self.robot.set_compliant(False))):
+        actions = [("stop", self.robot.stop)]
+        if isinstance(self.robot, Compliant):
+            actions.append(("compliance off", lambda: self.robot.set_compliant(False)))
+        for what, fn in actions:
             try:
                 fn()
             except Exception as e:  # teardown must try everything; the caller journals what failed

@@ -6,6 +6,7 @@ from __future__ import annotations
 from datetime import UTC, datetime
 from pathlib import Path
 
+from station.engine import events as ev
 from station.engine.journal import read_journal
 
 
@@ -15,52 +16,72 @@ def iso(t: float | None) -> str | None:
     return datetime.fromtimestamp(float(t), UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
 
 
-def live_samples(events: list[dict]) -> list[dict]:
+def live_samples(events: list[ev.Event]) -> list[ev.Sample]:
     """Samples in journal order without the discarded ones (a retake discards the earlier sample)."""
-    dropped = {e.get("sample") for e in events if e.get("type") == "discard"}
-    return [e for e in events if e.get("type") == "sample" and e.get("seq") not in dropped]
+    dropped = {e.sample for e in events if isinstance(e, ev.Discard)}
+    return [e for e in events if isinstance(e, ev.Sample) and e.seq not in dropped]
 
 
-def session_from_events(header: dict, events: list[dict]) -> dict:
+def writeback_summary(events: list[ev.Event]) -> dict | None:
+    """The session's write-back as the records keep it: the last phase, what the device held before and holds
+    after (SI), and whether it was applied (read back) and verified (known-pose check)."""
+    wb: dict | None = None
+    for e in events:
+        if not isinstance(e, ev.Writeback):
+            continue
+        wb = wb or {"before": None, "after": None, "applied": False, "verified": False}
+        if e.phase == "pre-image":  # a new attempt (a write, or the restore after a failed one)
+            for key in ("readback", "check", "error"):
+                wb.pop(key, None)
+        wb.update(phase=e.phase, kind=e.kind)
+        for key in ("before", "after", "readback", "check", "error", "backup"):
+            if getattr(e, key) is not None:
+                wb[key] = getattr(e, key)
+        if e.note:
+            wb["note"] = e.note
+        if e.files:
+            wb["files"] = list(e.files)
+        if e.phase == "written":
+            wb["applied"] = True
+        elif e.phase == "verified":
+            wb["verified"] = e.verified
+        else:
+            wb["applied"], wb["verified"] = e.applied, e.verified
+    return wb
+
+
+def session_from_events(header: ev.Header, events: list[ev.Event]) -> dict:
     result = verdict = None
-    writeback: dict | None = None
     finished = None
     end_status = None
     faults = []
     for e in events:
-        kind = e.get("type")
-        if kind == "result":
-            result = e.get("result")
-        elif kind == "verdict":
-            verdict = {"passed": bool(e.get("passed")), "measurements": e.get("measurements", [])}
-        elif kind == "writeback":
-            writeback = writeback or {"before": None, "after": None, "applied": False, "verified": False}
-            for key in ("before", "after", "applied", "verified", "readback", "check", "note", "files"):
-                if key in e:
-                    writeback[key] = e[key]
-        elif kind == "fault":
-            faults.append({"step": e.get("step"), "error": e.get("error"), "message": e.get("message")})
-        elif kind == "end":
-            finished = iso(e.get("t"))
-            end_status = e.get("status")
-    robot = header.get("robot") or {}
+        if isinstance(e, ev.Result):
+            result = e.result
+        elif isinstance(e, ev.Verdict):
+            verdict = {"passed": e.passed, "measurements": e.measurements}
+        elif isinstance(e, ev.Fault):
+            faults.append({"step": e.step, "error": e.error, "message": e.message})
+        elif isinstance(e, ev.End):
+            finished = iso(e.t)
+            end_status = e.status
     return {
-        "session": header.get("session"),
-        "serial": header.get("serial"),
-        "procedure": header.get("procedure"),
-        "procedure_sha256": header.get("procedure_sha256"),
-        "station": header.get("station"),
-        "operator": header.get("operator"),
-        "started": iso(header.get("t")),
+        "session": header.session,
+        "serial": header.serial,
+        "procedure": header.procedure,
+        "procedure_sha256": header.procedure_sha256,
+        "station": header.station,
+        "operator": header.operator,
+        "started": iso(header.t),
         "finished": finished,
         "status": end_status,
-        "robot": robot,
-        "model": header.get("model"),
-        "limits": header.get("limits"),
-        "samples": live_samples(events),
+        "robot": header.robot,
+        "model": header.model,
+        "limits": header.limits,
+        "samples": [s.to_dict() for s in live_samples(events)],
         "result": result,
         "verdict": verdict,
-        "writeback": writeback,
+        "writeback": writeback_summary(events),
         "faults": faults,
     }
 

@@ -9,7 +9,8 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from station.robot.errors import DeviceFault
+from station.robot.capabilities import Compliant, ContactSensor
+from station.robot.errors import ConfigError, DeviceFault
 
 if TYPE_CHECKING:
     from station.engine.plan import PlannedPose
@@ -26,6 +27,11 @@ class TouchProvider(Protocol):
 
     def bring_to(self, s: Session, pose: PlannedPose) -> None: ...
     def release(self, s: Session, pose: PlannedPose) -> None: ...
+
+
+def _indicator(robot) -> bool | None:
+    """The touch indicator; ``None`` for a robot without one."""
+    return robot.touch() if isinstance(robot, ContactSensor) else None
 
 
 def _wait(cond, timeout: float, poll: float = 0.005) -> bool:
@@ -51,6 +57,8 @@ class SocketSeating:
 
     def bring_to(self, s: Session, pose: PlannedPose) -> None:
         robot = s.robot
+        if not isinstance(robot, Compliant):
+            raise ConfigError(f"socket {pose.point}: seating needs a compliant mode, which this robot does not have")
         target = s.aimed_q(pose)
         robot.move_joints(target, speed=s.touch_speed(pose.approach_arr, target))
         robot.set_compliant(True)
@@ -59,7 +67,7 @@ class SocketSeating:
         state = {"touch": None}
 
         def lit() -> bool:
-            state["touch"] = robot.touch()
+            state["touch"] = _indicator(robot)
             return state["touch"] is not False
 
         if _wait(lit, self.settle_timeout) and (state["touch"] or _wait(
@@ -96,6 +104,9 @@ class GuardedApproach:
 
     def bring_to(self, s: Session, pose: PlannedPose) -> None:
         robot = s.robot
+        if not isinstance(robot, ContactSensor):
+            raise ConfigError(f"needle {pose.point}: a guarded approach needs a contact input, which this robot "
+                              "does not have")
         q = pose.approach_arr
         # straight to a standoff above where the model puts the point, then in steps
         clearance = float((s.current_plan.settings if s.current_plan else {}).get("clearance_m", 0.03))
@@ -152,12 +163,13 @@ class ManualTouch:
         s.robot.move_joints(pose.approach_arr)
         self.prompt(f"Pose {pose.index + 1}/{len(s.current_plan or [])}: jog the tool tip onto point {pose.point} "
                     "until the touch indicator lights, then confirm")
-        if self.require_indicator and s.robot.touch() is False and not _wait(
-                lambda: bool(s.robot.touch()), self.timeout):
+        if self.require_indicator and _indicator(s.robot) is False and not _wait(
+                lambda: bool(_indicator(s.robot)), self.timeout):
             raise TouchFailed(f"pose {pose.index}: the touch indicator did not light")
 
     def release(self, s: Session, pose: PlannedPose) -> None:
-        s.robot.set_compliant(False)
+        if isinstance(s.robot, Compliant):
+            s.robot.set_compliant(False)
         self.prompt(f"Jog the tool clear of point {pose.point}, then confirm")
 
 

@@ -1,78 +1,189 @@
-"""Two-phase write-back of identified joint zero offsets (docs/architecture.md, write-back semantics).
+"""The one write-back of joint zero offsets, used by ``station run --apply`` and the jog UI alike
+(docs/architecture.md, write-back semantics; journal phases in ``station.engine.events.Writeback``).
 
-1. read the device calibration and journal it (the pre-image) with the values about to be written;
-2. write (the driver stores persistently and reads back); read back again and compare to one encoder count;
-3. verify by a move to a known pose: seat at a fit pose again; with the new calibration the nominal model
-   must put the tip on the solved reference position.
-A resumed session looks at what the device holds: the pre-image (write again), the new values (continue with
-the check) or anything else (stop: a person must look)."""
+Two phases, each journaled before the next begins:
+1. pre-image: what the device holds now and what will be written are journaled, and the session's first
+   pre-image is kept in ``calibration-backup.json`` (written atomically, fsynced) before anything is written;
+2. write (the driver stores persistently), read back, compare to one encoder count: ``written`` or ``failed``.
+The engine then verifies with a touch at a known pose (``verified``). An interrupted write-back is found again
+by :func:`resume_point`: the device holds the pre-image (write again), the new values (go on with the check), or
+anything else (stop: a person must look; the backup restores it). The jog UI restores a failed write-back with
+the same :func:`apply` (``kind="restore"``)."""
 
 from __future__ import annotations
 
 import json
 import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
+from station.engine.events import Writeback
+from station.robot.capabilities import CalibrationExport, CalibrationStore
 from station.robot.errors import DeviceFault, StationError
+
+BACKUP = "calibration-backup.json"
+BACKUP_FORMAT = "station-calibration-backup/1"
+FLOAT_TOL = 1e-9  # rad/m on top of the device resolution
 
 
 class WriteBackError(DeviceFault):
     pass
 
 
-def _close(a: dict, b: dict, tol) -> bool:
-    return all(k in a and abs(a[k] - b[k]) <= tol(k) for k in b)
+@dataclass
+class WritebackPlan:
+    """What a write-back will do, before it does it (the jog UI shows it for confirmation)."""
+
+    before: dict[str, float]  # what the device holds now (SI)
+    after: dict[str, float]  # what will be written (SI)
+    corrections: dict[str, float] = field(default_factory=dict)  # identified offsets (empty for a restore)
+    kind: str = "write"  # "write" | "restore" (back to the pre-image after a failed write-back)
 
 
+def corrections_of(result) -> dict[str, float]:
+    """The identified joint zero offsets of a ``CalibrationResult`` relative to the model in use (SI)."""
+    return {n: float(p.value - p.nominal) for n, p in result.parameters.items()
+            if n.startswith("offset.") and p.identifiable}
+
+
+def plan_write(before: dict[str, float], corrections: dict[str, float]) -> WritebackPlan:
+    """``after = before + correction`` for every joint the device calibrates (so that the identified offsets are
+    ~0 on the next verify)."""
+    before = {k: float(v) for k, v in before.items()}
+    after = {k: before[k] + corrections.get(k, 0.0) for k in before}
+    return WritebackPlan(before, after, dict(corrections))
+
+
+def plan_restore(now: dict[str, float], pre_image: dict[str, float]) -> WritebackPlan:
+    return WritebackPlan({k: float(v) for k, v in now.items()}, dict(pre_image), {}, "restore")
+
+
+def count_tolerance(model, name: str, counts: float = 1.0) -> float:
+    """``counts`` encoder counts of the joint behind ``offset.jN`` in SI (what a device can store), plus float
+    rounding; joints without device scaling: the rounding only."""
+    try:
+        enc = model.joints[int(name.rsplit("j", 1)[1]) - 1].encoder
+    except (ValueError, IndexError):
+        enc = None
+    if enc is None:
+        return FLOAT_TOL
+    return counts / (enc.counts_per_unit * enc.gear) + FLOAT_TOL
+
+
+def _mismatch(have: dict, want: dict, tol: Callable[[str], float]) -> str | None:
+    return next((k for k in want if abs(have.get(k, math.nan) - want[k]) > tol(k)), None)
+
+
+def matches(have: dict, want: dict, tol: Callable[[str], float]) -> bool:
+    return _mismatch(have, want, tol) is None
+
+
+def read_device(robot) -> dict[str, float]:
+    return {k: float(v) for k, v in (robot.read_calibration() or {}).items()}
+
+
+def write_backup(folder: Path, session: str, plan: WritebackPlan) -> Path:
+    """Keep the session's first pre-image (the one to restore to) in ``calibration-backup.json``; an existing
+    backup is never overwritten. Atomic and fsynced before the device is touched."""
+    path = Path(folder) / BACKUP
+    if path.exists():
+        return path
+    tmp = path.with_suffix(".json.tmp")
+    with open(tmp, "w") as f:
+        json.dump({"format": BACKUP_FORMAT, "units": "SI (m, rad)", "session": session, "t": time.time(),
+                   "before": plan.before, "after": plan.after}, f, indent=2)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    return path
+
+
+def apply(robot, plan: WritebackPlan, *, event: Callable[[Writeback], object], folder: Path, session: str,
+          tolerance: Callable[[str], float], note: str = "", resumed: bool = False) -> dict[str, float]:
+    """Write ``plan.after`` into the device as phase 1 (pre-image journaled and backed up) and phase 2 (write,
+    read back within ``tolerance``); returns the read-back. A bus error or a read-back that differs journals
+    ``failed`` and raises (``WriteBackError`` for the read-back). ``resumed``: the pre-image of this plan is
+    journaled already (an interrupted write-back being finished)."""
+    if not resumed:
+        backup = None if plan.kind == "restore" else str(write_backup(folder, session, plan))
+        event(Writeback(phase="pre-image", kind=plan.kind, before=plan.before, after=plan.after, backup=backup,
+                        note=note))
+    try:
+        robot.write_calibration(plan.after)
+        readback = read_device(robot)
+    except StationError as e:
+        event(Writeback(phase="failed", kind=plan.kind, before=plan.before, after=plan.after, error=str(e),
+                        note=note))
+        raise
+    bad = _mismatch(readback, plan.after, tolerance)
+    if bad is not None:
+        msg = f"write-back: {bad} reads back {readback.get(bad)!r}, wrote {plan.after[bad]!r}"
+        event(Writeback(phase="failed", kind=plan.kind, before=plan.before, after=plan.after, readback=readback,
+                        error=msg, note=note))
+        raise WriteBackError(msg)
+    event(Writeback(phase="written", kind=plan.kind, before=plan.before, after=plan.after, readback=readback,
+                    applied=True, note=note))
+    return readback
+
+
+def resume_point(events: list, device: dict[str, float], tol: Callable[[str], float]):
+    """Where an interrupted write-back stands: ``(None, None)`` when none was started, else ``(plan, state)``
+    with ``state`` "written" (the device holds the new values), "pre-image" (it holds the old ones) or
+    "unknown"."""
+    pre = [e for e in events if isinstance(e, Writeback) and e.phase == "pre-image" and e.kind == "write"]
+    if not pre:
+        return None, None
+    plan = WritebackPlan(dict(pre[-1].before or {}), dict(pre[-1].after or {}))
+    if matches(device, plan.after, tol):
+        return plan, "written"
+    if matches(device, plan.before, tol):
+        return plan, "pre-image"
+    return plan, "unknown"
+
+
+# ---- the engine's step ------------------------------------------------------------------------------------
 def write_back(s, check_pose=None) -> dict:
+    """The engine's write-back step (``s.write_back()`` with ``--apply``): plan from the solve, apply, then
+    verify with a touch at a known pose. Returns the session record's write-back summary."""
     res = s.result
     if res is None:
         raise StationError("write-back: nothing solved yet")
-    offsets = {n: p.value - p.nominal for n, p in res.parameters.items()
-               if n.startswith("offset.") and p.identifiable}
-    export = getattr(s.robot, "export_calibration", None)
-    if callable(export):
+    if isinstance(s.robot, CalibrationExport):
         # a controller that keeps its calibration itself (UR): nothing is written to the robot; the driver
         # exports calibration.conf / URDF for the integrator to install
-        files = [str(p) for p in export(res, s.folder / "controller-calibration") or []]
-        return s.event({"type": "writeback", "phase": "exported", "applied": False, "verified": False,
-                        "files": files, "note": "controller keeps its calibration; exported " + ", ".join(files)})
-    try:
-        before = s.robot.read_calibration()
-    except NotImplementedError as e:
-        ev = s.event({"type": "writeback", "phase": "unsupported", "applied": False, "verified": False,
-                      "note": f"device keeps its calibration itself: {e}"})
-        return ev
+        files = [str(p) for p in s.robot.export_calibration(res, s.folder / "controller-calibration") or []]
+        s.event(Writeback(phase="exported", files=files,
+                          note="controller keeps its calibration; exported " + ", ".join(files)))
+        return s.record_dict()["writeback"]
+    if not isinstance(s.robot, CalibrationStore):
+        s.event(Writeback(phase="unsupported", note="the robot stores no joint calibration the station can write"))
+        return s.record_dict()["writeback"]
+    before = s.robot.read_calibration()
     before = {k: float(v) for k, v in (before or {}).items()}
     if not before:
-        return s.event({"type": "writeback", "phase": "unsupported", "applied": False, "verified": False,
-                        "note": "the robot exposes no writable joint calibration"})
-    prior = [e for e in s.events("writeback") if e.get("phase") == "before"]
-    if prior:  # resumed mid write-back: the journaled pre-image rules
-        pre, after = prior[-1]["before"], prior[-1]["after"]
-        if _close(before, after, s._cal_tol):
-            pass  # already written; continue with the check
-        elif _close(before, pre, s._cal_tol):
-            s.robot.write_calibration(after)
-        else:
-            raise WriteBackError("write-back: the device calibration is neither the journaled pre-image nor the new "
-                                 "values; not touching it (restore from the session's calibration-backup.json)")
+        s.event(Writeback(phase="unsupported", note="the robot exposes no writable joint calibration"))
+        return s.record_dict()["writeback"]
+    tol = s.readback_tolerance
+    plan, state = resume_point(s.events("writeback"), before, s.cal_tolerance)
+    if plan is None:
+        apply(s.robot, plan_write(before, corrections_of(res)), event=s.event, folder=s.folder, session=s.id,
+              tolerance=tol)
+    elif state == "pre-image":  # resumed before the write landed: write again
+        apply(s.robot, plan, event=s.event, folder=s.folder, session=s.id, tolerance=tol, resumed=True)
+    elif state == "written":  # resumed after the write: confirm the read-back, go on with the check
+        readback = read_device(s.robot)
+        s.event(Writeback(phase="written", before=plan.before, after=plan.after, readback=readback, applied=True,
+                          note="found written on resume"))
     else:
-        pre = before
-        after = {k: pre[k] + offsets.get(k, 0.0) for k in pre}
-        (s.folder / "calibration-backup.json").write_text(json.dumps(
-            {"units": "SI (rad, m)", "session": s.id, "before": pre, "after": after}, indent=2))
-        s.event({"type": "writeback", "phase": "before", "before": pre, "after": after, "applied": False,
-                 "verified": False})
-        s.robot.write_calibration(after)
-    readback = {k: float(v) for k, v in s.robot.read_calibration().items()}
-    if not _close(readback, after, s._cal_tol):
-        bad = next(k for k in after if abs(readback.get(k, math.nan) - after[k]) > s._cal_tol(k))
-        raise WriteBackError(f"write-back: {bad} reads back {readback.get(bad)!r}, wrote {after[bad]!r}")
-    s.event({"type": "writeback", "phase": "written", "after": after, "readback": readback, "applied": True})
+        raise WriteBackError("write-back: the device calibration is neither the journaled pre-image nor the new "
+                             f"values; not touching it (restore from the session's {BACKUP})")
     check = verify_known_pose(s, check_pose)
-    s.event({"type": "writeback", "phase": "verified", "verified": bool(check["passed"]), "check": check})
+    s.event(Writeback(phase="verified", verified=bool(check["passed"]), check=check))
     return s.record_dict()["writeback"]
 
 

@@ -1,4 +1,4 @@
-"""Built-in models shipped as YAML next to this module; ``load_model`` also accepts a file path."""
+"""Built-in models shipped as YAML next to this module; ``load_model`` also accepts a model file or a URDF."""
 
 from __future__ import annotations
 
@@ -20,9 +20,33 @@ def builtin_text(name: str) -> str:
     return (resources.files("station.kinematics") / "models" / f"{name}.yaml").read_text()
 
 
-def load_model(name_or_path: str | Path) -> Model:
-    """A built-in model by name (``ur5e``) or a model file by path."""
+def is_urdf(path: str | Path) -> bool:
+    """A URDF by its name (``.urdf``, ``.xml``), or an existing file whose first character is ``<``."""
+    p = Path(path)
+    if p.suffix.lower() in (".urdf", ".xml"):
+        return True
+    if p.suffix.lower() in (".yaml", ".yml") or not p.is_file():
+        return False
+    with open(p, "rb") as f:
+        return f.read(64).lstrip()[:1] == b"<"
+
+
+def load_model(name_or_path: str | Path, *, tip_link: str | None = None, base_link: str | None = None) -> Model:
+    """A built-in model by name (``ur5e``), a model file (``station-model/1``) or a URDF by path.
+
+    ``tip_link``/``base_link`` choose the chain of a URDF (default: the end of the only longest chain, from
+    the root of its tree); they are refused for the other kinds. Errors are ``ModelFileError`` (one line)."""
     s = str(name_or_path)
+    if s.endswith(".xacro"):
+        raise ModelFileError(f"{s}: a xacro file: expand it first (xacro {s} > robot.urdf) and pass the URDF")
+    if Path(s).exists() and is_urdf(s) or s.lower().endswith((".urdf", ".xml")):
+        from station.kinematics.urdf import load_urdf
+
+        return load_urdf(s, tip_link=tip_link, base_link=base_link)
+    if tip_link is not None or base_link is not None:
+        which = "tip" if tip_link is not None else "base"
+        raise ModelFileError(f"{s}: a {which} link applies to a URDF model only (this is "
+                             f"{'a built-in model' if s in builtin_names() else 'not a URDF'})")
     if s in builtin_names():
         import yaml
 

@@ -6,17 +6,20 @@ the solver, results, reports, records and write-back:
 
 ``offset.jN``; ``dh.jN.{d,a,alpha,beta}`` (``dh.jN.theta`` for prismatic joints);
 ``mdh.jN.{alpha,a,beta,d}`` (``mdh.jN.theta`` for prismatic); ``poe.jN.{x,y,z,rz,ry,rx}`` and
-``poe.flange.*`` for local POE frames; ``base.{x,y,z,rz,ry,rx}``; ``tcp.{x,y,z,rz,ry,rx}``.
+``poe.flange.*`` for local POE frames; ``base.{x,y,z,rz,ry,rx}``; ``tcp.{x,y,z,rz,ry,rx}``;
+``compliance.jN`` (revolute joints of a model with link masses or a payload, rad per N*m: the joint turns by
+``compliance.jN * tau_N(q)`` under their gravity torque, see ``station.kinematics.gravity``).
 """
 
 from __future__ import annotations
 
 import fnmatch
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 
-from station.kinematics import se3
+from station.kinematics import gravity, se3
 from station.kinematics.chain import RX, RY, RZ, TX, TY, TZ, Chain, element_twists, forward
 
 FRAME_AXES = (("x", TX), ("y", TY), ("z", TZ), ("rz", RZ), ("ry", RY), ("rx", RX))
@@ -72,6 +75,8 @@ class Model:
     source: dict = field(default_factory=dict)  # convention table as given, for export
     # manufacturing tolerances (selector, std SI, quantity) from the model file: see kinematics/tolerances.py
     tolerances: tuple = ()
+    frames: tuple[int, ...] = ()  # chain element after which link k's frame sits (k = 1..n): masses live there
+    load: gravity.Load | None = None  # link masses and payload; None: weightless (no gravity deflection)
 
     # ---- basic facts -------------------------------------------------------------------------
     @property
@@ -109,6 +114,10 @@ class Model:
         for item in (s.strip() for s in items):
             if not item:
                 continue
+            if item == "compliance" and not self.groups.get(item):
+                why = ("has no link masses and no payload: give mass/com in the model file, <inertial> in "
+                       "the URDF, or a payload" if self.load is None else "has no joint that gravity can load")
+                raise KeyError(f"parameter or group 'compliance': model {self.name} {why}")
             if item in self.groups:
                 names = list(self.groups[item])
             elif item in self.param_names:
@@ -131,6 +140,65 @@ class Model:
     def with_joints(self, joints: tuple[Joint, ...]) -> Model:
         return replace(self, joints=tuple(joints))
 
+    # ---- gravity load and compliance ---------------------------------------------------------
+    def with_payload(self, mass: float, com=(0.0, 0.0, 0.0)) -> Model:
+        """This model carrying ``mass`` kg at the tool (centre of mass ``com``, m, in the tool frame);
+        0 removes the payload. Link masses are kept."""
+        if not (np.isfinite(mass) and mass >= 0):
+            raise ValueError(f"payload mass must be a non-negative number of kg, got {mass!r}")
+        load = gravity.with_payload(self.load, self.n_joints, self.params, mass, com)
+        return self._with_load(load)
+
+    def with_masses(self, masses: dict[int, tuple[float, object]], gravity_vector=None) -> Model:
+        """This model with link masses ``{k: (kg, com)}`` (k = 1..n, com in link k's frame, m) replacing
+        the present ones; the payload is kept. ``gravity_vector`` (m/s^2, base frame) defaults to the
+        present one (or -9.81 along z)."""
+        pay = None if self.load is None else self.load.payload
+        g = gravity_vector if gravity_vector is not None else (None if self.load is None else self.load.gravity)
+        base = self.params if self.load is None else self.load.params
+        return self._with_load(gravity.make_load(self.n_joints, base, masses, pay, g))
+
+    def _with_load(self, load: gravity.Load | None) -> Model:
+        groups = dict(self.groups)
+        groups["compliance"] = _compliance_group(self.chain, self.frames, load, self.joints)
+        names, values = list(self.param_names), list(self.params)
+        if load is not None:  # a weightless model has no compliance parameters: nothing would load them
+            _add_compliance(names, values, self.joints)
+        return replace(self, load=load, groups=groups, param_names=tuple(names), params=np.array(values))
+
+    @cached_property
+    def compliance_index(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(joints, params)``: joint index and parameter index of every ``compliance.jN``."""
+        js = [i for i in range(self.n_joints) if f"compliance.j{i + 1}" in self.param_names]
+        return np.array(js, dtype=int), np.array([self.index(f"compliance.j{i + 1}") for i in js], dtype=int)
+
+    def gravity_torque(self, q, derivative: bool = False):
+        """Gravity torque on each joint ``(N, n)`` at encoder values q (N*m; N for prismatic joints), on the
+        load's frozen geometry (zeros without a load); with ``derivative`` also ``d tau/d q`` ``(N, n, n)``."""
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        if self.load is None:
+            z = np.zeros(q.shape)
+            return (z, np.zeros(q.shape + (q.shape[1],))) if derivative else z
+        return gravity.torques(self.chain, np.array(self.frames, dtype=int), self.load, q, derivative)
+
+    def deflection(self, q, params=None) -> np.ndarray:
+        """Joint value change ``(N, n)`` under gravity: ``compliance.jN * tau_N(q)`` (0 without a load)."""
+        q, p, _ = self._prep(q, params)
+        return self._deflection(q, p)[0]
+
+    def _deflection(self, q, p, derivative: bool = False):
+        js, ps = self.compliance_index
+        if self.load is None or not len(js):
+            return np.zeros(q.shape), None, None
+        c = p[ps]
+        if not c.any() and not derivative:
+            return np.zeros(q.shape), None, None
+        out = self.gravity_torque(q, derivative)
+        tau, dtau = out if derivative else (out, None)
+        d = np.zeros(q.shape)
+        d[:, js] = c * tau[:, js]
+        return d, tau, dtau
+
     # ---- kinematics --------------------------------------------------------------------------
     def _prep(self, q, params):
         q = np.asarray(q, dtype=float)
@@ -144,7 +212,7 @@ class Model:
     def fk(self, q, params=None) -> np.ndarray:
         """Tool (TCP) transform in the base frame: ``(N,4,4)``, or ``(4,4)`` for one pose."""
         q, p, single = self._prep(q, params)
-        T = forward(self.chain, q, p)
+        T = forward(self.chain, q + self._deflection(q, p)[0], p)
         return T[0] if single else T
 
     def position(self, q, params=None) -> np.ndarray:
@@ -154,9 +222,14 @@ class Model:
 
     def jacobians(self, q, params=None):
         """``(T, Jq, Jp)``: tool transforms ``(N,4,4)``, joint Jacobian ``(N,6,n)`` and parameter
-        Jacobian ``(N,6,P)``. Rows are tool position (x,y,z) then world angular velocity."""
+        Jacobian ``(N,6,P)``. Rows are tool position (x,y,z) then world angular velocity.
+
+        With a gravity load: the column of ``compliance.jN`` is ``tau_N(q)`` times the joint's twist, and
+        ``Jq`` includes the change of the deflection with q (the gravity stiffness), so both are exact
+        derivatives of :meth:`fk`."""
         q, p, _ = self._prep(q, params)
-        T, prefix = forward(self.chain, q, p, keep_prefix=True)
+        d, tau, dtau = self._deflection(q, p, derivative=self.load is not None)
+        T, prefix = forward(self.chain, q + d, p, keep_prefix=True)
         tw = element_twists(self.chain, T, prefix)
         N = q.shape[0]
         Jq = np.zeros((N, 6, self.n_joints))
@@ -166,6 +239,14 @@ class Model:
                 Jq[:, :, self.chain.joint[k]] += tw[:, :, k]
             if self.chain.param[k] >= 0:
                 Jp[:, :, self.chain.param[k]] += tw[:, :, k]
+        if tau is not None:
+            js, ps = self.compliance_index
+            Jp[:, :, ps] = Jq[:, :, js] * tau[:, None, js]
+            # theta = q + C tau(q): d theta / d q = I + C dtau/dq (compliance only on its joints)
+            D = np.zeros((self.n_joints, self.n_joints))
+            D[js, js] = p[ps]
+            if D.any():
+                Jq = Jq + np.einsum("nri,ij,njk->nrk", Jq, D, dtau)
         return T, Jq, Jp
 
     def jacobian_q(self, q, params=None) -> np.ndarray:
@@ -194,6 +275,11 @@ class _Builder:
         self.const: list[float] = []
         self.names: list[str] = []
         self.values: list[float] = []
+        self.frames: list[int] = []  # element after which link k's frame sits
+
+    def link_frame(self) -> None:
+        """The frame after the last element added is the frame of the next link (masses are given in it)."""
+        self.frames.append(len(self.axis) - 1)
 
     def add(self, axis: int, name: str | None, value: float = 0.0, joint: int = -1, const: float = 0.0):
         self.axis.append(axis)
@@ -228,8 +314,16 @@ def _pose(d: dict | None) -> np.ndarray:
     return se3.pose_to_matrix(np.array([d.get(k, 0.0) for k in ("x", "y", "z", "rx", "ry", "rz")]), "rpy")
 
 
-def _finish(b: _Builder, name, convention, joints, groups, base, tool, description, source) -> Model:
+def _finish(b: _Builder, name, convention, joints, groups, base, tool, description, source, *, compliance=None,
+            masses=None, payload=None, gravity_vector=None) -> Model:
+    """Common tail of every builder. ``compliance`` (per joint, rad per N*m; prismatic entries ignored),
+    ``masses`` ``{k: (kg, com)}`` in link k's frame, ``payload`` ``(kg, com in the tool frame)``,
+    ``gravity_vector`` (m/s^2, base frame; default -9.81 along z)."""
     n = len(joints)
+    chain = b.chain()
+    load = gravity.make_load(n, np.array(b.values), masses, payload, gravity_vector)
+    if load is not None or any(compliance or []):
+        _add_compliance(b.names, b.values, joints, compliance)
     groups = {k: tuple(v) for k, v in groups.items()}
     groups["offsets"] = tuple(f"offset.j{i + 1}" for i in range(n))
     groups["tcp"] = ("tcp.x", "tcp.y", "tcp.z")
@@ -237,8 +331,42 @@ def _finish(b: _Builder, name, convention, joints, groups, base, tool, descripti
     groups["base"] = tuple(f"base.{k}" for k, _ in FRAME_AXES)
     groups["base_position"] = ("base.x", "base.y", "base.z")
     groups["links"] = groups["dh"]
-    return Model(name, convention, tuple(joints), b.chain(), tuple(b.names), np.array(b.values),
-                 groups, description, {**source, "base": base or {}, "tool": tool or {}})
+    # every geometric parameter a position measurement can see: the tool orientation cannot (tcp6 adds it)
+    groups["full"] = groups["offsets"] + groups["dh"] + groups["tcp"] + groups["base"]
+    groups["compliance"] = _compliance_group(chain, b.frames, load, joints)
+    return Model(name, convention, tuple(joints), chain, tuple(b.names), np.array(b.values), groups, description,
+                 {**source, "base": base or {}, "tool": tool or {}}, tuple(b.frames), load)
+
+
+def _add_compliance(names: list[str], values: list[float], joints, compliance=None) -> None:
+    """``compliance.jN`` of every revolute joint, after every chain parameter (the chain's indices stay)."""
+    for i, jt in enumerate(joints):
+        if jt.revolute and f"compliance.j{i + 1}" not in names:
+            names.append(f"compliance.j{i + 1}")
+            values.append(float(compliance[i]) if compliance else 0.0)
+
+
+def _compliance_group(chain: Chain, frames, load, joints) -> tuple[str, ...]:
+    """``compliance.jN`` of the revolute joints gravity can load: some mass beyond the joint, and an axis
+    that is not fixed along gravity (the first joint of an upright arm never carries a gravity torque)."""
+    if load is None:
+        return ()
+    n = len(joints)
+    mv = np.flatnonzero(chain.joint >= 0)
+    e = mv[np.argsort(chain.joint[mv])]
+    elem = np.array([frames[k - 1] if k <= n else chain.n_elements - 1 for k in load.link])
+    _, prefix = forward(chain, np.zeros((1, n)), load.params, keep_prefix=True)
+    g = load.gravity / max(np.linalg.norm(load.gravity), 1e-300)
+    out = []
+    for i, jt in enumerate(joints):
+        if not jt.revolute or not (elem >= e[i]).any():
+            continue
+        w = prefix[0, e[i], :3, chain.axis[e[i]] % 3]
+        fixed_axis = not any(chain.axis[e[j]] >= 3 for j in range(n) if e[j] < e[i])
+        if fixed_axis and np.linalg.norm(np.cross(w, g)) < 1e-9:
+            continue
+        out.append(f"compliance.j{i + 1}")
+    return tuple(out)
 
 
 def _base_and_tool_start(b: _Builder, base: dict | None) -> None:
@@ -250,7 +378,7 @@ def _base_and_tool_start(b: _Builder, base: dict | None) -> None:
 
 
 def from_dh(name: str, joints: list[Joint], links: list[dict], *, base=None, tool=None,
-            offsets=None, description: str = "") -> Model:
+            offsets=None, description: str = "", **physics) -> Model:
     """Standard DH: link i = ``Rz(theta) Tz(d) Tx(a) Rx(alpha) Ry(beta)``. ``links[i]`` has keys
     ``a, d, alpha, theta`` (and optional ``beta``), SI. ``theta`` of a revolute joint and ``d`` of a
     prismatic one are the joint value at ``q = 0`` (a constant, not a parameter)."""
@@ -271,17 +399,18 @@ def from_dh(name: str, joints: list[Joint], links: list[dict], *, base=None, too
         b.add(TX, f"dh.{j}.a", ln.get("a", 0.0))
         b.add(RX, f"dh.{j}.alpha", ln.get("alpha", 0.0))
         b.add(RY, f"dh.{j}.beta", ln.get("beta", 0.0))
+        b.link_frame()  # DH frame i (distal end of link i), as published mass tables use
         dh_names += [f"dh.{j}.a", f"dh.{j}.alpha"]
         if _near_parallel(ln.get("alpha", 0.0)) and i < len(joints) - 1:
             dh_names.append(f"dh.{j}.beta")
     _tool(b, tool)
     return _finish(b, name, "dh", joints, {"dh": dh_names, "beta": [f"dh.j{i + 1}.beta" for i in
                                                                     range(len(joints))]},
-                   base, tool, description, {"links": links})
+                   base, tool, description, {"links": links}, **physics)
 
 
 def from_mdh(name: str, joints: list[Joint], links: list[dict], *, base=None, tool=None,
-             offsets=None, description: str = "") -> Model:
+             offsets=None, description: str = "", **physics) -> Model:
     """Modified DH (Craig) with Hayati beta: link i = ``Rx(alpha) Tx(a) Ry(beta) Rz(theta) Tz(d)``,
     where alpha and a describe the previous axis to this one."""
     b = _Builder()
@@ -304,10 +433,11 @@ def from_mdh(name: str, joints: list[Joint], links: list[dict], *, base=None, to
             b.add(RZ, f"mdh.{j}.theta", ln.get("theta", 0.0))
             b.add(TZ, f"offset.{j}", offsets[i], joint=i, const=ln.get("d", 0.0))
             names.append(f"mdh.{j}.theta")
+        b.link_frame()  # Craig frame i, on joint i's axis
     _tool(b, tool)
     return _finish(b, name, "mdh", joints, {"dh": names, "beta": [f"mdh.j{i + 1}.beta" for i in
                                                                   range(len(joints))]},
-                   base, tool, description, {"links": links})
+                   base, tool, description, {"links": links}, **physics)
 
 
 def _axis_frame(w: np.ndarray, point: np.ndarray, x_hint: np.ndarray) -> np.ndarray:
@@ -323,7 +453,7 @@ def _axis_frame(w: np.ndarray, point: np.ndarray, x_hint: np.ndarray) -> np.ndar
 
 
 def from_poe(name: str, joints: list[Joint], screws: list[dict], home: np.ndarray, *, base=None,
-             tool=None, offsets=None, description: str = "") -> Model:
+             tool=None, offsets=None, description: str = "", **physics) -> Model:
     """Product of exponentials ``T = e^[S1]q1 ... e^[Sn]qn M`` with space-frame screws given as
     ``{"axis": w, "point": p}`` (revolute) or ``{"axis": v}`` (prismatic), and ``M`` = flange at home.
 
@@ -341,13 +471,14 @@ def from_poe(name: str, joints: list[Joint], screws: list[dict], home: np.ndarra
         b.frame(f"poe.j{i + 1}", se3.invert(prev) @ G)
         names += [f"poe.j{i + 1}.{k}" for k, _ in FRAME_AXES]
         b.add(RZ if jt.revolute else TZ, f"offset.j{i + 1}", offsets[i], joint=i)
+        b.link_frame()  # the joint frame (z along the joint axis), turned by the joint
         prev = G
     b.frame("poe.flange", se3.invert(prev) @ np.asarray(home, dtype=float))
     names += [f"poe.flange.{k}" for k, _ in FRAME_AXES]
     _tool(b, tool)
     src = {"screws": [{k: np.asarray(v, float).tolist() for k, v in s.items()} for s in screws],
            "home": np.asarray(home, float).tolist()}
-    return _finish(b, name, "poe", joints, {"dh": names}, base, tool, description, src)
+    return _finish(b, name, "poe", joints, {"dh": names}, base, tool, description, src, **physics)
 
 
 def _tool(b: _Builder, tool: dict | None) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -34,10 +35,18 @@ def model_from_dict(doc: dict, where: str = "<model>") -> Model:
         raise ModelFileError(f"{where}: not a mapping")
     if doc.get("format", FORMAT) != FORMAT:
         raise ModelFileError(f"{where}: format {doc.get('format')!r} is not {FORMAT!r}")
+    if doc.get("kind", "serial") != "serial":  # parallel robots: station/kinematics/parallelfile.py
+        if doc["kind"] != "parallel":
+            raise ModelFileError(f"{where}: kind must be serial or parallel, got {doc['kind']!r}")
+        from station.kinematics.parallelfile import parallel_from_dict
+
+        return parallel_from_dict(doc, where)
     units = doc.get("units") or {}
     lu, au = units.get("length"), units.get("angle")
     if lu not in LENGTH or au not in ANGLE:
         raise ModelFileError(f"{where}: 'units' must state length (m|mm) and angle (rad|deg), got {units!r}")
+    if units.get("mass", "kg") != "kg":
+        raise ModelFileError(f"{where}: units.mass: only kg, got {units.get('mass')!r}")
     L, A = LENGTH[lu], ANGLE[au]
     conv = doc.get("convention")
     if conv not in ("dh", "mdh", "poe"):
@@ -53,9 +62,22 @@ def model_from_dict(doc: dict, where: str = "<model>") -> Model:
             raise ModelFileError(f"{where}: {key}: unknown keys {sorted(unknown)}")
         return {k: _num(v, f"{where}: {key}.{k}") * (A if k in ANGLE_KEYS else L) for k, v in d.items()}
 
-    joints, links, offsets = [], [], []
+    def vec3(v, key, scale):
+        if not isinstance(v, list | tuple) or len(v) != 3:
+            raise ModelFileError(f"{where}: {key}: expected [x, y, z], got {v!r}")
+        return np.array([_num(x, f"{where}: {key}") * scale for x in v])
+
+    def mass(v, key):
+        m = _num(v, f"{where}: {key}")
+        if m < 0:
+            raise ModelFileError(f"{where}: {key}: a mass cannot be negative ({v!r})")
+        return m
+
+    joints, links, offsets, compliance, masses = [], [], [], [], {}
     for i, jd in enumerate(jdocs):
         w = f"{where}: joints[{i}]"
+        if not isinstance(jd, dict):
+            raise ModelFileError(f"{w}: expected a mapping")
         kind = jd.get("type", "revolute")
         if kind not in ("revolute", "prismatic"):
             raise ModelFileError(f"{w}.type: revolute or prismatic, got {kind!r}")
@@ -81,6 +103,15 @@ def model_from_dict(doc: dict, where: str = "<model>") -> Model:
                             _num(jd.get("max_velocity", 1.0), f"{w}.max_velocity") * U,
                             _num(jd.get("max_acceleration", 10.0 / U), f"{w}.max_acceleration") * U, enc))
         offsets.append(_num(jd.get("offset", 0.0), f"{w}.offset") * U)
+        c = _num(jd.get("compliance", 0.0), f"{w}.compliance") * A
+        if c and kind != "revolute":
+            raise ModelFileError(f"{w}.compliance: only revolute joints have a gravity compliance")
+        compliance.append(c)
+        if "mass" in jd:
+            masses[i + 1] = (mass(jd["mass"], f"joints[{i}].mass"),
+                             vec3(jd.get("com", [0, 0, 0]), f"joints[{i}].com", L))
+        elif "com" in jd:
+            raise ModelFileError(f"{w}.com: given without a mass")
         if conv in ("dh", "mdh"):
             g = jd.get(conv)
             if not isinstance(g, dict):
@@ -97,8 +128,16 @@ def model_from_dict(doc: dict, where: str = "<model>") -> Model:
             if kind == "revolute":
                 sc["point"] = np.array([_num(x, f"{w}.screw.point") * L for x in s.get("point", [0, 0, 0])])
             links.append(sc)
+    payload = None
+    if doc.get("payload") is not None:
+        pd = doc["payload"]
+        if not isinstance(pd, dict) or set(pd) - {"mass", "com"} or "mass" not in pd:
+            raise ModelFileError(f"{where}: payload: expected {{mass: kg, com: [x, y, z]}}, got {pd!r}")
+        payload = (mass(pd["mass"], "payload.mass"), vec3(pd.get("com", [0, 0, 0]), "payload.com", L))
+    grav = None if doc.get("gravity") is None else vec3(doc["gravity"], "gravity", 1.0)
     kw = dict(base=frame(doc.get("base"), "base"), tool=frame(doc.get("tool"), "tool"), offsets=offsets,
-              description=str(doc.get("description", "")))
+              description=str(doc.get("description", "")), compliance=compliance, masses=masses,
+              payload=payload, gravity_vector=grav)
     name = str(doc.get("name", Path(where).stem))
     if conv == "dh":
         model = from_dh(name, joints, links, **kw)
@@ -109,13 +148,34 @@ def model_from_dict(doc: dict, where: str = "<model>") -> Model:
         from station.kinematics.model import _pose
 
         model = from_poe(name, joints, links, _pose(h), **kw)
+    model = _with_collision(model, doc.get("collision"), f"{where}: collision", L)
     return _with_tolerances(model, doc, where, L, A)
+
+
+def _with_collision(model: Model, c, where: str, L: float) -> Model:
+    """The optional ``collision`` section: ``link_radii`` (one per joint: the capsule radius of the link that
+    joint moves), ``tool_radius``, ``tool_free`` (the last part of the tool before the TCP, not checked: it
+    touches the references); length units. Kept in ``model.source["collision"]`` in m."""
+    if c is None:
+        return model
+    if not isinstance(c, dict) or set(c) - {"link_radii", "tool_radius", "tool_free"}:
+        raise ModelFileError(f"{where}: expected a mapping of link_radii, tool_radius, tool_free")
+    out = {}
+    if "link_radii" in c:
+        r = c["link_radii"]
+        if not isinstance(r, list) or len(r) != model.n_joints:
+            raise ModelFileError(f"{where}.link_radii: expected {model.n_joints} radii (one per joint)")
+        out["link_radii"] = [_num(x, f"{where}.link_radii") * L for x in r]
+    for key in ("tool_radius", "tool_free"):
+        if key in c:
+            out[key] = _num(c[key], f"{where}.{key}") * L
+    if any(v < 0 for v in out.get("link_radii", []) + [out.get("tool_radius", 0), out.get("tool_free", 0)]):
+        raise ModelFileError(f"{where}: radii and lengths must not be negative")
+    return replace(model, source={**model.source, "collision": out})
 
 
 def _with_tolerances(model: Model, doc: dict, where: str, L: float, A: float) -> Model:
     """``tolerances:`` (prior standard deviations for calibration), selectors checked against the model."""
-    from dataclasses import replace
-
     from station.kinematics.tolerances import parse_tolerances
 
     try:
@@ -135,6 +195,10 @@ def load_model_file(path: str | Path) -> Model:
 
 def model_to_dict(model: Model, length: str = "m", angle: str = "rad") -> dict:
     """Current parameter values (nominal or calibrated) in the stated units."""
+    if getattr(model, "kind", "serial") == "parallel":
+        from station.kinematics.parallelfile import parallel_to_dict
+
+        return parallel_to_dict(model, length, angle)
     L, A = 1 / LENGTH[length], 1 / ANGLE[angle]
     p = model.param_dict()
 
@@ -155,6 +219,12 @@ def model_to_dict(model: Model, length: str = "m", angle: str = "rad") -> dict:
                 ("counts_per_m", e.counts_per_unit)
             jd["encoder"] = {key: r(cpu), "gear": r(e.gear), "direction": e.direction, "zero": r(e.zero)}
         jd["offset"] = r(p[f"offset.j{i + 1}"] * U)
+        if f"compliance.j{i + 1}" in p and (p[f"compliance.j{i + 1}"] or model.load is not None):
+            jd["compliance"] = float(p[f"compliance.j{i + 1}"] * A)  # rad/(N m) -> angle units per N m
+        if model.load is not None:
+            mk, ck = model.load.link_mass(i + 1)
+            if mk > 0:
+                jd["mass"], jd["com"] = r(mk), [r(x * L) for x in ck]
         joints.append(jd)
     doc: dict = {"format": FORMAT, "name": model.name, "description": model.description,
                  "convention": model.convention, "units": {"length": length, "angle": angle}}
@@ -188,10 +258,19 @@ def model_to_dict(model: Model, length: str = "m", angle: str = "rad") -> dict:
         from station.kinematics.tolerances import tolerances_to_doc
 
         doc["tolerances"] = tolerances_to_doc(model.tolerances, length, angle)
+    if model.load is not None:
+        pm, pc = model.load.payload
+        if pm > 0:
+            doc["payload"] = {"mass": r(pm), "com": [r(x * L) for x in pc]}
+        doc["gravity"] = [r(x) for x in model.load.gravity]
+    col = model.source.get("collision")
+    if col:
+        doc["collision"] = {k: [r(x * L) for x in v] if isinstance(v, list) else r(v * L) for k, v in col.items()}
     return doc
 
 
 def dump_model(model: Model, length: str = "m", angle: str = "rad") -> str:
     header = (f"# station kinematic model '{model.name}' ({model.convention.upper()}); "
-              f"lengths in {length}, angles in {angle}. Format: docs/formats.md\n")
+              f"lengths in {length}, angles in {angle}, masses in kg, compliance in {angle} per N m, "
+              f"gravity in m/s^2. Format: docs/formats.md\n")
     return header + yaml.safe_dump(model_to_dict(model, length, angle), sort_keys=False)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 
@@ -34,8 +36,11 @@ def rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:
 
 
 def matrix_to_rpy(R: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`rpy_to_matrix`, returns ``(..., 3)`` as (rx, ry, rz)."""
-    return _rotation().from_matrix(R).as_euler("ZYX")[..., ::-1]
+    """Inverse of :func:`rpy_to_matrix`, returns ``(..., 3)`` as (rx, ry, rz). At pitch +-90 deg (gimbal
+    lock) roll and yaw are not unique: scipy sets one of them to zero, still an exact decomposition."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Gimbal lock detected")
+        return _rotation().from_matrix(R).as_euler("ZYX")[..., ::-1]
 
 
 def rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:

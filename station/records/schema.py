@@ -24,7 +24,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.engine import Connection
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 metadata = MetaData()
 
@@ -86,12 +86,13 @@ samples = Table(
     Column("point", String(64), nullable=False, default=""),
     Column("pose", Integer),
     Column("set", String(16), nullable=False, default="fit"),
-    Column("t", Float),  # unix s, host clock
-    Column("t_device", Float),
+    Column("t", Float),  # unix s, host clock: when the sample was journaled
+    Column("t_device", Float),  # the device's own clock at the reading (s)
     Column("raw_unit", String(16)),
     Column("q_json", Text, nullable=False),  # SI joint values
     Column("measured_json", Text),  # [x, y, z] m in the instrument frame or null
     Column("doc_json", Text, nullable=False),  # the sample dict as given
+    Column("t_read", Float),  # unix s, host clock: when the joints were read; v3 (null before)
 )
 
 parameters = Table(
@@ -137,4 +138,9 @@ def _v1_to_v2(conn: Connection) -> None:
     conn.execute(text("ALTER TABLE sessions ADD COLUMN status VARCHAR(32)"))
 
 
-MIGRATIONS: dict[int, Callable[[Connection], None]] = {1: _v1_to_v2}
+def _v2_to_v3(conn: Connection) -> None:
+    # journal /2 separates a sample's reading time (t_read) from its append time (t)
+    conn.execute(text("ALTER TABLE samples ADD COLUMN t_read FLOAT"))
+
+
+MIGRATIONS: dict[int, Callable[[Connection], None]] = {1: _v1_to_v2, 2: _v2_to_v3}

@@ -266,7 +266,8 @@ class Records:
             sample_rows.append({
                 "session_id": sid, "seq": seq, "point": str(smp.get("point") or ""),
                 "pose": int(pose) if isinstance(pose, (int, float)) and not isinstance(pose, bool) else None,
-                "set": str(smp.get("set") or "fit"), "t": _float(smp.get("t")), "t_device": _float(smp.get("t_device")),
+                "set": str(smp.get("set") or "fit"), "t": _float(smp.get("t")), "t_read": _float(smp.get("t_read")),
+                "t_device": _float(smp.get("t_device")),
                 "raw_unit": smp.get("raw_unit"), "q_json": _dumps(q),
                 "measured_json": None if measured is None else _dumps(measured), "doc_json": _dumps(smp)})
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from datetime import datetime
 
+from station import units
 from station.records.verdict import measurement_status, overall_status
 from station.report.analysis import coverage, load_session_model, per_pose_residuals, sample_arrays
 
@@ -36,19 +37,11 @@ def _duration(started, finished) -> float | None:
 
 
 def param_unit(name: str, p: dict, model=None) -> str:
-    """SI unit of a parameter: its ``unit`` when the solver gave one; for ``offset.jN`` the joint kind of the
-    model (a prismatic joint's offset is a length); else by name (angles rad, the rest m)."""
+    """SI unit of a parameter: its ``unit`` when the solver gave one, else the station's one rule
+    (``station.units.param_unit``: by name, ``offset.jN`` by the model's joint kind)."""
     if p.get("unit") in ("m", "rad"):
         return p["unit"]
-    last = name.rsplit(".", 1)[-1]
-    if name.startswith("offset.j"):
-        if model is not None:
-            try:
-                return "rad" if model.joints[int(name[len("offset.j"):]) - 1].revolute else "m"
-            except (ValueError, IndexError):
-                pass
-        return "rad"
-    return "rad" if last in ("rx", "ry", "rz", "alpha", "beta", "theta") else "m"
+    return units.param_unit(name, model)
 
 
 def build_report(session: dict) -> dict:

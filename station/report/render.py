@@ -6,14 +6,16 @@ import json
 import math
 import os
 from datetime import UTC, datetime
+from importlib import resources
 from pathlib import Path
 
 import jinja2
 
 from station.report.content import build_report
 from station.report.plots import all_plots
+from station.units import human_of, joint_unit
 
-_TEMPLATE = Path(__file__).with_name("template.html")
+_TEMPLATE = resources.files("station.report") / "template.html"  # package data: found in a wheel install too
 
 
 def _num(v, digits: int = 4) -> str:
@@ -40,11 +42,11 @@ def _human(v, unit: str) -> str:
         return ""
     if not math.isfinite(f):
         return ""
-    return f"{(math.degrees(f) if unit == 'rad' else f * 1e3):.4f}"
+    return f"{f * human_of(unit if unit in ('rad', 'm') else 'm')[1]:.4f}"
 
 
 def _hunit(unit: str) -> str:
-    return {"rad": "deg", "m": "mm"}.get(unit, unit)
+    return human_of(unit)[0]
 
 
 def _band(v) -> str:
@@ -78,7 +80,7 @@ def render_html(report: dict, session: dict) -> str:
         if len(pp.get("seq") or []) == len(pp["before_m"]) else {}
     for s in session.get("samples") or []:
         q = s.get("q") or []
-        units = [("rad" if j["kind"] == "revolute" else "m") for j in joints] or ["rad"] * len(q)
+        units = [joint_unit(j["kind"] == "revolute") for j in joints] or ["rad"] * len(q)
         samples.append({"seq": s.get("seq"), "pose": s.get("pose"), "point": s.get("point", ""),
                         "set": s.get("set", "fit"),
                         "before": _human(by_seq.get(s.get("seq"), (None, None))[0], "m"),
@@ -86,7 +88,7 @@ def render_html(report: dict, session: dict) -> str:
                         "q": "  ".join(_human(v, units[i] if i < len(units) else "rad") for i, v in enumerate(q))})
     return template.render(
         r=report, h=report["header"], plots=all_plots(report), samples=samples, num=_num, mm=lambda v: _human(v, "m"),
-        human=_human, hunit=_hunit, band=_band, jointunit=lambda j: "rad" if j["kind"] == "revolute" else "m",
+        human=_human, hunit=_hunit, band=_band, jointunit=lambda j: joint_unit(j["kind"] == "revolute"),
         version=_version(), generated=datetime.now(UTC).isoformat(timespec="seconds"))
 
 

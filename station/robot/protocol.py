@@ -1,13 +1,18 @@
-"""The one interface every bus adapter fulfils and the procedure engine uses (SI units throughout)."""
+"""The one interface every bus adapter fulfils and the procedure engine uses (SI units throughout).
+
+What only some robots can do (calibration store or export, contact input, compliance, Cartesian motion,
+fault recovery) is a capability protocol in ``station.robot.capabilities``. numpy and the kinematics are
+named for type checkers only: importing this module stays cheap."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Literal, Protocol, runtime_checkable
 
-import numpy as np
+if TYPE_CHECKING:
+    import numpy as np
 
-from station.kinematics import Model
+    from station.kinematics import Model
 
 
 @dataclass(frozen=True)
@@ -80,11 +85,13 @@ JogMode = Literal["joint", "cartesian"]
 
 @runtime_checkable
 class Robot(Protocol):
-    """Fulfilled by every driver. Methods raise typed errors from ``station.robot.errors``.
+    """What every robot can do; every driver fulfils it. Methods raise typed errors from ``station.robot.errors``.
 
     A raised fault always leaves the robot stopped. For joint motion ``speed`` is the speed of the joint
     that moves most, per joint in its own unit (rad/s, m/s for a prismatic joint), every joint capped at
     its own maximum; for Cartesian motion it is the tool speed in m/s (jogs never above 0.25 m/s).
+    ``close()`` leaves the bus in its safe state and releases it; calling it again does nothing.
+    Anything more is a capability (``station.robot.capabilities``): ask with ``isinstance``.
     """
 
     model: Model  # nominal kinematic model the driver converts with
@@ -97,8 +104,4 @@ class Robot(Protocol):
     def enable(self) -> None: ...
     def disable(self) -> None: ...
     def status(self) -> RobotStatus: ...
-    def touch(self) -> bool | None: ...
-    def set_compliant(self, on: bool) -> None: ...
-    def read_calibration(self) -> dict[str, float]: ...
-    def write_calibration(self, values: dict[str, float]) -> None: ...
     def close(self) -> None: ...

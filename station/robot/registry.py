@@ -1,80 +1,84 @@
-"""Open a robot by URL, python-can style: scheme -> driver class, imported lazily.
+"""Open a robot by URL, python-can style: the URL's scheme names a driver class registered as an entry point.
 
 ``dynamixel:///dev/ttyUSB0?baud=1000000&ids=11-14&model=omx``
 ``canopen+socketcand://127.0.0.1:29536?channel=can0&nodes=1-6&model=arm6``
 ``canopen+virtual://chan0?nodes=1-6&model=arm6``
 ``ur://192.168.0.10?model=ur5e``
-"""
+
+Drivers register in the ``station.robots`` entry-point group (``scheme = "module:Class"``, the station's own
+in pyproject.toml), so a new bus is a new package, not an edit here. The class has
+``from_url(url: RobotURL, **overrides) -> Robot``. Entry points are read on the first ``open_robot`` and
+driver modules imported only when their scheme is opened: no bus library is imported by ``station.robot``."""
 
 from __future__ import annotations
 
-import importlib
-from dataclasses import dataclass
-from urllib.parse import parse_qs, unquote, urlsplit
+import contextlib
+from typing import TYPE_CHECKING
 
 from station.robot.errors import ConfigError
+from station.robot.url import RobotURL, parse_url
 
-# scheme -> "module:Class"; the class has ``from_url(url: RobotURL) -> Robot``.
-BACKENDS: dict[str, str] = {
-    "dynamixel": "station.drivers.dynamixel:DynamixelRobot",
-    "canopen+virtual": "station.drivers.canopen:CanopenRobot",
-    "canopen+socketcand": "station.drivers.canopen:CanopenRobot",
-    "ur": "station.drivers.ur:URRobot",
-}
+if TYPE_CHECKING:
+    from importlib.metadata import EntryPoint
 
-
-@dataclass(frozen=True)
-class RobotURL:
-    raw: str
-    scheme: str
-    host: str  # host name or channel, "" for dynamixel
-    port: int | None
-    path: str  # e.g. /dev/ttyUSB0
-    query: dict[str, str]
-
-    def get(self, key: str, default: str | None = None) -> str | None:
-        return self.query.get(key, default)
+GROUP = "station.robots"
+_entry_points: dict[str, EntryPoint] | None = None
 
 
-def parse_ids(text: str) -> list[int]:
-    """``"11-14,20"`` -> ``[11, 12, 13, 14, 20]``."""
-    out: list[int] = []
+def _registered() -> dict[str, EntryPoint]:
+    global _entry_points
+    if _entry_points is None:
+        from importlib import metadata  # ~50 ms: only when a robot is opened
+
+        _entry_points = {ep.name.lower(): ep for ep in metadata.entry_points(group=GROUP)}
+    return _entry_points
+
+
+def schemes() -> list[str]:
+    """Every registered URL scheme."""
+    return sorted(_registered())
+
+
+@contextlib.contextmanager
+def bus_library(package: str):
+    """Wrap a driver's import of its bus library: a missing one becomes a one-line ``ConfigError`` naming
+    the package to install (python-can wraps its interfaces' import errors the same way)::
+
+        with bus_library("ur-rtde"):
+            import rtde_control
+    """
     try:
-        for part in text.split(","):
-            part = part.strip()
-            if not part:
-                continue
-            if "-" in part:
-                lo, hi = (int(x) for x in part.split("-", 1))
-                if hi < lo:
-                    raise ValueError
-                out.extend(range(lo, hi + 1))
-            else:
-                out.append(int(part))
-    except ValueError:
-        raise ConfigError(f"bad id list {text!r}: expected e.g. '1-6' or '11,12,14'") from None
-    return out
+        yield
+    except ModuleNotFoundError as e:
+        if (e.name or "").split(".")[0] == "station":
+            raise  # our own module missing is a bug: keep the traceback
+        raise ConfigError(f"the Python package {package} is not installed (import of {e.name!r} failed); "
+                          f"install it: pip install {package}") from None
 
 
-def parse_url(url: str) -> RobotURL:
-    parts = urlsplit(url)
-    if not parts.scheme:
-        raise ConfigError(f"robot URL {url!r} has no scheme; known: {', '.join(sorted(BACKENDS))}")
-    query = {k: v[-1] for k, v in parse_qs(parts.query, keep_blank_values=True).items()}
+def driver_class(scheme: str) -> type:
+    """The driver class registered for ``scheme`` (its module imported now)."""
+    ep = _registered().get(scheme.lower())
+    if ep is None:
+        known = schemes()
+        if not known:
+            raise ConfigError(f"no robot drivers are registered (entry-point group {GROUP} is empty): the "
+                              "station package is not installed properly; reinstall it (make venv)")
+        raise ConfigError(f"unknown scheme {scheme!r}; known: {', '.join(known)}")
     try:
-        port = parts.port
-    except ValueError:
-        raise ConfigError(f"robot URL {url!r}: bad port") from None
-    return RobotURL(url, parts.scheme.lower(), parts.hostname or "", port, unquote(parts.path), query)
+        return ep.load()
+    except ModuleNotFoundError as e:  # a plug-in driver that did not wrap its bus library import
+        if (e.name or "").split(".")[0] == "station":
+            raise
+        raise ConfigError(f"the {scheme} driver ({ep.value}) needs the Python module {e.name!r}, which is not "
+                          "installed") from None
 
 
-def open_robot(url: str, **kwargs):
-    """Return a connected ``Robot`` for ``url``."""
-    parsed = parse_url(url)
-    target = BACKENDS.get(parsed.scheme)
-    if target is None:
-        raise ConfigError(f"robot URL {url!r}: unknown scheme {parsed.scheme!r}; "
-                          f"known: {', '.join(sorted(BACKENDS))}")
-    module_name, cls_name = target.split(":")
-    module = importlib.import_module(module_name)
-    return getattr(module, cls_name).from_url(parsed, **kwargs)
+def open_robot(url: str, **overrides):
+    """Return a connected ``Robot`` for ``url``; ``overrides`` go to the driver's constructor."""
+    parsed: RobotURL = parse_url(url)
+    try:
+        cls = driver_class(parsed.scheme)
+    except ConfigError as e:
+        raise ConfigError(f"robot URL {url!r}: {e}") from None
+    return cls.from_url(parsed, **overrides)

@@ -80,6 +80,9 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
     t0 = time.perf_counter()
     if not isinstance(obs, Observations):
         raise SolverInputError("obs must be an Observations")
+    if getattr(model, "kind", "serial") == "parallel":  # station/kinematics/parallel.py
+        raise SolverInputError(f"model {model.name} is a parallel robot: parametric identification needs a serial "
+                               f"chain; calibrate it with 'station map' (docs/map.md)")
     if obs.q.shape[1] != model.n_joints:
         raise SolverInputError(f"model {model.name} has {model.n_joints} joints, observations have {obs.q.shape[1]}")
     if instrument_frame not in ("unknown", "base"):

@@ -15,6 +15,7 @@ from textual.screen import ModalScreen
 from textual.widgets import Button, DataTable, Footer, Header, Static
 
 from station.tui.controller import STEP_PRESETS, JogController, WritebackPlan
+from station.units import human, human_of, joint_quantity
 
 # (plus key, minus key) per axis: J1..J6 in joint mode, X Y Z Rx Ry Rz in Cartesian mode
 JOG_KEYS = (("q", "a"), ("w", "s"), ("e", "d"), ("r", "f"), ("t", "g"), ("y", "h"), ("u", "j"))
@@ -22,7 +23,8 @@ POLL_S = 0.2
 
 
 def _fmt_value(v: float, rotational: bool) -> str:
-    return f"{np.rad2deg(v):+10.3f} deg" if rotational else f"{v * 1e3:+10.3f} mm "
+    unit, k = human(joint_quantity(rotational))
+    return f"{v * k:+10.3f} {unit:<3}"
 
 
 class WritebackScreen(ModalScreen[bool]):
@@ -228,8 +230,9 @@ class JogApp(App):
         samples = self.ctl.session.samples
         table.clear()
         for s in samples:
-            touch = "–" if s.touch is None else ("●" if s.touch else "○")
-            vals = [f"{np.rad2deg(v):.3f}" if j.revolute else f"{v * 1e3:.3f}"
+            touch = s.status.get("touch")
+            touch = "–" if touch is None else ("●" if touch else "○")
+            vals = [f"{v * human(joint_quantity(j.revolute))[1]:.3f}"
                     for v, j in zip(s.q, self.ctl.model.joints, strict=True)]
             table.add_row(str(s.seq), s.point, touch, *vals)
         if samples:
@@ -256,7 +259,7 @@ class JogApp(App):
         t.append("identified", style="bold green")
         t.append(" (correction ± std):\n")
         for name, value, std, unit in st.identified:
-            k, u = (180 / np.pi, "deg") if unit == "rad" else (1e3, "mm")
+            u, k = human_of(unit)
             sd = "" if std is None else f" ± {std * k:.4f}"
             t.append(f"  {name:<14}{value * k:+10.4f}{sd} {u}\n")
         if st.unidentifiable:

@@ -4,8 +4,6 @@ write-back. Textual widgets only render this state and call these methods (and t
 
 from __future__ import annotations
 
-import json
-import os
 import re
 import threading
 import time
@@ -13,17 +11,27 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from station.engine import events as ev
+from station.engine.writeback import (
+    WriteBackError,
+    WritebackPlan,
+    apply,
+    corrections_of,
+    count_tolerance,
+    plan_restore,
+    plan_write,
+)
 from station.kinematics import Model, se3
+from station.robot.capabilities import CalibrationStore, ContactSensor
 from station.robot.errors import LimitError, StationError
 from station.robot.motion import MANUAL_TOOL_SPEED_CAP, jog_target, joint_speed_for_tool_cap
-from station.tui.session import JogSample, JogSession
+from station.tui.session import JogSession
 
 STEP_PRESETS = (0.01, 0.1, 1.0)  # mm for translations / prismatic joints, deg for rotations
 SPEED_PRESETS_MM_S = (5.0, 10.0, 25.0, 50.0, 100.0, 250.0)  # speed override at the tool
 POINT_LABELS = tuple("ABCDEFGH")
 CART_AXES = ("X", "Y", "Z", "Rx", "Ry", "Rz")
 JOG_MAX_JOINT_SPEED = np.deg2rad(30.0)  # rad/s (m/s prismatic): manual jog never faster than this per joint
-WRITEBACK_READBACK_TOL = 1e-9  # rad/m on top of half an encoder count (devices store whole counts)
 
 
 @dataclass
@@ -48,19 +56,11 @@ class SolveState:
     seconds: float = 0.0
 
 
-@dataclass
-class WritebackPlan:
-    before: dict[str, float]  # what the device holds now
-    after: dict[str, float]  # what will be written
-    corrections: dict[str, float]  # identified offsets (empty for a restore)
-    kind: str = "write"  # "write" | "restore" (back to the pre-image after a failed write-back)
-
-
 def parse_reference(specs: str | list[str] | None) -> str | dict[str, np.ndarray]:
     """``--reference`` as ``station solve`` takes it: ``unknown``, ``x,y,z`` (point A) or ``LABEL=x,y,z``
     (repeatable), metres unless one unit suffix follows the three numbers (``100,200,50mm``)."""
     from station.robot.errors import ConfigError
-    from station.samplesfile import LENGTH_UNITS
+    from station.units import LENGTH_UNITS
 
     items = [specs] if isinstance(specs, str) else list(specs or [])
     items = [s.strip() for s in items if s and s.strip()]
@@ -172,7 +172,7 @@ class JogController:
         self.fault = f"{what}: {err}"
         self.stop(quiet=True)
         try:
-            self.session.event({"type": "fault", "step": what, "error": type(err).__name__, "message": str(err)})
+            self.session.event(ev.Fault(step=what, error=type(err).__name__, message=str(err)))
         except Exception as e:  # the journal is gone too (disk full): keep the banner, say so
             self.fault += f" (journal: {e})"
 
@@ -193,7 +193,7 @@ class JogController:
             return None
         try:
             snap = self.robot.joint_positions()
-            touch = self.robot.touch()
+            touch = self.robot.touch() if isinstance(self.robot, ContactSensor) else None
             status = self.robot.status()
         except StationError as e:
             self.stale = True
@@ -211,7 +211,7 @@ class JogController:
             self.fault = "robot reports: " + "; ".join(parts)
             self.message = "FAULT: motion stopped"
             self.stop(quiet=True)
-            self.session.event({"type": "fault", "step": "status", "error": "status", "message": self.fault})
+            self.session.event(ev.Fault(step="status", error="status", message=self.fault))
         T = self.model.fk(snap.q)
         tcp = np.concatenate([T[:3, 3], se3.matrix_to_rpy(T[:3, :3])])
         self.readout = Readout(np.asarray(snap.q, float), tcp, touch, status.moving, status.enabled, snap.t)
@@ -267,12 +267,12 @@ class JogController:
         if status.ok:
             self.fault = None
             self.message = "enabled"
-            self.session.event({"type": "step", "name": "enable", "status": "ok"})
+            self.session.event(ev.Step(name="enable", status="done"))
         else:
             self.fault = "still faulted: " + "; ".join(status.faults or ("stop input active",))
 
     # ---- samples ---------------------------------------------------------------------------------------
-    def _selected_sample(self) -> JogSample | None:
+    def _selected_sample(self) -> ev.Sample | None:
         samples = self.session.samples
         if not samples:
             return None
@@ -287,7 +287,7 @@ class JogController:
         cur = max(0, min(n - 1, cur + delta))
         self.selected = None if cur == n - 1 else cur
 
-    def record(self, force: bool = False, point: str | None = None) -> JogSample | None:
+    def record(self, force: bool = False, point: str | None = None) -> ev.Sample | None:
         """Record the current pose as a touch of the selected reference point. Refused while faulted, moving,
         or (unless ``force``) while the cell's contact input is present and not lit."""
         if self.fault:
@@ -299,7 +299,7 @@ class JogController:
         with self.io_lock:
             try:
                 status = self.robot.status()
-                touch = self.robot.touch()
+                touch = self.robot.touch() if isinstance(self.robot, ContactSensor) else None
                 snap = self.robot.joint_positions()
             except StationError as e:
                 self._on_error(e, "record")
@@ -321,7 +321,7 @@ class JogController:
         self.solve()
         return sample
 
-    def retake(self, force: bool = False) -> JogSample | None:
+    def retake(self, force: bool = False) -> ev.Sample | None:
         """Record the current pose in place of the selected sample (same point); the old one is discarded only
         after the new one is safely journaled."""
         old = self._selected_sample()
@@ -336,7 +336,7 @@ class JogController:
         self.solve()
         return new
 
-    def discard(self) -> JogSample | None:
+    def discard(self) -> ev.Sample | None:
         old = self._selected_sample()
         if old is None:
             self.message = "nothing to discard"
@@ -372,14 +372,14 @@ class JogController:
 
     # ---- write-back ------------------------------------------------------------------------------------
     def writeback_plan(self) -> WritebackPlan | None:
-        """Before/after of the device's zero offsets: ``after = before + identified offset``; after a failed
-        (or unverified) write-back, the plan restores the pre-image instead."""
+        """Before/after of the device's zero offsets (``station.engine.writeback.plan_write``: ``after = before +
+        identified offset``); after a failed write-back, the plan restores the pre-image instead."""
         if self.fault:
             self.message = "clear the fault first (c)"
             return None
         if self.writeback_failed:
             before = self._read_calibration()
-            return None if before is None else WritebackPlan(before, dict(self.pre_image), {}, "restore")
+            return None if before is None else plan_restore(before, self.pre_image)
         if self.writeback_done is not None:
             self.message = "already written back in this session: start a new session to verify"
             return None
@@ -387,20 +387,19 @@ class JogController:
         if result is None:
             self.message = "nothing to write back: record samples until the solve identifies offsets"
             return None
-        corr = {n: float(p.value) for n, p in result.parameters.items()
-                if n.startswith("offset.") and p.identifiable}
+        corr = corrections_of(result)
         if not corr:
             self.message = "the solve identified no joint offsets: nothing to write back"
             return None
         before = self._read_calibration()
         if before is None:
             return None
-        after = dict(before)
-        for n, v in corr.items():
-            after[n] = before.get(n, 0.0) + v
-        return WritebackPlan(before, after, corr)
+        return plan_write(before, corr)
 
     def _read_calibration(self) -> dict[str, float] | None:
+        if not isinstance(self.robot, CalibrationStore):
+            self.message = "this robot stores no joint calibration the station can write"
+            return None
         with self.io_lock:
             try:
                 return {k: float(v) for k, v in self.robot.read_calibration().items()}
@@ -409,62 +408,48 @@ class JogController:
                 return None
 
     def writeback_apply(self, plan: WritebackPlan) -> bool:
-        """Only after the technician confirmed ``plan``: journal the pre-image (and keep a backup file of the
-        first one), write, read back, journal the outcome. A failure leaves the restore plan armed."""
+        """Only after the technician confirmed ``plan``: the engine's two-phase write-back
+        (``station.engine.writeback.apply``: pre-image journaled and backed up, write, read back). A failure
+        leaves the restore plan armed. Returns whether the device reads back what was written."""
         restore = plan.kind == "restore"
         note = "restore of the pre-image after a failed write-back" if restore else "technician write-back"
         if not restore:
             result = self.solve_state.result
             if result is not None:
-                self.session.event({"type": "result", "result": result.to_dict()})
+                self.session.event(ev.Result(result=result.to_dict()))
             self.pre_image = dict(plan.before)
-            backup = self.session.folder / "calibration-backup.json"
-            with open(backup, "w") as f:
-                json.dump({"units": "SI (m, rad)", "session": self.session.session_id, "before": plan.before}, f,
-                          indent=2)
-                f.flush()
-                os.fsync(f.fileno())
-        self.session.event({"type": "writeback", "stage": "pre-image", "before": plan.before, "after": plan.after,
-                            "applied": False, "verified": False, "note": note})
         with self.io_lock:
             try:
-                self.robot.stop()
-                self.robot.write_calibration(plan.after)
-                readback = {k: float(v) for k, v in self.robot.read_calibration().items()}
+                self.robot.stop()  # a jog may still be moving; nothing has been written yet
             except StationError as e:
                 self._on_error(e, "restore" if restore else "write-back")
-                self.session.event({"type": "writeback", "stage": "failed", "before": plan.before,
-                                    "after": plan.after, "applied": False, "verified": False, "error": str(e),
-                                    "note": note})
+                return False
+            try:
+                apply(self.robot, plan, event=self.session.event, folder=self.session.folder,
+                      session=self.session.session_id, tolerance=self._tolerance, note=note)
+            except WriteBackError:
+                self.writeback_failed = True
+                self.writeback_done = {"before": plan.before, "after": plan.after, "verified": False}
+                self.message = "the read-back differs from what was written: W restores the calibration from before"
+                return False
+            except StationError as e:
+                self._on_error(e, "restore" if restore else "write-back")
                 self.writeback_failed = True
                 self.message = ("FAULT during write-back: the robot may be partly written. Clear the fault (c), "
                                 "then W restores the calibration from before")
                 return False
-        verified = all(abs(readback.get(k, np.nan) - v) <= self._resolution(k) for k, v in plan.after.items())
-        self.session.event({"type": "writeback", "stage": "done", "before": plan.before, "after": plan.after,
-                            "readback": readback, "applied": True, "verified": verified, "note": note})
-        if restore and verified:
+        if restore:
             self.writeback_failed = False
             self.writeback_done = None
             self.message = "restored the calibration from before the write-back; recording continues"
-        elif verified:
+        else:
             self.writeback_done = {"before": plan.before, "after": plan.after, "verified": True}
             self.message = "written back and read back OK"
-        else:
-            self.writeback_failed = True
-            self.writeback_done = {"before": plan.before, "after": plan.after, "verified": False}
-            self.message = "the read-back differs from what was written: W restores the calibration from before"
-        return verified
+        return True
 
-    def _resolution(self, name: str) -> float:
-        """Half an encoder count of the joint behind ``offset.jN`` (what a device can store), SI."""
-        try:
-            enc = self.model.joints[int(name.rsplit("j", 1)[1]) - 1].encoder
-        except (ValueError, IndexError):
-            enc = None
-        if enc is None:
-            return WRITEBACK_READBACK_TOL
-        return 0.5 / (enc.counts_per_unit * enc.gear) + WRITEBACK_READBACK_TOL
+    def _tolerance(self, name: str) -> float:
+        """One encoder count of the joint behind ``offset.jN`` (devices store whole counts), SI."""
+        return count_tolerance(self.model, name, 1.0)
 
     # ---- end -------------------------------------------------------------------------------------------
     def close(self) -> None:
@@ -476,6 +461,6 @@ class JogController:
         try:
             result = self.solve_state.result
             if result is not None and self.writeback_done is None:
-                self.session.event({"type": "result", "result": result.to_dict()})
+                self.session.event(ev.Result(result=result.to_dict()))
         finally:
             self.session.close()

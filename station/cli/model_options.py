@@ -1,0 +1,57 @@
+"""The options that choose a model, shared by every command that takes ``--model`` (solve, fk, model ...).
+
+Use them as parameter defaults and load through :func:`load_cli_model`::
+
+    def cmd(model: str = MODEL, tip_link: str = TIP_LINK, base_link: str = BASE_LINK, payload: str = PAYLOAD):
+        m = load_cli_model(model, tip_link, base_link, payload)
+"""
+
+from __future__ import annotations
+
+import re
+
+import typer
+
+MODEL = typer.Option(..., "--model", help="built-in model name, model file (station-model/1) or URDF")
+TIP_LINK = typer.Option(None, "--tip-link", help="URDF: the link at the end of the chain (default: the end of "
+                                                 "the only longest chain)")
+BASE_LINK = typer.Option(None, "--base-link", help="URDF: the link the chain starts from (default: the root)")
+PAYLOAD = typer.Option(None, "--payload", help="mass at the tool, e.g. 0.1kg or 250g, optionally with its centre "
+                                               "in the tool frame: 0.5kg@0,0,30mm (loads the joints: compliance)")
+
+MASS_UNITS = {"kg": 1.0, "g": 1e-3}
+_PAYLOAD = re.compile(r"^\s*([-+0-9.eE]+)\s*(kg|g)\s*(?:@(.+))?$")
+
+
+def parse_payload(text: str) -> tuple[float, object]:
+    """``0.1kg`` / ``250g`` / ``0.5kg@0,0,30mm`` -> (kg, centre of mass in the tool frame, m)."""
+    from station.robot.errors import ConfigError
+
+    m = _PAYLOAD.match(text)
+    if not m:
+        raise ConfigError(f"--payload {text!r}: expected a mass with its unit (0.1kg, 250g), optionally "
+                          f"@x,y,z for its centre in the tool frame (0.5kg@0,0,30mm)")
+    try:
+        mass = float(m.group(1)) * MASS_UNITS[m.group(2)]
+    except ValueError:
+        raise ConfigError(f"--payload {text!r}: {m.group(1)!r} is not a number") from None
+    if not (mass >= 0 and mass < float("inf")):
+        raise ConfigError(f"--payload {text!r}: a mass is a finite number >= 0")
+    com = (0.0, 0.0, 0.0)
+    if m.group(3):
+        from station.cli.solve_cmd import parse_xyz
+
+        com = tuple(parse_xyz(m.group(3), "--payload"))
+    return mass, com
+
+
+def load_cli_model(model: str, tip_link: str | None = None, base_link: str | None = None,
+                   payload: str | None = None):
+    """The model named on the command line; bad input raises errors that ``station`` prints as one line."""
+    from station.kinematics import load_model
+
+    m = load_model(model, tip_link=tip_link, base_link=base_link)  # ModelFileError: one line, exit 2
+    if payload:
+        mass, com = parse_payload(payload)
+        m = m.with_payload(mass, com)
+    return m

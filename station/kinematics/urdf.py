@@ -1,0 +1,474 @@
+"""URDF robots as station models.
+
+A URDF is a tree of links joined by joints, each joint placed by an ``<origin>`` in its parent link and
+turning (or sliding) about an ``<axis>``. The station takes the serial chain from a base link to a tip link:
+fixed joints are folded into their neighbours, revolute, continuous and prismatic joints become the model's
+joints (in order from the base), and the chain is converted to modified DH with Hayati's beta
+(``from_mdh``), the station's minimal convention: one parameter per physical error (docs/formats.md says
+why). Frame 0 of the model is the base link; ``base.*`` places the first joint's MDH frame in it, ``tcp.*``
+places the tip link in the last one. Link masses and centres of mass come from ``<inertial>`` (every link
+rigidly attached to a chain body counts, off-chain joints at zero).
+
+``load_urdf(path, tip_link=None, base_link=None)`` -> Model. The conversion is checked against a direct
+evaluation of the URDF's joint transforms at a few configurations before the model is returned."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from station.kinematics import se3
+from station.kinematics.chain import forward
+from station.kinematics.model import PARALLEL_TOL, Joint, Model, from_mdh
+from station.kinematics.modelfile import ModelFileError
+from station.kinematics.urdfxml import Node, XMLFileError, read
+
+MOVABLE = ("revolute", "continuous", "prismatic")
+KNOWN_TYPES = MOVABLE + ("fixed", "floating", "planar")
+CONTINUOUS_LIMIT = 2 * math.pi  # a continuous joint gets +-360 deg: every angle, twice
+DEFAULT_VELOCITY = 1.0  # rad/s or m/s when <limit velocity> is missing
+DEFAULT_ACCELERATION = 10.0  # URDF has no acceleration limit
+CHECK_TOL = 1e-9  # m / rad: conversion check against the URDF's own transforms
+
+
+@dataclass
+class UrdfJoint:
+    name: str
+    type: str
+    parent: str
+    child: str
+    origin: np.ndarray  # 4x4, in the parent link
+    axis: np.ndarray  # unit, in the joint (= child) frame
+    lower: float
+    upper: float
+    velocity: float
+    calibration: dict[str, float]
+    mimic: str | None
+    node: Node
+
+    @property
+    def movable(self) -> bool:
+        return self.type in MOVABLE
+
+
+@dataclass
+class UrdfLink:
+    name: str
+    mass: float
+    com: np.ndarray  # in the link frame
+    node: Node
+
+
+@dataclass
+class UrdfRobot:
+    name: str
+    path: str
+    root: Node  # the document, for export
+    links: dict[str, UrdfLink]
+    joints: dict[str, UrdfJoint]
+    parent_of: dict[str, str] = field(default_factory=dict)  # child link -> joint name
+
+    def fail(self, node: Node | None, msg: str) -> ModelFileError:
+        return ModelFileError(f"{self.path}:{node.line}: {msg}" if node is not None else f"{self.path}: {msg}")
+
+    def children_of(self, link: str) -> list[UrdfJoint]:
+        return [j for j in self.joints.values() if j.parent == link]
+
+    def path_to(self, link: str) -> list[UrdfJoint]:
+        """Joints from the root of ``link``'s tree down to ``link``."""
+        out: list[UrdfJoint] = []
+        seen = {link}
+        while link in self.parent_of:
+            j = self.joints[self.parent_of[link]]
+            if j.parent in seen:
+                raise self.fail(j.node, f"closed loop: joint {j.name!r} leads back to link {j.parent!r}")
+            seen.add(j.parent)
+            out.append(j)
+            link = j.parent
+        return out[::-1]
+
+
+# ---- reading ------------------------------------------------------------------------------------
+def _floats(robot_path: str, node: Node, attr: str, n: int, default: list[float]) -> list[float]:
+    text = node.attrib.get(attr)
+    if text is None:
+        return list(default)
+    try:
+        vals = [float(x) for x in text.split()]
+    except ValueError:
+        vals = []
+    if len(vals) != n or not all(math.isfinite(v) for v in vals):
+        raise ModelFileError(f"{robot_path}:{node.line}: <{node.tag} {attr}={text!r}>: expected {n} finite numbers")
+    return vals
+
+
+def _origin(path: str, parent: Node) -> np.ndarray:
+    o = parent.first("origin")
+    if o is None:
+        return np.eye(4)
+    xyz = _floats(path, o, "xyz", 3, [0, 0, 0])
+    rpy = _floats(path, o, "rpy", 3, [0, 0, 0])
+    return se3.pose_to_matrix(np.array(xyz + rpy), "rpy")
+
+
+def _attr_float(path: str, node: Node, attr: str, default: float | None) -> float | None:
+    if attr not in node.attrib:
+        return default
+    return _floats(path, node, attr, 1, [])[0]
+
+
+def parse_urdf(root: Node, path: str) -> UrdfRobot:
+    if root.tag != "robot":
+        raise ModelFileError(f"{path}:{root.line}: <{root.tag}>: a URDF's root element is <robot>")
+    robot = UrdfRobot(root.attrib.get("name", Path(path).stem), path, root, {}, {})
+    for ln in root.elements("link"):
+        name = ln.attrib.get("name")
+        if not name:
+            raise robot.fail(ln, "<link> without a name")
+        if name in robot.links:
+            raise robot.fail(ln, f"link {name!r} is defined twice (first on line {robot.links[name].node.line})")
+        mass, com = 0.0, np.zeros(3)
+        inertial = ln.first("inertial")
+        if inertial is not None:
+            mn = inertial.first("mass")
+            if mn is not None:
+                mass = _attr_float(path, mn, "value", 0.0)
+                if mass < 0:
+                    raise robot.fail(mn, f"link {name!r}: negative mass {mass}")
+            com = _origin(path, inertial)[:3, 3]  # the inertia tensor's orientation does not matter here
+        robot.links[name] = UrdfLink(name, mass, com, ln)
+    for jn in root.elements("joint"):
+        name = jn.attrib.get("name")
+        jtype = jn.attrib.get("type")
+        if not name:
+            raise robot.fail(jn, "<joint> without a name")
+        if name in robot.joints:
+            raise robot.fail(jn, f"joint {name!r} is defined twice (first on line {robot.joints[name].node.line})")
+        if jtype not in KNOWN_TYPES:
+            raise robot.fail(jn, f"joint {name!r}: type {jtype!r} is not one of {', '.join(KNOWN_TYPES)}")
+        ends = {}
+        for end in ("parent", "child"):
+            e = jn.first(end)
+            link = None if e is None else e.attrib.get("link")
+            if link is None:
+                raise robot.fail(jn, f"joint {name!r}: missing <{end} link=...>")
+            if link not in robot.links:
+                raise robot.fail(e, f"joint {name!r}: {end} link {link!r} is not defined")
+            ends[end] = link
+        axis = np.array(_floats(path, jn.first("axis"), "xyz", 3, [1, 0, 0]) if jn.first("axis") is not None
+                        else [1.0, 0.0, 0.0])
+        if jtype in MOVABLE:
+            if np.linalg.norm(axis) < 1e-9:
+                raise robot.fail(jn.first("axis"), f"joint {name!r}: zero axis")
+            axis = axis / np.linalg.norm(axis)
+        lower = upper = 0.0
+        velocity = DEFAULT_VELOCITY
+        lim = jn.first("limit")
+        if lim is not None:
+            lower = _attr_float(path, lim, "lower", 0.0)
+            upper = _attr_float(path, lim, "upper", 0.0)
+            velocity = _attr_float(path, lim, "velocity", DEFAULT_VELOCITY)
+        if jtype == "continuous":
+            lower, upper = -CONTINUOUS_LIMIT, CONTINUOUS_LIMIT
+        sc = jn.first("safety_controller")
+        if sc is not None and jtype in ("revolute", "prismatic"):  # the controller's soft limits are tighter
+            lower = max(lower, _attr_float(path, sc, "soft_lower_limit", lower))
+            upper = min(upper, _attr_float(path, sc, "soft_upper_limit", upper))
+        if jtype in ("revolute", "prismatic") and not lower < upper:
+            raise robot.fail(lim if lim is not None else jn,
+                             f"joint {name!r}: <limit lower upper> must give lower < upper (got {lower}, {upper})")
+        if velocity <= 0:
+            raise robot.fail(lim, f"joint {name!r}: <limit velocity> must be positive")
+        cal = jn.first("calibration")
+        calibration = {}
+        if cal is not None:
+            for key in ("rising", "falling", "reference_position"):
+                v = _attr_float(path, cal, key, None)
+                if v is not None:
+                    calibration[key] = v
+        mimic = jn.first("mimic")
+        robot.joints[name] = UrdfJoint(name, jtype, ends["parent"], ends["child"], _origin(path, jn), axis,
+                                       lower, upper, velocity, calibration,
+                                       None if mimic is None else mimic.attrib.get("joint", "?"), jn)
+        if ends["child"] in robot.parent_of:
+            other = robot.joints[robot.parent_of[ends["child"]]]
+            raise robot.fail(jn, f"closed loop: link {ends['child']!r} is the child of joints {other.name!r} "
+                                 f"(line {other.node.line}) and {name!r}; a URDF must be a tree")
+        robot.parent_of[ends["child"]] = name
+    if not robot.joints:
+        raise robot.fail(root, "no joints")
+    if not any(ln not in robot.parent_of for ln in robot.links):
+        j = next(iter(robot.joints.values()))
+        raise robot.fail(j.node, "closed loop: every link has a parent joint, so there is no root link")
+    return robot
+
+
+def read_urdf(path: str | Path) -> UrdfRobot:
+    try:
+        root = read(path)
+    except XMLFileError as e:
+        raise ModelFileError(str(e)) from None
+    return parse_urdf(root, str(path))
+
+
+# ---- the chain ----------------------------------------------------------------------------------
+@dataclass
+class UrdfChain:
+    """The serial chain base_link -> tip_link of a URDF robot."""
+
+    robot: UrdfRobot
+    base: str
+    tip: str
+    path: list[UrdfJoint]  # every joint from base to tip, fixed ones included
+
+    @property
+    def movable(self) -> list[UrdfJoint]:
+        return [j for j in self.path if j.movable]
+
+    def fk(self, q: np.ndarray) -> np.ndarray:
+        """Tip pose (4x4) in the base link at joint values ``q`` (n,), straight from the URDF transforms."""
+        T = np.eye(4)
+        i = 0
+        for j in self.path:
+            T = T @ j.origin
+            if j.movable:
+                T = T @ _joint_motion(j, q[i])
+                i += 1
+        return T
+
+
+def _joint_motion(j: UrdfJoint, value: float) -> np.ndarray:
+    M = np.eye(4)
+    if j.type == "prismatic":
+        M[:3, 3] = j.axis * value
+    else:
+        M[:3, :3] = se3.rotvec_to_matrix(j.axis * value)
+    return M
+
+
+def _n_movable(robot: UrdfRobot, link: str) -> int:
+    return sum(j.movable for j in robot.path_to(link))
+
+
+def chain(robot: UrdfRobot, tip_link: str | None = None, base_link: str | None = None) -> UrdfChain:
+    """The chain to ``tip_link`` (default: the end of the only longest chain) from ``base_link`` (default:
+    the root of the tip's tree). Refuses what a calibrated serial chain cannot be: a mimic joint, a
+    floating or planar joint on the chain, a chain without a movable joint."""
+    for given, what in ((tip_link, "tip"), (base_link, "base")):
+        if given is not None and given not in robot.links:
+            near = ", ".join(sorted(robot.links)[:12])
+            raise robot.fail(None, f"no link {given!r} for the {what} link (links: {near}"
+                                   f"{', ...' if len(robot.links) > 12 else ''})")
+    if tip_link is None:
+        leaves = [ln for ln in robot.links if not robot.children_of(ln)]
+        depth = {ln: _n_movable(robot, ln) for ln in leaves}
+        best = max(depth.values(), default=0)
+        if best == 0:
+            raise robot.fail(None, "no movable joint (revolute, continuous, prismatic) in the robot")
+        cands = sorted(ln for ln, d in depth.items() if d == best)
+        if len(cands) > 1:
+            raise robot.fail(None, f"several chain ends ({', '.join(cands)}): choose one with --tip-link "
+                                   f"(tip_link=) NAME")
+        tip_link = cands[0]
+    full = robot.path_to(tip_link)
+    if base_link is not None and base_link != tip_link:
+        names = [j.parent for j in full]
+        if base_link not in names:
+            on = " -> ".join([full[0].parent] + [j.child for j in full]) if full else tip_link
+            raise robot.fail(None, f"base link {base_link!r} is not on the path to tip link {tip_link!r} ({on})")
+        full = full[names.index(base_link):]
+    base = full[0].parent if full else tip_link
+    for j in full:
+        if j.type in ("floating", "planar"):
+            raise robot.fail(j.node, f"joint {j.name!r}: a {j.type} joint cannot be part of a calibrated chain")
+        if j.mimic is not None and j.movable:
+            raise robot.fail(j.node, f"joint {j.name!r}: <mimic joint={j.mimic!r}> (a joint driven by another) "
+                                     f"is not supported on the chain")
+    ch = UrdfChain(robot, base, tip_link, full)
+    if not ch.movable:
+        raise robot.fail(None, f"no movable joint between {base!r} and {tip_link!r}")
+    return ch
+
+
+# ---- conversion to modified DH ------------------------------------------------------------------
+def _rz(t: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = se3.rot_z(t)
+    return T
+
+
+def _rx(t: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = se3.rot_x(t)
+    return T
+
+
+def _ry(t: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = se3.rot_y(t)
+    return T
+
+
+def _tr(axis: int, v: float) -> np.ndarray:
+    T = np.eye(4)
+    T[axis, 3] = v
+    return T
+
+
+def _angle_about(a: np.ndarray, b: np.ndarray, z: np.ndarray) -> float:
+    """Angle turning unit vector ``a`` into ``b`` about ``z`` (both perpendicular to z)."""
+    return math.atan2(float(np.cross(a, b) @ z), float(a @ b))
+
+
+def mdh_table(lines: list[tuple[np.ndarray, np.ndarray]], tip: np.ndarray) -> tuple[list[dict], dict, dict]:
+    """MDH links (``alpha, a, beta, theta, d``), base and tool frames (``x..rz``) of a chain whose joint axes
+    at q = 0 are the lines ``(point, unit direction)`` in the base frame and whose tip pose is ``tip``.
+
+    Frame k-1 sits on axis k-1 with x along the common normal to axis k (Craig). A virtual axis 0 (the
+    base z axis) places frame 0, whose offset from the base becomes ``base.z`` and ``base.rz``. For
+    near-parallel consecutive axes (within ``PARALLEL_TOL``) the common normal is ill-defined: x points
+    from frame k-1's origin to where axis k crosses the plane normal to axis k-1, and the small tilt is
+    Hayati's beta."""
+    pre = np.eye(4)  # frame on axis k-1 before its own Rz(theta) Tz(d)
+    links: list[dict] = [{} for _ in lines]
+    base: dict = {}
+    sin_tol = math.sin(PARALLEL_TOL)
+    for k, (pn, zn) in enumerate(lines):
+        z, O, xr = pre[:3, 2], pre[:3, 3], pre[:3, 0]
+        c = np.cross(z, zn)
+        parallel = np.linalg.norm(c) <= sin_tol
+        if not parallel:  # common normal
+            w0 = O - pn
+            b, d_, e_ = float(z @ zn), float(z @ w0), float(zn @ w0)
+            d = (b * e_ - d_) / (1 - b * b)
+            nv = pn + (e_ + d * b) * zn - (O + d * z)
+            a = float(np.linalg.norm(nv))
+            if a > 1e-12:
+                x = nv / a
+            else:  # intersecting axes: either normal direction; keep the one closer to the previous x
+                x = c / np.linalg.norm(c)
+                x, a = (x if x @ xr >= 0 else -x), 0.0
+        else:  # (near) parallel: Hayati
+            d = 0.0
+            v = pn - float((pn - O) @ z) / float(zn @ z) * zn - O
+            a = float(np.linalg.norm(v))
+            x, a = (v / a, a) if a > 1e-12 else (xr, 0.0)
+        theta = _angle_about(xr, x, z)
+        M = pre @ _rz(theta) @ _tr(2, d)  # frame k-1
+        y = np.cross(M[:3, 2], M[:3, 0])
+        beta = math.asin(max(-1.0, min(1.0, float(zn @ M[:3, 0])))) if parallel else 0.0
+        alpha = math.atan2(-float(zn @ y), float(zn @ M[:3, 2]))
+        if k == 0:
+            base = {"z": d, "rz": theta}
+        else:
+            links[k - 1].update(theta=theta, d=d)
+        links[k].update(alpha=alpha, a=a, beta=beta)
+        pre = M @ _rx(alpha) @ _tr(0, a) @ _ry(beta)
+    # last frame: on the last axis level with the tip, x unchanged
+    d_last = float((tip[:3, 3] - pre[:3, 3]) @ pre[:3, 2])
+    links[-1].update(theta=0.0, d=d_last)
+    M = pre @ _tr(2, d_last)
+    tool_T = se3.invert(M) @ tip
+    rx, ry, rz = se3.matrix_to_rpy(tool_T[:3, :3])
+    tool = dict(x=tool_T[0, 3], y=tool_T[1, 3], z=tool_T[2, 3], rx=rx, ry=ry, rz=rz)
+    return links, {"x": 0.0, "y": 0.0, "rx": 0.0, "ry": 0.0, **base}, tool
+
+
+def _link_poses(robot: UrdfRobot, base: str) -> dict[str, np.ndarray]:
+    """Pose at q = 0 of every link below ``base`` (every joint at zero), in the base link frame."""
+    poses = {base: np.eye(4)}
+    todo = [base]
+    while todo:
+        ln = todo.pop()
+        for j in robot.children_of(ln):
+            if j.child not in poses:
+                poses[j.child] = poses[ln] @ j.origin
+                todo.append(j.child)
+    return poses
+
+
+def model_from_chain(ch: UrdfChain) -> Model:
+    robot = ch.robot
+    mov = ch.movable
+    n = len(mov)
+    # joint frames and tip at q = 0 in the base link
+    T = np.eye(4)
+    lines = []
+    body_of: dict[str, int] = {ch.base: 0}  # chain link -> body index (number of movable joints before it)
+    k = 0
+    for j in ch.path:
+        T = T @ j.origin
+        if j.movable:
+            lines.append((T[:3, 3].copy(), T[:3, :3] @ j.axis))
+            k += 1
+        body_of[j.child] = k
+    links, base, tool = mdh_table(lines, T)
+    joints = []
+    for j in mov:
+        kind = "prismatic" if j.type == "prismatic" else "revolute"
+        joints.append(Joint(j.name, kind, j.lower, j.upper, j.velocity, DEFAULT_ACCELERATION))
+    # masses: every link hangs on the chain body of its nearest ancestor on the chain
+    poses = _link_poses(robot, ch.base)
+    world_masses: list[tuple[int, float, np.ndarray]] = []
+    for name, ln in robot.links.items():
+        if ln.mass <= 0 or name not in poses:
+            continue
+        a = name
+        while a not in body_of:
+            a = robot.joints[robot.parent_of[a]].parent
+        if body_of[a] > 0:
+            world_masses.append((body_of[a], ln.mass, poses[name][:3, :3] @ ln.com + poses[name][:3, 3]))
+    desc = f"from URDF {Path(robot.path).name}: {ch.base} -> {ch.tip}"
+    m = from_mdh(robot.name, joints, links, base=base, tool=tool, description=desc)
+    if world_masses:
+        _, prefix = forward(m.chain, np.zeros((1, n)), m.params, keep_prefix=True)
+        frames = [prefix[0, e + 1] for e in m.frames]  # a link frame is never the chain's last element
+        masses: dict[int, list] = {}
+        for body, mass, p in world_masses:
+            com = se3.invert(frames[body - 1]) @ np.append(p, 1.0)
+            masses.setdefault(body, []).append((mass, com[:3]))
+        merged = {kk: (sum(mm for mm, _ in v), sum(mm * c for mm, c in v) / sum(mm for mm, _ in v))
+                  for kk, v in masses.items()}
+        m = m.with_masses(merged)
+    # each URDF link frame in its station link frame (fixed: both are attached to the same body), for export
+    _, prefix = forward(m.chain, np.zeros((1, n)), m.params, keep_prefix=True)
+    poses_k = []
+    W = np.eye(4)
+    for j in ch.path:
+        W = W @ j.origin
+        if j.movable:
+            poses_k.append(W.copy())
+    link_in_frame = [se3.invert(prefix[0, e + 1]) @ Wk for e, Wk in zip(m.frames, poses_k, strict=True)]
+    src = {**m.source, "urdf": {"path": robot.path, "base_link": ch.base, "tip_link": ch.tip, "chain": ch,
+                                "link_in_frame": link_in_frame,
+                                "calibration": {j.name: j.calibration for j in mov if j.calibration}}}
+    from dataclasses import replace
+
+    m = replace(m, source=src)
+    _check(ch, m)
+    return m
+
+
+def _check(ch: UrdfChain, m: Model) -> None:
+    """The converted model against the URDF's own transforms at q = 0 and a few random configurations."""
+    rng = np.random.default_rng(0)
+    lo = np.maximum(m.lower, -math.pi)
+    hi = np.minimum(m.upper, math.pi)
+    qs = np.vstack([np.zeros(m.n_joints), lo + (hi - lo) * rng.random((4, m.n_joints))])
+    rigid = m.with_params({n: 0.0 for n in m.param_names if n.startswith("compliance.")})
+    got = rigid.fk(qs)
+    for q, G in zip(qs, got, strict=True):
+        W = ch.fk(q)
+        err = max(float(np.abs(W[:3, 3] - G[:3, 3]).max()), float(np.abs(W[:3, :3] - G[:3, :3]).max()))
+        if not err < CHECK_TOL:
+            raise ModelFileError(f"{ch.robot.path}: internal error: the MDH conversion of {ch.base} -> {ch.tip} "
+                                 f"is off by {err:.3g} at q = {np.round(q, 4).tolist()} (please report)")
+
+
+def load_urdf(path: str | Path, tip_link: str | None = None, base_link: str | None = None) -> Model:
+    """A URDF file as a station model (see the module doc)."""
+    robot = read_urdf(path)
+    return model_from_chain(chain(robot, tip_link, base_link))
