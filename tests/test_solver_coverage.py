@@ -109,15 +109,8 @@ def test_reported_intervals_cover_the_truth(name, trials):
     _check(name, trials, inflation=False)
 
 
-@pytest.mark.xfail(strict=True, reason="open defect (issue 10): on omx the reported std exceeds the actual "
-                   "error spread by 25-40 % (after the Student-t factor); the source is not yet found")
-@pytest.mark.parametrize("name,trials", SCENARIOS[:2])
+@pytest.mark.parametrize("name,trials", SCENARIOS)
 def test_reported_std_is_not_inflated(name, trials):
-    _check(name, trials, inflation=True)
-
-
-@pytest.mark.parametrize("name,trials", SCENARIOS[2:])
-def test_reported_std_is_not_inflated_other_robots(name, trials):
     _check(name, trials, inflation=True)
 
 

@@ -7,10 +7,12 @@ every parameter from planned poses, before anything moves) and the closed-form T
 
 from station.solver.estimator import select_names, solve
 from station.solver.observations import Observations, SolverInputError, observations_from_samples
+from station.solver.predict import ParameterPrediction, Prediction, predict
 from station.solver.result import CalibrationResult, ParameterEstimate
 from station.solver.tcp import CircleFit, TcpFit, tcp_circle_fit, tcp_from_flange_poses, tcp_scara_4point
 
 __all__ = [
     "CalibrationResult", "CircleFit", "Observations", "ParameterEstimate", "SolverInputError", "TcpFit",
-    "observations_from_samples", "select_names", "solve", "tcp_circle_fit", "tcp_from_flange_poses", "tcp_scara_4point",
+    "ParameterPrediction", "Prediction", "observations_from_samples", "predict", "select_names", "solve",
+    "tcp_circle_fit", "tcp_from_flange_poses", "tcp_scara_4point",
 ]

@@ -195,7 +195,7 @@ def _cause(j, a, acc, prob, x, q, J, norms, zero, scale) -> Null:
         return Null("tool_free", partners,
                     f"the TCP is free: a rotation about joint {joint} only turns the TCP offset about that axis, "
                     f"which is absorbed by {', '.join(tcp)}",
-                    f"keep the TCP fixed (leave tcp out of the identified set) when it is known")
+                    "keep the TCP fixed (leave tcp out of the identified set) when it is known")
     if name.startswith("tcp.") and pk == {"point"}:
         return Null("tool_vs_point", partners,
                     f"the tool offset {name} moves every touch of the point the same way (the tool does not tilt "

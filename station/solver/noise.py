@@ -5,7 +5,8 @@ the joint readings seen through the joint Jacobian (the encoders' quantisation i
     C_i = sigma^2 I + Jq_i diag(sigma_q^2) Jq_i^T
 
 Joint noise is joint-space noise: it lies along the very directions the joint offsets move the tip, so
-treating it as isotropic tip noise would misstate the offsets' uncertainty. The estimator works on whitened residuals ``W_i r_i`` with
+treating it as isotropic tip noise would misstate the offsets' uncertainty. The estimator works on
+whitened residuals ``W_i r_i`` with
 ``W_i = sqrt(w_i) sigma (C_i)^-1/2``: their covariance is ``sigma^2 I``, so every formula in sigma keeps
 its meaning, and without joint noise ``W_i = sqrt(w_i) I``. ``w_i`` are touch weights (0: an excluded
 outlier; IRLS weights of a robust loss)."""
