@@ -281,7 +281,22 @@ def test_scara_converges_from_5mm_2deg_on_every_parameter(seed):
     pts = {"A": truth.position(mid + [0.4, 0.5, 0.05, 0.0]), "B": truth.position(mid + [-0.5, 0.6, 0.1, 0.0])}
     obs = touch_observations(truth, pts, 15, rng, centre=mid, spread=0.9)
     # 5 mm errors of the links and of the prismatic zero are expected here: the user says so
-    res = solve(nominal, obs, ",".join(names), dict(pts), priors=[("dh", 0.01, "length"), ("offset.j3", 0.01, "length")])
+    res = solve(nominal, obs, ",".join(names), dict(pts),
+                priors=[("dh", 0.01, "length"), ("offset.j3", 0.01, "length")])
     assert res.converged and res.trusted and not res.unidentifiable
     assert res.residuals["rms_before_m"] > 100 * res.residuals["rms_after_m"]
     assert_within(res, hidden)
+
+
+def test_compliance_is_refused_not_named_with_a_false_reason():
+    """Until the solver models gravity deflection, asking for compliance.jN is bad input, not 'does not move
+    the tool tip'."""
+    from station.cli.model_options import load_cli_model
+
+    nominal = load_cli_model("ur5e", None, None, "2kg").with_params({"tcp.z": 0.1})
+    assert "compliance.j2" in nominal.select(["compliance"])
+    rng = np.random.default_rng(2)
+    obs = touch_observations(nominal, {"A": nominal.position(UR_HOME)}, 10, rng, noise=NOISE, centre=UR_HOME,
+                             spread=0.3)
+    with pytest.raises(SolverInputError, match="compliance"):
+        solve(nominal, obs, ["offset.j2", "compliance.j2"], "unknown")

@@ -178,7 +178,7 @@ def solve_command(
         msg = str(e)
         if msg.startswith("prior "):
             raise _fail(f"--prior: {msg}") from None
-        if "parameter or group" in msg:
+        if "parameter or group" in msg or msg.startswith("compliance."):
             raise _fail(f"--identify {identify!r}: {msg}") from None
         raise _fail(f"{samples}: {msg}") from None
     res.settings.update(samples=str(samples), holdout=None if holdout is None else str(holdout), tool=tool)

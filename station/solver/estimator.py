@@ -94,6 +94,10 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
     if max_std is not None and not (math.isfinite(max_std) and max_std > 0):
         raise SolverInputError(f"max_std must be a positive number of metres, got {max_std!r}")
     names = select_names(model, identify)
+    comp = [n for n in names if n.startswith("compliance.")]
+    if comp:  # the chain has no column for them: they would be named "does not move the tool tip", untrue
+        raise SolverInputError(f"{comp[0]}: joint compliance is not identified by this solver yet; leave the "
+                               f"compliance group out of --identify")
     prob = Problem(model, obs, names, reference, instrument_frame)
     m, p = 3 * len(obs), prob.n_unknowns
     if m <= p:
