@@ -122,3 +122,27 @@ def test_fk_rejects_calibration_of_another_model(data):
                                               "n_parameters": 0, "converged": True, "iterations": 0}))
     code, _, err = run("fk", "--model", "ur5e", "--calibration", "other.json", "--joints", "s_deg.csv", cwd=d)
     assert code == 2 and "ur10e" in err and err.startswith("station: error: ")
+
+
+def test_solve_exit_codes_prior_noise_loss(data):
+    """0 trusted; 1 untrusted (the data need offsets 4-5 mrad that a 0.01 deg prior forbids: > 5 prior std,
+    a runaway/conflict, never a silent success); 2 bad --prior/--noise/--loss, one line."""
+    d, _ = data
+    base = ("solve", "--model", "ur5e", "--samples", "s_deg.csv", "--identify", "offsets,tcp", "--tool", "0,0,100mm")
+    code, out, err = run(*base, "--noise", "20um", "--prior", "offsets=0.5deg", "--prior", "tcp=5mm",
+                         "--loss", "huber", "--out", "ok.json", cwd=d)
+    assert code == 0, err
+    doc = json.loads((d / "ok.json").read_text())
+    assert doc["trusted"] is True and doc["solve_time_s"] > 0
+    assert doc["parameters"]["offset.j2"]["prior_std"] == pytest.approx(0.5 * np.pi / 180)
+    assert doc["parameters"]["tcp.z"]["prior_std"] == pytest.approx(5e-3)
+    assert "result: trusted" in out
+    code, out, err = run(*base, "--prior", "offsets=0.01deg", "--out", "bad.json", cwd=d)
+    assert code == 1, (out, err)
+    assert err.startswith("station: solve failed: ") and len(err.strip().splitlines()) == 1
+    assert json.loads((d / "bad.json").read_text())["trusted"] is False
+    for opt, val in (("--prior", "offsets"), ("--prior", "offsets=abc"), ("--prior", "offsets=-1deg"),
+                     ("--prior", "nosuch=1mm"), ("--noise", "5deg"), ("--noise", "0um"), ("--loss", "cauchy")):
+        code, out, err = run(*base, opt, val, cwd=d)
+        assert code == 2, (opt, val, out, err)
+        assert err.startswith("station: error: ") and len(err.strip().splitlines()) == 1 and opt in err, err

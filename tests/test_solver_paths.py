@@ -1,7 +1,8 @@
 """The solver's shortcuts change how fast it gets to the minimum, never which minimum or what it reports:
-the same data solved with each shortcut switched off give the same estimates (to a small fraction of a
-standard deviation), the same identified set and the same reasons. Truth comes from a simulated UR5e with
-hidden offsets and tool (IK on the true model, 20 um touch noise)."""
+the same data solved with a far tighter stopping rule give the same estimates (to a small fraction of a
+standard deviation), the same identified set and the same reasons; and the estimate is a minimum of the
+MAP objective. Truth comes from a simulated UR5e with hidden offsets and tool (IK on the true model,
+20 um touch noise)."""
 
 import numpy as np
 import pytest
@@ -31,32 +32,24 @@ def _same(a, b, tol_std=1e-3):
     for n in a.identified:
         pa, pb = a.parameters[n], b.parameters[n]
         assert abs(pa.value - pb.value) <= tol_std * pa.std, n
-        assert pb.std == pytest.approx(pa.std, rel=1e-6)
-    assert a.rank == b.rank and a.converged and b.converged
+        assert pb.std == pytest.approx(pa.std, rel=1e-4)
+    assert a.rank == b.rank and a.converged and b.converged and a.trusted and b.trusted
 
 
-def test_first_joint_shift_and_settled_drop_change_nothing(touches, monkeypatch):
+def test_tight_stopping_rule_changes_nothing(touches, monkeypatch):
     nominal, truth, obs = touches
     fast = solve(nominal, obs, "offsets,tcp")
-    assert set(fast.unidentifiable) == {"offset.j1", "offset.j6"}  # the drop path was taken
-    for n in ("offset.j2", "offset.j3", "tcp.z"):  # and it is right
+    assert set(fast.unidentifiable) == {"offset.j1", "offset.j6"}
+    for n in ("offset.j2", "offset.j3", "tcp.z"):
         assert abs(fast.parameters[n].value - truth.param(n)) < 4 * fast.parameters[n].std
-    monkeypatch.setattr(Problem, "first_joint_offset_column", lambda self: -1)  # re-evaluate the chain
-    _same(fast, solve(nominal, obs, "offsets,tcp"))
-    monkeypatch.setattr(est, "DECIDE_MARGIN", np.inf)  # and always decide again after a drop
-    _same(fast, solve(nominal, obs, "offsets,tcp"))
-
-
-def test_loose_decision_point_changes_nothing(touches, monkeypatch):
-    nominal, _, obs = touches
-    fast = solve(nominal, obs, "offsets,tcp")
-    monkeypatch.setattr(est, "DECIDE_TOL", est.STEP_TOL)  # decide only at the fully converged minimum
+    monkeypatch.setattr(est, "STEP_TOL", 1e-9)  # every step evaluated, no linear last step
+    monkeypatch.setattr(est, "SIGMA_TOL", 1e-6)  # refit until sigma stands still
     _same(fast, solve(nominal, obs, "offsets,tcp"))
 
 
 def test_rest_of_the_way_is_below_the_tolerance(touches):
-    """One more undamped Gauss-Newton step from the returned estimate moves no parameter by more than
-    STEP_TOL of its standard deviation."""
+    """One more undamped Gauss-Newton step of the MAP objective from the returned estimate moves no
+    parameter by more than STEP_TOL of its standard deviation."""
     nominal, _, obs = touches
     res = solve(nominal, obs, "offsets,tcp")
     prob = Problem(nominal, obs, est.select_names(nominal, "offsets,tcp"), "unknown")
@@ -66,6 +59,10 @@ def test_rest_of_the_way_is_below_the_tolerance(touches):
             x[i] = res.parameters[n].value
     act = [prob.names.index(n) for n in res.identified]
     r, J = prob.residual_jacobian(x)
-    du = -np.linalg.lstsq(J[:, act], r, rcond=None)[0]
-    std = np.array([res.parameters[prob.names[j]].std for j in act])
-    assert np.max(np.abs(du) / std) < est.STEP_TOL
+    prior = np.array([res.parameters[prob.names[j]].prior_std or np.inf for j in act])
+    lam = np.where(np.isfinite(prior), res.noise["sigma_m"] ** 2 / np.where(np.isfinite(prior), prior, 1) ** 2, 0)
+    H = J[:, act].T @ J[:, act] + np.diag(lam)
+    g = J[:, act].T @ r + lam * (x[act] - prob.x_nominal[act])
+    du = -np.linalg.solve(H, g)
+    std = res.noise["sigma_m"] * np.sqrt(np.diag(np.linalg.inv(H)))  # given what is kept (no prior spread)
+    assert np.max(np.abs(du) / std) < 2 * est.STEP_TOL

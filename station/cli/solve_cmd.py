@@ -120,7 +120,12 @@ def summary(res) -> str:
     if bad:
         lines.append("not identifiable (kept at nominal):")
         lines += [f"  {n}: {why}" for n, why in bad.items()]
+    if res.outliers:
+        lines.append(f"outliers excluded ({len(res.outliers)}):")
+        lines += [f"  row {o['index']} point {o['point']}: {o['residual_m'] * 1e3:.4f} mm" for o in res.outliers]
     lines += [f"note: {n}" for n in res.notes]
+    t = "" if res.solve_time_s is None else f" (solve {res.solve_time_s * 1e3:.1f} ms)"
+    lines.append(("result: trusted" if res.trusted else f"result: NOT TRUSTED: {res.failure}") + t)
     return "\n".join(lines)
 
 
@@ -139,9 +144,19 @@ def solve_command(
     instrument_frame: str = typer.Option("unknown", "--instrument-frame",
                                          help="x,y,z columns: unknown (solve the instrument frame) | base"),
     max_std: float = typer.Option(1e-3, "--max-std", help="m at the tool: weaker directions are not estimated"),
+    prior: list[str] = typer.Option(None, "--prior", help="SELECTOR=STD with a unit, e.g. offsets=0.5deg, "
+                                    "dh=0.3mm, dh.j2.a=0.1mm (repeatable; overrides the model file's tolerances)"),
+    noise: str = typer.Option(None, "--noise", help="declared touch noise per axis with a unit, e.g. 20um "
+                              "(default: fitted from the residual of the fitted model)"),
+    loss: str = typer.Option("linear", "--loss", help="linear (outliers > 4 sigma excluded) | huber | soft_l1"),
 ) -> None:
-    """Identify joint offsets, TCP, link geometry from touch samples."""
+    """Identify joint offsets, TCP, link geometry from touch samples. Exit 0: trusted result; 1: the solve
+    failed or its result cannot be trusted (one line says why; the JSON is still written); 2: bad input."""
     from station.solver import Observations, SolverInputError, solve
+
+    priors, noise_m = _priors(list(prior or [])), _noise(noise)
+    if loss not in ("linear", "huber", "soft_l1"):
+        raise _fail(f"--loss {loss!r}: expected linear, huber or soft_l1")
 
     m = _load_model(model, tool, tip_link, base_link, payload)
     try:
@@ -159,10 +174,13 @@ def solve_command(
     if s.measured is not None and ref != "unknown":
         raise _fail(f"--reference: {samples} has instrument columns x,y,z; known points are not used with them")
     try:
-        res = solve(m, obs, identify, ref, ho, instrument_frame=instrument_frame, max_std=max_std)
+        res = solve(m, obs, identify, ref, ho, instrument_frame=instrument_frame, max_std=max_std,
+                    noise=noise_m, priors=priors, loss=loss)
     except SolverInputError as e:
         msg = str(e)
-        if "parameter or group" in msg:
+        if msg.startswith("prior "):
+            raise _fail(f"--prior: {msg}") from None
+        if "parameter or group" in msg or msg.startswith("compliance."):
             raise _fail(f"--identify {identify!r}: {msg}") from None
         raise _fail(f"{samples}: {msg}") from None
     res.settings.update(samples=str(samples), holdout=None if holdout is None else str(holdout), tool=tool)
@@ -170,6 +188,43 @@ def solve_command(
     if out is not None:
         _write_atomic(out, json.dumps(res.to_dict(), indent=2) + "\n")
         typer.echo(f"result: {out}")
+    if not res.trusted:
+        typer.echo(f"station: solve failed: {res.failure or 'result not trusted'}", err=True)
+        sys.exit(1)  # sys.exit: station.cli.main runs click non-standalone (a typer.Exit would be dropped)
+
+
+def _priors(specs: list[str]) -> list[tuple[str, float, str]] | None:
+    """``--prior SELECTOR=STD``: (selector, std SI, quantity)."""
+    from station.kinematics.tolerances import parse_quantity
+
+    out = []
+    for spec in specs:
+        sel, eq, val = spec.partition("=")
+        if not eq or not sel.strip():
+            raise _fail(f"--prior {spec!r}: expected SELECTOR=STD with a unit, e.g. offsets=0.5deg or dh=0.3mm")
+        try:
+            v, q = parse_quantity(val)
+        except ValueError as e:
+            raise _fail(f"--prior {spec!r}: {e}") from None
+        if v <= 0:
+            raise _fail(f"--prior {spec!r}: the standard deviation must be > 0")
+        out.append((sel.strip(), v, q))
+    return out or None
+
+
+def _noise(text: str | None) -> float | None:
+    """``--noise 20um``: declared isotropic touch noise per axis, m."""
+    if text is None:
+        return None
+    from station.kinematics.tolerances import parse_quantity
+
+    try:
+        v, q = parse_quantity(text)
+    except ValueError as e:
+        raise _fail(f"--noise {e}") from None
+    if q != "length" or v <= 0:
+        raise _fail(f"--noise {text!r}: expected a positive length, e.g. 20um or 0.02mm")
+    return v
 
 
 def fk_command(

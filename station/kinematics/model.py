@@ -75,6 +75,8 @@ class Model:
     source: dict = field(default_factory=dict)  # convention table as given, for export
     frames: tuple[int, ...] = ()  # chain element after which link k's frame sits (k = 1..n): masses live there
     load: gravity.Load | None = None  # link masses and payload; None: weightless (no gravity deflection)
+    # manufacturing tolerances (selector, std SI, quantity) from the model file: see kinematics/tolerances.py
+    tolerances: tuple = ()
 
     # ---- basic facts -------------------------------------------------------------------------
     @property

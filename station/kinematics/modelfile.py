@@ -148,7 +148,8 @@ def model_from_dict(doc: dict, where: str = "<model>") -> Model:
         from station.kinematics.model import _pose
 
         model = from_poe(name, joints, links, _pose(h), **kw)
-    return _with_collision(model, doc.get("collision"), f"{where}: collision", L)
+    model = _with_collision(model, doc.get("collision"), f"{where}: collision", L)
+    return _with_tolerances(model, doc, where, L, A)
 
 
 def _with_collision(model: Model, c, where: str, L: float) -> Model:
@@ -171,6 +172,19 @@ def _with_collision(model: Model, c, where: str, L: float) -> Model:
     if any(v < 0 for v in out.get("link_radii", []) + [out.get("tool_radius", 0), out.get("tool_free", 0)]):
         raise ModelFileError(f"{where}: radii and lengths must not be negative")
     return replace(model, source={**model.source, "collision": out})
+
+
+def _with_tolerances(model: Model, doc: dict, where: str, L: float, A: float) -> Model:
+    """``tolerances:`` (prior standard deviations for calibration), selectors checked against the model."""
+    from station.kinematics.tolerances import parse_tolerances
+
+    try:
+        tols = parse_tolerances(doc.get("tolerances"), where, L, A)
+        for sel, _, _ in tols:
+            model.select([sel])
+    except (ValueError, KeyError) as e:
+        raise ModelFileError(f"{where}: tolerances: {e.args[0]}" if isinstance(e, KeyError) else str(e)) from None
+    return replace(model, tolerances=tols) if tols else model
 
 
 def load_model_file(path: str | Path) -> Model:
@@ -240,6 +254,10 @@ def model_to_dict(model: Model, length: str = "m", angle: str = "rad") -> dict:
     doc["joints"] = joints
     doc["base"] = frame("base")
     doc["tool"] = frame("tcp")
+    if model.tolerances:
+        from station.kinematics.tolerances import tolerances_to_doc
+
+        doc["tolerances"] = tolerances_to_doc(model.tolerances, length, angle)
     if model.load is not None:
         pm, pc = model.load.payload
         if pm > 0:

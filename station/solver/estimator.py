@@ -1,25 +1,45 @@
-"""``solve``: iterated Gauss-Newton / Levenberg-Marquardt on the analytic Jacobian with identifiability
-analysis and covariance. Seed 000's linear solve ``phi = (B^T B)^-1 B^T Y`` is the first Gauss-Newton
-step; seed 002's loop ``dphi = (J^T J)^-1 J^T e`` until ``|dphi| < eps`` is this loop without damping."""
+"""``solve``: maximum a-posteriori Gauss-Newton / Levenberg-Marquardt on the analytic Jacobian, with
+priors, a structural identifiability analysis, a noise-aware decision of what the data identify,
+outlier rejection, the posterior ("consider") covariance and the refusal of what cannot be trusted.
+
+Seed 000's linear solve ``phi = (B^T B)^-1 B^T Y`` is the first Gauss-Newton step without prior; seed
+002's loop ``dphi = (J^T J)^-1 J^T e`` until ``|dphi| < eps`` is this loop without damping and prior.
+
+The loop (docs/solver.md section 3):
+  1. structure: which unknowns perfect touches at these poses could identify (``identifiability``);
+  2. fit every structurally identifiable unknown (MAP: the prior keeps weak directions sane);
+  3. noise sigma from the FITTED residual (or the declared noise), decide which parameters the data
+     shrink well below their prior (``posterior.decide``); the others return to nominal;
+  4. refit and re-decide until the identified set and sigma settle; then drop touches whose
+     standardised residual exceeds 4 and repeat; check the structure again at the solution."""
 
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
-from scipy.linalg.lapack import dpotrf, dtrtri
 
-from station.solver.identifiability import RTOL, Decision, RankAnalysis, analyse, decide
+from station.solver import holdout as holdout_mod
+from station.solver.identifiability import RTOL, Null, Structure, priority_order, structure
+from station.solver.noise import NoiseModel, joint_noise_of, quantisation, resolution_of
 from station.solver.observations import Observations, SolverInputError
-from station.solver.problem import Problem
+from station.solver.posterior import MAX_RATIO, decide, posterior, t_factor
+from station.solver.priors import prior_stds
+from station.solver.problem import Problem, angle_params
 from station.solver.result import CalibrationResult, ParameterEstimate
 
-XTOL = 1e-11  # m (scaled step): below this a step changes nothing measurable
+XTOL = 1e-12  # m or rad: below this a step changes nothing measurable
 FTOL = 1e-13  # relative cost decrease
-STEP_TOL = 1e-4  # standard deviations: what is left of the way to the minimum when the iteration stops
-DECIDE_TOL = 0.1  # standard deviations: close enough to the minimum to decide identifiability with its sigma
-DECIDE_MARGIN = 2.0  # remainders this far (factor) from the threshold: a decision that re-solving cannot flip
+STEP_TOL = 1e-4  # standard deviations: the last step of a fit is smaller than this
+SIGMA_TOL = 0.05  # relative change of sigma between fits below which the prior weights stand
+MAX_ROUNDS = 12  # decide / refit rounds before "the identified set did not settle"
 POSE_TOL = 1e-3  # rad or m: joint readings closer than this are the same pose
+RUNAWAY = 5.0  # prior standard deviations from nominal: beyond this a result is not trusted
+OUTLIER_THRESHOLD = 4.0  # standardised residual (any axis) above which a touch is excluded
+MAX_OUTLIER_FRACTION = 0.2  # more outliers than this: the model does not fit the data
+LOSSES = ("linear", "huber", "soft_l1")
+SIGMA_FIRST = 1e-6  # m: the prior weight of the first fit when no noise is declared (see _Estimation.run)
 
 
 def select_names(model, identify) -> list[str]:
@@ -35,17 +55,29 @@ def select_names(model, identify) -> list[str]:
 
 
 def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown", holdout: Observations | None = None,
-          *, instrument_frame: str = "unknown", noise: float | None = None, max_std: float = 1e-3,
-          max_iter: int = 100) -> CalibrationResult:
-    """Identify ``identify`` of ``model`` from touch observations.
+          *, instrument_frame: str = "unknown", noise: float | None = None, priors=None,
+          max_std: float | None = None, loss: str = "linear", outlier_threshold: float | None = OUTLIER_THRESHOLD,
+          distances: dict | None = None, joint_noise=None, max_iter: int = 100) -> CalibrationResult:
+    """Identify ``identify`` of ``model`` from touch observations (MAP estimate with priors).
 
     ``reference``: ``"unknown"`` (every touched point is a nuisance unknown ``point.LABEL.{x,y,z}``) or
     ``{label: xyz}`` known positions in the robot base frame (m); labels not given are solved as unknown.
     With instrument measurements (``obs.measured``) the reference labels are not used; the instrument
     frame is solved as the nuisance ``base.*`` (``instrument_frame="unknown"``) or the measurements are
-    taken as base-frame positions (``"base"``). ``noise`` (m): touch noise for the rank decision; default:
-    the residual standard deviation of the fit. ``max_std`` (m at the tool): weaker directions are named
-    unidentifiable instead of estimated."""
+    taken as base-frame positions (``"base"``).
+
+    ``noise`` (m, per axis): the declared touch noise; default: the residual standard deviation of the
+    fitted model. ``priors``: prior standard deviations overriding the defaults and the model file's
+    ``tolerances`` - ``{selector: std_SI}`` or ``[(selector, std_SI, "length" | "angle" | None)]``.
+    ``max_std`` (m of tool motion): also refuse to identify a parameter whose std exceeds it.
+    ``loss``: ``linear`` (least squares; touches with a standardised residual above
+    ``outlier_threshold`` are excluded and the fit repeated; None: keep every touch), ``huber`` or
+    ``soft_l1`` (robust losses by iteratively reweighted least squares; nothing excluded).
+    ``distances``: ``{(label_a, label_b): metres}`` known distances between points, used to score the
+    holdout. ``joint_noise`` (rad or m, one number or one per joint): std of the joint readings; default:
+    the quantisation of the model's encoders (``station.solver.noise``); 0: none. A result carries
+    ``trusted``; an untrusted one says why in ``failure``."""
+    t0 = time.perf_counter()
     if not isinstance(obs, Observations):
         raise SolverInputError("obs must be an Observations")
     if getattr(model, "kind", "serial") == "parallel":  # station/kinematics/parallel.py
@@ -55,7 +87,17 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
         raise SolverInputError(f"model {model.name} has {model.n_joints} joints, observations have {obs.q.shape[1]}")
     if instrument_frame not in ("unknown", "base"):
         raise SolverInputError(f"instrument_frame must be 'unknown' or 'base', got {instrument_frame!r}")
+    if loss not in LOSSES:
+        raise SolverInputError(f"loss must be one of {', '.join(LOSSES)}, got {loss!r}")
+    if noise is not None and not (math.isfinite(noise) and noise > 0):
+        raise SolverInputError(f"noise must be a positive number of metres, got {noise!r}")
+    if max_std is not None and not (math.isfinite(max_std) and max_std > 0):
+        raise SolverInputError(f"max_std must be a positive number of metres, got {max_std!r}")
     names = select_names(model, identify)
+    comp = [n for n in names if n.startswith("compliance.")]
+    if comp:  # the chain has no column for them: they would be named "does not move the tool tip", untrue
+        raise SolverInputError(f"{comp[0]}: joint compliance is not identified by this solver yet; leave the "
+                               f"compliance group out of --identify")
     prob = Problem(model, obs, names, reference, instrument_frame)
     m, p = 3 * len(obs), prob.n_unknowns
     if m <= p:
@@ -68,63 +110,437 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
         raise SolverInputError(
             f"only {k} distinct pose(s) among {len(obs)} samples (readings within {POSE_TOL * 1e3:g} mrad/um count as "
             f"one): {3 * k} equations for {p} unknowns; move the robot between touches")
-    x, r, J = prob.initial_with_jacobian(scaled=True)  # J column-scaled throughout (angles times L)
-    x_start = x.copy()
-    r_before = r
-    dec = _decide(prob, J, x, noise or 0.0, max_std, r)
-    # Iterate on what is structurally identifiable, then decide with the fit's sigma (dependencies like
-    # "offset.j1 vs an unknown point" are exact only where the touches are consistent, i.e. at the
-    # solution; a sigma from an unconverged fit would reject good parameters). The decision only needs
-    # the fit within DECIDE_TOL standard deviations of the minimum (sigma is then within ~1e-3 of its
-    # final value); once the identified set stands, the iteration finishes to STEP_TOL on that set.
-    iterations, converged, current = 0, False, False
-    tol, prev, exact, settled, finishing = DECIDE_TOL, None, True, False, False
-    for _ in range(8):
-        act = sorted(dec.accepted)
-        if not exact:  # the last step was taken on the linear model: evaluate the chain there first
-            r, J = prob.residual_jacobian(x, scaled=True)
-        x, r, J, it, converged, rest, exact, prev, (xe, re) = _levenberg_marquardt(prob, x, act, max_iter, (r, J),
-                                                                                  tol, prev)
-        iterations += it
-        if finishing:  # finished on a set decided within DECIDE_TOL of this minimum
-            break
-        if settled:
-            # the last decision dropped columns with every remainder at least DECIDE_MARGIN away from the
-            # threshold: re-solving without them moves sigma and the Jacobian far less than that
-            current = True
+    prior = _prior_vector(prob, priors)
+    try:
+        est = _Estimation(prob, prior, noise, max_std, loss, outlier_threshold, max_iter, joint_noise)
+    except ValueError as e:
+        raise SolverInputError(str(e)) from None
+    est.run()
+    res = est.result()
+    if holdout is not None:
+        res.holdout = holdout_mod.score(prob, est.x, est.accepted, holdout, est.sigma, distances)
+    res.settings.update(identify=identify if isinstance(identify, str) else ",".join(identify),
+                        reference=_ref_setting(reference), instrument_frame=instrument_frame, noise_m=noise,
+                        max_std_m=max_std, loss=loss, outlier_threshold=outlier_threshold, rtol=RTOL,
+                        max_ratio=MAX_RATIO, runaway_prior_std=RUNAWAY,
+                        characteristic_length_m=prob.length, max_iter=max_iter,
+                        priors={n: float(prior[i]) for i, n in enumerate(prob.names) if math.isfinite(prior[i])},
+                        estimator="maximum a posteriori, Levenberg-Marquardt on the analytic Jacobian")
+    res.solve_time_s = time.perf_counter() - t0
+    return res
+
+
+def _prior_vector(prob: Problem, priors) -> np.ndarray:
+    prior = np.full(prob.n_unknowns, np.inf)
+    model_cols = [i for i, k in enumerate(prob.kinds) if k == "model"]
+    if model_cols:
+        nm = [prob.names[i] for i in model_cols]
+        prior[model_cols] = prior_stds(prob.model, nm, angle_params(prob.model), priors)
+    return prior
+
+
+class _Estimation:
+    """The state of one solve: decide, fit, re-decide; outliers; final statistics."""
+
+    def __init__(self, prob: Problem, prior, noise, max_std, loss, threshold, max_iter, joint_noise=None) -> None:
+        self.prob, self.prior, self.noise, self.max_std = prob, prior, noise, max_std
+        self.loss, self.threshold, self.max_iter = loss, threshold, max_iter
+        self.x0 = prob.x_nominal
+        self.tool = np.where(np.array(prob.units) == "rad", prob.length, 1.0)  # m of tool motion per unit
+        self.order = priority_order(prob.names, prob.kinds)
+        N = len(prob.obs)
+        self.w = np.ones(N)  # touch weights: 0 excluded (outlier), IRLS weights for robust losses
+        sq = joint_noise_of(prob.model, joint_noise)
+        self.resolution = resolution_of(prob.model)
+        _, self.tick_groups = quantisation(prob.obs.q, self.resolution)
+        var = np.broadcast_to(sq**2, (N, len(sq)))
+        self.noise_model = NoiseModel(prob.joint_jacobian(prob.x_nominal) if np.any(var > 0) else None, var, N)
+        self.joint_noise = sq
+        self.outliers: list[int] = []
+        self.iterations = 0
+        self.converged = True
+        self.settled = False
+        self.failure: list[str] = []
+        self.notes: list[str] = []
+        self.conflict: set[int] = set()  # columns in prior-data conflict (reported once)
+
+    # ---- the loop ---------------------------------------------------------------------------------
+    def run(self) -> None:
+        prob = self.prob
+        x, r, J = prob.initial_with_jacobian()
+        self.r_before = r
+        self.struct = structure(prob, x, None)
+        S = sorted(self.struct.accepted)
+        A = list(S)
+        # The first fit weighs the prior as if the touches were perfect (1 um): nearly the plain least-squares
+        # fit of everything the structure allows, so that sigma comes from the FITTED model, never from the
+        # uncorrected one (whose errors would make the prior dominate and nothing look identifiable).
+        sigma_w = self.noise if self.noise is not None else SIGMA_FIRST
+        restructured = 0
+        first = True
+        for _ in range(MAX_ROUNDS):
+            self.noise_model.set(sigma=sigma_w, w=self.w)
+            x, r, J, it, conv = _fit(prob, x, A, self.noise_model, sigma_w, self.prior, self.x0, self.max_iter)
+            self.iterations += it
+            self.converged = conv
+            sigma, tfac, dof = self._sigma(r, len(A))
+            self.noise_model.set(sigma=sigma)  # the whitening that goes with this sigma
+            BtB = self._btb(J)
+            if first:
+                self._conflicts(x, BtB, A, sigma)
+                self.first = (r.copy(), len(A))  # residual and size of the (nearly) unconstrained fit
+                first = False
+            dec = decide(BtB, S, self.order, [], sigma, self.prior, self.tool, self.max_std, tfac)
+            stable = dec.accepted == A and abs(sigma / sigma_w - 1.0) < SIGMA_TOL
+            if stable and self.loss != "linear":
+                stable = not self._reweight(r, J, A, sigma)
+            if stable:
+                if self.loss == "linear" and self.threshold is not None and self._reject(r, J, A, BtB, sigma):
+                    sigma_w = sigma
+                    continue
+                st = structure(prob, x, self.w > 0, keep=self.struct, steps=1)
+                if sorted(st.accepted) != S and restructured < 2:  # the structure at the solution differs
+                    restructured += 1
+                    self.struct, S = st, sorted(st.accepted)
+                    out = [j for j in range(prob.n_unknowns) if j not in S]
+                    x[out] = self.x0[out]
+                    A = list(S)  # decided again from everything the structure now allows
+                    continue
+                self.struct = st
+                self.settled = True
+                break
+            for j in A:
+                if j not in dec.accepted:
+                    x[j] = self.x0[j]  # back to nominal: never keep numbers for a direction the data do not see
+            A, sigma_w = dec.accepted, sigma
+        self.x, self.r, self.J, self.accepted, self.S = x, r, J, A, S
+
+    def _conflicts(self, x, BtB, A, sigma) -> None:
+        """Prior-data conflict: the (nearly) unconstrained fit puts a parameter more than RUNAWAY prior
+        std from nominal, and the data are sure of it (also RUNAWAY of its own std). The MAP estimate
+        would then be dragged back by the prior with an inflated sigma: the result is not trusted."""
+        post = posterior(BtB, A, [], sigma, np.full(len(self.prior), np.inf))
+        hits = []
+        for i, j in enumerate(post.cols):
+            pr = self.prior[j]
+            dev = abs(x[j] - self.x0[j])
+            if math.isfinite(pr) and dev > RUNAWAY * pr and dev > RUNAWAY * post.std[i]:
+                hits.append(f"{self.prob.names[j]} {_q(x[j] - self.x0[j], self.prob.units[j], True)} "
+                            f"({dev / pr:.1f}x its tolerance {_q(pr, self.prob.units[j])})")
+                self.conflict.add(j)
+        if hits:
+            more = f" and {len(hits) - 3} more" if len(hits) > 3 else ""
+            self.failure.append(f"prior-data conflict: the data put {', '.join(hits[:3])}{more} from nominal; if "
+                                "that is real, widen the prior (--prior NAME=VALUE), else the model or the data are "
+                                "wrong")
+
+    def _btb(self, J: np.ndarray) -> np.ndarray:
+        Jw = self.noise_model.jacobian(J)
+        return Jw.T @ Jw
+
+    def _sigma(self, r: np.ndarray, n_est: int) -> tuple[float, float, int]:
+        """(sigma used for the uncertainty, Student-t factor, degrees of freedom). The declared noise is
+        used unless the fitted residual contradicts it (chi-square, 0.1 % level): then the fitted one."""
+        m = 3 * int(np.count_nonzero(self.w > 0))
+        dof = max(m - n_est, 0)
+        nm = self.noise_model
+        if self.noise is not None:
+            sd = nm.declare(self.noise)  # the declared isotropic noise plus the modelled joint noise
+            rw = nm.residual(r)
+            self.sigma_fit = math.sqrt(float(rw @ rw) / dof) if dof else math.inf
+            if dof and self.sigma_fit > sd * math.sqrt(_chi2_upper(dof) / dof):
+                self.noise_contradicted = True
+                self.sigma_fit = max(nm.fit_sigma(r, dof), 1e-12)
+                return self.sigma_fit, t_factor(dof), dof
+            self.noise_contradicted = False
+            self.sigma_declared = sd
+            return sd, 1.0, dof
+        fitted = max(nm.fit_sigma(r, dof), 1e-12) if dof else math.inf
+        self.sigma_fit = fitted
+        return fitted, t_factor(dof), dof
+
+    def _standardised(self, r: np.ndarray, J: np.ndarray, A: list[int], BtB: np.ndarray, sigma: float):
+        """Per touch: the largest externally studentised residual of its three axes, ``|r_ik| / (s_(i)
+        sqrt(1 - h_ik))`` with ``s_(i)`` the residual std without touch i (one slipped touch cannot hide
+        itself by inflating sigma), or the declared noise when the fit agrees with it."""
+        post = posterior(BtB, A, [], sigma, self.prior)
+        nm = self.noise_model
+        Ja = nm.jacobian(J[:, post.cols], weighted=False)
+        h = np.clip(np.einsum("ij,jk,ik->i", Ja, post.info_inv, Ja) / sigma**2, 0.0, 1.0 - 1e-6)
+        rt = nm.residual(r, weighted=False)
+        act = self.w > 0
+        e = (rt**2 / (1.0 - h)).reshape(-1, 3).sum(axis=1)  # each touch's share of the residual sum
+        m = 3 * int(act.sum())
+        dof = m - len(A)
+        rss = float(np.sum(e[act]))
+        if self.noise is not None and not getattr(self, "noise_contradicted", False):
+            st = np.full(len(e), self.sigma_declared)
         else:
-            sig = noise if noise is not None else math.sqrt(float(r @ r) / (m - len(act)))
-            dec = _decide(prob, J, x, sig, max_std, r)
-            current = sorted(dec.accepted) == act
-        if current and (rest < STEP_TOL or not converged):
-            break
-        if current:
-            tol, finishing = STEP_TOL, True
-            continue
-        settled = dec.margin >= DECIDE_MARGIN and all(j in act for j in dec.accepted)
-        dropped = [j for j in act if j not in dec.accepted]
-        # back to nominal: never keep numbers for an unseen direction
-        if len(dropped) == 1 and dropped[0] == prob.first_joint_offset_column():
-            first = dropped[0]
-            # only the first joint's offset (e.g. with an unknown point): from the last evaluated point
-            # that is a rigid motion of the tool positions and model columns, no chain pass needed
-            x = xe.copy()
-            r, J = prob.shift_first_joint(xe, re, J, x_start[first] - xe[first], first)
-            x[first] = x_start[first]
+            st = np.sqrt(np.maximum(rss - np.where(act, e, 0.0), 1e-300) / max(dof - 3, 1))
+        z = (np.abs(rt) / np.sqrt(1.0 - h)).reshape(-1, 3).max(axis=1) / np.maximum(st, 1e-300)
+        return z, float(np.median(st[act]))
+
+    def _reject(self, r, J, A, BtB, sigma) -> bool:
+        """Exclude touches above the threshold (all at once); True when any were excluded."""
+        z, _ = self._standardised(r, J, A, BtB, sigma)
+        new = [i for i in np.flatnonzero(z > self.threshold) if self.w[i] > 0]
+        if not new:
+            return False
+        limit = int(MAX_OUTLIER_FRACTION * len(self.w))
+        if len(self.outliers) + len(new) > limit:
+            if "outliers" not in " ".join(self.failure):
+                self.failure.append(f"{len(self.outliers) + len(new)} of {len(self.w)} touches are outliers "
+                                    f"(standardised residual > {self.threshold:g}): the model does not fit these data")
+            return False
+        self.outliers += [int(i) for i in new]
+        self.w[new] = 0.0
+        return True
+
+    def _reweight(self, r, J, A, sigma) -> bool:
+        """IRLS weights of the robust loss from the current residuals; True when they changed."""
+        _, st = self._standardised(r, J, A, self._btb(J), sigma)
+        rt = self.noise_model.residual(r, weighted=False).reshape(-1, 3)
+        z = (np.linalg.norm(rt, axis=1) / (3.0 * st)) ** 2  # soft margin at 3 sigma per touch
+        w = np.where(z <= 1.0, 1.0, 1.0 / np.sqrt(z)) if self.loss == "huber" else 1.0 / np.sqrt(1.0 + z)
+        changed = bool(np.max(np.abs(w - self.w)) > 1e-3)
+        self.w = w
+        return changed
+
+    # ---- the result --------------------------------------------------------------------------------
+    def result(self) -> CalibrationResult:
+        prob, x, r, J, A = self.prob, self.x, self.r, self.J, self.accepted
+        sigma, tfac, dof = self._sigma(r, len(A))
+        self.sigma = sigma
+        self.noise_model.set(sigma=sigma, w=self.w)
+        BtB = self._btb(J)
+        # final decision bookkeeping: which kept parameters were weak (and how weak)
+        dec = decide(BtB, self.S, self.order, [], sigma, self.prior, self.tool, self.max_std, tfac)
+        kept = [j for j in range(prob.n_unknowns) if j not in A]
+        extra = self._resolution(x, J)
+        post = posterior(BtB, A, kept, sigma, self.prior, tfac, extra) if A else None
+        std = np.full(prob.n_unknowns, np.nan)
+        cov = None
+        if post is not None:
+            # No robust ("sandwich", HC3) inflation: on touches whose noise IS the model's it raised the stds
+            # 25-60 % above the actual error spread (Monte Carlo, tests/test_solver_coverage.py) - an honest
+            # std must not be inflated. Noise of another shape is modelled (joint noise, noise.py) instead.
+            cov = post.cov
+            std[post.cols] = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        params: dict[str, ParameterEstimate] = {}
+        for i, n in enumerate(prob.names):
+            kind, unit = prob.kinds[i], prob.units[i]
+            pr = float(self.prior[i]) if math.isfinite(self.prior[i]) else None
+            nominal = float(self.x0[i]) if kind != "point" else math.nan
+            if i in A:
+                shr = None if pr is None else max(0.0, 1.0 - (std[i] / pr) ** 2)
+                params[n] = ParameterEstimate(n, float(x[i]), nominal, float(std[i]), True, "", kind, unit, pr, shr)
+                continue
+            value = nominal if kind == "model" else math.nan
+            if i in self.struct.nulls:
+                nl: Null = self.struct.nulls[i]
+                params[n] = ParameterEstimate(n, value, nominal, None, False, nl.reason, kind, unit, pr, 0.0,
+                                              nl.fix, nl.cause)
+            else:
+                would, _ = dec.weak.get(i, (math.nan, pr))
+                reason, fix = self._weak_reason(i, would, BtB, sigma, tfac)
+                shr = None if pr is None or not math.isfinite(would) else max(0.0, 1.0 - (would / pr) ** 2)
+                params[n] = ParameterEstimate(n, value, nominal, None, False, reason, kind, unit, pr, shr, fix,
+                                              "weak")
+        rms0, max0 = _stats(self.r_before)
+        act = self.w > 0
+        rr = r.reshape(-1, 3)[act].ravel()
+        rms1, max1 = _stats(rr)
+        notes = list(self.notes)
+        self._trust(params, dof)
+        if isinstance(prob.known, dict) and prob.known and prob.unknown_points:
+            notes.append(f"reference point(s) {', '.join(prob.unknown_points)} not given: solved as unknown")
+        if self.noise is not None and getattr(self, "noise_contradicted", False):
+            notes.append(f"the fitted residual ({self.sigma_fit * 1e3:.4f} mm per axis) contradicts the declared "
+                         f"noise ({self.noise * 1e3:.4f} mm): the uncertainty uses the fitted one")
+        # condition number and observability index O1 of the Jacobian in metres of tool motion (angles
+        # times the characteristic length), over the identified columns and the touches kept
+        s = np.linalg.svd((J[:, A] / self.tool[A])[np.repeat(act, 3)], compute_uv=False) if A else np.zeros(0)
+        cond = float(s[0] / s[-1]) if len(s) and s[-1] > 0 else None
+        o1 = math.exp(float(np.log(s).mean())) / math.sqrt(3 * int(act.sum())) if len(s) and s[-1] > 0 else None
+        res = CalibrationResult(
+            model=prob.model.name, parameters=params,
+            residuals={"rms_before_m": rms0, "max_before_m": max0, "rms_after_m": rms1, "max_after_m": max1},
+            rank=len(A), n_parameters=prob.n_unknowns, converged=self.converged, iterations=self.iterations,
+            condition_number=cond, observability_index=o1, sigma_m=self.sigma_fit, covariance=cov,
+            n_samples=len(prob.obs), n_residuals=r.size, notes=notes,
+            trusted=not self.failure, failure="; ".join(self.failure) or None,
+            outliers=self._outlier_list(sigma),
+            noise={"sigma_m": sigma, "source": "declared" if self.noise is not None and not getattr(
+                self, "noise_contradicted", False) else "fitted", "declared_m": self.noise,
+                "fitted_m": self.sigma_fit, "dof": dof, "t_factor": tfac,
+                "joint": [float(v) for v in self.joint_noise],
+                "resolution": [float(v) for v in self.resolution]})
+        return res
+
+    def _resolution(self, x, J):
+        """Consider errors for the encoders' quantisation shared by touches on one tick (``noise.quantisation``)."""
+        if not self.tick_groups:
+            return None
+        Jq = self.prob.joint_jacobian(x)  # (N, 3, n)
+        cols, var = [], []
+        for j, g in self.tick_groups:
+            g = g & (self.w > 0)
+            if g.sum() < 1:
+                continue
+            col = np.zeros_like(Jq[:, :, 0])
+            col[g] = Jq[g, :, j]
+            cols.append(col.ravel())
+            var.append(self.resolution[j] ** 2)
+        if not cols:
+            return None
+        E = self.noise_model.jacobian(np.array(cols).T)
+        return self.noise_model.jacobian(J).T @ E, np.array(var)
+
+    def _trust(self, params: dict[str, ParameterEstimate], dof: int) -> None:
+        if not self.converged:
+            self.failure.insert(0, f"the fit did not converge within {self.max_iter} iterations")
+        if not self.settled:
+            self.failure.insert(0, f"the identified set did not settle within {MAX_ROUNDS} decide/refit rounds")
+        run = []
+        for i, (n, p) in enumerate(params.items()):
+            if p.identifiable and p.prior_std and i not in self.conflict:
+                k = abs(p.value - p.nominal) / p.prior_std
+                if k > RUNAWAY:
+                    run.append(f"{n} {_q(p.value - p.nominal, self.prob.units[i], True)} ({k:.1f}x its tolerance)")
+        if run:
+            more = f" and {len(run) - 3} more" if len(run) > 3 else ""
+            self.failure.append(f"collapse or runaway: {', '.join(run[:3])}{more} from nominal")
+        # the parameters left at nominal as weak must not be what the data need: were they within their
+        # tolerances, fixing them would raise the cost per dropped parameter by at most (delta/std)^2 sigma^2
+        # <= (RUNAWAY / MAX_RATIO)^2 sigma^2 for delta up to RUNAWAY prior std (F statistic against the fit of
+        # everything the structure allows)
+        r1, n1 = getattr(self, "first", (None, 0))
+        k = n1 - len(self.accepted)
+        m = 3 * int(np.count_nonzero(self.w > 0))
+        c1 = float(np.sum(self.noise_model.residual(r1) ** 2)) if r1 is not None else 0.0  # same whitening
+        if r1 is not None and k > 0 and m > n1 and not self.outliers and c1 > 0:
+            rw = self.noise_model.residual(self.r)
+            F = ((float(rw @ rw) - c1) / k) / (c1 / (m - n1))
+            if F > (RUNAWAY / MAX_RATIO) ** 2 and not self.conflict:
+                self.failure.append(
+                    f"prior-data conflict: the {k} parameter(s) left at nominal as poorly observed are what the data "
+                    f"need (fit residual {math.sqrt(c1 / (m - n1)) * 1e3:.4f} mm per axis with them, "
+                    f"{math.sqrt(float(rw @ rw) / max(m - len(self.accepted), 1)) * 1e3:.4f} mm without): the model "
+                    "is wrong or its tolerances too tight; widen the prior or take more varied poses")
+        if dof <= 0:
+            self.failure.append("no degrees of freedom left to judge the fit")
+
+    def _weak_reason(self, j: int, would: float, BtB, sigma, tfac) -> tuple[str, str]:
+        prob = self.prob
+        n = prob.names[j]
+        pr = self.prior[j]
+        u, f = ("deg", 180 / math.pi) if prob.units[j] == "rad" else ("mm", 1e3)
+        if not math.isfinite(would):
+            post = posterior(BtB, sorted([*self.accepted, j]), [], sigma, self.prior, tfac)
+            would = float(post.std[post.cols.index(j)])
+        # the parameters it is most confounded with: largest posterior correlations were it estimated
+        post = posterior(BtB, sorted([*self.accepted, j]), [], sigma, self.prior, tfac)
+        i = post.cols.index(j)
+        d = np.sqrt(np.diag(post.cov))
+        corr = np.abs(post.cov[i] / (d[i] * d))
+        corr[i] = 0.0
+        partners = [prob.names[post.cols[k]] for k in np.argsort(-corr)[:3] if corr[k] > 0.5]
+        why = (f"poorly observed: the data would leave its std at {would * f:.3g} {u} (tolerance {pr * f:.3g} {u}; "
+               f"identified needs at most {MAX_RATIO:g} of the tolerance")
+        if self.max_std is not None:
+            why += f" and {self.max_std * 1e3:.3g} mm at the tool"
+        why += ")"
+        if partners:
+            why += f"; correlated with {', '.join(partners)}"
+        fix = "more touches (the std falls as 1/sqrt(N)), a wider spread of tool orientations, or more points"
+        if n.startswith("offset.j"):
+            k = int(n[8:]) - 1
+            span = float(np.ptp(prob.obs.q[self.w > 0, k]))
+            if prob.model.joints[k].revolute and span < math.radians(30):
+                fix = f"poses that turn joint {k + 1} more (it spans {math.degrees(span):.1f} deg here); " + fix
+        return why, fix
+
+    def _outlier_list(self, sigma) -> list[dict]:
+        prob = self.prob
+        rr = self.r.reshape(-1, 3)
+        st = self.noise if self.noise is not None else sigma
+        out = []
+        for i in sorted(self.outliers):
+            d = float(np.linalg.norm(rr[i]))
+            out.append({"index": i, "point": str(prob.obs.point[i]), "residual_m": d,
+                        "standardised": float(np.max(np.abs(rr[i])) / st)})
+        return out
+
+
+def _q(v: float, unit: str, sign: bool = False) -> str:
+    """A value for people: mm or deg."""
+    k, u = (180 / math.pi, "deg") if unit == "rad" else (1e3, "mm")
+    return f"{v * k:{'+' if sign else ''}.4g} {u}"
+
+
+def _chi2_upper(dof: int, z: float = 3.090232) -> float:
+    """Upper 0.1 % point of chi-square (Wilson-Hilferty)."""
+    a = 2.0 / (9.0 * dof)
+    return dof * (1.0 - a + z * math.sqrt(a)) ** 3
+
+
+def _fit(prob: Problem, x, act, noise: NoiseModel, sigma_w, prior, x0, max_iter):
+    """MAP fit of the columns ``act``: minimise ``|W r|^2 + sigma_w^2 sum ((x_j - x0_j) / prior_j)^2``
+    (``W`` the whitening of ``noise``). Undamped Gauss-Newton steps while they reduce the cost, Marquardt
+    damping otherwise, columns equilibrated. Stops when a step is below STEP_TOL standard deviations in
+    every parameter: that step is taken without another chain evaluation (the model is linear over it to
+    O(step^2); the residual is the linear prediction and the Jacobian the one a step back). Returns
+    ``x, r, J, iterations, converged``."""
+    x = x.copy()
+    r, J = prob.residual_jacobian(x)
+    act = sorted(act)
+    if not act:
+        return x, r, J, 0, True
+    pa = prior[act]
+    lam = np.where(np.isfinite(pa), sigma_w**2 / np.where(np.isfinite(pa), pa, 1.0) ** 2, 0.0)
+
+    def cost(rr, xx):
+        rw = noise.residual(rr)
+        dx = xx[act] - x0[act]
+        return float(rw @ rw) + float(np.sum(lam * dx * dx))
+
+    c = cost(r, x)
+    mu = 0.0
+    n = len(act)
+    eye = np.eye(n)
+    for it in range(1, max_iter + 1):
+        Ja = noise.jacobian(J[:, act])
+        H = Ja.T @ Ja + np.diag(lam)
+        g = Ja.T @ noise.residual(r) + lam * (x[act] - x0[act])
+        d = np.sqrt(np.diag(H))
+        d = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 1.0)
+        Hs = H * np.outer(d, d)
+        gs = g * d
+        try:
+            Hi = np.linalg.inv(Hs + mu * eye)
+        except np.linalg.LinAlgError:
+            Hi = np.linalg.pinv(Hs + mu * eye)
+        du = -(Hi @ gs)
+        dx = d * du
+        std = sigma_w * np.sqrt(np.maximum(np.diag(Hi), 1e-300))  # in equilibrated units
+        rel = float(np.max(np.abs(du) / std))
+        x_new = x.copy()
+        x_new[act] += dx
+        if mu == 0.0 and (rel < STEP_TOL or float(np.max(np.abs(dx))) < XTOL):
+            return x_new, r + J[:, act] @ dx, J, it, True
+        r_new, J_new = prob.residual_jacobian(x_new)
+        c_new = cost(r_new, x_new)
+        if c_new <= c:
+            small = c - c_new <= FTOL * c
+            x, r, J, c = x_new, r_new, J_new, c_new
+            mu = 0.0 if mu < 1e-9 else mu / 10.0
+            if small or rel < STEP_TOL:
+                return x, r, J, it, True
         else:
-            x[dropped] = x_start[dropped]
-            r, J = prob.residual_jacobian(x, scaled=True)
-        tol, prev, exact = DECIDE_TOL, None, True
-    sig = noise if noise is not None else math.sqrt(float(r @ r) / (m - len(dec.accepted)))
-    # the reasons, condition number and observability index once, at the final Jacobian
-    ana = _analyse(prob, J, x, sig, max_std, r, dec if current else None)
-    if not current:  # the identified set never settled within the rounds: not a minimum of the final set
-        converged = False
-    return _result(model, prob, x, r, J, r_before, ana, iterations, converged, holdout,
-                   dict(identify=identify if isinstance(identify, str) else ",".join(identify),
-                        reference=_ref_setting(reference), instrument_frame=instrument_frame,
-                        noise_m=noise, max_std_m=max_std, rtol=RTOL, characteristic_length_m=prob.length,
-                        max_iter=max_iter, estimator="Levenberg-Marquardt on analytic Jacobian"))
+            if float(np.max(np.abs(dx))) < XTOL:
+                return x, r, J, it, True  # at the minimum within rounding
+            mu = max(mu * 10.0, 1e-6)
+    return x, r, J, max_iter, False
 
 
 def distinct_poses(q: np.ndarray, tol: float | None = None, limit: int | None = None) -> int:
@@ -149,95 +565,6 @@ def distinct_poses(q: np.ndarray, tol: float | None = None, limit: int | None = 
     return k
 
 
-def _decide(prob: Problem, J, x, sigma, max_std, r) -> Decision:
-    return decide(J, prob.names, prob.kinds, sigma=sigma, max_std=max_std,
-                  scale_dir=prob.scale_direction(x) / prob.scale, residual=r)
-
-
-def _analyse(prob: Problem, J, x, sigma, max_std, r, decided: Decision | None = None) -> RankAnalysis:
-    Js = J
-    sd = prob.scale_direction(x) / prob.scale
-    joints = prob.model.joints
-    return analyse(Js, prob.names, prob.kinds, sigma=sigma, max_std=max_std, scale_dir=sd, residual=r,
-                   n_joints=len(joints), first_revolute=joints[0].revolute, last_revolute=joints[-1].revolute,
-                   decided=decided)
-
-
-def _levenberg_marquardt(prob: Problem, x, act, max_iter, rJ, tol: float = STEP_TOL, prev: float | None = None):
-    """Undamped Gauss-Newton steps while they reduce the cost; Marquardt damping otherwise. Stops when the
-    rest of the way to the minimum is below ``tol`` standard deviations of the parameters. Gauss-Newton
-    converges linearly near the minimum with rate rho (faster while the error is large compared with the
-    residual), so after a step of ``s`` standard deviations at most ``s rho / (1 - rho)`` is left; rho is
-    estimated by the ratio of the last two undamped steps (``prev``: the one before this call), which
-    over-estimates it. A final step that small is taken without evaluating the chain again: over it the
-    model is linear to O(step^2), and the residual is the linear prediction. Also stops below XTOL or
-    when the cost stops decreasing.
-
-    Returns ``x, r, J, iterations, converged, rest, exact, prev, (xe, re)``: ``rest`` is the estimate of
-    what is left (standard deviations), ``exact`` whether ``r, J`` were evaluated at ``x`` (else ``r`` is
-    the linear prediction and ``J`` the Jacobian one step back), ``prev`` the last undamped step, ``xe,
-    re`` the point where ``J`` was evaluated and the residual there."""
-    x = x.copy()
-    r, J = rJ
-    if not act:
-        return x, r, J, 0, True, 0.0, True, None, (x, r)
-    D = prob.scale[act]
-    every = len(act) == J.shape[1]  # act is sorted: all columns, no selection copy
-    cost = float(r @ r)
-    dof = max(r.size - len(act), 1)
-    eye = np.eye(len(act))
-    lam = 0.0
-    for it in range(1, max_iter + 1):
-        Js = J if every else J[:, act]
-        # normal equations on the column-scaled, full-rank (after the rank analysis) Jacobian: cond(J)^2
-        # stays far from 1/eps, and any error in a step is corrected by the next iteration
-        H = Js.T @ Js
-        g = Js.T @ r
-        Ri = _inverse_cholesky(H + lam * eye if lam else H)
-        if Ri is not None:
-            du = -(Ri @ (Ri.T @ g))
-            rel = math.sqrt(float(np.max(du * du / (Ri * Ri).sum(axis=1))) * dof / cost) if cost else 0.0
-        else:
-            du = -np.linalg.lstsq(H + lam * eye, g, rcond=None)[0]
-            rel = math.inf
-        x_new = x.copy()
-        x_new[act] += D * du
-        step = float(np.max(np.abs(du)))
-        if lam == 0.0:
-            rho = rel / prev if prev else 1.0
-            rest = rel * rho / (1.0 - rho) if rho < 0.5 else rel
-            if step < XTOL:
-                rest = 0.0
-            if rest < tol:
-                return x_new, r + Js @ du, J, it, True, rest, False, rel, (x, r)
-        r_new, J_new = prob.residual_jacobian(x_new, scaled=True)
-        cost_new = float(r_new @ r_new)
-        if cost_new <= cost:
-            small = cost - cost_new <= FTOL * cost
-            prev = rel if lam == 0.0 else None
-            x, r, J, cost = x_new, r_new, J_new, cost_new
-            if lam:
-                lam = 0.0 if lam < 1e-9 * float(np.max(np.diag(H))) else lam / 10.0
-            if small:
-                return x, r, J, it, True, 0.0, True, prev, (x, r)
-        else:
-            prev = None
-            if step < XTOL:
-                return x, r, J, it, True, 0.0, True, prev, (x, r)  # at the minimum within rounding
-            lam = max(lam * 10.0, 1e-6 * float(np.max(np.diag(H))))
-    return x, r, J, max_iter, False, math.inf, True, prev, (x, r)
-
-
-def _inverse_cholesky(H: np.ndarray) -> np.ndarray | None:
-    """``R^-1`` (upper triangular) with ``H = R^T R``, so ``H^-1 = R^-1 R^-T``; None when ``H`` is not
-    numerically positive definite. LAPACK directly: these are small matrices, called every iteration."""
-    R, info = dpotrf(H, lower=0, clean=1)
-    if info != 0:
-        return None
-    Ri, info = dtrtri(R, lower=0)
-    return Ri if info == 0 else None
-
-
 def _ref_setting(reference):
     if isinstance(reference, str):
         return reference
@@ -246,74 +573,10 @@ def _ref_setting(reference):
 
 def _stats(r: np.ndarray) -> tuple[float, float]:
     r = r.reshape(-1, 3)
+    if not len(r):
+        return math.nan, math.nan
     d = np.sqrt(np.einsum("ij,ij->i", r, r))
     return float(np.sqrt(np.mean(d**2))), float(d.max())
 
 
-def _result(model, prob: Problem, x, r, J, r_before, ana: RankAnalysis, iterations, converged, holdout,
-            settings) -> CalibrationResult:
-    act = ana.accepted
-    m = r.size
-    dof = m - len(act)
-    sigma = math.sqrt(float(r @ r) / dof)
-    cov = None
-    std = np.full(prob.n_unknowns, np.nan)
-    if act:
-        H = ana.gram if ana.gram is not None and ana.gram.shape[0] == len(act) else J[:, act].T @ J[:, act]
-        Ri = _inverse_cholesky(H)
-        cov_u = (Ri @ Ri.T if Ri is not None else np.linalg.pinv(H)) * sigma**2
-        cov = cov_u * np.outer(prob.scale[act], prob.scale[act])
-        std[act] = np.sqrt(np.diag(cov))
-    params: dict[str, ParameterEstimate] = {}
-    for i, n in enumerate(prob.names):
-        kind, unit = prob.kinds[i], prob.units[i]
-        nominal = float(prob.x_nominal[i]) if kind != "point" else math.nan
-        if i in act:
-            params[n] = ParameterEstimate(n, float(x[i]), nominal, float(std[i]), True, "", kind, unit)
-        else:
-            value = nominal if kind == "model" else math.nan
-            params[n] = ParameterEstimate(n, value, nominal, None, False, ana.rejected[i], kind, unit)
-    rms0, max0 = _stats(r_before)
-    rms1, max1 = _stats(r)
-    notes = []
-    if not converged:
-        notes.append("the iteration did not converge within max_iter; the estimate is not reliable")
-    if isinstance(settings["reference"], dict):
-        extra = [lb for lb in prob.unknown_points]
-        if extra:
-            notes.append(f"reference point(s) {', '.join(extra)} not given: solved as unknown")
-    res = CalibrationResult(
-        model=model.name, parameters=params,
-        residuals={"rms_before_m": rms0, "max_before_m": max0, "rms_after_m": rms1, "max_after_m": max1},
-        rank=ana.rank, n_parameters=prob.n_unknowns, converged=converged, iterations=iterations,
-        condition_number=ana.condition_number, observability_index=ana.observability_index, sigma_m=sigma,
-        covariance=cov, n_samples=len(prob.obs), n_residuals=m, settings=settings, notes=notes)
-    if holdout is not None:
-        res.holdout = _holdout(prob, x, act, holdout)
-    return res
-
-
-def _holdout(prob: Problem, x, act, ho: Observations) -> dict:
-    model = prob.model
-    if ho.q.shape[1] != model.n_joints:
-        raise SolverInputError(f"holdout: model {model.name} has {model.n_joints} joints, got {ho.q.shape[1]}")
-    xa = prob.x_nominal.copy()
-    xa[act] = x[act]
-    if prob.frame_unknown:  # the instrument frame is always needed to compare, identified or not
-        inst = [i for i, k in enumerate(prob.kinds) if k == "instrument"]
-        xa[inst] = x[inst]
-    P = model.position(ho.q, prob.full_params(xa))
-    if prob.instrument:
-        if ho.measured is None:
-            raise SolverInputError("holdout: the fit used instrument measurements; holdout needs them too")
-        tgt = ho.measured
-    else:
-        pts = prob.points_of(x)
-        missing = [lb for lb in ho.labels if lb not in pts]
-        if missing:
-            raise SolverInputError(f"holdout: point {missing[0]!r} was not touched in the fit and is not known")
-        tgt = np.array([pts[lb] for lb in ho.point])
-    rms, mx = _stats(P - tgt)
-    P0 = model.position(ho.q)
-    rms0, _ = _stats(P0 - tgt)
-    return {"n_samples": len(ho), "rms_m": rms, "max_m": mx, "rms_nominal_m": rms0}
+__all__ = ["Structure", "distinct_poses", "select_names", "solve"]

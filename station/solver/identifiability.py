@@ -1,39 +1,45 @@
-"""Which unknowns can the data identify? Column-scaled, priority-ordered rank revealing (Gram-Schmidt
-with re-orthogonalisation, i.e. a QR factorisation with a chosen column order) plus an SVD for the
-condition number and the observability index.
+"""Which unknowns could these poses identify at all, and why not the others (structure, named by cause).
 
-Columns are scaled to metres (angles times the characteristic length L), so a column's norm is how far
-the tool moves, summed over the poses, per metre (or per L radians) of that parameter. Column j is
-*dependent* when what remains of it after projecting out the columns accepted before it is below
+The question is asked of *perfect* touches: the Jacobian is evaluated at joint readings moved (by a few
+micrometres of tip motion) so that every touch lies exactly on its target (``Problem.consistent_q``).
+Measured touches break exact dependencies by the noise - "a rotation about joint 1 moves the unknown
+point" holds only where the touches agree - and a dependency broken only by noise is not information.
 
-    tau_j = max(rtol * max_k |J_k|,  sigma / max_std)
-
-The first term catches exact redundancy (the model's deliberate over-parameterisation); the second one
-is tied to the noise: with residual standard deviation sigma, the standard deviation of that parameter,
-given the ones before it, would be sigma / |remainder| > max_std (default 1 mm at the tool)."""
+Columns, each normalised to unit length, are visited in priority order (points, instrument frame, TCP,
+joint offsets, base, link geometry) by a rank-revealing QR: column j is *structurally dependent* when the
+sine of its angle to the span of the columns accepted before it is below ``RTOL`` (1e-6). Dependent
+columns keep their nominal value; the cause of each is read from its null-space vector (its combination
+of accepted columns) and worded with what would fix it. Whether the *noise* lets the data pin an
+accepted column down is the other question: ``station.solver.posterior`` (prior versus posterior)."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
-from scipy.linalg.lapack import dgeqrf, dpotrf, dpotrs, dsyev
 
-RTOL = 1e-7
+RTOL = 1e-6  # sine of the angle between a column and the span of the columns before it: dependent below
 PRIORITY = ("point.", "instrument", "tcp.", "offset.", "base.")
 
 
 @dataclass
-class RankAnalysis:
-    accepted: list[int]  # column indices the data identify, in acceptance order
-    rejected: dict[int, str]  # column -> reason
-    rank: int
-    condition_number: float | None
-    observability_index: float | None  # O1 = (s1 ... sr)^(1/r) / sqrt(m) of the scaled Jacobian
-    singular_values: np.ndarray
-    gram: np.ndarray | None = None  # Js[:, accepted]^T Js[:, accepted] (column-scaled), for the covariance
+class Null:
+    """Why a column is structurally unidentifiable, and what would make it identifiable."""
+
+    cause: str  # no_effect | on_axis | point_rotation | instrument_frame | tool_free | tool_vs_point | scale |
+    #            rigid_motion | redundant | poses | confounded
+    partners: list[str]
+    reason: str
+    fix: str
+
+
+@dataclass
+class Structure:
+    accepted: list[int]  # columns that perfect touches at these poses would identify (acceptance order)
+    nulls: dict[int, Null] = field(default_factory=dict)  # column -> cause
+    scale_owner: int | None = None  # the length kept at nominal because no length is known
 
 
 def priority_order(names: list[str], kinds: list[str]) -> list[int]:
@@ -60,77 +66,188 @@ def _priority_order(names: tuple[str, ...], kinds: tuple[str, ...]) -> tuple[int
     return tuple(sorted(range(len(names)), key=rank))
 
 
-@dataclass
-class Decision:
-    """What the data identify (before the reasons are worded): accepted columns in acceptance order, the
-    remainder norms of weak (noise-rejected) columns, and the length owner dropped for "no known length"."""
-
-    accepted: list[int]
-    weak: dict[int, float]
-    scale_hit: int | None
-    norms: np.ndarray
-    tau_struct: float
-    margin: float = 1.0  # smallest factor by which a remainder clears the threshold, either way (>= 1)
-
-
-def decide(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float = 0.0, max_std: float = 1e-3,
-           scale_dir: np.ndarray | None = None, residual: np.ndarray | None = None) -> Decision:
-    """The rank decision of ``analyse`` without the reasons and the singular values (cheap: a few
-    Householder QR factorisations); ``analyse(..., decided=...)`` completes it."""
-    p = Js.shape[1]
-    norms = np.sqrt(np.einsum("ij,ij->j", Js, Js))
-    big = norms.max() if p else 0.0
-    tau_struct = RTOL * big if big > 0 else np.inf
-    tau_noise = sigma / max_std if max_std > 0 else 0.0
-    order = priority_order(names, kinds)
-    accepted, weak, margin = _greedy(Js, order, tau_struct, tau_noise)
-    scale_hit = None
-    if _scale_invisible(Js, scale_dir, residual, norms):
-        # a uniform scaling of every length only scales the residual: the data have no length standard.
-        # The longest link length that would be estimated keeps its nominal value instead (fixing a
-        # long one pins the scale best).
-        owners = [j for j in accepted if kinds[j] == "model" and scale_dir[j] != 0.0]
-        if owners:
-            scale_hit = max(owners, key=lambda j: abs(scale_dir[j]))
-            accepted, weak, margin = _greedy(Js, [j for j in order if j != scale_hit], tau_struct, tau_noise)
-    return Decision(accepted, weak, scale_hit, norms, tau_struct, margin)
+def structure(prob, x: np.ndarray, rows: np.ndarray | None = None, keep: Structure | None = None,
+              steps: int = 2) -> Structure:
+    """The structural analysis of ``prob`` at parameters ``x`` over the touches ``rows`` (bool, per touch).
+    ``keep``: a set chosen before (e.g. at the start); it stays the accepted set if it is still
+    independent here and nothing else became identifiable (in a redundant group any member can carry
+    the group's error, but only the one the fit started with is known to reach this solution).
+    ``steps``: Newton steps to consistent touches (one suffices at a fitted solution)."""
+    q = prob.consistent_q(x, steps)
+    _, J = prob.residual_jacobian(x, q=q)
+    if rows is not None and not rows.all():
+        J = J[np.repeat(rows, 3)]
+        q = q[rows]
+    return analyse(J, prob, x, q, None if keep is None else keep.accepted, None if keep is None else keep.scale_owner)
 
 
-def analyse(Js: np.ndarray, names: list[str], kinds: list[str], *, sigma: float = 0.0, max_std: float = 1e-3,
-            scale_dir: np.ndarray | None = None, residual: np.ndarray | None = None, n_joints: int = 0,
-            first_revolute: bool = True, last_revolute: bool = True,
-            decided: Decision | None = None) -> RankAnalysis:
-    """``Js`` is the column-scaled Jacobian (m x p); ``scale_dir`` the uniform-scaling direction in the
-    same scaled coordinates and ``residual`` the current residual (to detect "no known length").
-    ``decided``: the ``decide`` result for these same arguments (not recomputed)."""
-    m, p = Js.shape
-    d = decided or decide(Js, names, kinds, sigma=sigma, max_std=max_std, scale_dir=scale_dir, residual=residual)
-    accepted, weak, norms, tau_struct = d.accepted, d.weak, d.norms, d.tau_struct
-    rejected: dict[int, str] = {}
-    acc = set(accepted)
-    dep = [j for j in range(p) if j not in acc]
-    accepted = sorted(accepted)
-    A = Js[:, accepted]
-    AtA = A.T @ A
-    if dep:
-        # each dependent column as a combination of the accepted ones (its null-space vector)
-        # (normal equations: A has full column rank by construction; the coefficients only rank partners)
-        coef = _spd_solve(AtA, A.T @ Js[:, dep]) if accepted else np.zeros((0, len(dep)))
-        for c, j in enumerate(dep):
-            rejected[j] = _reason(j, coef[:, c], accepted, names, kinds, norms, tau_struct, weak.get(j), sigma,
-                                  max_std, j == d.scale_hit, n_joints, first_revolute, last_revolute)
-    s = np.sqrt(np.maximum(dsyev(AtA, compute_v=0)[0][::-1], 0.0)) if accepted else np.zeros(0)  # singular values
-    r = len(accepted)
-    cond = float(s[0] / s[-1]) if r and s[-1] > 0 else None
-    o1 = math.exp(float(np.log(s).mean())) / math.sqrt(m) if r and s[-1] > 0 else None
-    return RankAnalysis(accepted, rejected, r, cond, o1, s, AtA)
+def analyse(J: np.ndarray, prob, x: np.ndarray, q: np.ndarray, keep: list[int] | None = None,
+            keep_scale: int | None = None) -> Structure:
+    names, kinds = prob.names, prob.kinds
+    p = J.shape[1]
+    norms = np.sqrt(np.einsum("ij,ij->j", J, J))
+    big = float(norms.max()) if p else 0.0
+    zero = norms <= 1e-12 * big if big > 0 else np.ones(p, bool)
+    Jn = J / np.where(zero, 1.0, norms)
+    order = [j for j in priority_order(names, kinds) if not zero[j]]
+    accepted, _, _ = _greedy(Jn, order, RTOL, 0.0)
+    scale_owner = None
+    v = _scale_vector(prob, x)
+    if v is not None and len(accepted) < len(order):
+        ref = float(np.linalg.norm(norms * np.abs(v)))
+        if ref > 0 and np.linalg.norm(J @ v) <= 1e-5 * ref:
+            # scaling every length (robot and points) leaves perfect touches perfect: no length standard.
+            # The longest identified link length keeps its nominal value (it pins the scale best).
+            owners = [j for j in accepted if kinds[j] == "model" and v[j] != 0.0]
+            if owners:
+                scale_owner = max(owners, key=lambda j: abs(v[j]))
+                order = [j for j in order if j != scale_owner] + [scale_owner]
+                accepted, _, _ = _greedy(Jn, order, RTOL, 0.0)
+    if keep is not None and len(keep) == len(accepted) and not any(zero[j] for j in keep):
+        kept, _, _ = _greedy(Jn, [j for j in order if j in set(keep)], RTOL, 0.0)
+        if len(kept) == len(keep):
+            accepted = kept
+            if scale_owner is not None:  # the scale stays with the length that carried it before
+                scale_owner = keep_scale if keep_scale is not None and keep_scale not in set(keep) else None
+    out = Structure(accepted, scale_owner=scale_owner)
+    acc = sorted(accepted)
+    dep = [j for j in range(p) if j not in set(accepted)]
+    if not dep:
+        return out
+    coef = np.linalg.lstsq(Jn[:, acc], Jn[:, dep], rcond=None)[0] if acc else np.zeros((0, len(dep)))
+    for c, j in enumerate(dep):
+        out.nulls[j] = _cause(j, coef[:, c], acc, prob, x, q, J, norms, bool(zero[j]), j == scale_owner)
+    return out
 
 
-def singular_values(A: np.ndarray) -> np.ndarray:
-    """Singular values of a tall full-rank ``A``, descending, from the small Gram matrix (relative accuracy
-    ~ eps * cond^2, ample for the condition numbers that pass the rank analysis)."""
-    ev = np.linalg.eigvalsh(A.T @ A)[::-1]
-    return np.sqrt(np.maximum(ev, 0.0))
+def _scale_vector(prob, x: np.ndarray) -> np.ndarray | None:
+    """d x / d s for scaling every length of the robot and the touched points by (1 + s) about the base
+    origin: selected link lengths times their value, points relative to the base position. None when a
+    length that is not selected would have to scale too (then the data carry a length standard)."""
+    model = prob.model
+    if prob.instrument:
+        return None
+    sel = set(prob.model_names)
+    ang = {n for n, u in zip(prob.names, prob.units, strict=True) if u == "rad"}
+    from station.solver.problem import angle_params
+
+    angles = angle_params(model)
+    for n, val in zip(model.param_names, model.params, strict=True):
+        fixed_length = n not in sel and n not in angles and not n.startswith(("offset.", "base."))
+        if fixed_length and val != 0.0:
+            return None
+    if any(model.joints[i].kind != "revolute" for i in range(model.n_joints)):
+        return None  # a prismatic reading is a length the scaling cannot change
+    # about the world origin when the base position is identified, else about the (fixed) base origin
+    free_base = any(f"base.{a}" in sel for a in "xyz")
+    tb = np.zeros(3) if free_base else np.array([model.param(f"base.{a}") for a in "xyz"])
+    v = np.zeros(len(prob.names))
+    for i, n in enumerate(prob.names):
+        if prob.kinds[i] == "point":
+            v[i] = x[i] - tb["xyz".index(n[-1])]
+        elif n not in ang and not n.startswith("offset."):
+            v[i] = x[i]  # a link length, a tool length or a base position
+    return v if np.any(v) else None
+
+
+def _cause(j, a, acc, prob, x, q, J, norms, zero, scale) -> Null:
+    names, kinds, model = prob.names, prob.kinds, prob.model
+    name = names[j]
+    nj = model.n_joints
+    joint = int(name[8:]) if name.startswith("offset.j") else 0
+    revolute = joint > 0 and model.joints[joint - 1].revolute
+    if scale:
+        return Null("scale", [], "scale: no known length - every length of the robot and the unknown point(s) can "
+                    "grow together without changing the data",
+                    "give a known point position, a second point at a known distance, or measure with an "
+                    "instrument")
+    if zero:
+        if revolute:
+            return Null("on_axis", [], f"the tool tip lies on the axis of joint {joint}: rotating it does not move "
+                        "the tip" if joint < nj else f"the TCP lies on the axis of joint {joint}: rotating it does "
+                        "not move the tool tip", f"a tool whose tip is off the axis of joint {joint}")
+        return Null("no_effect", [], "changing it does not move the tool tip in any of these poses",
+                    "poses that move the joints this parameter depends on")
+    contrib = np.abs(a)
+    ordr = np.argsort(-contrib)
+    cut = 0.05 * contrib.max() if len(contrib) else 0.0
+    partners = [names[acc[k]] for k in ordr if contrib[k] > cut]
+    pk = {kinds[names.index(p)] for p in partners}
+    tcp = [p for p in partners if p.startswith("tcp.")]
+    if revolute and pk == {"point"}:
+        if joint == 1:
+            return Null("point_rotation", partners, "a rotation about joint 1 moves the unknown point with the robot",
+                        "give the position of a touched point (--reference LABEL=x,y,z)")
+        return Null("point_rotation", partners,
+                    f"a rotation about joint {joint} moves the unknown point with the robot: joint {joint}'s axis "
+                    f"is the same line at every touch of a point (joints 1-{joint - 1} do not change between them)",
+                    f"give the position of a touched point, or touch a second point at a known distance with "
+                    f"joint{'s 1-' if joint > 2 else ' '}{joint - 1} turned")
+    if "instrument" in pk and pk <= {"instrument", "point"}:
+        what = "rotating" if revolute else "moving"
+        if joint == 1:
+            return Null("instrument_frame", partners, "a rotation about joint 1 is indistinguishable from rotating "
+                        "the unknown instrument frame", "measure in the robot's base frame (instrument frame known)")
+        return Null("instrument_frame", partners, f"indistinguishable from {what} the unknown instrument frame",
+                    "measure in the robot's base frame (instrument frame known)")
+    if revolute and joint == nj and tcp and pk <= {"model", "point"} and all(
+            p.startswith("tcp.") or kinds[names.index(p)] == "point" for p in partners):
+        return Null("tool_free", partners,
+                    f"the TCP is free: a rotation about joint {joint} only turns the TCP offset about that axis, "
+                    f"which is absorbed by {', '.join(tcp)}",
+                    "keep the TCP fixed (leave tcp out of the identified set) when it is known")
+    if name.startswith("tcp.") and pk == {"point"}:
+        return Null("tool_vs_point", partners,
+                    f"the tool offset {name} moves every touch of the point the same way (the tool does not tilt "
+                    f"enough): it cannot be told from the unknown point's position",
+                    "touch with the tool tilted in more directions, or give the point's position")
+    if pk == {"point"} and not name.startswith("base."):
+        return Null("rigid_motion", partners, "changing it moves every touch of a point the same way: the unknown "
+                    "point absorbs it", "give the position of a touched point (--reference LABEL=x,y,z)")
+    if name.startswith("base.") and pk <= {"point", "instrument"}:
+        return Null("rigid_motion", partners, "a rigid motion of the base moves the tool and the unknown points "
+                    "together", "give the positions of at least three touched points (or of one, for a "
+                    "translation only)")
+    if pk == {"model"}:
+        if _model_identity(prob, x, j, a, acc, J, norms):
+            return Null("redundant", partners,
+                        f"the same effect as {', '.join(partners)} at every possible pose: the data see only their "
+                        f"combination, which {'they carry' if len(partners) > 1 else 'it carries'}",
+                        "identify only one of them (they are one error in this model)")
+        still = _still_joints(q, model)
+        joints = f" (joint{'s' if len(still) > 1 else ''} {', '.join(map(str, still))} hardly move here)" if still \
+            else ""
+        return Null("poses", partners,
+                    f"these poses cannot tell it from {', '.join(partners)}{joints}",
+                    "poses that move every joint over a wider range, or more points")
+    return Null("confounded", partners, f"confounded with {', '.join(partners)}: the data cannot tell them apart",
+                "more varied poses, more points or a known point")
+
+
+def _model_identity(prob, x, j, a, acc, J, norms) -> bool:
+    """Is the dependency of model column j on the model columns ``acc`` one of the parameterisation (the
+    same at every configuration), or only of these poses? Checked at random configurations."""
+    model = prob.model
+    rng = np.random.default_rng(0)
+    lo, hi = model.lower, model.upper
+    qr = rng.uniform(np.maximum(lo, -math.pi), np.minimum(hi, math.pi), (24, model.n_joints))
+    _, Jr = prob.folded.evaluate(qr, prob.full_params(x))
+    Jr = Jr.reshape(-1, Jr.shape[2])
+    # the null vector over the model columns, in parameter units: e_j - sum_k a_k (n_j / n_k) e_k (the
+    # caller saw no significant point or instrument coefficient)
+    v = np.zeros(prob.n_model)
+    v[j] = 1.0
+    for k, c in zip(acc, a, strict=True):
+        if k < prob.n_model:
+            v[k] -= c * norms[j] / norms[k]
+    scale = float(np.linalg.norm(Jr * np.abs(v)[None, :], axis=0).sum()) or 1.0
+    return bool(np.linalg.norm(Jr @ v) <= 1e-5 * scale)
+
+
+def _still_joints(q: np.ndarray, model) -> list[int]:
+    """Joints whose readings span less than 5 deg (or 5 mm) over the touches."""
+    span = q.max(axis=0) - q.min(axis=0)
+    return [i + 1 for i in range(model.n_joints) if span[i] < (math.radians(5) if model.joints[i].revolute else 5e-3)]
 
 
 def _greedy(Js, order, tau_struct, tau_noise) -> tuple[list[int], dict[int, float], float]:
@@ -139,8 +256,9 @@ def _greedy(Js, order, tau_struct, tau_noise) -> tuple[list[int], dict[int, floa
     QR of the ordered columns, valid up to the first rejected column. Deleting a rejected column from R
     leaves the trailing block ``R[b:, b+1:]`` (the later columns' coordinates orthogonal to everything
     accepted) in Hessenberg form: its own QR gives the next remainders. Only the first factorisation
-    depends on the number of samples. Also returns the margin: the smallest factor by which any
-    remainder is above (accepted) or below (rejected) the threshold."""
+    depends on the number of samples. Also returns the remainders of rejected columns above
+    ``tau_struct`` and the margin: the smallest factor by which any remainder is above (accepted) or
+    below (rejected) the threshold."""
     thr = max(tau_struct, tau_noise)
     accepted: list[int] = []
     weak: dict[int, float] = {}
@@ -170,66 +288,6 @@ def _greedy(Js, order, tau_struct, tau_noise) -> tuple[list[int], dict[int, floa
     return accepted, weak, margin
 
 
-def _spd_solve(H: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """``H^-1 B`` for a symmetric positive definite ``H`` (Cholesky, LAPACK directly); general solve if not."""
-    c, info = dpotrf(H, lower=0, clean=1)
-    if info == 0:
-        X, info = dpotrs(c, B, lower=0)
-        if info == 0:
-            return X
-    return np.linalg.lstsq(H, B, rcond=None)[0]
-
-
-_LOWER: dict[tuple[int, int], np.ndarray] = {}
-
-
 def _qr_r(A: np.ndarray) -> np.ndarray:
-    """R of a Householder QR (LAPACK dgeqrf; ``numpy.linalg.qr(A, "r")`` without its Python overhead)."""
-    m, n = A.shape
-    k = min(m, n)
-    R = dgeqrf(A)[0][:k]
-    low = _LOWER.get((k, n))
-    if low is None:
-        low = _LOWER.setdefault((k, n), np.tri(k, n, -1, dtype=bool))
-    R[low] = 0.0
-    return R
-
-
-def _scale_invisible(Js, scale_dir, residual, norms=None) -> bool:
-    """Scaling every length by (1 + s) changes the residual r into (1 + s) r exactly when no length is
-    known, i.e. ``J v = r``: the data carry no length standard (seed 003d's distance argument)."""
-    if scale_dir is None or residual is None or not np.any(scale_dir):
-        return False
-    ref = np.sum((np.linalg.norm(Js, axis=0) if norms is None else norms) * np.abs(scale_dir))
-    return bool(np.linalg.norm(Js @ scale_dir - residual) <= 1e-6 * ref)
-
-
-def _reason(j, a, accepted, names, kinds, norms, tau_struct, weak_norm, sigma, max_std, scale_hit, n_joints,
-            first_revolute, last_revolute) -> str:
-    name = names[j]
-    if scale_hit:
-        return ("scale: no known length - every length of the robot and the unknown point(s) can grow "
-                "together without changing the data; give a known point or measure with an instrument")
-    last = name == f"offset.j{n_joints}" and last_revolute
-    if last and norms[j] <= max(tau_struct, sigma / max_std if max_std > 0 else 0.0):
-        return f"the TCP lies on the axis of joint {n_joints}: rotating it does not move the tool tip"
-    if norms[j] <= tau_struct:
-        return "changing it does not move the tool tip in any of these poses"
-    contrib = np.abs(a) * norms[accepted]
-    order = np.argsort(-contrib)
-    cut = 0.2 * contrib.max() if len(contrib) else 0.0
-    partners = [names[accepted[k]] for k in order[:4] if contrib[k] > cut]
-    if name == "offset.j1" and first_revolute:
-        if any(p.startswith("point.") for p in partners):
-            return "a rotation about joint 1 moves the unknown point with the robot"
-        if any(kinds[names.index(p)] == "instrument" for p in partners):
-            return "a rotation about joint 1 is indistinguishable from rotating the unknown instrument frame"
-    if last and any(p.startswith("tcp.") for p in partners):
-        return (f"the TCP is free: a rotation about joint {n_joints} only turns the TCP offset about that "
-                f"axis, which is absorbed by {', '.join(p for p in partners if p.startswith('tcp.'))}")
-    with_ = ", ".join(partners) if partners else "the other unknowns"
-    if weak_norm is not None:
-        std = sigma / weak_norm
-        return (f"poorly observed: its standard deviation would be about {std * 1e3:.2g} mm at the tool "
-                f"(threshold {max_std * 1e3:.2g} mm); nearly confounded with {with_}")
-    return f"confounded with {with_}: the data cannot tell them apart"
+    """R of a Householder QR, ``min(m, n)`` rows."""
+    return np.linalg.qr(A, mode="r")

@@ -194,20 +194,55 @@ class Problem:
             P = self.model.position(self.obs.q, self.full_params(x))
         return (P - self._targets(x)).ravel()
 
-    def residual_jacobian(self, x: np.ndarray, scaled: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def residual_jacobian(self, x: np.ndarray, scaled: bool = False, q: np.ndarray | None = None
+                          ) -> tuple[np.ndarray, np.ndarray]:
         """Residual (3N,) and Jacobian (3N, n_unknowns); ``scaled``: columns times ``self.scale`` (angles
-        times the characteristic length, the units of the rank analysis and of the solver's steps)."""
+        times the characteristic length). ``q``: other joint readings for the same touches (the
+        identifiability analysis evaluates the Jacobian where the touches are exactly consistent)."""
         N = len(self.obs)
         J = np.zeros((3 * N, self.n_unknowns))
         Jm = J[:, : self.n_model]
         Jm.shape = (N, 3, self.n_model)  # a view (raises rather than copy): evaluate writes into J
-        P, _ = self.folded.evaluate(self.obs.q, self.full_params(x), out=Jm)
+        P, _ = self.folded.evaluate(self.obs.q if q is None else q, self.full_params(x), out=Jm)
         r = (P - self._targets(x)).ravel()
         if self._point_rows is not None:
             J[self._point_rows] = -1.0
         if scaled and len(self._angle_cols):
             J[:, self._angle_cols] *= self.length
         return r, J
+
+    def _joint_chain(self):
+        """The folded chain with every joint's offset as a column (plus the identified parameters, which
+        may differ from the model's values): d tip / d offset_k == d tip / d q_k."""
+        offs = [self.model.index(f"offset.j{i + 1}") for i in range(self.model.n_joints)]
+        idx = np.array(list(self.model_idx) + [o for o in offs if o not in set(self.model_idx.tolist())], dtype=int)
+        cols = [int(np.flatnonzero(idx == o)[0]) for o in offs]
+        return compiled(self.model, idx)[0], cols
+
+    def joint_jacobian(self, x: np.ndarray, q: np.ndarray | None = None) -> np.ndarray:
+        """d tip / d q ``(N, 3, n)`` at the touches' joint readings (or ``q``)."""
+        fold, cols = self._joint_chain()
+        return fold.evaluate(self.obs.q if q is None else q, self.full_params(x))[1][:, :, cols]
+
+    def consistent_q(self, x: np.ndarray, steps: int = 2) -> np.ndarray:
+        """Joint readings near the recorded ones at which every touch is exactly on its target with the
+        parameters ``x`` (Newton steps ``dq = -Jq^+ r_i`` per touch; residuals are small against the reach,
+        so two steps leave ~|r|^3/L^2). Exact dependencies such as "a rotation about joint 1 moves the
+        unknown point" hold only for consistent touches; measured ones break them by the noise."""
+        fold, cols = self._joint_chain()
+        params = self.full_params(x)
+        tgt = self._targets(x)
+        q = self.obs.q.copy()
+        for _ in range(steps):
+            P, J = fold.evaluate(q, params)
+            Jq = J[:, :, cols]
+            # minimum-norm dq = Jq^T (Jq Jq^T)^-1 r (damped by 1e-12 of the trace: a robot whose tip cannot
+            # move in some direction keeps that part of the residual)
+            A = Jq @ Jq.transpose(0, 2, 1)
+            A += (1e-12 * np.trace(A, axis1=1, axis2=2))[:, None, None] * np.eye(3)
+            y = np.linalg.solve(A, (P - tgt)[:, :, None])
+            q -= (Jq.transpose(0, 2, 1) @ y)[:, :, 0]
+        return q
 
     def first_joint_offset_column(self) -> int:
         """Column of the first joint's offset among the unknowns when ``shift_first_joint`` applies to it

@@ -16,21 +16,30 @@ class ParameterEstimate:
     name: str
     value: float  # SI; the nominal value when not identifiable
     nominal: float
-    std: float | None  # None when not identifiable (never a number for a direction the data cannot see)
+    std: float | None  # posterior std (SI); None when not identified (never a number the data did not earn)
     identifiable: bool
     reason: str = ""  # why not identifiable; empty otherwise
     kind: str = "model"  # "model" (goes into the model), "point" (reference), "instrument" (nuisance frame)
     unit: str = "m"  # "m" or "rad"
+    prior_std: float | None = None  # the tolerance the estimate started from (model parameters; None: no prior)
+    shrinkage: float | None = None  # 1 - std^2 / prior_std^2: how much of the prior variance the data removed
+    fix: str = ""  # for a parameter not identified: what would make it identifiable
+    cause: str = ""  # for a parameter not identified: a structural cause (e.g. point_rotation, scale) or "weak"
 
     def to_dict(self) -> dict:
         return {"value": _num(self.value), "std": self.std, "identifiable": self.identifiable,
-                "reason": self.reason or None, "nominal": _num(self.nominal), "kind": self.kind, "unit": self.unit}
+                "reason": self.reason or None, "nominal": _num(self.nominal), "kind": self.kind, "unit": self.unit,
+                "prior_std": self.prior_std, "shrinkage": self.shrinkage, "fix": self.fix or None,
+                "cause": self.cause or None}
 
     @classmethod
     def from_dict(cls, name: str, d: dict) -> ParameterEstimate:
         return cls(name, _float(d["value"]), _float(d.get("nominal", d["value"])),
                    None if d.get("std") is None else float(d["std"]), bool(d["identifiable"]),
-                   d.get("reason") or "", d.get("kind", "model"), d.get("unit", "m"))
+                   d.get("reason") or "", d.get("kind", "model"), d.get("unit", "m"),
+                   None if d.get("prior_std") is None else float(d["prior_std"]),
+                   None if d.get("shrinkage") is None else float(d["shrinkage"]), d.get("fix") or "",
+                   d.get("cause") or "")
 
 
 def _num(v: float) -> float | None:
@@ -60,6 +69,14 @@ class CalibrationResult:
     holdout: dict | None = None
     settings: dict = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    # trust: False when the solve did not converge, the identified set did not settle, a parameter left its
+    # tolerance by more than 5 prior std (collapse/runaway), or too many touches were outliers. A result
+    # that is not trusted must not PASS nor be written back; ``failure`` says why in one line.
+    trusted: bool = True
+    failure: str | None = None
+    outliers: list[dict] = field(default_factory=list)  # {"index", "point", "residual_m", "standardised"}
+    noise: dict = field(default_factory=dict)  # sigma used for the uncertainty and where it came from
+    solve_time_s: float | None = None
 
     # ---- convenience -----------------------------------------------------------------------------
     @property
@@ -116,6 +133,11 @@ class CalibrationResult:
             "covariance": cov,
             "settings": dict(self.settings),
             "notes": list(self.notes),
+            "trusted": self.trusted,
+            "failure": self.failure,
+            "outliers": [dict(o) for o in self.outliers],
+            "noise": dict(self.noise),
+            "solve_time_s": self.solve_time_s,
         }
 
     @classmethod
@@ -130,6 +152,9 @@ class CalibrationResult:
                 observability_index=d.get("observability_index"), sigma_m=d.get("sigma_m"),
                 covariance=None if not cov else np.array(cov["matrix"], dtype=float),
                 n_samples=int(d.get("n_samples", 0)), n_residuals=int(d.get("n_residuals", 0)),
-                holdout=d.get("holdout"), settings=dict(d.get("settings", {})), notes=list(d.get("notes", [])))
+                holdout=d.get("holdout"), settings=dict(d.get("settings", {})), notes=list(d.get("notes", [])),
+                trusted=bool(d.get("trusted", d["converged"])), failure=d.get("failure"),
+                outliers=list(d.get("outliers") or []), noise=dict(d.get("noise") or {}),
+                solve_time_s=d.get("solve_time_s"))
         except (KeyError, TypeError, ValueError) as e:
             raise ValueError(f"not a calibration result: {type(e).__name__}: {e}") from None
