@@ -135,6 +135,8 @@ def _finish(out) -> None:
     typer.echo(f"station: error: {msg}", err=True)
     if out.record.get("status") == "completed":  # e.g. the report could not be written: the record is stored
         typer.echo(f"station: the record is stored; rebuild the report with: station report {out.folder}", err=True)
+    elif "station restore" in msg:  # the message already names the one command that helps (resume would refuse)
+        pass
     else:
         typer.echo(f"station: the journal is kept; continue with: station resume {out.session}", err=True)
     _exit(2)
