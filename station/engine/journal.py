@@ -15,6 +15,7 @@ remembers it (``lost``), and a session with a lost event can never end in PASS. 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
@@ -130,11 +131,16 @@ class Journal:
         head.seq, head.format = 0, FORMAT
         if head.t is None:
             head.t = time.time()
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "wb") as fh:
-            fh.write(_line(head))
-            fh.flush()
-            os.fsync(fh.fileno())
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with open(path, "wb") as fh:
+                fh.write(_line(head))
+                fh.flush()
+                os.fsync(fh.fileno())
+        except OSError as e:
+            with contextlib.suppress(OSError):
+                path.unlink()  # a header that is not whole is no journal
+            raise JournalWriteError(f"journal {path}: could not write the header ({e.strerror or e})") from None
         _fsync_dir(path.parent)
         return cls(path, head, 1)
 

@@ -207,6 +207,9 @@ def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, lim
         s = create_session(robot, serial, procedure=proc, limits=limits, db=db, apply=apply, cell=cell,
                            operator=operator, options=options, touch=touch, progress=progress, log=log,
                            robot_url=robot_url)
+    except JournalWriteError as e:
+        robot.close()
+        raise DiskError(str(e)) from None
     except BaseException:
         robot.close()
         raise
