@@ -156,6 +156,7 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
     from station.engine.session import _identity_dict
 
     name = procedure.name if procedure else (name or "script")
+    check_journal_folder()  # read-only or full: one line before anything is journaled or moved
     lim = load_limits(limits)  # bad files fail before anything moves
     the_cell = cell if isinstance(cell, Cell) else _optional_cell(cell)
     if not serial or not str(serial).strip():
