@@ -25,7 +25,7 @@ from station.engine import Outcome, Session, load_procedure
 from station.engine import resume as _resume
 from station.engine import start as _start
 from station.engine.runner import create_session, finish
-from station.publish import publish
+from station.publish import check_records, publish
 
 
 def connect(url: str, **kwargs):
@@ -43,6 +43,8 @@ def session(robot, serial: str, *, name: str | None = None, cell=None, limits=No
     """A journaled session on ``robot`` (a ``Robot`` or a URL). Connects/identifies and checks the state on
     entry; on exit (also on an exception or Ctrl-C) stops the robot, journals the end, stores the record
     (``store``) and writes the report (``report``). The outcome is ``s.outcome`` afterwards."""
+    if store:
+        check_records(db)
     if isinstance(robot, str):
         robot = connect(robot)
     caller = Path(inspect.stack()[2].filename)
@@ -73,16 +75,33 @@ def run(procedure: str | Path, robot_url: str, serial: str, *, db: str | None = 
         store: bool = True, **kwargs) -> Outcome:
     """Run a shipped procedure (by name) or a procedure file, like ``station run``: the record is stored in the
     records database (``db``) and the report written before it returns. Returns the outcome (``status``,
-    ``passed``, ``record``, ``report``, ``stored``, ``exit_code``)."""
+    ``passed``, ``record``, ``report``, ``stored``, ``store_error``, ``verdict``, ``exit_code``). With ``store``
+    the database is checked before the robot is opened (a bad URL or a read-only database: nothing moves)."""
+    if store:
+        check_records(db)
     out = _start(procedure, robot_url, serial, db=db, **kwargs)
     return publish(out, db=db, store=store, report=report, log=kwargs.get("log"))
 
 
 def resume(session_id: str | Path, *, db: str | None = None, report: bool = True, store: bool = True,
            **kwargs) -> Outcome:
-    """Continue an interrupted session, like ``station resume`` (stored where the session names, or ``db``)."""
+    """Continue an interrupted session, like ``station resume`` (stored where the session names, or ``db``;
+    checked before the robot is opened)."""
+    if store:
+        check_records(db if db is not None else _session_db(session_id))
     out = _resume(session_id, **kwargs)
     return publish(out, db=db, store=store, report=report, log=kwargs.get("log"))
+
+
+def _session_db(session_id) -> str | None:
+    from station.engine.journal import JournalError, read_journal
+    from station.engine.runner import find_session
+    from station.robot.errors import ConfigError
+
+    try:
+        return read_journal(find_session(session_id))[0].db
+    except JournalError as e:
+        raise ConfigError(str(e)) from None
 
 
 def solve(model, obs, **kwargs):

@@ -149,6 +149,31 @@ def show(serial: str = typer.Argument(..., help="robot serial number"),
         _show_session(con, chosen)
 
 
+@records_app.command("sync")
+def sync(sessions: list[str] = typer.Argument(None, help="session ids or folders (default: every ended "
+                                                          "session in $STATION_HOME/sessions not stored yet)"),
+         db: str = typer.Option(None, "--db", help=DB_HELP + "; default: the URL each session's journal names")
+         ) -> None:
+    """Store sessions in the records database from their journals (e.g. after the database was down at the end
+    of a run: the run said NOT STORED). Idempotent. Exit 2 if any session could not be stored."""
+    import sys
+
+    from station.publish import sync_sessions
+
+    results = sync_sessions(list(sessions or []), db, log=lambda t: typer.echo(t, err=True))
+    bad = 0
+    for sid, what in results:
+        if what.startswith("error: "):
+            bad += 1
+            typer.echo(f"station: error: session {sid}: {what[7:]}", err=True)
+        else:
+            typer.echo(f"{sid}: {what}")
+    if not results:
+        typer.echo("nothing to store")
+    if bad:
+        sys.exit(2)
+
+
 def _show_session(con: Console, s: dict) -> None:
     from station.records import measurement_status
     from station.report.analysis import load_session_model

@@ -112,25 +112,37 @@ def summary(out, echo=typer.echo) -> None:
 
 
 def _finish(out) -> None:
+    """The last lines of a run: the summary, then PASS/FAIL (exit 0/1) only for a completed, stored session;
+    otherwise one ``station: error:`` line, what to do next (only a command that will work), and the exit code
+    (2 error or NOT STORED, 130 interrupted)."""
     from station.robot.errors import StationError
 
-    if out.status == "completed" and out.passed is not None:
+    if out.status == "completed" and out.passed is not None and out.stored:
         summary(out)
-        if not out.stored:
-            typer.echo("station: error: the record was not stored", err=True)
-            _exit(2)
-        typer.echo("PASS" if out.passed else "FAIL")
+        typer.echo(out.verdict)
         _exit(out.exit_code)
     summary(out, echo=lambda s: typer.echo(s, err=True))
     err = out.error
-    msg = str(err) if err is not None and str(err) else type(err).__name__
+    msg = (str(err) or type(err).__name__) if err is not None else "the session did not reach a verdict"
+    if out.store_error is not None and out.record.get("status") == "completed":
+        # the run itself completed: its journal is complete, only the record is missing from the database
+        typer.echo(f"station: error: record not stored: {out.store_error}", err=True)
+        typer.echo(f"station: the journal is complete; store it later with: station records sync {out.session}",
+                   err=True)
+        typer.echo("NOT STORED")
+        _exit(2)
     if out.status == "interrupted":
         typer.echo(f"station: interrupted; continue with: station resume {out.session}", err=True)
         _exit(130)
     if err is not None and not isinstance(err, (StationError, ValueError, OSError)):
         raise err  # a bug: keep the traceback
     typer.echo(f"station: error: {msg}", err=True)
-    typer.echo(f"station: the journal is kept; continue with: station resume {out.session}", err=True)
+    if out.record.get("status") == "completed":  # e.g. the report could not be written: the record is stored
+        typer.echo(f"station: the record is stored; rebuild the report with: station report {out.folder}", err=True)
+    elif "station restore" in msg:  # the message already names the one command that helps (resume would refuse)
+        pass
+    else:
+        typer.echo(f"station: the journal is kept; continue with: station resume {out.session}", err=True)
     _exit(2)
 
 
@@ -180,6 +192,28 @@ def resume_cmd(
     with bar:
         out = resume(session, db=db, progress=cb, log=lambda s: typer.echo(s, err=True))
     _finish(out)
+
+
+def restore_cmd(
+    session: str = typer.Argument(..., help="Session id (in $STATION_HOME/sessions) or its folder/journal."),
+    db: str = typer.Option(None, "--db", help="Records database URL (default: the one the session used)."),
+) -> None:
+    """Write the session's calibration-backup.json (the calibration before its write-back) back into the robot,
+    as a transaction: journaled (writeback kind=restore), signals held, read back. Then the record is updated."""
+    from station.engine.runner import restore
+    from station.publish import store_record
+
+    done = restore(session, log=lambda s: typer.echo(s, err=True))
+    typer.echo("device calibration (SI: rad, m for prismatic joints): before -> restored (read back)")
+    for name, value in done["readback"].items():
+        typer.echo(f"  {name:12s} {done['before'].get(name, float('nan')):+.9f} -> {value:+.9f}")
+    typer.echo(f"restored: session {done['session']}: backup written back and read back")
+    try:
+        store_record(done["record"], db if db is not None else done["db"])
+    except Exception as e:
+        typer.echo(f"station: error: record not updated: {e}; store it later with: station records sync "
+                   f"{done['session']}", err=True)
+        _exit(2)
 
 
 def demo(
@@ -300,4 +334,5 @@ def run_demo(bus: str, *, time_mode: str = "instant", seed: int = 5, quiet: bool
 def register(app: typer.Typer) -> None:
     app.command("run")(run)
     app.command("resume")(resume_cmd)
+    app.command("restore")(restore_cmd)
     app.command("demo")(demo)

@@ -225,9 +225,10 @@ class Writeback(Event):
 @dataclass(kw_only=True)
 class Fault(Event):
     TYPE: ClassVar[str] = "fault"
-    step: str | None = None  # the step (or UI action) that was running
+    step: str | None = None  # the step (or UI action) that was running: approach/seat/record/leave in the pose loop
     error: str  # error class name
     message: str
+    pose: int | None = None  # the plan pose being worked on, when the fault came in the pose loop
     teardown: list[str] = field(default_factory=list)  # what the safe-state teardown could not do
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import getpass
+import hashlib
 import os
 import platform
 import signal
@@ -22,14 +23,26 @@ from pathlib import Path
 
 from station.engine import events as ev
 from station.engine.cell import Cell, RefPoint, load_cell
-from station.engine.journal import Journal, JournalError, read_journal
+from station.engine.journal import Journal, JournalError, JournalWriteError, check_space, check_writable, read_journal
 from station.engine.limits import load_limits
 from station.engine.procedure import Procedure, ProcedureError, load_procedure
 from station.engine.session import Session
 from station.kinematics.collision import keep_out_to_doc
-from station.robot.errors import ConfigError
+from station.robot.errors import ConfigError, DeviceFault, StationError
 from station.robot.protocol import adopt_serial
 from station.samplesfile import joint_units, write_samples_csv
+
+
+class DiskError(StationError):
+    """The journal's folder cannot take the session (read-only, not enough free space): one line, exit 2."""
+
+
+def _disk_ok(folder: Path, what: str) -> None:
+    try:
+        check_writable(folder)
+        check_space(folder, what)
+    except JournalWriteError as e:
+        raise DiskError(str(e)) from None
 
 
 class Terminated(KeyboardInterrupt):
@@ -47,6 +60,18 @@ class Outcome:
     error: BaseException | None = field(repr=False, default=None)
     stored: bool = False
     db: str | None = None  # the records URL the session names (None: the default database)
+    store_error: str | None = None  # why the record is NOT STORED (``station records sync`` stores it later)
+
+    @property
+    def verdict(self) -> str:
+        """What the terminal shows last: PASS, FAIL, NOT STORED, ERROR or INTERRUPTED."""
+        if self.store_error is not None:
+            return "NOT STORED"
+        if self.status == "interrupted":
+            return "INTERRUPTED"
+        if self.status != "completed" or self.passed is None:
+            return "ERROR"
+        return "PASS" if self.passed else "FAIL"
 
     @property
     def exit_code(self) -> int:
@@ -131,6 +156,7 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
     from station.engine.session import _identity_dict
 
     name = procedure.name if procedure else (name or "script")
+    check_journal_folder()  # read-only or full: one line before anything is journaled or moved
     lim = load_limits(limits)  # bad files fail before anything moves
     the_cell = cell if isinstance(cell, Cell) else _optional_cell(cell)
     if not serial or not str(serial).strip():
@@ -176,11 +202,15 @@ def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, lim
     load_limits(limits)  # a bad limits or cell file fails before the robot is opened
     if cell is not None:
         load_cell(cell)
+    check_journal_folder()
     robot = robot or open_robot(robot_url)
     try:
         s = create_session(robot, serial, procedure=proc, limits=limits, db=db, apply=apply, cell=cell,
                            operator=operator, options=options, touch=touch, progress=progress, log=log,
                            robot_url=robot_url)
+    except JournalWriteError as e:
+        robot.close()
+        raise DiskError(str(e)) from None
     except BaseException:
         robot.close()
         raise
@@ -202,18 +232,32 @@ def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int,
         raise ConfigError(str(e)) from None
     if any(isinstance(e, ev.End) and e.status == "completed" for e in events):
         raise ConfigError(f"session {header.session} already completed; start a new one with station run")
+    if any(isinstance(e, ev.Writeback) and e.kind == "restore" and e.phase == "written" for e in events):
+        raise ConfigError(f"session {header.session}: its write-back was rolled back with station restore; "
+                          "start a new session with station run")
     if not header.procedure_path:
         kind = header.procedure or "this kind of session"
         raise ConfigError(f"session {header.session} ({kind}) has no procedure file to resume; its samples "
                           f"are kept in {path} (use station solve on its samples.csv, or start a new session)")
-    proc = load_procedure(header.procedure_path)
-    if proc.sha256 != header.procedure_sha256:
-        raise ProcedureError(f"procedure {proc.path} changed since session {header.session} started "
-                             "(sha256 differs); resuming would mix two procedures")
+    _check_header(path, header)
+    # the file the journal names is hashed BEFORE it is imported: a damaged or planted journal cannot make the
+    # station run code the session did not start with
+    proc_path = Path(header.procedure_path)
+    try:
+        data = proc_path.read_bytes()
+    except OSError as e:
+        raise ProcedureError(f"procedure {proc_path} of session {header.session}: {e.strerror or e}") from None
+    if hashlib.sha256(data).hexdigest() != header.procedure_sha256:
+        raise ProcedureError(f"procedure {proc_path} changed since session {header.session} started "
+                             "(sha256 differs); resuming would mix two procedures (not loaded)")
+    proc = load_procedure(proc_path)
+    if proc.sha256 != header.procedure_sha256:  # changed between the check and the import
+        raise ProcedureError(f"procedure {proc.path} changed while session {header.session} was being resumed")
     lim_info = header.limits or {}
     lim = load_limits(lim_info.get("path"))
     if lim.sha256 != lim_info.get("sha256"):
         raise ConfigError(f"limits file {lim.path} changed since session {header.session} started")
+    _disk_ok(path.parent, "not resuming")
     robot = robot or open_robot(header.url)
     try:
         table = lim.for_procedure(robot.model.name, proc.name)
@@ -223,10 +267,92 @@ def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int,
         raise
     s = Session(journal, robot, limits=table, limits_version=lim.version, cell=_cell_from_header(header.cell),
                 options=dict(header.options), replay=events, progress=progress, touch=touch, log=log)
-    s.event(ev.Resume(samples_kept=len(s.samples()), events_before=len(events)))
+    try:
+        if journal.torn:  # reported, never silently dropped: on the terminal and in the journal
+            s.log(f"station: warning: {journal.torn}")
+            s.event(ev.Warn(step="resume", message=journal.torn))
+        s.event(ev.Resume(samples_kept=len(s.samples()), events_before=len(events)))
+    except BaseException:
+        robot.close()
+        journal.close()
+        raise
     out = _execute(s, proc.checklist)
     out.db = header.db
     return out
+
+
+def check_journal_folder() -> Path:
+    """``$STATION_HOME/sessions`` can take a journal (writable, enough free space): checked before the robot is
+    opened, so a read-only or full disk is one line and nothing moves."""
+    folder = station_home() / "sessions"
+    _disk_ok(folder, "not starting the session")
+    return folder
+
+
+def restore(session_ref: str | Path, *, robot=None, log: Callable[[str], None] | None = None) -> dict:
+    """``station restore SESSION``: write the session's ``calibration-backup.json`` (the device calibration
+    before its first write-back) back into the robot, as a transaction journaled in the session
+    (``writeback`` events with ``kind: restore``). Checked before the robot is opened: the backup, the journal
+    folder; after: the robot's serial. Returns ``{"before", "after", "readback", "session"}`` (SI)."""
+    from station.engine.writeback import BACKUP, load_backup, read_device
+    from station.engine.writeback import restore as _restore
+    from station.robot import open_robot
+
+    path = find_session(session_ref)
+    try:
+        header, events = read_journal(path)
+    except JournalError as e:
+        raise ConfigError(str(e)) from None
+    load_backup(path.parent)  # one line when missing or damaged, before the robot is opened
+    _disk_ok(path.parent, "not restoring")
+    robot = robot or open_robot(header.url)
+    try:
+        adopt_serial(robot.identity(), header.serial)  # the backup belongs to this robot only
+        journal = Journal.open(path)
+    except BaseException:
+        robot.close()
+        raise
+    s = Session(journal, robot, options=dict(header.options), replay=events, log=log)
+    old = _install_sigterm()
+    try:
+        before = read_device(robot)
+        s.event(ev.Step(name="restore", status="start", info={"backup": str(path.parent / BACKUP)}))
+        readback = _restore(robot, path.parent, s.id, event=s.event, tolerance=s.readback_tolerance,
+                            note=f"station restore: {BACKUP} written back")
+        s.event(ev.Step(name="restore", status="done"))
+    except Exception as e:
+        with contextlib.suppress(JournalWriteError):
+            s.event(ev.Fault(step="restore", error=type(e).__name__, message=str(e) or type(e).__name__,
+                             teardown=s.safe_state()))
+        raise
+    finally:
+        if old is not None:
+            signal.signal(signal.SIGTERM, old)
+        with contextlib.suppress(Exception):
+            robot.close()
+        journal.close()
+    return {"session": s.id, "before": before, "after": load_backup(path.parent)["before"], "readback": readback,
+            "record": s.record_dict(), "db": header.db}
+
+
+def _check_header(path: Path, header: ev.Header) -> None:
+    """The header fields resume acts on, beyond their types (the schema checked those): one line naming the
+    journal and the field."""
+    where = f"journal {path}:1"
+    sha = header.procedure_sha256 or ""
+    if len(sha) != 64 or any(c not in "0123456789abcdef" for c in sha):
+        raise ConfigError(f"{where}: field procedure_sha256: {sha!r} is not a sha256 hex digest")
+    if not str(header.procedure_path).endswith(".py"):
+        raise ConfigError(f"{where}: field procedure_path: {header.procedure_path!r} is not a procedure .py file")
+    if not header.url or "://" not in header.url:
+        raise ConfigError(f"{where}: field url: {header.url!r} is not a robot URL")
+    if not str(header.serial).strip():
+        raise ConfigError(f"{where}: field serial: empty")
+    lim = header.limits
+    if not isinstance(lim, dict) or not isinstance(lim.get("sha256"), str):
+        raise ConfigError(f"{where}: field limits: needs path, version and sha256 of the limits file")
+    if header.options.get("apply") not in (None, True, False):
+        raise ConfigError(f"{where}: field options.apply: {header.options.get('apply')!r} is not true/false")
 
 
 def _install_sigterm():
@@ -260,29 +386,53 @@ def _execute(s: Session, body: Callable[[Session], None]) -> Outcome:
 
 def finish(s: Session, status: str, err: BaseException | None) -> Outcome:
     """Teardown (stop, compliance off) whatever happened, journal the fault and the end, close, write
-    ``samples.csv``. Used by the runner and by scripted sessions; the caller stores and reports the outcome."""
+    ``samples.csv``. Used by the runner and by scripted sessions; the caller stores and reports the outcome.
+    An incomplete end is never PASS: a teardown that could not bring the robot to its safe state after a
+    completed checklist, or a journal that lost an event, turns the outcome into an error (exit 2) whose one-line
+    reason says so (docs/reliability.md)."""
+    passed = None if s.verdict is None else bool(s.verdict["passed"])
     try:
         problems = s.safe_state()  # first: the robot stops, whatever the journal can still do
+        if err is None and problems:
+            # a fault after the last sample (during solve/export, or the teardown itself): never PASS
+            status, err = "error", DeviceFault("teardown could not leave the robot safe: " + "; ".join(problems))
+        if err is None and s.journal.lost:
+            status, err = "error", JournalWriteError(f"journal {s.journal.path}: {len(s.journal.lost)} event(s) "
+                                                     "could not be written; the session cannot PASS")
         if err is not None:
-            s.event(ev.Fault(step=_failed_step(s), error=type(err).__name__, message=str(err) or type(err).__name__,
-                             teardown=problems))
-        elif problems:
-            s.event(ev.Fault(step="teardown", error="teardown", message="; ".join(problems)))
-        s.event(ev.End(status=status, passed=None if s.verdict is None else bool(s.verdict["passed"]),
-                       n_samples=len(s.samples())))
+            step, pose = _failed_step(s)
+            with contextlib.suppress(JournalWriteError):
+                s.event(ev.Fault(step=step, error=type(err).__name__, message=str(err) or type(err).__name__,
+                                 teardown=problems, pose=pose))
+        with contextlib.suppress(JournalWriteError):  # without an End the session stays resumable
+            s.event(ev.End(status=status, passed=passed if status == "completed" else None,
+                           n_samples=len(s.samples())))
+        if s.journal.lost and status == "completed":
+            status, err = "error", JournalWriteError(f"journal {s.journal.path}: the end of the session could "
+                                                     "not be written; the session cannot PASS")
     finally:
         with contextlib.suppress(Exception):  # closing a dead connection must not hide the original outcome
             s.robot.close()
         s.journal.close()
     record = s.record_dict()
-    write_samples_csv(s.folder / "samples.csv", s.samples(), joint_units(s.model),
-                      comment=f"session {s.id}, model {s.model.name}")
-    return Outcome(s.id, s.folder, status, None if s.verdict is None else bool(s.verdict["passed"]), record,
+    try:
+        write_samples_csv(s.folder / "samples.csv", s.samples(), joint_units(s.model),
+                          comment=f"session {s.id}, model {s.model.name}")
+    except OSError as e:  # the journal holds every sample; samples.csv is a convenience copy
+        s.log(f"samples.csv not written: {e.strerror or e}")
+    return Outcome(s.id, s.folder, status, passed if status == "completed" else None, record,
                    error=err, db=s.journal.header.db)
 
 
-def _failed_step(s: Session) -> str | None:
-    for e in reversed(s.events("step")):
-        if e.status in ("start", "failed"):
-            return e.name
-    return None
+def _failed_step(s: Session) -> tuple[str | None, int | None]:
+    """The step a fault came in, and the pose: an open (or failed) step; else the pose-loop action under way
+    (approach/seat/record/leave of pose N); else "after STEP" (between steps of the checklist)."""
+    steps = s.events("step")
+    last = steps[-1] if steps else None
+    if last is not None and last.status in ("start", "failed"):
+        return last.name, None
+    if s.doing is not None:
+        return s.doing
+    if last is not None:
+        return f"after {last.name}", None
+    return None, None

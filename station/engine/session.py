@@ -60,6 +60,7 @@ class Session:
         self.verdict: dict | None = None
         self._events: list[ev.Event] = list(self.replay)
         self._aim: dict[str, list[np.ndarray]] = {}
+        self.doing: tuple[str, int | None] | None = None  # (action, pose) in the pose loop: names a fault's step
 
     # ---- journal ---------------------------------------------------------------------------------
     @property
@@ -95,6 +96,7 @@ class Session:
     @contextlib.contextmanager
     def step(self, name: str, **info) -> Iterator[None]:
         """An OpenHTF-style phase: journaled start and outcome; a failure names the step."""
+        self.doing = None
         self.event(ev.Step(name=name, status="start", info=info))
         try:
             yield
@@ -146,7 +148,7 @@ class Session:
                 allowed = self._expected_calibrations(prior[0].calibration)
                 mismatch = [[k for k, v in exp.items() if abs(cal.get(k, math.nan) - v) > self.cal_tolerance(k)]
                             for exp in allowed]
-                if all(mismatch):
+                if all(mismatch) and not self._write_cut(cal):
                     k = mismatch[0][0]
                     raise ResumeMismatch(f"resume: device calibration {k} is {cal.get(k)!r}, the journal expects "
                                          f"{allowed[0][k]!r}; the recorded samples no longer apply")
@@ -170,6 +172,14 @@ class Session:
         if pending:
             return [dict(pending[-1].before), dict(pending[-1].after)]
         return [dict(first)]
+
+    def _write_cut(self, cal: dict) -> bool:
+        """A write-back cut in the middle (kill -9, power loss): each joint holds its old or its new value. The
+        write-back step finishes it; the samples were taken before it began."""
+        from station.engine.writeback import finished_writes, resume_point
+
+        wb = self.events("writeback")
+        return not finished_writes(wb) and resume_point(wb, cal, self.cal_tolerance)[1] == "partial"
 
     def cal_tolerance(self, name: str) -> float:
         """How far a device calibration read now may be from one journaled earlier: one count plus rounding."""
@@ -248,7 +258,14 @@ class Session:
         return {s.pose for s in live_samples(self._events)}
 
     # ---- motion ----------------------------------------------------------------------------------
+    def check_space(self, what: str) -> None:
+        """Enough free space for the journal before ``what`` moves the robot (docs/reliability.md)."""
+        from station.engine.journal import check_space
+
+        check_space(self.folder, f"not starting {what}")
+
     def move_to(self, q, speed: float | None = None) -> None:
+        self.check_space("a move")
         self.robot.move_joints(np.asarray(q, float), speed=speed)
 
     def approach(self, pose: PlannedPose) -> None:
@@ -256,6 +273,8 @@ class Session:
         the arm stands (e.g. after a resume) is checked against the keep-outs first, refused in one line."""
         from station.engine.plan import route_from
 
+        self.doing = ("approach", pose.index)
+        self.check_space(f"the approach to pose {pose.index}")
         for q in route_from(self.model, self.cell.keep_out if self.cell else None, self.robot.joint_positions().q,
                             [*pose.via, pose.approach_q], what=f"pose {pose.index}"):
             self.robot.move_joints(q)
@@ -292,15 +311,19 @@ class Session:
 
     def seat(self, pose: PlannedPose) -> None:
         """Bring the tip onto the reference (socket seating, guarded contact or the technician)."""
+        self.doing = ("seat", pose.index)
+        self.check_space(f"seating at pose {pose.index}")
         self.toucher.bring_to(self, pose)
 
     def leave(self, pose: PlannedPose) -> None:
         """Leave the reference: compliance off, back to the approach pose."""
+        self.doing = ("leave", pose.index)
         self.toucher.release(self, pose)
 
     # ---- samples ---------------------------------------------------------------------------------
     def record(self, pose: PlannedPose | None = None, point: str | None = None, measured=None) -> ev.Sample:
         """Read all joints in one transaction and journal the sample (fsynced before the next motion)."""
+        self.doing = ("record", None if pose is None else pose.index)
         snap = self.robot.joint_positions()
         touch = self.robot.touch() if isinstance(self.robot, ContactSensor) else None
         if touch is False:

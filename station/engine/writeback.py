@@ -5,16 +5,24 @@ Two phases, each journaled before the next begins:
 1. pre-image: what the device holds now and what will be written are journaled, and the session's first
    pre-image is kept in ``calibration-backup.json`` (written atomically, fsynced) before anything is written;
 2. write (the driver stores persistently), read back, compare to one encoder count: ``written`` or ``failed``.
-The engine then verifies with a touch at a known pose (``verified``). An interrupted write-back is found again
-by :func:`resume_point`: the device holds the pre-image (write again), the new values (go on with the check), or
-anything else (stop: a person must look; the backup restores it). The jog UI restores a failed write-back with
-the same :func:`apply` (``kind="restore"``)."""
+The engine then verifies with a touch at a known pose (``verified``).
+
+A transaction: SIGINT/SIGTERM are held off from the pre-image to the read-back (:func:`signals_held`) and acted
+on right after, so Ctrl-C never leaves half a calibration. What a signal cannot hold off (kill -9, power loss, a
+drive reboot) is found again by :func:`resume_point`: the device holds the pre-image (write again), the new
+values (the write is sent again, so a device's own store command is re-sent, then go on with the check), a mix of
+both per joint (a write cut in the middle: written again in full), or anything else (refused: a person must look;
+``station restore SESSION`` writes the backup). The jog UI and ``station restore`` restore with the same
+:func:`apply` (``kind="restore"``)."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
+import signal
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -103,12 +111,44 @@ def write_backup(folder: Path, session: str, plan: WritebackPlan) -> Path:
     return path
 
 
+@contextlib.contextmanager
+def signals_held():
+    """SIGINT and SIGTERM are noted, not acted on, inside the block; the first one noted is delivered again
+    (to the handler in place before) when the block ends. Only the main thread can hold signals; elsewhere the
+    block runs as is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pending: list[int] = []
+
+    def note(signum, frame):
+        pending.append(signum)
+
+    old = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(ValueError, OSError):
+            old[sig] = signal.signal(sig, note)
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        if pending:
+            signal.raise_signal(pending[0])  # acted on now, by the handler the caller had
+
+
 def apply(robot, plan: WritebackPlan, *, event: Callable[[Writeback], object], folder: Path, session: str,
           tolerance: Callable[[str], float], note: str = "", resumed: bool = False) -> dict[str, float]:
     """Write ``plan.after`` into the device as phase 1 (pre-image journaled and backed up) and phase 2 (write,
     read back within ``tolerance``); returns the read-back. A bus error or a read-back that differs journals
     ``failed`` and raises (``WriteBackError`` for the read-back). ``resumed``: the pre-image of this plan is
-    journaled already (an interrupted write-back being finished)."""
+    journaled already (an interrupted write-back being finished). SIGINT/SIGTERM wait until it returns."""
+    with signals_held():
+        return _apply(robot, plan, event=event, folder=folder, session=session, tolerance=tolerance, note=note,
+                      resumed=resumed)
+
+
+def _apply(robot, plan: WritebackPlan, *, event, folder, session, tolerance, note, resumed) -> dict[str, float]:
     if not resumed:
         backup = None if plan.kind == "restore" else str(write_backup(folder, session, plan))
         event(Writeback(phase="pre-image", kind=plan.kind, before=plan.before, after=plan.after, backup=backup,
@@ -143,7 +183,45 @@ def resume_point(events: list, device: dict[str, float], tol: Callable[[str], fl
         return plan, "written"
     if matches(device, plan.before, tol):
         return plan, "pre-image"
+    if all(abs(device.get(k, math.nan) - plan.after[k]) <= tol(k)
+           or abs(device.get(k, math.nan) - plan.before.get(k, math.nan)) <= tol(k) for k in plan.after):
+        return plan, "partial"  # every joint holds its old or its new value: a write cut in the middle
     return plan, "unknown"
+
+
+def finished_writes(events: list) -> bool:
+    """The last write-back attempt was journaled ``written`` (nothing left to finish but the check)."""
+    last = None
+    for e in events:
+        if isinstance(e, Writeback) and e.kind == "write" and e.phase in ("pre-image", "written", "failed"):
+            last = e.phase
+    return last == "written"
+
+
+def load_backup(folder: Path) -> dict:
+    """The session's ``calibration-backup.json`` (its first pre-image, SI); one line when missing/damaged."""
+    path = Path(folder) / BACKUP
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise StationError(f"{path}: no backup (this session never started a write-back)") from None
+    except (OSError, ValueError) as e:
+        raise StationError(f"{path}: unreadable backup ({e})") from None
+    before = doc.get("before") if isinstance(doc, dict) else None
+    if doc.get("format") != BACKUP_FORMAT or not isinstance(before, dict) or not before or not all(
+            isinstance(v, (int, float)) and math.isfinite(v) for v in before.values()):
+        raise StationError(f"{path}: not a {BACKUP_FORMAT} file with finite 'before' values")
+    return doc
+
+
+def restore(robot, folder: Path, session: str, *, event: Callable[[Writeback], object],
+            tolerance: Callable[[str], float], note: str = "") -> dict[str, float]:
+    """Write the session's backup (its first pre-image) back into the device as a transaction
+    (``kind="restore"``): journaled, signals held, read back. Returns the read-back."""
+    pre = {k: float(v) for k, v in load_backup(folder)["before"].items()}
+    plan = plan_restore(read_device(robot), pre)
+    return apply(robot, plan, event=event, folder=folder, session=session, tolerance=tolerance,
+                 note=note or f"restored from {BACKUP}")
 
 
 # ---- the engine's step ------------------------------------------------------------------------------------
@@ -173,15 +251,20 @@ def write_back(s, check_pose=None) -> dict:
     if plan is None:
         apply(s.robot, plan_write(before, corrections_of(res)), event=s.event, folder=s.folder, session=s.id,
               tolerance=tol)
-    elif state == "pre-image":  # resumed before the write landed: write again
-        apply(s.robot, plan, event=s.event, folder=s.folder, session=s.id, tolerance=tol, resumed=True)
-    elif state == "written":  # resumed after the write: confirm the read-back, go on with the check
-        readback = read_device(s.robot)
-        s.event(Writeback(phase="written", before=plan.before, after=plan.after, readback=readback, applied=True,
-                          note="found written on resume"))
+    elif state == "pre-image" and not finished_writes(s.events("writeback")):  # cut before the write landed
+        apply(s.robot, plan, event=s.event, folder=s.folder, session=s.id, tolerance=tol, resumed=True,
+              note="written on resume")
+    elif state == "written" and finished_writes(s.events("writeback")):
+        pass  # journaled written before the interruption: go on with the check
+    elif state in ("written", "partial"):
+        # cut before "written" was journaled: the values may sit in volatile memory only (a CANopen drive
+        # before its 0x1010 store) or on some joints only; write them all again so the device's own store
+        # command is sent again, and read back
+        apply(s.robot, plan, event=s.event, folder=s.folder, session=s.id, tolerance=tol, resumed=True,
+              note=f"finished on resume (device held {'the new values' if state == 'written' else 'a mix'})")
     else:
         raise WriteBackError("write-back: the device calibration is neither the journaled pre-image nor the new "
-                             f"values; not touching it (restore from the session's {BACKUP})")
+                             f"values; not touching it (put the backup back with: station restore {s.id})")
     check = verify_known_pose(s, check_pose)
     s.event(Writeback(phase="verified", verified=bool(check["passed"]), check=check))
     return s.record_dict()["writeback"]
