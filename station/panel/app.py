@@ -142,20 +142,22 @@ def create_app(controller: Controller, token: str | None = None) -> Starlette:
             return JSONResponse({"error": "no report for this session"}, status_code=404)
         return FileResponse(p, media_type="text/html")
 
-    routes = [Route("/", index), Route("/api/state", state), Route("/api/start", start, methods=["POST"]),
-              Route("/api/abort", abort, methods=["POST"]), Route("/api/prompt", prompt, methods=["POST"]),
-              Route("/api/clear", clear, methods=["POST"]), Route("/api/resume", resume, methods=["POST"]),
-              Route("/api/resumable", resumable), Route("/api/history/{serial:path}", history),
-              Route("/api/events", events), Route("/report/{session}", report)]
-    app = Starlette(routes=routes)
+    def guarded(handler):
+        async def endpoint(request: Request):
+            if handler is index and request.query_params.get("token"):
+                return await handler(request)
+            if not authorized(request):
+                return JSONResponse({"error": "token required (Authorization: Bearer or open /?token=...)"},
+                                    status_code=401)
+            return await handler(request)
 
-    @app.middleware("http")
-    async def guard(request: Request, call_next):
-        if request.url.path == "/" and request.query_params.get("token"):
-            return await call_next(request)
-        if not authorized(request):
-            return JSONResponse({"error": "token required (Authorization: Bearer or open /?token=...)"},
-                                status_code=401)
-        return await call_next(request)
+        return endpoint
 
-    return app
+    post = {"methods": ["POST"]}
+    routes = [Route("/", guarded(index)), Route("/api/state", guarded(state)),
+              Route("/api/start", guarded(start), **post), Route("/api/abort", guarded(abort), **post),
+              Route("/api/prompt", guarded(prompt), **post), Route("/api/clear", guarded(clear), **post),
+              Route("/api/resume", guarded(resume), **post), Route("/api/resumable", guarded(resumable)),
+              Route("/api/history/{serial:path}", guarded(history)), Route("/api/events", guarded(events)),
+              Route("/report/{session}", guarded(report))]
+    return Starlette(routes=routes)
