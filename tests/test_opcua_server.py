@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 import pytest
+from station.mocks.world import World
 from test_panel_browser import _files, _url
 
 from station.records import open_records
@@ -43,7 +44,7 @@ async def _connect(endpoint: str, proc):
         try:
             await client.connect()
             return client
-        except (OSError, asyncio.TimeoutError, TimeoutError):
+        except (OSError, TimeoutError):
             if proc.poll() is not None or time.monotonic() > end:
                 raise AssertionError(proc.communicate()) from None
             await asyncio.sleep(0.3)
@@ -77,7 +78,7 @@ def test_start_subscribe_verdict_read_result(tmp_path, emulators):
     serial = "DXL-OPC-51"
     db = f"sqlite:///{tmp_path / 'r.db'}"
     endpoint = f"opc.tcp://127.0.0.1:{_free_port()}"
-    emu = emulators("dynamixel", world_path, serial=serial)
+    emu = emulators("dynamixel", world_path, serial=serial, process=True)
     proc = _server(tmp_path, _url(emu), cell_path, db, endpoint)
 
     async def scenario():
@@ -109,7 +110,7 @@ def test_start_subscribe_verdict_read_result(tmp_path, emulators):
 
     try:
         session, verdict, result, progress, state = asyncio.run(scenario())
-        hidden = emu.world.hidden()
+        hidden = World.from_file(world_path).hidden()
     finally:
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=30)

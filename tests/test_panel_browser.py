@@ -6,7 +6,6 @@ the page; the verdict fills the screen at 1280x800 and 1920x1080."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import shutil
@@ -15,12 +14,14 @@ import socket
 import subprocess
 import sys
 import time
+import urllib.error
 import urllib.request
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from station.mocks.world import World
 
 from station.cli.run_cmd import demo_world
 from station.engine import read_journal
@@ -43,8 +44,8 @@ def _files(tmp_path: Path, seed: int, time_mode: str = "instant", time_scale: fl
 
 
 def _url(emu) -> str:
-    # the SDK's answer timeout with a 50 ms latency term: 2 cores shared by many test processes
-    return emu.url + "&latency=50"
+    # the SDK's answer timeout with a 100 ms latency term: 2 cores shared by many test processes
+    return emu.url + "&latency=100"
 
 
 def _free_port() -> int:
@@ -68,9 +69,13 @@ class Panel:
         while time.monotonic() < end:
             if self.proc.poll() is not None:
                 raise AssertionError(self.proc.communicate())
-            with contextlib.suppress(OSError):
+            try:
                 self.state()
                 return
+            except urllib.error.HTTPError:  # up, and asking for the token
+                return
+            except OSError:
+                pass
             time.sleep(0.1)
         raise AssertionError("panel did not come up")
 
@@ -143,7 +148,7 @@ def test_pass_through_the_page_then_history(tmp_path, emulators, browser, panels
     world_path, cell_path = _files(tmp_path, seed=41)
     serial = "DXL-PANEL-41"
     db = f"sqlite:///{tmp_path / 'r.db'}"
-    emu = emulators("dynamixel", world_path, serial=serial)
+    emu = emulators("dynamixel", world_path, serial=serial, process=True)
     panel = panels(tmp_path, _url(emu), cell_path, db)
     page = browser.new_page(viewport={"width": 1280, "height": 800})
     page.goto(panel.base + "/")
@@ -160,7 +165,7 @@ def test_pass_through_the_page_then_history(tmp_path, emulators, browser, panels
     with open_records(db) as rec:  # the PASS on screen is a record in the database
         stored = rec.session(st["session"])
     assert stored["verdict"]["passed"] is True and stored["operator"] == "a.operator"
-    hidden = emu.world.hidden()
+    hidden = World.from_file(world_path).hidden()
     for name, p in stored["result"]["parameters"].items():  # the same engine as station run: truth recovered
         if name.startswith("offset.") and p["identifiable"]:
             assert abs(p["value"] - hidden[name]) <= 4 * p["std"] + np.pi / 4096, name
@@ -198,7 +203,7 @@ def test_failing_unit_names_the_limit(tmp_path, emulators, browser, panels):
     strict.write_text(STRICT)
     serial = "DXL-PANEL-42"
     db = f"sqlite:///{tmp_path / 'r.db'}"
-    emu = emulators("dynamixel", world_path, serial=serial)
+    emu = emulators("dynamixel", world_path, serial=serial, process=True)
     panel = panels(tmp_path, _url(emu), cell_path, db, "--limits", str(strict), "--no-confirm")
     page = browser.new_page(viewport={"width": 1920, "height": 1080})
     page.goto(panel.base + "/")

@@ -12,6 +12,7 @@ certificates when given. An anonymous, unencrypted endpoint off loopback is refu
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import threading
@@ -148,10 +149,8 @@ class StationServer:
                 if self.ctl.version != version:
                     version = self.ctl.version
                     await self.publish()
-                try:
+                with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(self._stop.wait(), 0.1)
-                except TimeoutError:
-                    pass
         finally:
             if self.server is not None:
                 await self.server.stop()
