@@ -1,4 +1,4 @@
-"""``station records list|show`` (the calibration records database) and ``station report`` (rebuild the
+"""``station records list|show|export`` (the calibration records database) and ``station report`` (rebuild the
 HTML/JSON report of a session from its journal). Tables are for people: lengths in mm, angles in deg."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from rich.table import Table
 
 from station.units import human_of
 
-records_app = typer.Typer(no_args_is_help=True, help="Calibration records per robot serial (list, show).")
+records_app = typer.Typer(no_args_is_help=True, help="Calibration records per robot serial (list, show, export).")
 
 DB_HELP = "records database URL (default $STATION_DB, else sqlite:///$STATION_HOME/station.db)"
 
