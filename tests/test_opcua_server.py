@@ -170,3 +170,55 @@ def test_off_loopback_without_certificates_is_refused(tmp_path, endpoint):
     assert proc.returncode == 2
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("station: error: ") and "Basic256Sha256" in lines[0], err
+
+
+def _cert(folder, name: str):
+    key, cert = folder / f"{name}-key.pem", folder / f"{name}-cert.der"
+    pem = folder / f"{name}-cert.pem"
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "30", "-keyout", str(key),
+                    "-out", str(pem), "-subj", f"/CN={name}", "-addext",
+                    f"subjectAltName=URI:urn:{name},DNS:localhost,IP:127.0.0.1"], check=True, capture_output=True)
+    subprocess.run(["openssl", "x509", "-in", str(pem), "-outform", "der", "-out", str(cert)], check=True,
+                   capture_output=True)
+    return cert, key
+
+
+def test_basic256sha256_endpoint_refuses_unencrypted_clients(tmp_path):
+    from asyncua import Client
+
+    world_path, cell_path = _files(tmp_path, seed=54)
+    cert, key = _cert(tmp_path, "station")
+    ccert, ckey = _cert(tmp_path, "client")
+    endpoint = f"opc.tcp://127.0.0.1:{_free_port()}"
+    proc = _server(tmp_path, "dynamixel:///dev/null?model=omx", cell_path, f"sqlite:///{tmp_path / 'r.db'}",
+                   endpoint, "--cert", str(cert), "--key", str(key))
+
+    async def scenario():
+        end = time.monotonic() + 60
+        while True:  # wait until it listens
+            try:
+                with socket.create_connection(("127.0.0.1", int(endpoint.rsplit(":", 1)[1])), timeout=1):
+                    break
+            except OSError:
+                if proc.poll() is not None or time.monotonic() > end:
+                    raise AssertionError(proc.communicate()) from None
+                await asyncio.sleep(0.3)
+        plain = Client(endpoint, timeout=10)
+        with pytest.raises(Exception):  # noqa: B017 - asyncua raises BadSecurityPolicyRejected or similar
+            await plain.connect()
+            await _station_nodes(plain)
+        secure = Client(endpoint, timeout=30)  # RSA handshakes on a loaded 2-core host
+        secure.application_uri = "urn:client"
+        await secure.set_security_string(f"Basic256Sha256,SignAndEncrypt,{ccert},{ckey}")
+        await secure.connect()
+        try:
+            _, _, n = await _station_nodes(secure)
+            return await n["State"].read_value()
+        finally:
+            await secure.disconnect()
+
+    try:
+        assert asyncio.run(scenario()) == "idle"
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=30)
