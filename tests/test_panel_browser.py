@@ -135,6 +135,14 @@ def _sign_in_and_scan(page, serial: str) -> None:
     assert page.evaluate("document.activeElement.id") == "start"
 
 
+def _verdict(page, panel: Panel, expected: str, timeout_ms: int) -> dict:
+    """Wait for the full-screen verdict; a different one fails with the panel's one-line reason."""
+    page.wait_for_selector("#verdict[class]:not([class=''])", timeout=timeout_ms)
+    st = panel.state()
+    assert page.get_attribute("#verdict", "class") == expected, (st["verdict"], st["message"])
+    return st
+
+
 def _green_red(png: bytes) -> tuple[float, float, float]:
     from io import BytesIO
 
@@ -158,8 +166,7 @@ def test_pass_through_the_page_then_history(tmp_path, emulators, browser, panels
     assert serial in page.inner_text("#prompt-text")
     assert not list((tmp_path / "home" / "sessions").glob("*"))  # nothing moves before the operator confirms
     page.click("#prompt-ok")
-    page.wait_for_selector("#verdict.pass", timeout=120_000)
-    st = panel.state()
+    st = _verdict(page, panel, "pass", 180_000)
     assert page.inner_text("#verdict-word") == "PASS" and st["verdict"] == "PASS" and st["stored"] is True
     assert st["samples"] == st["samples_planned"] == 14
     with open_records(db) as rec:  # the PASS on screen is a record in the database
@@ -209,7 +216,7 @@ def test_failing_unit_names_the_limit(tmp_path, emulators, browser, panels):
     page.goto(panel.base + "/")
     _sign_in_and_scan(page, serial)
     page.click("#start")
-    page.wait_for_selector("#verdict.fail", timeout=120_000)
+    _verdict(page, panel, "fail", 180_000)
     assert page.inner_text("#verdict-word") == "FAIL"
     failing = page.inner_text("#verdict-failing")
     st = panel.state()
@@ -237,7 +244,8 @@ def test_panel_killed_mid_run_resumes_from_the_page(tmp_path, emulators, browser
     while panel.state()["samples"] < 4 and time.monotonic() < end:
         time.sleep(0.05)
     sid = panel.state()["session"]
-    assert sid and panel.state()["state"] == "running"
+    st = panel.state()
+    assert sid and st["state"] == "running", (st["verdict"], st["message"])
     panel.kill()
     journal = tmp_path / "home" / "sessions" / sid / "journal.jsonl"
     _, before = read_journal(journal)
@@ -247,7 +255,7 @@ def test_panel_killed_mid_run_resumes_from_the_page(tmp_path, emulators, browser
     page.goto(again.base + "/")
     page.wait_for_selector(f"#resumable button[data-session='{sid}']")
     page.click(f"#resumable button[data-session='{sid}']")
-    page.wait_for_selector("#verdict.pass", timeout=180_000)
+    _verdict(page, again, "pass", 180_000)
     assert again.state()["session"] == sid
     _, events = read_journal(journal)
     samples = [e for e in events if e["type"] == "sample"]
