@@ -73,6 +73,7 @@ async def _wait(pred, timeout: float) -> None:
         await asyncio.sleep(0.1)
 
 
+@pytest.mark.slow
 def test_start_subscribe_verdict_read_result(tmp_path, emulators):
     world_path, cell_path = _files(tmp_path, seed=51)
     serial = "DXL-OPC-51"
@@ -125,6 +126,7 @@ def test_start_subscribe_verdict_read_result(tmp_path, emulators):
             assert abs(p["value"] - hidden[name]) <= 4 * p["std"] + np.pi / 4096, name
 
 
+@pytest.mark.slow
 def test_abort_through_opcua_leaves_a_resumable_session(tmp_path, emulators):
     world_path, cell_path = _files(tmp_path, seed=52, time_mode="realtime", time_scale=2.0)
     serial = "DXL-OPC-52"
@@ -183,6 +185,7 @@ def _cert(folder, name: str):
     return cert, key
 
 
+@pytest.mark.slow
 def test_basic256sha256_endpoint_refuses_unencrypted_clients(tmp_path):
     from asyncua import Client
 

@@ -30,4 +30,6 @@ def serve(app, host: str, port: int) -> None:
     """Run the app until Ctrl-C (uvicorn)."""
     import uvicorn
 
-    uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False)).run()
+    uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False,
+                                # open event streams (pages) must not hold a Ctrl-C up
+                                timeout_graceful_shutdown=2)).run()
