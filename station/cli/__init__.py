@@ -22,6 +22,8 @@ COMMAND_MODULES = (
     "station.cli.jog_cmd",  # station jog
     "station.cli.records_cmd",  # station records list|show, report
     "station.cli.map_cmd",  # station map plan|build|apply|correct (seed 004 correction map)
+    "station.cli.panel_cmd",  # station panel (operator page, optional OPC UA)
+    "station.cli.opcua_cmd",  # station opcua (OPC UA server for the line)
 )
 
 for _name in COMMAND_MODULES:

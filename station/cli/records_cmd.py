@@ -1,4 +1,4 @@
-"""``station records list|show`` (the calibration records database) and ``station report`` (rebuild the
+"""``station records list|show|export`` (the calibration records database) and ``station report`` (rebuild the
 HTML/JSON report of a session from its journal). Tables are for people: lengths in mm, angles in deg."""
 
 from __future__ import annotations
@@ -8,12 +8,13 @@ import os
 from pathlib import Path
 
 import typer
+from rich import box
 from rich.console import Console
 from rich.table import Table
 
 from station.units import human_of
 
-records_app = typer.Typer(no_args_is_help=True, help="Calibration records per robot serial (list, show).")
+records_app = typer.Typer(no_args_is_help=True, help="Calibration records per robot serial (list, show, export).")
 
 DB_HELP = "records database URL (default $STATION_DB, else sqlite:///$STATION_HOME/station.db)"
 
@@ -72,28 +73,36 @@ def _duration(started: str | None, finished: str | None) -> str:
     return f"{int(sec // 60)}m{int(sec % 60):02d}s"
 
 
-def _sessions_table(title: str, rows: list[dict]) -> Table:
-    t = Table(title=title, title_justify="left")
-    width = max([len(s["session"]) for s in rows] + [7])
-    t.add_column("session", no_wrap=True, min_width=width)  # the id is what people copy: never truncated
-    for col in ("procedure", "started", "took", "station", "operator", "samples", "rms before mm",
-                "rms after mm", "verdict", "written"):
+NARROW = 120  # below this many columns the tables keep what an operator needs: serial/session and verdict
+
+
+def _sessions_table(title: str, rows: list[dict], width: int = 160) -> Table:
+    t = Table(title=title, title_justify="left", box=box.SIMPLE_HEAD if width < NARROW else box.HEAVY_HEAD)
+    w = max([len(s["session"]) for s in rows] + [7])
+    t.add_column("session", no_wrap=True, min_width=w)  # the id is what people copy: never truncated
+    cols = ("procedure", "started", "took", "station", "operator", "samples", "rms before mm", "rms after mm",
+            "verdict", "written") if width >= NARROW else ("samples", "rms after mm", "verdict")
+    for col in cols:
         t.add_column(col, justify="right" if col in ("samples",) or col.endswith("mm") else "left",
-                     no_wrap=col in ("started", "took"))
+                     no_wrap=col in ("started", "took", "verdict"), min_width=11 if col == "verdict" else None,
+                     overflow="fold")
     for s in rows:
         wb = "-" if s["writeback_applied"] is None else (
             ("verified" if s["writeback_verified"] else "NOT verified") if s["writeback_applied"] else "not applied")
-        t.add_row(s["session"], s["procedure"], _when(s["started"]), _duration(s["started"], s["finished"]),
-                  s["station"],
-                  s["operator"], str(s["n_samples"]), _mm(s["rms_before_m"]), _mm(s["rms_after_m"]),
-                  _verdict(s["passed"]) if s["passed"] is not None else (s["status"] or "-"), wb)
+        cells = {"procedure": s["procedure"], "started": _when(s["started"]),
+                 "took": _duration(s["started"], s["finished"]), "station": s["station"], "operator": s["operator"],
+                 "samples": str(s["n_samples"]), "rms before mm": _mm(s["rms_before_m"]),
+                 "rms after mm": _mm(s["rms_after_m"]),
+                 "verdict": _verdict(s["passed"]) if s["passed"] is not None else (s["status"] or "-"), "written": wb}
+        t.add_row(s["session"], *(cells[c] for c in cols))
     return t
 
 
 @records_app.command("list")
 def list_records(db: str = typer.Option(None, "--db", help=DB_HELP),
                  serial: str = typer.Option(None, "--serial", help="only the sessions of this robot")) -> None:
-    """List robots, or the sessions of one robot with --serial."""
+    """List robots, or the sessions of one robot with --serial (readable at 80 columns: serials, session ids
+    and verdicts are never cut)."""
     from station.cli import fail
     from station.records import RecordNotFound
 
@@ -101,13 +110,20 @@ def list_records(db: str = typer.Option(None, "--db", help=DB_HELP),
     with _open(db) as rec:
         if serial is None:
             robots = rec.robots()
-            t = Table(title=f"Robots in {rec.url}", title_justify="left")
-            for col in ("serial", "vendor", "model", "firmware", "sessions", "last session", "last started",
-                        "last verdict"):
-                t.add_column(col, justify="right" if col == "sessions" else "left")
+            narrow = con.width < NARROW
+            t = Table(title=f"Robots in {rec.url}", title_justify="left",
+                      box=box.SIMPLE_HEAD if narrow else box.HEAVY_HEAD)
+            cols = ("serial", "model", "sessions", "last started", "last verdict") if narrow else (
+                "serial", "vendor", "model", "firmware", "sessions", "last session", "last started", "last verdict")
+            for col in cols:
+                t.add_column(col, justify="right" if col == "sessions" else "left",
+                             no_wrap=col in ("serial", "last verdict", "last session"), overflow="fold",
+                             min_width=max([len(r["serial"]) for r in robots] + [6]) if col == "serial" else None)
             for r in robots:
-                t.add_row(r["serial"], r["vendor"], r["model"], r["firmware"], str(r["n_sessions"]),
-                          r["last_session"] or "", _when(r["last_started"]), _verdict(r["last_passed"]))
+                cells = {"serial": r["serial"], "vendor": r["vendor"], "model": r["model"], "firmware": r["firmware"],
+                         "sessions": str(r["n_sessions"]), "last session": r["last_session"] or "",
+                         "last started": _when(r["last_started"]), "last verdict": _verdict(r["last_passed"])}
+                t.add_row(*(cells[c] for c in cols))
             con.print(t)
             if not robots:
                 con.print("no records yet")
@@ -116,14 +132,17 @@ def list_records(db: str = typer.Option(None, "--db", help=DB_HELP),
             rec.robot(serial)
         except RecordNotFound as e:
             raise fail(str(e)) from None
-        con.print(_sessions_table(f"Sessions of robot {serial}", rec.sessions(serial)))
+        con.print(_sessions_table(f"Sessions of robot {serial}", rec.sessions(serial), con.width))
 
 
 @records_app.command("show")
 def show(serial: str = typer.Argument(..., help="robot serial number"),
          db: str = typer.Option(None, "--db", help=DB_HELP),
-         session: str = typer.Option(None, "--session", help="this session instead of the latest one")) -> None:
-    """One robot: identity, its sessions, and the latest (or --session) result, verdict and write-back."""
+         session: str = typer.Option(None, "--session", help="this session instead of the latest one"),
+         trend: bool = typer.Option(False, "--trend", help="each parameter across the robot's runs with its "
+                                    "uncertainty, drift beyond 3 sigma flagged")) -> None:
+    """One robot: identity, its sessions, and the latest (or --session) result, verdict and write-back;
+    with --trend each parameter across runs."""
     from station.cli import fail
     from station.records import RecordNotFound
 
@@ -143,7 +162,10 @@ def show(serial: str = typer.Argument(..., help="robot serial number"),
         con.print(f"[bold]Robot {serial}[/]  {robot['vendor']} {robot['model']}  firmware {robot['firmware'] or '-'}"
                   f"  {robot['url']}")
         con.print(f"first seen {robot['first_seen']}, last seen {robot['last_seen']}, {robot['n_sessions']} session(s)")
-        con.print(_sessions_table("Sessions", sessions))
+        con.print(_sessions_table("Sessions", sessions, con.width))
+        if trend:
+            _show_trend(con, [rec.session(x["session"]) for x in sessions])
+            return
         if chosen is None:
             return
         _show_session(con, chosen)
@@ -172,6 +194,74 @@ def sync(sessions: list[str] = typer.Argument(None, help="session ids or folders
         typer.echo("nothing to store")
     if bad:
         sys.exit(2)
+
+
+def _show_trend(con: Console, docs: list[dict]) -> None:
+    from station.records.trend import DRIFT_SIGMA, parameter_trend
+    from station.report.analysis import load_session_model
+    from station.report.content import param_unit
+
+    model = load_session_model(docs[-1])[0] if docs else None
+    trend = parameter_trend(docs)
+    t = Table(title=f"Trend (drift: a change beyond {DRIFT_SIGMA:g} combined sigma from the previous run)",
+              title_justify="left", box=box.SIMPLE_HEAD)
+    for col in ("parameter", "started", "value", "±σ", "unit", "Δ/σ", "drift"):
+        t.add_column(col, justify="right" if col in ("value", "±σ", "Δ/σ") else "left",
+                     no_wrap=col in ("parameter", "started", "drift"))
+    n_drift = 0
+    for name, rows in trend.items():
+        for i, r in enumerate(rows):
+            unit = param_unit(name, {"unit": r["unit"]}, model)
+            flag = "DRIFT" if r["drift"] else ""
+            n_drift += bool(r["drift"])
+            t.add_row(name if i == 0 else "", _when(r["started"])[:16],
+                      _human(r["value"], unit) if r["identifiable"] else "not identifiable",
+                      _human(r["std"], unit) if r["identifiable"] else "", _hunit(unit),
+                      "" if r["drift_sigma"] is None else f"{r['drift_sigma']:.1f}",
+                      f"[red]{flag}[/]" if flag else "")
+    con.print(t)
+    con.print(f"{n_drift} drift(s) beyond {DRIFT_SIGMA:g} σ" if n_drift else "no drift beyond 3 σ")
+
+
+@records_app.command("export")
+def export(fmt: str = typer.Option("csv", "--format", help="csv (one row per session and parameter) or json"),
+           since: str = typer.Option(None, "--since", help="only sessions started at/after this ISO date or time "
+                                     "(UTC unless a zone is given)"),
+           serial: str = typer.Option(None, "--serial", help="only this robot"),
+           out: Path = typer.Option(None, "--out", help="write to this file instead of stdout"),
+           db: str = typer.Option(None, "--db", help=DB_HELP)) -> None:
+    """Export sessions for analysis (SI units: m, rad; the unit of each value in its own column/field)."""
+    import csv
+    import io
+    import json
+
+    from station.cli import fail
+    from station.records.trend import EXPORT_COLUMNS, export_rows, export_sessions, parse_since
+
+    if fmt not in ("csv", "json"):
+        raise fail(f"--format must be csv or json, got {fmt!r}")
+    try:
+        t0 = parse_since(since)
+    except ValueError as e:
+        raise fail(str(e)) from None
+    with _open(db) as rec:
+        if fmt == "json":
+            text = json.dumps({"format": "station-records-export/1", "units": "SI (m, rad)", "since": since,
+                               "sessions": export_sessions(rec, serial, t0)}, indent=1, default=str) + "\n"
+        else:
+            buf = io.StringIO()
+            w = csv.DictWriter(buf, fieldnames=EXPORT_COLUMNS, lineterminator="\n")
+            w.writeheader()
+            for r in export_rows(rec, serial, t0):
+                w.writerow({k: "" if v is None else v for k, v in r.items()})
+            text = buf.getvalue()
+    if out is None:
+        typer.echo(text, nl=False)
+    else:
+        try:
+            out.write_text(text)
+        except OSError as e:
+            raise fail(f"{out}: {e.strerror or e}") from None
 
 
 def _show_session(con: Console, s: dict) -> None:

@@ -1,0 +1,78 @@
+"""``station panel``: the operator panel in the browser (docs/panel.md), optionally with the OPC UA server for
+the line (docs/opcua.md)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import typer
+
+
+def panel(
+    robot: str = typer.Option(..., "--robot", help="Robot URL, e.g. dynamixel:///dev/ttyUSB0?model=omx"),
+    cell: Path = typer.Option(..., "--cell", help="Cell file (reference points)."),
+    procedure: str = typer.Option("zero_offsets", "--procedure", help="Procedure every unit runs."),
+    host: str = typer.Option("127.0.0.1", "--host", help="Listen address (loopback unless configured)."),
+    port: int = typer.Option(8470, "--port", help="TCP port of the page and API."),
+    token: str = typer.Option(None, "--token", help="Bearer token; required off loopback (or "
+                              "$STATION_PANEL_TOKEN)."),
+    limits: Path = typer.Option(None, "--limits", help="Limits file (default: procedures/limits.yaml)."),
+    db: str = typer.Option(None, "--db", help="Records database URL (default $STATION_DB, else SQLite in "
+                           "$STATION_HOME)."),
+    touch: str = typer.Option(None, "--touch", help="seat, guarded or manual (the operator touches each point)."),
+    reference: str = typer.Option(None, "--reference", help="unknown (solve the point) or cell (surveyed)."),
+    poses: int = typer.Option(None, "--poses", help="Number of fit poses (default from the procedure)."),
+    holdout: int = typer.Option(None, "--holdout", help="Number of held-out poses."),
+    cone: float = typer.Option(None, "--cone", help="Half-angle (deg) of the tool orientation cone."),
+    confirm: bool = typer.Option(True, "--confirm/--no-confirm", help="Ask the operator to confirm the unit is "
+                                 "clamped before the robot moves."),
+    opcua: str = typer.Option(None, "--opcua", help="Also serve OPC UA at this endpoint, e.g. "
+                              "opc.tcp://127.0.0.1:4840."),
+    opcua_cert: Path = typer.Option(None, "--opcua-cert", help="Server certificate (DER/PEM) for Basic256Sha256."),
+    opcua_key: Path = typer.Option(None, "--opcua-key", help="Server private key (PEM) for Basic256Sha256."),
+    opcua_trust: Path = typer.Option(None, "--opcua-trust", help="Folder of trusted client certificates."),
+) -> None:
+    """Operator panel: sign in, scan the serial, START, live progress, full-screen PASS/FAIL, history."""
+    from station.cli.run_cmd import _options
+    from station.panel import Controller, PanelConfig
+    from station.panel.app import create_app
+    from station.panel.serve import check_listen, serve
+
+    token = token or os.environ.get("STATION_PANEL_TOKEN") or None
+    check_listen(host, token)
+    cfg = PanelConfig(robot=robot, cell=str(cell), procedure=procedure, limits=str(limits) if limits else None,
+                      db=db, options=_options(poses, holdout, cone, reference, None), touch=touch, confirm=confirm)
+    _check_files(cfg)
+    ctl = Controller(cfg)
+    bridge = None
+    if opcua:
+        from station.opcua.server import OpcuaOptions, start_in_thread
+
+        bridge = start_in_thread(ctl, OpcuaOptions(opcua, opcua_cert, opcua_key, opcua_trust))
+        typer.echo(f"station: OPC UA at {opcua} (namespace urn:station)", err=True)
+    typer.echo(f"station: panel at http://{host}:{port}/" + ("  (token required)" if token else ""), err=True)
+    try:
+        serve(create_app(ctl, token), host, port)
+    finally:
+        if ctl.busy:
+            ctl.abort()
+            ctl.join(30)
+        if bridge is not None:
+            bridge.stop()
+
+
+def _check_files(cfg) -> None:
+    """Bad cell/limits/procedure files fail now, with one line, not when the first unit is scanned."""
+    from station.engine import load_procedure
+    from station.engine.cell import load_cell
+    from station.engine.limits import load_limits
+
+    load_procedure(cfg.procedure)
+    load_limits(cfg.limits)
+    if cfg.cell:
+        load_cell(cfg.cell)
+
+
+def register(app: typer.Typer) -> None:
+    app.command("panel")(panel)

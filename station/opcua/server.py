@@ -1,0 +1,207 @@
+"""The ``Station`` object over asyncua, fed from the panel's controller (one state for page and line).
+
+Variables (read-only for clients): ``State`` (idle|running|prompt|done), ``Serial``, ``Procedure``, ``Step``,
+``Progress`` (0-1, Double), ``Verdict`` ("" until a unit ends, then PASS|FAIL|NOT STORED|ABORTED|ERROR),
+``LastResult`` (JSON of the finished unit: session, verdict, stored, failing limits in words, measurements,
+parameters in SI). Methods: ``Start(serial: String, procedure: String) -> session: String`` and ``Abort()``.
+
+Security: an endpoint on loopback may be anonymous without encryption; any other address is served only with
+``Basic256Sha256`` (sign & encrypt) and the server's certificate and key, and with a folder of trusted client
+certificates when given. An anonymous, unencrypted endpoint off loopback is refused."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from urllib.parse import urlsplit
+
+from station.panel.controller import Controller, PanelError
+from station.panel.serve import is_loopback
+from station.robot.errors import ConfigError
+
+NAMESPACE = "urn:station"
+VARIABLES = ("State", "Serial", "Procedure", "Step", "Progress", "Verdict", "LastResult")
+
+
+@dataclass
+class OpcuaOptions:
+    endpoint: str = "opc.tcp://127.0.0.1:4840"
+    cert: Path | None = None
+    key: Path | None = None
+    trust: Path | None = None  # folder of trusted client certificates (DER/PEM)
+    operator: str = "line"  # who started a unit through OPC UA (the record's operator)
+
+
+def _host(endpoint: str) -> str:
+    try:
+        u = urlsplit(endpoint)
+    except ValueError:
+        u = None
+    if u is None or u.scheme != "opc.tcp" or not u.hostname:
+        raise ConfigError(f"OPC UA endpoint {endpoint!r} must look like opc.tcp://HOST:PORT")
+    return u.hostname
+
+
+def check_security(opts: OpcuaOptions) -> bool:
+    """True when the endpoint must be secured (off loopback); refuses an off-loopback endpoint without a
+    certificate and key."""
+    if is_loopback(_host(opts.endpoint)):
+        return bool(opts.cert and opts.key)
+    if not (opts.cert and opts.key):
+        raise ConfigError(f"OPC UA endpoint {opts.endpoint} is not loopback: it is served only with Basic256Sha256 "
+                          "(--opcua-cert and --opcua-key; see docs/opcua.md), never anonymously")
+    for p in (opts.cert, opts.key):
+        if not Path(p).is_file():
+            raise ConfigError(f"{p}: no such certificate/key file")
+    return True
+
+
+def _snapshot_values(ctl: Controller) -> dict:
+    s = ctl.snapshot()
+    last = ctl.last_result()
+    # written in this order: a client that sees Verdict (or State "done") change reads the new LastResult
+    return {"LastResult": json.dumps(last, default=str) if last else "", "Serial": s["serial"] or "",
+            "Procedure": s["procedure"] or "", "Step": s["step"] or "", "Progress": float(s["progress"]),
+            "Verdict": s["verdict"] or "", "State": s["state"]}
+
+
+class StationServer:
+    def __init__(self, ctl: Controller, opts: OpcuaOptions) -> None:
+        self.ctl, self.opts = ctl, opts
+        self.secure = check_security(opts)
+        self.server = None
+        self.nodes: dict = {}
+        self._stop = asyncio.Event()
+
+    async def start(self) -> None:
+        from asyncua import Server, ua
+
+        logging.getLogger("asyncua").setLevel(logging.ERROR)
+        server = Server()
+        await server.init()
+        server.set_endpoint(self.opts.endpoint)
+        server.set_server_name("station")
+        if self.secure:
+            server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
+            await server.load_certificate(str(self.opts.cert))
+            await server.load_private_key(str(self.opts.key))
+            if self.opts.trust:
+                from asyncua.crypto.truststore import TrustStore
+                from asyncua.crypto.validator import CertificateValidator
+
+                store = TrustStore([Path(self.opts.trust)], [])
+                await store.load()
+                server.set_certificate_validator(CertificateValidator(trust_store=store))
+        else:
+            server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+        idx = await server.register_namespace(NAMESPACE)
+        obj = await server.nodes.objects.add_object(idx, "Station")
+        for name, value in _snapshot_values(self.ctl).items():
+            vt = ua.VariantType.Double if name == "Progress" else ua.VariantType.String
+            self.nodes[name] = await obj.add_variable(idx, name, ua.Variant(value, vt))
+        await obj.add_method(idx, "Start", self._start, [ua.VariantType.String, ua.VariantType.String],
+                             [ua.VariantType.String])
+        await obj.add_method(idx, "Abort", self._abort, [], [])
+        self.server = server
+        await server.start()
+
+    async def _start(self, parent, serial, procedure):
+        from asyncua import ua
+
+        s, p = (v.Value if isinstance(v, ua.Variant) else v for v in (serial, procedure))
+        try:
+            sid = await asyncio.to_thread(self.ctl.start, str(s or ""), self.opts.operator, (p or None),
+                                          confirm=False, wait_session=30.0)
+        except PanelError as e:
+            code = ua.StatusCodes.BadInvalidState if "running" in str(e) else ua.StatusCodes.BadInvalidArgument
+            raise ua.UaStatusCodeError(code) from e
+        await self.publish()
+        return [ua.Variant(sid or "", ua.VariantType.String)]
+
+    async def _abort(self, parent):
+        from asyncua import ua
+
+        try:
+            self.ctl.abort()
+        except PanelError as e:
+            raise ua.UaStatusCodeError(ua.StatusCodes.BadInvalidState) from e
+        return []
+
+    async def publish(self) -> None:
+        from asyncua import ua
+
+        for name, value in _snapshot_values(self.ctl).items():
+            vt = ua.VariantType.Double if name == "Progress" else ua.VariantType.String
+            node = self.nodes[name]
+            if await node.read_value() != value:
+                await node.write_value(ua.Variant(value, vt))
+
+    async def run(self) -> None:
+        """Mirror the controller's state into the variables until :meth:`request_stop`."""
+        version = -1
+        try:
+            while not self._stop.is_set():
+                if self.ctl.version != version:
+                    version = self.ctl.version
+                    await self.publish()
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._stop.wait(), 0.1)
+        finally:
+            if self.server is not None:
+                await self.server.stop()
+
+    def request_stop(self) -> None:
+        self._stop.set()
+
+
+class ServerThread:
+    """The OPC UA server on its own event loop in a daemon thread (next to the panel's web server)."""
+
+    def __init__(self, ctl: Controller, opts: OpcuaOptions) -> None:
+        self.station = StationServer(ctl, opts)  # security checks happen here, in the caller's thread
+        self.loop = asyncio.new_event_loop()
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self.thread = threading.Thread(target=self._main, name="opcua", daemon=True)
+
+    def _main(self) -> None:
+        asyncio.set_event_loop(self.loop)
+
+        async def go():
+            try:
+                await self.station.start()
+            except BaseException as e:
+                self._error = e
+                self._ready.set()
+                return
+            self._ready.set()
+            await self.station.run()
+
+        self.loop.run_until_complete(go())
+
+    def start(self) -> ServerThread:
+        self.thread.start()
+        self._ready.wait(30)
+        if self._error is not None:
+            raise ConfigError(f"OPC UA server at {self.station.opts.endpoint}: {self._error}")
+        return self
+
+    def stop(self) -> None:
+        if self.thread.is_alive():
+            self.loop.call_soon_threadsafe(self.station.request_stop)
+            self.thread.join(10)
+
+
+def start_in_thread(ctl: Controller, opts: OpcuaOptions) -> ServerThread:
+    return ServerThread(ctl, opts).start()
+
+
+async def serve_forever(ctl: Controller, opts: OpcuaOptions) -> None:
+    s = StationServer(ctl, opts)
+    await s.start()
+    await s.run()

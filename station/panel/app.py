@@ -1,0 +1,163 @@
+"""The operator panel's web app (Starlette): one page and the public JSON API it uses (docs/panel.md).
+
+    GET  /api/state            {"state": idle|running|prompt|done, "serial", "procedure", "step", "samples",
+                                "samples_planned", "verdict": null|PASS|FAIL|NOT STORED|ABORTED|ERROR, "session", ...}
+    POST /api/start            {"serial", "operator"[, "procedure"]}
+    POST /api/abort
+    POST /api/prompt           {"answer"}
+    POST /api/clear            the verdict screen goes away (the next serial was scanned)
+    POST /api/resume           {"session"[, "operator"]}
+    GET  /api/resumable        interrupted sessions on this station
+    GET  /api/history/{serial} previous runs and each parameter's trend
+    GET  /api/events           server-sent events: the state on every change
+    GET  /report/{session}     the session's HTML report
+
+With a token, every request needs ``Authorization: Bearer TOKEN`` or the ``station_token`` cookie (opening
+``/?token=TOKEN`` once sets it)."""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import json
+from importlib import resources
+
+from starlette.applications import Starlette
+from starlette.requests import Request
+from starlette.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse, StreamingResponse
+from starlette.routing import Route
+
+from station.panel.controller import Controller, PanelError, report_path
+from station.panel.history import unit_history
+
+COOKIE = "station_token"
+
+
+def _page() -> str:
+    return resources.files("station.panel").joinpath("page.html").read_text(encoding="utf-8")
+
+
+def create_app(controller: Controller, token: str | None = None) -> Starlette:
+    page = _page()
+
+    def authorized(request: Request) -> bool:
+        if not token:
+            return True
+        given = request.headers.get("authorization", "")
+        given = given[7:] if given.lower().startswith("bearer ") else request.cookies.get(COOKIE, "")
+        return hmac.compare_digest(given.encode(), token.encode())
+
+    async def body(request: Request) -> dict:
+        try:
+            data = await request.json()
+        except (ValueError, UnicodeDecodeError):
+            raise PanelError("the body must be a JSON object") from None
+        if not isinstance(data, dict):
+            raise PanelError("the body must be a JSON object")
+        return data
+
+    def refused(e: PanelError) -> JSONResponse:
+        return JSONResponse({"error": str(e)}, status_code=409 if "running" in str(e) or "nothing" in str(e)
+                            or "no question" in str(e) else 400)
+
+    async def index(request: Request):
+        q = request.query_params.get("token")
+        if token and q and hmac.compare_digest(q.encode(), token.encode()):
+            r = RedirectResponse("/", status_code=303)
+            r.set_cookie(COOKIE, token, httponly=True, samesite="strict")
+            return r
+        return HTMLResponse(page)
+
+    async def state(request: Request):
+        return JSONResponse(controller.snapshot())
+
+    async def start(request: Request):
+        try:
+            d = await body(request)
+            sid = await asyncio.to_thread(controller.start, str(d.get("serial") or ""),
+                                          str(d.get("operator") or ""), d.get("procedure") or None)
+        except PanelError as e:
+            return refused(e)
+        return JSONResponse({**controller.snapshot(), "session": sid or controller.snapshot()["session"]},
+                            status_code=202)
+
+    async def abort(request: Request):
+        try:
+            controller.abort()
+        except PanelError as e:
+            return refused(e)
+        return JSONResponse(controller.snapshot(), status_code=202)
+
+    async def prompt(request: Request):
+        try:
+            d = await body(request)
+            controller.answer(str(d.get("answer") or ""))
+        except PanelError as e:
+            return refused(e)
+        return JSONResponse(controller.snapshot())
+
+    async def clear(request: Request):
+        try:
+            controller.clear()
+        except PanelError as e:
+            return refused(e)
+        return JSONResponse(controller.snapshot())
+
+    async def resume(request: Request):
+        try:
+            d = await body(request)
+            sid = await asyncio.to_thread(controller.resume, str(d.get("session") or ""), d.get("operator"))
+        except PanelError as e:
+            return refused(e)
+        return JSONResponse({**controller.snapshot(), "session": sid}, status_code=202)
+
+    async def resumable(request: Request):
+        return JSONResponse(await asyncio.to_thread(controller.resumable))
+
+    async def history(request: Request):
+        serial = request.path_params["serial"]
+        return JSONResponse(await asyncio.to_thread(unit_history, serial, controller.config.db))
+
+    async def events(request: Request):
+        async def stream():
+            version = -1
+            while True:
+                if await request.is_disconnected():
+                    return
+                snap = controller.snapshot()
+                if snap["version"] != version:
+                    version = snap["version"]
+                    yield f"data: {json.dumps(snap)}\n\n"
+                else:
+                    await asyncio.to_thread(controller.wait_change, version, 1.0)
+                    if controller.version == version:
+                        yield ": keep-alive\n\n"
+
+        return StreamingResponse(stream(), media_type="text/event-stream",
+                                 headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+
+    async def report(request: Request):
+        p = report_path(request.path_params["session"])
+        if p is None:
+            return JSONResponse({"error": "no report for this session"}, status_code=404)
+        return FileResponse(p, media_type="text/html")
+
+    def guarded(handler):
+        async def endpoint(request: Request):
+            if handler is index and request.query_params.get("token"):
+                return await handler(request)
+            if not authorized(request):
+                return JSONResponse({"error": "token required (Authorization: Bearer or open /?token=...)"},
+                                    status_code=401)
+            return await handler(request)
+
+        return endpoint
+
+    post = {"methods": ["POST"]}
+    routes = [Route("/", guarded(index)), Route("/api/state", guarded(state)),
+              Route("/api/start", guarded(start), **post), Route("/api/abort", guarded(abort), **post),
+              Route("/api/prompt", guarded(prompt), **post), Route("/api/clear", guarded(clear), **post),
+              Route("/api/resume", guarded(resume), **post), Route("/api/resumable", guarded(resumable)),
+              Route("/api/history/{serial:path}", guarded(history)), Route("/api/events", guarded(events)),
+              Route("/report/{session}", guarded(report))]
+    return Starlette(routes=routes)

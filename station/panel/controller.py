@@ -1,0 +1,347 @@
+"""One station, one unit at a time: the state machine behind the operator panel and the OPC UA server.
+
+It runs the same engine as ``station run`` (``station.api.run`` / ``station.api.resume``, with a progress
+callback) in a worker thread, asks the operator through prompts, and reports a verdict only once the session
+record has been read back from the records database (never PASS unless stored: a record that did not store
+ends as ``NOT STORED``; the journal keeps everything and can be stored later)."""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+STATES = ("idle", "running", "prompt", "done")
+
+
+class PanelError(ValueError):
+    """A request the station refuses (wrong state, bad input); the API answers 409/400 with its text."""
+
+
+class Aborted(KeyboardInterrupt):
+    """The operator (or the line) pressed ABORT: the engine tears down as on Ctrl-C; the session is resumable."""
+
+
+@dataclass
+class PanelConfig:
+    robot: str
+    cell: str | None = None
+    procedure: str = "zero_offsets"
+    limits: str | None = None
+    db: str | None = None
+    options: dict = field(default_factory=dict)
+    touch: str | None = None  # "manual": the operator touches each point (a prompt per pose)
+    confirm: bool = True  # ask the operator to confirm the unit is clamped before anything moves
+
+
+def plain_failure(m: dict) -> str:
+    """A failing verdict measurement in words an operator can act on."""
+    name = str(m.get("name") or "?").replace("_", " ")
+    value, unit = m.get("value"), m.get("unit") or ""
+    lo, hi = m.get("low"), m.get("high")
+    if value is None:
+        return f"{name}: no value could be measured"
+    v = f"{float(value):.4g} {unit}".strip()
+    if hi is not None and float(value) > float(hi):
+        return f"{name} is {v}, above the limit of {float(hi):.4g} {unit}".strip()
+    if lo is not None and float(value) < float(lo):
+        return f"{name} is {v}, below the limit of {float(lo):.4g} {unit}".strip()
+    return f"{name} is {v}, outside its limits"
+
+
+class Controller:
+    """Thread-safe state; ``snapshot()`` is what ``GET /api/state`` returns."""
+
+    def __init__(self, config: PanelConfig) -> None:
+        self.config = config
+        self._lock = threading.RLock()
+        self._changed = threading.Condition(self._lock)
+        self.version = 0
+        self._abort = threading.Event()
+        self._answer: str | None = None
+        self._answered = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._s = self._blank()
+
+    # ---- state ---------------------------------------------------------------------------------------
+    @staticmethod
+    def _blank() -> dict:
+        return {"state": "idle", "serial": None, "operator": None, "procedure": None, "step": None,
+                "samples": 0, "samples_planned": 0, "verdict": None, "session": None, "failing": [],
+                "message": None, "prompt": None, "report": None, "stored": None, "result": None,
+                "started": None, "finished": None}
+
+    def _set(self, **kw) -> None:
+        with self._lock:
+            self._s.update(kw)
+            self.version += 1
+            self._changed.notify_all()
+
+    def snapshot(self) -> dict:
+        with self._lock:
+            out = {k: v for k, v in self._s.items() if k != "result"}
+            out["progress"] = (out["samples"] / out["samples_planned"]) if out["samples_planned"] else 0.0
+            out["version"] = self.version
+            return out
+
+    def last_result(self) -> dict | None:
+        """The finished unit's summary (verdict, measurements, parameters) for the line (OPC UA LastResult)."""
+        with self._lock:
+            return self._s["result"]
+
+    def wait_change(self, version: int, timeout: float) -> int:
+        with self._lock:
+            self._changed.wait_for(lambda: self.version != version, timeout=timeout)
+            return self.version
+
+    @property
+    def busy(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    # ---- commands ----------------------------------------------------------------------------------
+    def clear(self) -> None:
+        """The next serial was scanned: the verdict screen goes away."""
+        with self._lock:
+            if self.busy:
+                raise PanelError("a unit is running; abort it first")
+            self._s = self._blank()
+            self.version += 1
+            self._changed.notify_all()
+
+    def start(self, serial: str, operator: str, procedure: str | None = None, *, confirm: bool | None = None,
+              wait_session: float = 0.0) -> str | None:
+        """Start a unit. Returns the session id once the journal exists (waits up to ``wait_session`` s)."""
+        serial, operator = (serial or "").strip(), (operator or "").strip()
+        if not serial:
+            raise PanelError("serial is required (scan the unit's label)")
+        if not operator:
+            raise PanelError("operator is required (sign in first)")
+        if any(c.isspace() for c in serial) or len(serial) > 64:
+            raise PanelError(f"serial {serial!r} is not a serial number (no spaces, at most 64 characters)")
+        proc = procedure or self.config.procedure
+        with self._lock:
+            if self.busy:
+                raise PanelError(f"unit {self._s['serial']} is still running")
+            self._s = {**self._blank(), "state": "running", "serial": serial, "operator": operator,
+                       "procedure": proc, "step": "starting", "started": time.time()}
+            self.version += 1
+            self._abort.clear()
+            ask = self.config.confirm if confirm is None else confirm
+            self._thread = threading.Thread(target=self._work, args=(serial, operator, proc, ask, None),
+                                            name=f"panel-{serial}", daemon=True)
+            self._thread.start()
+        return self._wait_session(wait_session)
+
+    def resume(self, session: str, operator: str | None = None, wait_session: float = 0.0) -> str | None:
+        """Continue an interrupted session (a panel crash, an abort) where it stopped."""
+        from station.engine.journal import read_journal
+        from station.engine.runner import find_session
+
+        try:
+            header, _ = read_journal(find_session(session))
+        except Exception as e:
+            raise PanelError(str(e)) from None
+        with self._lock:
+            if self.busy:
+                raise PanelError(f"unit {self._s['serial']} is still running")
+            self._s = {**self._blank(), "state": "running", "serial": header.serial,
+                       "operator": operator or header.operator, "procedure": header.procedure,
+                       "session": header.session, "step": "resuming", "started": time.time()}
+            self.version += 1
+            self._abort.clear()
+            self._thread = threading.Thread(target=self._work, args=(header.serial, operator, header.procedure,
+                                                                     False, header.session),
+                                            name=f"panel-resume-{header.serial}", daemon=True)
+            self._thread.start()
+        return self._wait_session(wait_session)
+
+    def _session_prefix(self) -> str:
+        proc = self._s["procedure"] or ""
+        name = Path(proc).stem if proc.endswith(".py") else proc
+        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in self._s["serial"] or "") or "unknown"
+        return f"{name}-{safe}-"  # station.engine.runner.new_session_id
+
+    def _find_session(self) -> str | None:
+        """The session id of the running unit: the journal folder the engine created after this start."""
+        from station.engine.runner import station_home
+
+        with self._lock:
+            if self._s["session"]:
+                return self._s["session"]
+            prefix, since = self._session_prefix(), self._s["started"] - 1.0
+        found = [p for p in (station_home() / "sessions").glob(prefix + "*")
+                 if (p / "journal.jsonl").is_file() and p.stat().st_mtime >= since]
+        if not found:
+            return None
+        sid = max(found, key=lambda p: p.name).name
+        self._set(session=sid)
+        return sid
+
+    def _wait_session(self, timeout: float) -> str | None:
+        end = time.monotonic() + timeout
+        while True:
+            sid = self._find_session()
+            if sid or time.monotonic() >= end or not self.busy:
+                return sid or self._s["session"]
+            time.sleep(0.05)
+
+    def abort(self) -> None:
+        with self._lock:
+            if not self.busy:
+                raise PanelError("nothing is running")
+            self._abort.set()
+            self._s["step"] = "aborting"
+            self.version += 1
+            self._changed.notify_all()
+        self._answer = "abort"
+        self._answered.set()
+
+    def answer(self, answer: str) -> None:
+        with self._lock:
+            p = self._s["prompt"]
+            if self._s["state"] != "prompt" or p is None:
+                raise PanelError("no question is open")
+            a = str(answer).strip().lower()
+            if a not in p["choices"]:
+                raise PanelError(f"answer must be one of {', '.join(p['choices'])}, got {answer!r}")
+            self._answer = a
+            self._answered.set()
+
+    def join(self, timeout: float | None = None) -> None:
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    # ---- the worker --------------------------------------------------------------------------------
+    def ask(self, text: str, choices: tuple[str, ...] = ("ok", "abort")) -> str:
+        """Block the run until the operator answers; "abort" (or ABORT) interrupts the run."""
+        self._answered.clear()
+        self._answer = None
+        self._set(state="prompt", prompt={"text": text, "choices": list(choices)})
+        while not self._answered.wait(0.2):
+            if self._abort.is_set():
+                break
+        answer = self._answer or "abort"
+        self._set(state="running", prompt=None)
+        if answer == "abort" or self._abort.is_set():
+            raise Aborted("aborted by the operator")
+        return answer
+
+    def _progress(self, done: int, total: int, text: str) -> None:
+        if self._abort.is_set():
+            raise Aborted("aborted by the operator")
+        if self._s["session"] is None:
+            self._find_session()
+        self._set(samples=done, samples_planned=total, step=text)
+
+    def _log(self, text: str) -> None:
+        self._set(message=text)
+
+    def _touch(self):
+        if self.config.touch != "manual":
+            return self.config.touch
+        from station.engine import ManualTouch
+
+        return ManualTouch(prompt=lambda text: self.ask(text))
+
+    def _work(self, serial: str, operator: str, proc: str, confirm: bool, resume_of: str | None) -> None:
+        from station import api
+
+        cfg = self.config
+        out = None
+        try:
+            if confirm:
+                try:
+                    self.ask(f"Unit {serial}: robot clamped, calibration tool mounted, cell clear? "
+                             "Confirm to start the robot.")
+                except Aborted:  # nothing moved, nothing journaled: no empty session is stored
+                    self._set(state="idle", step=None, verdict=None, message="start cancelled; nothing recorded",
+                              finished=time.time())
+                    return
+            self._set(step="connecting")
+            if resume_of is None:
+                out = api.run(proc, cfg.robot, serial, db=cfg.db, limits=cfg.limits, cell=cfg.cell,
+                              operator=operator, options=dict(cfg.options), touch=self._touch(),
+                              progress=self._progress, log=self._log)
+            else:
+                out = api.resume(resume_of, db=cfg.db, touch=None if cfg.touch != "manual" else self._touch(),
+                                 progress=self._progress, log=self._log)
+        except Exception as e:  # bad cell/limits file, wrong robot, unreachable bus: said in one line
+            self._set(state="done", verdict="ERROR", message=f"{type(e).__name__}: {e}" if not str(e) else str(e),
+                      step="stopped", finished=time.time())
+            return
+        self._conclude(out)
+
+    def _conclude(self, out) -> None:
+        stored = self._stored(out)
+        verdict_doc = (out.record or {}).get("verdict") or {}
+        failing = [plain_failure(m) for m in verdict_doc.get("measurements") or [] if m.get("passed") is False]
+        report = str(out.report) if out.report else None
+        if out.status == "interrupted":
+            verdict, msg = "ABORTED", f"stopped; resumable: session {out.session}"
+        elif out.passed is not None and not stored:
+            verdict = "NOT STORED"
+            msg = ("the record is NOT in the database" + (f": {out.error}" if out.error else "")
+                   + f"; the journal keeps everything (session {out.session}); store it later with "
+                     "station records sync")
+        elif out.status == "completed" and out.passed is not None:
+            verdict, msg = ("PASS" if out.passed else "FAIL"), None
+        else:
+            err = out.error
+            verdict = "ERROR"
+            msg = (f"{err}" if err is not None and str(err) else type(err).__name__) + \
+                f"; the journal is kept, resumable: session {out.session}"
+        result = {"session": out.session, "serial": self._s["serial"], "procedure": self._s["procedure"],
+                  "verdict": verdict, "stored": stored, "failing": failing, "report": report,
+                  "measurements": verdict_doc.get("measurements") or [],
+                  "parameters": {k: {kk: p.get(kk) for kk in ("value", "std", "unit", "identifiable")}
+                                 for k, p in (((out.record or {}).get("result") or {}).get("parameters") or {})
+                                 .items()}}
+        self._set(state="done", verdict=verdict, session=out.session, failing=failing, report=report,
+                  stored=stored, message=msg, result=result, step="finished", finished=time.time())
+
+    def _stored(self, out) -> bool:
+        """Read the record back: PASS is shown only for a session the database really holds."""
+        if not getattr(out, "stored", False):
+            return False
+        from station.records import open_records
+
+        try:
+            with open_records(out.db if out.db is not None else self.config.db) as rec:
+                rec.session(out.session)
+            return True
+        except Exception:
+            return False
+
+    # ---- resumable sessions ------------------------------------------------------------------------
+    def resumable(self) -> list[dict]:
+        """Interrupted sessions on this station (no completed end in their journal), newest first."""
+        from station.engine import events as ev
+        from station.engine.journal import read_journal
+        from station.engine.runner import station_home
+
+        out = []
+        running = self._s.get("session") if self.busy else None
+        for j in sorted((station_home() / "sessions").glob("*/journal.jsonl"), key=lambda p: p.stat().st_mtime,
+                        reverse=True)[:50]:
+            with contextlib.suppress(Exception):
+                header, events = read_journal(j)
+                if header.session == running or not header.procedure_path:
+                    continue
+                if any(isinstance(e, ev.End) and e.status == "completed" for e in events):
+                    continue
+                out.append({"session": header.session, "serial": header.serial, "procedure": header.procedure,
+                            "operator": header.operator,
+                            "samples": sum(1 for e in events if isinstance(e, ev.Sample))})
+        return out
+
+
+def report_path(session: str) -> Path | None:
+    """The HTML report of a session in ``$STATION_HOME/sessions`` (None: no such file)."""
+    from station.engine.runner import station_home
+
+    if not session or "/" in session or session.startswith("."):
+        return None
+    p = station_home() / "sessions" / session / "report.html"
+    return p if p.is_file() else None
