@@ -45,8 +45,10 @@ def panels():
 def test_unstorable_record_ends_not_stored_never_pass(tmp_path, emulators, panels):
     world_path, cell_path = _files(tmp_path, seed=61)
     serial = "DXL-API-61"
-    (tmp_path / "blocker").write_text("a file where the database folder should be\n")
-    db = f"sqlite:///{tmp_path / 'blocker' / 'r.db'}"
+    # the database takes the pre-run check (the station opens and proves it before the robot moves) and goes
+    # away mid-run: the file becomes a directory, which SQLite cannot open, so storing fails at the end
+    dbfile = tmp_path / "r.db"
+    db = f"sqlite:///{dbfile}"
     emu = emulators("dynamixel", world_path, serial=serial, process=True)
     panel = panels(tmp_path, _url(emu), cell_path, db, "--no-confirm")
     code, st = _call(panel.base, "POST", "/api/start", {"serial": serial, "operator": "o.one"})
@@ -56,9 +58,13 @@ def test_unstorable_record_ends_not_stored_never_pass(tmp_path, emulators, panel
     while time.monotonic() < end:
         st = panel.state()
         seen.add(st["verdict"])
+        if st["samples"] >= 1 and dbfile.is_file():
+            dbfile.unlink()
+            dbfile.mkdir()
         if st["state"] == "done":
             break
         time.sleep(0.05)
+    assert dbfile.is_dir(), "the run ended before the database went away"
     assert st["verdict"] == "NOT STORED" and st["stored"] is False and "PASS" not in seen, st["message"]
     assert "station records sync" in st["message"]
     journal = tmp_path / "home" / "sessions" / st["session"] / "journal.jsonl"
