@@ -9,11 +9,11 @@ the reader's own error class. Pure: no I/O."""
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any
+from typing import Annotated, Any, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from station.yamlfile import YamlDoc
+from station.yamlfile import YamlDoc, dotted
 
 ABSURD = 1e9  # no length, angle, time or mass in any unit the station accepts is this large
 
@@ -27,7 +27,8 @@ class Strict(BaseModel):
 Num = Annotated[float, Field(ge=-ABSURD, le=ABSURD)]
 NonNeg = Annotated[float, Field(ge=0, le=ABSURD)]
 Pos = Annotated[float, Field(gt=0, le=ABSURD)]
-Vec3 = tuple[Num, Num, Num]
+Vec3 = Annotated[list[Num], Field(min_length=3, max_length=3)]  # strict mode: a YAML list is not a tuple
+Pair = Annotated[list[Num], Field(min_length=2, max_length=2)]
 Text = Annotated[str, Field(max_length=10_000)]
 Name = Annotated[str, Field(min_length=1, max_length=200)]
 
@@ -37,7 +38,7 @@ def _short(v: Any) -> str:
     return r if len(r) <= 40 else r[:37] + "..."
 
 
-def _message(err: dict) -> str:
+def _message(err: dict, field: str = "value") -> str:
     kind, v = err["type"], err.get("input")
     if kind == "extra_forbidden":
         return "unknown key (not part of the format: misspelt? see docs/formats.md)"
@@ -53,10 +54,23 @@ def _message(err: dict) -> str:
         return f"not a finite number ({_short(v)})"
     if kind in ("greater_than_equal", "less_than_equal") and isinstance(v, float | int) and abs(v) > ABSURD:
         return f"absurd value {v:g} (beyond ±{ABSURD:g}); wrong units?"
+    if kind == "greater_than_equal" and err.get("ctx", {}).get("ge") == 0:
+        return f"a {field} cannot be negative, got {_short(v)}" if field == "mass" else \
+            f"must not be negative, got {_short(v)}"
+    if kind == "greater_than" and err.get("ctx", {}).get("gt") == 0:
+        return f"must be positive, got {_short(v)}"
     if kind in ("dict_type", "model_type"):
         return f"expected a mapping, got {_short(v)}"
     if kind in ("list_type", "tuple_type"):
         return f"expected a list, got {_short(v)}"
+    ctx = err.get("ctx", {})
+    sizes = (ctx.get("min_length"), ctx.get("max_length"))
+    if kind in ("too_short", "too_long") and isinstance(v, list) and 3 in sizes:
+        return f"expected [x, y, z], got {_short(v)}"
+    if kind == "literal_error":
+        choices = ctx.get("expected", "").replace("'", "")
+        return f"only {choices}, got {_short(v)}" if " or " not in choices and "," not in choices else \
+            f"expected {choices}, got {_short(v)}"
     if kind == "too_short" and isinstance(v, list | tuple | str):
         return f"too short ({len(v)} items): {err['msg'][0].lower()}{err['msg'][1:]}"
     if kind == "too_long" and isinstance(v, list | tuple):
@@ -70,9 +84,8 @@ def _real_path(data: Any, loc: tuple) -> tuple:
     """The part of pydantic's error location that indexes ``data`` (drops union/tagged branch names)."""
     out: list = []
     for part in loc:
-        if isinstance(data, dict) and part in data:
-            data = data[part]
-        elif isinstance(data, list | tuple) and isinstance(part, int) and 0 <= part < len(data):
+        in_dict = isinstance(data, dict) and part in data
+        if in_dict or (isinstance(data, list | tuple) and isinstance(part, int) and 0 <= part < len(data)):
             data = data[part]
         elif isinstance(data, dict) and isinstance(part, str) and "[" not in part:
             out.append(part)  # a missing key: name it, no deeper
@@ -81,6 +94,28 @@ def _real_path(data: Any, loc: tuple) -> tuple:
             continue  # a union branch name ("function-after[...]", "tuple[...]")
         out.append(part)
     return tuple(out)
+
+
+def _find_model(tp):
+    if isinstance(tp, type) and issubclass(tp, BaseModel):
+        return tp
+    for a in get_args(tp):
+        found = _find_model(a)
+        if found:
+            return found
+    return None
+
+
+def _model_at(schema: type[BaseModel], path: tuple):
+    """The schema class of the mapping holding the last key of ``path``."""
+    cur = schema
+    for part in path[:-1]:
+        if isinstance(part, int):
+            continue
+        if cur is None or part not in cur.model_fields:
+            return None
+        cur = _find_model(cur.model_fields[part].annotation)
+    return cur
 
 
 def check(schema: type[BaseModel], doc: YamlDoc | Any, error: type[Exception], name: str = "<data>"):
@@ -94,8 +129,20 @@ def check(schema: type[BaseModel], doc: YamlDoc | Any, error: type[Exception], n
         errs = e.errors(include_url=False)
         err = errs[0]
         path = _real_path(doc.data, err["loc"])
-        where = doc.where(path)
-        raise error(f"{where}: {_message(err)}") from None
+        last = [p for p in path if isinstance(p, str)]
+        msg = _message(err, last[-1] if last else "value")
+        if err["type"] == "extra_forbidden" and path:
+            model = _model_at(schema, path)
+            allowed = ", ".join(model.model_fields) if model else "see docs/formats.md"
+            line = doc.line(path)
+            path, msg = path[:-1], f"expected a mapping of {allowed}; unknown key {path[-1]!r} (misspelt?)"
+            if line:
+                raise error(f"{doc.name}:{line}: {dotted(path) or '(top level)'}: {msg}") from None
+        elif err["type"] == "missing" and path:
+            path, msg = path[:-1], f"expected key {path[-1]!r} (missing)"
+        elif path and isinstance(path[-1], int) and not isinstance(err.get("input"), dict | list):
+            path, msg = path[:-1], f"{msg} (item {path[-1] + 1})"  # name the list, count the item
+        raise error(f"{doc.where(path)}: {msg}") from None
 
 
 def finite(x: float) -> bool:
