@@ -125,7 +125,7 @@ def test_poe_screw_shapes(tmp_path, capsys):
 
 
 BOMB = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
-    f"{c}: &{c} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n" for p, c in zip("abcdefgh", "bcdefghi"))
+    f"{c}: &{c} [{', '.join([f'*{p}'] * 9)}]\n" for p, c in zip("abcdefgh", "bcdefghi", strict=True))
 
 
 @pytest.mark.parametrize("data", [
@@ -174,7 +174,8 @@ def test_bad_cell_file(tmp_path, text, needle):
     assert needle in str(e.value) and str(f) in str(e.value) and "\n" not in str(e.value)
 
 
-LIMITS = "format: station-limits/1\nversion: '1'\nmodels:\n  '*':\n    zero_offsets:\n      fit_rms: {high: 0.1, unit: mm}\n"
+LIMITS = ("format: station-limits/1\nversion: '1'\nmodels:\n  '*':\n    zero_offsets:\n"
+          "      fit_rms: {high: 0.1, unit: mm}\n")
 
 
 @pytest.mark.parametrize("text,needle", [
