@@ -186,12 +186,12 @@ def decode(data: bytes, error: type[Exception], name: str) -> str:
 def parse_yaml_doc(text: str | bytes, error: type[Exception], name: str) -> YamlDoc:
     """Parse ``text`` (of file ``name``) strictly; ``error(message)`` for anything refused:
     ``NAME:LINE: not valid YAML (problem)``."""
-    if isinstance(text, bytes):
-        text = decode(text, error, name)
+    text = decode(text if isinstance(text, bytes) else text.encode("utf-8", "surrogatepass"), error, name)
     if len(text) > MAX_BYTES:
         raise error(f"{name}: larger than {MAX_BYTES // 1024 // 1024} MiB; refused")
-    loader = StrictLoader(text)
+    loader = None
     try:
+        loader = StrictLoader(text)
         data = loader.get_single_data()
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
@@ -201,7 +201,8 @@ def parse_yaml_doc(text: str | bytes, error: type[Exception], name: str) -> Yaml
     except (RecursionError, MemoryError, ValueError, TypeError) as e:  # cannot happen with the caps; belt and braces
         raise error(f"{name}: not valid YAML ({type(e).__name__})") from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
     lines: dict[tuple, int] = {}
     _paths(data, loader.lines, (), lines)
     return YamlDoc(name, data, lines)
