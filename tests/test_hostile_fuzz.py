@@ -345,3 +345,24 @@ def test_calibration_reader_fuzz(doc):
             _one_line(e)
             return
     assert np.all(np.isfinite(m.params))
+
+
+# ---- world files (the emulators' truth) ----------------------------------------------------------------------
+def _world_doc() -> dict:
+    from station.mocks.world.worldfile import WorldSpec, spec_to_dict
+
+    return yaml.safe_load(yaml.safe_dump(spec_to_dict(WorldSpec(), UR5E, "mm", "deg")))
+
+
+@fast
+@given(mutated(_world_doc()))
+def test_world_reader_fuzz(doc):
+    from station.mocks.world.worldfile import WorldFileError, spec_from_dict
+
+    try:
+        spec = spec_from_dict(parse_yaml_doc(_yaml(doc), WorldFileError, "w.yaml").data, "w.yaml")
+    except WorldFileError as e:
+        _one_line(e)
+        return
+    assert spec.seed >= 0 and isinstance(spec.enabled, bool)
+    assert all(isinstance(p["label"], str) and p["label"] for p in spec.points)
