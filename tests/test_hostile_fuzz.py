@@ -21,6 +21,7 @@ from hypothesis import strategies as st
 from station.engine.cell import CellError, cell_from_dict
 from station.engine.limits import LimitsError, load_limits
 from station.kinematics import ModelFileError, dump_model, load_model, model_from_dict
+from station.kinematics.parallel import ParallelKinematicsError
 from station.robot.errors import ConfigError
 from station.samplesfile import SamplesFileError, read_joints, read_samples
 from station.yamlfile import parse_yaml_doc
@@ -284,6 +285,13 @@ def test_cli_fk_fuzz(text):
         assert rows and all(math.isfinite(float(v)) for r in rows for v in r.split(","))
 
 
+@pytest.mark.slow
+@slow
+@given(csv_text())
+def test_cli_fk_fuzz_long(text):
+    test_cli_fk_fuzz.hypothesis.inner_test(text)
+
+
 option_numbers = st.one_of(numbers.map(str), st.sampled_from(["nan", "inf", "-inf", "1e999", "0", "-0", "abc", ""]))
 
 
@@ -366,3 +374,17 @@ def test_world_reader_fuzz(doc):
         return
     assert spec.seed >= 0 and isinstance(spec.enabled, bool)
     assert all(isinstance(p["label"], str) and p["label"] for p in spec.points)
+
+
+PARALLEL_DOC = yaml.safe_load(dump_model(load_model("hexapod"), "mm", "deg"))
+
+
+@fast
+@given(mutated(PARALLEL_DOC))
+def test_parallel_model_reader_fuzz(doc):
+    try:
+        m = model_from_dict(parse_yaml_doc(_yaml(doc), ModelFileError, "h.yaml"), "h.yaml")
+    except (ModelFileError, ConfigError, ParallelKinematicsError) as e:
+        _one_line(e)
+        return
+    assert m is not None
