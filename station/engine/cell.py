@@ -34,7 +34,7 @@ from pydantic import Field
 from station.kinematics.collision import Checker, KeepOut, KeepOutError
 from station.kinematics.collision import keep_out_from_dict as parse_keep_out
 from station.robot.errors import ConfigError, LimitError
-from station.strict import Name, Pos, Strict, Vec3, check
+from station.strict import Name, NonNeg, Pos, Strict, Vec3, check
 from station.units import ANGLE_UNITS, LENGTH_UNITS
 from station.yamlfile import YamlDoc
 
@@ -111,6 +111,8 @@ class _Point(_PointBody):
 class _Cell(Strict):
     format: Literal["station-cell/1"]
     units: _Units
+    frame: Literal["robot base"] = "robot base"  # the frame every position is in (written by the emulated cell)
+    survey_sigma: NonNeg | None = None  # how well the positions were surveyed (length unit), informative
     model: Name | None = None
     tool: _Tool | None = None
     mounting: Any = None  # checked by station.kinematics.collision
