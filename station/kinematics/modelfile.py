@@ -112,6 +112,11 @@ class SerialModelSchema(Strict):
     collision: _Collision | None = None
 
 
+class _ParallelHead(Strict):
+    model_config = {**Strict.model_config, "extra": "allow"}
+    units: _Units
+
+
 def _num(v, where: str) -> float:
     try:
         x = float(v)
@@ -132,6 +137,8 @@ def model_from_dict(doc: dict | YamlDoc, where: str = "<model>") -> Model:
         ydoc = YamlDoc(where, doc)
     if isinstance(doc, dict) and doc.get("kind", "serial") == "serial":
         check(SerialModelSchema, ydoc, ModelFileError)
+    elif isinstance(doc, dict):  # parallel: the units here, the rest in station/kinematics/parallelfile.py
+        check(_ParallelHead, ydoc, ModelFileError)
     if not isinstance(doc, dict):
         raise ModelFileError(f"{where}: not a mapping")
     if doc.get("format", FORMAT) != FORMAT:
