@@ -25,6 +25,10 @@ _HEADER = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_.]*)\s*(?:\[\s*([A-Za-z]+)\s*\])
 _JOINT = re.compile(r"^q(\d+)$")
 
 
+MAX_BYTES = 256 * 1024 * 1024  # 100k samples are ~10 MB; beyond this a file is refused, not read
+_NUMBER = re.compile(r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?|[-+]?(?:nan|inf|infinity)", re.I | re.A)
+
+
 class SamplesFileError(ValueError):
     """A samples/joints file cannot be read; the message is one line naming file, line and column."""
 
@@ -57,13 +61,20 @@ class Samples:
     path: str
 
 
+def _row(path: str, line: int, text: str) -> list[str]:
+    try:
+        return next(csv.reader(io.StringIO(text)))
+    except (csv.Error, StopIteration) as e:  # e.g. a field beyond csv.field_size_limit(): not a samples file
+        raise SamplesFileError(f"{path}:{line}: not a CSV row ({str(e).splitlines()[0][:80] or 'empty'})") from None
+
+
 def parse_table(text: str, path: str = "<text>") -> Table:
     lines = text.splitlines()
     body = [(i + 1, ln) for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
     if not body:
         raise SamplesFileError(f"{path}: empty file (expected a header line with q1..qN)")
     head_line, head = body[0]
-    fields = next(csv.reader(io.StringIO(head)))
+    fields = _row(path, head_line, head)
     columns: dict[str, tuple[int, Column]] = {}
     for k, h in enumerate(fields):
         m = _HEADER.match(h)
@@ -76,7 +87,7 @@ def parse_table(text: str, path: str = "<text>") -> Table:
         columns[name] = (k, Column(name, unit, h.strip()))
     rows, nums = [], []
     for ln, text_line in body[1:]:
-        row = next(csv.reader(io.StringIO(text_line)))
+        row = _row(path, ln, text_line)
         if len(row) != len(fields):
             raise SamplesFileError(f"{path}:{ln}: {len(row)} fields, the header has {len(fields)}")
         rows.append([c.strip() for c in row])
@@ -85,13 +96,12 @@ def parse_table(text: str, path: str = "<text>") -> Table:
 
 
 def read_table(path: str | Path) -> Table:
+    from station.yamlfile import decode, read_capped
+
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise SamplesFileError(f"{p}: no such file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise SamplesFileError(f"{p}: cannot read: {e}") from None
+    if not p.exists() and not p.is_symlink():
+        raise SamplesFileError(f"{p}: no such file")
+    text = decode(read_capped(p, SamplesFileError, str(p), MAX_BYTES), SamplesFileError, str(p))
     return parse_table(text, str(p))
 
 
@@ -118,6 +128,8 @@ def _factor(t: Table, col: Column, kind: str, what: str) -> float:
 def _number(t: Table, i: int, col: Column, k: int) -> float:
     s = t.rows[i][k]
     try:
+        if not _NUMBER.fullmatch(s):  # float() would take "1_0" and Arabic-Indic digits
+            raise ValueError(s)
         v = float(s)
     except ValueError:
         raise SamplesFileError(f"{t.where(i)}: column {col.header!r}: not a number ({s!r})") from None
@@ -146,7 +158,34 @@ def joint_matrix(t: Table, joints) -> np.ndarray:
         f = _factor(t, col, kinds[j], f"joint {j + 1}")
         for i in range(len(t.rows)):
             q[i, j] = _number(t, i, col, k) * f
+    _check_limits(t, joints, q)
     return q
+
+
+def _check_limits(t: Table, joints, q: np.ndarray) -> None:
+    """A reading outside the joint's limits (beyond a margin for encoder slack and a slightly wide model) is a
+    unit slip or a wrong column, not a pose the robot took: name the row."""
+    js = getattr(joints, "joints", joints)
+    if not all(hasattr(j, "lower") and hasattr(j, "upper") for j in js):
+        return
+    for j, jt in enumerate(js):
+        lo, hi = float(jt.lower), float(jt.upper)
+        rev = jt.kind == "revolute"
+        margin = max(0.05 * (hi - lo), math.radians(5) if rev else 0.005)
+        bad = np.flatnonzero((q[:, j] < lo - margin) | (q[:, j] > hi + margin))
+        if bad.size == 0:
+            continue
+        i = int(bad[0])
+        unit = "rad" if rev else "m"
+        v = q[i, j]
+        hint = ""
+        if rev and lo - margin <= math.radians(v) <= hi + margin:
+            hint = " — degrees in a radian column?"
+        elif not rev and lo - margin <= v * 1e-3 <= hi + margin:
+            hint = " — mm in a metre column?"
+        more = f" ({bad.size} rows like it)" if bad.size > 1 else ""
+        raise SamplesFileError(f"{t.where(i)}: row {i + 1}: q{j + 1} = {v:.6g} {unit} is outside the joint limits "
+                               f"[{lo:.4g}, {hi:.4g}] {unit}{hint}{more}")
 
 
 def read_joints(path: str | Path, joints) -> tuple[np.ndarray, Table]:

@@ -1,33 +1,249 @@
-"""Read a YAML file with a one-line error naming the file (and the line when the YAML is malformed).
+"""THE YAML loader of the station: every model, world, cell, limits and procedure file is read here.
 
-Shared by model, world, cell and limits files; pure apart from reading the file."""
+A file is a careless operator's or a malicious author's, so the loader is strict (docs/formats.md):
+
+- regular files only (a FIFO, ``/dev/zero`` or a directory is refused before it is read), at most
+  ``MAX_BYTES``; UTF-8 text only (UTF-16, other encodings and binary data are refused with the line);
+- no aliases (``*name``): an alias bomb ("billion laughs") cannot expand; nesting at most ``MAX_DEPTH``;
+- duplicate keys refused (the last one does not silently win);
+- YAML 1.2 core scalars only: ``1_0``, ``0b1``, ``1:30``, ``yes``/``on`` and dates stay strings, ``010`` is
+  ten, integers have at most ``MAX_INT_DIGITS`` digits; non-ASCII digits (``١``) are never numbers.
+
+The parsed document keeps the line of every key and item (``YamlDoc.line``) so a reader's error names it:
+``FILE:LINE: FIELD: what is wrong``."""
 
 from __future__ import annotations
 
+import os
+import re
+import stat
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
+from yaml.events import AliasEvent
+
+MAX_BYTES = 4 * 1024 * 1024  # a model/world/cell/limits file is a few kB; 4 MiB is generous
+MAX_DEPTH = 64  # nesting of mappings and lists
+MAX_INT_DIGITS = 30  # beyond any physical quantity in any unit; a 400-digit integer is not a reading
+
+
+class _Refused(yaml.YAMLError):
+    def __init__(self, problem: str, mark=None):
+        super().__init__(problem)
+        self.problem, self.problem_mark = problem, mark
+
+
+class StrictLoader(yaml.SafeLoader):
+    """SafeLoader with YAML 1.2 core scalars, no aliases, a depth cap, duplicate keys refused and the line of
+    every mapping key and list item recorded (``self.lines``: id(container) -> {key or index: line})."""
+
+    yaml_implicit_resolvers: dict = {}
+
+    def __init__(self, stream):
+        super().__init__(stream)
+        self.depth = 0
+        self.lines: dict[int, dict] = {}
+
+    def compose_node(self, parent, index):
+        if self.check_event(AliasEvent):
+            event = self.peek_event()
+            raise _Refused(f"alias *{event.anchor} refused (aliases are not accepted; write the value out)",
+                           event.start_mark)
+        self.depth += 1
+        if self.depth > MAX_DEPTH:
+            raise _Refused(f"nested deeper than {MAX_DEPTH} levels", self.peek_event().start_mark)
+        try:
+            return super().compose_node(parent, index)
+        finally:
+            self.depth -= 1
+
+
+def _construct_map(loader: StrictLoader, node):
+    data: dict = {}
+    yield data
+    lines = loader.lines.setdefault(id(data), {})
+    for key_node, value_node in node.value:
+        key = loader.construct_object(key_node, deep=True)
+        try:
+            hash(key)
+        except TypeError:
+            raise _Refused("a mapping key must be a plain value", key_node.start_mark) from None
+        if key in data:
+            raise _Refused(f"duplicate key {key!r} (first on line {lines[key]})", key_node.start_mark)
+        data[key] = loader.construct_object(value_node, deep=True)
+        lines[key] = key_node.start_mark.line + 1
+
+
+def _construct_seq(loader: StrictLoader, node):
+    data: list = []
+    yield data
+    data.extend(loader.construct_object(n, deep=True) for n in node.value)
+    loader.lines[id(data)] = {i: n.start_mark.line + 1 for i, n in enumerate(node.value)}
+
+
+def _construct_int(loader: StrictLoader, node):
+    text = loader.construct_scalar(node)
+    digits = text.lstrip("+-")
+    if len(digits) > MAX_INT_DIGITS:
+        raise _Refused(f"integer with {len(digits)} digits is out of range", node.start_mark)
+    if digits[:2] in ("0x", "0o"):
+        return int(digits[2:], 16 if digits[1] == "x" else 8)
+    return int(text, 10)
+
+
+def _construct_float(loader: StrictLoader, node):
+    text = loader.construct_scalar(node).lower()
+    if text.lstrip("+-") == ".inf":
+        return float("-inf") if text.startswith("-") else float("inf")
+    if text == ".nan":
+        return float("nan")
+    return float(text)
+
+
+# YAML 1.2 core schema (https://yaml.org/spec/1.2.2/#1032-tag-resolution); first characters as PyYAML wants
+for _tag, _pattern, _first in (
+    ("bool", r"true|True|TRUE|false|False|FALSE", "tTfF"),
+    ("int", r"[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+", "-+0123456789"),
+    ("float", r"[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN)",
+     "-+0123456789."),
+    ("null", r"~|null|Null|NULL|", ["~", "n", "N", ""]),
+):
+    StrictLoader.add_implicit_resolver(f"tag:yaml.org,2002:{_tag}", re.compile(rf"^(?:{_pattern})$", re.ASCII),
+                                       list(_first))
+StrictLoader.add_constructor("tag:yaml.org,2002:map", _construct_map)
+StrictLoader.add_constructor("tag:yaml.org,2002:seq", _construct_seq)
+StrictLoader.add_constructor("tag:yaml.org,2002:int", _construct_int)
+StrictLoader.add_constructor("tag:yaml.org,2002:float", _construct_float)
+
+
+def _refuse_tag(loader: StrictLoader, node):
+    raise _Refused(f"tag {node.tag} refused (plain values, mappings and lists only)", node.start_mark)
+
+
+for _tag in ("omap", "pairs", "set", "timestamp", "binary", "merge", "value", "yaml"):  # no Python-only shapes
+    StrictLoader.add_constructor(f"tag:yaml.org,2002:{_tag}", _refuse_tag)
+
+
+@dataclass
+class YamlDoc:
+    """A parsed YAML file: ``data`` (plain dicts, lists, str, int, float, bool, None) and the line of every
+    key and item by path (``("joints", 2, "encoder")``)."""
+
+    name: str
+    data: object
+    lines: dict[tuple, int] = field(default_factory=dict)
+
+    def line(self, path) -> int | None:
+        """Line of ``path`` or of its nearest located ancestor."""
+        path = tuple(path)
+        while path:
+            if path in self.lines:
+                return self.lines[path]
+            path = path[:-1]
+        return None
+
+    def where(self, path=()) -> str:
+        """``NAME:LINE: FIELD`` for an error message (``NAME: FIELD`` when the line is unknown)."""
+        line = self.line(path)
+        head = f"{self.name}:{line}" if line else self.name
+        return f"{head}: {dotted(path)}" if path else head
+
+
+def dotted(path) -> str:
+    """``("joints", 2, "encoder", "gear")`` -> ``joints[2].encoder.gear``."""
+    out = ""
+    for p in path:
+        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
+    return out
+
+
+def _paths(data, lines_by_id: dict, prefix: tuple, out: dict) -> None:
+    if isinstance(data, dict | list):
+        lines = lines_by_id.get(id(data), {})
+        for k, v in (data.items() if isinstance(data, dict) else enumerate(data)):
+            if k in lines:
+                out[prefix + (k,)] = lines[k]
+            _paths(v, lines_by_id, prefix + (k,), out)
+
+
+def decode(data: bytes, error: type[Exception], name: str) -> str:
+    """UTF-8 text of ``data`` or ``error`` naming the line of the first byte that is not text."""
+    if data[:2] in (b"\xff\xfe", b"\xfe\xff") or data[:4] in (b"\x00\x00\xfe\xff", b"\xff\xfe\x00\x00"):
+        raise error(f"{name}:1: the file is UTF-16/UTF-32 text; save it as UTF-8")
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        line = data[:e.start].count(b"\n") + 1
+        raise error(f"{name}:{line}: not UTF-8 text (byte 0x{data[e.start]:02x}); save the file as UTF-8") from None
+    bad = re.search(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f\ufffe\uffff]", text)
+    if bad:
+        line = text[:bad.start()].count("\n") + 1
+        raise error(f"{name}:{line}: binary data (control character U+{ord(bad.group()):04X}); not a text file")
+    return text
+
+
+def parse_yaml_doc(text: str | bytes, error: type[Exception], name: str) -> YamlDoc:
+    """Parse ``text`` (of file ``name``) strictly; ``error(message)`` for anything refused:
+    ``NAME:LINE: not valid YAML (problem)``."""
+    text = decode(text if isinstance(text, bytes) else text.encode("utf-8", "surrogatepass"), error, name)
+    if len(text) > MAX_BYTES:
+        raise error(f"{name}: larger than {MAX_BYTES // 1024 // 1024} MiB; refused")
+    loader = None
+    try:
+        loader = StrictLoader(text)
+        data = loader.get_single_data()
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        head = f"{name}:{mark.line + 1}" if mark else name
+        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+        raise error(f"{head}: not valid YAML ({problem})") from None
+    except (RecursionError, MemoryError, ValueError, TypeError) as e:  # cannot happen with the caps; belt and braces
+        raise error(f"{name}: not valid YAML ({type(e).__name__})") from None
+    finally:
+        if loader is not None:
+            loader.dispose()
+    lines: dict[tuple, int] = {}
+    _paths(data, loader.lines, (), lines)
+    return YamlDoc(name, data, lines)
 
 
 def parse_yaml(text: str | bytes, error: type[Exception], name: str):
-    """Parsed content of ``text`` (the bytes of file ``name``, e.g. kept for a checksum); ``error(message)``
-    for bad YAML: ``NAME: line N not valid YAML (problem)``."""
+    """Parsed content of ``text`` (the bytes of file ``name``, e.g. kept for a checksum); see ``parse_yaml_doc``."""
+    return parse_yaml_doc(text, error, name).data
+
+
+def read_capped(path: str | Path, error: type[Exception], name: str, limit: int = MAX_BYTES, hint: str = "") -> bytes:
+    """The bytes of regular file ``path`` (at most ``limit``), or ``error`` in one line: a FIFO, device or
+    directory is refused before anything is read from it (reading ``/dev/zero`` or a FIFO would never end)."""
     try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        line = f" line {mark.line + 1}" if mark else ""
-        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
-        raise error(f"{name}:{line} not valid YAML ({problem})") from None
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
+    except OSError as e:
+        raise error(f"{name}: cannot read ({e.strerror or e}){hint}") from None
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            kind = ("a directory" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode)
+                    else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a regular file")
+            raise error(f"{name}: is {kind}, not a regular file; refused{hint}")
+        with os.fdopen(fd, "rb", closefd=False) as f:
+            data = f.read(limit + 1)
+    except OSError as e:
+        raise error(f"{name}: cannot read ({e.strerror or e}){hint}") from None
+    finally:
+        os.close(fd)
+    if len(data) > limit:
+        raise error(f"{name}: larger than {limit // 1024} KiB; refused (is it the right file?)")
+    return data
+
+
+def load_yaml_doc(path: str | Path, error: type[Exception], what: str = "", hint: str = "") -> YamlDoc:
+    """Parsed ``path`` with the line of every field; ``error(message)`` for an unreadable file or bad YAML.
+    ``what`` prefixes the path (e.g. ``"cell file"``), ``hint`` is appended to a read error."""
+    name = f"{what} {path}" if what else str(path)
+    return parse_yaml_doc(read_capped(path, error, name, hint=hint), error, name)
 
 
 def load_yaml(path: str | Path, error: type[Exception], what: str = "", hint: str = ""):
-    """Parsed content of ``path``; ``error(message)`` is raised for an unreadable file or bad YAML.
-    ``what`` prefixes the path (e.g. ``"cell file"``), ``hint`` is appended to a read error."""
-    path = Path(path)
-    name = f"{what} {path}" if what else str(path)
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise error(f"{name}: cannot read ({e.strerror or e}){hint}") from None
-    return parse_yaml(text, error, name)
+    """Parsed content of ``path``; see ``load_yaml_doc``."""
+    return load_yaml_doc(path, error, what, hint).data

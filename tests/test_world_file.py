@@ -193,7 +193,7 @@ def test_unreadable_and_invalid_yaml(tmp_path):
         World.from_file(tmp_path / "missing.yaml")
     f = tmp_path / "broken.yaml"
     f.write_text("format: station-world/1\nunits: {length: mm\n")
-    with pytest.raises(WorldFileError, match=r"broken.yaml: line \d+ not valid YAML"):
+    with pytest.raises(WorldFileError, match=r"broken.yaml:\d+: not valid YAML"):
         World.from_file(f)
     f.write_text("- just\n- a list\n")
     with pytest.raises(WorldFileError, match="not a mapping"):

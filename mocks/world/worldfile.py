@@ -92,11 +92,11 @@ class _Reader:
         return WorldFileError(f"{self.where}: {field_}: {msg}")
 
     def num(self, v, field_: str, *, positive: bool = False, nonneg: bool = False) -> float:
-        if isinstance(v, bool):
+        if isinstance(v, bool | str):  # true is not 1; "1_0" and Arabic-Indic digits are not numbers
             raise self.fail(field_, f"expected a number, got {v!r}")
         try:
             x = float(v)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise self.fail(field_, f"expected a number, got {v!r}") from None
         if not math.isfinite(x):
             raise self.fail(field_, f"not a finite number ({v!r})")
@@ -134,6 +134,17 @@ def _joint_index(model, key, r: _Reader, field_: str) -> int:
 
 
 def spec_from_dict(doc, where: str = "<world>") -> WorldSpec:
+    """The world of a parsed world file; ``WorldFileError`` (one line) for anything malformed."""
+    try:
+        return _spec_from_dict(doc, where)
+    except WorldFileError:
+        raise
+    except (TypeError, KeyError, AttributeError, IndexError, ValueError, OverflowError) as e:
+        # a shape the field checks above did not foresee (found by fuzzing): still one line, never a traceback
+        raise WorldFileError(f"{where}: malformed world file ({type(e).__name__}: {str(e)[:120]})") from None
+
+
+def _spec_from_dict(doc, where: str) -> WorldSpec:
     from station.kinematics import ModelFileError, load_model
 
     r = _Reader(where)
@@ -145,7 +156,8 @@ def spec_from_dict(doc, where: str = "<world>") -> WorldSpec:
     if unknown:
         raise r.fail(unknown[0], f"unknown section (known: {', '.join(sorted(SECTIONS))})")
     units = r.mapping(doc.get("units"), "units", {"length", "angle", "time", "mass"})
-    if units.get("length") not in LENGTH or units.get("angle") not in ANGLE:
+    if not all(isinstance(units.get(k), str) for k in ("length", "angle")) or units.get("length") not in LENGTH \
+            or units.get("angle") not in ANGLE:
         raise r.fail("units", f"must state length (m|mm) and angle (rad|deg), got {units!r}")
     if units.get("time", "s") != "s" or units.get("mass", "kg") != "kg":
         raise r.fail("units", "time must be s and mass kg")
@@ -240,7 +252,9 @@ def spec_from_dict(doc, where: str = "<world>") -> WorldSpec:
     if s.time_mode not in TIME_MODES:
         raise r.fail("motion.time_mode", f"{s.time_mode!r} is not one of {', '.join(TIME_MODES)}")
     s.time_scale = r.num(motion.get("time_scale", 1.0), "motion.time_scale", positive=True)
-    s.enabled = bool(motion.get("enabled", True))
+    s.enabled = motion.get("enabled", True)
+    if not isinstance(s.enabled, bool):
+        raise r.fail("motion.enabled", f"expected true or false, got {s.enabled!r}")
     if motion.get("start") is not None:
         st = motion["start"]
         if not isinstance(st, list) or len(st) != model.n_joints:
@@ -277,7 +291,9 @@ def spec_from_dict(doc, where: str = "<world>") -> WorldSpec:
     for i, p in enumerate(pts):
         f = f"cell.points[{i}]"
         p = r.mapping(p, f, {"label", "kind", "position", "approach", "radius"})
-        label = str(p.get("label", ""))
+        label = p.get("label", "")
+        if not isinstance(label, str):  # null would become "None", 5 would become "5"
+            raise r.fail(f + ".label", f"expected a text label, got {label!r}")
         if not label or label in labels:
             raise r.fail(f + ".label", f"missing or duplicate label {label!r}")
         labels.add(label)

@@ -78,6 +78,31 @@ def main() -> None:
         if type(e).__name__ == "Abort":
             sys.exit(130)
         if hasattr(e, "show") and isinstance(getattr(e, "exit_code", None), int):
-            e.show()
-            sys.exit(e.exit_code)
-        raise
+            _usage_error(e)
+        _internal_error(e)
+
+
+def _usage_error(e) -> None:
+    """A click usage error (bad option value, missing argument) as one line and exit 2."""
+    message = e.format_message() if hasattr(e, "format_message") else str(e)
+    ctx = getattr(e, "ctx", None)
+    where = f"{ctx.command_path}: " if ctx is not None and getattr(ctx, "command_path", None) else ""
+    typer.echo(f"station: error: {where}{' '.join(str(message).split())}", err=True)
+    sys.exit(2 if e.exit_code in (1, 2) else e.exit_code)
+
+
+def _internal_error(e: BaseException) -> None:
+    """A crash is a fault, never the FAIL code: one line and exit 2; the traceback only with STATION_DEBUG=1."""
+    import os
+    import traceback
+
+    if isinstance(e, OSError):  # a file or device the user named: say which, as the station's own errors do
+        where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+        typer.echo(f"station: error: {where}{e.strerror or e}", err=True)
+        sys.exit(2)
+    if os.environ.get("STATION_DEBUG"):
+        traceback.print_exception(e)
+    text = " ".join(str(e).split())[:300]
+    hint = "" if os.environ.get("STATION_DEBUG") else " (STATION_DEBUG=1 shows the traceback)"
+    typer.echo(f"station: error: internal error: {type(e).__name__}: {text}{hint}", err=True)
+    sys.exit(2)

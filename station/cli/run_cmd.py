@@ -45,6 +45,36 @@ def _progress_bar(quiet: bool):
     return cb, prog
 
 
+def preflight(robot: str, poses, holdout, cone, seed, touch, reference, limits, cell) -> None:
+    """Every option and input file checked before any robot is opened or moved (issue 14): one line, exit 2."""
+    import math
+
+    from station.robot.errors import ConfigError
+
+    if poses is not None and not 1 <= poses <= 100_000:
+        raise ConfigError(f"--poses {poses}: expected a pose count of at least 1 (and at least the unknowns)")
+    if holdout is not None and not 0 <= holdout <= 100_000:
+        raise ConfigError(f"--holdout {holdout}: expected a pose count of 0 or more")
+    if cone is not None and not (math.isfinite(cone) and 0 < cone <= 90):
+        raise ConfigError(f"--cone {cone!r}: expected a half-angle in degrees in (0, 90]")
+    if seed is not None and not 0 <= seed < 2**63:
+        raise ConfigError(f"--seed {seed}: expected a non-negative integer")
+    if touch is not None and touch not in ("seat", "guarded", "manual"):
+        raise ConfigError(f"--touch {touch!r}: expected seat, guarded or manual")
+    if reference is not None and reference not in ("unknown", "cell"):
+        raise ConfigError(f"--reference must be 'unknown' or 'cell', got {reference!r}")
+    from station.robot.url import parse_url
+
+    parse_url(robot)
+    from station.engine.limits import load_limits
+
+    load_limits(limits)
+    if cell is not None:
+        from station.engine.cell import load_cell
+
+        load_cell(cell)
+
+
 def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None) -> dict:
     opts = {}
     if tracker is not None:
@@ -172,6 +202,7 @@ def run(
     """Run a procedure end of line: unattended, PASS/FAIL, exit 0 pass / 1 fail / 2 error."""
     from station.api import run as start
 
+    preflight(robot, poses, holdout, cone, seed, touch, reference, limits, cell)
     cb, bar = _progress_bar(quiet)
     with bar:
         out = start(procedure, robot, serial, limits=limits, db=db, apply=apply, cell=cell, operator=operator,

@@ -5,9 +5,7 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
-import os
 import re
 import sys
 from pathlib import Path
@@ -62,7 +60,12 @@ def _references(specs: list[str], labels: list[str], samples: str):
     if not specs or specs == ["unknown"]:
         return "unknown"
     ref: dict[str, np.ndarray] = {}
+    seen: set[str] = set()
     for s in specs:
+        key = s.split("=", 1)[0].strip() if "=" in s else ""
+        if key in seen:
+            raise _fail(f"--reference {s!r}: point {key or '(the only point)'!r} is given twice; give each once")
+        seen.add(key)
         if s == "unknown":
             raise _fail("--reference unknown cannot be combined with known points")
         if "=" in s:
@@ -79,13 +82,17 @@ def _references(specs: list[str], labels: list[str], samples: str):
     return ref
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+def check_max_std(max_std: float) -> float:
+    """``--max-std`` (m at the tool): 0, negative or non-finite would switch identifiability off."""
+    if not (math.isfinite(max_std) and 0 < max_std <= 1.0):
+        raise _fail(f"--max-std {max_std!r}: expected a positive finite length in m (at most 1 m), e.g. 0.001")
+    return max_std
+
+
+def check_identify(identify: str) -> str:
+    if not identify.strip() or not all(p.strip() for p in identify.split(",")):
+        raise _fail(f"--identify {identify!r}: expected groups/names/globs separated by commas, e.g. offsets,tcp")
+    return identify
 
 
 def _fmt(p) -> tuple[str, str, str]:
@@ -152,8 +159,13 @@ def solve_command(
 ) -> None:
     """Identify joint offsets, TCP, link geometry from touch samples. Exit 0: trusted result; 1: the solve
     failed or its result cannot be trusted (one line says why; the JSON is still written); 2: bad input."""
+    from station.safeio import dumps_json, write_atomic
     from station.solver import Observations, SolverInputError, solve
 
+    check_max_std(max_std)
+    check_identify(identify)
+    if out is not None:  # refuse a bad destination before the work, not after
+        write_atomic_check(out, {"--samples": samples, "--holdout": holdout})
     priors, noise_m = _priors(list(prior or [])), _noise(noise)
     if loss not in ("linear", "huber", "soft_l1"):
         raise _fail(f"--loss {loss!r}: expected linear, huber or soft_l1")
@@ -186,7 +198,7 @@ def solve_command(
     res.settings.update(samples=str(samples), holdout=None if holdout is None else str(holdout), tool=tool)
     typer.echo(summary(res))
     if out is not None:
-        _write_atomic(out, json.dumps(res.to_dict(), indent=2) + "\n")
+        write_atomic(out, dumps_json(res.to_dict()) + "\n", {"--samples": samples, "--holdout": holdout})
         typer.echo(f"result: {out}")
     if not res.trusted:
         typer.echo(f"station: solve failed: {res.failure or 'result not trusted'}", err=True)
@@ -239,19 +251,15 @@ def fk_command(
 ) -> None:
     """Tool pose (x, y, z in m; rx, ry, rz rotation vector in rad) for each row of joint readings."""
     from station.kinematics import se3
+    from station.resultfile import load_calibration
+    from station.safeio import write_atomic
 
+    inputs = {"--joints": joints, "--calibration": calibration}
+    if out is not None:
+        write_atomic_check(out, inputs)
     m = _load_model(model, tool, tip_link, base_link, payload)
     if calibration is not None:
-        from station.solver import CalibrationResult  # the solver (scipy) only when a result is applied
-
-        try:
-            doc = json.loads(Path(calibration).read_text())
-            cal = CalibrationResult.from_dict(doc)
-            m = cal.calibrated(m)
-        except FileNotFoundError:
-            raise _fail(f"{calibration}: no such file") from None
-        except (json.JSONDecodeError, ValueError, KeyError) as e:
-            raise _fail(f"{calibration}: {e}") from None
+        m = load_calibration(calibration, m)
     try:
         q, _ = read_joints(joints, m)
     except SamplesFileError as e:
@@ -268,7 +276,14 @@ def fk_command(
     if out is None:
         sys.stdout.write(buf.getvalue())
     else:
-        _write_atomic(out, buf.getvalue())
+        write_atomic(out, buf.getvalue(), inputs)
+
+
+def write_atomic_check(out: Path, inputs: dict) -> None:
+    """Refuse ``--out`` early: an input file, a directory or a missing folder (nothing written)."""
+    from station.safeio import check_destination
+
+    check_destination(out, inputs)
 
 
 def register(app: typer.Typer) -> None:

@@ -26,13 +26,17 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Literal
 
 import numpy as np
+from pydantic import Field
 
 from station.kinematics.collision import Checker, KeepOut, KeepOutError
 from station.kinematics.collision import keep_out_from_dict as parse_keep_out
 from station.robot.errors import ConfigError, LimitError
+from station.strict import Name, NonNeg, Pos, Strict, Vec3, check
 from station.units import ANGLE_UNITS, LENGTH_UNITS
+from station.yamlfile import YamlDoc
 
 FORMAT = "station-cell/1"
 LENGTH = {u: LENGTH_UNITS[u] for u in ("m", "mm")}  # the units a cell file may state
@@ -78,6 +82,51 @@ class Cell:
         return [p for p in self.points.values() if p.kind == kind]
 
 
+# ---- schema (docs/formats.md): shapes, types, ranges; geometry and units are applied below ----
+class _Units(Strict):
+    length: Literal["m", "mm"]
+    angle: Literal["rad", "deg"] = "rad"
+
+
+class _Tool(Strict):
+    x: float = 0.0
+    y: float = 0.0
+    z: float = 0.0
+    rx: float = 0.0
+    ry: float = 0.0
+    rz: float = 0.0
+
+
+class _PointBody(Strict):
+    kind: Literal["socket", "needle"] = "socket"
+    position: Vec3
+    approach: Vec3 = [0.0, 0.0, 1.0]
+    radius: Pos | None = None
+
+
+class _Point(_PointBody):
+    label: Name
+
+
+class _Cell(Strict):
+    format: Literal["station-cell/1"]
+    units: _Units
+    frame: Literal["robot base"] = "robot base"  # the frame every position is in (written by the emulated cell)
+    survey_sigma: NonNeg | None = None  # how well the positions were surveyed (length unit), informative
+    model: Name | None = None
+    tool: _Tool | None = None
+    mounting: Any = None  # checked by station.kinematics.collision
+    keep_out: Any = None
+
+
+class CellSchema(_Cell):
+    points: list[_Point] = Field(min_length=1, max_length=10_000)
+
+
+class CellSchemaByLabel(_Cell):
+    points: dict[Name, _PointBody] = Field(min_length=1, max_length=10_000)
+
+
 def default_cell_path() -> Path:
     return Path(os.environ.get("STATION_CELL") or "cell.yaml")
 
@@ -98,14 +147,24 @@ def _vec(where: str, v, scale: float, unit: bool = False) -> np.ndarray:
 
 
 def load_cell(path: str | Path | None = None) -> Cell:
-    from station.yamlfile import load_yaml
+    from station.yamlfile import load_yaml_doc
 
     path = Path(path) if path else default_cell_path()
-    doc = load_yaml(path, CellError, "cell file", " (pass --cell FILE or set STATION_CELL)")
+    doc = load_yaml_doc(path, CellError, "cell file", " (pass --cell FILE or set STATION_CELL)")
     return cell_from_dict(doc, str(path))
 
 
 def cell_from_dict(doc, where: str = "cell") -> Cell:
+    """The cell of a parsed cell file (a ``YamlDoc`` names lines in errors)."""
+    ydoc = doc if isinstance(doc, YamlDoc) else YamlDoc(where, doc)
+    doc = ydoc.data
+    if isinstance(doc, dict) and doc.get("format") == FORMAT:
+        check(CellSchemaByLabel if isinstance(doc.get("points"), dict) else CellSchema, ydoc, CellError)
+        labels = [p.get("label") for p in doc["points"]] if isinstance(doc["points"], list) else []
+        for i, lb in enumerate(labels):
+            if lb in labels[:i]:
+                raise CellError(f"{ydoc.where(('points', i, 'label'))}: label {lb!r} is used twice; labels name "
+                                f"points and must be unique")
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise CellError(f"{where}: expected 'format: {FORMAT}'")
     units = doc.get("units") or {}

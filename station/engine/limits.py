@@ -21,9 +21,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
+
+from pydantic import Field
 
 from station import units
 from station.robot.errors import ConfigError
+from station.strict import Name, Num, Strict, check
 
 FORMAT = "station-limits/1"
 # the units a limit may be stated in (station.units), by quantity
@@ -39,6 +43,25 @@ def default_limits() -> Path:
 
 class LimitsError(ConfigError):
     """A limits file is unreadable or wrong; the message names the file and the entry."""
+
+
+# a calibration limit beyond these (SI) is a unit slip (m written where mm was meant), not a tolerance
+PLAUSIBLE = {"length": 0.01, "angle": math.radians(10)}
+
+
+class _Limit(Strict):
+    low: Num | None = None
+    high: Num | None = None
+    marginal: Num | None = None
+    unit: Literal["m", "mm", "um", "rad", "deg", "mrad", "count", "1"]
+
+
+class LimitsSchema(Strict):
+    """``station-limits/1`` (docs/formats.md)."""
+
+    format: Literal["station-limits/1"]
+    version: Name | int
+    models: dict[Name, dict[Name, dict[Name, _Limit]]] = Field(min_length=1)
 
 
 @dataclass(frozen=True)
@@ -122,6 +145,12 @@ def _limit(where: str, name: str, d) -> Limit:
         raise LimitsError(f"{where}: low {low:g} is above high {high:g}")
     if marginal is not None and ((low is not None and marginal < low) or (high is not None and marginal > high)):
         raise LimitsError(f"{where}: marginal {marginal:g} lies outside [low, high]")
+    q = units.quantity_of(unit)
+    for key, v in (("low", low), ("high", high), ("marginal", marginal)):
+        if v is not None and q in PLAUSIBLE and abs(units.to_si(v, unit)) > PLAUSIBLE[q]:
+            big = "10 mm" if q == "length" else "10 deg"
+            raise LimitsError(f"{where}: {key} {v:g} {unit} is beyond {big}, not a plausible calibration limit "
+                              f"(a unit slip: m for mm, rad for mrad?)")
     return Limit(name, unit, low, high, marginal)
 
 
@@ -129,14 +158,12 @@ def load_limits(path: str | Path | None = None) -> Limits:
     """Read and check a limits file (default: the shipped ``procedures/limits.yaml``)."""
     import hashlib
 
-    from station.yamlfile import parse_yaml
+    from station.yamlfile import parse_yaml_doc, read_capped
 
     path = Path(path) if path else default_limits()
-    try:
-        text = path.read_bytes()
-    except OSError as e:
-        raise LimitsError(f"limits file {path}: {e.strerror or e}") from None
-    doc = parse_yaml(text, LimitsError, f"limits file {path}")
+    text = read_capped(path, LimitsError, f"limits file {path}")
+    ydoc = parse_yaml_doc(text, LimitsError, f"limits file {path}")
+    doc = ydoc.data
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise LimitsError(f"limits file {path}: expected 'format: {FORMAT}' at the top")
     version = doc.get("version")
@@ -155,4 +182,5 @@ def load_limits(path: str | Path | None = None) -> Limits:
                 raise LimitsError(f"limits file {path}: models.{model}.{proc} must map measurement names to limits")
             out[str(model)][str(proc)] = {
                 str(n): _limit(f"limits file {path}: models.{model}.{proc}.{n}", str(n), d) for n, d in table.items()}
+    check(LimitsSchema, ydoc, LimitsError)  # what the checks above do not name: unknown keys, types, lines
     return Limits(str(path), str(version), hashlib.sha256(text).hexdigest(), out)

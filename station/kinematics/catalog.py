@@ -48,9 +48,10 @@ def load_model(name_or_path: str | Path, *, tip_link: str | None = None, base_li
         raise ModelFileError(f"{s}: a {which} link applies to a URDF model only (this is "
                              f"{'a built-in model' if s in builtin_names() else 'not a URDF'})")
     if s in builtin_names():
-        import yaml
+        from station.yamlfile import parse_yaml_doc
 
-        return model_from_dict(yaml.safe_load(builtin_text(s)), f"{s} (built-in)")
+        name = f"{s} (built-in)"
+        return model_from_dict(parse_yaml_doc(builtin_text(s), ModelFileError, name), name)
     if Path(s).exists() or s.endswith((".yaml", ".yml")):
         return load_model_file(s)
     raise ModelFileError(f"unknown model {s!r}: not a built-in ({', '.join(builtin_names())}) nor a file")

@@ -165,7 +165,7 @@ def coverage(model, arrays: dict) -> dict:
         mean = z.mean(axis=0)
         mean /= np.linalg.norm(mean)
         cone = np.degrees(np.arccos(np.clip(z @ mean, -1, 1)))
-        pair = np.degrees(np.arccos(np.clip(z @ z.T, -1, 1)))
+        pair = np.degrees(np.arccos(np.clip(_min_pairwise_dot(z), -1, 1)))
         tool = {"axis": z.tolist(), "mean_axis": mean.tolist(), "cone_deg": cone.tolist(),
                 "max_from_mean_deg": float(cone.max()), "max_pairwise_deg": float(pair.max()),
                 "tilt_deg": np.degrees(np.arccos(np.clip(-z[:, 2], -1, 1))).tolist(),
@@ -173,3 +173,19 @@ def coverage(model, arrays: dict) -> dict:
     else:
         note = "tool orientation needs the kinematic model"
     return {"joints": joints, "tool": tool, "note": note}
+
+
+def _min_pairwise_dot(z: np.ndarray, exact_up_to: int = 2000, candidates: int = 500, chunk: int = 256) -> float:
+    """Smallest dot product between two of the unit vectors ``z`` (the widest pair of tool axes) in memory linear
+    in N (issue 14: 100k samples must not build an N x N matrix). Up to ``exact_up_to`` vectors every pair is
+    compared (in row chunks); beyond, the ``candidates`` vectors farthest from the mean axis are compared with
+    all — the widest pair of a cone of axes has an end on its rim."""
+    n = len(z)
+    rows = np.arange(n)
+    if n > exact_up_to:
+        mean = z.mean(axis=0)
+        rows = np.argsort(z @ mean)[:candidates]
+    best = 1.0
+    for s in range(0, len(rows), chunk):
+        best = min(best, float((z[rows[s:s + chunk]] @ z.T).min()))
+    return best

@@ -43,7 +43,10 @@ class RobotURL:
 
 
 def parse_url(url: str) -> RobotURL:
-    parts = urlsplit(url)
+    try:
+        parts = urlsplit(url)
+    except ValueError as e:  # e.g. "ur://[::1?" (an unclosed IPv6 bracket)
+        raise ConfigError(f"robot URL {url!r}: not a URL ({e})") from None
     if not parts.scheme:
         raise ConfigError(f"robot URL {url!r} has no scheme (e.g. ur://HOST, dynamixel:///dev/ttyUSB0)")
     query = {k: v[-1] for k, v in parse_qs(parts.query, keep_blank_values=True).items()}
@@ -52,6 +55,9 @@ def parse_url(url: str) -> RobotURL:
     except ValueError:
         raise ConfigError(f"robot URL {url!r}: bad port") from None
     return RobotURL(url, parts.scheme.lower(), parts.hostname or "", port, unquote(parts.path), query)
+
+
+MAX_ID = 255  # bus ids are one byte (Dynamixel 0-252, CANopen nodes 1-127); a bigger one is a typo
 
 
 def parse_ids(text: str) -> list[int]:
@@ -64,13 +70,17 @@ def parse_ids(text: str) -> list[int]:
                 continue
             if "-" in part:
                 lo, hi = (int(x) for x in part.split("-", 1))
-                if hi < lo:
+                if hi < lo or lo < 0 or hi > MAX_ID:
                     raise ValueError
                 out.extend(range(lo, hi + 1))
             else:
                 out.append(int(part))
+                if not 0 <= out[-1] <= MAX_ID:
+                    raise ValueError
+            if len(out) > MAX_ID + 1:
+                raise ValueError
     except ValueError:
-        raise ConfigError(f"bad id list {text!r}: expected e.g. '1-6' or '11,12,14'") from None
+        raise ConfigError(f"bad id list {text!r}: expected ids 0..{MAX_ID}, e.g. '1-6' or '11,12,14'") from None
     return out
 
 

@@ -1,0 +1,95 @@
+"""Outputs that a factory script can trust and inputs that cannot hang the station (issue 14).
+
+- ``write_atomic``: write a temporary file next to the destination, fsync, rename; never onto an input file
+  of the same command; an unwritable destination is one line and leaves no ``.tmp`` behind.
+- ``dumps_json``: always valid JSON (``allow_nan=False``; a NaN/Infinity is ``null``, the field's reason says
+  why). ``read_json``: a regular file of bounded size, NaN/Infinity and deep nesting refused, one line naming
+  the file. Errors are ``ConfigError`` (exit 2)."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+from pathlib import Path
+
+from station.robot.errors import ConfigError
+from station.yamlfile import decode, read_capped
+
+MAX_JSON_BYTES = 64 * 1024 * 1024  # a calibration result with a covariance of a few hundred parameters is < 10 MB
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return a.resolve() == b.resolve() or (a.exists() and b.exists() and os.path.samefile(a, b))
+    except OSError:
+        return False
+
+
+def check_destination(path: str | Path, inputs: dict | None = None, option: str = "--out") -> None:
+    """``ConfigError`` if ``path`` cannot take an output: an input file of the command, a directory, a missing
+    folder or one the station may not write to. Call it before the work so nothing is computed in vain."""
+    path = Path(path)
+    for opt, p in (inputs or {}).items():
+        if p is not None and _same_file(path, Path(p)):
+            raise ConfigError(f"{option} {path}: is the {opt} input file; refusing to overwrite it")
+    if path.is_dir():
+        raise ConfigError(f"{option} {path}: is a directory; give a file name")
+    if not path.parent.is_dir():
+        raise ConfigError(f"{option} {path}: folder {path.parent} does not exist")
+    if not os.access(path.parent, os.W_OK):
+        raise ConfigError(f"{option} {path}: folder {path.parent} is not writable")
+
+
+def write_atomic(path: str | Path, text: str, inputs: dict[str, str | Path | None] | None = None,
+                 option: str = "--out") -> None:
+    """Write ``text`` to ``path`` atomically. ``inputs`` (option -> path) are the command's input files:
+    writing over one of them is refused before anything is written."""
+    path = Path(path)
+    check_destination(path, inputs, option)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as e:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise ConfigError(f"{option} {path}: cannot write ({e.strerror or e})") from None
+
+
+def _clean(x):
+    """``x`` with every non-finite float replaced by None (JSON has no NaN)."""
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    if isinstance(x, dict):
+        return {k: _clean(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_clean(v) for v in x]
+    return x
+
+
+def dumps_json(doc, indent: int | None = 2) -> str:
+    """Valid JSON always: NaN/Infinity become null (``allow_nan=False`` guards the rule)."""
+    return json.dumps(_clean(doc), indent=indent, allow_nan=False)
+
+
+def _no_constant(name: str):
+    raise ValueError(f"{name} is not JSON (a value the data do not determine is written as null)")
+
+
+def read_json(path: str | Path, what: str = "JSON file"):
+    """Parsed JSON of regular file ``path``; ``ConfigError`` in one line for anything else."""
+    name = f"{what} {path}"
+    text = decode(read_capped(path, ConfigError, name, MAX_JSON_BYTES), ConfigError, name)
+    try:
+        return json.loads(text, parse_constant=_no_constant)
+    except json.JSONDecodeError as e:
+        raise ConfigError(f"{name}:{e.lineno}: not valid JSON ({e.msg})") from None
+    except ValueError as e:
+        raise ConfigError(f"{name}: {e}") from None
+    except RecursionError:
+        raise ConfigError(f"{name}: nested too deeply; not a station file") from None
