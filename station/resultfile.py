@@ -23,6 +23,10 @@ class _Parameter(Strict):
     nominal: Num | None = None
     kind: Name = "model"
     unit: Literal["m", "rad", "rad/(N m)", "m/N", "1"] = "m"
+    prior_std: NonNeg | None = None  # the prior the MAP estimate used (None: none)
+    shrinkage: Num | None = None  # how far the prior pulled the estimate (0: the data alone)
+    fix: str | None = None  # for a parameter not identified: what would identify it
+    cause: str | None = None  # structural cause of a non-identifiable parameter
 
 
 class CalibrationSchema(Strict):

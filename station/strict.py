@@ -133,9 +133,12 @@ def check(schema: type[BaseModel], doc: YamlDoc | Any, error: type[Exception], n
         msg = _message(err, last[-1] if last else "value")
         if err["type"] == "extra_forbidden" and path:
             model = _model_at(schema, path)
-            allowed = ", ".join(model.model_fields) if model else "see docs/formats.md"
             line = doc.line(path)
-            path, msg = path[:-1], f"expected a mapping of {allowed}; unknown key {path[-1]!r} (misspelt?)"
+            if model:
+                msg = f"expected a mapping of {', '.join(model.model_fields)}; unknown key {path[-1]!r} (misspelt?)"
+            else:
+                msg = f"unknown key {path[-1]!r} (misspelt? the keys are listed in docs/formats.md)"
+            path = path[:-1]
             if line:
                 raise error(f"{doc.name}:{line}: {dotted(path) or '(top level)'}: {msg}") from None
         elif err["type"] == "missing" and path:
