@@ -150,7 +150,7 @@ def show(serial: str = typer.Argument(..., help="robot serial number"),
 
 
 def _show_session(con: Console, s: dict) -> None:
-    from station.records import measurement_status
+    from station.records import measurement_status, overall_status
     from station.report.analysis import load_session_model
     from station.report.content import param_unit
 
@@ -176,7 +176,7 @@ def _show_session(con: Console, s: dict) -> None:
         con.print("no solver result")
     verdict = s.get("verdict")
     if verdict:
-        t = Table(title="Verdict", title_justify="left")
+        t = Table(title=f"Verdict: {overall_status(verdict)}", title_justify="left")
         for col in ("measurement", "value", "low", "high", "unit", "result"):
             t.add_column(col, justify="right" if col in ("value", "low", "high") else "left")
         for m in verdict.get("measurements") or []:

@@ -26,6 +26,7 @@ from station import units
 from station.robot.errors import ConfigError
 
 FORMAT = "station-limits/1"
+NO_LIMITS = "NO LIMITS"  # the verdict of a session with no limits for its model and procedure: never a PASS
 # the units a limit may be stated in (station.units), by quantity
 UNITS = ("m", "mm", "um", "rad", "deg", "mrad", "count", "1")
 

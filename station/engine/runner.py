@@ -41,12 +41,21 @@ class Outcome:
     session: str
     folder: Path
     status: str  # "completed" | "error" | "interrupted"
-    passed: bool | None  # the verdict (None when the run did not reach it)
+    passed: bool | None  # the verdict (None when the run did not reach it, or there were no limits)
     record: dict = field(repr=False, default_factory=dict)
     report: Path | None = None
     error: BaseException | None = field(repr=False, default=None)
     stored: bool = False
     db: str | None = None  # the records URL the session names (None: the default database)
+
+    @property
+    def verdict(self) -> str | None:
+        """``PASS``, ``FAIL``, ``NO LIMITS`` (nothing to judge against: not a pass, exit 2) or None (no verdict
+        reached). MARGINAL is a PASS here; the records and the report flag it."""
+        v = (self.record or {}).get("verdict")
+        if not v:
+            return None
+        return v.get("status") or ("PASS" if v.get("passed") else "FAIL")
 
     @property
     def exit_code(self) -> int:
@@ -268,7 +277,7 @@ def finish(s: Session, status: str, err: BaseException | None) -> Outcome:
                              teardown=problems))
         elif problems:
             s.event(ev.Fault(step="teardown", error="teardown", message="; ".join(problems)))
-        s.event(ev.End(status=status, passed=None if s.verdict is None else bool(s.verdict["passed"]),
+        s.event(ev.End(status=status, passed=_passed(s.verdict),
                        n_samples=len(s.samples())))
     finally:
         with contextlib.suppress(Exception):  # closing a dead connection must not hide the original outcome
@@ -277,8 +286,13 @@ def finish(s: Session, status: str, err: BaseException | None) -> Outcome:
     record = s.record_dict()
     write_samples_csv(s.folder / "samples.csv", s.samples(), joint_units(s.model),
                       comment=f"session {s.id}, model {s.model.name}")
-    return Outcome(s.id, s.folder, status, None if s.verdict is None else bool(s.verdict["passed"]), record,
+    return Outcome(s.id, s.folder, status, _passed(s.verdict), record,
                    error=err, db=s.journal.header.db)
+
+
+def _passed(verdict: dict | None) -> bool | None:
+    """None without a verdict and for NO LIMITS (passed None): neither a pass nor a fail."""
+    return None if verdict is None or verdict.get("passed") is None else bool(verdict["passed"])
 
 
 def _failed_step(s: Session) -> str | None:

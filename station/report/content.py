@@ -101,7 +101,8 @@ def build_report(session: dict) -> dict:
         "format": FORMAT, "units": "SI (m, rad, s)",
         "header": header,
         "overall": overall_status(verdict),
-        "verdict": {"passed": (verdict or {}).get("passed"), "measurements": measurements} if verdict else None,
+        "verdict": {"passed": (verdict or {}).get("passed"), "status": (verdict or {}).get("status"),
+                    "measurements": measurements} if verdict else None,
         "result": None if result is None else {
             "model": result.get("model"), "converged": result.get("converged"), "iterations": result.get("iterations"),
             "rank": result.get("rank"), "n_parameters": result.get("n_parameters"),
