@@ -189,6 +189,8 @@ def _show_session(con: Console, s: dict) -> None:
     wb = s.get("writeback")
     if wb:
         before, after = wb.get("before") or {}, wb.get("after") or {}
+        if wb.get("phase") == "exported":
+            con.print(f"Write-back: exported to {', '.join(wb.get('files') or [])}, controller unchanged")
         t = Table(title=f"Write-back ({'applied' if wb.get('applied') else 'not applied'}, "
                         f"{'verified' if wb.get('verified') else 'not verified'})", title_justify="left")
         for col in ("value", "before", "after", "unit"):
