@@ -37,11 +37,14 @@ POINT_LABELS = tuple("ABCDEFGH")
 CART_AXES = ("X", "Y", "Z", "Rx", "Ry", "Rz")
 JOG_MAX_JOINT_SPEED = np.deg2rad(30.0)  # rad/s (m/s prismatic): manual jog never faster than this per joint
 # hold-to-run: terminals send no key release, only repeats (first after a 250-660 ms delay, then every
-# 30-40 ms). Motion continues while repeats arrive and stops HOLD_WATCHDOG_S after the last one; before
-# the first repeat, HOLD_FIRST_S covers the terminal's repeat delay.
-HOLD_WATCHDOG_S = 0.2
-HOLD_FIRST_S = 0.6
+# 30-40 ms). A gap of HOLD_RELEASE_S without a repeat counts as released: the UI (ticking every HOLD_TICK_S)
+# sends stop, and every commanded target ends where the robot would be at that deadline, so the arm stands
+# still within HOLD_WATCHDOG_S of the last repeat even if the UI stalls. Before the first repeat,
+# HOLD_FIRST_S covers the terminal's repeat delay.
+HOLD_RELEASE_S = 0.15
 HOLD_TICK_S = 0.05  # the UI re-commands the motion this often while a key is held
+HOLD_WATCHDOG_S = 0.25  # release + one tick + deceleration: standstill after the last key repeat
+HOLD_FIRST_S = 0.6
 
 
 @dataclass
@@ -397,7 +400,7 @@ class JogController:
         d = 1 if direction > 0 else -1
         h = self.hold_state
         if h is not None and h["axis"] == axis and h["dir"] == d and h["mode"] == self.mode:
-            h["deadline"] = now + HOLD_WATCHDOG_S
+            h["deadline"] = now + HOLD_RELEASE_S
             h["events"] += 1
             return True
         if h is not None:
