@@ -210,3 +210,50 @@ def test_a_step_below_one_encoder_count_is_refused(tmp_path):
     finally:
         robot.close()
         emu.stop()
+
+
+def _hold_and_release(world, ctl, axis: int, direction: int, seconds: float) -> tuple[float, float]:
+    """Key events every 35 ms (a terminal's repeats) for ``seconds``, the UI's tick in between; then no more
+    events. Returns (tool travel during the hold in m, time from the last event to standstill in s)."""
+    import time
+
+    from station.tui.controller import HOLD_TICK_S
+
+    p0 = world.truth.position(world.encoder_q()[None])[0]
+    t0 = time.monotonic()
+    next_key = t0
+    while time.monotonic() - t0 < seconds:
+        now = time.monotonic()
+        if now >= next_key:
+            ctl.hold(axis, direction)
+            next_key = now + 0.035
+        ctl.hold_tick()
+        time.sleep(0.01)
+    t_last = next_key - 0.035
+    p1 = world.truth.position(world.encoder_q()[None])[0]
+    last_q, last_change = world.encoder_q(), time.monotonic()
+    while time.monotonic() - last_change < 0.2:
+        ctl.hold_tick()
+        time.sleep(HOLD_TICK_S / 5)
+        q = world.encoder_q()
+        if np.any(q != last_q):
+            last_q, last_change = q, time.monotonic()
+    return float(np.linalg.norm(p1 - p0)), last_change - t_last
+
+
+@pytest.mark.parametrize("mode,axis", [("joint", 1), ("cartesian", 0)])
+def test_hold_to_run_on_canopen(rig, mode, axis):
+    from station.tui.controller import HOLD_WATCHDOG_S
+
+    world, robot, ctl = rig(time_mode="realtime")
+    if mode == "cartesian":
+        ctl.toggle_mode()
+    ctl.set_continuous()
+    ctl.change_speed(+1)  # 25 %: 62.5 mm/s at the tool
+    travel, delay = _hold_and_release(world, ctl, axis, -1, 1.0)
+    print(f"canopen hold-to-run {mode}: {travel * 1e3:.1f} mm in 1.0 s at {ctl.speed_mm_s:g} mm/s, "
+          f"standstill {delay * 1e3:.0f} ms after the last key event")
+    assert ctl.speed_mm_s == 62.5
+    assert 0.3 * 62.5e-3 < travel < 1.1 * 62.5e-3 * 1.0  # moving at (not above) the override
+    assert delay < HOLD_WATCHDOG_S + 0.1, delay  # margin: the realtime world's decel on a loaded host
+    assert not robot.status().moving

@@ -43,7 +43,7 @@ JOG_MAX_JOINT_SPEED = np.deg2rad(30.0)  # rad/s (m/s prismatic): manual jog neve
 # HOLD_FIRST_S covers the terminal's repeat delay.
 HOLD_RELEASE_S = 0.15
 HOLD_TICK_S = 0.05  # the UI re-commands the motion this often while a key is held
-HOLD_WATCHDOG_S = 0.25  # release + one tick + deceleration: standstill after the last key repeat
+HOLD_WATCHDOG_S = 0.3  # release + one tick + deceleration: standstill after the last key repeat
 HOLD_FIRST_S = 0.6
 
 
@@ -433,6 +433,8 @@ class JogController:
         """Command a target no farther than the robot travels at the override until the deadline: if the UI
         stalls, the robot still stops there by itself."""
         h = self.hold_state
+        # the target is where the arm would be at the deadline (a target much closer makes the drives'
+        # profiles brake on every command): a stalled UI still stops the arm there
         horizon = max(h["deadline"] - now, HOLD_TICK_S)
         axis, d = h["axis"], h["dir"]
         cap = self.speed_mm_s * 1e-3
