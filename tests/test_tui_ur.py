@@ -148,3 +148,21 @@ def test_ur_writeback_is_an_honest_export(ur, tmp_path):
     assert rec["writeback"]["phase"] == "exported" and rec["writeback"]["after"] is None
     html = write_report(rec, tmp_path / "report").read_text()
     assert "controller unchanged" in html and "controller-calibration" in html
+
+
+@pytest.mark.timeout(120)
+def test_hold_to_run_is_refused_on_ur(ur, tmp_path):
+    """ur_rtde's moveJ re-plans on every new target (measured: 8 of 25 mm/s, standstill 0.5 s after the last
+    key): not a hold-to-run a technician can trust, so it is refused with a message until the driver offers a
+    velocity jog. Steps still work."""
+    robot = ur
+    robot.enable()
+    header = session_header(identity=robot.identity(), model_name="ur5e", serial="20235500001",
+                            identify="offsets", reference="unknown", url="ur://")
+    ctl = JogController(robot, JogSession.create(header=header, joint_units=joint_units(robot.model),
+                                                 folder=tmp_path / "s"), identify="offsets")
+    try:
+        ctl.set_continuous()
+        assert not ctl.continuous and "not available" in ctl.message
+    finally:
+        ctl.close()

@@ -141,6 +141,10 @@ class JogController:
         self.guide: gd.Guidance = gd.guidance(self.model, self._guide_labels(), [], None, self.limits, None)
         self.verdict: dict | None = None
         self.ur_rotvec = isinstance(robot, CalibrationExport)  # UR pendant shows the rotation vector
+        # hold-to-run re-targets position moves; ur_rtde's moveJ re-plans (brakes) on every new target, so
+        # on a UR it crawls and stops late (measured 8 of 25 mm/s, 0.5 s): refused there until the driver
+        # offers a velocity jog (speedJ/speedL under its RTDE watchdog) the UI can hold
+        self.hold_supported = not self.ur_rotvec
         self.selected: int | None = None  # index into session.samples; None = the latest
         self.fault: str | None = None
         self.message = "ready"
@@ -186,6 +190,9 @@ class JogController:
         self.message = f"step {self.step:g} mm / deg per key"
 
     def set_continuous(self) -> None:
+        if not self.hold_supported:
+            self.message = "hold-to-run is not available on this robot yet: use the step presets 1-4"
+            return
         self.continuous = True
         self.message = (f"hold-to-run: hold a jog key to move at {self.speed_percent} % "
                         f"({self.speed_mm_s:g} mm/s at the tool); release to stop")
