@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from station.engine import events as ev
-from station.engine.cell import Cell, check_path_clear
+from station.engine.cell import Cell
 from station.engine.writeback import (
     WriteBackError,
     WritebackPlan,
@@ -24,7 +24,7 @@ from station.engine.writeback import (
     plan_write,
 )
 from station.kinematics import Model, se3
-from station.kinematics.collision import KeepOut
+from station.kinematics.collision import Checker, KeepOut
 from station.robot.capabilities import CalibrationExport, CalibrationStore, ContactSensor
 from station.robot.errors import LimitError, StationError
 from station.robot.motion import MANUAL_TOOL_SPEED_CAP, jog_target, joint_speed_for_tool_cap
@@ -121,6 +121,7 @@ class JogController:
         self.reference = reference
         self.cell = cell
         self.keep_out: KeepOut = cell.keep_out if cell is not None else KeepOut.default()
+        self._checker: Checker | None = None
         self.limits = dict(limits or {})  # name -> station.engine.limits.Limit; empty: verdict NO LIMITS
         self.limits_version = limits_version
         self.judged_as = judged_as  # the limits section (procedure name) that judges this session
@@ -317,7 +318,13 @@ class JogController:
             target = jog_target(self.model, q0, self.mode, axis, step)
         else:
             target = self._tool_frame_target(q0, axis, step)
-        check_path_clear(self.model, self.keep_out, q0, target, "jog")
+        if self._checker is None:  # built once: the envelope compile is the expensive part
+            if getattr(self.model, "kind", "serial") == "parallel":
+                return target  # a parallel model has no link capsules (as in the planner): joint limits only
+            self._checker = Checker(self.model, self.keep_out)
+        hit = self._checker.path_hit(q0, target)
+        if hit is not None:  # the same words as station.engine.cell.check_path_clear
+            raise LimitError(f"jog: {hit.describe()} on the way; refused")
         return target
 
     def _tool_frame_target(self, q0: np.ndarray, axis: int, step: float) -> np.ndarray:
