@@ -374,8 +374,15 @@ class JogController:
                 q0 = np.asarray(self.robot.joint_positions().q, dtype=float)
                 start = q0
                 last = self.last_jog
-                if status.moving and last is not None and last["mode"] == self.mode and last["axis"] == axis \
-                        and last.get("frame") == self.frame and np.sign(last["step"]) == np.sign(step):
+                same = (last is not None and last["mode"] == self.mode and last["axis"] == axis
+                        and last.get("frame") == self.frame and np.sign(last["step"]) == np.sign(step)
+                        and not last.get("hold"))
+                if status.moving and same and np.max(np.abs(last["target"] - q0)) > last["step_dq"] * 1.05:
+                    # at most one step queued: a held step key (terminal repeats) must not pile up travel
+                    # that continues long after the key is released
+                    self.message = "one step already queued: wait, or STOP (space)"
+                    return False
+                if status.moving and same:
                     start = np.asarray(last["target"], float)  # queued: one more step from where it is going
                 elif status.moving:
                     self.message = "still moving: wait, or STOP (space)"
@@ -397,7 +404,8 @@ class JogController:
                 self._on_error(e, f"jog {self.axis_names()[axis]}")
                 return False
         self.last_jog = {"mode": self.mode, "frame": self.frame, "axis": axis, "step": step, "speed": speed,
-                         "q0": q0, "target": target, "cap_m_s": cap}
+                         "q0": q0, "target": target, "cap_m_s": cap,
+                         "step_dq": float(np.max(np.abs(target - start)))}
         self.message = (f"jog {self.axis_names()[axis]} {'+' if step > 0 else '-'}{self.step:g} {self.axis_unit(axis)}"
                         + (f" ({self.frame} frame)" if self.mode == "cartesian" else ""))
         return True
