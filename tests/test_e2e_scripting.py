@@ -33,8 +33,21 @@ def test_scripted_session_like_the_docs(cell):
         s.measure_result()
         s.measure("socket_height", float(result.points()["A"][2]), "length")  # informational: no limit
         verdict = s.judge()
-    assert verdict["passed"]  # no limits section for this script: nothing can fail but measured limits
+    # no limits section for this script: informational measurements only, and that is never a PASS (issue 15.5)
+    assert verdict["passed"] is None and verdict["status"] == "NO LIMITS"
     assert s.outcome.status == "completed" and s.outcome.stored and s.outcome.report.exists()
+    assert s.outcome.verdict == "NO LIMITS" and s.outcome.passed is None and s.outcome.exit_code == 2
+    from station.records import open_records, overall_status
+
+    records = open_records(db)
+    try:
+        stored = records.session(s.outcome.session)
+        assert overall_status(stored["verdict"]) == "NO LIMITS"
+        assert [r["passed"] for r in records.sessions(serial)] == [None]
+    finally:
+        records.close()
+    html = s.outcome.report.read_text()
+    assert 'id="overall">NO LIMITS<' in html and 'id="overall">PASS' not in html
     hidden = emu.world.hidden()
     for name, p in result.parameters.items():
         if name.startswith("offset.") and p.identifiable:

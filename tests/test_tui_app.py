@@ -198,7 +198,7 @@ def test_record_discard_retake_live_solve_and_writeback(rig):
             # discard the selected (latest) sample
             n_rows = len(ctl.session.samples)
             dropped = ctl.session.samples[-1].seq
-            await pilot.press("delete")
+            await pilot.press("delete", "y")  # discard asks first
             await settle(pilot, app)
             assert len(ctl.session.samples) == n_rows - 1
             _, events = read_journal(journal)

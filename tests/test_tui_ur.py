@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -85,3 +86,87 @@ def test_jog_and_record_on_ur(ur, tmp_path):
     _, events = read_journal(tmp_path / "s" / "journal.jsonl")
     samples = [e for e in events if e["type"] == "sample"]
     assert len(samples) == 1 and samples[0]["status"]["forced"] is True and samples[0]["raw_unit"] == "rad"
+
+
+@pytest.mark.timeout(120)
+def test_ur_writeback_is_an_honest_export(ur, tmp_path):
+    """Issue 15 item 6: the UR path is an export. The dialog says so, the controller is unchanged, the journal,
+    the record and the report say "exported to PATH, controller unchanged", no after values, no restore."""
+    from station.engine.session_record import session_from_journal
+    from station.report.render import write_report
+    from station.tui.app import ConfirmScreen, WritebackScreen
+
+    robot = ur
+    robot.enable()
+    header = session_header(identity=robot.identity(), model_name="ur5e", serial="20235500001",
+                            identify="offsets", reference="unknown", url="ur://")
+    ctl = JogController(robot, JogSession.create(header=header, joint_units=joint_units(robot.model),
+                                                 folder=tmp_path / "s"), identify="offsets")
+    assert ctl.ur_rotvec
+    rng = np.random.default_rng(3)
+    for _ in range(8):  # forced records at spread poses: enough for a solve to export
+        robot.move_joints(np.array(START) + rng.uniform(-0.2, 0.2, 6), speed=1.0)
+        assert ctl.record(force=True) is not None, ctl.message
+    assert ctl.solve_state.result is not None, ctl.solve_state.message
+    cal_before = robot.read_calibration()
+
+    async def run():
+        app = JogApp(ctl, poll_s=0.2)
+        async with app.run_test(size=(150, 50)) as pilot:
+            assert "rotation vector" in app.query_one("#tcp").border_title
+            q_before = (await wait_still(pilot, ctl)).q
+            await pilot.press("W")
+            end = time.monotonic() + 10  # a loaded machine may take a while to show the dialog
+            while not isinstance(app.screen, ConfirmScreen) and time.monotonic() < end:
+                await pilot.pause(0.05)
+            screen = app.screen
+            assert isinstance(screen, ConfirmScreen) and not isinstance(screen, WritebackScreen)
+            text = screen.question  # what the dialog shows (#cf-question)
+            assert "unchanged" in text and str(tmp_path / "s" / "controller-calibration") in text
+            assert "after" not in text.lower()  # no invented before/after values
+            await pilot.press("y")
+            end = time.monotonic() + 10
+            while not ctl.exported and time.monotonic() < end:
+                await pilot.pause(0.05)
+            assert ctl.message == f"exported to {tmp_path / 's' / 'controller-calibration'}, controller unchanged"
+            q_after = (await wait_still(pilot, ctl)).q
+            np.testing.assert_allclose(q_after, q_before, atol=1e-6)  # nothing moved, nothing written
+            assert not ctl.writeback_failed  # so W never offers a restore
+            await pilot.press("W")
+            await pilot.pause(0.2)
+            assert not isinstance(app.screen, WritebackScreen)  # an export again at most, never a restore
+            await pilot.press("n")
+
+    asyncio.run(run())
+    assert robot.read_calibration() == cal_before
+    files = ctl.exported
+    assert files and all(Path(f).exists() and Path(f).parent == tmp_path / "s" / "controller-calibration"
+                         for f in files)
+    assert any(f.endswith("calibration.conf") for f in files)
+    ctl.close()
+    _, events = read_journal(tmp_path / "s" / "journal.jsonl")
+    wbs = [e for e in events if e["type"] == "writeback"]
+    assert [w["phase"] for w in wbs] == ["exported"] and not wbs[0]["applied"]
+    assert wbs[0]["after"] is None and "controller unchanged" in wbs[0]["note"]
+    rec = session_from_journal(tmp_path / "s")
+    assert rec["writeback"]["phase"] == "exported" and rec["writeback"]["after"] is None
+    html = write_report(rec, tmp_path / "report").read_text()
+    assert "controller unchanged" in html and "controller-calibration" in html
+
+
+@pytest.mark.timeout(120)
+def test_hold_to_run_is_refused_on_ur(ur, tmp_path):
+    """ur_rtde's moveJ re-plans on every new target (measured: 8 of 25 mm/s, standstill 0.5 s after the last
+    key): not a hold-to-run a technician can trust, so it is refused with a message until the driver offers a
+    velocity jog. Steps still work."""
+    robot = ur
+    robot.enable()
+    header = session_header(identity=robot.identity(), model_name="ur5e", serial="20235500001",
+                            identify="offsets", reference="unknown", url="ur://")
+    ctl = JogController(robot, JogSession.create(header=header, joint_units=joint_units(robot.model),
+                                                 folder=tmp_path / "s"), identify="offsets")
+    try:
+        ctl.set_continuous()
+        assert not ctl.continuous and "not available" in ctl.message
+    finally:
+        ctl.close()

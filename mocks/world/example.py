@@ -30,6 +30,9 @@ def example_text(model: str = "ur5e", seed: int = 0) -> str:
     off = m.groups["offsets"][1]  # offset.j2 (serial), leg.2.offset / strut.2.offset (parallel)
     off_line = (f"{off}: 0.05            # deg: joint zero offset (theta = q + offset)" if m.joints[1].revolute else
                 f"{off}: 0.05       # mm: actuator zero offset (length = q + offset)")
+    n = m.n_joints  # one device per joint on every bus, or the emulator refuses its own world file
+    ids = ", ".join(str(11 + i) for i in range(n))
+    nodes = ", ".join(str(1 + i) for i in range(n))
     return f"""\
 # station simulated world (station-world/1): the robot the emulators serve, with errors only you know.
 # Use it with any emulator:  station mock <bus> --world THIS_FILE ; inspect it:  station mock world show THIS_FILE
@@ -80,7 +83,7 @@ noise:
   encoder: 0                   # deg (mm for prismatic), sigma of each encoder reading
 
 buses:                         # passed through to the bus emulators (world.bus_config(name))
-  dynamixel: {{baud: 1000000, ids: [11, 12, 13, 14]}}
-  canopen: {{nodes: [1, 2, 3, 4, 5, 6]}}
+  dynamixel: {{baud: 1000000, ids: [{ids}]}}   # one servo per joint
+  canopen: {{nodes: [{nodes}]}}           # one CiA 402 drive per joint
   ur: {{serial: "20235500000"}}
 """

@@ -19,14 +19,22 @@ def url_with_model(url: str, model: str | None) -> str:
 
 
 def open_jog(url: str, *, serial: str | None = None, model: str | None = None, session: Path | None = None,
-             identify: str = "offsets,tcp", reference: list[str] | str | None = None):
+             identify: str = "offsets,tcp", reference: list[str] | str | None = None, cell: Path | None = None,
+             limits: Path | None = None, judge: str = "jog"):
     """Connect, create the session (journal + samples.csv) and return ``(robot, controller)``.
-    The robot is closed again when anything after connecting fails."""
+    Bad ``--reference``, cell or limits files fail before the robot is opened; the robot is closed again when
+    anything after connecting fails. ``judge``: the limits section (procedure name) that judges the session;
+    a model without one ends the session with the verdict NO LIMITS."""
+    from station.engine.cell import load_cell
+    from station.engine.limits import load_limits
     from station.robot import adopt_serial, open_robot
+    from station.robot.errors import ConfigError
     from station.tui.controller import JogController, parse_reference
     from station.tui.session import JogSession, joint_units, session_header
 
     ref = parse_reference(reference)
+    the_cell = load_cell(cell) if cell is not None else None
+    lim = load_limits(limits)
     full_url = url_with_model(url, model)
     robot = open_robot(full_url)
     try:
@@ -35,10 +43,22 @@ def open_jog(url: str, *, serial: str | None = None, model: str | None = None, s
         sn = serial or ident.serial or "unknown"
         header = session_header(identity=ident, model_name=robot.model.name, serial=sn, identify=identify,
                                 reference=ref, url=full_url)
+        header.limits = {"path": lim.path, "version": lim.version, "sha256": lim.sha256, "procedure": judge}
+        if the_cell is not None:
+            from station.kinematics.collision import keep_out_to_doc
+
+            header.cell = {"path": the_cell.path, "model": the_cell.model, "tool": the_cell.tool,
+                           "points": [p.to_dict() for p in the_cell.points.values()],
+                           **keep_out_to_doc(the_cell.keep_out)}
         sid = session.name if session is not None else None
         jog_session = JogSession.create(header=header, joint_units=joint_units(robot.model), folder=session,
                                         session_id=sid)
-        ctl = JogController(robot, jog_session, identify=identify, reference=ref)
+        try:
+            table = lim.for_procedure(robot.model.name, judge)
+        except ConfigError:
+            table = {}  # nothing to judge against: the session ends with NO LIMITS
+        ctl = JogController(robot, jog_session, identify=identify, reference=ref, cell=the_cell, limits=table,
+                            limits_version=lim.version, judged_as=judge)
     except BaseException:
         robot.close()
         raise
@@ -75,6 +95,11 @@ def register(app: typer.Typer) -> None:
                                                  "(repeatable), as for station solve"),
         db: str = typer.Option(None, "--db", help="records database URL (default $STATION_DB, else "
                                                   "sqlite:///$STATION_HOME/station.db)"),
+        cell: Path = typer.Option(None, "--cell", help="cell file (station-cell/1): its points are offered in "
+                                                      "order and its keep-out checks every jog target"),
+        limits: Path = typer.Option(None, "--limits", help="limits file (default: the shipped limits.yaml)"),
+        judge: str = typer.Option("jog", "--judge", help="limits section (procedure name) that judges the "
+                                                         "session, e.g. zero_offsets; none for the model: NO LIMITS"),
     ) -> None:
         """Jog the robot, touch reference points, record samples, watch the live solve, write back."""
         # db: stored after the UI closes; the journal in the session folder stays the truth either way
@@ -83,7 +108,7 @@ def register(app: typer.Typer) -> None:
 
         try:
             rob, ctl = open_jog(robot, serial=serial, model=model, session=session, identify=identify,
-                                reference=reference)
+                                reference=reference, cell=cell, limits=limits, judge=judge)
         except (KeyError, SolverInputError) as e:
             typer.echo(f"station: error: --identify {identify!r}: {e.args[0] if e.args else e}", err=True)
             raise typer.Exit(2) from None
@@ -94,5 +119,6 @@ def register(app: typer.Typer) -> None:
             rob.close()
         store_in_records(ctl.session.folder, db)
         typer.echo(f"session saved: {ctl.session.folder}\n"
-                   f"  solve it: station solve --model {rob.model.name} --samples {ctl.session.samples_csv} "
-                   f"--identify {identify}")
+                   f"  verdict: {ctl.verdict_text or 'none'} (limits: {ctl.judged_as} for {rob.model.name}"
+                   f"{'' if ctl.limits else ', none defined'})\n"
+                   f"  solve it: {ctl.solve_command()}")

@@ -265,7 +265,7 @@ def export(fmt: str = typer.Option("csv", "--format", help="csv (one row per ses
 
 
 def _show_session(con: Console, s: dict) -> None:
-    from station.records import measurement_status
+    from station.records import measurement_status, overall_status
     from station.report.analysis import load_session_model
     from station.report.content import param_unit
 
@@ -291,7 +291,7 @@ def _show_session(con: Console, s: dict) -> None:
         con.print("no solver result")
     verdict = s.get("verdict")
     if verdict:
-        t = Table(title="Verdict", title_justify="left")
+        t = Table(title=f"Verdict: {overall_status(verdict)}", title_justify="left")
         for col in ("measurement", "value", "low", "high", "unit", "result"):
             t.add_column(col, justify="right" if col in ("value", "low", "high") else "left")
         for m in verdict.get("measurements") or []:
@@ -304,6 +304,8 @@ def _show_session(con: Console, s: dict) -> None:
     wb = s.get("writeback")
     if wb:
         before, after = wb.get("before") or {}, wb.get("after") or {}
+        if wb.get("phase") == "exported":
+            con.print(f"Write-back: exported to {', '.join(wb.get('files') or [])}, controller unchanged")
         t = Table(title=f"Write-back ({'applied' if wb.get('applied') else 'not applied'}, "
                         f"{'verified' if wb.get('verified') else 'not verified'})", title_justify="left")
         for col in ("value", "before", "after", "unit"):

@@ -147,6 +147,10 @@ def _finish(out) -> None:
     (2 error or NOT STORED, 130 interrupted)."""
     from station.robot.errors import StationError
 
+    if out.status == "completed" and out.verdict == "NO LIMITS":  # nothing to judge against: never a PASS
+        summary(out)
+        typer.echo("NO LIMITS")
+        _exit(2)
     if out.status == "completed" and out.passed is not None and out.stored:
         summary(out)
         typer.echo(out.verdict)
@@ -331,7 +335,7 @@ def run_demo(bus: str, *, time_mode: str = "instant", seed: int = 5, quiet: bool
             out = start("zero_offsets", emu.url, serial, cell=cell_path, options=dict(BUS_OPTIONS[bus]),
                         progress=cb, log=lambda s: typer.echo(s, err=True))
     if out.status != "completed" or out.passed is None:
-        _finish(out)
+        _finish(out)  # NO LIMITS too: exits
     res = out.record["result"]
     typer.echo("")
     typer.echo("joint zero offsets: hidden truth (world file) vs. recovered (deg)")

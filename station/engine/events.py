@@ -188,7 +188,8 @@ class Measurement(Event):
 @dataclass(kw_only=True)
 class Verdict(Event):
     TYPE: ClassVar[str] = "verdict"
-    passed: bool
+    passed: bool | None  # None: no verdict possible (``status`` says why)
+    status: str | None = None  # "NO LIMITS": nothing to judge against; never a pass
     measurements: list[dict] = field(default_factory=list)  # the measurement dicts (see Measurement)
     limits_version: str | None = None
 

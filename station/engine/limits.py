@@ -30,6 +30,7 @@ from station.robot.errors import ConfigError
 from station.strict import Name, Num, Strict, check
 
 FORMAT = "station-limits/1"
+NO_LIMITS = "NO LIMITS"  # the verdict of a session with no limits for its model and procedure: never a PASS
 # the units a limit may be stated in (station.units), by quantity
 UNITS = ("m", "mm", "um", "rad", "deg", "mrad", "count", "1")
 

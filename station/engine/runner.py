@@ -54,7 +54,7 @@ class Outcome:
     session: str
     folder: Path
     status: str  # "completed" | "error" | "interrupted"
-    passed: bool | None  # the verdict (None when the run did not reach it)
+    passed: bool | None  # the verdict (None when the run did not reach it, or there were no limits)
     record: dict = field(repr=False, default_factory=dict)
     report: Path | None = None
     error: BaseException | None = field(repr=False, default=None)
@@ -64,12 +64,17 @@ class Outcome:
 
     @property
     def verdict(self) -> str:
-        """What the terminal shows last: PASS, FAIL, NOT STORED, ERROR or INTERRUPTED."""
+        """What the terminal shows last: PASS, FAIL, NO LIMITS (nothing to judge against: not a pass, exit 2),
+        NOT STORED, ERROR or INTERRUPTED. MARGINAL is a PASS here; the records and the report flag it."""
         if self.store_error is not None:
             return "NOT STORED"
         if self.status == "interrupted":
             return "INTERRUPTED"
-        if self.status != "completed" or self.passed is None:
+        if self.status != "completed":
+            return "ERROR"
+        if ((self.record or {}).get("verdict") or {}).get("status") == "NO LIMITS":
+            return "NO LIMITS"
+        if self.passed is None:
             return "ERROR"
         return "PASS" if self.passed else "FAIL"
 
@@ -77,7 +82,7 @@ class Outcome:
     def exit_code(self) -> int:
         if self.status == "interrupted":
             return 130
-        if self.status != "completed" or self.passed is None:
+        if self.store_error is not None or self.status != "completed" or self.passed is None:
             return 2
         return 0 if self.passed else 1
 
@@ -390,7 +395,6 @@ def finish(s: Session, status: str, err: BaseException | None) -> Outcome:
     An incomplete end is never PASS: a teardown that could not bring the robot to its safe state after a
     completed checklist, or a journal that lost an event, turns the outcome into an error (exit 2) whose one-line
     reason says so (docs/reliability.md)."""
-    passed = None if s.verdict is None else bool(s.verdict["passed"])
     try:
         problems = s.safe_state()  # first: the robot stops, whatever the journal can still do
         if err is None and problems:
@@ -405,7 +409,7 @@ def finish(s: Session, status: str, err: BaseException | None) -> Outcome:
                 s.event(ev.Fault(step=step, error=type(err).__name__, message=str(err) or type(err).__name__,
                                  teardown=problems, pose=pose))
         with contextlib.suppress(JournalWriteError):  # without an End the session stays resumable
-            s.event(ev.End(status=status, passed=passed if status == "completed" else None,
+            s.event(ev.End(status=status, passed=_passed(s.verdict) if status == "completed" else None,
                            n_samples=len(s.samples())))
         if s.journal.lost and status == "completed":
             status, err = "error", JournalWriteError(f"journal {s.journal.path}: the end of the session could "
@@ -420,7 +424,7 @@ def finish(s: Session, status: str, err: BaseException | None) -> Outcome:
                           comment=f"session {s.id}, model {s.model.name}")
     except OSError as e:  # the journal holds every sample; samples.csv is a convenience copy
         s.log(f"samples.csv not written: {e.strerror or e}")
-    return Outcome(s.id, s.folder, status, passed if status == "completed" else None, record,
+    return Outcome(s.id, s.folder, status, _passed(s.verdict) if status == "completed" else None, record,
                    error=err, db=s.journal.header.db)
 
 
@@ -436,3 +440,8 @@ def _failed_step(s: Session) -> tuple[str | None, int | None]:
     if last is not None:
         return f"after {last.name}", None
     return None, None
+
+
+def _passed(verdict: dict | None) -> bool | None:
+    """None without a verdict and for NO LIMITS (passed None): neither a pass nor a fail."""
+    return None if verdict is None or verdict.get("passed") is None else bool(verdict["passed"])

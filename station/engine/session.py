@@ -15,7 +15,7 @@ import numpy as np
 from station.engine import events as ev
 from station.engine.cell import Cell, RefPoint
 from station.engine.journal import Journal
-from station.engine.limits import Limit, LimitsError
+from station.engine.limits import NO_LIMITS, Limit, LimitsError
 from station.engine.plan import PlannedPose, PosePlan, generate_plan, plan_from_joints
 from station.engine.session_record import live_samples, session_from_events
 from station.engine.touch import TouchProvider, provider_for
@@ -432,9 +432,12 @@ class Session:
                         self.measurements.append({**lim.judge(None, lim.quantity), "quantity": lim.quantity})
                     except LimitsError:
                         raise
-            passed = all(m["passed"] for m in self.measurements)
-            self.verdict = {"passed": passed, "measurements": self.measurements,
-                            "limits_version": self.limits_version}
+            if not self.limits:  # informational measurements only: nothing a quality engineer could sign
+                self.verdict = {"passed": None, "status": NO_LIMITS, "measurements": self.measurements,
+                                "limits_version": self.limits_version}
+            else:
+                self.verdict = {"passed": all(m["passed"] for m in self.measurements),
+                                "measurements": self.measurements, "limits_version": self.limits_version}
             self.event(ev.Verdict(**self.verdict))
         return self.verdict
 
@@ -448,7 +451,8 @@ class Session:
             self.event(ev.Step(name="write_back", status="skipped", reason="not requested (--apply)"))
             return None
         if self.verdict is not None and not self.verdict["passed"]:
-            self.event(ev.Step(name="write_back", status="skipped", reason="verdict FAIL"))
+            self.event(ev.Step(name="write_back", status="skipped",
+                               reason=f"verdict {self.verdict.get('status') or 'FAIL'}"))
             return None
         with self.step("write_back"):
             return write_back(self, check_pose)

@@ -63,6 +63,8 @@ def session_from_events(header: ev.Header, events: list[ev.Event]) -> dict:
             result = e.result
         elif isinstance(e, ev.Verdict):
             verdict = {"passed": e.passed, "measurements": e.measurements}
+            if e.status:
+                verdict["status"] = e.status  # NO LIMITS
         elif isinstance(e, ev.Fault):
             faults.append({"step": e.step, "error": e.error, "message": e.message})
         elif isinstance(e, ev.End):

@@ -46,9 +46,12 @@ def measurement_status(m: dict) -> str:
 
 
 def overall_status(verdict: dict | None) -> str:
-    """PASS, MARGINAL (passed with a marginal measurement), FAIL, or NONE when there is no verdict."""
+    """PASS, MARGINAL (passed with a marginal measurement), FAIL, NO LIMITS (nothing to judge against: never a
+    pass), or NONE when there is no verdict."""
     if not verdict:
         return "NONE"
+    if verdict.get("status") == "NO LIMITS":
+        return "NO LIMITS"
     statuses = [measurement_status(m) for m in verdict.get("measurements") or []]
     if verdict.get("passed") is False or "FAIL" in statuses:
         return "FAIL"

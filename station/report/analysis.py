@@ -103,8 +103,9 @@ def _recompute(result: dict, model, arrays: dict) -> dict | None:
         for n, p in params.items():
             if p.get("kind") == "point" and n.count(".") == 2:
                 _, label, axis = n.split(".")
-                if axis in "xyz":
-                    solved.setdefault(label, [math.nan] * 3)["xyz".index(axis)] = float(p["value"])
+                if axis in "xyz":  # a coordinate the data could not identify has no value: NaN
+                    solved.setdefault(label, [math.nan] * 3)["xyz".index(axis)] = (
+                        float(p["value"]) if _finite(p.get("value")) else math.nan)
         labels = arrays["point"]
         target_a = np.zeros_like(p_after)
         target_b = np.zeros_like(p_before)

@@ -95,13 +95,15 @@ def build_report(session: dict) -> dict:
             known = ((result or {}).get("parameters") or {}).get(name) or {}
             rows.append({"name": name, "unit": param_unit(name, known, model), "before": b, "after": a,
                          "change": None if b is None or a is None else float(a) - float(b)})
-        wb = {"applied": bool(writeback.get("applied")), "verified": bool(writeback.get("verified")), "values": rows}
+        wb = {"applied": bool(writeback.get("applied")), "verified": bool(writeback.get("verified")), "values": rows,
+              "phase": writeback.get("phase"), "files": list(writeback.get("files") or [])}
 
     return _clean({
         "format": FORMAT, "units": "SI (m, rad, s)",
         "header": header,
         "overall": overall_status(verdict),
-        "verdict": {"passed": (verdict or {}).get("passed"), "measurements": measurements} if verdict else None,
+        "verdict": {"passed": (verdict or {}).get("passed"), "status": (verdict or {}).get("status"),
+                    "measurements": measurements} if verdict else None,
         "result": None if result is None else {
             "model": result.get("model"), "converged": result.get("converged"), "iterations": result.get("iterations"),
             "rank": result.get("rank"), "n_parameters": result.get("n_parameters"),

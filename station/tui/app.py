@@ -14,7 +14,7 @@ from textual.css.query import NoMatches
 from textual.screen import ModalScreen
 from textual.widgets import Button, DataTable, Footer, Header, Static
 
-from station.tui.controller import STEP_PRESETS, JogController, WritebackPlan
+from station.tui.controller import HOLD_TICK_S, STEP_PRESETS, ExportPlan, JogController, WritebackPlan
 from station.units import human, human_of, joint_quantity
 
 # (plus key, minus key) per axis: J1..J6 in joint mode, X Y Z Rx Ry Rz in Cartesian mode
@@ -25,6 +25,52 @@ POLL_S = 0.2
 def _fmt_value(v: float, rotational: bool) -> str:
     unit, k = human(joint_quantity(rotational))
     return f"{v * k:+10.3f} {unit:<3}"
+
+
+class SamplesTable(DataTable):
+    """The samples list never takes focus (a focused DataTable swallows enter and the arrow keys in a real
+    terminal); the app's bindings move its cursor."""
+
+    can_focus = False
+
+
+class ConfirmScreen(ModalScreen[bool]):
+    """A yes/no question (discard a sample); enter does not confirm (it is the record key)."""
+
+    BINDINGS = [Binding("y", "confirm", "yes"), Binding("n,escape", "cancel", "no")]
+    AUTO_FOCUS = "#cf-no"
+    DEFAULT_CSS = """
+    ConfirmScreen { align: center middle; }
+    #cf-box { width: 70; height: auto; border: thick $warning; background: $surface; padding: 1 2; }
+    #cf-buttons { height: auto; margin-top: 1; }
+    #cf-buttons Button { margin-right: 2; }
+    """
+
+    def __init__(self, question: str, yes: str = "Yes (y)") -> None:
+        super().__init__()
+        self.question, self.yes = question, yes
+
+    def compose(self) -> ComposeResult:
+        with Vertical(id="cf-box"):
+            yield Static(Text(self.question, style="bold"), id="cf-question")
+            with Horizontal(id="cf-buttons"):
+                yield Button(self.yes, variant="error", id="cf-yes")
+                yield Button("No (n)", variant="primary", id="cf-no")
+
+    def on_button_pressed(self, event: Button.Pressed) -> None:
+        self.dismiss(event.button.id == "cf-yes")
+
+    def action_confirm(self) -> None:
+        self.dismiss(True)
+
+    def action_cancel(self) -> None:
+        self.dismiss(False)
+
+
+def export_question(plan: ExportPlan) -> str:
+    return (f"Export the calibration for the controller?\n\nThe controller keeps its own calibration: nothing is "
+            f"written to the robot, it stays unchanged. Files (calibration.conf, URDF, YAML) go to\n  {plan.folder}\n"
+            "for the integrator to install.")
 
 
 class WritebackScreen(ModalScreen[bool]):
@@ -79,6 +125,7 @@ class WritebackScreen(ModalScreen[bool]):
 
 class JogApp(App):
     TITLE = "station jog"
+    AUTO_FOCUS = None  # nothing takes focus: every key reaches the app's bindings
     CSS = """
     #banner { display: none; background: $error; color: $text; text-style: bold; padding: 0 1; height: auto; }
     #banner.on { display: block; }
@@ -93,9 +140,12 @@ class JogApp(App):
         Binding("space", "stop", "STOP", priority=True),
         Binding("x", "stop", "STOP", show=False, priority=True),
         Binding("m", "toggle_mode", "joint/cart"),
+        Binding("o", "toggle_frame", "base/tool", show=False),
         Binding("1", "step(0)", f"{STEP_PRESETS[0]:g}", show=False),
         Binding("2", "step(1)", f"{STEP_PRESETS[1]:g}", show=False),
         Binding("3", "step(2)", f"{STEP_PRESETS[2]:g}", show=False),
+        Binding("4", "step(3)", f"{STEP_PRESETS[3]:g}", show=False),
+        Binding("0", "hold_mode", "hold-to-run", show=False),
         Binding("minus", "speed(-1)", "slower", show=False),
         Binding("plus,equals_sign", "speed(1)", "faster", show=False),
         Binding("p", "point(1)", "point"),
@@ -132,7 +182,8 @@ class JogApp(App):
                 yield Static(id="jog", classes="panel")
                 yield Static(id="keys", classes="panel")
             with Vertical(id="right"):
-                yield DataTable(id="samples", cursor_type="row", zebra_stripes=True)
+                yield Static(id="guide", classes="panel")
+                yield SamplesTable(id="samples", cursor_type="row", zebra_stripes=True)
                 yield Static(id="solve", classes="panel")
         yield Static("", id="message")
         yield Footer()
@@ -145,8 +196,11 @@ class JogApp(App):
         self.query_one("#jog").border_title = "jog"
         self.query_one("#keys").border_title = "keys"
         self.query_one("#solve").border_title = f"live solve: {self.ctl.identify}"
+        self.query_one("#guide").border_title = "guidance"
+        self.query_one("#tcp").border_title = ("TCP (nominal model FK, base frame; rotation vector as on the "
+                                               "UR pendant)" if self.ctl.ur_rotvec else
+                                               "TCP (nominal model FK, base frame; roll-pitch-yaw)")
         table = self.query_one("#samples", DataTable)
-        table.can_focus = False  # every key goes to the app's bindings
         table.border_title = f"samples → {self.ctl.session.samples_csv}"
         table.add_columns("#", "point", "touch", *[f"J{i + 1}" for i in range(self.ctl.model.n_joints)])
         self.query_one("#keys", Static).update(self._keys_text())
@@ -155,16 +209,25 @@ class JogApp(App):
             self.ctl.message = "robot disabled (torque off): press c to enable"
         self.refresh_view()
         self._timer = self.set_interval(self.poll_s, self._tick)
+        self._hold_timer = self.set_interval(HOLD_TICK_S, self._hold_tick)
 
     def _keys_text(self) -> Text:
         n = max(self.ctl.model.n_joints, 6)
         pairs = " ".join(f"{p}/{m}" for p, m in JOG_KEYS[:n])
         return Text.from_markup(
-            f"[b]{pairs}[/b] axis 1..{n} +/-  [b]m[/b] joint|Cart\n"
-            f"[b]1 2 3[/b] step {' / '.join(f'{s:g}' for s in STEP_PRESETS)} mm|deg  [b]- +[/b] speed\n"
+            f"[b]{pairs}[/b] axis 1..{n} +/-\n[b]m[/b] joint|Cart  [b]o[/b] base|tool frame  [b]- +[/b] speed %\n"
+            f"[b]1 2 3 4[/b] step {' / '.join(f'{s:g}' for s in STEP_PRESETS)} mm|deg  [b]0[/b] hold-to-run\n"
             "[b]p[/b] point  [b]enter[/b] record  [b]![/b] record w/o contact\n"
             "[b]↑ ↓[/b] select  [b]k[/b] retake  [b]del[/b] discard  [b]W[/b] write\n"
             "[b][reverse] space [/reverse][/b] STOP (x)  [b]c[/b] clear fault  [b]ctrl+q[/b] quit")
+
+    def _hold_tick(self) -> None:
+        if self.ctl.hold_state is None or self.ctl.closed:
+            return
+        self.ctl.hold_tick()
+        if self.ctl.hold_state is None:
+            with contextlib.suppress(NoMatches):
+                self.refresh_view()
 
     # ---- periodic refresh ------------------------------------------------------------------------------
     def _tick(self) -> None:
@@ -194,18 +257,25 @@ class JogApp(App):
         tcp = Text()
         if r is not None:
             x, y, z = r.tcp[:3] * 1e3
-            rx, ry, rz = np.rad2deg(r.tcp[3:])
-            tcp.append(f"X {x:+10.3f} mm   Rx {rx:+9.3f} deg\nY {y:+10.3f} mm   Ry {ry:+9.3f} deg\n"
-                       f"Z {z:+10.3f} mm   Rz {rz:+9.3f} deg")
+            if ctl.ur_rotvec:  # as the UR pendant shows it: rotation vector in rad
+                rx, ry, rz = r.tcp[3:]
+                u = "rad"
+            else:
+                rx, ry, rz = np.rad2deg(r.tcp[3:])
+                u = "deg"
+            tcp.append(f"X {x:+10.3f} mm   Rx {rx:+9.4f} {u}\nY {y:+10.3f} mm   Ry {ry:+9.4f} {u}\n"
+                       f"Z {z:+10.3f} mm   Rz {rz:+9.4f} {u}")
         self.query_one("#tcp", Static).update(tcp)
         jog = Text()
         jog.append("mode  ")
         jog.append(f"{ctl.mode:<10}", style="bold cyan")
-        jog.append("step  ")
-        jog.append(f"{ctl.step:g} mm | deg\n", style="bold cyan")
+        if ctl.mode == "cartesian":
+            jog.append(f"{ctl.frame} frame  ", style="bold cyan")
+        jog.append("step  " if not ctl.continuous else "")
+        jog.append("hold-to-run\n" if ctl.continuous else f"{ctl.step:g} mm | deg\n", style="bold cyan")
         jog.append("speed ")
-        jog.append(f"{ctl.speed_mm_s:g} mm/s", style="bold cyan")
-        jog.append(" (cap 250)  point ")
+        jog.append(f"{ctl.speed_percent} % = {ctl.speed_mm_s:g} mm/s", style="bold cyan")
+        jog.append(" (max 250)  point ")
         jog.append(f"{ctl.point}\n", style="bold magenta")
         jog.append("touch ")
         if ctl.stale:
@@ -222,6 +292,7 @@ class JogApp(App):
             jog.append("  disabled", style="red")
         self.query_one("#jog", Static).update(jog)
         self._refresh_samples()
+        self.query_one("#guide", Static).update(self._guide_text())
         self.query_one("#solve", Static).update(self._solve_text())
         self.query_one("#message", Static).update(ctl.message)
 
@@ -234,10 +305,40 @@ class JogApp(App):
             touch = "–" if touch is None else ("●" if touch else "○")
             vals = [f"{v * human(joint_quantity(j.revolute))[1]:.3f}"
                     for v, j in zip(s.q, self.ctl.model.joints, strict=True)]
-            table.add_row(str(s.seq), s.point, touch, *vals)
+            table.add_row(str(self.ctl.number(s)), s.point, touch, *vals)
         if samples:
             sel = len(samples) - 1 if self.ctl.selected is None else self.ctl.selected
             table.move_cursor(row=sel, animate=False)
+
+    def _guide_text(self) -> Text:
+        ctl, g = self.ctl, self.ctl.guide
+        t = Text()
+        pts = ctl.cell.points if ctl.cell is not None else {}
+        for label in ctl.labels:
+            mark = "▶ " if label == g.next_point else "  "
+            style = "bold magenta" if label == ctl.point else ""
+            t.append(f"{mark}{label}", style=style)
+            p = pts.get(label)
+            if p is not None:
+                x, y, z = p.position * 1e3
+                t.append(f" {p.kind:<6} [{x:.0f}, {y:.0f}, {z:.0f}] mm", style="dim")
+            elif isinstance(ctl.reference, dict) and label in ctl.reference:
+                x, y, z = ctl.reference[label] * 1e3
+                t.append(f" ref    [{x:.0f}, {y:.0f}, {z:.0f}] mm", style="dim")
+            t.append(f"  {g.per_point.get(label, 0)} samples\n")
+        if g.next_point is not None:
+            t.append(f"next: touch {g.next_point}", style="bold")
+            t.append(" (fewest samples; vary the orientation)\n", style="dim")
+        t.append(f"samples {g.taken} / {g.needed if g.needed is not None else '?'} needed   ")
+        colour = {"good enough": "bold black on green", "not yet": "bold yellow", "NO LIMITS": "bold white on magenta"}
+        t.append(f" {g.status.upper() if g.status != 'waiting' else 'waiting'} ", style=colour.get(g.status, "dim"))
+        if g.status == "NO LIMITS":
+            t.append(f"\nno limits for {ctl.model.name}/{ctl.judged_as}: the session cannot PASS "
+                     "(--judge PROCEDURE to use a procedure's limits)", style="dim")
+        for c in g.checks:
+            sym = "·" if c.ok is None else ("✓" if c.ok else "✗")
+            t.append(f"\n {sym} {c.name}: {c.text}", style="" if c.ok is None else ("green" if c.ok else "yellow"))
+        return t
 
     def _solve_text(self) -> Text:
         st = self.ctl.solve_state
@@ -285,6 +386,14 @@ class JogApp(App):
         self.ctl.poll(block=True)
         self.refresh_view()
 
+    def action_toggle_frame(self) -> None:
+        self.ctl.toggle_frame()
+        self.refresh_view()
+
+    def action_hold_mode(self) -> None:
+        self.ctl.set_continuous()
+        self.refresh_view()
+
     def action_toggle_mode(self) -> None:
         self.ctl.toggle_mode()
         self.refresh_view()
@@ -314,8 +423,22 @@ class JogApp(App):
         self.refresh_view()
 
     def action_discard(self) -> None:
-        self.ctl.discard()
-        self.refresh_view()
+        sample = self.ctl.selected_sample()
+        if sample is None:
+            self.ctl.message = "nothing to discard"
+            self.refresh_view()
+            return
+        n = self.ctl.number(sample)
+
+        def done(confirmed: bool | None) -> None:
+            if confirmed and self.ctl.selected_sample() is sample:
+                self.ctl.discard()
+            else:
+                self.ctl.message = f"kept #{n}"
+            self.refresh_view()
+
+        self.push_screen(ConfirmScreen(f"Discard sample #{n} on {sample.point}? It stays in the journal as "
+                                       "discarded.", yes="Discard (y)"), done)
 
     def action_select(self, delta: int) -> None:
         self.ctl.select(delta)
@@ -338,9 +461,13 @@ class JogApp(App):
                 self.ctl.message = "write-back cancelled: nothing written"
             self.refresh_view()
 
-        self.push_screen(WritebackScreen(plan), done)
+        if isinstance(plan, ExportPlan):
+            self.push_screen(ConfirmScreen(export_question(plan), yes="Export (y)"), done)
+        else:
+            self.push_screen(WritebackScreen(plan), done)
 
     def on_unmount(self) -> None:
         if self._timer is not None:
             self._timer.stop()
+            self._hold_timer.stop()
         self.ctl.close()

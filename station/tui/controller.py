@@ -8,10 +8,12 @@ import re
 import threading
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from station.engine import events as ev
+from station.engine.cell import Cell
 from station.engine.writeback import (
     WriteBackError,
     WritebackPlan,
@@ -22,22 +24,33 @@ from station.engine.writeback import (
     plan_write,
 )
 from station.kinematics import Model, se3
-from station.robot.capabilities import CalibrationStore, ContactSensor
+from station.kinematics.collision import Checker, KeepOut
+from station.robot.capabilities import CalibrationExport, CalibrationStore, ContactSensor
 from station.robot.errors import LimitError, StationError
 from station.robot.motion import MANUAL_TOOL_SPEED_CAP, jog_target, joint_speed_for_tool_cap
+from station.tui import guidance as gd
 from station.tui.session import JogSession
 
-STEP_PRESETS = (0.01, 0.1, 1.0)  # mm for translations / prismatic joints, deg for rotations
-SPEED_PRESETS_MM_S = (5.0, 10.0, 25.0, 50.0, 100.0, 250.0)  # speed override at the tool
+STEP_PRESETS = (0.01, 0.1, 1.0, 10.0)  # mm for translations / prismatic joints, deg for rotations
+SPEED_PERCENT = (1, 2, 5, 10, 25, 50, 100)  # speed override, % of the manual tool-speed cap (250 mm/s)
 POINT_LABELS = tuple("ABCDEFGH")
 CART_AXES = ("X", "Y", "Z", "Rx", "Ry", "Rz")
 JOG_MAX_JOINT_SPEED = np.deg2rad(30.0)  # rad/s (m/s prismatic): manual jog never faster than this per joint
+# hold-to-run: terminals send no key release, only repeats (first after a 250-660 ms delay, then every
+# 30-40 ms). A gap of HOLD_RELEASE_S without a repeat counts as released: the UI (ticking every HOLD_TICK_S)
+# sends stop, and every commanded target ends where the robot would be at that deadline, so the arm stands
+# still within HOLD_WATCHDOG_S of the last repeat even if the UI stalls. Before the first repeat,
+# HOLD_FIRST_S covers the terminal's repeat delay.
+HOLD_RELEASE_S = 0.15
+HOLD_TICK_S = 0.05  # the UI re-commands the motion this often while a key is held
+HOLD_WATCHDOG_S = 0.3  # release + one tick + deceleration: standstill after the last key repeat
+HOLD_FIRST_S = 0.6
 
 
 @dataclass
 class Readout:
     q: np.ndarray  # SI
-    tcp: np.ndarray  # (6,) x, y, z (m), rx, ry, rz (rad, fixed-axis roll-pitch-yaw) of the nominal model
+    tcp: np.ndarray  # (6,) x, y, z (m), rx, ry, rz (rad) of the nominal model: roll-pitch-yaw, or UR's rotation vector
     touch: bool | None
     moving: bool
     enabled: bool
@@ -54,6 +67,16 @@ class SolveState:
     unidentifiable: dict[str, str] = field(default_factory=dict)
     result: object | None = None  # CalibrationResult
     seconds: float = 0.0
+
+
+@dataclass
+class ExportPlan:
+    """A controller that keeps its calibration itself (UR): the write-back is an export of files into
+    ``folder``; the controller is unchanged, so there is no before/after and nothing to restore."""
+
+    folder: Path
+    corrections: dict[str, float]
+    kind: str = "export"
 
 
 def parse_reference(specs: str | list[str] | None) -> str | dict[str, np.ndarray]:
@@ -89,18 +112,40 @@ class JogController:
     that use the controller from other threads too. ``stop()`` deliberately bypasses the lock."""
 
     def __init__(self, robot, session: JogSession, *, model: Model | None = None, identify: str = "offsets,tcp",
-                 reference: str | dict = "unknown") -> None:
+                 reference: str | dict = "unknown", cell: Cell | None = None, limits: dict | None = None,
+                 limits_version: str | None = None, judged_as: str = "jog") -> None:
         self.robot = robot
         self.model: Model = model if model is not None else robot.model
         self.session = session
         self.identify = identify
         self.reference = reference
+        self.cell = cell
+        self.keep_out: KeepOut = cell.keep_out if cell is not None else KeepOut.default()
+        self._checker: Checker | None = None
+        self.limits = dict(limits or {})  # name -> station.engine.limits.Limit; empty: verdict NO LIMITS
+        self.limits_version = limits_version
+        self.judged_as = judged_as  # the limits section (procedure name) that judges this session
         self.io_lock = threading.RLock()
         self.mode = "joint"  # joint | cartesian
+        self.frame = "base"  # base | tool: the frame of Cartesian jogs
+        self.continuous = False  # hold-to-run instead of one step per key
         self.axis = 0  # last axis jogged / selected
         self.step_index = 1
-        self.speed_index = 2
+        self.speed_index = 3
+        self.labels = self._point_labels()
+        # points to guide through: the cell's and the known references'; free labels A..H are only names
+        self.guided = cell is not None or isinstance(reference, dict)
         self.point_index = 0
+        self.numbers: dict[int, int] = {}  # journal seq -> sample number 1..n in this session
+        self.hold_state: dict | None = None
+        self.predicted: dict[str, float | None] = {}
+        self.guide: gd.Guidance = gd.guidance(self.model, self._guide_labels(), [], None, self.limits, None)
+        self.verdict: dict | None = None
+        self.ur_rotvec = isinstance(robot, CalibrationExport)  # UR pendant shows the rotation vector
+        # hold-to-run re-targets position moves; ur_rtde's moveJ re-plans (brakes) on every new target, so
+        # on a UR it crawls and stops late (measured 8 of 25 mm/s, 0.5 s): refused there until the driver
+        # offers a velocity jog (speedJ/speedL under its RTDE watchdog) the UI can hold
+        self.hold_supported = not self.ur_rotvec
         self.selected: int | None = None  # index into session.samples; None = the latest
         self.fault: str | None = None
         self.message = "ready"
@@ -108,6 +153,7 @@ class JogController:
         self.stale = False  # the last poll failed: the readout shows the last known values
         self.solve_state = SolveState()
         self.writeback_done: dict | None = None
+        self.exported: list[str] = []  # files of the last export (controllers that keep their own calibration)
         self.writeback_failed = False  # a write-back raised or did not read back: W then offers the restore
         self.pre_image: dict[str, float] = {}  # the device calibration before this session's first write-back
         self.last_jog: dict | None = None
@@ -120,28 +166,59 @@ class JogController:
         return STEP_PRESETS[self.step_index]
 
     @property
+    def speed_percent(self) -> int:
+        return SPEED_PERCENT[self.speed_index]
+
+    @property
     def speed_mm_s(self) -> float:
-        return min(SPEED_PRESETS_MM_S[self.speed_index], MANUAL_TOOL_SPEED_CAP * 1e3)
+        return MANUAL_TOOL_SPEED_CAP * 1e3 * self.speed_percent / 100.0
 
     @property
     def point(self) -> str:
-        return POINT_LABELS[self.point_index]
+        return self.labels[self.point_index]
+
+    def _point_labels(self) -> list[str]:
+        """Selectable labels: the cell's points, then ``--reference`` labels not in the cell; A..H without either."""
+        labels = list(self.cell.points) if self.cell is not None else []
+        if isinstance(self.reference, dict):
+            labels += [lb for lb in self.reference if lb not in labels]
+        return labels or list(POINT_LABELS)
 
     def set_step(self, index: int) -> None:
+        self.stop_hold()
+        self.continuous = False
         self.step_index = max(0, min(len(STEP_PRESETS) - 1, index))
-        self.message = f"step {self.step:g} mm / deg"
+        self.message = f"step {self.step:g} mm / deg per key"
+
+    def set_continuous(self) -> None:
+        if not self.hold_supported:
+            self.message = "hold-to-run is not available on this robot yet: use the step presets 1-4"
+            return
+        self.continuous = True
+        self.message = (f"hold-to-run: hold a jog key to move at {self.speed_percent} % "
+                        f"({self.speed_mm_s:g} mm/s at the tool); release to stop")
 
     def change_speed(self, delta: int) -> None:
-        self.speed_index = max(0, min(len(SPEED_PRESETS_MM_S) - 1, self.speed_index + delta))
-        self.message = f"speed override {self.speed_mm_s:g} mm/s at the tool"
+        self.speed_index = max(0, min(len(SPEED_PERCENT) - 1, self.speed_index + delta))
+        self.message = f"speed override {self.speed_percent} % = {self.speed_mm_s:g} mm/s at the tool"
 
     def toggle_mode(self) -> None:
+        self.stop_hold()
         self.mode = "cartesian" if self.mode == "joint" else "joint"
-        self.message = f"{self.mode} jog"
+        self.message = f"{self.mode} jog" + (f" ({self.frame} frame)" if self.mode == "cartesian" else "")
+
+    def toggle_frame(self) -> None:
+        self.stop_hold()
+        self.frame = "tool" if self.frame == "base" else "base"
+        self.message = f"Cartesian jogs in the {self.frame} frame"
 
     def next_point(self, delta: int = 1) -> None:
-        self.point_index = (self.point_index + delta) % len(POINT_LABELS)
+        self.point_index = (self.point_index + delta) % len(self.labels)
         self.message = f"reference point {self.point}"
+
+    def number(self, sample: ev.Sample) -> int:
+        """The sample's number in this session, 1..n in recording order (not the journal's sequence)."""
+        return self.numbers.get(sample.seq, 0)
 
     def axis_names(self) -> list[str]:
         if self.mode == "cartesian":
@@ -178,6 +255,7 @@ class JogController:
 
     def stop(self, quiet: bool = False) -> None:
         """Always available: no lock, no precondition."""
+        self.hold_state = None
         try:
             self.robot.stop()
             if not quiet:
@@ -213,46 +291,201 @@ class JogController:
             self.stop(quiet=True)
             self.session.event(ev.Fault(step="status", error="status", message=self.fault))
         T = self.model.fk(snap.q)
-        tcp = np.concatenate([T[:3, 3], se3.matrix_to_rpy(T[:3, :3])])
+        rot = se3.matrix_to_rotvec(T[:3, :3]) if self.ur_rotvec else se3.matrix_to_rpy(T[:3, :3])
+        tcp = np.concatenate([T[:3, 3], rot])
         self.readout = Readout(np.asarray(snap.q, float), tcp, touch, status.moving, status.enabled, snap.t)
         return self.readout
 
+    def _refuse_axis(self, axis: int) -> str | None:
+        if self.fault:
+            return "clear the fault first (c)"
+        if self.mode == "joint" and axis >= self.model.n_joints:
+            return f"this robot has {self.model.n_joints} joints"
+        if self.mode == "cartesian" and axis >= 3 and self.model.n_joints < 6:
+            # the IK solves position only below 6 joints: a rotation step would silently do nothing
+            return f"a {self.model.n_joints}-joint arm jogs its tool position only: use joint mode to turn it"
+        return None
+
+    def count_si(self, joint: int) -> float:
+        """One encoder count of ``joint`` in SI (0 when the model has no device scaling)."""
+        enc = self.model.joints[joint].encoder
+        return 0.0 if enc is None else 1.0 / (enc.counts_per_unit * enc.gear)
+
+    def target(self, q0: np.ndarray, axis: int, step: float) -> np.ndarray:
+        """Joint target of one step (SI) on ``axis`` in the current mode and frame; LimitError when it is
+        unreachable, outside joint limits, or brings a link into the cell's keep-out (checked along the path)."""
+        if self.mode == "joint" or self.frame == "base":
+            target = jog_target(self.model, q0, self.mode, axis, step)
+        else:
+            target = self._tool_frame_target(q0, axis, step)
+        if self._checker is None:  # built once: the envelope compile is the expensive part
+            if getattr(self.model, "kind", "serial") == "parallel":
+                return target  # a parallel model has no link capsules (as in the planner): joint limits only
+            self._checker = Checker(self.model, self.keep_out)
+        hit = self._checker.path_hit(q0, target)
+        if hit is not None:  # the same words as station.engine.cell.check_path_clear
+            raise LimitError(f"jog: {hit.describe()} on the way; refused")
+        return target
+
+    def _tool_frame_target(self, q0: np.ndarray, axis: int, step: float) -> np.ndarray:
+        from station.robot.motion import check_joint_limits
+
+        T = self.model.fk(q0)
+        goal = T.copy()
+        R = T[:3, :3]
+        if axis < 3:
+            goal[:3, 3] += R[:, axis] * step  # along the tool's own axis
+        else:
+            rv = np.zeros(3)
+            rv[axis - 3] = step
+            goal[:3, :3] = R @ se3.rotvec_to_matrix(rv)  # about the tool's own axis, through the TCP
+        full = self.model.n_joints >= 6
+        res = self.model.ik(goal if full else goal[:3, 3], q0, position_only=not full or None)
+        if not res.ok[0]:
+            raise LimitError(f"jog: tool-frame step {step:g} on axis {'xyz'[axis % 3]} is not reachable within "
+                             "joint limits from here")
+        return check_joint_limits(self.model, res.q[0], "jog")
+
     def jog(self, axis: int, direction: int) -> bool:
         """One step of the current preset on ``axis`` (joint index or 0..5 = X Y Z Rx Ry Rz), sign from
-        ``direction``. Target and speed come from the shared motion helpers; the move is started without
-        waiting (``move_joints(wait=False)``), so the UI thread stays free for STOP and every bus transaction
-        stays on one thread (the Dynamixel SDK port is not thread-safe)."""
-        if self.fault:
-            self.message = "clear the fault first (c)"
+        ``direction``. A key pressed while the previous step still runs extends that move by one more step
+        from its target (no press is dropped). Refused with a message, nothing sent: a step below one
+        encoder count, a target outside joint limits or unreachable, a link entering the keep-out. The move
+        is started without waiting, so the UI thread stays free for STOP and every bus transaction stays on
+        one thread (the Dynamixel SDK port is not thread-safe)."""
+        refusal = self._refuse_axis(axis)
+        if refusal:
+            self.message = refusal
             return False
-        if self.mode == "joint" and axis >= self.model.n_joints:
-            self.message = f"this robot has {self.model.n_joints} joints"
-            return False
-        if self.mode == "cartesian" and axis >= 3 and self.model.n_joints < 6:
-            # jog_target solves position only below 6 joints: a rotation step would silently do nothing
-            self.message = f"a {self.model.n_joints}-joint arm jogs its tool position only: use joint mode to turn it"
-            return False
+        if self.continuous:
+            return self.hold(axis, direction)
         self.axis = axis
         step = float(np.sign(direction)) * self.step_si(axis)
+        if self.mode == "joint" and abs(step) < self.count_si(axis) * (1 - 1e-9):
+            c = self.count_si(axis)
+            unit, k = ("deg", 180 / np.pi) if self.model.joints[axis].revolute else ("mm", 1e3)
+            self.message = (f"refused: a {self.step:g} {self.axis_unit(axis)} step is below one encoder count of "
+                            f"J{axis + 1} ({c * k:.4g} {unit}); choose a larger step")
+            return False
         cap = self.speed_mm_s * 1e-3
         with self.io_lock:
             try:
                 status = self.robot.status()
-                if status.moving:
+                q0 = np.asarray(self.robot.joint_positions().q, dtype=float)
+                start = q0
+                last = self.last_jog
+                same = (last is not None and last["mode"] == self.mode and last["axis"] == axis
+                        and last.get("frame") == self.frame and np.sign(last["step"]) == np.sign(step)
+                        and not last.get("hold"))
+                if status.moving and same and np.max(np.abs(last["target"] - q0)) > last["step_dq"] * 1.05:
+                    # at most one step queued: a held step key (terminal repeats) must not pile up travel
+                    # that continues long after the key is released
+                    self.message = "one step already queued: wait, or STOP (space)"
+                    return False
+                if status.moving and same:
+                    start = np.asarray(last["target"], float)  # queued: one more step from where it is going
+                elif status.moving:
                     self.message = "still moving: wait, or STOP (space)"
                     return False
-                q0 = np.asarray(self.robot.joint_positions().q, dtype=float)
-                target = jog_target(self.model, q0, self.mode, axis, step)  # LimitError: nothing sent
+                target = self.target(start, axis, step)  # LimitError: nothing sent
+                if self.mode == "cartesian" and np.all(np.abs(target - start) < [
+                        self.count_si(j) for j in range(self.model.n_joints)]):
+                    self.message = (f"refused: a {self.step:g} {self.axis_unit(axis)} Cartesian step moves no joint "
+                                    "by one encoder count; choose a larger step")
+                    return False
                 # lead-joint speed that keeps the tool at or below the override along the whole step; the
                 # joint cap keeps wrist rotations (tool point nearly still) from snapping round
                 speed = joint_speed_for_tool_cap(self.model, q0, target, JOG_MAX_JOINT_SPEED, cap=cap)
                 self.robot.move_joints(target, speed=speed, wait=False)
+            except LimitError as e:
+                self.message = f"refused: {e}"
+                return False
             except StationError as e:
                 self._on_error(e, f"jog {self.axis_names()[axis]}")
                 return False
-        self.last_jog = {"mode": self.mode, "axis": axis, "step": step, "speed": speed, "q0": q0, "target": target,
-                         "cap_m_s": cap}
-        self.message = f"jog {self.axis_names()[axis]} {'+' if step > 0 else '-'}{self.step:g} {self.axis_unit(axis)}"
+        self.last_jog = {"mode": self.mode, "frame": self.frame, "axis": axis, "step": step, "speed": speed,
+                         "q0": q0, "target": target, "cap_m_s": cap,
+                         "step_dq": float(np.max(np.abs(target - start)))}
+        self.message = (f"jog {self.axis_names()[axis]} {'+' if step > 0 else '-'}{self.step:g} {self.axis_unit(axis)}"
+                        + (f" ({self.frame} frame)" if self.mode == "cartesian" else ""))
+        return True
+
+    # ---- hold-to-run -------------------------------------------------------------------------------
+    def hold(self, axis: int, direction: int, now: float | None = None) -> bool:
+        """A jog key event in hold-to-run mode (the press or one of the terminal's repeats): keep moving
+        ``axis`` while events keep coming; :meth:`hold_tick` stops the robot once they stop."""
+        refusal = self._refuse_axis(axis)
+        if refusal:
+            self.message = refusal
+            return False
+        now = time.monotonic() if now is None else now
+        d = 1 if direction > 0 else -1
+        h = self.hold_state
+        if h is not None and h["axis"] == axis and h["dir"] == d and h["mode"] == self.mode:
+            h["deadline"] = now + HOLD_RELEASE_S
+            h["events"] += 1
+            return True
+        if h is not None:
+            self.stop_hold(quiet=True)
+        self.axis = axis
+        self.hold_state = {"axis": axis, "dir": d, "mode": self.mode, "frame": self.frame, "events": 1,
+                           "deadline": now + HOLD_FIRST_S, "started": now}
+        return self._hold_command(now)
+
+    def hold_tick(self, now: float | None = None) -> None:
+        """Called every HOLD_TICK_S by the UI: re-command the held motion, or stop once the key events stopped."""
+        h = self.hold_state
+        if h is None:
+            return
+        now = time.monotonic() if now is None else now
+        if now >= h["deadline"]:
+            self.stop_hold()
+            return
+        self._hold_command(now)
+
+    def stop_hold(self, quiet: bool = False) -> None:
+        if self.hold_state is None:
+            return
+        self.hold_state = None
+        self.stop(quiet=True)
+        if not quiet:
+            self.message = "key released: stopped"
+
+    def _hold_command(self, now: float) -> bool:
+        """Command a target no farther than the robot travels at the override until the deadline: if the UI
+        stalls, the robot still stops there by itself."""
+        h = self.hold_state
+        # the target is where the arm would be at the deadline (a target much closer makes the drives'
+        # profiles brake on every command): a stalled UI still stops the arm there
+        horizon = max(h["deadline"] - now, HOLD_TICK_S)
+        axis, d = h["axis"], h["dir"]
+        cap = self.speed_mm_s * 1e-3
+        rotational = self.axis_unit(axis) == "deg"
+        rate = JOG_MAX_JOINT_SPEED if rotational or self.mode == "joint" else cap
+        with self.io_lock:
+            try:
+                q0 = np.asarray(self.robot.joint_positions().q, dtype=float)
+                step = d * rate * horizon
+                target = self.target(q0, axis, step)
+                speed = joint_speed_for_tool_cap(self.model, q0, target, JOG_MAX_JOINT_SPEED, cap=cap)
+                lead = float(np.max(np.abs(target - q0)))
+                if lead > speed * horizon > 0:  # slower than asked (tool cap): shorten to the reachable part
+                    step *= speed * horizon / lead
+                    target = self.target(q0, axis, step)
+                self.robot.move_joints(target, speed=speed, wait=False)
+            except LimitError as e:
+                self.hold_state = None
+                self.stop(quiet=True)
+                self.message = f"refused: {e}"
+                return False
+            except StationError as e:
+                self.hold_state = None
+                self._on_error(e, f"jog {self.axis_names()[axis]}")
+                return False
+        self.last_jog = {"mode": self.mode, "frame": self.frame, "axis": axis, "step": step, "speed": speed,
+                         "q0": q0, "target": target, "cap_m_s": cap, "hold": True}
+        self.message = (f"hold-to-run {self.axis_names()[axis]} {'+' if d > 0 else '-'} at {self.speed_percent} % "
+                        f"({self.speed_mm_s:g} mm/s)")
         return True
 
     def enable(self) -> None:
@@ -316,9 +549,12 @@ class JogController:
         sample = self.session.add_sample(
             snap.q, point or self.point, raw=snap.raw, raw_unit=snap.raw_unit, t=snap.t, t_device=snap.t_device,
             touch=touch, status={"enabled": status.enabled, "forced": bool(force and touch is False)})
+        self.numbers[sample.seq] = len(self.numbers) + 1
         self.selected = None
-        self.message = f"recorded #{sample.seq} on {sample.point} ({len(self.session.samples)} samples)"
+        self.message = f"recorded #{self.number(sample)} on {sample.point} ({len(self.session.samples)} samples)"
         self.solve()
+        if self.guided and self.guide.next_point in self.labels and point is None:
+            self.point_index = self.labels.index(self.guide.next_point)  # suggest the next point to touch
         return sample
 
     def retake(self, force: bool = False) -> ev.Sample | None:
@@ -332,9 +568,13 @@ class JogController:
         if new is None:
             return None
         self.session.discard(old, reason=f"retaken as #{new.seq}")
-        self.message = f"retook #{old.seq} as #{new.seq} on {new.point}"
+        self.message = f"retook #{self.number(old)} as #{self.number(new)} on {new.point}"
         self.solve()
         return new
+
+    def selected_sample(self) -> ev.Sample | None:
+        """The sample retake and discard act on: the selected one, else the newest."""
+        return self._selected_sample()
 
     def discard(self) -> ev.Sample | None:
         old = self._selected_sample()
@@ -343,15 +583,17 @@ class JogController:
             return None
         self.session.discard(old, reason="technician")
         self.selected = None
-        self.message = f"discarded #{old.seq}"
+        self.message = f"discarded #{self.number(old)}"
         self.solve()
         return old
 
     # ---- live solve ------------------------------------------------------------------------------------
     def solve(self) -> SolveState:
         samples = self.session.samples
+        self.predicted = {}
         if not samples:
             self.solve_state = SolveState()
+            self._update_guidance()
             return self.solve_state
         from station.solver import Observations, solve
 
@@ -362,16 +604,43 @@ class JogController:
             result = solve(self.model, Observations(q, labels), identify=self.identify, reference=self.reference)
         except (ValueError, KeyError, StationError, np.linalg.LinAlgError) as e:
             self.solve_state = SolveState("error", str(e), len(samples), seconds=time.perf_counter() - t0)
+            self._update_guidance()
             return self.solve_state
         dt = time.perf_counter() - t0
         identified = [(n, p.value - p.nominal if p.kind == "model" else p.value, p.std, p.unit)
                       for n, p in result.parameters.items() if p.identifiable]
         self.solve_state = SolveState("ok", "converged" if result.converged else "did not converge", len(samples),
                                       dict(result.residuals), identified, dict(result.unidentifiable), result, dt)
+        if self.limits:
+            try:
+                self.predicted = gd.predicted_std(self.model, q, labels, self.identify, self.reference)
+            except (ValueError, KeyError, np.linalg.LinAlgError):
+                self.predicted = {}
+        self._update_guidance()
         return self.solve_state
 
+    def _update_guidance(self) -> None:
+        self.guide = gd.guidance(self.model, self._guide_labels(), self.session.samples, self.solve_state.result,
+                                 self.limits, self.predicted)
+
+    def _guide_labels(self) -> list[str]:
+        return list(self.labels) if getattr(self, "guided", False) else []
+
+    def solve_command(self) -> str:
+        """The ``station solve`` line for this session's samples, with everything the live solve used."""
+        import shlex
+
+        parts = ["station", "solve", "--model", self.model.name, "--samples", str(self.session.samples_csv),
+                 "--identify", self.identify]
+        if isinstance(self.reference, dict):
+            for label, xyz in self.reference.items():
+                parts += ["--reference", f"{label}={','.join(f'{v:.6g}' for v in xyz)}"]
+        else:
+            parts += ["--reference", str(self.reference)]
+        return " ".join(shlex.quote(p) for p in parts)
+
     # ---- write-back ------------------------------------------------------------------------------------
-    def writeback_plan(self) -> WritebackPlan | None:
+    def writeback_plan(self) -> WritebackPlan | ExportPlan | None:
         """Before/after of the device's zero offsets (``station.engine.writeback.plan_write``: ``after = before +
         identified offset``); after a failed write-back, the plan restores the pre-image instead."""
         if self.fault:
@@ -388,6 +657,8 @@ class JogController:
             self.message = "nothing to write back: record samples until the solve identifies offsets"
             return None
         corr = corrections_of(result)
+        if isinstance(self.robot, CalibrationExport):  # checked first: UR's write_calibration exports too
+            return ExportPlan(self.session.folder / "controller-calibration", corr)
         if not corr:
             self.message = "the solve identified no joint offsets: nothing to write back"
             return None
@@ -407,10 +678,33 @@ class JogController:
                 self._on_error(e, "read calibration")
                 return None
 
-    def writeback_apply(self, plan: WritebackPlan) -> bool:
+    def export_apply(self, plan: ExportPlan) -> bool:
+        """Only after the technician confirmed: write the controller's calibration files into ``plan.folder``
+        and journal it (``writeback`` phase ``exported`` with the files). The controller is not touched."""
+        result = self.solve_state.result
+        if result is None:
+            self.message = "nothing to export"
+            return False
+        self.session.event(ev.Result(result=result.to_dict()))
+        with self.io_lock:
+            try:
+                files = [str(p) for p in self.robot.export_calibration(result, plan.folder) or []]
+            except (StationError, OSError) as e:
+                self.message = f"export failed: {e}; controller unchanged"
+                self.session.event(ev.Writeback(phase="failed", error=str(e), note="export; controller unchanged"))
+                return False
+        self.exported = files
+        self.session.event(ev.Writeback(phase="exported", files=files,
+                                        note=f"exported to {plan.folder}, controller unchanged"))
+        self.message = f"exported to {plan.folder}, controller unchanged"
+        return True
+
+    def writeback_apply(self, plan: WritebackPlan | ExportPlan) -> bool:
         """Only after the technician confirmed ``plan``: the engine's two-phase write-back
         (``station.engine.writeback.apply``: pre-image journaled and backed up, write, read back). A failure
         leaves the restore plan armed. Returns whether the device reads back what was written."""
+        if isinstance(plan, ExportPlan):
+            return self.export_apply(plan)
         restore = plan.kind == "restore"
         note = "restore of the pre-image after a failed write-back" if restore else "technician write-back"
         if not restore:
@@ -458,9 +752,22 @@ class JogController:
             return
         self.closed = True
         self.stop(quiet=True)
+        passed = None
         try:
             result = self.solve_state.result
             if result is not None and self.writeback_done is None:
                 self.session.event(ev.Result(result=result.to_dict()))
+            # the verdict against the limits that judge this session; none: NO LIMITS, never a PASS
+            measured = gd.measurements(self.model, result, len(self.session.samples), self.predicted)
+            self.verdict = gd.judge(self.limits, measured, self.limits_version)
+            self.session.event(ev.Verdict(**self.verdict))
+            passed = self.verdict["passed"]
         finally:
-            self.session.close()
+            self.session.close(passed=passed)
+
+    @property
+    def verdict_text(self) -> str:
+        """PASS / FAIL / NO LIMITS of the closed session ("" before)."""
+        if self.verdict is None:
+            return ""
+        return self.verdict.get("status") or ("PASS" if self.verdict["passed"] else "FAIL")

@@ -76,10 +76,10 @@ class JogSession:
         write_samples_csv(self.samples_csv, self.samples, self.joint_units,
                           comment=f"jog session {self.session_id}, kept samples")
 
-    def close(self, status: str = "completed") -> None:
+    def close(self, status: str = "completed", passed: bool | None = None) -> None:
         """``end`` event; "completed" (the engine's word) also tells ``station resume`` there is nothing to do."""
         try:
-            self.event(ev.End(status=status, n_samples=len(self.samples)))
+            self.event(ev.End(status=status, passed=passed, n_samples=len(self.samples)))
         finally:
             close = getattr(self.journal, "close", None)
             if close is not None:

@@ -1,0 +1,262 @@
+"""Jog safety and guidance on the emulated CiA 402 arm (real canopen + python-can, the simulated World as
+truth): keep-out refusals naming link and obstacle, tool-frame Cartesian jogs, queued steps, a step below
+one encoder count refused (Dynamixel, 0.088 deg per count), guidance with limits, and the verdict at close."""
+
+from __future__ import annotations
+
+import uuid
+
+import numpy as np
+import pytest
+from station.mocks.canopen.emulator import CanopenEmulator
+from station.mocks.dynamixel import DynamixelEmulator
+from station.mocks.world import World
+
+from station.engine.cell import cell_from_dict
+from station.engine.journal import read_journal
+from station.engine.limits import load_limits
+from station.engine.session_record import session_from_journal
+from station.robot import open_robot
+from station.tui.controller import JogController
+from station.tui.session import JogSession, joint_units, session_header
+
+START = [0.0, -0.5, 0.5, 0.0, 0.6, 0.0]
+HIDDEN = {"offset.j1": 0.0009, "offset.j2": -0.0012, "offset.j3": 0.0010, "offset.j4": 0.0015,
+          "offset.j5": -0.0011, "offset.j6": 0.0013}
+LIMITS = """format: station-limits/1
+version: "test-jog-1"
+models:
+  arm6:
+    jog:
+      samples:        {low: 8, unit: count}
+      identified:     {low: 4, unit: count}
+      fit_rms:        {high: 0.05, unit: mm}
+      offset_std_max: {high: 0.02, unit: deg}
+"""
+
+
+@pytest.fixture
+def rig(tmp_path):
+    made = []
+
+    def make(cell=None, limits=None, time_mode="instant"):
+        chan = f"jogc-{uuid.uuid4().hex[:8]}"
+        world = World.default(model="arm6", seed=5, start=START, time_mode=time_mode,
+                              errors={"explicit": dict(HIDDEN)})
+        emu = CanopenEmulator(world, channel=chan).start()
+        made.append(emu)
+        robot = open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6&heartbeat_ms=250")
+        made.append(robot)
+        robot.enable()
+        header = session_header(identity=robot.identity(), model_name="arm6", serial="SN-C", identify="offsets",
+                                reference="unknown", url=f"canopen+virtual://{chan}")
+        session = JogSession.create(header=header, joint_units=joint_units(robot.model),
+                                    folder=tmp_path / f"s{len(made)}")
+        table, version = {}, None
+        if limits is not None:
+            f = tmp_path / "limits.yaml"
+            f.write_text(limits)
+            lim = load_limits(f)
+            table, version = lim.for_procedure("arm6", "jog"), lim.version
+        ctl = JogController(robot, session, identify="offsets", cell=cell, limits=table, limits_version=version)
+        made.append(ctl)
+        return world, robot, ctl
+
+    yield make
+    for thing in reversed(made):
+        thing.close() if hasattr(thing, "close") else thing.stop()
+
+
+def test_keep_out_refuses_a_jog_naming_link_and_obstacle(rig):
+    world, robot, ctl0 = rig()
+    tip = world.nominal.position(np.array(START))
+    # a fixture 4 mm below the tool tip's envelope: a 10 mm step down must be refused, nothing sent
+    cell = cell_from_dict({"format": "station-cell/1", "units": {"length": "m"},
+                           "points": [{"label": "A", "position": [0.4, 0, 0.05]}],
+                           "keep_out": [{"name": "fixture", "box": {"min": [tip[0] - 0.05, tip[1] - 0.05, 0.0],
+                                                                    "max": [tip[0] + 0.05, tip[1] + 0.05,
+                                                                            tip[2] - 0.03]},
+                                         "clearance": 0.0}]})
+    ctl0.close()
+    ctl = JogController(robot, ctl0.session.__class__.create(
+        header=session_header(identity=robot.identity(), model_name="arm6", serial="SN-C", identify="offsets",
+                              reference="unknown", url="x"), joint_units=joint_units(robot.model),
+        folder=ctl0.session.folder.parent / "ko"), identify="offsets", cell=cell)
+    try:
+        ctl.toggle_mode()
+        ctl.set_step(3)  # 10 mm
+        q0 = world.encoder_q().copy()
+        for _ in range(3):  # 30 mm down: the first steps are clear, then the tool would enter the fixture
+            if not ctl.jog(2, -1):
+                break
+            robot.move_joints(ctl.last_jog["target"], speed=0.5)  # instant world: done
+        assert ctl.message.startswith("refused:") and "fixture" in ctl.message, ctl.message
+        assert "tool" in ctl.message or "link" in ctl.message
+        q_before = world.encoder_q().copy()
+        assert not ctl.jog(2, -1)
+        np.testing.assert_array_equal(world.encoder_q(), q_before)  # nothing was sent
+        assert np.any(q_before != q0)  # the clear steps did move
+        # the true tip never came within the fixture's top
+        assert world.truth.position(q_before)[2] > tip[2] - 0.03
+    finally:
+        ctl.close()
+
+
+def test_tool_frame_cartesian_jog_moves_along_the_tool_axis(rig):
+    world, robot, ctl = rig()
+    ctl.toggle_mode()
+    ctl.toggle_frame()
+    ctl.set_step(2)  # 1 mm
+    T0 = world.nominal.fk(world.encoder_q())
+    assert ctl.jog(0, +1)  # tool X +1 mm
+    T1 = world.nominal.fk(world.encoder_q())
+    np.testing.assert_allclose(T1[:3, 3] - T0[:3, 3], T0[:3, 0] * 1e-3, atol=3e-6)
+    np.testing.assert_allclose(T1[:3, :3], T0[:3, :3], atol=3e-5)
+    assert abs(T0[2, 0]) > 0.1 or abs(T0[1, 0]) > 0.1  # the tool x axis is not the base x axis here
+    # rotation about the tool's own z axis keeps the TCP where it is
+    assert ctl.jog(5, +1)  # 1 deg
+    T2 = world.nominal.fk(world.encoder_q())
+    np.testing.assert_allclose(T2[:3, 3], T1[:3, 3], atol=3e-6)
+    np.testing.assert_allclose(T2[:3, 2], T1[:3, 2], atol=3e-5)
+
+
+def test_a_step_pressed_during_motion_is_queued_not_dropped(rig):
+    world, robot, ctl = rig(time_mode="realtime")
+    ctl.set_step(2)  # 1 deg
+    ctl.change_speed(-3)  # 1 %: 2.5 mm/s, a slow step
+    q0 = world.encoder_q().copy()
+    assert ctl.jog(0, +1)
+    import time
+
+    time.sleep(0.1)
+    assert robot.status().moving
+    assert ctl.jog(0, +1)  # pressed while moving: extends the move by one step
+    np.testing.assert_allclose(ctl.last_jog["target"][0] - q0[0], np.deg2rad(2.0), atol=1e-4)
+    # a held step key (terminal repeats): at most one step queued, so release does not leave travel behind
+    assert not ctl.jog(0, +1) and "queued" in ctl.message
+    np.testing.assert_allclose(ctl.last_jog["target"][0] - q0[0], np.deg2rad(2.0), atol=1e-4)
+    robot.stop()
+
+
+def test_guidance_and_verdict_against_jog_limits(rig):
+    world, robot, ctl = rig(limits=LIMITS)
+    assert ctl.guide.status == "waiting" and ctl.guide.needed == 8
+    rng = np.random.default_rng(1)
+    target = world.points["N"].position
+    statuses = []
+    n = 0
+    while n < 14:
+        q0 = np.array(START) + rng.uniform(-1, 1, 6) * np.array([0.3, 0.3, 0.3, 1.3, 0.9, 1.3])
+        r = world.truth.ik(target, q0, position_only=True)
+        if not (r.ok[0] and world.truth.within_limits(r.q[0], 0.05)[0]):
+            continue
+        robot.move_joints(r.q[0], speed=1.0)
+        assert ctl.record(point="N") is not None, ctl.message
+        n += 1
+        statuses.append(ctl.guide.status)
+    assert statuses[0] == "not yet" and statuses[-1] == "good enough", statuses
+    assert all(s == "not yet" for s in statuses[:7])  # fewer samples than the limit: never good enough
+    checks = {c.name: c for c in ctl.guide.checks}
+    assert checks["samples"].ok and checks["offset_std_max"].ok
+    # the indicator's sigma is honest against the hidden truth: every identified offset within 4 sigma
+    for name, p in ctl.solve_state.result.parameters.items():
+        if name.startswith("offset.") and p.identifiable:
+            sd = max(p.std, ctl.predicted.get(name) or 0.0)
+            assert abs(p.value - HIDDEN[name]) <= 4 * sd + 2e-5, (name, p.value, HIDDEN[name], sd)
+    folder = ctl.session.folder
+    ctl.close()
+    assert ctl.verdict_text == "PASS"
+    rec = session_from_journal(folder)
+    assert rec["verdict"]["passed"] is True and rec["verdict"].get("status") is None
+    assert [m["name"] for m in rec["verdict"]["measurements"] if m.get("low") is not None or m.get("high")
+            is not None] == ["samples", "identified", "fit_rms", "offset_std_max"]
+
+
+def test_a_jog_session_without_limits_ends_no_limits(rig):
+    world, robot, ctl = rig()
+    robot.move_joints(np.array(START) + 0.05, speed=1.0)
+    ctl.record(force=True)
+    folder = ctl.session.folder
+    assert ctl.guide.status == "NO LIMITS"
+    ctl.close()
+    assert ctl.verdict_text == "NO LIMITS"
+    _, events = read_journal(folder / "journal.jsonl")
+    v = [e for e in events if e["type"] == "verdict"][-1]
+    assert v["passed"] is None and v["status"] == "NO LIMITS"
+    from station.records import overall_status
+
+    assert overall_status(session_from_journal(folder)["verdict"]) == "NO LIMITS"
+
+
+def test_a_step_below_one_encoder_count_is_refused(tmp_path):
+    world = World.default(model="omx", seed=2, start=[0.2, -0.3, 0.4, 0.1])
+    emu = DynamixelEmulator(world, ids=[11, 12, 13, 14])
+    path = emu.start()
+    robot = open_robot(f"dynamixel://{path}?baud=1000000&ids=11-14&model=omx")
+    try:
+        robot.enable()
+        header = session_header(identity=robot.identity(), model_name="omx", serial="OMX", identify="offsets",
+                                reference="unknown", url="x")
+        ctl = JogController(robot, JogSession.create(header=header, joint_units=joint_units(robot.model),
+                                                     folder=tmp_path / "s"), identify="offsets")
+        q0 = world.encoder_q().copy()
+        ctl.set_step(0)  # 0.01 deg < 0.088 deg per count
+        assert not ctl.jog(1, +1)
+        assert "below one encoder count" in ctl.message and "0.08789 deg" in ctl.message, ctl.message
+        ctl.set_step(1)  # 0.1 deg: more than one count, moves
+        assert ctl.jog(1, +1)
+        ctl.toggle_mode()
+        ctl.set_step(0)  # 0.01 mm at the tool moves no joint by a count
+        assert not ctl.jog(0, +1) and "encoder count" in ctl.message
+        ctl.close()
+        assert np.abs(world.encoder_q() - q0)[[0, 2, 3]].max() == 0
+    finally:
+        robot.close()
+        emu.stop()
+
+
+def _hold_and_release(world, ctl, axis: int, direction: int, seconds: float) -> tuple[float, float]:
+    """Key events every 35 ms (a terminal's repeats) for ``seconds``, the UI's tick in between; then no more
+    events. Returns (tool travel during the hold in m, time from the last event to standstill in s)."""
+    import time
+
+    from station.tui.controller import HOLD_TICK_S
+
+    p0 = world.truth.position(world.encoder_q()[None])[0]
+    t0 = time.monotonic()
+    next_key = t0
+    while time.monotonic() - t0 < seconds:
+        now = time.monotonic()
+        if now >= next_key:
+            ctl.hold(axis, direction)
+            next_key = now + 0.035
+        ctl.hold_tick()
+        time.sleep(0.01)
+    t_last = next_key - 0.035
+    p1 = world.truth.position(world.encoder_q()[None])[0]
+    last_q, last_change = world.encoder_q(), time.monotonic()
+    while time.monotonic() - last_change < 0.2:
+        ctl.hold_tick()
+        time.sleep(HOLD_TICK_S / 5)
+        q = world.encoder_q()
+        if np.any(q != last_q):
+            last_q, last_change = q, time.monotonic()
+    return float(np.linalg.norm(p1 - p0)), last_change - t_last
+
+
+@pytest.mark.parametrize("mode,axis", [("joint", 1), ("cartesian", 0)])
+def test_hold_to_run_on_canopen(rig, mode, axis):
+    from station.tui.controller import HOLD_WATCHDOG_S
+
+    world, robot, ctl = rig(time_mode="realtime")
+    if mode == "cartesian":
+        ctl.toggle_mode()
+    ctl.set_continuous()
+    ctl.change_speed(+1)  # 25 %: 62.5 mm/s at the tool
+    travel, delay = _hold_and_release(world, ctl, axis, -1, 1.0)
+    print(f"canopen hold-to-run {mode}: {travel * 1e3:.1f} mm in 1.0 s at {ctl.speed_mm_s:g} mm/s, "
+          f"standstill {delay * 1e3:.0f} ms after the last key event")
+    assert ctl.speed_mm_s == 62.5
+    assert 0.3 * 62.5e-3 < travel < 1.1 * 62.5e-3 * 1.0  # moving at (not above) the override
+    assert delay < HOLD_WATCHDOG_S + 0.1, delay  # margin: the realtime world's decel on a loaded host
+    assert not robot.status().moving
