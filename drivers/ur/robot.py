@@ -23,6 +23,7 @@ from station.drivers.ur.calibration import (
     read_calibration_conf,
 )
 from station.drivers.ur.dashboard import DashboardClient
+from station.drivers.ur.identity import check_arm
 
 from station.kinematics import Model
 from station.robot.base import RobotBase
@@ -45,7 +46,11 @@ RECV_VARIABLES = ["timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "actu
 SS_PROTECTIVE, SS_SAFEGUARD, SS_ESTOP_MASK = 1 << 2, 1 << 4, (1 << 5) | (1 << 6) | (1 << 7)
 SS_VIOLATION, SS_FAULT = 1 << 8, 1 << 9
 ROBOT_MODE_RUNNING = 7
-LOCAL_HOSTS = ("localhost", "127.0.0.1")  # ur_rtde skips its remote-control check only for these
+LOCAL_HOSTS = ("localhost", "127.0.0.1")
+# RTDE stall timeout: the controller sends a package every 2 ms; 500 ms (250 packages) is far beyond any
+# scheduling hiccup of a loaded 2-core station PC (measured: worst gap ~60 ms under 2 busy loops,
+# tests/test_soak_buses.py) and still stops the arm within half a second of a dead link.
+STALL_MS = 500.0  # ur_rtde skips its remote-control check only for these
 
 
 class URRobot(RobotBase):
@@ -74,13 +79,19 @@ class URRobot(RobotBase):
                "(0 = off)"),
         Option("serial", text(), None, "serial number to use only if the controller does not report one "
                "(PolyScope < 5.6)"),
+        Option("robot_type", text(), None, "the arm a model file is for (`UR5e`, `UR10`, ...), checked against "
+               "the controller's `get robot model` + PolyScope series at connect", default_doc="from the model "
+               "name (`ur5e` -> UR5 e-Series)"),
+        Option("stall_ms", number(20, 10000, unit="ms"), STALL_MS, "RTDE stall timeout: no new 500 Hz package for "
+               "this long is a fault (robot stopped); also bounds how long a lost link can go unnoticed inside a "
+               "move", default_doc=f"`{STALL_MS:g}` (= 250 packages)"),
     )
 
     def __init__(self, host: str, catalog: Model, *, deltas: dict[str, list[float]] | None = None,
                  export_dir: str | None = None, contact_bit: int = 16, speed: float = 0.5, accel: float = 1.0,
-                 jog_speed: float = 0.2, tool_speed: float = 0.05, stale_timeout: float = 0.2,
-                 jog_watchdog: float = 10.0, serial: str | None = None, url: str = "",
-                 connect: bool = True) -> None:
+                 jog_speed: float = 0.2, tool_speed: float = 0.05, stale_timeout: float = STALL_MS / 1000.0,
+                 jog_watchdog: float = 10.0, serial: str | None = None, robot_type: str | None = None,
+                 url: str = "", connect: bool = True) -> None:
         self.host = host
         self.catalog = catalog  # published DH table
         self.deltas = deltas  # the controller's calibration.conf, if given
@@ -98,6 +109,8 @@ class URRobot(RobotBase):
         self.serial = serial or ""
         self.firmware = ""
         self.robot_model = ""
+        self.robot_type = robot_type  # the arm the model is for, when its name does not say (model files)
+        self.arm = ""  # what the controller is, e.g. "UR5e" (checked at connect)
         self.last_export: list[Path] = []
         self._r = None
         self._c = None
@@ -127,7 +140,8 @@ class URRobot(RobotBase):
                                   f"(model {catalog.name})")
         args = dict(deltas=deltas, export_dir=o["export"], contact_bit=o["contact_bit"],
                     speed=o["speed"] or min(0.5, vmax), jog_speed=o["jog_speed"] or min(0.2, vmax),
-                    tool_speed=o["tool_speed"], jog_watchdog=o["jog_watchdog"], serial=o["serial"], url=url.raw)
+                    tool_speed=o["tool_speed"], jog_watchdog=o["jog_watchdog"], serial=o["serial"],
+                    robot_type=o["robot_type"], stale_timeout=o["stall_ms"] / 1000.0, url=url.raw)
         args.update(overrides)
         return cls(url.host, catalog, **args)
 
@@ -138,6 +152,11 @@ class URRobot(RobotBase):
         reported = self._dash.serial_number()
         self.serial = reported if reported.isdigit() else (self.url_serial or "")
         self.robot_model = self._dash.robot_model()
+        try:  # before anything else: a model for another arm must never move this one
+            self.arm = check_arm(self.host, self.catalog.name, self.robot_type, self.robot_model, self.firmware)
+        except Exception:
+            self._dash.close()
+            raise
         if self.host not in LOCAL_HOSTS and not self._dash.is_in_remote_control():
             self._dash.close()
             raise ConfigError(f"ur://{self.host}: the robot is in local control; switch it to Remote Control on "

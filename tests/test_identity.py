@@ -1,0 +1,57 @@
+"""Identity check at connect (issue 9 item 9): the model named in the URL (or the default) against what the
+controller / devices report, on the real wire (ur_rtde + dashboard socket, dynamixel-sdk on a pty, canopen
+SDO over a python-can bus). A mismatch is one ``IdentityMismatch`` line (exit 2) and nothing moved: the
+world's joints are where they started (ground truth from the emulator's world)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+from station.mocks.world import World, default_doc
+
+from station.robot import IdentityMismatch, open_robot
+
+UR_START = [0.1, -1.45, 1.6, -1.72, -1.5708, 0.2]
+
+
+def _ur_world(tmp_path, model="ur5e", **bus):
+    tmp_path = tmp_path / model
+    tmp_path.mkdir(exist_ok=True)
+    doc = default_doc(model, seed=3)
+    doc["motion"].update(time_mode="sim", start=list(UR_START))
+    doc["buses"] = {"ur": {"serial": "20235512345", **bus}}
+    path = tmp_path / "world.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+@pytest.mark.parametrize("query, needle", [
+    ("model=ur3e", "model ur3e is a UR3 e-Series but the controller reports UR5 e-Series"),
+    ("model=ur10e", "model ur10e is a UR10 e-Series but the controller reports UR5"),
+    ("model=arm6", "model arm6 is not a UR arm model but the controller is a UR5e"),
+    ("model=ur5e&robot_type=UR10e", "robot_type=UR10e is a UR10 e-Series"),
+])
+def test_ur_model_mismatch_refused_before_motion(tmp_path, emulators, query, needle):
+    emu = emulators("ur", _ur_world(tmp_path))
+    with pytest.raises(IdentityMismatch) as e:
+        open_robot(f"ur://{emu.host}?{query}")
+    msg = str(e.value)
+    assert needle in msg and "\n" not in msg
+    # nothing was uploaded or moved: the controller ran no program
+    assert "STOPPED" in emu.dashboard("programstate")
+
+
+def test_ur_cb3_controller_refuses_e_series_model(tmp_path, emulators):
+    emu = emulators("ur", _ur_world(tmp_path, polyscope="URSoftware 3.15.7.106331 (Jun 02 2021)"))
+    with pytest.raises(IdentityMismatch, match="UR5 e-Series but the controller reports UR5 CB3"):
+        open_robot(f"ur://{emu.host}?model=ur5e")
+
+
+def test_ur_matching_model_connects_and_reports_arm(tmp_path, emulators):
+    emu = emulators("ur", _ur_world(tmp_path))
+    with open_robot(f"ur://{emu.host}") as robot:  # default model ur5e
+        assert robot.arm == "UR5e"
+    emu2 = emulators("ur", _ur_world(tmp_path, model="ur10e"))
+    with open_robot(f"ur://{emu2.host}?model=ur10e") as robot:
+        assert robot.arm == "UR10e"
