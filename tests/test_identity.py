@@ -55,3 +55,34 @@ def test_ur_matching_model_connects_and_reports_arm(tmp_path, emulators):
     emu2 = emulators("ur", _ur_world(tmp_path, model="ur10e"))
     with open_robot(f"ur://{emu2.host}?model=ur10e") as robot:
         assert robot.arm == "UR10e"
+
+
+# ---- Dynamixel: every joint servo's model number (ping) against the model's servo -------------------------
+def _omx_world(tmp_path, **bus):
+    doc = default_doc("omx", seed=3)
+    doc["buses"] = {"dynamixel": dict(bus)}
+    path = tmp_path / "omx.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def test_dynamixel_wrong_servo_model_refused_before_motion(tmp_path, emulators):
+    path = _omx_world(tmp_path, servo="xl430")
+    world = World.from_file(path)
+    emu = emulators("dynamixel", world)
+    q0 = np.array(world.encoder_q(), dtype=float)
+    with pytest.raises(IdentityMismatch) as e:
+        open_robot(emu.url)
+    msg = str(e.value)
+    assert "model omx is built from XM430-W350 (model number 1020) servos" in msg
+    assert "reports XL430-W250 (model number 1060)" in msg and "\n" not in msg
+    assert np.allclose(world.encoder_q(), q0)  # nothing moved
+
+
+def test_dynamixel_servo_option_accepts_declared_build(tmp_path, emulators):
+    emu = emulators("dynamixel", World.from_file(_omx_world(tmp_path, servo="xl430")))
+    with open_robot(emu.url + "&servo=XL430-W250") as robot:
+        assert {d["model_number"] for d in robot.devices if d["joint"]} == {1060}
+    emu2 = emulators("dynamixel", World.from_file(_omx_world(tmp_path)))
+    with open_robot(emu2.url) as robot:  # default: omx is XM430-W350
+        assert {d["model_number"] for d in robot.devices if d["joint"]} == {1020}
