@@ -5,6 +5,8 @@ world's joints are where they started (ground truth from the emulator's world)."
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import yaml
@@ -86,3 +88,40 @@ def test_dynamixel_servo_option_accepts_declared_build(tmp_path, emulators):
     emu2 = emulators("dynamixel", World.from_file(_omx_world(tmp_path)))
     with open_robot(emu2.url) as robot:  # default: omx is XM430-W350
         assert {d["model_number"] for d in robot.devices if d["joint"]} == {1020}
+
+
+# ---- CANopen: device type 0x1000 (CiA 402) and each rotary drive's scaling 0x608F / 0x6091 ----------------
+def _arm6_world(tmp_path, **bus):
+    doc = default_doc("arm6", seed=3)
+    doc["buses"] = {"canopen": dict(bus)}
+    path = tmp_path / "arm6.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return World.from_file(path)
+
+
+def test_canopen_other_arms_model_refused_before_motion(tmp_path, emulators):
+    world = _arm6_world(tmp_path)
+    emu = emulators("canopen", world)
+    q0 = np.array(world.encoder_q(), dtype=float)
+    url = re.sub(r"nodes=[^&]*", "nodes=1-4", emu.url.replace("model=arm6", "model=scara"))
+    url += "" if "nodes=" in url else "&nodes=1-4"
+    with pytest.raises(IdentityMismatch) as e:
+        open_robot(url)
+    msg = str(e.value)
+    enc = world.nominal.joints[0].encoder  # the drive is the world's arm6 joint 1
+    assert f"canopen node 1 (joint 1 j1) is scaled {round(enc.counts_per_unit * 2 * np.pi)} counts/motor rev, " \
+           f"gear {enc.gear:g}:1" in msg
+    assert "model scara" in msg and "\n" not in msg
+    assert np.allclose(world.encoder_q(), q0)
+
+
+def test_canopen_non_402_device_refused(tmp_path, emulators):
+    emu = emulators("canopen", _arm6_world(tmp_path, device_type="0x00000191"))  # a CiA 401 I/O module
+    with pytest.raises(IdentityMismatch, match=r"not a CiA 402 drive \(device type 0x00000191\)"):
+        open_robot(emu.url)
+
+
+def test_canopen_matching_model_connects(tmp_path, emulators):
+    emu = emulators("canopen", _arm6_world(tmp_path))
+    with open_robot(emu.url) as robot:
+        assert robot.joint_positions().q.shape == (6,)

@@ -18,7 +18,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from station.robot.errors import BusError, ConfigError, ConnectionLost, DeviceFault
+from station.robot.errors import BusError, ConfigError, ConnectionLost, DeviceFault, IdentityMismatch
 from station.robot.registry import bus_library
 
 with bus_library("python-can"):
@@ -124,7 +124,7 @@ class CanopenBus:
         for node_id, node in self.drives.items():
             dtype = self._first_contact(node_id)
             if dtype & 0xFFFF != 402:
-                raise ConfigError(f"canopen node {node_id} on {self.where} is not a CiA 402 drive "
+                raise IdentityMismatch(f"canopen node {node_id} on {self.where} is not a CiA 402 drive "
                                   f"(device type 0x{dtype:08X})")
             node.nmt.state = "PRE-OPERATIONAL"
         self.contact_node = self._find_contact(contact)
@@ -212,6 +212,19 @@ class CanopenBus:
         except canopen.SdoAbortedError as e:
             raise DeviceFault(f"canopen node {node_id}: reading 0x{index:04X}:{sub:02X} aborted: {e}",
                               device=f"node {node_id}", code=e.code) from None
+
+    def sdo_read_u32(self, node_id: int, index: int, sub: int) -> int | None:
+        """An UNSIGNED32 by raw SDO upload (also for objects outside the driver's dictionary); None when the
+        drive does not have the object (SDO abort: optional objects such as 0x608F)."""
+        node = self.drives[node_id]
+        try:
+            data = node.sdo.upload(index, sub)
+        except canopen.SdoCommunicationError as e:
+            raise ConnectionLost(f"canopen node {node_id} on {self.where} does not answer "
+                                 f"(SDO 0x{index:04X}:{sub:02X}: {e})") from None
+        except canopen.SdoAbortedError:
+            return None
+        return int.from_bytes(bytes(data[:4]).ljust(4, b"\0"), "little")
 
     def sdo_write(self, node_id: int, index: int, value, sub: int | None = None) -> None:
         node = self.drives[node_id]

@@ -36,7 +36,7 @@ from station.drivers.canopen.faults import FaultLatch
 
 from station.kinematics import Model
 from station.robot.base import RobotBase
-from station.robot.errors import ConfigError, ConnectionLost, DeviceFault, SafetyStop
+from station.robot.errors import ConfigError, ConnectionLost, DeviceFault, IdentityMismatch, SafetyStop
 from station.robot.motion import MANUAL_TOOL_SPEED_CAP
 from station.robot.protocol import Identity, JointSnapshot, JointState, RobotStatus
 from station.robot.url import REQUIRED, Option, Options, RobotURL, either, id_list, integer, number, text
@@ -93,6 +93,7 @@ class CanopenRobot(RobotBase):
                               error_frame_limit=error_frame_limit)
         try:
             self.bus.open(contact, self._on_emcy)
+            self._check_scaling()  # a model for another arm must not move this one: before the first RPDO
             snap = self.bus.round(timeout=max(1.0, 20 * sync_period))
             # hold position: the RPDOs carry the present position and profile position mode from now on
             for node_id in self.nodes:
@@ -127,6 +128,30 @@ class CanopenRobot(RobotBase):
     @property
     def contact_node(self) -> int | None:
         return self.bus.contact_node
+
+    # ---- identity -----------------------------------------------------------------------------------------
+    def _check_scaling(self) -> None:
+        """Each rotary joint's drive scaling (0x608F encoder increments per motor revolution, 0x6091 gear ratio
+        motor : shaft revolutions) against the model's encoder (counts_per_rev, gear): a scara model on an
+        arm6's drives, or a model with the wrong gear, would move joints by the wrong angle. Drives without
+        these optional objects are not checked (the 402 device type at connect still is)."""
+        for i, node_id in enumerate(self.nodes):
+            joint = self.model.joints[i]
+            if joint.kind != "revolute":
+                continue
+            inc, mrev = (self.bus.sdo_read_u32(node_id, 0x608F, s) for s in (1, 2))
+            gm, gs = (self.bus.sdo_read_u32(node_id, 0x6091, s) for s in (1, 2))
+            if not inc or not mrev:
+                continue
+            drive_counts = inc / mrev * ((gm / gs) if gm and gs else 1.0)  # counts per joint revolution
+            model_counts = abs(joint.encoder.counts_per_unit * joint.encoder.gear) * 2 * math.pi
+            if abs(drive_counts - model_counts) > 1e-6 * model_counts:
+                gear = f", gear {gm}:{gs}" if gm and gs else ""
+                raise IdentityMismatch(
+                    f"canopen node {node_id} (joint {i + 1} {joint.name}) is scaled {inc / mrev:g} counts/motor rev"
+                    f"{gear} = {drive_counts:.10g} counts/rev but model {self.model.name} says "
+                    f"{abs(joint.encoder.counts_per_unit) * 2 * math.pi:.10g} x gear {joint.encoder.gear:g} = "
+                    f"{model_counts:.10g}; nothing was moved: use the model of this arm")
 
     # ---- faults -------------------------------------------------------------------------------------------
     def _quick_stop_all(self) -> None:

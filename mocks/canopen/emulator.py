@@ -102,6 +102,8 @@ class CanopenEmulator:
         self.boot_delay = boot_delay
         self.fault_poll = fault_poll
         serial_base = int(cfg.get("serial_base", DEFAULT_SERIAL_BASE))
+        # identity overrides for staging a wrong device (world file buses.canopen.device_type: e.g. 0x00020191)
+        self.device_type = int(str(cfg["device_type"]), 0) if "device_type" in cfg else None
         self.drives: dict[int, Drive402] = {}
         for j, node_id in enumerate(self.nodes):
             enc = world.nominal.joints[j].encoder
