@@ -7,6 +7,7 @@ torque compliance, home offsets, and what a latched fault means for the robot (q
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import threading
 import time
@@ -40,6 +41,9 @@ from station.robot.errors import ConfigError, ConnectionLost, DeviceFault, Ident
 from station.robot.motion import MANUAL_TOOL_SPEED_CAP
 from station.robot.protocol import Identity, JointSnapshot, JointState, RobotStatus
 from station.robot.url import REQUIRED, Option, Options, RobotURL, either, id_list, integer, number, text
+
+log = logging.getLogger("station.drivers.canopen")
+CW_DISABLE_VOLTAGE = 0x0000  # CiA 402: any state -> SWITCH ON DISABLED (power stage off, holding brake engaged)
 
 
 class CanopenRobot(RobotBase):
@@ -278,6 +282,7 @@ class CanopenRobot(RobotBase):
         if isinstance(self.faults.error, ConnectionLost) and (self.bus.silent_nodes() or self.faults.fatal):
             raise self.faults.error
         self.faults.clear()
+        self._secured = False
         for node in self.bus.drives.values():
             node.emcy.reset()
         snap = self.bus.round()
@@ -348,7 +353,13 @@ class CanopenRobot(RobotBase):
     def set_compliant(self, on: bool) -> None:
         """On: profile torque mode (0x6060 = 4) with a small target torque (0x6071 = 5 % rated) on every
         drive, so the arm yields and a socket can seat the tip. Off: hold the present position in profile
-        position mode."""
+        position mode. Off with a fault latched (bus-off, heartbeat loss, EMCY): position mode cannot be
+        trusted any more, so every drive is disabled instead (power stage off, holding brake engaged) through
+        whatever path still works, and the error says what was and was not confirmed."""
+        if not on and self.faults.error is not None:
+            err = self.faults.error
+            report = self._disable_after_fault()
+            raise type(err)(f"{err}; compliance off not possible: {report}")
         self.faults.raise_if_latched()
         self._check_open("set_compliant")
         self._require_enabled(self.bus.recent())
@@ -403,6 +414,53 @@ class CanopenRobot(RobotBase):
                 raise DeviceFault(f"write_calibration: node {node_id} ({name}) reads back home offset {back} "
                                   f"counts, wrote {counts}", device=f"node {node_id}")
 
+    # ---- the safe state after a fault -----------------------------------------------------------------------
+    _secured = False  # every drive confirmed disabled after the latest fault (close() need not repeat it)
+    SAFE_STATES = ("SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON", "FAULT", "NOT READY TO SWITCH ON")
+
+    def _disable_after_fault(self, timeout: float | None = None) -> str:
+        """Bring every drive to a power-stage-off state (CiA 402: quick stop, then SWITCH ON DISABLED; the
+        drive engages its holding brake) after a fault, retrying through the bus's recovery (a bus-off
+        controller is back after its restart time): first by RPDO1 controlword, then by SDO 0x6040 for the
+        drives whose TPDOs do not confirm. Never raises; returns what was confirmed, and loudly what was not."""
+        bus = self.bus
+        deadline = time.monotonic() + (timeout if timeout is not None else max(1.0, 2 * bus.hb_timeout))
+        pending = set(self.nodes)
+        sent_at = time.monotonic()
+        stopping: set[int] = set()  # reached QUICK STOP ACTIVE (decelerated): next, disable voltage
+        while pending and time.monotonic() < deadline:
+            for node_id in sorted(pending):
+                with contextlib.suppress(Exception):
+                    bus.send_rpdo1(node_id, CW_DISABLE_VOLTAGE if node_id in stopping else CW_QUICK_STOP)
+            time.sleep(max(4 * bus.sync_period, 0.02))
+            latest = bus.latest()
+            for node_id in sorted(pending):
+                seen = latest.get(node_id)
+                if seen is not None and seen[4] > sent_at:
+                    state = state_of(seen[1])
+                    if state in self.SAFE_STATES:
+                        pending.discard(node_id)
+                    elif state == "QUICK STOP ACTIVE":
+                        stopping.add(node_id)
+            for node_id in sorted(pending):  # no fresh TPDO: ask and command over SDO
+                try:
+                    state = state_of(int(bus.sdo_read(node_id, 0x6041)))
+                    if state in self.SAFE_STATES:
+                        pending.discard(node_id)
+                    else:
+                        if state == "QUICK STOP ACTIVE":
+                            stopping.add(node_id)
+                        bus.sdo_write(node_id, 0x6040, CW_DISABLE_VOLTAGE if node_id in stopping else CW_QUICK_STOP)
+                except Exception:  # noqa: BLE001 - that path is down too: keep trying until the deadline
+                    pass
+        self._compliant = False
+        self._secured = not pending
+        done = [n for n in self.nodes if n not in pending]
+        if not pending:
+            return f"every drive disabled instead (power stage off, brakes engaged; confirmed on nodes {done})"
+        return (f"drives NOT confirmed disabled on nodes {sorted(pending)} (confirmed: {done or 'none'}): "
+                "switch off drive power at the cabinet before approaching the arm")
+
     # ---- lifecycle ----------------------------------------------------------------------------------------
     def _shutdown(self) -> None:
         """Halt, then every drive to READY TO SWITCH ON (power stage off) unless a fault already quick-stopped
@@ -417,4 +475,7 @@ class CanopenRobot(RobotBase):
                 time.sleep(2 * bus.sync_period)
                 for node_id in bus.drives:
                     bus.send_rpdo1(node_id, CW_SHUTDOWN)
+        elif bus.drives and not self._secured:
+            report = self._disable_after_fault()
+            log.warning("canopen: closing after a fault (%s): %s", self.faults.error, report)
         bus.close()
