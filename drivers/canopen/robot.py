@@ -159,10 +159,27 @@ class CanopenRobot(RobotBase):
 
     # ---- faults -------------------------------------------------------------------------------------------
     def _quick_stop_all(self) -> None:
-        """Quick stop every drive by RPDO (no SDO: safe from the bus thread and with dead nodes)."""
+        """Quick stop every drive by RPDO (no SDO: safe from the bus thread and with dead nodes), then keep
+        re-sending it from a helper thread to every drive whose fresh TPDO still says OPERATION ENABLED: a
+        bus-off controller loses what it sends until its restart time is over (bounded: 2 heartbeat timeouts)."""
         for node_id in self.bus.drives:
             with contextlib.suppress(Exception):
                 self.bus.send_rpdo1(node_id, CW_QUICK_STOP)
+        threading.Thread(target=self._quick_stop_until_confirmed, name="canopen-quick-stop", daemon=True).start()
+
+    def _quick_stop_until_confirmed(self) -> None:
+        bus = self.bus
+        t0 = time.monotonic()
+        deadline = t0 + max(1.0, 2 * bus.hb_timeout)
+        while time.monotonic() < deadline and not bus.closing and self.faults.error is not None:
+            time.sleep(max(4 * bus.sync_period, 0.02))
+            latest = bus.latest()
+            running = [n for n in bus.drives if n in latest and latest[n][4] > t0 and state_of(latest[n][1]) == ENABLED]
+            if not running and all(n in latest and latest[n][4] > t0 for n in bus.drives):
+                return
+            for node_id in running:
+                with contextlib.suppress(Exception):
+                    bus.send_rpdo1(node_id, CW_QUICK_STOP)
 
     def _on_emcy(self, node_id: int, e) -> None:
         if e.code & 0xFF00 == 0:
