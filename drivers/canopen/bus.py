@@ -30,6 +30,12 @@ from station.drivers.canopen.faults import FaultLatch  # noqa: E402 - after the 
 from station.drivers.canopen.od import CONTACT_WIRED, standard_od  # noqa: E402
 
 CAN_ERR_BUSOFF = 0x40
+HB_MARGIN_S = 0.5  # host scheduling margin of the heartbeat consumer time
+
+
+def heartbeat_consumer_s(heartbeat_ms: float) -> float:
+    """Default heartbeat consumer time: 3 producer periods + 500 ms (documented in docs/hardware-canopen.md)."""
+    return 3 * heartbeat_ms / 1000.0 + HB_MARGIN_S
 SYNC_COB_ID = 0x80
 # one round: {node: (statusword, position counts, mode display, host time.time())}
 Round = dict[int, tuple[int, int, int, float]]
@@ -65,14 +71,17 @@ class CanopenBus:
     def __init__(self, nodes: list[int], faults: FaultLatch, *, interface: str, channel: str,
                  host: str | None = None, port: int | None = None, sync_period: float = 0.004,
                  heartbeat_ms: int = 100, touch_ms: int = 10, eds: str | None = None,
-                 error_frame_limit: int = 1) -> None:
+                 error_frame_limit: int = 1, heartbeat_timeout_ms: float | None = None) -> None:
         self.nodes = list(nodes)
         self.faults = faults
         self.interface, self.channel, self.host, self.port = interface, channel, host, port
         self.where = f"{interface} {host}:{port}/{channel}" if host else f"{interface} {channel}"
         self.sync_period = sync_period
         self.heartbeat_ms = heartbeat_ms
-        self.hb_timeout = 3 * heartbeat_ms / 1000.0 + 0.2  # margin for a loaded host
+        # consumer time: 3 missed producer periods plus a margin for the host's scheduling (a loaded 2-core PC
+        # stalled the station's receive thread by > 400 ms: "heartbeat lost (517 ms)" with a 200 ms margin)
+        self.hb_timeout = (heartbeat_timeout_ms / 1000.0 if heartbeat_timeout_ms
+                           else heartbeat_consumer_s(heartbeat_ms))
         self.touch_ms = touch_ms
         self.error_frame_limit = max(1, error_frame_limit)
         self.eds = eds

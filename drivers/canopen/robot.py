@@ -58,8 +58,10 @@ class CanopenRobot(RobotBase):
                "the channel)", default_doc="`can0`"),
         Option("sync_ms", number(0.5, 1000, unit="ms"), 4.0, "SYNC period of the driver's SYNC producer = "
                "streaming cycle"),
-        Option("heartbeat_ms", integer(10, 10000), 100, "0x1017 heartbeat time written to each drive; loss after "
-               "3 periods + 200 ms"),
+        Option("heartbeat_ms", integer(10, 10000), 100, "0x1017 heartbeat time written to each drive"),
+        Option("heartbeat_timeout_ms", number(20, 60000, unit="ms"), None, "heartbeat consumer time: a drive "
+               "silent this long is lost (ConnectionLost, robot stopped); must exceed `heartbeat_ms`",
+               default_doc="3 x `heartbeat_ms` + 500 (= 800)"),
         Option("touch_ms", integer(1, 65535), 10, "event timer of the contact-input TPDO (ms)"),
         Option("contact", either("auto", none=("none",), otherwise=integer(1, 127)), "auto",
                "node with the contact input; `auto` reads 0x2000 on each node, `none` = no input"),
@@ -74,7 +76,8 @@ class CanopenRobot(RobotBase):
     def __init__(self, model: Model, nodes: list[int], *, interface: str, channel: str, host: str | None = None,
                  port: int | None = None, sync_period: float = 0.004, heartbeat_ms: int = 100,
                  touch_ms: int = 10, contact: int | None | str = "auto", eds: str | None = None,
-                 serial: str | None = None, error_frame_limit: int = 1, url: str = "") -> None:
+                 serial: str | None = None, error_frame_limit: int = 1, heartbeat_timeout_ms: float | None = None,
+                 url: str = "") -> None:
         if len(nodes) != model.n_joints:
             raise ConfigError(f"canopen: {len(nodes)} node ids {nodes} for model {model.name} with "
                               f"{model.n_joints} joints; give one node per joint (nodes=1-{model.n_joints})")
@@ -84,6 +87,9 @@ class CanopenRobot(RobotBase):
         if not (0.0005 <= sync_period <= 1.0) or not (10 <= heartbeat_ms <= 10000):
             raise ConfigError(f"canopen: sync period {sync_period * 1e3:g} ms must be 0.5..1000 and heartbeat "
                               f"{heartbeat_ms} ms 10..10000")
+        if heartbeat_timeout_ms is not None and heartbeat_timeout_ms <= heartbeat_ms:
+            raise ConfigError(f"canopen: heartbeat_timeout_ms={heartbeat_timeout_ms:g} must exceed heartbeat_ms="
+                              f"{heartbeat_ms} (the consumer time covers at least one producer period)")
         self.model = model
         self.nodes = list(nodes)
         self.url = url
@@ -94,7 +100,7 @@ class CanopenRobot(RobotBase):
         self.faults.on_first.append(self._quick_stop_all)
         self.bus = CanopenBus(self.nodes, self.faults, interface=interface, channel=channel, host=host, port=port,
                               sync_period=sync_period, heartbeat_ms=heartbeat_ms, touch_ms=touch_ms, eds=eds,
-                              error_frame_limit=error_frame_limit)
+                              error_frame_limit=error_frame_limit, heartbeat_timeout_ms=heartbeat_timeout_ms)
         try:
             self.bus.open(contact, self._on_emcy)
             self._check_scaling()  # a model for another arm must not move this one: before the first RPDO
@@ -114,6 +120,7 @@ class CanopenRobot(RobotBase):
         model = cls.load_url_model(url, o["model"])
         args = dict(sync_period=o["sync_ms"] / 1000.0, heartbeat_ms=o["heartbeat_ms"], touch_ms=o["touch_ms"],
                     contact=o["contact"], eds=o["eds"], serial=o["serial"], error_frame_limit=o["error_frames"],
+                    heartbeat_timeout_ms=o["heartbeat_timeout_ms"],
                     url=url.raw)
         args.update(overrides)
         nodes = o["nodes"] or list(range(1, model.n_joints + 1))

@@ -31,6 +31,8 @@ from station.robot.motion import MANUAL_TOOL_SPEED_CAP
 from station.robot.protocol import Identity, JointSnapshot, JointState, RobotStatus
 from station.robot.url import Option, Options, RobotURL, either, flag, id_list, integer, number, text
 
+LATENCY_MS = 50.0  # default latency term: a dead servo is reported after (1 + retries) x ~102 ms ~= 0.4 s
+
 
 class DynamixelRobot(RobotBase):
     """A serial arm of Dynamixel X-series servos. SI units at the interface (rad, rad/s, m/s)."""
@@ -51,15 +53,16 @@ class DynamixelRobot(RobotBase):
                default_doc="from the model (`omx`: XM430-W350), else any X-series"),
         Option("fast", flag(), True, "`1`: Fast Sync Read snapshots, `0`: plain Sync Read"),
         Option("retries", integer(0, 100), 3, "retries after a COMM_RX_TIMEOUT / corrupt answer, per transaction"),
-        Option("latency", number(0, 1000, unit="ms"), 16.0,
-               "the latency term of the SDK's answer timeout (`bytes x byte time + 2 x latency + 2 ms`); `1` with "
-               "the adapter's latency timer at 1 ms detects a lost answer sooner, a larger value (tests use 50) "
-               "keeps a loaded host's scheduling delays from counting as lost answers", default_doc="16 (SDK)"),
+        Option("latency", number(0, 1000, unit="ms"), LATENCY_MS,
+               "the latency term of the SDK's answer timeout (`bytes x byte time + 2 x latency + 2 ms`, ~102 ms "
+               "per attempt by default): 50 keeps a loaded station PC's scheduling delays from counting as lost "
+               "answers; `1` with the adapter's latency timer at 1 ms detects a dead servo sooner",
+               default_doc="50"),
     )
 
     def __init__(self, port: str, *, ids: list[int], model: Model | str = "omx", baud: int = 1_000_000,
                  contact_id: int | None = None, serial: str | None = None, fast: bool = True, retries: int = 3,
-                 latency_ms: float = 16.0, servo: str | int | None = None, url: str = "") -> None:
+                 latency_ms: float = 50.0, servo: str | int | None = None, url: str = "") -> None:
         self.model: Model = load_model(model) if isinstance(model, str) else model
         n = self.model.n_joints
         if len(ids) != n or len(set(ids)) != n:
