@@ -367,7 +367,7 @@ class DynamixelRobot(RobotBase):
         """Read back what was sync-written (no status packets): torque, bus watchdog 0 and Goal Current from
         one read of 64..103, the operating mode (EEPROM, 11) from a second one if it was switched."""
         self._rest = None
-        out = self._guard(self.bus.sync_read, T.TORQUE_ENABLE, T.CONFIRM_SIZE, self.ids, self.fast, False)
+        out = self._guard(self.bus.sync_read, T.TORQUE_ENABLE, T.CONFIRM_SIZE, self.ids, self.fast, True)
         data = {i: out[i][0] for i in self.ids}
         errors = [out[i][1] for i in self.ids]
         wrong = [i for i in self.ids if bool(data[i][0]) != torque]

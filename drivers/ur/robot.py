@@ -266,12 +266,61 @@ class URRobot(RobotBase):
         self._speeding = False
         try:
             if not dashboard and self._c is not None and self._c.isConnected() and self._c.isProgramRunning():
-                self._c.stopJ(2.0, False)
+                self._bounded("stopJ", self._c.stopJ, 2.0, False)
                 return
         except Exception:  # fall through to the dashboard
             pass
         with contextlib.suppress(ConnectionLost, BusError):
             self._dash.stop_program()
+
+    def _bounded(self, what: str, fn, *args):
+        """``fn(*args)`` (a ur_rtde command that waits for the controller's acknowledgement) in a worker thread,
+        waited for at most the RTDE stall timeout: ur_rtde releases the GIL but never gives up on a link that
+        vanished (it retries its reconnect for minutes). On expiry the worker is abandoned with its control
+        interface, a stop is sent over the dashboard in the background, and ConnectionLost is raised. The wait
+        wakes every 20 ms, so Ctrl-C is acted on at once."""
+        box: dict = {}
+        done = threading.Event()
+
+        def run() -> None:
+            try:
+                box["value"] = fn(*args)
+            except BaseException as e:  # noqa: BLE001 - handed to the caller's thread
+                box["error"] = e
+            finally:
+                done.set()
+
+        threading.Thread(target=run, name=f"ur-{what}", daemon=True).start()
+        deadline = time.monotonic() + self.stale_timeout
+        while True:
+            try:
+                if done.wait(0.02):
+                    break
+            except KeyboardInterrupt:  # the command may still reach the controller later: never let it run
+                self._abandon_control()
+                raise
+            if time.monotonic() > deadline:
+                self._abandon_control()
+                raise ConnectionLost(f"ur://{self.host}: the controller did not acknowledge {what} within "
+                                     f"{self.stale_timeout * 1e3:.0f} ms (RTDE stall timeout): link lost, nothing "
+                                     "more was sent and a stop went out over the dashboard; reconnect the robot "
+                                     "when the network is back")
+        if "error" in box:
+            raise box["error"]
+        return box["value"]
+
+    def _abandon_control(self) -> None:
+        """The control interface hangs in a call: drop it (its worker thread is left to ur_rtde) so every later
+        call fails fast with ConnectionLost, and stop the program over the dashboard without waiting for it."""
+        if self._c is not None:
+            self._c, self._abandoned = None, self._c  # kept referenced: destroying it would block on the link
+        self._speeding = False
+
+        def stop() -> None:
+            with contextlib.suppress(Exception):
+                DashboardClient(self.host, timeout=1.0).stop_program()
+
+        threading.Thread(target=stop, name="ur-dashboard-stop", daemon=True).start()
 
     def _kick(self) -> None:
         # A kick writes 0 into the command register: never within a few controller cycles of a speed
@@ -363,7 +412,7 @@ class URRobot(RobotBase):
 
     def _move(self, target: np.ndarray, v: float, wait: bool) -> None:
         start = self.joint_positions().q
-        if not self._c.moveJ(target.tolist(), v, self.accel, True):
+        if not self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True):
             self._refused("moveJ")
         if wait:
             lead = float(np.max(np.abs(target - start)))
@@ -388,7 +437,7 @@ class URRobot(RobotBase):
         if not wait:
             self._disarm_watchdog()
         self._ready_for_motion()
-        if not self._c.moveL(p.tolist(), v, 0.5, True):
+        if not self._bounded("moveL", self._c.moveL, p.tolist(), v, 0.5, True):
             self._refused("moveL")
         if wait:
             dist = float(np.linalg.norm(p[:3] - self.tcp_pose()[:3]))
@@ -449,7 +498,7 @@ class URRobot(RobotBase):
             xd = [0.0] * 6
             xd[axis] = sign * v
             a = 0.5  # m/s^2
-            self._velocity_jog(lambda: self._c.speedL(xd, a, 0.0),
+            self._velocity_jog(lambda: self._bounded("speedL", self._c.speedL, xd, a, 0.0),
                                lambda q: abs(step) - sign * (self.model.position(q) - p0)[axis], v, a)
             v_fix = joint_speed_for_tool_cap(self.model, self.joint_positions().q, target, self.jog_speed)
         else:
@@ -460,7 +509,7 @@ class URRobot(RobotBase):
             v = joint_speed_for_tool_cap(self.model, q0, target, v)
             u = dq / lead
             qd = (u * v).tolist()
-            self._velocity_jog(lambda: self._c.speedJ(qd, self.accel, 0.0),
+            self._velocity_jog(lambda: self._bounded("speedJ", self._c.speedJ, qd, self.accel, 0.0),
                                lambda q: lead - float(np.dot(q - q0, u)), v, self.accel)
             v_fix = v
         self._move(target, max(min(v_fix, self.jog_speed), 1e-3), True)
@@ -492,7 +541,7 @@ class URRobot(RobotBase):
             if self._speeding:
                 self._speeding = False
                 try:
-                    self._c.speedStop(a * 4)
+                    self._bounded("speedStop", self._c.speedStop, a * 4)
                 except Exception:
                     self._halt_quietly()
 
@@ -504,9 +553,9 @@ class URRobot(RobotBase):
                 return  # already halted by the safety system; commands would be refused
             if self._c.isProgramRunning():
                 if self._speeding:
-                    self._c.speedStop(10.0)
+                    self._bounded("speedStop", self._c.speedStop, 10.0)
                     self._speeding = False
-                self._c.stopJ(2.0, False)
+                self._bounded("stopJ", self._c.stopJ, 2.0, False)
             elif any(abs(v) > 1e-4 for v in self._r.getActualQd()):
                 self._dash.stop_program()
         except (ConnectionLost, BusError):
