@@ -47,9 +47,9 @@ SS_PROTECTIVE, SS_SAFEGUARD, SS_ESTOP_MASK = 1 << 2, 1 << 4, (1 << 5) | (1 << 6)
 SS_VIOLATION, SS_FAULT = 1 << 8, 1 << 9
 ROBOT_MODE_RUNNING = 7
 LOCAL_HOSTS = ("localhost", "127.0.0.1")
-# RTDE stall timeout: the controller sends a package every 2 ms; 500 ms (250 packages) is far beyond any
-# scheduling hiccup of a loaded 2-core station PC (measured: worst gap ~60 ms under 2 busy loops,
-# tests/test_soak_buses.py) and still stops the arm within half a second of a dead link.
+# RTDE stall timeout: the controller sends a package every 2 ms; 200 ms gave spurious stalls on a loaded
+# 2-core PC (issue 15); 500 ms (250 packages) soaked with zero spurious faults under two busy loops
+# (tests/test_soak_buses.py) and still stops the arm within half a second of a dead link.
 STALL_MS = 500.0  # ur_rtde skips its remote-control check only for these
 
 
