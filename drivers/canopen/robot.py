@@ -411,6 +411,16 @@ class CanopenRobot(RobotBase):
             out[f"offset.j{i + 1}"] = enc.direction * counts / (enc.counts_per_unit * enc.gear)
         return out
 
+    def persist_calibration(self) -> list[int]:
+        """Re-send the store command (0x1010:01 "save") to every drive and return the nodes that confirmed it
+        (SDO download acknowledged). Idempotent: what a resume or verify of an interrupted write-back calls,
+        because 0x607C values written but not yet stored are lost at the next power cycle (issue 9 item 2);
+        ``DeviceFault`` naming the node that refused it."""
+        self._check_open("persist_calibration")
+        for node_id in self.nodes:
+            self.bus.sdo_write(node_id, 0x1010, SAVE, sub=1)
+        return list(self.nodes)
+
     def write_calibration(self, values: dict[str, float]) -> None:
         """Write absolute home offsets (SI) to 0x607C, store them (0x1010 "save"), read them back."""
         plan = {}
