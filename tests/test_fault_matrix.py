@@ -84,3 +84,21 @@ def test_world_file_bad_fault_is_one_line(tmp_path):
     path.write_text(yaml.safe_dump(doc))
     with pytest.raises(WorldFileError, match=r"faults\[0\]\.do.*'explode' is not one of timeout"):
         World.from_file(path)
+
+
+def test_compliance_left_by_a_crash_is_reported_and_reset(tmp_path, emulators):
+    """Issue 9 item 8: a run killed while seating leaves the servos compliant (current-based position mode);
+    the next connection reports it (status().compliant, what the pre-run check reads) and set_compliant(False)
+    makes the arm stiff again. Truth: the world's compliance."""
+    world = World.default(model="omx", seed=4, time_mode="realtime")
+    emu = emulators("dynamixel", world)
+    crashed = open_robot(emu.url)
+    crashed.enable()
+    crashed.set_compliant(True)
+    crashed.bus.close()  # kill -9: no teardown, the port just goes away
+    crashed._closed = True
+    assert world.compliant
+    with open_robot(emu.url) as robot:
+        assert robot.status().compliant
+        robot.set_compliant(False)
+        assert not robot.status().compliant and not world.compliant

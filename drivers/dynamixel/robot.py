@@ -90,6 +90,13 @@ class DynamixelRobot(RobotBase):
             self._closed = True  # nothing was commanded: release the port without a stop on a silent bus
             self.bus.close()
             raise
+        try:  # compliance left over from a run that died while seating: the servos say so, not our flag
+            modes, _ = self._read_all(T.OPERATING_MODE, 1, False)
+            self._compliant = any(m == T.MODE_CURRENT_POSITION for m in modes)
+        except BaseException:
+            self._closed = True
+            self.bus.close()
+            raise
         self._serial_from_url = bool(serial)
         self.serial = serial or f"DXL-{self.model.name.upper()}-" + ".".join(str(i) for i in self.ids)
 
@@ -401,6 +408,8 @@ class DynamixelRobot(RobotBase):
         head, _ = self._read_all(T.TORQUE_ENABLE, 7, False)  # 64..70: torque ... hardware error status
         moving, _ = self._read_all(T.MOVING, 1, False)
         watchdog, _ = self._read_all(T.BUS_WATCHDOG, 1, False)
+        modes, _ = self._read_all(T.OPERATING_MODE, 1, False)
+        self._compliant = any(m == T.MODE_CURRENT_POSITION for m in modes)  # the servos' word (crash leftovers)
         torque = [(h >> 0) & 0xFF for h in head]
         hw = [(h >> 48) & 0xFF for h in head]
         joints, faults = [], []
