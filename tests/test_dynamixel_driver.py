@@ -239,7 +239,7 @@ def test_goal_refused_by_servo_position_limits_is_caught_at_once(rig):
 def test_xl430_arm_reads_and_moves_but_has_no_compliant_mode():
     world = World.default(model="omx", seed=8)
     with DynamixelEmulator(world, ids=[1, 2, 3, 4], servo="xl430", contact_id=None) as emu, \
-            open_robot(f"dynamixel://{emu.path}?model=omx&latency=50") as robot:  # ids default 1..n
+            open_robot(f"dynamixel://{emu.path}?model=omx&servo=xl430-w250&latency=50") as robot:
         assert [d["model"] for d in robot.identity().devices] == ["XL430-W250"] * 4
         assert robot.touch() is None
         robot.enable()

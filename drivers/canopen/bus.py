@@ -18,7 +18,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from station.robot.errors import BusError, ConfigError, ConnectionLost, DeviceFault
+from station.robot.errors import BusError, ConfigError, ConnectionLost, DeviceFault, IdentityMismatch
 from station.robot.registry import bus_library
 
 with bus_library("python-can"):
@@ -30,6 +30,12 @@ from station.drivers.canopen.faults import FaultLatch  # noqa: E402 - after the 
 from station.drivers.canopen.od import CONTACT_WIRED, standard_od  # noqa: E402
 
 CAN_ERR_BUSOFF = 0x40
+HB_MARGIN_S = 0.5  # host scheduling margin of the heartbeat consumer time
+
+
+def heartbeat_consumer_s(heartbeat_ms: float) -> float:
+    """Default heartbeat consumer time: 3 producer periods + 500 ms (documented in docs/hardware-canopen.md)."""
+    return 3 * heartbeat_ms / 1000.0 + HB_MARGIN_S
 SYNC_COB_ID = 0x80
 # one round: {node: (statusword, position counts, mode display, host time.time())}
 Round = dict[int, tuple[int, int, int, float]]
@@ -65,14 +71,17 @@ class CanopenBus:
     def __init__(self, nodes: list[int], faults: FaultLatch, *, interface: str, channel: str,
                  host: str | None = None, port: int | None = None, sync_period: float = 0.004,
                  heartbeat_ms: int = 100, touch_ms: int = 10, eds: str | None = None,
-                 error_frame_limit: int = 1) -> None:
+                 error_frame_limit: int = 1, heartbeat_timeout_ms: float | None = None) -> None:
         self.nodes = list(nodes)
         self.faults = faults
         self.interface, self.channel, self.host, self.port = interface, channel, host, port
         self.where = f"{interface} {host}:{port}/{channel}" if host else f"{interface} {channel}"
         self.sync_period = sync_period
         self.heartbeat_ms = heartbeat_ms
-        self.hb_timeout = 3 * heartbeat_ms / 1000.0 + 0.2  # margin for a loaded host
+        # consumer time: 3 missed producer periods plus a margin for the host's scheduling (a loaded 2-core PC
+        # stalled the station's receive thread by > 400 ms: "heartbeat lost (517 ms)" with a 200 ms margin)
+        self.hb_timeout = (heartbeat_timeout_ms / 1000.0 if heartbeat_timeout_ms
+                           else heartbeat_consumer_s(heartbeat_ms))
         self.touch_ms = touch_ms
         self.error_frame_limit = max(1, error_frame_limit)
         self.eds = eds
@@ -124,7 +133,7 @@ class CanopenBus:
         for node_id, node in self.drives.items():
             dtype = self._first_contact(node_id)
             if dtype & 0xFFFF != 402:
-                raise ConfigError(f"canopen node {node_id} on {self.where} is not a CiA 402 drive "
+                raise IdentityMismatch(f"canopen node {node_id} on {self.where} is not a CiA 402 drive "
                                   f"(device type 0x{dtype:08X})")
             node.nmt.state = "PRE-OPERATIONAL"
         self.contact_node = self._find_contact(contact)
@@ -212,6 +221,19 @@ class CanopenBus:
         except canopen.SdoAbortedError as e:
             raise DeviceFault(f"canopen node {node_id}: reading 0x{index:04X}:{sub:02X} aborted: {e}",
                               device=f"node {node_id}", code=e.code) from None
+
+    def sdo_read_u32(self, node_id: int, index: int, sub: int) -> int | None:
+        """An UNSIGNED32 by raw SDO upload (also for objects outside the driver's dictionary); None when the
+        drive does not have the object (SDO abort: optional objects such as 0x608F)."""
+        node = self.drives[node_id]
+        try:
+            data = node.sdo.upload(index, sub)
+        except canopen.SdoCommunicationError as e:
+            raise ConnectionLost(f"canopen node {node_id} on {self.where} does not answer "
+                                 f"(SDO 0x{index:04X}:{sub:02X}: {e})") from None
+        except canopen.SdoAbortedError:
+            return None
+        return int.from_bytes(bytes(data[:4]).ljust(4, b"\0"), "little")
 
     def sdo_write(self, node_id: int, index: int, value, sub: int | None = None) -> None:
         node = self.drives[node_id]

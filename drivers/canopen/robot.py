@@ -7,6 +7,7 @@ torque compliance, home offsets, and what a latched fault means for the robot (q
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import threading
 import time
@@ -36,10 +37,13 @@ from station.drivers.canopen.faults import FaultLatch
 
 from station.kinematics import Model
 from station.robot.base import RobotBase
-from station.robot.errors import ConfigError, ConnectionLost, DeviceFault, SafetyStop
+from station.robot.errors import ConfigError, ConnectionLost, DeviceFault, IdentityMismatch, SafetyStop
 from station.robot.motion import MANUAL_TOOL_SPEED_CAP
 from station.robot.protocol import Identity, JointSnapshot, JointState, RobotStatus
 from station.robot.url import REQUIRED, Option, Options, RobotURL, either, id_list, integer, number, text
+
+log = logging.getLogger("station.drivers.canopen")
+CW_DISABLE_VOLTAGE = 0x0000  # CiA 402: any state -> SWITCH ON DISABLED (power stage off, holding brake engaged)
 
 
 class CanopenRobot(RobotBase):
@@ -54,8 +58,10 @@ class CanopenRobot(RobotBase):
                "the channel)", default_doc="`can0`"),
         Option("sync_ms", number(0.5, 1000, unit="ms"), 4.0, "SYNC period of the driver's SYNC producer = "
                "streaming cycle"),
-        Option("heartbeat_ms", integer(10, 10000), 100, "0x1017 heartbeat time written to each drive; loss after "
-               "3 periods + 200 ms"),
+        Option("heartbeat_ms", integer(10, 10000), 100, "0x1017 heartbeat time written to each drive"),
+        Option("heartbeat_timeout_ms", number(20, 60000, unit="ms"), None, "heartbeat consumer time: a drive "
+               "silent this long is lost (ConnectionLost, robot stopped); must exceed `heartbeat_ms`",
+               default_doc="3 x `heartbeat_ms` + 500 (= 800)"),
         Option("touch_ms", integer(1, 65535), 10, "event timer of the contact-input TPDO (ms)"),
         Option("contact", either("auto", none=("none",), otherwise=integer(1, 127)), "auto",
                "node with the contact input; `auto` reads 0x2000 on each node, `none` = no input"),
@@ -70,7 +76,8 @@ class CanopenRobot(RobotBase):
     def __init__(self, model: Model, nodes: list[int], *, interface: str, channel: str, host: str | None = None,
                  port: int | None = None, sync_period: float = 0.004, heartbeat_ms: int = 100,
                  touch_ms: int = 10, contact: int | None | str = "auto", eds: str | None = None,
-                 serial: str | None = None, error_frame_limit: int = 1, url: str = "") -> None:
+                 serial: str | None = None, error_frame_limit: int = 1, heartbeat_timeout_ms: float | None = None,
+                 url: str = "") -> None:
         if len(nodes) != model.n_joints:
             raise ConfigError(f"canopen: {len(nodes)} node ids {nodes} for model {model.name} with "
                               f"{model.n_joints} joints; give one node per joint (nodes=1-{model.n_joints})")
@@ -80,6 +87,9 @@ class CanopenRobot(RobotBase):
         if not (0.0005 <= sync_period <= 1.0) or not (10 <= heartbeat_ms <= 10000):
             raise ConfigError(f"canopen: sync period {sync_period * 1e3:g} ms must be 0.5..1000 and heartbeat "
                               f"{heartbeat_ms} ms 10..10000")
+        if heartbeat_timeout_ms is not None and heartbeat_timeout_ms <= heartbeat_ms:
+            raise ConfigError(f"canopen: heartbeat_timeout_ms={heartbeat_timeout_ms:g} must exceed heartbeat_ms="
+                              f"{heartbeat_ms} (the consumer time covers at least one producer period)")
         self.model = model
         self.nodes = list(nodes)
         self.url = url
@@ -90,9 +100,10 @@ class CanopenRobot(RobotBase):
         self.faults.on_first.append(self._quick_stop_all)
         self.bus = CanopenBus(self.nodes, self.faults, interface=interface, channel=channel, host=host, port=port,
                               sync_period=sync_period, heartbeat_ms=heartbeat_ms, touch_ms=touch_ms, eds=eds,
-                              error_frame_limit=error_frame_limit)
+                              error_frame_limit=error_frame_limit, heartbeat_timeout_ms=heartbeat_timeout_ms)
         try:
             self.bus.open(contact, self._on_emcy)
+            self._check_scaling()  # a model for another arm must not move this one: before the first RPDO
             snap = self.bus.round(timeout=max(1.0, 20 * sync_period))
             # hold position: the RPDOs carry the present position and profile position mode from now on
             for node_id in self.nodes:
@@ -109,6 +120,7 @@ class CanopenRobot(RobotBase):
         model = cls.load_url_model(url, o["model"])
         args = dict(sync_period=o["sync_ms"] / 1000.0, heartbeat_ms=o["heartbeat_ms"], touch_ms=o["touch_ms"],
                     contact=o["contact"], eds=o["eds"], serial=o["serial"], error_frame_limit=o["error_frames"],
+                    heartbeat_timeout_ms=o["heartbeat_timeout_ms"],
                     url=url.raw)
         args.update(overrides)
         nodes = o["nodes"] or list(range(1, model.n_joints + 1))
@@ -128,12 +140,53 @@ class CanopenRobot(RobotBase):
     def contact_node(self) -> int | None:
         return self.bus.contact_node
 
+    # ---- identity -----------------------------------------------------------------------------------------
+    def _check_scaling(self) -> None:
+        """Each rotary joint's drive scaling (0x608F encoder increments per motor revolution, 0x6091 gear ratio
+        motor : shaft revolutions) against the model's encoder (counts_per_rev, gear): a scara model on an
+        arm6's drives, or a model with the wrong gear, would move joints by the wrong angle. Drives without
+        these optional objects are not checked (the 402 device type at connect still is)."""
+        for i, node_id in enumerate(self.nodes):
+            joint = self.model.joints[i]
+            if joint.kind != "revolute":
+                continue
+            inc, mrev = (self.bus.sdo_read_u32(node_id, 0x608F, s) for s in (1, 2))
+            gm, gs = (self.bus.sdo_read_u32(node_id, 0x6091, s) for s in (1, 2))
+            if not inc or not mrev:
+                continue
+            drive_counts = inc / mrev * ((gm / gs) if gm and gs else 1.0)  # counts per joint revolution
+            model_counts = abs(joint.encoder.counts_per_unit * joint.encoder.gear) * 2 * math.pi
+            if abs(drive_counts - model_counts) > 1e-6 * model_counts:
+                gear = f", gear {gm}:{gs}" if gm and gs else ""
+                raise IdentityMismatch(
+                    f"canopen node {node_id} (joint {i + 1} {joint.name}) is scaled {inc / mrev:g} counts/motor rev"
+                    f"{gear} = {drive_counts:.10g} counts/rev but model {self.model.name} says "
+                    f"{abs(joint.encoder.counts_per_unit) * 2 * math.pi:.10g} x gear {joint.encoder.gear:g} = "
+                    f"{model_counts:.10g}; nothing was moved: use the model of this arm")
+
     # ---- faults -------------------------------------------------------------------------------------------
     def _quick_stop_all(self) -> None:
-        """Quick stop every drive by RPDO (no SDO: safe from the bus thread and with dead nodes)."""
+        """Quick stop every drive by RPDO (no SDO: safe from the bus thread and with dead nodes), then keep
+        re-sending it from a helper thread to every drive whose fresh TPDO still says OPERATION ENABLED: a
+        bus-off controller loses what it sends until its restart time is over (bounded: 2 heartbeat timeouts)."""
         for node_id in self.bus.drives:
             with contextlib.suppress(Exception):
                 self.bus.send_rpdo1(node_id, CW_QUICK_STOP)
+        threading.Thread(target=self._quick_stop_until_confirmed, name="canopen-quick-stop", daemon=True).start()
+
+    def _quick_stop_until_confirmed(self) -> None:
+        bus = self.bus
+        t0 = time.monotonic()
+        deadline = t0 + max(1.0, 2 * bus.hb_timeout)
+        while time.monotonic() < deadline and not bus.closing and self.faults.error is not None:
+            time.sleep(max(4 * bus.sync_period, 0.02))
+            latest = bus.latest()
+            running = [n for n in bus.drives if n in latest and latest[n][4] > t0 and state_of(latest[n][1]) == ENABLED]
+            if not running and all(n in latest and latest[n][4] > t0 for n in bus.drives):
+                return
+            for node_id in running:
+                with contextlib.suppress(Exception):
+                    bus.send_rpdo1(node_id, CW_QUICK_STOP)
 
     def _on_emcy(self, node_id: int, e) -> None:
         if e.code & 0xFF00 == 0:
@@ -253,6 +306,7 @@ class CanopenRobot(RobotBase):
         if isinstance(self.faults.error, ConnectionLost) and (self.bus.silent_nodes() or self.faults.fatal):
             raise self.faults.error
         self.faults.clear()
+        self._secured = False
         for node in self.bus.drives.values():
             node.emcy.reset()
         snap = self.bus.round()
@@ -323,7 +377,13 @@ class CanopenRobot(RobotBase):
     def set_compliant(self, on: bool) -> None:
         """On: profile torque mode (0x6060 = 4) with a small target torque (0x6071 = 5 % rated) on every
         drive, so the arm yields and a socket can seat the tip. Off: hold the present position in profile
-        position mode."""
+        position mode. Off with a fault latched (bus-off, heartbeat loss, EMCY): position mode cannot be
+        trusted any more, so every drive is disabled instead (power stage off, holding brake engaged) through
+        whatever path still works, and the error says what was and was not confirmed."""
+        if not on and self.faults.error is not None:
+            err = self.faults.error
+            report = self._disable_after_fault()
+            raise type(err)(f"{err}; compliance off not possible: {report}")
         self.faults.raise_if_latched()
         self._check_open("set_compliant")
         self._require_enabled(self.bus.recent())
@@ -350,6 +410,16 @@ class CanopenRobot(RobotBase):
             counts = int(self.bus.sdo_read(node_id, 0x607C))
             out[f"offset.j{i + 1}"] = enc.direction * counts / (enc.counts_per_unit * enc.gear)
         return out
+
+    def persist_calibration(self) -> list[int]:
+        """Re-send the store command (0x1010:01 "save") to every drive and return the nodes that confirmed it
+        (SDO download acknowledged). Idempotent: what a resume or verify of an interrupted write-back calls,
+        because 0x607C values written but not yet stored are lost at the next power cycle (issue 9 item 2);
+        ``DeviceFault`` naming the node that refused it."""
+        self._check_open("persist_calibration")
+        for node_id in self.nodes:
+            self.bus.sdo_write(node_id, 0x1010, SAVE, sub=1)
+        return list(self.nodes)
 
     def write_calibration(self, values: dict[str, float]) -> None:
         """Write absolute home offsets (SI) to 0x607C, store them (0x1010 "save"), read them back."""
@@ -378,6 +448,53 @@ class CanopenRobot(RobotBase):
                 raise DeviceFault(f"write_calibration: node {node_id} ({name}) reads back home offset {back} "
                                   f"counts, wrote {counts}", device=f"node {node_id}")
 
+    # ---- the safe state after a fault -----------------------------------------------------------------------
+    _secured = False  # every drive confirmed disabled after the latest fault (close() need not repeat it)
+    SAFE_STATES = ("SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON", "FAULT", "NOT READY TO SWITCH ON")
+
+    def _disable_after_fault(self, timeout: float | None = None) -> str:
+        """Bring every drive to a power-stage-off state (CiA 402: quick stop, then SWITCH ON DISABLED; the
+        drive engages its holding brake) after a fault, retrying through the bus's recovery (a bus-off
+        controller is back after its restart time): first by RPDO1 controlword, then by SDO 0x6040 for the
+        drives whose TPDOs do not confirm. Never raises; returns what was confirmed, and loudly what was not."""
+        bus = self.bus
+        deadline = time.monotonic() + (timeout if timeout is not None else max(1.0, 2 * bus.hb_timeout))
+        pending = set(self.nodes)
+        sent_at = time.monotonic()
+        stopping: set[int] = set()  # reached QUICK STOP ACTIVE (decelerated): next, disable voltage
+        while pending and time.monotonic() < deadline:
+            for node_id in sorted(pending):
+                with contextlib.suppress(Exception):
+                    bus.send_rpdo1(node_id, CW_DISABLE_VOLTAGE if node_id in stopping else CW_QUICK_STOP)
+            time.sleep(max(4 * bus.sync_period, 0.02))
+            latest = bus.latest()
+            for node_id in sorted(pending):
+                seen = latest.get(node_id)
+                if seen is not None and seen[4] > sent_at:
+                    state = state_of(seen[1])
+                    if state in self.SAFE_STATES:
+                        pending.discard(node_id)
+                    elif state == "QUICK STOP ACTIVE":
+                        stopping.add(node_id)
+            for node_id in sorted(pending):  # no fresh TPDO: ask and command over SDO
+                try:
+                    state = state_of(int(bus.sdo_read(node_id, 0x6041)))
+                    if state in self.SAFE_STATES:
+                        pending.discard(node_id)
+                    else:
+                        if state == "QUICK STOP ACTIVE":
+                            stopping.add(node_id)
+                        bus.sdo_write(node_id, 0x6040, CW_DISABLE_VOLTAGE if node_id in stopping else CW_QUICK_STOP)
+                except Exception:  # noqa: BLE001 - that path is down too: keep trying until the deadline
+                    pass
+        self._compliant = False
+        self._secured = not pending
+        done = [n for n in self.nodes if n not in pending]
+        if not pending:
+            return f"every drive disabled instead (power stage off, brakes engaged; confirmed on nodes {done})"
+        return (f"drives NOT confirmed disabled on nodes {sorted(pending)} (confirmed: {done or 'none'}): "
+                "switch off drive power at the cabinet before approaching the arm")
+
     # ---- lifecycle ----------------------------------------------------------------------------------------
     def _shutdown(self) -> None:
         """Halt, then every drive to READY TO SWITCH ON (power stage off) unless a fault already quick-stopped
@@ -392,4 +509,7 @@ class CanopenRobot(RobotBase):
                 time.sleep(2 * bus.sync_period)
                 for node_id in bus.drives:
                     bus.send_rpdo1(node_id, CW_SHUTDOWN)
+        elif bus.drives and not self._secured:
+            report = self._disable_after_fault()
+            log.warning("canopen: closing after a fault (%s): %s", self.faults.error, report)
         bus.close()

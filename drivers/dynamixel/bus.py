@@ -90,7 +90,12 @@ class DxlBus:
                 self.retried += 1
             self.port.is_using = False  # a failed SDK call can leave the port marked busy
             self.transactions += 1
-            out = fn()
+            try:
+                out = fn()
+            except Exception as e:  # pyserial: SerialException/OSError when the adapter or its pty is gone
+                self.port.is_using = False
+                raise ConnectionLost(f"dynamixel bus {self.path}: {what}: the serial port failed ({e}); check the "
+                                     "USB adapter and its cable") from None
             res = out[0]
             if res == sdk.COMM_SUCCESS:
                 return out[1:]

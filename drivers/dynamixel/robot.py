@@ -18,10 +18,20 @@ from station.drivers.dynamixel.bus import DxlBus, unpack
 
 from station.kinematics import Model, load_model
 from station.robot.base import RobotBase
-from station.robot.errors import BusError, ConfigError, DeviceFault, LimitError, SafetyStop, StationError
+from station.robot.errors import (
+    BusError,
+    ConfigError,
+    DeviceFault,
+    IdentityMismatch,
+    LimitError,
+    SafetyStop,
+    StationError,
+)
 from station.robot.motion import MANUAL_TOOL_SPEED_CAP
 from station.robot.protocol import Identity, JointSnapshot, JointState, RobotStatus
 from station.robot.url import Option, Options, RobotURL, either, flag, id_list, integer, number, text
+
+LATENCY_MS = 50.0  # default latency term: a dead servo is reported after (1 + retries) x ~102 ms ~= 0.4 s
 
 
 class DynamixelRobot(RobotBase):
@@ -37,17 +47,22 @@ class DynamixelRobot(RobotBase):
                "id of the contact-sensor device; without it `touch()` returns None"),
         Option("serial", text(), None, "robot serial number for records; without it `DXL-<MODEL>-<ids>` "
                "(deterministic)", default_doc="derived"),
+        Option("servo", either(*(n.lower() for n in T.SERVO_MODELS.values()), "any",
+                                 otherwise=integer(0, 65535)), None,
+               "servo every joint must report (name such as `XM430-W350` or model number); checked at connect",
+               default_doc="from the model (`omx`: XM430-W350), else any X-series"),
         Option("fast", flag(), True, "`1`: Fast Sync Read snapshots, `0`: plain Sync Read"),
         Option("retries", integer(0, 100), 3, "retries after a COMM_RX_TIMEOUT / corrupt answer, per transaction"),
-        Option("latency", number(0, 1000, unit="ms"), 16.0,
-               "the latency term of the SDK's answer timeout (`bytes x byte time + 2 x latency + 2 ms`); `1` with "
-               "the adapter's latency timer at 1 ms detects a lost answer sooner, a larger value (tests use 50) "
-               "keeps a loaded host's scheduling delays from counting as lost answers", default_doc="16 (SDK)"),
+        Option("latency", number(0, 1000, unit="ms"), LATENCY_MS,
+               "the latency term of the SDK's answer timeout (`bytes x byte time + 2 x latency + 2 ms`, ~102 ms "
+               "per attempt by default): 50 keeps a loaded station PC's scheduling delays from counting as lost "
+               "answers; `1` with the adapter's latency timer at 1 ms detects a dead servo sooner",
+               default_doc="50"),
     )
 
     def __init__(self, port: str, *, ids: list[int], model: Model | str = "omx", baud: int = 1_000_000,
                  contact_id: int | None = None, serial: str | None = None, fast: bool = True, retries: int = 3,
-                 latency_ms: float = 16.0, url: str = "") -> None:
+                 latency_ms: float = 50.0, servo: str | int | None = None, url: str = "") -> None:
         self.model: Model = load_model(model) if isinstance(model, str) else model
         n = self.model.n_joints
         if len(ids) != n or len(set(ids)) != n:
@@ -60,6 +75,7 @@ class DynamixelRobot(RobotBase):
         self.contact_id = contact_id
         self.fast = fast
         self.url = url
+        self.servo = self._expected_servo(servo)
         self.bus = DxlBus(port, baud, retries, latency_ms)
         self._wd_clear = False  # every servo's bus watchdog known to be 0 (not armed, not tripped)
         self._maybe_moving = True  # a move not waited for (or cut short) may still run
@@ -74,6 +90,13 @@ class DynamixelRobot(RobotBase):
             self._closed = True  # nothing was commanded: release the port without a stop on a silent bus
             self.bus.close()
             raise
+        try:  # compliance left over from a run that died while seating: the servos say so, not our flag
+            modes, _ = self._read_all(T.OPERATING_MODE, 1, False)
+            self._compliant = any(m == T.MODE_CURRENT_POSITION for m in modes)
+        except BaseException:
+            self._closed = True
+            self.bus.close()
+            raise
         self._serial_from_url = bool(serial)
         self.serial = serial or f"DXL-{self.model.name.upper()}-" + ".".join(str(i) for i in self.ids)
 
@@ -85,7 +108,7 @@ class DynamixelRobot(RobotBase):
         model = cls.load_url_model(url, overrides.pop("model", None) or o["model"])
         args = {"ids": o["ids"] or list(range(1, model.n_joints + 1)), "model": model, "baud": o["baud"],
                 "contact_id": o["contact"], "serial": o["serial"], "fast": o["fast"], "retries": o["retries"],
-                "latency_ms": o["latency"], "url": url.raw}
+                "latency_ms": o["latency"], "servo": o["servo"], "url": url.raw}
         args.update(overrides)
         return cls(url.path, **args)
 
@@ -97,20 +120,36 @@ class DynamixelRobot(RobotBase):
     def _enc(self, j: int):
         return self.model.joints[j].encoder
 
+    def _expected_servo(self, servo: str | int | None) -> int | None:
+        """Model number every joint servo must report (None: any supported X-series)."""
+        if servo is None:
+            return T.MODEL_SERVOS.get(self.model.name)
+        if servo == "any":
+            return None
+        if isinstance(servo, int):
+            return servo
+        return next(k for k, v in T.SERVO_MODELS.items() if v.lower() == str(servo).lower())
+
     def _probe(self) -> list[dict]:
         devices = []
         for i in self.ids:
             number, _ = self.bus.ping(i)
+            if self.servo is not None and number != self.servo:
+                want = f"{T.SERVO_MODELS.get(self.servo, 'model')} (model number {self.servo})"
+                got = f"{T.SERVO_MODELS.get(number, 'unknown model')} (model number {number})"
+                raise IdentityMismatch(f"dynamixel: model {self.model.name} is built from {want} servos but "
+                                       f"{self._name(i)} reports {got}; nothing was moved (use the model of this "
+                                       "arm, or servo=... in the URL if it really is built that way)")
             if number not in T.SERVO_MODELS:
-                raise ConfigError(f"dynamixel: id {i} answers with model number {number}, not a supported "
-                                  f"X-series servo ({', '.join(f'{k} {v}' for k, v in T.SERVO_MODELS.items())})")
+                raise IdentityMismatch(f"dynamixel: id {i} answers with model number {number}, not a supported "
+                                       f"X-series servo ({', '.join(f'{k} {v}' for k, v in T.SERVO_MODELS.items())})")
             fw, _ = self.bus.read(i, T.FIRMWARE_VERSION, 1)
             devices.append({"id": i, "joint": self.model.joints[self.ids.index(i)].name, "model_number": number,
                             "model": T.SERVO_MODELS[number], "firmware": fw})
         if self.contact_id is not None:
             number, _ = self.bus.ping(self.contact_id)
             if number != T.CONTACT_SENSOR_MODEL:
-                raise ConfigError(f"dynamixel: id {self.contact_id} has model number {number}, not the contact "
+                raise IdentityMismatch(f"dynamixel: id {self.contact_id} has model number {number}, not the contact "
                                   f"sensor ({T.CONTACT_SENSOR_MODEL})")
             fw, _ = self.bus.read(self.contact_id, T.FIRMWARE_VERSION, 1)
             devices.append({"id": self.contact_id, "joint": None, "model_number": number,
@@ -335,7 +374,7 @@ class DynamixelRobot(RobotBase):
         """Read back what was sync-written (no status packets): torque, bus watchdog 0 and Goal Current from
         one read of 64..103, the operating mode (EEPROM, 11) from a second one if it was switched."""
         self._rest = None
-        out = self._guard(self.bus.sync_read, T.TORQUE_ENABLE, T.CONFIRM_SIZE, self.ids, self.fast, False)
+        out = self._guard(self.bus.sync_read, T.TORQUE_ENABLE, T.CONFIRM_SIZE, self.ids, self.fast, True)
         data = {i: out[i][0] for i in self.ids}
         errors = [out[i][1] for i in self.ids]
         wrong = [i for i in self.ids if bool(data[i][0]) != torque]
@@ -369,6 +408,8 @@ class DynamixelRobot(RobotBase):
         head, _ = self._read_all(T.TORQUE_ENABLE, 7, False)  # 64..70: torque ... hardware error status
         moving, _ = self._read_all(T.MOVING, 1, False)
         watchdog, _ = self._read_all(T.BUS_WATCHDOG, 1, False)
+        modes, _ = self._read_all(T.OPERATING_MODE, 1, False)
+        self._compliant = any(m == T.MODE_CURRENT_POSITION for m in modes)  # the servos' word (crash leftovers)
         torque = [(h >> 0) & 0xFF for h in head]
         hw = [(h >> 48) & 0xFF for h in head]
         joints, faults = [], []

@@ -26,6 +26,9 @@ HOMING_OFFSET_RANGE = 1_044_479  # ticks, both signs
 
 SERVO_MODELS = {1020: "XM430-W350", 1030: "XM430-W210", 1060: "XL430-W250", 1120: "XM540-W270",
                 1130: "XM540-W150"}
+# the servo each built-in model is built from (its model file's description); other models: any of SERVO_MODELS
+# unless the URL says servo=...
+MODEL_SERVOS = {"omx": 1020}
 CURRENT_CAPABLE = {1020, 1030, 1120, 1130}  # have current-based position mode (5) and Goal Current (102)
 CONTACT_SENSOR_MODEL = 0x5A01
 

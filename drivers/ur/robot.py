@@ -23,6 +23,7 @@ from station.drivers.ur.calibration import (
     read_calibration_conf,
 )
 from station.drivers.ur.dashboard import DashboardClient
+from station.drivers.ur.identity import check_arm
 
 from station.kinematics import Model
 from station.robot.base import RobotBase
@@ -45,7 +46,11 @@ RECV_VARIABLES = ["timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "actu
 SS_PROTECTIVE, SS_SAFEGUARD, SS_ESTOP_MASK = 1 << 2, 1 << 4, (1 << 5) | (1 << 6) | (1 << 7)
 SS_VIOLATION, SS_FAULT = 1 << 8, 1 << 9
 ROBOT_MODE_RUNNING = 7
-LOCAL_HOSTS = ("localhost", "127.0.0.1")  # ur_rtde skips its remote-control check only for these
+LOCAL_HOSTS = ("localhost", "127.0.0.1")
+# RTDE stall timeout: the controller sends a package every 2 ms; 200 ms gave spurious stalls on a loaded
+# 2-core PC (issue 15); 500 ms (250 packages) soaked with zero spurious faults under two busy loops
+# (tests/test_soak_buses.py) and still stops the arm within half a second of a dead link.
+STALL_MS = 500.0  # ur_rtde skips its remote-control check only for these
 
 
 class URRobot(RobotBase):
@@ -74,13 +79,19 @@ class URRobot(RobotBase):
                "(0 = off)"),
         Option("serial", text(), None, "serial number to use only if the controller does not report one "
                "(PolyScope < 5.6)"),
+        Option("robot_type", text(), None, "the arm a model file is for (`UR5e`, `UR10`, ...), checked against "
+               "the controller's `get robot model` + PolyScope series at connect", default_doc="from the model "
+               "name (`ur5e` -> UR5 e-Series)"),
+        Option("stall_ms", number(20, 10000, unit="ms"), STALL_MS, "RTDE stall timeout: no new 500 Hz package for "
+               "this long is a fault (robot stopped); also bounds how long a lost link can go unnoticed inside a "
+               "move", default_doc=f"`{STALL_MS:g}` (= 250 packages)"),
     )
 
     def __init__(self, host: str, catalog: Model, *, deltas: dict[str, list[float]] | None = None,
                  export_dir: str | None = None, contact_bit: int = 16, speed: float = 0.5, accel: float = 1.0,
-                 jog_speed: float = 0.2, tool_speed: float = 0.05, stale_timeout: float = 0.2,
-                 jog_watchdog: float = 10.0, serial: str | None = None, url: str = "",
-                 connect: bool = True) -> None:
+                 jog_speed: float = 0.2, tool_speed: float = 0.05, stale_timeout: float = STALL_MS / 1000.0,
+                 jog_watchdog: float = 10.0, serial: str | None = None, robot_type: str | None = None,
+                 url: str = "", connect: bool = True) -> None:
         self.host = host
         self.catalog = catalog  # published DH table
         self.deltas = deltas  # the controller's calibration.conf, if given
@@ -98,6 +109,8 @@ class URRobot(RobotBase):
         self.serial = serial or ""
         self.firmware = ""
         self.robot_model = ""
+        self.robot_type = robot_type  # the arm the model is for, when its name does not say (model files)
+        self.arm = ""  # what the controller is, e.g. "UR5e" (checked at connect)
         self.last_export: list[Path] = []
         self._r = None
         self._c = None
@@ -127,7 +140,8 @@ class URRobot(RobotBase):
                                   f"(model {catalog.name})")
         args = dict(deltas=deltas, export_dir=o["export"], contact_bit=o["contact_bit"],
                     speed=o["speed"] or min(0.5, vmax), jog_speed=o["jog_speed"] or min(0.2, vmax),
-                    tool_speed=o["tool_speed"], jog_watchdog=o["jog_watchdog"], serial=o["serial"], url=url.raw)
+                    tool_speed=o["tool_speed"], jog_watchdog=o["jog_watchdog"], serial=o["serial"],
+                    robot_type=o["robot_type"], stale_timeout=o["stall_ms"] / 1000.0, url=url.raw)
         args.update(overrides)
         return cls(url.host, catalog, **args)
 
@@ -138,6 +152,11 @@ class URRobot(RobotBase):
         reported = self._dash.serial_number()
         self.serial = reported if reported.isdigit() else (self.url_serial or "")
         self.robot_model = self._dash.robot_model()
+        try:  # before anything else: a model for another arm must never move this one
+            self.arm = check_arm(self.host, self.catalog.name, self.robot_type, self.robot_model, self.firmware)
+        except Exception:
+            self._dash.close()
+            raise
         if self.host not in LOCAL_HOSTS and not self._dash.is_in_remote_control():
             self._dash.close()
             raise ConfigError(f"ur://{self.host}: the robot is in local control; switch it to Remote Control on "
@@ -247,12 +266,61 @@ class URRobot(RobotBase):
         self._speeding = False
         try:
             if not dashboard and self._c is not None and self._c.isConnected() and self._c.isProgramRunning():
-                self._c.stopJ(2.0, False)
+                self._bounded("stopJ", self._c.stopJ, 2.0, False)
                 return
         except Exception:  # fall through to the dashboard
             pass
         with contextlib.suppress(ConnectionLost, BusError):
             self._dash.stop_program()
+
+    def _bounded(self, what: str, fn, *args):
+        """``fn(*args)`` (a ur_rtde command that waits for the controller's acknowledgement) in a worker thread,
+        waited for at most the RTDE stall timeout: ur_rtde releases the GIL but never gives up on a link that
+        vanished (it retries its reconnect for minutes). On expiry the worker is abandoned with its control
+        interface, a stop is sent over the dashboard in the background, and ConnectionLost is raised. The wait
+        wakes every 20 ms, so Ctrl-C is acted on at once."""
+        box: dict = {}
+        done = threading.Event()
+
+        def run() -> None:
+            try:
+                box["value"] = fn(*args)
+            except BaseException as e:  # noqa: BLE001 - handed to the caller's thread
+                box["error"] = e
+            finally:
+                done.set()
+
+        threading.Thread(target=run, name=f"ur-{what}", daemon=True).start()
+        deadline = time.monotonic() + self.stale_timeout
+        while True:
+            try:
+                if done.wait(0.02):
+                    break
+            except KeyboardInterrupt:  # the command may still reach the controller later: never let it run
+                self._abandon_control()
+                raise
+            if time.monotonic() > deadline:
+                self._abandon_control()
+                raise ConnectionLost(f"ur://{self.host}: the controller did not acknowledge {what} within "
+                                     f"{self.stale_timeout * 1e3:.0f} ms (RTDE stall timeout): link lost, nothing "
+                                     "more was sent and a stop went out over the dashboard; reconnect the robot "
+                                     "when the network is back")
+        if "error" in box:
+            raise box["error"]
+        return box["value"]
+
+    def _abandon_control(self) -> None:
+        """The control interface hangs in a call: drop it (its worker thread is left to ur_rtde) so every later
+        call fails fast with ConnectionLost, and stop the program over the dashboard without waiting for it."""
+        if self._c is not None:
+            self._c, self._abandoned = None, self._c  # kept referenced: destroying it would block on the link
+        self._speeding = False
+
+        def stop() -> None:
+            with contextlib.suppress(Exception):
+                DashboardClient(self.host, timeout=1.0).stop_program()
+
+        threading.Thread(target=stop, name="ur-dashboard-stop", daemon=True).start()
 
     def _kick(self) -> None:
         # A kick writes 0 into the command register: never within a few controller cycles of a speed
@@ -344,7 +412,7 @@ class URRobot(RobotBase):
 
     def _move(self, target: np.ndarray, v: float, wait: bool) -> None:
         start = self.joint_positions().q
-        if not self._c.moveJ(target.tolist(), v, self.accel, True):
+        if not self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True):
             self._refused("moveJ")
         if wait:
             lead = float(np.max(np.abs(target - start)))
@@ -369,7 +437,7 @@ class URRobot(RobotBase):
         if not wait:
             self._disarm_watchdog()
         self._ready_for_motion()
-        if not self._c.moveL(p.tolist(), v, 0.5, True):
+        if not self._bounded("moveL", self._c.moveL, p.tolist(), v, 0.5, True):
             self._refused("moveL")
         if wait:
             dist = float(np.linalg.norm(p[:3] - self.tcp_pose()[:3]))
@@ -430,7 +498,7 @@ class URRobot(RobotBase):
             xd = [0.0] * 6
             xd[axis] = sign * v
             a = 0.5  # m/s^2
-            self._velocity_jog(lambda: self._c.speedL(xd, a, 0.0),
+            self._velocity_jog(lambda: self._bounded("speedL", self._c.speedL, xd, a, 0.0),
                                lambda q: abs(step) - sign * (self.model.position(q) - p0)[axis], v, a)
             v_fix = joint_speed_for_tool_cap(self.model, self.joint_positions().q, target, self.jog_speed)
         else:
@@ -441,7 +509,7 @@ class URRobot(RobotBase):
             v = joint_speed_for_tool_cap(self.model, q0, target, v)
             u = dq / lead
             qd = (u * v).tolist()
-            self._velocity_jog(lambda: self._c.speedJ(qd, self.accel, 0.0),
+            self._velocity_jog(lambda: self._bounded("speedJ", self._c.speedJ, qd, self.accel, 0.0),
                                lambda q: lead - float(np.dot(q - q0, u)), v, self.accel)
             v_fix = v
         self._move(target, max(min(v_fix, self.jog_speed), 1e-3), True)
@@ -473,7 +541,7 @@ class URRobot(RobotBase):
             if self._speeding:
                 self._speeding = False
                 try:
-                    self._c.speedStop(a * 4)
+                    self._bounded("speedStop", self._c.speedStop, a * 4)
                 except Exception:
                     self._halt_quietly()
 
@@ -485,9 +553,9 @@ class URRobot(RobotBase):
                 return  # already halted by the safety system; commands would be refused
             if self._c.isProgramRunning():
                 if self._speeding:
-                    self._c.speedStop(10.0)
+                    self._bounded("speedStop", self._c.speedStop, 10.0)
                     self._speeding = False
-                self._c.stopJ(2.0, False)
+                self._bounded("stopJ", self._c.stopJ, 2.0, False)
             elif any(abs(v) > 1e-4 for v in self._r.getActualQd()):
                 self._dash.stop_program()
         except (ConnectionLost, BusError):

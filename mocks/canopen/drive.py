@@ -17,6 +17,7 @@ import struct
 import threading
 import time
 from dataclasses import dataclass, field
+from fractions import Fraction
 from typing import TYPE_CHECKING
 
 import canopen
@@ -168,6 +169,15 @@ class Drive402:
     def _identity_values(self) -> None:
         self.put(0x1018, self.serial, 4)
         self.put(0x2000, int(self.contact_wired))
+        if getattr(self.emu, "device_type", None) is not None:
+            self.put(0x1000, self.emu.device_type)
+        if self.emu.world.nominal.joints[self.joint].kind == "revolute" and (0x608F, 1) not in self.stored:
+            # the drive's own scaling is the motor the world's joint is built with
+            gear = Fraction(float(self.encoder.gear)).limit_denominator(1000)
+            self.put(0x608F, round(abs(self.encoder.counts_per_unit) * 2 * math.pi), 1)
+            self.put(0x608F, 1, 2)
+            self.put(0x6091, abs(gear.numerator), 1)
+            self.put(0x6091, gear.denominator, 2)
 
     def _reset_402(self) -> None:
         self.last_cw = 0

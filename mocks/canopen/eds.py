@@ -166,6 +166,18 @@ def objects() -> list[Obj]:
         var(0x6084, "Profile deceleration", U32, "rw", 0, storage=A),
         var(0x6085, "Quick stop deceleration", U32, "rw", 0, storage=A),
         var(0x6087, "Torque slope", U32, "rw", 1000, storage=A),
+        # scaling (CiA 402): encoder increments per motor revolution and gear ratio motor : shaft revolutions,
+        # set per drive from the world's joint (rotary joints); the driver checks them against its model
+        Obj(0x608F, "Position encoder resolution", 8, (
+            Var(0, "Highest sub-index supported", U8, "const", 2),
+            Var(1, "Encoder increments", U32, "rw", 0, storage=A),
+            Var(2, "Motor revolutions", U32, "rw", 1, storage=A),
+        )),
+        Obj(0x6091, "Gear ratio", 8, (
+            Var(0, "Highest sub-index supported", U8, "const", 2),
+            Var(1, "Motor revolutions", U32, "rw", 1, storage=A),
+            Var(2, "Shaft revolutions", U32, "rw", 1, storage=A),
+        )),
         var(0x60FD, "Digital inputs", U32, "ro", 0, pdo=True),
         var(0x60FF, "Target velocity", I32, "rw", 0, pdo=True),
         var(0x6502, "Supported drive modes", U32, "ro", SUPPORTED_MODES),

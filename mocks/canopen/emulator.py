@@ -10,7 +10,10 @@ Fault injection (``world.faults.inject(kind, device=<node id>)``):
 ``timeout`` -> the node is silent (no SDO answer, PDO, heartbeat or EMCY) for ``timeout_silence`` s;
 ``disconnect`` -> the node is silent until an emulated power cycle;
 ``corrupt`` -> the node's next TPDO is replaced by a CAN error frame (protocol error) on the wire.
-``inject_error_frame("busoff")`` puts a bus-off error frame on the wire.
+``inject_error_frame("busoff")`` puts a bus-off error frame on the wire; the station's controller is then off
+the bus for ``busoff_recovery`` s (world file ``buses.canopen.busoff_recovery_s``, default 0.2 s, SocketCAN's
+``restart-ms``): frames it sends in that window never reach the drives, which keep their state (a seated,
+compliant arm stays compliant and enabled) until the station acts after the recovery.
 """
 
 from __future__ import annotations
@@ -68,6 +71,8 @@ class _Rx(can.Listener):
     def on_message_received(self, msg: can.Message) -> None:
         if msg.is_error_frame or msg.is_remote_frame:
             return
+        if time.monotonic() < self.emu.offbus_until:
+            return  # sent while the station's controller was bus-off: never on the wire
         try:
             self.emu._dispatch(msg.arbitration_id, bytes(msg.data))
         except Exception:  # an emulator bug must not kill the bus thread silently
@@ -102,6 +107,10 @@ class CanopenEmulator:
         self.boot_delay = boot_delay
         self.fault_poll = fault_poll
         serial_base = int(cfg.get("serial_base", DEFAULT_SERIAL_BASE))
+        self.busoff_recovery = float(cfg.get("busoff_recovery_s", 0.2))
+        self.offbus_until = 0.0  # monotonic: the station's controller is bus-off (its frames are lost) until then
+        # identity overrides for staging a wrong device (world file buses.canopen.device_type: e.g. 0x00020191)
+        self.device_type = int(str(cfg["device_type"]), 0) if "device_type" in cfg else None
         self.drives: dict[int, Drive402] = {}
         for j, node_id in enumerate(self.nodes):
             enc = world.nominal.joints[j].encoder
@@ -272,6 +281,8 @@ class CanopenEmulator:
             return
         msg = can.Message(arbitration_id=ERROR_CLASSES[kind], is_error_frame=True, is_extended_id=False,
                           data=bytes(8))
+        if kind == "busoff":
+            self.offbus_until = time.monotonic() + self.busoff_recovery
         with net.send_lock:
             net.bus.send(msg)
 

@@ -378,6 +378,10 @@ class DynamixelEmulator:
             if dev is not None and not broadcast and self._answering(p.dxl_id):
                 return [(dev, pk.status(dev.dxl_id, ERR_CRC | dev.error_flags))]
             return []
+        if p.inst in (INST_WRITE, INST_REG_WRITE, INST_SYNC_WRITE) and len(p.params) >= 2:
+            faults = getattr(self.world, "faults", None)
+            if faults is not None:  # world-file faults armed by a write to this address (docs/world.md)
+                faults.notice(packet={"addr": _u16(p.params, 0), "inst": INST_NAMES.get(p.inst)})
         if broadcast:
             return self._broadcast(p)
         dev = self.devices.get(p.dxl_id)

@@ -60,6 +60,7 @@ def ur(host: str = typer.Option("127.0.0.1", "--host", help="Address to listen o
     w = build(world, model, seed)
     cfg = w.bus_config("ur")
     ctl = URController(w, serial=str(serial or cfg.get("serial", "20235500001")), model_name=w.nominal.name,
+                       robot_model=cfg.get("robot_model"), polyscope=cfg.get("polyscope"),
                        contact_bit=int(cfg.get("contact_bit", DEFAULT_CONTACT_BIT)),
                        stall_s=float(cfg.get("stall_s", 1.0)), drop_s=float(cfg.get("drop_s", 1.0)),
                        remote_control=not (no_remote or cfg.get("remote_control") is False))

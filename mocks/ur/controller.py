@@ -7,6 +7,7 @@ The controller's own kinematics are the world's *nominal* model (what a real con
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
 from collections import deque
@@ -22,6 +23,7 @@ _CONSTANTS = {"speed_scaling": 1.0, "target_speed_fraction": 1.0, "actual_main_v
               "actual_robot_voltage": 48.0, "joint_temperatures": [30.0] * 6, "actual_joint_voltage": [48.0] * 6,
               "actual_execution_time": 0.3, "tool_temperature": 30.0}
 PERIOD = 0.002  # e-Series controller cycle (500 Hz)
+POLYSCOPE = "URSoftware 5.11.1.108318 (Mar 22 2022)"  # an e-Series controller
 UNLOCK_DELAY = 5.0  # s: a protective stop cannot be unlocked earlier (as on a real robot)
 
 
@@ -35,18 +37,31 @@ def _take(world, kind: str) -> bool:
         return bool(faults.take(kind))
 
 
+def robot_model_of(model_name: str) -> str:
+    """``get robot model`` of a controller for a world model: ``ur5e`` -> ``UR5``; a model that is no UR arm
+    (a model file named otherwise) reports its name in capitals, which no station model matches."""
+    name = model_name.strip()
+    m = re.match(r"^ur(\d{1,2})e?$", name, re.IGNORECASE)
+    return f"UR{m.group(1)}" if m else name.upper()
+
+
 class URController:
     """Registers, safety state, program state and the control-script interpreter. Thread-safe: the
     network handlers call into it under ``self.lock``; the tick thread owns motion."""
 
     def __init__(self, world, *, serial: str = "20235500001", model_name: str = "ur5e",
                  contact_bit: int = S.DEFAULT_CONTACT_BIT, stall_s: float = 1.0, drop_s: float = 1.0,
-                 remote_control: bool = True) -> None:
+                 remote_control: bool = True, robot_model: str | None = None,
+                 polyscope: str | None = None) -> None:
         self.world = world
         self.nominal = world.nominal
         self.n = self.nominal.n_joints
         self.serial = serial
         self.model_name = model_name
+        # identity as the dashboard reports it: "UR5" for a ur5e world (type without the series letter; the
+        # series shows in the PolyScope version), overridable per world file (buses.ur.robot_model/polyscope)
+        self.robot_model = str(robot_model or robot_model_of(model_name))
+        self.polyscope = str(polyscope or POLYSCOPE)
         self.contact_bit = contact_bit
         self.stall_s, self.drop_s = stall_s, drop_s
         self.remote_control = remote_control

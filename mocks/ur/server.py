@@ -23,7 +23,6 @@ log = logging.getLogger("station.mocks.ur")
 RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
 CONTROLLER_VERSION = (5, 11, 1, 108318)  # PolyScope 5.11 -> ur_rtde picks 500 Hz
 TRACE = os.environ.get("STATION_UR_TRACE")  # debugging: append every RTDE input package to this file
-POLYSCOPE = "URSoftware 5.11.1.108318 (Mar 22 2022)"
 
 
 def _recv_exact(sock: socket.socket, n: int) -> bytes:
@@ -201,11 +200,11 @@ class DashboardConn(_Conn):
         cmd = line.lower()
         states = {0: "STOPPING", 1: "STOPPED", 2: "PLAYING", 3: "PAUSING", 4: "PAUSED", 5: "RESUMING"}
         if cmd == "polyscopeversion":
-            return POLYSCOPE, None
+            return ctl.polyscope, None
         if cmd == "get serial number":
             return ctl.serial, None
         if cmd == "get robot model":
-            return ctl.model_name[:-1].upper() if ctl.model_name.endswith("e") else ctl.model_name.upper(), None
+            return ctl.robot_model, None
         if cmd == "is in remote control":
             return str(ctl.remote_control).lower(), None
         if cmd == "robotmode":

@@ -14,6 +14,17 @@ from dataclasses import dataclass
 KINDS = ("timeout", "corrupt", "device_fault", "disconnect", "protective_stop")
 
 
+def _matches_event(trigger: dict, event: dict) -> bool:
+    for key, want in trigger.items():
+        got = event.get(key)
+        if isinstance(want, dict):
+            if not isinstance(got, dict) or not _matches_event(want, got):
+                return False
+        elif got != want:
+            return False
+    return True
+
+
 @dataclass
 class PendingFault:
     kind: str
@@ -21,6 +32,7 @@ class PendingFault:
     count: int  # how many more times it fires
     after: int  # opportunities to let pass before it fires
     code: int | None = None  # optional device-specific error code for device_fault
+    trigger: dict | None = None  # armed only once an emulator reports a matching wire event (``notice``)
 
 
 class Faults:
@@ -32,19 +44,28 @@ class Faults:
         self.fired: list[tuple[str, Hashable | None]] = []  # (kind, device) in the order consumed
 
     def inject(self, kind: str, device: Hashable | None = None, count: int = 1, *, after: int = 0,
-               code: int | None = None) -> None:
+               code: int | None = None, trigger: dict | None = None) -> None:
         """Arm ``count`` faults of ``kind`` for ``device`` (None: any device), firing after ``after``
-        opportunities have passed."""
+        opportunities have passed; with ``trigger`` (e.g. ``{"packet": {"addr": 20}}``) only once an emulator
+        has reported a matching wire event through :meth:`notice` (the phase a write-back is in, ...)."""
         if kind not in KINDS:
             raise ValueError(f"unknown fault kind {kind!r}; known: {', '.join(KINDS)}")
         if count < 1 or after < 0:
             raise ValueError(f"fault {kind!r}: count must be >= 1 and after >= 0 (got {count}, {after})")
         with self._lock:
-            self._pending.append(PendingFault(kind, device, int(count), int(after), code))
+            self._pending.append(PendingFault(kind, device, int(count), int(after), code, trigger))
+
+    def notice(self, **event) -> None:
+        """An emulator saw a wire event, e.g. ``notice(packet={"addr": 20})`` for a Dynamixel write to
+        address 20: faults waiting for it are armed from now on (their trigger's keys all match)."""
+        with self._lock:
+            for f in self._pending:
+                if f.trigger is not None and _matches_event(f.trigger, event):
+                    f.trigger = None
 
     @staticmethod
     def _matches(f: PendingFault, kind: str, device: Hashable | None) -> bool:
-        if f.kind != kind:
+        if f.kind != kind or f.trigger is not None:
             return False
         return f.device is None or device is None or f.device == device or str(f.device) == str(device)
 
@@ -75,7 +96,7 @@ class Faults:
 
     def pending(self) -> list[PendingFault]:
         with self._lock:
-            return [PendingFault(f.kind, f.device, f.count, f.after, f.code) for f in self._pending]
+            return [PendingFault(f.kind, f.device, f.count, f.after, f.code, f.trigger) for f in self._pending]
 
     def clear(self) -> None:
         with self._lock:

@@ -124,6 +124,7 @@ class World:
                                                 float(radius), np.array(p["approach"], dtype=float))
             self._survey[p["label"]] = g_survey.normal(0.0, spec.survey_sigma, 3)
         self.faults = Faults()
+        self._arm_file_faults(spec.faults)
         self.keep_out = KeepOutTruth(self.truth, spec.keep_out)  # the floor and fixtures the links can hit
         self.collisions: list[str] = []  # every contact of a link with them, in order (the truth tests read)
         self.events: deque[tuple[float, str]] = deque(maxlen=500)
@@ -474,6 +475,20 @@ class World:
             self._seated = None
             self._seat_target = None
         self._update(watch=False)  # joint-by-joint commands of one move: watched when the arm is next observed
+
+    def _arm_file_faults(self, items: list[dict]) -> None:
+        """The world file's ``faults:`` (docs/world.md): armed now, on a wire event, or after a delay."""
+        for f in items:
+            at = dict(f.get("at") or {})
+            delay = at.pop("after_s", None)
+            args = dict(kind=f["do"], device=f.get("device"), count=f.get("count", 1), after=f.get("after", 0),
+                        code=f.get("code"), trigger=at or None)
+            if delay:
+                t = threading.Timer(float(delay), lambda a=args: self.faults.inject(**a))
+                t.daemon = True
+                t.start()
+            else:
+                self.faults.inject(**args)
 
     # ---- power, compliance, faults ------------------------------------------------------------
     def _joints(self, joints) -> list[int]:

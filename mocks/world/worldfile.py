@@ -21,7 +21,7 @@ LENGTH = {"m": 1.0, "mm": 1e-3}
 ANGLE = {"rad": 1.0, "deg": math.pi / 180}
 TIME_MODES = ("instant", "sim", "realtime")
 SECTIONS = {"format", "units", "seed", "robot", "errors", "joints", "motion", "cell", "noise", "buses",
-            "description"}
+            "description", "faults"}
 ANGLE_SUFFIX = {"alpha", "beta", "theta", "rx", "ry", "rz"}
 LENGTH_SUFFIX = {"a", "d", "x", "y", "z", "offset"}  # offset: leg.K.offset, strut.K.offset (parallel robots)
 
@@ -65,6 +65,7 @@ class WorldSpec:
     survey_sigma: float = 0.0
     encoder_sigma: float = 0.0
     buses: dict = field(default_factory=dict)
+    faults: list[dict] = field(default_factory=list)  # armed at start: {do, device, count, after, code, at}
     keep_out: KeepOut = field(default_factory=lambda: KeepOut.default(0.0))  # truth: contact is a collision
     collision: str = "record"  # a link touching a keep-out: "record" it (world.collisions) or also "stop"
 
@@ -317,7 +318,41 @@ def _spec_from_dict(doc, where: str) -> WorldSpec:
     if not isinstance(buses, dict) or any(not isinstance(v, dict | type(None)) for v in buses.values()):
         raise r.fail("buses", "expected a mapping of bus name -> settings mapping")
     s.buses = {str(k): dict(v or {}) for k, v in buses.items()}
+    s.faults = _parse_faults(r, doc.get("faults"))
     return s
+
+
+def _parse_faults(r, items) -> list[dict]:
+    """``faults: [{do: timeout, device: 12, count: 1, after: 0, code: 0x20, at: {packet: {addr: 20}}}]``:
+    ``do`` one of the emulators' fault kinds; ``at`` (optional) arms it only once the emulator sees a matching
+    wire event (``packet: {addr: N}``: a Dynamixel write to address N) or ``after_s`` seconds after start."""
+    from station.mocks.world.faults import KINDS
+
+    if items is None:
+        return []
+    if not isinstance(items, list):
+        raise r.fail("faults", "expected a list of {do: KIND, device, count, after, code, at}")
+    out = []
+    for k, f in enumerate(items):
+        where = f"faults[{k}]"
+        f = r.mapping(f, where, {"do", "device", "count", "after", "code", "at"})
+        kind = f.get("do")
+        if kind not in KINDS:
+            raise r.fail(f"{where}.do", f"{kind!r} is not one of {', '.join(KINDS)}")
+        at = r.mapping(f.get("at") or {}, f"{where}.at", {"packet", "after_s"})
+        if "packet" in at:
+            at["packet"] = r.mapping(at["packet"], f"{where}.at.packet", {"addr", "inst"})
+        if "after_s" in at:
+            at["after_s"] = r.num(at["after_s"], f"{where}.at.after_s", nonneg=True)
+        count, after = f.get("count", 1), f.get("after", 0)
+        if not isinstance(count, int) or count < 1 or not isinstance(after, int) or after < 0:
+            raise r.fail(where, f"count must be an integer >= 1 and after >= 0 (got {count!r}, {after!r})")
+        code = f.get("code")
+        if code is not None and not isinstance(code, int):
+            raise r.fail(f"{where}.code", f"expected an integer error code, got {code!r}")
+        out.append({"do": kind, "device": f.get("device"), "count": count, "after": after, "code": code,
+                    "at": at})
+    return out
 
 
 def _is_builtin(name: str) -> bool:
@@ -379,6 +414,8 @@ def spec_to_dict(s: WorldSpec, model, length: str = "m", angle: str = "rad") -> 
     doc["noise"] = {"seating": r(s.seating_sigma * L), "survey": r(s.survey_sigma * L),
                     "encoder": r(s.encoder_sigma * A)}
     doc["buses"] = s.buses
+    if s.faults:
+        doc["faults"] = s.faults
     return doc
 
 

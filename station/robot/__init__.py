@@ -10,8 +10,8 @@ from __future__ import annotations
 import importlib
 
 _EXPORTS = {
-    "station.robot.errors": ("BusError", "ConfigError", "ConnectionLost", "DeviceFault", "LimitError", "SafetyStop",
-                             "StationError"),
+    "station.robot.errors": ("BusError", "ConfigError", "ConnectionLost", "DeviceFault", "IdentityMismatch",
+                             "LimitError", "SafetyStop", "StationError"),
     "station.robot.protocol": ("Identity", "JointSnapshot", "JointState", "Robot", "RobotStatus", "adopt_serial"),
     "station.robot.capabilities": ("CalibrationExport", "CalibrationStore", "CartesianMotion", "Compliant",
                                    "ContactSensor", "FaultRecovery", "Reboot", "Reconnect", "UnlockProtectiveStop",

@@ -34,3 +34,9 @@ class SafetyStop(StationError):
 
 class LimitError(StationError):
     """A command would leave joint limits or exceed a speed cap; nothing was sent."""
+
+
+class IdentityMismatch(ConfigError):
+    """The robot/devices on the bus are not what the URL's model (or its default) says: wrong UR type or
+    series, wrong Dynamixel servo model, not a CiA 402 drive or a different product. Raised at connect,
+    before any motion (exit 2)."""

@@ -1,0 +1,72 @@
+"""Safe teardown after a bus fault (issue 9 item 5): a CANopen bus-off while the arm is seated (compliant,
+every drive enabled in profile torque mode). The station's controller is off the bus for its recovery time,
+so the quick stop sent when the fault latched never reaches the drives (the emulator drops frames sent while
+bus-off); teardown's "compliance off" must then disable every drive (power stage off, brakes engaged) through
+whatever path works and say so. Ground truth: the emulated drives' CiA 402 states and the world's enables."""
+
+from __future__ import annotations
+
+import time
+import uuid
+
+import pytest
+from station.mocks.canopen.emulator import CanopenEmulator
+from station.mocks.world import World
+
+from station.robot import BusError, open_robot
+
+START = [0.3, -0.7, 0.9, 1.0, -0.6, 2.0]
+SAFE = ("SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON")
+
+
+@pytest.fixture
+def seated():
+    chan = f"td-{uuid.uuid4().hex[:8]}"
+    world = World.default(model="arm6", seed=11, start=START, time_mode="realtime")
+    emu = CanopenEmulator(world, channel=chan, timeout_silence=1.0).start()
+    robot = open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6")
+    robot.enable()
+    robot.set_compliant(True)
+    assert world.compliant
+    yield world, emu, robot
+    robot.close()
+    emu.stop()
+
+
+def _states(emu) -> list[str]:
+    from station.drivers.canopen.cia402 import state_of
+    return [state_of(int(d.get(0x6041))) for d in emu.drives.values()]
+
+
+def test_bus_off_while_seated_teardown_disables_every_drive(seated):
+    world, emu, robot = seated
+    emu.busoff_recovery = 0.3
+    emu.inject_error_frame("busoff")
+    time.sleep(0.1)
+    # the bus-off controller's quick stop was lost: the drives are still enabled and compliant
+    assert all(s == "OPERATION ENABLED" for s in _states(emu)) and world.compliant
+    t0 = time.monotonic()
+    with pytest.raises(BusError) as e:
+        robot.set_compliant(False)  # what the engine's teardown calls
+    took = time.monotonic() - t0
+    msg = str(e.value)
+    assert "bus-off" in msg and "compliance off not possible" in msg
+    assert "every drive disabled instead" in msg and "\n" not in msg
+    assert all(s in SAFE for s in _states(emu)), _states(emu)
+    assert not world.enabled().any() and not world.compliant
+    assert took < 1.5  # bounded: recovery 0.3 s + a few SYNC rounds
+
+
+def test_drives_that_stay_unreachable_are_reported_loudly(seated):
+    world, emu, robot = seated
+    emu.busoff_recovery = 60.0  # the controller never comes back within teardown
+    emu.inject_error_frame("busoff")
+    time.sleep(0.05)
+    t0 = time.monotonic()
+    with pytest.raises(BusError) as e:
+        robot.set_compliant(False)
+    assert time.monotonic() - t0 < 3.0  # bounded, never a hang
+    msg = str(e.value)
+    assert "drives NOT confirmed disabled on nodes [1, 2, 3, 4, 5, 6]" in msg
+    assert "switch off drive power at the cabinet" in msg
+    assert all(s == "OPERATION ENABLED" for s in _states(emu))  # the truth the message reports
