@@ -220,7 +220,8 @@ class CanopenRobot(RobotBase):
         off = [n for n in self.nodes if state_of(snap[n][0]) != ENABLED]
         if off:
             raise SafetyStop(f"canopen: drive(s) {off} not enabled "
-                             f"({', '.join(sorted({state_of(snap[n][0]) for n in off}))}); call enable()")
+                             f"({', '.join(sorted({state_of(snap[n][0]) for n in off}))}); "
+                             "clear the cause, then resume the session (jog UI: press c)")
 
     def _to_q(self, counts) -> np.ndarray:
         return np.array([float(j.encoder.to_si(c)) for j, c in zip(self.model.joints, counts, strict=True)])

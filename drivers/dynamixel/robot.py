@@ -187,8 +187,8 @@ class DynamixelRobot(RobotBase):
             code = code or bits
             parts.append(f"{self._name(i)}: hardware error 0x{bits:02X} ({T.describe_hardware_error(bits)})")
         j = self.ids.index(bad[0])
-        raise DeviceFault("; ".join(parts) + f"; its torque is off until reboot: remove the cause, then "
-                          f"robot.reboot('{self.model.joints[j].name}') and enable() (or power-cycle); "
+        raise DeviceFault("; ".join(parts) + f"; its torque is off until the servo restarts: remove the cause, "
+                          f"power-cycle the servos ({self.model.joints[j].name} included), then resume the session; "
                           "the other servos hold position", device=f"dynamixel:{bad[0]}", code=code)
 
     def _guard(self, fn, *args, **kw):

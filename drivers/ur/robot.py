@@ -218,10 +218,11 @@ class URRobot(RobotBase):
     # ---- link and safety checks --------------------------------------------------------------
     def _check_link(self) -> None:
         if self._r is None or self._c is None:
-            raise ConnectionLost(f"ur://{self.host}: not connected (call reconnect())")
+            raise ConnectionLost(f"ur://{self.host}: not connected to the controller; check the network, then "
+                                 "resume the session")
         if not self._r.isConnected() or not self._c.isConnected():
             raise ConnectionLost(f"ur://{self.host}: connection to the controller lost (RTDE port 30004 closed); "
-                                 "call reconnect() when the network is back")
+                                 "resume the session when the network is back")
 
     def _check_link_moving(self) -> None:
         """During motion: on a lost RTDE link still try to stop the program over the dashboard (it may be a
@@ -239,7 +240,8 @@ class URRobot(RobotBase):
                               "e-stop, power on and restart")
         if bits & SS_PROTECTIVE:
             return SafetyStop(f"ur://{self.host}: protective stop (safety_status_bits 0x{bits:x}): the robot halted. "
-                              "Inspect the cause, then unlock_protective_stop() (allowed 5 s after the stop)")
+                              "Inspect the cause, unlock it on the teach pendant (allowed 5 s after "
+                              "the stop), then resume the session")
         if bits & SS_SAFEGUARD:
             return SafetyStop(f"ur://{self.host}: safeguard stop (safety_status_bits 0x{bits:x}); close the guard")
         if bits & (SS_VIOLATION | SS_FAULT):
