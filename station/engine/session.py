@@ -26,6 +26,9 @@ from station.robot.protocol import adopt_serial
 from station.units import human, param_quantity
 
 APPROACH_TOOL_SPEED = 0.10  # m/s at the tool on the last centimetres to a reference (seating, contact)
+# plan-time check: a touch noise better than any cell achieves (seating repeatability is ~10 um), so a refused
+# plan is one that cannot pass, not one that might not
+PLAN_NOISE_M = 5e-6
 
 
 class ResumeMismatch(StationError):
@@ -238,9 +241,50 @@ class Session:
                         kw.setdefault(key, float(opt[key]))
                 plan = generate_plan(self.model, points or self.points("socket")[:1], q0, identify=identify,
                                      n_fit=n_fit, n_holdout=n_holdout, seed=int(opt.get("seed", 0)), **kw)
+            self.check_plan(plan, identify)  # before anything moves: can these poses meet the limits at all?
             self.event(ev.Plan(plan=plan.to_dict()))
         self.current_plan = plan
         return plan
+
+    def check_plan(self, plan: PosePlan, identify: str) -> None:
+        """Plan-time check (docs/solver.md, "prediction"): the posterior the planned fit poses would give, with
+        an optimistic touch noise (``options["plan_noise_m"]``, default PLAN_NOISE_M: a refusal must mean "cannot
+        pass", never "might not"), against the procedure's ``identified`` and ``offset_std_max`` limits. A plan
+        that cannot meet them is refused in one line naming what stays unseen and what would fix it, before the
+        robot moves (ConfigError, exit 2)."""
+        lim_n, lim_std = self.limits.get("identified"), self.limits.get("offset_std_max")
+        fit = [p for p in plan.poses if p.set == "fit"]
+        if (lim_n is None and lim_std is None) or not fit:
+            return
+        from station.solver import SolverInputError, predict
+
+        ref = self.options.get("reference", "unknown")
+        if ref == "cell":
+            ref = {lb: p.position for lb, p in self.cell.points.items()} if self.cell else "unknown"
+        noise = float(self.options.get("plan_noise_m", PLAN_NOISE_M))
+        try:
+            pred = predict(self.model, np.array([p.q for p in fit]), [p.point for p in fit], identify, ref,
+                           noise=noise)
+        except SolverInputError as e:
+            raise ConfigError(f"plan: {e}") from None
+        seen = {n: p for n, p in pred.parameters.items() if p.identifiable}
+        problems = []
+        if lim_n is not None and lim_n.low is not None:
+            have = lim_n.judge(float(len(seen)), "number")
+            if not have["passed"]:
+                missing = "; ".join(f"{n}: {why}" for n, why in pred.missing.items())
+                problems.append(f"these poses can identify {len(seen)} parameter(s), the limits need "
+                                f"{lim_n.low:g} ({missing})")
+        rev = [p.std for n, p in seen.items() if n.startswith("offset.") and p.std is not None
+               and param_quantity(n, self.model) == "angle"]
+        if lim_std is not None and rev:
+            worst = lim_std.judge(max(rev), "angle")
+            if not worst["passed"]:
+                problems.append(f"offset_std_max would be at least {worst['value']:.3g} {worst['unit']} even at "
+                                f"{noise * 1e6:g} um touch noise, limit {lim_std.high:g} {lim_std.unit} (more "
+                                "poses, a wider pose spread (--cone), or a known reference position)")
+        if problems:
+            raise ConfigError("plan: the planned poses cannot meet the limits, nothing moved: " + "; ".join(problems))
 
     def todo(self, plan: PosePlan | None = None) -> Iterator[PlannedPose]:
         """The poses not yet recorded, in plan order (a resumed session does not repeat recorded samples)."""

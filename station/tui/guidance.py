@@ -3,8 +3,8 @@ needed, and whether the samples are "good enough" against the limits that will j
 
 The good-enough test predicts the posterior standard deviation of every identified parameter from the
 Jacobian at the samples recorded so far with an assumed touch noise (not the fitted residual, which is
-meaningless with few samples): ``station.solver.solve(..., noise=TOUCH_NOISE)``. Small and replaceable: a
-plan-time prediction in ``station.solver`` can take its place."""
+meaningless with few samples): ``station.solver.predict(..., noise=TOUCH_NOISE)``, the prediction that also checks
+a procedure's plan before the robot moves."""
 
 from __future__ import annotations
 
@@ -48,11 +48,12 @@ def next_point(labels: list[str], per_point: dict[str, int]) -> str | None:
 def predicted_std(model, q: np.ndarray, labels: np.ndarray, identify: str, reference, noise: float = TOUCH_NOISE
                   ) -> dict[str, float | None]:
     """Predicted posterior std (SI) of every model parameter at these samples with touch noise ``noise``;
-    None for a parameter the samples cannot identify. Raises what ``solve`` raises (too few samples)."""
-    from station.solver import Observations, solve
+    None for a parameter the samples cannot identify (``station.solver.predict``, the same prediction that
+    checks a procedure's plan before motion). Raises SolverInputError for too few samples."""
+    from station.solver import predict
 
-    res = solve(model, Observations(q, labels), identify=identify, reference=reference, noise=noise)
-    return {n: (p.std if p.identifiable else None) for n, p in res.parameters.items() if p.kind == "model"}
+    pred = predict(model, q, list(labels), identify, reference, noise=noise)
+    return {n: (p.std if p.identifiable else None) for n, p in pred.parameters.items()}
 
 
 def measurements(model, result, n_samples: int, predicted: dict[str, float | None] | None = None) -> dict:
