@@ -46,6 +46,12 @@ def test_scripted_session_like_the_docs(cell):
         assert [r["passed"] for r in records.sessions(serial)] == [None]
     finally:
         records.close()
+    import subprocess
+    import sys
+
+    listed = subprocess.run([sys.executable, "-m", "station.cli", "records", "list", "--serial", serial, "--db", db],
+                            capture_output=True, text=True, env={**__import__("os").environ, "COLUMNS": "80"})
+    assert listed.returncode == 0 and "NO LIMITS" in listed.stdout and "PASS" not in listed.stdout, listed.stdout
     html = s.outcome.report.read_text()
     assert 'id="overall">NO LIMITS<' in html and 'id="overall">PASS' not in html
     hidden = emu.world.hidden()

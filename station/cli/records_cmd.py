@@ -76,6 +76,19 @@ def _duration(started: str | None, finished: str | None) -> str:
 NARROW = 120  # below this many columns the tables keep what an operator needs: serial/session and verdict
 
 
+def _with_verdicts(rec, rows: list[dict]) -> list[dict]:
+    """A completed session without pass/fail in the summary row: its verdict's own word (NO LIMITS: nothing to
+    judge against, never a pass) from the stored session, not the bare "completed"."""
+    from station.records import overall_status
+
+    out = []
+    for s in rows:
+        if s["passed"] is None and s["status"] == "completed":
+            s = {**s, "verdict_word": overall_status(rec.session(s["session"]).get("verdict"))}
+        out.append(s)
+    return out
+
+
 def _sessions_table(title: str, rows: list[dict], width: int = 160) -> Table:
     t = Table(title=title, title_justify="left", box=box.SIMPLE_HEAD if width < NARROW else box.HEAVY_HEAD)
     w = max([len(s["session"]) for s in rows] + [7])
@@ -93,7 +106,8 @@ def _sessions_table(title: str, rows: list[dict], width: int = 160) -> Table:
                  "took": _duration(s["started"], s["finished"]), "station": s["station"], "operator": s["operator"],
                  "samples": str(s["n_samples"]), "rms before mm": _mm(s["rms_before_m"]),
                  "rms after mm": _mm(s["rms_after_m"]),
-                 "verdict": _verdict(s["passed"]) if s["passed"] is not None else (s["status"] or "-"), "written": wb}
+                 "verdict": _verdict(s["passed"]) if s["passed"] is not None else (
+                     s.get("verdict_word") or s["status"] or "-"), "written": wb}
         t.add_row(s["session"], *(cells[c] for c in cols))
     return t
 
@@ -132,7 +146,8 @@ def list_records(db: str = typer.Option(None, "--db", help=DB_HELP),
             rec.robot(serial)
         except RecordNotFound as e:
             raise fail(str(e)) from None
-        con.print(_sessions_table(f"Sessions of robot {serial}", rec.sessions(serial), con.width))
+        con.print(_sessions_table(f"Sessions of robot {serial}", _with_verdicts(rec, rec.sessions(serial)),
+                                  con.width))
 
 
 @records_app.command("show")
@@ -162,7 +177,7 @@ def show(serial: str = typer.Argument(..., help="robot serial number"),
         con.print(f"[bold]Robot {serial}[/]  {robot['vendor']} {robot['model']}  firmware {robot['firmware'] or '-'}"
                   f"  {robot['url']}")
         con.print(f"first seen {robot['first_seen']}, last seen {robot['last_seen']}, {robot['n_sessions']} session(s)")
-        con.print(_sessions_table("Sessions", sessions, con.width))
+        con.print(_sessions_table("Sessions", _with_verdicts(rec, sessions), con.width))
         if trend:
             _show_trend(con, [rec.session(x["session"]) for x in sessions])
             return
