@@ -96,9 +96,9 @@ def check_identify(identify: str) -> str:
 
 
 def _fmt(p) -> tuple[str, str, str]:
-    """Value, std and unit for humans: mm / deg."""
-    k = 1e3 if p.unit == "m" else 180.0 / math.pi
-    unit = "mm" if p.unit == "m" else "deg"
+    """Value, std and unit for humans: mm / deg / urad/(N m)."""
+    from station.solver.problem import human_unit  # numpy: imported on first use
+    k, unit = human_unit(p.unit)
     val = "-" if not math.isfinite(p.value) else f"{p.value * k:+.4f}"
     std = "-" if p.std is None else f"{p.std * k:.4f}"
     return val, std, unit
