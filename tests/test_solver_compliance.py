@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from station.mocks.world import World
 
 from station.kinematics import load_model
-from station.mocks.world import World
 from station.solver import Observations, SolverInputError, solve
 from station.solver.simulate import touch_q
 
