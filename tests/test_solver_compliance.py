@@ -121,3 +121,23 @@ def test_cli_solve_identifies_compliance(world, tmp_path):
     c3 = doc["parameters"]["compliance.j3"]
     assert c3["unit"] == "rad/(N m)"
     assert abs(c3["value"] - HIDDEN_C["j3"]) < 4 * c3["std"]
+
+
+def test_cli_compliance_prior_with_its_unit(world, tmp_path):
+    """``--prior compliance=1e-7rad/Nm`` (far below the hidden values) holds the estimates near nominal;
+    a bad unit is a one-line error, exit 2."""
+    obs = touches(world, 12, np.random.default_rng(9))
+    f = tmp_path / "s.csv"
+    f.write_text(",".join(f"q{j + 1}[rad]" for j in range(6)) + ",point\n"
+                 + "".join(",".join(f"{v:.15g}" for v in r) + f",{lb}\n"
+                           for r, lb in zip(obs.q, obs.point, strict=True)))
+    out = tmp_path / "r.json"
+    base = [STATION, "solve", "--model", "ur5e", "--payload", f"{PAYLOAD}kg", "--samples", str(f), "--identify",
+            "offsets,compliance"]
+    subprocess.run([*base, "--prior", "compliance=1e-7rad/Nm", "--out", str(out)], capture_output=True, text=True,
+                   timeout=120)
+    doc = json.loads(out.read_text())
+    assert doc["settings"]["priors"]["compliance.j3"] == pytest.approx(1e-7)
+    assert abs(doc["parameters"]["compliance.j3"]["value"]) < 5e-7  # held by its prior, not the data
+    p = subprocess.run([*base, "--prior", "compliance=xrad/Nm"], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and p.stderr.startswith("station: error: --prior") and len(p.stderr.splitlines()) == 1
