@@ -96,9 +96,9 @@ def check_identify(identify: str) -> str:
 
 
 def _fmt(p) -> tuple[str, str, str]:
-    """Value, std and unit for humans: mm / deg."""
-    k = 1e3 if p.unit == "m" else 180.0 / math.pi
-    unit = "mm" if p.unit == "m" else "deg"
+    """Value, std and unit for humans: mm / deg / urad/(N m)."""
+    from station.solver.problem import human_unit  # numpy: imported on first use
+    k, unit = human_unit(p.unit)
     val = "-" if not math.isfinite(p.value) else f"{p.value * k:+.4f}"
     std = "-" if p.std is None else f"{p.std * k:.4f}"
     return val, std, unit
@@ -152,7 +152,8 @@ def solve_command(
                                          help="x,y,z columns: unknown (solve the instrument frame) | base"),
     max_std: float = typer.Option(1e-3, "--max-std", help="m at the tool: weaker directions are not estimated"),
     prior: list[str] = typer.Option(None, "--prior", help="SELECTOR=STD with a unit, e.g. offsets=0.5deg, "
-                                    "dh=0.3mm, dh.j2.a=0.1mm (repeatable; overrides the model file's tolerances)"),
+                                    "dh=0.3mm, dh.j2.a=0.1mm, compliance=1e-4rad/Nm (repeatable; overrides the model "
+                                    "file's tolerances)"),
     noise: str = typer.Option(None, "--noise", help="declared touch noise per axis with a unit, e.g. 20um "
                               "(default: fitted from the residual of the fitted model)"),
     loss: str = typer.Option("linear", "--loss", help="linear (outliers > 4 sigma excluded) | huber | soft_l1"),
@@ -215,13 +216,28 @@ def _priors(specs: list[str]) -> list[tuple[str, float, str]] | None:
         if not eq or not sel.strip():
             raise _fail(f"--prior {spec!r}: expected SELECTOR=STD with a unit, e.g. offsets=0.5deg or dh=0.3mm")
         try:
-            v, q = parse_quantity(val)
+            v, q = _compliance_quantity(val) or parse_quantity(val)
         except ValueError as e:
             raise _fail(f"--prior {spec!r}: {e}") from None
         if v <= 0:
             raise _fail(f"--prior {spec!r}: the standard deviation must be > 0")
         out.append((sel.strip(), v, q))
     return out or None
+
+
+def _compliance_quantity(text: str) -> tuple[float, str] | None:
+    """``1e-4rad/Nm`` (also ``rad/(N m)``, ``urad/Nm``): a joint compliance prior, rad per N m; else None."""
+    t = text.replace(" ", "").replace("(", "").replace(")", "").replace("*", "")
+    for suffix, k in (("urad/Nm", 1e-6), ("mrad/Nm", 1e-3), ("rad/Nm", 1.0)):
+        if t.endswith(suffix):
+            try:
+                v = float(t[: -len(suffix)]) * k
+            except ValueError:
+                raise ValueError(f"{text!r}: expected a number before {suffix}") from None
+            if not math.isfinite(v):
+                raise ValueError(f"{text!r}: not a finite number")
+            return v, "compliance"
+    return None
 
 
 def _noise(text: str | None) -> float | None:

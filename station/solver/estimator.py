@@ -26,7 +26,7 @@ from station.solver.noise import NoiseModel, joint_noise_of, quantisation, resol
 from station.solver.observations import Observations, SolverInputError
 from station.solver.posterior import MAX_RATIO, decide, posterior, t_factor
 from station.solver.priors import prior_stds
-from station.solver.problem import Problem, angle_params
+from station.solver.problem import Problem, angle_params, human_unit
 from station.solver.result import CalibrationResult, ParameterEstimate
 
 XTOL = 1e-12  # m or rad: below this a step changes nothing measurable
@@ -94,10 +94,6 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
     if max_std is not None and not (math.isfinite(max_std) and max_std > 0):
         raise SolverInputError(f"max_std must be a positive number of metres, got {max_std!r}")
     names = select_names(model, identify)
-    comp = [n for n in names if n.startswith("compliance.")]
-    if comp:  # the chain has no column for them: they would be named "does not move the tool tip", untrue
-        raise SolverInputError(f"{comp[0]}: joint compliance is not identified by this solver yet; leave the "
-                               f"compliance group out of --identify")
     prob = Problem(model, obs, names, reference, instrument_frame)
     m, p = 3 * len(obs), prob.n_unknowns
     if m <= p:
@@ -146,7 +142,7 @@ class _Estimation:
         self.prob, self.prior, self.noise, self.max_std = prob, prior, noise, max_std
         self.loss, self.threshold, self.max_iter = loss, threshold, max_iter
         self.x0 = prob.x_nominal
-        self.tool = np.where(np.array(prob.units) == "rad", prob.length, 1.0)  # m of tool motion per unit
+        self.tool = prob.tool_per_unit()  # m of tool motion per unit
         self.order = priority_order(prob.names, prob.kinds)
         N = len(prob.obs)
         self.w = np.ones(N)  # touch weights: 0 excluded (outlier), IRLS weights for robust losses
@@ -434,7 +430,7 @@ class _Estimation:
         prob = self.prob
         n = prob.names[j]
         pr = self.prior[j]
-        u, f = ("deg", 180 / math.pi) if prob.units[j] == "rad" else ("mm", 1e3)
+        f, u = human_unit(prob.units[j])
         if not math.isfinite(would):
             post = posterior(BtB, sorted([*self.accepted, j]), [], sigma, self.prior, tfac)
             would = float(post.std[post.cols.index(j)])
@@ -474,7 +470,7 @@ class _Estimation:
 
 def _q(v: float, unit: str, sign: bool = False) -> str:
     """A value for people: mm or deg."""
-    k, u = (180 / math.pi, "deg") if unit == "rad" else (1e3, "mm")
+    k, u = human_unit(unit)
     return f"{v * k:{'+' if sign else ''}.4g} {u}"
 
 

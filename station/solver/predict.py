@@ -66,7 +66,7 @@ def predict(model, q, points, identify="offsets,tcp", reference="unknown", *, no
     _, J = prob.residual_jacobian(x, q=prob.consistent_q(x, 2))
     BtB = J.T @ J
     prior = _prior_vector(prob, priors)
-    tool = np.where(np.array(prob.units) == "rad", prob.length, 1.0)
+    tool = prob.tool_per_unit()
     order = priority_order(prob.names, prob.kinds)
     dec = decide(BtB, sorted(struct.accepted), order, [], noise, prior, tool, max_std, 1.0)
     A = dec.accepted

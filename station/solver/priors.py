@@ -24,11 +24,21 @@ DEFAULTS: tuple[tuple[str, str, float], ...] = (
     ("tcp.", "angle", 5.0 * DEG),
     ("base.", "length", 0.1),  # where the robot stands in the cell
     ("base.", "angle", 5.0 * DEG),
+    # joint compliance, rad per N*m: weak on purpose (industrial arms are ~1e-6..1e-5, hobby servos
+    # ~1e-3..1e-2 with their gear play): the gravity torques of the poses determine it
+    ("compliance.", "compliance", 1e-2),
     ("", "length", 0.5e-3),  # link geometry (DH/MDH/POE lengths): machining and assembly
     ("", "angle", 0.2 * DEG),  # link twists, Hayati beta, POE frame rotations
 )
 
-Spec = tuple[str, float, "str | None"]  # (selector, std SI, "length" | "angle" | None = any)
+Spec = tuple[str, float, "str | None"]  # (selector, std SI, "length" | "angle" | "compliance" | None = any)
+
+
+def quantity_of(name: str, angles: set[str]) -> str:
+    """``angle``, ``length`` or ``compliance`` (rad per N*m) of a parameter name."""
+    if name.startswith("compliance."):
+        return "compliance"
+    return "angle" if name in angles else "length"
 
 
 def default_std(name: str, quantity: str) -> float:
@@ -55,8 +65,8 @@ def normalise(priors) -> list[Spec]:
             raise SolverInputError(f"prior {sel!r}: standard deviation {std!r} is not a number") from None
         if not (math.isfinite(std) and std > 0):
             raise SolverInputError(f"prior {sel!r}: standard deviation must be a positive number, got {std!r}")
-        if quantity not in (None, "implied", "length", "angle"):
-            raise SolverInputError(f"prior {sel!r}: quantity must be length or angle, got {quantity!r}")
+        if quantity not in (None, "implied", "length", "angle", "compliance"):
+            raise SolverInputError(f"prior {sel!r}: quantity must be length, angle or compliance, got {quantity!r}")
         out.append((str(sel), std, quantity))
     return out
 
@@ -66,7 +76,7 @@ def prior_stds(model, names: list[str], angles: set[str], priors=None) -> np.nda
     default, then ``model.tolerances``, then
     ``priors``; each level's most specific selector wins. A selector that names no parameter of the model,
     or only parameters of another quantity than its unit, is an error (a typo must not go unnoticed)."""
-    quantity = {n: "angle" if n in angles else "length" for n in names}
+    quantity = {n: quantity_of(n, angles) for n in names}
     std = {n: default_std(n, quantity[n]) for n in names}
     for level, specs in (("model file tolerances", list(getattr(model, "tolerances", ()) or ())),
                          ("prior", normalise(priors))):
@@ -77,12 +87,12 @@ def prior_stds(model, names: list[str], angles: set[str], priors=None) -> np.nda
             except KeyError as e:
                 raise SolverInputError(f"{level} {sel!r}: {e.args[0]}") from None
             if q == "implied":  # {selector: std}: every parameter named must be of one quantity
-                kinds = {"angle" if n in angles else "length" for n in hit}
+                kinds = {quantity_of(n, angles) for n in hit}
                 if len(kinds) > 1:
                     raise SolverInputError(f"{level} {sel!r}: it names lengths and angles; give the unit (e.g. "
                                            f"{sel}=0.3mm) or a (selector, std, quantity) triple")
                 q = kinds.pop()
-            same = [n for n in hit if q is None or ("angle" if n in angles else "length") == q]
+            same = [n for n in hit if q is None or quantity_of(n, angles) == q]
             if not same:
                 raise SolverInputError(f"{level} {sel!r}: no {q} parameter in {sel!r} (check the unit)")
             for n in same:

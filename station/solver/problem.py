@@ -19,6 +19,16 @@ from station.solver.folded import FoldedChain
 from station.solver.observations import Observations, SolverInputError
 
 _NONE = np.zeros(0, dtype=int)
+COMPLIANCE_UNIT = "rad/(N m)"
+
+
+def human_unit(unit: str) -> tuple[float, str]:
+    """(factor, label) to show a value of SI ``unit`` to people: mm, deg, urad/(N m)."""
+    if unit == "rad":
+        return 180.0 / math.pi, "deg"
+    if unit == COMPLIANCE_UNIT:
+        return 1e6, "urad/(N m)"
+    return 1e3, "mm"
 BASE6 = ("base.x", "base.y", "base.z", "base.rz", "base.ry", "base.rx")
 
 
@@ -78,10 +88,10 @@ class Problem:
         self.model_names = names
         self.model_idx = np.array([model.index(n) for n in names], dtype=int)
         # the chain with everything not identified folded into constant blocks (compiled once per model
-        # and parameter selection)
-        self.folded, ang, L = compiled(model, self.model_idx)
+        # and parameter selection); with a gravity load it is evaluated at the deflected joint values
+        self.folded, ang, L = _load_aware(model, self.model_idx, obs.q)
         self.kinds = ["instrument" if self.frame_unknown and n.startswith("base.") else "model" for n in names]
-        self.units = ["rad" if n in ang else "m" for n in names]
+        self.units = [COMPLIANCE_UNIT if n.startswith("compliance.") else "rad" if n in ang else "m" for n in names]
         # reference points
         labels = obs.labels
         if instrument:
@@ -122,6 +132,8 @@ class Problem:
             for lb, xyz in self.known.items():
                 self.target_fixed[obs.point == lb] = xyz
         self.length = L
+        # compliance columns (tau times a joint column, m per rad/(N m)) keep scale 1: the rank decisions are
+        # relative and the equilibration of the posterior treats them like any other column
         self.scale = np.array([L if u == "rad" else 1.0 for u in self.units])
         self._angle_cols = np.flatnonzero(self.scale != 1.0)
         # lengths of the machine and the points; a prismatic offset is a zero reading, not a length
@@ -217,12 +229,25 @@ class Problem:
         offs = [self.model.index(f"offset.j{i + 1}") for i in range(self.model.n_joints)]
         idx = np.array(list(self.model_idx) + [o for o in offs if o not in set(self.model_idx.tolist())], dtype=int)
         cols = [int(np.flatnonzero(idx == o)[0]) for o in offs]
-        return compiled(self.model, idx)[0], cols
+        return _load_aware(self.model, idx, self.obs.q)[0], cols
+
+    def _tip_and_joint_jacobian(self, fold, cols, q: np.ndarray, params: np.ndarray):
+        """Tip positions and d tip / d q at readings ``q``: with a gravity load the joints turn to
+        ``q + C tau(q)``, so d tip / d q = J_theta (I + C d tau / d q)."""
+        P, J = fold.evaluate(q, params)
+        Jq = J[:, :, cols]
+        js, ps = self.model.compliance_index
+        if self.model.load is not None and len(js) and params[ps].any():
+            dtau = self.model.gravity_torque(q, derivative=True)[1]
+            D = np.zeros((self.model.n_joints, self.model.n_joints))
+            D[js, js] = params[ps]
+            Jq = Jq + np.einsum("nri,ij,njk->nrk", Jq, D, dtau)
+        return P, Jq
 
     def joint_jacobian(self, x: np.ndarray, q: np.ndarray | None = None) -> np.ndarray:
-        """d tip / d q ``(N, 3, n)`` at the touches' joint readings (or ``q``)."""
+        """d tip / d q ``(N, 3, n)`` at the touches' joint readings (or ``q``), the deflection included."""
         fold, cols = self._joint_chain()
-        return fold.evaluate(self.obs.q if q is None else q, self.full_params(x))[1][:, :, cols]
+        return self._tip_and_joint_jacobian(fold, cols, self.obs.q if q is None else q, self.full_params(x))[1]
 
     def consistent_q(self, x: np.ndarray, steps: int = 2) -> np.ndarray:
         """Joint readings near the recorded ones at which every touch is exactly on its target with the
@@ -234,8 +259,7 @@ class Problem:
         tgt = self._targets(x)
         q = self.obs.q.copy()
         for _ in range(steps):
-            P, J = fold.evaluate(q, params)
-            Jq = J[:, :, cols]
+            P, Jq = self._tip_and_joint_jacobian(fold, cols, q, params)
             # minimum-norm dq = Jq^T (Jq Jq^T)^-1 r (damped by 1e-12 of the trace: a robot whose tip cannot
             # move in some direction keeps that part of the residual)
             A = Jq @ Jq.transpose(0, 2, 1)
@@ -281,9 +305,103 @@ class Problem:
         tgt[has] = x[self.n_model:].reshape(-1, 3)[self.slot[has]]
         return tgt
 
+    def tool_per_unit(self) -> np.ndarray:
+        """Metres of tool motion per unit of each unknown: the characteristic length for angles, that
+        times the rms gravity torque of the joint for a compliance (rad/(N m) x N m = rad), 1 for lengths."""
+        out = np.where(np.array(self.units) == "rad", self.length, 1.0)
+        for i, n in enumerate(self.names):
+            if n.startswith("compliance."):
+                j = int(n.split(".j")[1]) - 1
+                tau = self.model.gravity_torque(self.obs.q)[:, j]
+                out[i] = self.length * max(float(np.sqrt(np.mean(tau**2))), 1e-9)
+        return out
+
     def scale_direction(self, x: np.ndarray) -> np.ndarray:
         """d x / d s for a uniform scaling of every length (model lengths and points) by (1 + s)."""
         return np.where(self._lengths, x, 0.0)
+
+
+class CompliantChain:
+    """A folded chain evaluated at the joint values deflected by gravity, ``theta = q + C tau(q)``
+    (``Model.fk``), with the column of ``compliance.jN`` = ``tau_N(q)`` x the column of joint N's offset
+    (``Model.jacobians``). ``inner`` is folded over the rigid parameters of the selection plus the offsets
+    that the compliance columns need (``aux``, after the ``k`` selected columns)."""
+
+    def __init__(self, model, inner: FoldedChain, k: int, comp_cols, q0: np.ndarray) -> None:
+        self.model, self.inner, self.k, self.comp_cols = model, inner, k, comp_cols
+        self.js, self.ps = model.compliance_index
+        self.first_joint_param = inner.first_joint_param
+        # shifting the first joint moves every column rigidly only if the torques do not change with it
+        self.first_joint_shiftable = False
+        self.first_joint_motion = inner.first_joint_motion
+        self._q0, self._tau0 = q0, None
+
+    def _tau(self, q: np.ndarray) -> np.ndarray:
+        if q is self._q0:
+            if self._tau0 is None:
+                self._tau0 = self.model.gravity_torque(q)
+            return self._tau0
+        return self.model.gravity_torque(q)
+
+    def evaluate(self, q, params, jacobian: bool = True, out=None):
+        q = np.atleast_2d(q)
+        tau = self._tau(q)
+        theta = q.copy()
+        theta[:, self.js] += params[self.ps] * tau[:, self.js]
+        P, Jf = self.inner.evaluate(theta, params, jacobian)
+        if not jacobian:
+            return P, None
+        J = out if out is not None else np.empty(Jf.shape[:2] + (self.k,))
+        J[...] = Jf[:, :, : self.k]
+        for col, j, aux in self.comp_cols:
+            J[:, :, col] = tau[:, None, j] * Jf[:, :, aux]
+        return P, J
+
+
+def _load_aware(model, model_idx: np.ndarray, q0: np.ndarray):
+    """``compiled`` for a model without a gravity load; with one, the ``CompliantChain`` around it."""
+    if getattr(model, "load", None) is None or not len(model.compliance_index[0]):
+        return compiled(model, model_idx)
+    comp_p = set(model.compliance_index[1].tolist())
+    rigid = [int(i) for i in model_idx if int(i) not in comp_p]
+    idx = list(rigid)
+    cols = []
+    for col, p in enumerate(model_idx.tolist()):
+        if p in comp_p:
+            j = int(model.param_names[p].split(".j")[1]) - 1
+            off = model.index(f"offset.j{j + 1}")
+            if off not in idx:
+                idx.append(off)
+            cols.append((col, j, None, off))
+    inner, ang, L = compiled(model, np.array(idx, dtype=int))
+    # inner columns: rigid ones in order, then the extra offsets; map back to the selection's columns
+    pos = {p: i for i, p in enumerate(idx)}
+    k = len(model_idx)
+    fold = _Reordered(inner, [pos[int(p)] if int(p) not in comp_p else -1 for p in model_idx], len(idx))
+    comp_cols = [(col, j, k + pos[off]) for col, j, _, off in cols]
+    return CompliantChain(model, fold, k, comp_cols, q0), ang, L
+
+
+class _Reordered:
+    """The inner chain's Jacobian with the selection's column order (compliance columns left as zeros,
+    filled by ``CompliantChain``), followed by every inner column (``aux`` indices refer past ``k``)."""
+
+    def __init__(self, inner: FoldedChain, order: list[int], n_inner: int) -> None:
+        self.inner, self.order, self.n_inner = inner, order, n_inner
+        self.first_joint_param = inner.first_joint_param
+        self.first_joint_motion = inner.first_joint_motion
+
+    def evaluate(self, q, params, jacobian: bool = True):
+        P, Ji = self.inner.evaluate(q, params, jacobian)
+        if not jacobian:
+            return P, None
+        k = len(self.order)
+        J = np.zeros(Ji.shape[:2] + (k + self.n_inner,))
+        for c, i in enumerate(self.order):
+            if i >= 0:
+                J[:, :, c] = Ji[:, :, i]
+        J[:, :, k:] = Ji
+        return P, J
 
 
 def position_jacobian(chain, q: np.ndarray, params: np.ndarray, param_idx: np.ndarray, want: dict | None = None):
