@@ -117,9 +117,12 @@ def test_hold_moves_at_override_and_stops_on_release(ur, tmp_path):
     steady = ts > ts[0] + 0.1  # after the 0.5 m/s^2 ramp (50 ms)
     i, j = np.flatnonzero(steady)[[0, -1]]
     v = (ps[j] - ps[i]) / (ts[j] - ts[i])
+    seg = np.linalg.norm(np.diff(ps, axis=0), axis=1) / np.diff(ts)
+    print(f"\nhold 25 mm/s: true tool {v * 1e3} mm/s, peak {seg.max() * 1e3:.2f} mm/s (x from the UI loop samples),"
+          f" standstill {(t_still - t_rel) * 1e3:.0f} ms (controller) after release, travel after it "
+          f"{np.linalg.norm(p_still - p_rel) * 1e3:.2f} mm")
     assert v[0] == pytest.approx(0.025, rel=0.03), v  # commanded speed along base x (nominal model drives it)
     assert np.linalg.norm(v[1:]) < 0.025 * 0.03, v  # straight along x
-    seg = np.linalg.norm(np.diff(ps, axis=0), axis=1) / np.diff(ts)
     assert seg.max() < min(CAP, 0.025 * 1.1), seg.max()  # never above the override, far below 250 mm/s
     assert t_still - t_rel <= WATCHDOG_S + TICK_S, t_still - t_rel  # standstill after release (controller s)
     assert np.linalg.norm(p_still - p_rel) <= 0.025 * (WATCHDOG_S + TICK_S)
@@ -147,6 +150,8 @@ def test_velocity_jog_is_capped_and_stops_without_refresh(ur):
         ts = ts[keep]
         tool = np.linalg.norm(np.diff(ps, axis=0), axis=1) / np.diff(ts)
         joint = np.abs(np.diff(qs, axis=0)) / np.diff(ts)[:, None]
+        print(f"\n{mode} axis {axis} asked {velocity}: tool peak {tool.max() * 1e3:.1f} mm/s, joint peak "
+              f"{joint.max():.3f} rad/s")
         assert tool.max() <= CAP * 1.02, (mode, tool.max())
         assert tool.max() > 0.02, (mode, tool.max())  # it did move
         assert np.all(joint <= robot.model.max_velocity * 1.02)
@@ -160,6 +165,7 @@ def test_velocity_jog_is_capped_and_stops_without_refresh(ur):
         assert time.monotonic() - sent < 2.0, "the watchdog did not stop the arm"
         time.sleep(0.002)
     t_still = robot.joint_positions().t_device
+    print(f"\nno refresh: standstill {(t_still - t_sent) * 1e3:.0f} ms (controller) after the command")
     assert "RTDE watchdog expired" in emu.dashboard("emulator log")  # the controller stopped it, not us
     assert t_still - t_sent <= WATCHDOG_S + BRAKE_S + TICK_S + SEEN_S, t_still - t_sent
 
@@ -211,5 +217,6 @@ def test_station_killed_mid_hold_controller_stops_arm(tmp_path, emulators):
             proc.kill()
             proc.wait(10)
     # the last command went out at most ~40 ms before the kill: standstill within one watchdog period of it
+    print(f"\nSIGKILL mid-hold: standstill {(t_still - t_kill) * 1e3:.0f} ms (controller), {wall * 1e3:.0f} ms (wall)")
     assert "RTDE watchdog expired" in emu.dashboard("emulator log")
     assert t_still - t_kill <= WATCHDOG_S + BRAKE_S + TICK_S + SEEN_S, (t_still - t_kill, wall)
