@@ -551,11 +551,20 @@ class URRobot(RobotBase):
         if self.jog_watchdog > 0 and not self._watchdog_armed:
             self._watchdog_armed = bool(self._c.setWatchdog(self.jog_watchdog))
         self._speeding = True
-        if mode == "joint":
-            ok = self._bounded("speedJ", self._c.speedJ, (qd * scale).tolist(), self.accel, 0.0)
-        else:
-            ok = self._bounded("speedL", self._c.speedL, (xd * scale).tolist(), 0.5, 0.0)
-        self._rt_sent = time.monotonic()
+        for attempt in range(2):
+            if mode == "joint":
+                ok = self._bounded("speedJ", self._c.speedJ, (qd * scale).tolist(), self.accel, 0.0)
+            else:
+                ok = self._bounded("speedL", self._c.speedL, (xd * scale).tolist(), 0.5, 0.0)
+            self._rt_sent = time.monotonic()
+            # the watchdog may have ended the program between our check and the command (a late refresh):
+            # restart the script once and re-send; the arm was already stopped by the controller
+            if ok or attempt or self._c.isProgramRunning():
+                break
+            self._watchdog_armed = False
+            self._ready_for_motion()
+            if self.jog_watchdog > 0:
+                self._watchdog_armed = bool(self._c.setWatchdog(self.jog_watchdog))
         if not ok:
             self._speeding = False
             self._refused("speed command")
