@@ -516,6 +516,59 @@ class URRobot(RobotBase):
             v_fix = v
         self._move(target, max(min(v_fix, self.jog_speed), 1e-3), True)
 
+    def jog_velocity(self, mode: str, axis: int, velocity: float, frame: str = "base") -> None:
+        """Non-blocking velocity jog for hold-to-run: speedJ (``mode="joint"``, ``velocity`` rad/s on joint
+        ``axis``) or speedL (``mode="cartesian"``, axis 0-2 m/s along x/y/z, 3-5 rad/s about x/y/z of the base
+        or tool ``frame``). Returns at once; the controller keeps the speed until the next call, ``stop()``, or
+        its RTDE watchdog: every call writes the command register, which is what the watchdog watches, so the
+        caller must re-send within 1/jog_watchdog s (0.1 s at the default 10 Hz) or the controller stops the
+        program by itself (a dead station or network cannot leave the arm running). The tool never exceeds
+        0.25 m/s (manual mode) and no joint exceeds the model's limit: a faster request is scaled down."""
+        if mode not in ("joint", "cartesian") or frame not in ("base", "tool"):
+            raise ConfigError(f"ur://{self.host}: jog_velocity: mode must be joint|cartesian, frame base|tool")
+        n = self.model.n_joints
+        if not (0 <= axis < (n if mode == "joint" else 6)) or not math.isfinite(velocity):
+            raise LimitError(f"ur://{self.host}: jog_velocity: bad axis {axis} or velocity {velocity}")
+        q = self.joint_positions().q
+        J = np.asarray(self.model.jacobian_q(q), float).reshape(6, n)  # base-frame linear; angular rows
+        if mode == "joint":
+            qd = np.zeros(n)
+            qd[axis] = velocity
+        else:
+            xd = np.zeros(6)
+            xd[axis] = velocity
+            if frame == "tool":
+                R = self.model.fk(q)[:3, :3]
+                xd = np.concatenate([R @ xd[:3], R @ xd[3:]])
+            qd = np.linalg.pinv(J) @ xd
+        # scale the whole command so neither a joint limit nor the tool cap is exceeded
+        lim = np.asarray(self.model.max_velocity, float)
+        scale = min(1.0, float(np.min(lim / np.maximum(np.abs(qd), 1e-12))))
+        tool = float(np.linalg.norm(J[:3] @ qd))
+        if tool > MANUAL_TOOL_SPEED_CAP:
+            scale = min(scale, MANUAL_TOOL_SPEED_CAP / tool)
+        self._ready_for_motion()
+        if self.jog_watchdog > 0 and not self._watchdog_armed:
+            self._watchdog_armed = bool(self._c.setWatchdog(self.jog_watchdog))
+        self._speeding = True
+        for attempt in range(2):
+            if mode == "joint":
+                ok = self._bounded("speedJ", self._c.speedJ, (qd * scale).tolist(), self.accel, 0.0)
+            else:
+                ok = self._bounded("speedL", self._c.speedL, (xd * scale).tolist(), 0.5, 0.0)
+            self._rt_sent = time.monotonic()
+            # the watchdog may have ended the program between our check and the command (a late refresh):
+            # restart the script once and re-send; the arm was already stopped by the controller
+            if ok or attempt or self._c.isProgramRunning():
+                break
+            self._watchdog_armed = False
+            self._ready_for_motion()
+            if self.jog_watchdog > 0:
+                self._watchdog_armed = bool(self._c.setWatchdog(self.jog_watchdog))
+        if not ok:
+            self._speeding = False
+            self._refused("speed command")
+
     def _velocity_jog(self, send, remaining, v: float, a: float) -> None:
         total = remaining(self.joint_positions().q)
         deadline = time.monotonic() + total / v + v / a + 1.0  # the jog watchdog

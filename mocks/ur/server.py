@@ -290,7 +290,8 @@ class DashboardConn(_Conn):
         if what == "registers":
             o = ctl.reg_offset
             return (f"emulator: in_int {ctl.in_int[o:o + 3]} out_int {ctl.out_int[o:o + 3]} "
-                    f"watchdog {ctl.watchdog_hz:g} Hz, last write {time.monotonic() - ctl.in_int0_written:.3f} s ago, "
+                    f"watchdog {ctl.watchdog_hz:g} Hz, "
+                    f"last write {ctl.controller_time() - ctl.in_int0_written:.3f} s ago (controller time), "
                     f"(tick, command) {list(ctl.cmd_log)[-12:]}"
                     ), None
         if what == "stats":

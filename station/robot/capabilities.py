@@ -85,13 +85,24 @@ class Reconnect(Protocol):
     def reconnect(self, timeout: float = 10.0) -> None: ...
 
 
+@runtime_checkable
+class VelocityJog(Protocol):
+    """Non-blocking velocity jog for hold-to-run (UR: speedJ/speedL under the RTDE watchdog).
+
+    ``jog_velocity(mode "joint"|"cartesian", axis, velocity rad/s or m/s, frame "base"|"tool")`` returns at
+    once; the robot keeps that speed only while the caller re-sends within the driver's watchdog period (it
+    stops by itself otherwise); ``stop()`` ends it. The tool never exceeds 0.25 m/s."""
+
+    def jog_velocity(self, mode: str, axis: int, velocity: float, frame: str = "base") -> None: ...
+
+
 # A fault enable() alone cannot clear: ``isinstance(robot, FaultRecovery)`` is true when the robot offers any
 # of these recoveries; ask for the one you need by its own protocol.
 FaultRecovery = (UnlockProtectiveStop, Reboot, Reconnect)
 
 
 CAPABILITIES = (CalibrationStore, CalibrationExport, ContactSensor, Compliant, CartesianMotion, UnlockProtectiveStop,
-                Reboot, Reconnect)
+                Reboot, Reconnect, VelocityJog)
 
 
 def capabilities_of(robot: object) -> list[str]:

@@ -25,7 +25,7 @@ from station.engine.writeback import (
 )
 from station.kinematics import Model, se3
 from station.kinematics.collision import Checker, KeepOut
-from station.robot.capabilities import CalibrationExport, CalibrationStore, ContactSensor
+from station.robot.capabilities import CalibrationExport, CalibrationStore, ContactSensor, VelocityJog
 from station.robot.errors import LimitError, StationError
 from station.robot.motion import MANUAL_TOOL_SPEED_CAP, jog_target, joint_speed_for_tool_cap
 from station.tui import guidance as gd
@@ -142,10 +142,11 @@ class JogController:
         self.guide: gd.Guidance = gd.guidance(self.model, self._guide_labels(), [], None, self.limits, None)
         self.verdict: dict | None = None
         self.ur_rotvec = isinstance(robot, CalibrationExport)  # UR pendant shows the rotation vector
-        # hold-to-run re-targets position moves; ur_rtde's moveJ re-plans (brakes) on every new target, so
-        # on a UR it crawls and stops late (measured 8 of 25 mm/s, 0.5 s): refused there until the driver
-        # offers a velocity jog (speedJ/speedL under its RTDE watchdog) the UI can hold
-        self.hold_supported = not self.ur_rotvec
+        # hold-to-run re-targets position moves, except on a robot with a velocity jog (UR: speedJ/speedL
+        # under its RTDE watchdog), where re-targeting moveJ would re-plan and brake on every command
+        # (measured 8 of 25 mm/s, 0.5 s late stop): there each tick re-sends the speed instead
+        self.velocity_jog = isinstance(robot, VelocityJog)
+        self.hold_supported = True
         self.selected: int | None = None  # index into session.samples; None = the latest
         self.fault: str | None = None
         self.message = "ready"
@@ -465,6 +466,8 @@ class JogController:
         with self.io_lock:
             try:
                 q0 = np.asarray(self.robot.joint_positions().q, dtype=float)
+                if self.velocity_jog:
+                    return self._hold_velocity(h, q0, cap, rate)
                 step = d * rate * horizon
                 target = self.target(q0, axis, step)
                 speed = joint_speed_for_tool_cap(self.model, q0, target, JOG_MAX_JOINT_SPEED, cap=cap)
@@ -484,6 +487,35 @@ class JogController:
                 return False
         self.last_jog = {"mode": self.mode, "frame": self.frame, "axis": axis, "step": step, "speed": speed,
                          "q0": q0, "target": target, "cap_m_s": cap, "hold": True}
+        self.message = (f"hold-to-run {self.axis_names()[axis]} {'+' if d > 0 else '-'} at {self.speed_percent} % "
+                        f"({self.speed_mm_s:g} mm/s)")
+        return True
+
+    def _hold_velocity(self, h: dict, q0: np.ndarray, cap: float, rate: float) -> bool:
+        """Velocity hold (caller holds io_lock): re-send the speed each tick; the driver's watchdog stops the
+        arm if the ticks stop. Joint speed is limited so the tool stays within the override."""
+        axis, d = h["axis"], h["dir"]
+        if self.mode == "joint" or self.axis_unit(axis) == "deg":
+            probe = self.target(q0, axis, d * 1e-3)  # direction of motion, for the tool-speed bound
+            if self.mode == "joint":
+                speed = joint_speed_for_tool_cap(self.model, q0, probe, JOG_MAX_JOINT_SPEED, cap=cap)
+            else:
+                speed = rate
+        else:
+            speed = cap
+        try:
+            self.robot.jog_velocity(self.mode, axis, d * speed, self.frame)
+        except LimitError as e:
+            self.hold_state = None
+            self.stop(quiet=True)
+            self.message = f"refused: {e}"
+            return False
+        except StationError as e:
+            self.hold_state = None
+            self._on_error(e, f"jog {self.axis_names()[axis]}")
+            return False
+        self.last_jog = {"mode": self.mode, "frame": self.frame, "axis": axis, "velocity": d * speed,
+                         "q0": q0, "cap_m_s": cap, "hold": True}
         self.message = (f"hold-to-run {self.axis_names()[axis]} {'+' if d > 0 else '-'} at {self.speed_percent} % "
                         f"({self.speed_mm_s:g} mm/s)")
         return True
