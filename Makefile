@@ -17,9 +17,12 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/station demo
 
+# two parts: everything that tolerates a neighbour, two at a time on the two cores (whole files per worker:
+# module fixtures stay shared), then the tests that time the wire or load the machine (soak), alone
 test: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not exclusive"
+	$(BIN)/python -m pytest -q -m exclusive
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

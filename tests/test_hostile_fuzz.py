@@ -27,7 +27,7 @@ from station.samplesfile import SamplesFileError, read_joints, read_samples
 from station.yamlfile import parse_yaml_doc
 
 FAST = 40
-SLOW = int(os.environ.get("HYPOTHESIS_SLOW_EXAMPLES", "1500"))
+SLOW = int(os.environ.get("HYPOTHESIS_SLOW_EXAMPLES", "120"))  # in make test; set higher for a campaign
 fast = settings(max_examples=FAST, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 slow = settings(max_examples=SLOW, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

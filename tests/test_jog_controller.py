@@ -244,6 +244,7 @@ def _hold_and_release(world, ctl, axis: int, direction: int, seconds: float) -> 
     return float(np.linalg.norm(p1 - p0)), last_change - t_last
 
 
+@pytest.mark.exclusive  # stop-after-release timing: run alone (make test)
 @pytest.mark.parametrize("mode,axis", [("joint", 1), ("cartesian", 0)])
 def test_hold_to_run_on_canopen(rig, mode, axis):
     from station.tui.controller import HOLD_WATCHDOG_S

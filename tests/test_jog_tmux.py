@@ -24,7 +24,8 @@ from station.engine.journal import read_journal
 from station.tui.controller import HOLD_FIRST_S, HOLD_WATCHDOG_S
 
 START = [0.2, -0.3, 0.4, 0.1]
-pytestmark = pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux not installed (.ci/run installs it)")
+pytestmark = [pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux not installed (.ci/run installs it)"),
+              pytest.mark.exclusive]  # key-repeat timing in a real terminal: run alone (make test)
 
 
 class Tmux:

@@ -88,6 +88,7 @@ def test_jog_and_record_on_ur(ur, tmp_path):
     assert len(samples) == 1 and samples[0]["status"]["forced"] is True and samples[0]["raw_unit"] == "rad"
 
 
+@pytest.mark.exclusive  # the dialog waits on a live UR emulator: run alone (make test)
 @pytest.mark.timeout(120)
 def test_ur_writeback_is_an_honest_export(ur, tmp_path):
     """Issue 15 item 6: the UR path is an export. The dialog says so, the controller is unchanged, the journal,
