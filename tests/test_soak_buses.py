@@ -3,7 +3,7 @@ busy (two busy-loop processes), with the default fault thresholds: zero spurious
 is killed and the loss must be detected within the documented time (docs/hardware.md "Fault timing").
 
 Real libraries on the real wire (ur_rtde to a child process, dynamixel-sdk to a child process on a pty,
-canopen over a python-can virtual bus). ``STATION_SOAK_S`` sets the loaded run per bus (default 10 s).
+canopen over a python-can virtual bus). ``STATION_SOAK_S`` sets the loaded run per bus (default 6 s).
 Numbers are printed (run with ``-s``) for the notes."""
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from station.robot import BusError, open_robot
 
 pytestmark = [pytest.mark.slow, pytest.mark.exclusive]  # loads both cores: run alone (make test)
 
-SOAK_S = float(os.environ.get("STATION_SOAK_S", "10"))
+SOAK_S = float(os.environ.get("STATION_SOAK_S", "6"))
 # documented detection bounds (docs/hardware.md) + 0.5 s for the loaded host's scheduling of the poll itself
 DETECT = {"ur": 0.5, "canopen": 0.8 + 0.05, "dynamixel": 4 * 0.102}
 SLACK = 0.5

@@ -21,6 +21,8 @@ from station.robot.capabilities import VelocityJog
 from station.tui.controller import HOLD_RELEASE_S, HOLD_TICK_S, JogController
 from station.tui.session import JogSession, joint_units, session_header
 
+pytestmark = pytest.mark.exclusive  # timing on the wire: run alone, not next to another test (make test)
+
 START = [0.1, -1.45, 1.6, -1.72, -1.5708, 0.2]
 WATCHDOG_S = 0.1  # the driver's default jog_watchdog = 10 Hz
 TICK_S = 0.002  # the emulated controller's cycle
