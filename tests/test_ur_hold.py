@@ -177,8 +177,6 @@ def test_velocity_jog_is_capped_and_stops_without_refresh(ur):
 HOLDER = """
 import sys, time
 from station.robot import open_robot
-
-pytestmark = pytest.mark.exclusive  # timing on the wire: run alone, not next to another test (make test)
 robot = open_robot(sys.argv[1])
 robot.enable()
 start = time.monotonic()
