@@ -401,6 +401,11 @@ class World:
                 tracks = [motion.hold(t, float(target[i]), float(new_side[i])) for i in range(self.n_joints)]
             else:
                 vs, as_ = motion.synchronised_limits(target - x, vlim, alim)
+                # a joint still moving keeps its full limits: braking it at a rate scaled down for a straight
+                # joint path would carry it far past the new target (and past its joint limit)
+                moving = np.abs(v) > motion.EPS
+                vs = np.where(moving, np.broadcast_to(vlim, moving.shape), vs)
+                as_ = np.where(moving, np.broadcast_to(alim, moving.shape), as_)
                 tracks = [motion.plan(t, float(x[i]), float(v[i]), float(target[i]), vs[i], as_[i],
                                       float(side[i])) for i in range(self.n_joints)]
             self._set_tracks(tracks, x)
