@@ -26,3 +26,17 @@ def lazy_module(name: str) -> ModuleType:
     sys.modules[name] = module
     loader.exec_module(module)
     return module
+
+
+def lazy_names(module_name: str, where: dict[str, str]):
+    """A PEP 562 ``__getattr__`` for a package whose public names (``where``: name -> defining module) are
+    imported on first use: registering a command must not load numpy and the emulators behind it."""
+
+    def __getattr__(name: str):
+        if name not in where:
+            raise AttributeError(f"module {module_name!r} has no attribute {name!r}")
+        value = getattr(importlib.import_module(where[name]), name)
+        setattr(sys.modules[module_name], name, value)
+        return value
+
+    return __getattr__

@@ -2,20 +2,10 @@
 the simulated world; the real ``ur_rtde`` client talks to it unchanged. Run it in its own process:
 ``station mock ur --host 127.0.0.2 [--world FILE]`` (ur_rtde's constructors hold the GIL).
 
-Names are imported on first use (PEP 562), so registering `station mock ur` costs no numpy."""
+Names are imported on first use, so registering `station mock ur` costs no numpy."""
 
-from __future__ import annotations
-
-import importlib
+from station.lazy import lazy_names
 
 _WHERE = {"URController": "station.mocks.ur.controller", "URServer": "station.mocks.ur.server"}
-
 __all__ = sorted(_WHERE)
-
-
-def __getattr__(name: str):
-    if name not in _WHERE:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(_WHERE[name]), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_names(__name__, _WHERE)
