@@ -201,6 +201,10 @@ def station(*args):
     (lambda d: d["parallel"]["platform_anchors"][2].append(1), "platform_anchors[2]"),
     (lambda d: d.update(kind="hybrid"), "kind must be serial or parallel"),
     (lambda d: d["parallel"].update(pivots=[[0, 0], [1, 0]]), "unknown keys ['pivots']"),
+    # found by the reader fuzz in CI: a list as the encoder direction was a TypeError traceback
+    (lambda d: d["parallel"]["legs"].update(encoder={"counts_per_m": 1e6, "direction": []}), "encoder.direction"),
+    (lambda d: d["parallel"]["legs"].update(encoder={"counts_per_m": 1e6, "gear": 0}), "must be > 0"),
+    (lambda d: d["parallel"]["legs"].update(encoder={"counts_per_m": 1e6, "dir": -1}), "unknown keys ['dir']"),
 ])
 def test_bad_parallel_files_fail_in_one_line(tmp_path, edit, message):
     doc = yaml.safe_load(ISSUE_HEXAPOD)

@@ -81,9 +81,17 @@ def _actuators(d, n: int, where: str, L: float) -> dict:
         e = d["encoder"]
         if not isinstance(e, dict) or "counts_per_m" not in e:
             raise ModelFileError(f"{where}.encoder: needs counts_per_m (counts per metre of leg travel)")
-        out["encoder"] = Encoder(_num(e["counts_per_m"], f"{where}.encoder.counts_per_m"),
-                                 _num(e.get("gear", 1), f"{where}.encoder.gear"), int(e.get("direction", 1)),
-                                 _num(e.get("zero", 0), f"{where}.encoder.zero"))
+        unknown = sorted(map(str, set(e) - {"counts_per_m", "gear", "direction", "zero"}))
+        if unknown:
+            raise ModelFileError(f"{where}.encoder: unknown keys {unknown}")
+        cpm = _num(e["counts_per_m"], f"{where}.encoder.counts_per_m")
+        gear = _num(e.get("gear", 1), f"{where}.encoder.gear")
+        direction = e.get("direction", 1)
+        if cpm <= 0 or gear <= 0:
+            raise ModelFileError(f"{where}.encoder: counts_per_m and gear must be > 0 (the sign is the direction's)")
+        if isinstance(direction, bool) or direction not in (1, -1):
+            raise ModelFileError(f"{where}.encoder.direction: must be 1 or -1, got {direction!r}")
+        out["encoder"] = Encoder(cpm, gear, int(direction), _num(e.get("zero", 0), f"{where}.encoder.zero"))
     return out
 
 
