@@ -57,7 +57,7 @@ def select_names(model, identify) -> list[str]:
 def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown", holdout: Observations | None = None,
           *, instrument_frame: str = "unknown", noise: float | None = None, priors=None,
           max_std: float | None = None, loss: str = "linear", outlier_threshold: float | None = OUTLIER_THRESHOLD,
-          distances: dict | None = None, joint_noise=None, max_iter: int = 100) -> CalibrationResult:
+          distances=None, planes=None, joint_noise=None, max_iter: int = 100) -> CalibrationResult:
     """Identify ``identify`` of ``model`` from touch observations (MAP estimate with priors).
 
     ``reference``: ``"unknown"`` (every touched point is a nuisance unknown ``point.LABEL.{x,y,z}``) or
@@ -73,8 +73,12 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
     ``loss``: ``linear`` (least squares; touches with a standardised residual above
     ``outlier_threshold`` are excluded and the fit repeated; None: keep every touch), ``huber`` or
     ``soft_l1`` (robust losses by iteratively reweighted least squares; nothing excluded).
-    ``distances``: ``{(label_a, label_b): metres}`` known distances between points, used to score the
-    holdout. ``joint_noise`` (rad or m, one number or one per joint): std of the joint readings; default:
+    ``distances``: known distances between reference points, ``[(label_a, label_b, metres[, std_m])]`` or
+    ``{(label_a, label_b): metres}``: each is a weighted pseudo-observation of the fit (std: the stated
+    uncertainty, default ``DISTANCE_STD``; with several fixture positions, one per position), reported in
+    ``result.constraints``, and scores the holdout. ``planes``: labels whose touches lie on one unknown
+    plane each (per fixture position). Per-touch weights and fixture positions come with ``obs``.
+    ``joint_noise`` (rad or m, one number or one per joint): std of the joint readings; default:
     the quantisation of the model's encoders (``station.solver.noise``); 0: none. A result carries
     ``trusted``; an untrusted one says why in ``failure``."""
     t0 = time.perf_counter()
@@ -94,12 +98,14 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
     if max_std is not None and not (math.isfinite(max_std) and max_std > 0):
         raise SolverInputError(f"max_std must be a positive number of metres, got {max_std!r}")
     names = select_names(model, identify)
-    prob = Problem(model, obs, names, reference, instrument_frame)
-    m, p = 3 * len(obs), prob.n_unknowns
+    dist = _distance_list(distances)
+    prob = Problem(model, obs, names, reference, instrument_frame, dist, list(planes or []))
+    m, p = int(prob.rows_per_touch.sum()) + len(prob.distances), prob.n_unknowns
     if m <= p:
         raise SolverInputError(
             f"{len(obs)} samples give {m} equations for {p} unknowns ({len(names)} model parameters"
-            f"{', instrument frame' if prob.frame_unknown else ''}, {len(prob.unknown_points)} unknown point(s)); "
+            f"{', instrument frame' if prob.frame_unknown else ''}, {len(prob.unknown_points)} unknown point(s)"
+            f"{f', {len(prob.plane_keys)} plane(s)' if prob.plane_keys else ''}); "
             f"need at least {p // 3 + 1} samples, ~20 well spread poses recommended")
     k = distinct_poses(obs.q, limit=p // 3 + 1)
     if 3 * k <= p:
@@ -114,16 +120,38 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
     est.run()
     res = est.result()
     if holdout is not None:
-        res.holdout = holdout_mod.score(prob, est.x, est.accepted, holdout, est.sigma, distances)
+        res.holdout = holdout_mod.score(prob, est.x, est.accepted, holdout, est.sigma,
+                                        {(a, b): v for a, b, v, _ in dist})
     res.settings.update(identify=identify if isinstance(identify, str) else ",".join(identify),
                         reference=_ref_setting(reference), instrument_frame=instrument_frame, noise_m=noise,
                         max_std_m=max_std, loss=loss, outlier_threshold=outlier_threshold, rtol=RTOL,
                         max_ratio=MAX_RATIO, runaway_prior_std=RUNAWAY,
                         characteristic_length_m=prob.length, max_iter=max_iter,
                         priors={n: float(prior[i]) for i, n in enumerate(prob.names) if math.isfinite(prior[i])},
+                        distances=[{"between": [a, b], "distance_m": v, "std_m": sd} for a, b, v, sd in dist],
+                        planes=list(planes or []), weighted=obs.weight is not None, fixtures=obs.fixtures,
                         estimator="maximum a posteriori, Levenberg-Marquardt on the analytic Jacobian")
     res.solve_time_s = time.perf_counter() - t0
     return res
+
+
+DISTANCE_STD = 1e-5  # m: the uncertainty of a known distance when none is stated (a machined fixture, 10 um)
+
+
+def _distance_list(distances) -> list[tuple[str, str, float, float]]:
+    """``distances`` as ``[(a, b, metres, std_m)]``."""
+    if not distances:
+        return []
+    items = [(*k, v) for k, v in distances.items()] if isinstance(distances, dict) else list(distances)
+    out = []
+    for it in items:
+        try:
+            a, b, v, *rest = it
+            sd = float(rest[0]) if rest and rest[0] is not None else DISTANCE_STD
+            out.append((str(a), str(b), float(v), sd))
+        except (TypeError, ValueError):
+            raise SolverInputError(f"distance {it!r}: expected (label_a, label_b, metres[, std_m])") from None
+    return out
 
 
 def _prior_vector(prob: Problem, priors) -> np.ndarray:
@@ -145,7 +173,8 @@ class _Estimation:
         self.tool = prob.tool_per_unit()  # m of tool motion per unit
         self.order = priority_order(prob.names, prob.kinds)
         N = len(prob.obs)
-        self.w = np.ones(N)  # touch weights: 0 excluded (outlier), IRLS weights for robust losses
+        self.w0 = prob.obs.weights.astype(float)  # the stated per-touch weights (1/variance scale)
+        self.w = self.w0.copy()  # touch weights: those, 0 excluded (outlier), times IRLS weights for robust losses
         sq = joint_noise_of(prob.model, joint_noise)
         self.resolution = resolution_of(prob.model)
         _, self.tick_groups = quantisation(prob.obs.q, self.resolution)
@@ -177,11 +206,12 @@ class _Estimation:
         for _ in range(MAX_ROUNDS):
             self.noise_model.set(sigma=sigma_w, w=self.w)
             x, r, J, it, conv = _fit(prob, x, A, self.noise_model, sigma_w, self.prior, self.x0, self.max_iter)
+            self.x_cur = x
             self.iterations += it
             self.converged = conv
             sigma, tfac, dof = self._sigma(r, len(A))
             self.noise_model.set(sigma=sigma)  # the whitening that goes with this sigma
-            BtB = self._btb(J)
+            BtB = self._btb(J, x, sigma)
             if first:
                 self._conflicts(x, BtB, A, sigma)
                 self.first = (r.copy(), len(A))  # residual and size of the (nearly) unconstrained fit
@@ -230,14 +260,26 @@ class _Estimation:
                                 "that is real, widen the prior (--prior NAME=VALUE), else the model or the data are "
                                 "wrong")
 
-    def _btb(self, J: np.ndarray) -> np.ndarray:
+    def _btb(self, J: np.ndarray, x: np.ndarray, sigma: float) -> np.ndarray:
+        """``B^T W B`` of the touches plus the known distances' information ``sigma^2 G^T G / s^2`` (so that
+        ``BtB / sigma^2`` is the information of touches and distances together)."""
         Jw = self.noise_model.jacobian(J)
-        return Jw.T @ Jw
+        out = Jw.T @ Jw
+        if self.prob.distances:
+            _, G, sd = self.prob.constraint_rows(x)
+            Gs = G / sd[:, None]
+            out = out + sigma**2 * (Gs.T @ Gs)
+        return out
+
+    def _rows(self, act: np.ndarray | None = None) -> int:
+        """Residual rows of the touches kept: 3 per point touch, 1 per plane touch."""
+        act = self.w > 0 if act is None else act
+        return int(self.prob.rows_per_touch[act].sum())
 
     def _sigma(self, r: np.ndarray, n_est: int) -> tuple[float, float, int]:
         """(sigma used for the uncertainty, Student-t factor, degrees of freedom). The declared noise is
         used unless the fitted residual contradicts it (chi-square, 0.1 % level): then the fitted one."""
-        m = 3 * int(np.count_nonzero(self.w > 0))
+        m = self._rows()
         dof = max(m - n_est, 0)
         nm = self.noise_model
         if self.noise is not None:
@@ -261,12 +303,13 @@ class _Estimation:
         itself by inflating sigma), or the declared noise when the fit agrees with it."""
         post = posterior(BtB, A, [], sigma, self.prior)
         nm = self.noise_model
-        Ja = nm.jacobian(J[:, post.cols], weighted=False)
+        sw = np.repeat(np.sqrt(self.w0), 3)  # a stated weight scales the touch's noise: standardise with it
+        Ja = nm.jacobian(J[:, post.cols], weighted=False) * sw[:, None]
         h = np.clip(np.einsum("ij,jk,ik->i", Ja, post.info_inv, Ja) / sigma**2, 0.0, 1.0 - 1e-6)
-        rt = nm.residual(r, weighted=False)
+        rt = nm.residual(r, weighted=False) * sw
         act = self.w > 0
         e = (rt**2 / (1.0 - h)).reshape(-1, 3).sum(axis=1)  # each touch's share of the residual sum
-        m = 3 * int(act.sum())
+        m = self._rows(act)
         dof = m - len(A)
         rss = float(np.sum(e[act]))
         if self.noise is not None and not getattr(self, "noise_contradicted", False):
@@ -294,10 +337,11 @@ class _Estimation:
 
     def _reweight(self, r, J, A, sigma) -> bool:
         """IRLS weights of the robust loss from the current residuals; True when they changed."""
-        _, st = self._standardised(r, J, A, self._btb(J), sigma)
-        rt = self.noise_model.residual(r, weighted=False).reshape(-1, 3)
+        _, st = self._standardised(r, J, A, self._btb(J, self.x_cur, sigma), sigma)
+        rt = (self.noise_model.residual(r, weighted=False) * np.repeat(np.sqrt(self.w0), 3)).reshape(-1, 3)
         z = (np.linalg.norm(rt, axis=1) / (3.0 * st)) ** 2  # soft margin at 3 sigma per touch
         w = np.where(z <= 1.0, 1.0, 1.0 / np.sqrt(z)) if self.loss == "huber" else 1.0 / np.sqrt(1.0 + z)
+        w = w * self.w0
         changed = bool(np.max(np.abs(w - self.w)) > 1e-3)
         self.w = w
         return changed
@@ -308,7 +352,7 @@ class _Estimation:
         sigma, tfac, dof = self._sigma(r, len(A))
         self.sigma = sigma
         self.noise_model.set(sigma=sigma, w=self.w)
-        BtB = self._btb(J)
+        BtB = self._btb(J, x, sigma)
         # final decision bookkeeping: which kept parameters were weak (and how weak)
         dec = decide(BtB, self.S, self.order, [], sigma, self.prior, self.tool, self.max_std, tfac)
         kept = [j for j in range(prob.n_unknowns) if j not in A]
@@ -357,7 +401,7 @@ class _Estimation:
         # times the characteristic length), over the identified columns and the touches kept
         s = np.linalg.svd((J[:, A] / self.tool[A])[np.repeat(act, 3)], compute_uv=False) if A else np.zeros(0)
         cond = float(s[0] / s[-1]) if len(s) and s[-1] > 0 else None
-        o1 = math.exp(float(np.log(s).mean())) / math.sqrt(3 * int(act.sum())) if len(s) and s[-1] > 0 else None
+        o1 = math.exp(float(np.log(s).mean())) / math.sqrt(self._rows(act)) if len(s) and s[-1] > 0 else None
         res = CalibrationResult(
             model=prob.model.name, parameters=params,
             residuals={"rms_before_m": rms0, "max_before_m": max0, "rms_after_m": rms1, "max_after_m": max1},
@@ -365,13 +409,57 @@ class _Estimation:
             condition_number=cond, observability_index=o1, sigma_m=self.sigma_fit, covariance=cov,
             n_samples=len(prob.obs), n_residuals=r.size, notes=notes,
             trusted=not self.failure, failure="; ".join(self.failure) or None,
-            outliers=self._outlier_list(sigma),
+            outliers=self._outlier_list(sigma), constraints=self._constraints(x, r, post, A),
             noise={"sigma_m": sigma, "source": "declared" if self.noise is not None and not getattr(
                 self, "noise_contradicted", False) else "fitted", "declared_m": self.noise,
                 "fitted_m": self.sigma_fit, "dof": dof, "t_factor": tfac,
                 "joint": [float(v) for v in self.joint_noise],
                 "resolution": [float(v) for v in self.resolution]})
         return res
+
+    def _constraints(self, x, r, post, A) -> list[dict]:
+        """The known distances and planes of the fit, each with its stated and fitted value and residual."""
+        prob = self.prob
+        out: list[dict] = []
+        cov = None if post is None else post.cov
+        pos = {} if post is None else {j: i for i, j in enumerate(post.cols)}
+        idx = [j for j in range(prob.n_unknowns) if j in pos]
+
+        def std_of(row: np.ndarray) -> float | None:
+            if cov is None or not idx:
+                return None
+            v = row[idx]
+            return float(math.sqrt(max(float(v @ cov[np.ix_([pos[j] for j in idx], [pos[j] for j in idx])] @ v), 0.0)))
+
+        if prob.distances:
+            g, G, sd = prob.constraint_rows(x)
+            for k, c in enumerate(prob.distances):
+                out.append({"kind": "distance", "labels": [c["a"], c["b"]], "fixture": c["fixture"],
+                            "stated_m": c["value"], "stated_std_m": c["std"], "fitted_m": c["value"] + float(g[k]),
+                            "fitted_std_m": std_of(G[k]), "residual_m": float(g[k]),
+                            "standardised": float(g[k] / sd[k])})
+        if prob.plane_keys:
+            P = prob.folded.evaluate(prob.obs.q, prob.full_params(x), jacobian=False)[0]
+            for k, key in enumerate(prob.plane_keys):
+                n, d = prob.plane_of(x, k)
+                sel = prob.pslot == k
+                e = P[sel] @ n - d
+                act = (self.w > 0)[sel]
+                c0 = prob._plane_col(k)
+                row = np.zeros(prob.n_unknowns)
+                row[c0 + 2] = 1.0
+                ra, rb = np.zeros(prob.n_unknowns), np.zeros(prob.n_unknowns)
+                ra[c0], rb[c0 + 1] = 1.0, 1.0
+                sa, sb = std_of(ra), std_of(rb)
+                label, _, fixture = key.partition("@")
+                out.append({"kind": "plane", "labels": [label], "fixture": fixture or None,
+                            "stated_m": None, "normal": [float(v) for v in n], "offset_m": d,
+                            "offset_std_m": std_of(row),
+                            "normal_std_rad": None if sa is None or sb is None else float(math.hypot(sa, sb)),
+                            "n_touches": int(sel.sum()), "fitted_m": d,
+                            "residual_m": float(np.sqrt(np.mean(e[act] ** 2))) if act.any() else None,
+                            "max_residual_m": float(np.max(np.abs(e[act]))) if act.any() else None})
+        return out
 
     def _resolution(self, x, J):
         """Consider errors for the encoders' quantisation shared by touches on one tick (``noise.quantisation``)."""
@@ -412,7 +500,7 @@ class _Estimation:
         # everything the structure allows)
         r1, n1 = getattr(self, "first", (None, 0))
         k = n1 - len(self.accepted)
-        m = 3 * int(np.count_nonzero(self.w > 0))
+        m = self._rows()
         c1 = float(np.sum(self.noise_model.residual(r1) ** 2)) if r1 is not None else 0.0  # same whitening
         if r1 is not None and k > 0 and m > n1 and not self.outliers and c1 > 0:
             rw = self.noise_model.residual(self.r)
@@ -494,11 +582,19 @@ def _fit(prob: Problem, x, act, noise: NoiseModel, sigma_w, prior, x0, max_iter)
         return x, r, J, 0, True
     pa = prior[act]
     lam = np.where(np.isfinite(pa), sigma_w**2 / np.where(np.isfinite(pa), pa, 1.0) ** 2, 0.0)
+    # known distances: pseudo-observations sigma_w^2 (g / s)^2, like a prior - but never weaker than a touch:
+    # the first fit's sigma_w (1 um, to let the priors go) would make a distance that fixes the scale too weak
+    cons = bool(prob.distances)
+    cw = max(sigma_w, float(min(c["std"] for c in prob.distances))) if cons else 0.0
 
     def cost(rr, xx):
         rw = noise.residual(rr)
         dx = xx[act] - x0[act]
-        return float(rw @ rw) + float(np.sum(lam * dx * dx))
+        c = float(rw @ rw) + float(np.sum(lam * dx * dx))
+        if cons:
+            g, _, sd = prob.constraint_rows(xx)
+            c += cw**2 * float(np.sum((g / sd) ** 2))
+        return c
 
     c = cost(r, x)
     mu = 0.0
@@ -508,6 +604,11 @@ def _fit(prob: Problem, x, act, noise: NoiseModel, sigma_w, prior, x0, max_iter)
         Ja = noise.jacobian(J[:, act])
         H = Ja.T @ Ja + np.diag(lam)
         g = Ja.T @ noise.residual(r) + lam * (x[act] - x0[act])
+        if cons:
+            gc, G, sd = prob.constraint_rows(x)
+            Ga = G[:, act] / sd[:, None]
+            H = H + cw**2 * (Ga.T @ Ga)
+            g = g + cw**2 * (Ga.T @ (gc / sd))
         d = np.sqrt(np.diag(H))
         d = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 1.0)
         Hs = H * np.outer(d, d)

@@ -46,12 +46,22 @@ def score(prob, x: np.ndarray, act: list[int], ho: Observations, sigma: float, d
         return {"n_samples": len(ho), "rms_m": rms, "max_m": mx, "rms_nominal_m": rms0}
     if ho.measured is not None:
         raise SolverInputError("holdout: it carries instrument measurements; the fit did not")
+    planes = set(prob.obs.point[prob.on_plane].tolist())
+    if planes:  # touches of a plane are not on a point: scored only through the plane's fit residual
+        keep = np.array([p not in planes for p in ho.point], dtype=bool)
+        if not keep.any():
+            return {"n_samples": 0, "rms_m": math.nan, "max_m": math.nan, "rms_nominal_m": math.nan,
+                    "notes": ["every holdout touch is on a plane: nothing to score"]}
+        ho, P, P0 = ho.subset(keep), P[keep], P0[keep]
     fit_pts = prob.points_of(x)
     known = set(prob.known)
+    keys = ho.keys
+    if len(prob.obs.fixtures) > 1 and ho.fixture is not None:  # the fit's points are LABEL@FIXTURE
+        keys = np.array([f"{p}@{f}" for p, f in zip(ho.point, ho.fixture, strict=True)], dtype=object)
     d_ref, d_cons, d_nom = np.zeros(len(ho)), np.zeros(len(ho)), np.zeros(len(ho))
     points, est, notes = {}, {}, []
-    for lb in ho.labels:
-        idx = ho.point == lb
+    for lb in dict.fromkeys(keys.tolist()):
+        idx = keys == lb
         c_hat, c0 = P[idx].mean(axis=0), P0[idx].mean(axis=0)
         d_cons[idx] = np.linalg.norm(P[idx] - c_hat, axis=1)
         est[lb] = c_hat
@@ -82,9 +92,12 @@ def _distances(est: dict[str, np.ndarray], distances: dict | None) -> list[dict]
     out = []
     for key, d in (distances or {}).items():
         a, b = (str(s) for s in key)
-        if a in est and b in est:
-            meas = float(np.linalg.norm(est[a] - est[b]))
-            out.append({"points": [a, b], "known_m": float(d), "measured_m": meas, "error_m": meas - float(d)})
+        # the same pair at every fixture position (keys LABEL@FIXTURE)
+        for ka in [k for k in est if k == a or k.startswith(a + "@")]:
+            kb = b + ka[len(a):]
+            if kb in est:
+                meas = float(np.linalg.norm(est[ka] - est[kb]))
+                out.append({"points": [ka, kb], "known_m": float(d), "measured_m": meas, "error_m": meas - float(d)})
     return out
 
 

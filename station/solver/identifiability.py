@@ -54,7 +54,7 @@ def _priority_order(names: tuple[str, ...], kinds: tuple[str, ...]) -> tuple[int
 
     def rank(i: int) -> tuple[int, int]:
         n, k = names[i], kinds[i]
-        if k == "point":
+        if k in ("point", "plane"):
             return 0, i
         if k == "instrument":
             return 1, i
@@ -78,6 +78,11 @@ def structure(prob, x: np.ndarray, rows: np.ndarray | None = None, keep: Structu
     if rows is not None and not rows.all():
         J = J[np.repeat(rows, 3)]
         q = q[rows]
+    if getattr(prob, "distances", None):
+        # a known distance is a row of the problem too (any weight: the question is structural); scaled
+        # like the touches of its points so that the column norms stay comparable
+        _, G, _ = prob.constraint_rows(x)
+        J = np.vstack([J, G * math.sqrt(len(q))])
     return analyse(J, prob, x, q, None if keep is None else keep.accepted, None if keep is None else keep.scale_owner)
 
 
@@ -145,6 +150,10 @@ def _scale_vector(prob, x: np.ndarray) -> np.ndarray | None:
     for i, n in enumerate(prob.names):
         if prob.kinds[i] == "point":
             v[i] = x[i] - tb["xyz".index(n[-1])]
+        elif prob.kinds[i] == "plane":
+            if n.endswith(".d"):  # n . p = d about the base origin tb: d - n . tb scales
+                k = prob.plane_keys.index(n[len("plane."):-2])
+                v[i] = x[i] - float(prob.plane_of(x, k)[0] @ tb)
         elif n not in ang and not n.startswith("offset."):
             v[i] = x[i]  # a link length, a tool length or a base position
     return v if np.any(v) else None

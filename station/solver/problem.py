@@ -74,7 +74,7 @@ def compiled(model, model_idx: np.ndarray) -> tuple[FoldedChain, set[str], float
 
 class Problem:
     def __init__(self, model, obs: Observations, model_names: list[str], reference,
-                 instrument_frame: str = "unknown") -> None:
+                 instrument_frame: str = "unknown", distances=(), planes=()) -> None:
         self.model = model
         self.obs = obs
         instrument = obs.measured is not None
@@ -92,8 +92,20 @@ class Problem:
         self.folded, ang, L = _load_aware(model, self.model_idx, obs.q)
         self.kinds = ["instrument" if self.frame_unknown and n.startswith("base.") else "model" for n in names]
         self.units = [COMPLIANCE_UNIT if n.startswith("compliance.") else "rad" if n in ang else "m" for n in names]
-        # reference points
-        labels = obs.labels
+        # reference points: one per label, or per label and fixture position (``LABEL@FIXTURE``); touches
+        # of a plane label lie on one unknown plane (per fixture position) instead
+        keys = obs.keys
+        self.keys = keys
+        plane_labels = [str(p) for p in planes]
+        if plane_labels and instrument:
+            raise SolverInputError("planes: with instrument measurements the touches are not on a reference")
+        for lb in plane_labels:
+            if lb not in set(obs.point.tolist()):
+                raise SolverInputError(f"plane {lb!r}: no touches labelled {lb!r} (points: {', '.join(obs.labels)})")
+        on_plane = np.array([p in plane_labels for p in obs.point], dtype=bool)
+        self.on_plane = on_plane
+        self.plane_keys = list(dict.fromkeys(keys[on_plane].tolist()))
+        labels = list(dict.fromkeys(keys[~on_plane].tolist()))
         if instrument:
             self.known: dict[str, np.ndarray] = {}
             self.unknown_points: list[str] = []
@@ -102,21 +114,35 @@ class Problem:
                 raise SolverInputError(f"reference must be 'unknown' or {{label: xyz}}, got {reference!r}")
             self.known, self.unknown_points = {}, labels
         else:
+            if len(obs.fixtures) > 1 and dict(reference):
+                raise SolverInputError("known reference points with several fixture positions: each position has "
+                                       "its own points; give them as unknown (with known distances)")
             self.known = {}
             for k, v in dict(reference).items():
                 xyz = np.asarray(v, dtype=float)
                 if xyz.shape != (3,) or not np.isfinite(xyz).all():
                     raise SolverInputError(f"reference point {k!r}: expected 3 finite coordinates (m), got {v!r}")
+                if str(k) in plane_labels:
+                    raise SolverInputError(f"reference point {k!r} is declared a plane")
                 self.known[str(k)] = xyz
             self.unknown_points = [lb for lb in labels if lb not in self.known]
         self.point_names = [f"point.{lb}.{a}" for lb in self.unknown_points for a in "xyz"]
-        self.names = self.model_names + self.point_names
-        self.kinds += ["point"] * len(self.point_names)
-        self.units += ["m"] * len(self.point_names)
+        # a plane: normal n = unit(n0 + a t1 + b t2) about a nominal normal n0 (fitted to the nominal tip
+        # positions, fixed for the solve), offset d (n . p = d, m)
+        self.plane_names = [f"plane.{k}.{c}" for k in self.plane_keys for c in ("a", "b", "d")]
+        self.names = self.model_names + self.point_names + self.plane_names
+        self.kinds += ["point"] * len(self.point_names) + ["plane"] * len(self.plane_names)
+        self.units += ["m"] * len(self.point_names) + ["rad", "rad", "m"] * len(self.plane_keys)
         self.n_model = len(self.model_names)
-        # sample -> unknown point slot (or -1 for a known point)
+        self.n_points = len(self.point_names)
+        # sample -> unknown point slot (or -1 for a known point or a plane touch)
         slot = {lb: i for i, lb in enumerate(self.unknown_points)}
-        self.slot = np.array([slot.get(lb, -1) for lb in obs.point], dtype=int)
+        self.slot = np.array([-1 if pl else slot.get(lb, -1) for lb, pl in zip(keys, on_plane, strict=True)],
+                             dtype=int)
+        pslot = {k: i for i, k in enumerate(self.plane_keys)}
+        self.pslot = np.array([pslot[k] if pl else -1 for k, pl in zip(keys, on_plane, strict=True)], dtype=int)
+        # residual rows a touch contributes: 3 for a point, 1 (the distance along the normal) on a plane
+        self.rows_per_touch = np.where(on_plane, 1, 3)
         # (row, column) of the -1 entries of the unknown points in the stacked Jacobian
         self._has_slot = self.slot >= 0
         self._all_unknown = bool(self._has_slot.all())
@@ -130,8 +156,10 @@ class Problem:
         else:
             self.target_fixed = np.zeros((len(obs), 3))
             for lb, xyz in self.known.items():
-                self.target_fixed[obs.point == lb] = xyz
+                self.target_fixed[(keys == lb) & ~on_plane] = xyz
         self.length = L
+        self._plane_frames = self._nominal_planes() if self.plane_keys else []
+        self.distances = self._distance_specs(distances)
         # compliance columns (tau times a joint column, m per rad/(N m)) keep scale 1: the rank decisions are
         # relative and the equilibration of the posterior treats them like any other column
         self.scale = np.array([L if u == "rad" else 1.0 for u in self.units])
@@ -139,11 +167,134 @@ class Problem:
         # lengths of the machine and the points; a prismatic offset is a zero reading, not a length
         self._lengths = np.array([u == "m" and not n.startswith("offset.") for n, u in zip(self.names, self.units,
                                                                                            strict=True)])
-        self.x_nominal = np.concatenate([model.params[self.model_idx], np.zeros(len(self.point_names))])
+        self.x_nominal = np.concatenate([model.params[self.model_idx], np.zeros(len(self.point_names)),
+                                         np.array([v for _, _, _, d in self._plane_frames for v in (0.0, 0.0, d)])])
 
     @property
     def n_unknowns(self) -> int:
         return len(self.names)
+
+    # ---- planes and known distances ---------------------------------------------------------------
+    def _nominal_planes(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
+        """(n0, t1, t2, d0) per plane: the least-squares plane of the nominal tip positions of its touches
+        (normal = the direction of least spread); n0 is the linearisation point of the plane's normal."""
+        P = self.folded.evaluate(self.obs.q, self.model.params, jacobian=False)[0]
+        out = []
+        for k, key in enumerate(self.plane_keys):
+            pts = P[self.pslot == k]
+            if len(pts) < 3:
+                raise SolverInputError(f"plane {key!r}: {len(pts)} touch(es); a plane needs at least 3, well spread")
+            c = pts.mean(axis=0)
+            _, sv, Vt = np.linalg.svd(pts - c)
+            if len(sv) < 2 or sv[1] <= 1e-6 * max(sv[0], 1e-12):
+                raise SolverInputError(f"plane {key!r}: its touches lie on a line; touch points spread over the plane")
+            n0 = Vt[2] * (1.0 if Vt[2][np.argmax(np.abs(Vt[2]))] > 0 else -1.0)
+            t1 = Vt[0] - n0 * (n0 @ Vt[0])
+            t1 /= np.linalg.norm(t1)
+            t2 = np.cross(n0, t1)
+            out.append((n0, t1, t2, float(n0 @ c)))
+        return out
+
+    def plane_of(self, x: np.ndarray, k: int) -> tuple[np.ndarray, float]:
+        """(unit normal, offset d) of plane ``k`` at ``x``: its points p satisfy n . p = d."""
+        n0, t1, t2, _ = self._plane_frames[k]
+        a, b, d = x[self._plane_col(k): self._plane_col(k) + 3]
+        m = n0 + a * t1 + b * t2
+        return m / np.linalg.norm(m), float(d)
+
+    def _plane_col(self, k: int) -> int:
+        return self.n_model + self.n_points + 3 * k
+
+    def _apply_planes(self, x: np.ndarray, P: np.ndarray, r3: np.ndarray, J: np.ndarray | None = None) -> None:
+        """Plane touches (in place): residual ``e n`` with ``e = n . p - d`` its distance from the plane (a
+        3-vector of rank one: the tangential position on a plane is free); Jacobian ``n n^T dp/dx`` for
+        the model and d/d(a, b, d) for the plane."""
+        for k in range(len(self.plane_keys)):
+            rows = np.flatnonzero(self.pslot == k)
+            n0, t1, t2, _ = self._plane_frames[k]
+            a, b, d = x[self._plane_col(k): self._plane_col(k) + 3]
+            m = n0 + a * t1 + b * t2
+            nm = float(np.linalg.norm(m))
+            n = m / nm
+            e = P[rows] @ n - d
+            r3[rows] = e[:, None] * n
+            if J is None:
+                continue
+            Jv = J.reshape(len(P), 3, -1)  # a view
+            Jm = Jv[rows, :, : self.n_model]
+            Jv[rows, :, : self.n_model] = n[None, :, None] * np.einsum("i,nik->nk", n, Jm)[:, None, :]
+            c = self._plane_col(k)
+            for j, t in enumerate((t1, t2)):
+                dn = (t - n * (n @ t)) / nm
+                Jv[rows, :, c + j] = (P[rows] @ dn)[:, None] * n + e[:, None] * dn
+            Jv[rows, :, c + 2] = -n
+
+    def plane_residuals(self, x: np.ndarray, P: np.ndarray | None = None) -> list[np.ndarray]:
+        """Signed distance (m) of each plane's touches from the plane at ``x``."""
+        if P is None:
+            P = self.folded.evaluate(self.obs.q, self.full_params(x), jacobian=False)[0]
+        out = []
+        for k in range(len(self.plane_keys)):
+            n, d = self.plane_of(x, k)
+            out.append(P[self.pslot == k] @ n - d)
+        return out
+
+    def _distance_specs(self, distances) -> list[dict]:
+        """Known distances ``[(a, b, metres, std metres)]`` -> one constraint per fixture position where
+        both points were touched (each position has its own points; the distance is the same)."""
+        out = []
+        if not distances:
+            return out
+        if self.instrument:
+            raise SolverInputError("distances: with instrument measurements the touches are not on reference points")
+        fixtures = self.obs.fixtures if len(self.obs.fixtures) > 1 else [None]
+        planes = set(self.obs.point[self.on_plane].tolist())
+        for spec in distances:
+            a, b, value, std = spec
+            a, b = str(a), str(b)
+            if a == b:
+                raise SolverInputError(f"distance {a},{b}: the two points must differ")
+            if not (math.isfinite(value) and value > 0) or not (math.isfinite(std) and std > 0):
+                raise SolverInputError(f"distance {a},{b}: value and uncertainty must be positive finite lengths (m)")
+            for lb in (a, b):
+                if lb in planes:
+                    raise SolverInputError(f"distance {a},{b}: {lb!r} is a plane, not a point")
+                if lb not in set(self.obs.point.tolist()) and lb not in self.known:
+                    raise SolverInputError(f"distance {a},{b}: no touches of point {lb!r} "
+                                           f"(points: {', '.join(self.obs.labels)})")
+            n0 = len(out)
+            for f in fixtures:
+                ka, kb = (lb if f is None else f"{lb}@{f}" for lb in (a, b))
+                have = set(self.unknown_points) | set(self.known)
+                if ka in have and kb in have:
+                    out.append({"a": a, "b": b, "key_a": ka, "key_b": kb, "fixture": f, "value": float(value),
+                                "std": float(std)})
+            if len(out) == n0:
+                raise SolverInputError(f"distance {a},{b}: no fixture position has touches of both points")
+        return out
+
+    def _point_col(self, key: str) -> int:
+        """First column of unknown point ``key``, -1 for a known point."""
+        return self.n_model + 3 * self.unknown_points.index(key) if key in self.unknown_points else -1
+
+    def constraint_rows(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Known distances as weighted pseudo-observations: (g, G, s) with ``g_k = |p_a - p_b| - D_k`` (m),
+        ``G = dg/dx`` (K, n_unknowns) and ``s`` the stated uncertainty (m): the estimator adds
+        ``sum (g_k / s_k)^2`` (in units of the touch variance) to the cost, like a prior on a function of x."""
+        K = len(self.distances)
+        g, G, s = np.zeros(K), np.zeros((K, self.n_unknowns)), np.zeros(K)
+        pts = self.points_of(x)
+        for k, c in enumerate(self.distances):
+            v = np.asarray(pts[c["key_a"]]) - np.asarray(pts[c["key_b"]])
+            dist = float(np.linalg.norm(v))
+            u = v / max(dist, 1e-300)
+            g[k], s[k] = dist - c["value"], c["std"]
+            ca, cb = self._point_col(c["key_a"]), self._point_col(c["key_b"])
+            if ca >= 0:
+                G[k, ca: ca + 3] += u
+            if cb >= 0:
+                G[k, cb: cb + 3] -= u
+        return g, G, s
 
     def full_params(self, x: np.ndarray) -> np.ndarray:
         p = self.model.params.copy()
@@ -182,12 +333,13 @@ class Problem:
         elif n:
             sums = np.zeros((n, 3))
             np.add.at(sums, self.slot[self._has_slot], P[self._has_slot])
-            x[self.n_model:] = (sums / np.bincount(self.slot[self._has_slot], minlength=n)[:, None]).ravel()
+            x[self.n_model: self.n_model + self.n_points] = (
+                sums / np.bincount(self.slot[self._has_slot], minlength=n)[:, None]).ravel()
 
     def initial_with_jacobian(self, scaled: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``initial()`` with the residual and Jacobian there. Without an instrument frame one chain pass
         serves both: the model is at nominal and the Jacobian does not depend on the point values."""
-        if self.frame_unknown:
+        if self.frame_unknown or self.plane_keys:
             x = self.initial()
             return (x, *self.residual_jacobian(x, scaled))
         x = self.x_nominal.copy()
@@ -204,7 +356,13 @@ class Problem:
             P = self.folded.evaluate(self.obs.q, self.full_params(x), jacobian=False)[0]
         else:
             P = self.model.position(self.obs.q, self.full_params(x))
-        return (P - self._targets(x)).ravel()
+        return self._residual3(x, P).ravel()
+
+    def _residual3(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
+        r3 = P - self._targets(x)
+        if self.plane_keys:
+            self._apply_planes(x, P, r3)
+        return r3
 
     def residual_jacobian(self, x: np.ndarray, scaled: bool = False, q: np.ndarray | None = None
                           ) -> tuple[np.ndarray, np.ndarray]:
@@ -216,9 +374,12 @@ class Problem:
         Jm = J[:, : self.n_model]
         Jm.shape = (N, 3, self.n_model)  # a view (raises rather than copy): evaluate writes into J
         P, _ = self.folded.evaluate(self.obs.q if q is None else q, self.full_params(x), out=Jm)
-        r = (P - self._targets(x)).ravel()
+        r3 = P - self._targets(x)
         if self._point_rows is not None:
             J[self._point_rows] = -1.0
+        if self.plane_keys:
+            self._apply_planes(x, P, r3, J)
+        r = r3.ravel()
         if scaled and len(self._angle_cols):
             J[:, self._angle_cols] *= self.length
         return r, J
@@ -264,7 +425,10 @@ class Problem:
             # move in some direction keeps that part of the residual)
             A = Jq @ Jq.transpose(0, 2, 1)
             A += (1e-12 * np.trace(A, axis1=1, axis2=2))[:, None, None] * np.eye(3)
-            y = np.linalg.solve(A, (P - tgt)[:, :, None])
+            r3 = P - tgt
+            if self.plane_keys:
+                self._apply_planes(x, P, r3)
+            y = np.linalg.solve(A, r3[:, :, None])
             q -= (Jq.transpose(0, 2, 1) @ y)[:, :, 0]
         return q
 
@@ -272,6 +436,8 @@ class Problem:
         """Column of the first joint's offset among the unknowns when ``shift_first_joint`` applies to it
         (identified, no identified element before that joint), else -1."""
         pj = self.folded.first_joint_param
+        if self.plane_keys:  # a plane touch's residual is a projection: not moved rigidly with the tool
+            return -1
         hit = np.flatnonzero(self.model_idx == pj) if pj >= 0 else []
         if not len(hit) or not self.folded.first_joint_shiftable:
             return -1
@@ -299,10 +465,10 @@ class Problem:
         if self.instrument or not self.unknown_points:
             return self.target_fixed
         if self._all_unknown:
-            return x[self.n_model:].reshape(-1, 3)[self.slot]
+            return x[self.n_model: self.n_model + self.n_points].reshape(-1, 3)[self.slot]
         tgt = self.target_fixed.copy()
         has = self._has_slot
-        tgt[has] = x[self.n_model:].reshape(-1, 3)[self.slot[has]]
+        tgt[has] = x[self.n_model: self.n_model + self.n_points].reshape(-1, 3)[self.slot[has]]
         return tgt
 
     def tool_per_unit(self) -> np.ndarray:

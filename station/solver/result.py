@@ -76,6 +76,9 @@ class CalibrationResult:
     failure: str | None = None
     outliers: list[dict] = field(default_factory=list)  # {"index", "point", "residual_m", "standardised"}
     noise: dict = field(default_factory=dict)  # sigma used for the uncertainty and where it came from
+    # known distances and planes: {"kind": "distance"|"plane", "labels", "fixture", "stated_m", "fitted_m",
+    # "residual_m", ...} (docs/formats.md)
+    constraints: list[dict] = field(default_factory=list)
     solve_time_s: float | None = None
 
     # ---- convenience -----------------------------------------------------------------------------
@@ -137,6 +140,7 @@ class CalibrationResult:
             "failure": self.failure,
             "outliers": [dict(o) for o in self.outliers],
             "noise": dict(self.noise),
+            "constraints": [dict(c) for c in self.constraints],
             "solve_time_s": self.solve_time_s,
         }
 
@@ -155,6 +159,7 @@ class CalibrationResult:
                 holdout=d.get("holdout"), settings=dict(d.get("settings", {})), notes=list(d.get("notes", [])),
                 trusted=bool(d.get("trusted", d["converged"])), failure=d.get("failure"),
                 outliers=list(d.get("outliers") or []), noise=dict(d.get("noise") or {}),
+                constraints=list(d.get("constraints") or []),
                 solve_time_s=d.get("solve_time_s"))
         except (KeyError, TypeError, ValueError) as e:
             raise ValueError(f"not a calibration result: {type(e).__name__}: {e}") from None
