@@ -3,8 +3,11 @@ out) and the one writer of a session's ``samples.csv`` (the engine and the jog U
 
 Columns: ``q1..qN`` (joint readings; radians or metres unless the header says ``q1[deg]``, ``q3[mm]``),
 optional ``point`` (label of the reference point touched; default ``A``), optional ``x,y,z`` (instrument
-measurement of the tip; metres unless ``x[mm]``). Other columns are ignored; lines starting with ``#`` are
-comments. Errors name the file, the line and the column: ``samples.csv:7: column 'q3': not a number``."""
+measurement of the tip; metres unless ``x[mm]``), optional ``weight`` (per-touch weight, 1/variance scale:
+a touch of weight 4 is trusted as having half the noise; default 1), optional ``fixture`` (the fixture position
+label: touches at different positions are on different points; see docs/formats.md). Other columns are
+ignored; lines starting with ``#`` are comments.
+Errors name the file, the line and the column: ``samples.csv:7: column 'q3': not a number``."""
 
 from __future__ import annotations
 
@@ -59,6 +62,8 @@ class Samples:
     measured: np.ndarray | None  # (N, 3) m
     lines: list[int]  # file line of each sample
     path: str
+    weight: np.ndarray | None = None  # (N,) per-touch weights (1/variance scale), None: all 1
+    fixture: np.ndarray | None = None  # (N,) fixture position labels, None: one position
 
 
 def _row(path: str, line: int, text: str) -> list[str]:
@@ -223,7 +228,28 @@ def read_samples(path: str | Path, joints) -> Samples:
             f = _factor(t, col, "prismatic", f"measurement {axis}")
             for i in range(len(t.rows)):
                 measured[i, a] = _number(t, i, col, k) * f
-    return Samples(q, point, measured, list(t.lines), t.path)
+    weight = None
+    if "weight" in t.columns:
+        k, col = t.columns["weight"]
+        if col.unit not in (None, "1"):
+            raise SamplesFileError(f"{t.path}:{t.header_line}: column {col.header!r}: a weight has no unit")
+        weight = np.array([_number(t, i, col, k) for i in range(len(t.rows))])
+        bad = np.flatnonzero(weight <= 0)
+        if bad.size:
+            i = int(bad[0])
+            raise SamplesFileError(f"{t.where(i)}: column 'weight': {t.rows[i][k]!r} must be > 0 (1/variance scale; "
+                                   "drop the row to exclude a touch)")
+    fixture = None
+    if "fixture" in t.columns:
+        k, col = t.columns["fixture"]
+        labels = []
+        for i in range(len(t.rows)):
+            s = t.rows[i][k]
+            if not re.fullmatch(r"[A-Za-z0-9_-]+", s):
+                raise SamplesFileError(f"{t.where(i)}: column 'fixture': label {s!r} (use letters, digits, _ or -)")
+            labels.append(s)
+        fixture = np.array(labels, dtype=object)
+    return Samples(q, point, measured, list(t.lines), t.path, weight, fixture)
 
 
 # ---- writing a session's samples.csv ----------------------------------------------------------------------
@@ -240,16 +266,19 @@ def write_samples_csv(path: str | Path, samples, units: list[str], *, comment: s
     path = Path(path)
     samples = list(samples)
     meas = bool(samples) and all(x.measured is not None for x in samples)
+    extra = [c for c in ("weight", "fixture") if any(getattr(x, c, None) is not None for x in samples)]
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "w", newline="") as fh:
         fh.write(f"# station samples: {comment}; joints in rad (m if prismatic), measured x,y,z in m; "
                  "seq = journal sequence number, set = fit|holdout\n")
         w = csv.writer(fh)
         w.writerow([f"q{i + 1}[{u}]" for i, u in enumerate(units)] + ["point", "seq", "set"]
-                   + (["x[m]", "y[m]", "z[m]"] if meas else []))
+                   + (["x[m]", "y[m]", "z[m]"] if meas else []) + extra)
+        defaults = {"weight": 1.0, "fixture": "1"}
         for x in samples:
             w.writerow([repr(float(v)) for v in x.q] + [x.point, x.seq, x.set]
-                       + ([repr(float(v)) for v in x.measured] if meas else []))
+                       + ([repr(float(v)) for v in x.measured] if meas else [])
+                       + [getattr(x, c, None) if getattr(x, c, None) is not None else defaults[c] for c in extra])
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, path)

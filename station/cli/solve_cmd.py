@@ -123,6 +123,9 @@ def summary(res) -> str:
         if p.identifiable:
             val, std, unit = _fmt(p)
             lines.append(f"{n:<16} {val:>12} {std:>10}  {unit}")
+    if res.constraints:
+        lines.append("constraints:")
+        lines += constraint_lines(res)
     bad = res.unidentifiable
     if bad:
         lines.append("not identifiable (kept at nominal):")
@@ -157,6 +160,10 @@ def solve_command(
     noise: str = typer.Option(None, "--noise", help="declared touch noise per axis with a unit, e.g. 20um "
                               "(default: fitted from the residual of the fitted model)"),
     loss: str = typer.Option("linear", "--loss", help="linear (outliers > 4 sigma excluded) | huber | soft_l1"),
+    distance: list[str] = typer.Option(None, "--distance", help="A,B=50mm[±0.01mm]: the measured distance between "
+                                       "points A and B (repeatable; default uncertainty 0.01 mm)"),
+    plane: list[str] = typer.Option(None, "--plane", help="LABEL: the touches labelled LABEL lie on one unknown "
+                                    "plane (touch-probing a flat surface; repeatable)"),
 ) -> None:
     """Identify joint offsets, TCP, link geometry from touch samples. Exit 0: trusted result; 1: the solve
     failed or its result cannot be trusted (one line says why; the JSON is still written); 2: bad input."""
@@ -168,17 +175,19 @@ def solve_command(
     if out is not None:  # refuse a bad destination before the work, not after
         write_atomic_check(out, {"--samples": samples, "--holdout": holdout})
     priors, noise_m = _priors(list(prior or [])), _noise(noise)
+    distances = [parse_distance(d) for d in distance or []]
+    planes = [_plane_label(p) for p in plane or []]
     if loss not in ("linear", "huber", "soft_l1"):
         raise _fail(f"--loss {loss!r}: expected linear, huber or soft_l1")
 
     m = _load_model(model, tool, tip_link, base_link, payload)
     try:
         s = read_samples(samples, m)
-        obs = Observations(s.q, s.point, s.measured)
+        obs = Observations(s.q, s.point, s.measured, s.weight, s.fixture)
         ho = None
         if holdout is not None:
             h = read_samples(holdout, m)
-            ho = Observations(h.q, h.point, h.measured)
+            ho = Observations(h.q, h.point, h.measured, h.weight, h.fixture)
     except SamplesFileError as e:
         raise _fail(str(e)) from None
     if instrument_frame not in ("unknown", "base"):
@@ -188,9 +197,13 @@ def solve_command(
         raise _fail(f"--reference: {samples} has instrument columns x,y,z; known points are not used with them")
     try:
         res = solve(m, obs, identify, ref, ho, instrument_frame=instrument_frame, max_std=max_std,
-                    noise=noise_m, priors=priors, loss=loss)
+                    noise=noise_m, priors=priors, loss=loss, distances=distances or None, planes=planes or None)
     except SolverInputError as e:
         msg = str(e)
+        if msg.startswith("distance "):
+            raise _fail(f"--distance: {msg}") from None
+        if msg.startswith("plane "):
+            raise _fail(f"--plane: {msg}") from None
         if msg.startswith("prior "):
             raise _fail(f"--prior: {msg}") from None
         if "parameter or group" in msg or msg.startswith("compliance."):
@@ -204,6 +217,62 @@ def solve_command(
     if not res.trusted:
         typer.echo(f"station: solve failed: {res.failure or 'result not trusted'}", err=True)
         sys.exit(1)  # sys.exit: station.cli.main runs click non-standalone (a typer.Exit would be dropped)
+
+
+_DISTANCE = re.compile(r"^\s*([A-Za-z0-9_-]+)\s*,\s*([A-Za-z0-9_-]+)\s*=\s*([^±]+?)\s*(?:(?:±|\+-|\+/-)\s*(.+?))?\s*$")
+
+
+def parse_distance(text: str) -> tuple[str, str, float, float | None]:
+    """``--distance A,B=50mm`` or ``A,B=50mm±0.01mm`` (also ``+-``): (a, b, metres, std metres or None)."""
+    from station.kinematics.tolerances import parse_quantity
+
+    m = _DISTANCE.match(text)
+    if not m:
+        raise _fail(f"--distance {text!r}: expected A,B=LENGTH[±STD], e.g. A,B=50mm or A,B=50mm±0.01mm")
+    a, b, val, sd = m.groups()
+    if a == b:
+        raise _fail(f"--distance {text!r}: the two points must differ")
+    out = []
+    for part in (val, sd):
+        if part is None:
+            out.append(None)
+            continue
+        part = part.strip()
+        if re.fullmatch(r"[-+]?[0-9.]+(?:[eE][-+]?[0-9]+)?", part) and val.strip() != part:
+            part += re.sub(r"^[-+0-9.eE]+", "", val.strip())  # a bare uncertainty takes the distance's unit
+        try:
+            v, q = parse_quantity(part)
+        except ValueError as e:
+            raise _fail(f"--distance {text!r}: {e}") from None
+        if q != "length" or not v > 0:
+            raise _fail(f"--distance {text!r}: {part!r} must be a positive length (m, mm, cm, um)")
+        out.append(v)
+    return a, b, out[0], out[1]
+
+
+def _plane_label(text: str) -> str:
+    if not re.fullmatch(r"[A-Za-z0-9_-]+", text.strip()):
+        raise _fail(f"--plane {text!r}: expected a point label (letters, digits, _ or -)")
+    return text.strip()
+
+
+def constraint_lines(res) -> list[str]:
+    """The known distances and planes of a result, for people (mm)."""
+    out = []
+    for c in res.constraints:
+        where = f" @{c['fixture']}" if c.get("fixture") else ""
+        if c["kind"] == "distance":
+            fs = "" if c.get("fitted_std_m") is None else f" ± {c['fitted_std_m'] * 1e3:.4f}"
+            out.append(f"  distance {','.join(c['labels'])}{where}: stated {c['stated_m'] * 1e3:.4f} ± "
+                       f"{c['stated_std_m'] * 1e3:.4f} mm, fitted {c['fitted_m'] * 1e3:.4f}{fs} mm, residual "
+                       f"{c['residual_m'] * 1e3:+.4f} mm")
+        elif c["kind"] == "plane":
+            n = ", ".join(f"{v:+.5f}" for v in c["normal"])
+            rms = "-" if c.get("residual_m") is None else f"{c['residual_m'] * 1e3:.4f}"
+            mx = "-" if c.get("max_residual_m") is None else f"{c['max_residual_m'] * 1e3:.4f}"
+            out.append(f"  plane {c['labels'][0]}{where}: normal ({n}), offset {c['offset_m'] * 1e3:.4f} mm, "
+                       f"{c['n_touches']} touches, residual RMS {rms} mm (max {mx} mm)")
+    return out
 
 
 def _priors(specs: list[str]) -> list[tuple[str, float, str]] | None:

@@ -9,6 +9,10 @@ File format (``station-cell/1``, YAML; written for emulated cells by ``station m
     points:
       - {label: A, kind: socket, position: [450, 0, 50], approach: [0, 0, 1], radius: 3}
 
+    distances:                     # optional: measured distances between points (length unit), for the solve
+      - {between: [A, B], distance: 50.0, std: 0.01}   # std: its uncertainty (default 0.01 mm)
+    planes: [P]                    # optional: labels whose touches lie on one (unknown) flat surface
+
     mounting: {normal: [0, 0, 1], offset: 0, clearance: 10}   # optional: the plane the arm stands on
     keep_out:                      # optional: volumes no link may enter (each keeps its clearance)
       - {name: fixture, box: {min: [300, -400, 0], max: [600, 400, 40]}}
@@ -72,6 +76,10 @@ class Cell:
     model: str | None = None
     tool: dict[str, float] | None = None  # nominal TCP on the flange (m, rad: x y z rx ry rz), if the cell says
     keep_out: KeepOut = field(default_factory=KeepOut.default)  # mounting plane + volumes no link may enter
+    # known distances (label_a, label_b, metres, std metres or None: the solver's default) and plane labels:
+    # what every solve of a procedure in this cell is told (station.solver.solve distances=, planes=)
+    distances: list[tuple[str, str, float, float | None]] = field(default_factory=list)
+    planes: list[str] = field(default_factory=list)
 
     def point(self, label: str) -> RefPoint:
         if label not in self.points:
@@ -108,6 +116,13 @@ class _Point(_PointBody):
     label: Name
 
 
+class _Distance(Strict):
+    between: list[Name] = Field(min_length=2, max_length=2)
+    distance: Pos
+    std: Pos | None = None
+    units: Literal["m", "mm"] | None = None  # default: the file's units.length
+
+
 class _Cell(Strict):
     format: Literal["station-cell/1"]
     units: _Units
@@ -117,6 +132,8 @@ class _Cell(Strict):
     tool: _Tool | None = None
     mounting: Any = None  # checked by station.kinematics.collision
     keep_out: Any = None
+    distances: list[_Distance] | None = Field(default=None, max_length=10_000)
+    planes: list[Name] | None = Field(default=None, max_length=10_000)
 
 
 class CellSchema(_Cell):
@@ -206,7 +223,20 @@ def cell_from_dict(doc, where: str = "cell") -> Cell:
     angle = {"rad": 1.0, "deg": math.pi / 180}.get((units or {}).get("angle", "rad"))
     if angle is None:
         raise CellError(f"{where}: units.angle must be rad or deg")
-    return Cell(where, points, doc.get("model"), tool, keep_out_from_dict(doc, where, scale, angle))
+    distances = []
+    for i, d in enumerate(doc.get("distances") or []):
+        a, b = (str(x) for x in d["between"])
+        if a == b:
+            raise CellError(f"{ydoc.where(('distances', i, 'between'))}: the two points must differ")
+        for lb in (a, b):
+            if lb not in points:
+                raise CellError(f"{ydoc.where(('distances', i, 'between'))}: no reference point {lb!r} "
+                                f"(points: {', '.join(points)})")
+        k = LENGTH[d["units"]] if d.get("units") else scale
+        distances.append((a, b, float(d["distance"]) * k, None if d.get("std") is None else float(d["std"]) * k))
+    planes = [str(p) for p in doc.get("planes") or []]
+    return Cell(where, points, doc.get("model"), tool, keep_out_from_dict(doc, where, scale, angle), distances,
+                planes)
 
 
 # ---- keep-out ----------------------------------------------------------------------------------------------

@@ -414,6 +414,11 @@ class Session:
             ref = reference or self.options.get("reference", "unknown")
             if ref == "cell":
                 ref = {lb: p.position for lb, p in self.cell.points.items()} if self.cell else "unknown"
+            if self.cell is not None:  # the cell's known distances and planes (station/engine/cell.py) among
+                touched = set(fit.labels)  # the points this procedure touched
+                kw.setdefault("distances", [d for d in getattr(self.cell, "distances", None) or []
+                                            if d[0] in touched and d[1] in touched] or None)
+                kw.setdefault("planes", [p for p in getattr(self.cell, "planes", None) or [] if p in touched] or None)
             self.result = solve(self.model, fit, identify=identify, reference=ref,
                                 holdout=self.observations("holdout"), **kw)
             self.event(ev.Result(result=self.result.to_dict()))
