@@ -35,6 +35,16 @@ def _server(tmp_path, url, cell, db, endpoint, *extra):
                             stderr=subprocess.PIPE, text=True)
 
 
+def _unit_server(tmp_path, emulators, seed: int, serial: str, **files):
+    """An emulated Dynamixel arm (its own process) with hidden offsets and ``station opcua`` for it:
+    ``(world_path, db, endpoint, proc)``."""
+    world_path, cell_path = _files(tmp_path, seed=seed, **files)
+    db = f"sqlite:///{tmp_path / 'r.db'}"
+    endpoint = f"opc.tcp://127.0.0.1:{_free_port()}"
+    emu = emulators("dynamixel", world_path, serial=serial, process=True)
+    return world_path, db, endpoint, _server(tmp_path, _url(emu), cell_path, db, endpoint)
+
+
 async def _connect(endpoint: str, proc):
     from asyncua import Client
 
@@ -75,12 +85,8 @@ async def _wait(pred, timeout: float) -> None:
 
 @pytest.mark.slow
 def test_start_subscribe_verdict_read_result(tmp_path, emulators):
-    world_path, cell_path = _files(tmp_path, seed=51)
     serial = "DXL-OPC-51"
-    db = f"sqlite:///{tmp_path / 'r.db'}"
-    endpoint = f"opc.tcp://127.0.0.1:{_free_port()}"
-    emu = emulators("dynamixel", world_path, serial=serial, process=True)
-    proc = _server(tmp_path, _url(emu), cell_path, db, endpoint)
+    world_path, db, endpoint, proc = _unit_server(tmp_path, emulators, 51, serial)
 
     async def scenario():
         from asyncua import ua
@@ -128,12 +134,8 @@ def test_start_subscribe_verdict_read_result(tmp_path, emulators):
 
 @pytest.mark.slow
 def test_abort_through_opcua_leaves_a_resumable_session(tmp_path, emulators):
-    world_path, cell_path = _files(tmp_path, seed=52, time_mode="realtime", time_scale=2.0)
     serial = "DXL-OPC-52"
-    db = f"sqlite:///{tmp_path / 'r.db'}"
-    endpoint = f"opc.tcp://127.0.0.1:{_free_port()}"
-    emu = emulators("dynamixel", world_path, serial=serial, process=True)
-    proc = _server(tmp_path, _url(emu), cell_path, db, endpoint)
+    _, db, endpoint, proc = _unit_server(tmp_path, emulators, 52, serial, time_mode="realtime", time_scale=2.0)
 
     async def scenario():
         from asyncua import ua

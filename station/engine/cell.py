@@ -58,15 +58,17 @@ class RefPoint:
     position: np.ndarray  # m, robot base frame (approximate)
     approach: np.ndarray  # unit vector, point -> where the tool comes from
     radius: float = 0.002  # m
+    image: str | None = None  # picture of the point for the operator's prompt (absolute path, checked at load)
 
     def to_dict(self) -> dict:
-        return {"label": self.label, "kind": self.kind, "position": self.position.tolist(),
-                "approach": self.approach.tolist(), "radius": self.radius}
+        d = {"label": self.label, "kind": self.kind, "position": self.position.tolist(),
+             "approach": self.approach.tolist(), "radius": self.radius}
+        return d if self.image is None else {**d, "image": self.image}
 
     @classmethod
     def from_dict(cls, d: dict) -> RefPoint:
         return cls(d["label"], d["kind"], np.asarray(d["position"], float), np.asarray(d["approach"], float),
-                   float(d.get("radius", 0.002)))
+                   float(d.get("radius", 0.002)), d.get("image"))
 
 
 @dataclass(frozen=True)
@@ -110,6 +112,7 @@ class _PointBody(Strict):
     position: Vec3
     approach: Vec3 = [0.0, 0.0, 1.0]
     radius: Pos | None = None
+    image: str | None = Field(None, min_length=1, max_length=1000)  # relative to the cell file
 
 
 class _Point(_PointBody):
@@ -208,7 +211,7 @@ def cell_from_dict(doc, where: str = "cell") -> Cell:
         label = str(d["label"])
         points[label] = RefPoint(label, kind, _vec(f"{w}.position", d.get("position"), scale),
                                  _vec(f"{w}.approach", d.get("approach", [0, 0, 1]), 1.0, unit=True),
-                                 float(radius) * scale)
+                                 float(radius) * scale, _image(f"{w}.image", d.get("image"), where))
     tool = doc.get("tool")
     if tool is not None:
         if not isinstance(tool, dict) or set(tool) - {"x", "y", "z", "rx", "ry", "rz"}:
@@ -237,6 +240,31 @@ def cell_from_dict(doc, where: str = "cell") -> Cell:
     planes = [str(p) for p in doc.get("planes") or []]
     return Cell(where, points, doc.get("model"), tool, keep_out_from_dict(doc, where, scale, angle), distances,
                 planes)
+
+
+IMAGE_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".gif": "image/gif",
+               ".webp": "image/webp", ".svg": "image/svg+xml"}
+
+
+def _image(w: str, image, cell_path: str) -> str | None:
+    """A point's ``image:``: a picture file in the cell file's folder or below it (never outside: the panel
+    serves it), of a type a browser shows; the absolute path."""
+    if image is None:
+        return None
+    if not isinstance(image, str) or not image.strip():
+        raise CellError(f"{w}: must be a file name relative to the cell file")
+    rel = Path(image)
+    if rel.is_absolute() or ".." in rel.parts:
+        raise CellError(f"{w}: {image!r} must be relative to the cell file's folder and stay inside it")
+    if rel.suffix.lower() not in IMAGE_TYPES:
+        raise CellError(f"{w}: {image!r} is not a {', '.join(IMAGE_TYPES)} picture")
+    folder = Path(cell_path).resolve().parent
+    path = (folder / rel).resolve()
+    if not path.is_relative_to(folder):  # a symlink pointing out of the folder
+        raise CellError(f"{w}: {image!r} leads outside the cell file's folder")
+    if not path.is_file():
+        raise CellError(f"{w}: {image!r}: no such file {path}")
+    return str(path)
 
 
 # ---- keep-out ----------------------------------------------------------------------------------------------

@@ -9,6 +9,7 @@ once the record is stored."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import getpass
 import hashlib
 import os
@@ -47,6 +48,75 @@ def _disk_ok(folder: Path, what: str) -> None:
 
 class Terminated(KeyboardInterrupt):
     """SIGTERM arrived: handled like Ctrl-C (teardown, journal, exit)."""
+
+
+class Aborted(KeyboardInterrupt):
+    """ABORT from the operator panel or the line (OPC UA ``Abort()``): handled like Ctrl-C (teardown, journal,
+    the session ends interrupted and stays resumable)."""
+
+
+class RunControl:
+    """A run seen from other threads (the operator panel, the OPC UA server): ``abort()`` and the live
+    ``session`` once it exists.
+
+    Every motion of the run (the checklist's, the touch providers', the write-back's check touch) goes through
+    the robot's ``move_joints``/``move_linear``; :meth:`attach` guards those two on the run's robot object, so an
+    abort during a move stops the robot at once through the driver's stop path (which ends the waited move
+    from another thread: tests/test_drivers_stop_interrupts.py), and no move starts after an abort."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.reason: str | None = None
+        self.session: Session | None = None
+        self._robot = None
+        self._moving = 0
+        self.stopped_moving: str | None = None  # what was moving when the abort stopped it
+
+    @property
+    def aborted(self) -> bool:
+        return self.reason is not None
+
+    def abort(self, reason: str = "aborted by the operator") -> None:
+        with self._lock:
+            if self.reason is None:
+                self.reason = reason
+            robot = self._robot if self._moving else None
+        if robot is not None:
+            with contextlib.suppress(Exception):  # the teardown stops it again and journals what failed
+                robot.stop()
+
+    def check(self) -> None:
+        """Raise :class:`Aborted` once an abort was asked for."""
+        if self.reason is not None:
+            raise Aborted(self.reason)
+
+    def attach(self, s: Session) -> None:
+        self.session = s
+        self._robot = s.robot
+        for name in ("move_joints", "move_linear"):
+            fn = getattr(s.robot, name, None)
+            if callable(fn):
+                setattr(s.robot, name, self._guard(fn, s))
+
+    def _guard(self, move, s: Session):
+        @functools.wraps(move)
+        def guarded(*args, **kwargs):
+            with self._lock:
+                self.check()
+                self._moving += 1
+            try:
+                return move(*args, **kwargs)
+            except Exception:
+                if self.reason is None:
+                    raise
+                what = f"{s.doing[0]} of pose {s.doing[1]}" if s.doing and s.doing[1] is not None else "a move"
+                self.stopped_moving = what
+                raise Aborted(f"{self.reason}; the robot was stopped during {what}") from None
+            finally:
+                with self._lock:
+                    self._moving -= 1
+
+        return guarded
 
 
 @dataclass
@@ -155,7 +225,8 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
                    limits: str | Path | None = None, db: str | None = None, apply: bool = False,
                    cell: str | Path | Cell | None = None, operator: str | None = None, options: dict | None = None,
                    touch=None, progress: Callable[[int, int, str], None] | None = None,
-                   log: Callable[[str], None] | None = None, robot_url: str = "") -> Session:
+                   log: Callable[[str], None] | None = None, robot_url: str = "", prompt=None,
+                   control: RunControl | None = None) -> Session:
     """A new session on a connected robot: checks serial and limits, writes the journal header. ``db`` is only
     noted in the header (so that a resume stores where the run did); the engine does not open it."""
     from station.engine.session import _identity_dict
@@ -190,17 +261,21 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
                                             **keep_out_to_doc(the_cell.keep_out)},
         options=opts, db=_db_for_journal(db), versions=_versions())
     journal = Journal.create(folder / "journal.jsonl", header)
-    return Session(journal, robot, limits=table, limits_version=lim.version, cell=the_cell, options=opts,
-                   progress=progress, touch=None if isinstance(touch, str) else touch, log=log)
+    s = Session(journal, robot, limits=table, limits_version=lim.version, cell=the_cell, options=opts,
+                progress=progress, touch=None if isinstance(touch, str) else touch, log=log, prompt=prompt)
+    if control is not None:
+        control.attach(s)
+    return s
 
 
 def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, limits: str | Path | None = None,
           db: str | None = None, apply: bool = False, cell: str | Path | Cell | None = None,
           operator: str | None = None, options: dict | None = None, touch=None,
           progress: Callable[[int, int, str], None] | None = None, log: Callable[[str], None] | None = None,
-          robot=None) -> Outcome:
+          robot=None, prompt=None, control: RunControl | None = None) -> Outcome:
     """Start a new session of ``procedure`` on the robot at ``robot_url`` and run it to the end (teardown
-    included). Stores nothing: ``station.run`` does that with the outcome."""
+    included). Stores nothing: ``station.run`` does that with the outcome. ``prompt(question) -> answer`` is the
+    operator's side of ``s.ask`` (default: the terminal); ``control`` lets another thread abort the run."""
     from station.robot import open_robot
 
     proc = procedure if isinstance(procedure, Procedure) else load_procedure(procedure)
@@ -212,20 +287,21 @@ def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, lim
     try:
         s = create_session(robot, serial, procedure=proc, limits=limits, db=db, apply=apply, cell=cell,
                            operator=operator, options=options, touch=touch, progress=progress, log=log,
-                           robot_url=robot_url)
+                           robot_url=robot_url, prompt=prompt, control=control)
     except JournalWriteError as e:
         robot.close()
         raise DiskError(str(e)) from None
     except BaseException:
         robot.close()
         raise
-    out = _execute(s, proc.checklist)
+    out = _execute(s, proc.checklist, control)
     out.db = db
     return out
 
 
 def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int, str], None] | None = None,
-           log: Callable[[str], None] | None = None, robot=None) -> Outcome:
+           log: Callable[[str], None] | None = None, robot=None, prompt=None,
+           control: RunControl | None = None) -> Outcome:
     """Continue an interrupted session: same procedure file (hash checked), same plan, recorded samples kept.
     The outcome's ``db`` is the records URL the journal names."""
     from station.robot import open_robot
@@ -271,7 +347,9 @@ def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int,
         robot.close()
         raise
     s = Session(journal, robot, limits=table, limits_version=lim.version, cell=_cell_from_header(header.cell),
-                options=dict(header.options), replay=events, progress=progress, touch=touch, log=log)
+                options=dict(header.options), replay=events, progress=progress, touch=touch, log=log, prompt=prompt)
+    if control is not None:
+        control.attach(s)
     try:
         if journal.torn:  # reported, never silently dropped: on the terminal and in the journal
             s.log(f"station: warning: {journal.torn}")
@@ -281,7 +359,7 @@ def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int,
         robot.close()
         journal.close()
         raise
-    out = _execute(s, proc.checklist)
+    out = _execute(s, proc.checklist, control)
     out.db = header.db
     return out
 
@@ -373,12 +451,14 @@ def _install_sigterm():
         return None
 
 
-def _execute(s: Session, body: Callable[[Session], None]) -> Outcome:
+def _execute(s: Session, body: Callable[[Session], None], control: RunControl | None = None) -> Outcome:
     status, err = "completed", None
     old = _install_sigterm()
     try:
         try:
             body(s)
+            if control is not None:  # an abort after the last move still ends the run ABORTED, never PASS
+                control.check()
         except KeyboardInterrupt as e:
             status, err = "interrupted", e
         except Exception as e:

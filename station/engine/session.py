@@ -17,6 +17,7 @@ from station.engine.cell import Cell, RefPoint
 from station.engine.journal import Journal
 from station.engine.limits import NO_LIMITS, Limit, LimitsError
 from station.engine.plan import PlannedPose, PosePlan, generate_plan, plan_from_joints
+from station.engine.procedure import Question, terminal_prompt
 from station.engine.session_record import live_samples, session_from_events
 from station.engine.touch import TouchProvider, provider_for
 from station.kinematics import Model
@@ -42,7 +43,8 @@ class Session:
     def __init__(self, journal: Journal, robot, *, limits: dict[str, Limit] | None = None,
                  limits_version: str | None = None, cell: Cell | None = None, options: dict | None = None,
                  replay: list[dict] | None = None, progress: Callable[[int, int, str], None] | None = None,
-                 touch: TouchProvider | str | None = None, log: Callable[[str], None] | None = None) -> None:
+                 touch: TouchProvider | str | None = None, log: Callable[[str], None] | None = None,
+                 prompt: Callable[[Question], str] | None = None) -> None:
         self.journal = journal
         self.robot = robot
         self.model: Model = robot.model
@@ -56,6 +58,7 @@ class Session:
         self.replay: list[ev.Event] = list(replay or [])  # events of the interrupted run (resume)
         self.progress = progress or (lambda done, total, text: None)
         self.log = log or (lambda text: None)
+        self.prompt = prompt or terminal_prompt  # the operator's side of s.ask (terminal, panel)
         self._touch = touch
         self.current_plan: PosePlan | None = None
         self.result = None  # CalibrationResult of the last solve
@@ -107,6 +110,24 @@ class Session:
             self.event(ev.Step(name=name, status="failed", error=type(e).__name__, message=str(e)[:500]))
             raise
         self.event(ev.Step(name=name, status="done"))
+
+    # ---- the operator ----------------------------------------------------------------------------
+    def ask(self, question: Question | str, kind: str = "confirm", **spec) -> str | float:
+        """Ask the operator (``Question``: confirm, number with unit and range, text with a pattern, choice)
+        and return the checked value. The front end validates as the operator types; the answer is checked
+        here again whatever gave it (the terminal and the panel ask again until it is valid; a front end that
+        hands on a refused answer stops the run with ``BadAnswer``). An answer with a
+        ``key`` is journaled, and a resumed session reuses it instead of asking again."""
+        q = question if isinstance(question, Question) else Question(question, kind, **spec)
+        if q.key:
+            for e in reversed(self.events("answer")):
+                if e["key"] == q.key:
+                    return e["value"]
+        value = q.check(self.prompt(q))
+        if q.key:
+            self.event({"type": "answer", "key": q.key, "question": q.text, "kind": q.kind, "unit": q.unit,
+                        "value": value})
+        return value
 
     # ---- connect and check -----------------------------------------------------------------------
     def connect(self) -> dict:

@@ -152,17 +152,28 @@ class GuardedApproach:
 
 class ManualTouch:
     """A technician jogs the tip onto the point (``station jog`` or the teach pendant) until the touch indicator
-    lights, then confirms. ``prompt(text) -> None`` blocks until the technician confirms (default: input())."""
+    lights, then confirms. The confirmations go through the session's one prompt API (``s.ask``: the terminal,
+    or the operator panel, which shows the point's picture or a sketch of where it is); ``prompt(question)``
+    overrides it (a ``Question`` is its text, so a callable taking plain text works)."""
 
     def __init__(self, prompt=None, require_indicator: bool = True, timeout: float = 600.0) -> None:
-        self.prompt = prompt or (lambda text: input(text + " [Enter] "))
+        self.prompt = prompt
         self.require_indicator = require_indicator
         self.timeout = timeout
 
+    def _confirm(self, s: Session, text: str, point: str) -> None:
+        from station.engine.procedure import Question
+
+        q = Question(text, point=point)
+        if self.prompt is not None:
+            self.prompt(q)
+        else:
+            s.ask(q)
+
     def bring_to(self, s: Session, pose: PlannedPose) -> None:
         s.robot.move_joints(pose.approach_arr)
-        self.prompt(f"Pose {pose.index + 1}/{len(s.current_plan or [])}: jog the tool tip onto point {pose.point} "
-                    "until the touch indicator lights, then confirm")
+        self._confirm(s, f"Pose {pose.index + 1}/{len(s.current_plan or [])}: jog the tool tip onto point "
+                         f"{pose.point} until the touch indicator lights, then confirm", pose.point)
         if self.require_indicator and _indicator(s.robot) is False and not _wait(
                 lambda: bool(_indicator(s.robot)), self.timeout):
             raise TouchFailed(f"pose {pose.index}: the touch indicator did not light")
@@ -170,7 +181,7 @@ class ManualTouch:
     def release(self, s: Session, pose: PlannedPose) -> None:
         if isinstance(s.robot, Compliant):
             s.robot.set_compliant(False)
-        self.prompt(f"Jog the tool clear of point {pose.point}, then confirm")
+        self._confirm(s, f"Jog the tool clear of point {pose.point}, then confirm", pose.point)
 
 
 def provider_for(kind: str, name: str | None = None) -> TouchProvider:

@@ -10,6 +10,8 @@
     GET  /api/resumable        interrupted sessions on this station
     GET  /api/history/{serial} previous runs and each parameter's trend
     GET  /api/events           server-sent events: the state on every change
+    GET  /api/points/{label}/image       the reference point's picture (``image:`` in the cell file)
+    GET  /api/points/{label}/sketch.svg  where the point is in the cell, seen from above (generated)
     GET  /report/{session}     the session's HTML report
 
 With a token, every request needs ``Authorization: Bearer TOKEN`` or the ``station_token`` cookie (opening
@@ -21,13 +23,14 @@ import asyncio
 import hmac
 import json
 from importlib import resources
+from pathlib import Path
 
 from starlette.applications import Starlette
 from starlette.requests import Request
-from starlette.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse, StreamingResponse
+from starlette.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse, Response, StreamingResponse
 from starlette.routing import Route
 
-from station.panel.controller import Controller, PanelError, report_path
+from station.panel.controller import Controller, PanelError, PromptRefused, report_path
 from station.panel.history import unit_history
 
 COOKIE = "station_token"
@@ -57,8 +60,9 @@ def create_app(controller: Controller, token: str | None = None) -> Starlette:
         return data
 
     def refused(e: PanelError) -> JSONResponse:
-        return JSONResponse({"error": str(e)}, status_code=409 if "running" in str(e) or "nothing" in str(e)
-                            or "no question" in str(e) else 400)
+        conflict = not isinstance(e, PromptRefused) and ("running" in str(e) or "nothing" in str(e)
+                                                          or "no question" in str(e))
+        return JSONResponse({"error": str(e)}, status_code=409 if conflict else 400)
 
     async def index(request: Request):
         q = request.query_params.get("token")
@@ -142,6 +146,30 @@ def create_app(controller: Controller, token: str | None = None) -> Starlette:
             return JSONResponse({"error": "no report for this session"}, status_code=404)
         return FileResponse(p, media_type="text/html")
 
+    def _point(request: Request):
+        cell = controller.cell()
+        return None if cell is None else cell.points.get(request.path_params["label"])
+
+    async def point_image(request: Request):
+        from station.engine.cell import IMAGE_TYPES
+
+        p = await asyncio.to_thread(_point, request)
+        if p is None or not p.image:
+            return JSONResponse({"error": "no picture of this point in the cell file"}, status_code=404)
+        path = Path(p.image)  # checked at load: inside the cell file's folder; the URL names a label only
+        return FileResponse(path, media_type=IMAGE_TYPES[path.suffix.lower()],
+                            headers={"Content-Security-Policy": "default-src 'none'; style-src 'unsafe-inline'",
+                                     "X-Content-Type-Options": "nosniff"})
+
+    async def point_sketch(request: Request):
+        from station.panel.sketch import point_sketch as sketch
+
+        p = await asyncio.to_thread(_point, request)
+        if p is None:
+            return JSONResponse({"error": "no such reference point in the cell file"}, status_code=404)
+        return Response(sketch(controller.cell(), p.label), media_type="image/svg+xml",
+                        headers={"Content-Security-Policy": "default-src 'none'; style-src 'unsafe-inline'"})
+
     def guarded(handler):
         async def endpoint(request: Request):
             if handler is index and request.query_params.get("token"):
@@ -159,5 +187,7 @@ def create_app(controller: Controller, token: str | None = None) -> Starlette:
               Route("/api/prompt", guarded(prompt), **post), Route("/api/clear", guarded(clear), **post),
               Route("/api/resume", guarded(resume), **post), Route("/api/resumable", guarded(resumable)),
               Route("/api/history/{serial:path}", guarded(history)), Route("/api/events", guarded(events)),
+              Route("/api/points/{label}/image", guarded(point_image)),
+              Route("/api/points/{label}/sketch.svg", guarded(point_sketch)),
               Route("/report/{session}", guarded(report))]
     return Starlette(routes=routes)

@@ -13,6 +13,9 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from station.engine.procedure import BadAnswer, Question
+from station.engine.runner import Aborted, RunControl
+
 STATES = ("idle", "running", "prompt", "done")
 
 
@@ -20,8 +23,8 @@ class PanelError(ValueError):
     """A request the station refuses (wrong state, bad input); the API answers 409/400 with its text."""
 
 
-class Aborted(KeyboardInterrupt):
-    """The operator (or the line) pressed ABORT: the engine tears down as on Ctrl-C; the session is resumable."""
+class PromptRefused(PanelError):
+    """An answer the open question refuses (400, one line); the question stays open."""
 
 
 @dataclass
@@ -62,7 +65,10 @@ class Controller:
         self._abort = threading.Event()
         self._answer: str | None = None
         self._answered = threading.Event()
+        self._question: Question | None = None
         self._thread: threading.Thread | None = None
+        self._control: RunControl | None = None
+        self._cell = None
         self._s = self._blank()
 
     # ---- state ---------------------------------------------------------------------------------------
@@ -71,7 +77,7 @@ class Controller:
         return {"state": "idle", "serial": None, "operator": None, "procedure": None, "step": None,
                 "samples": 0, "samples_planned": 0, "verdict": None, "session": None, "failing": [],
                 "message": None, "prompt": None, "report": None, "stored": None, "result": None,
-                "started": None, "finished": None}
+                "started": None, "finished": None, "residuals": [], "residuals_model": None}
 
     def _set(self, **kw) -> None:
         with self._lock:
@@ -128,6 +134,7 @@ class Controller:
                        "procedure": proc, "step": "starting", "started": time.time()}
             self.version += 1
             self._abort.clear()
+            self._control = RunControl()
             ask = self.config.confirm if confirm is None else confirm
             self._thread = threading.Thread(target=self._work, args=(serial, operator, proc, ask, None),
                                             name=f"panel-{serial}", daemon=True)
@@ -151,6 +158,7 @@ class Controller:
                        "session": header.session, "step": "resuming", "started": time.time()}
             self.version += 1
             self._abort.clear()
+            self._control = RunControl()
             self._thread = threading.Thread(target=self._work, args=(header.serial, operator, header.procedure,
                                                                      False, header.session),
                                             name=f"panel-resume-{header.serial}", daemon=True)
@@ -188,6 +196,8 @@ class Controller:
             time.sleep(0.05)
 
     def abort(self) -> None:
+        """ABORT: a move under way stops now (the engine's guarded motion, the driver's stop path), nothing
+        moves after it; the session ends ABORTED, journaled, resumable."""
         with self._lock:
             if not self.busy:
                 raise PanelError("nothing is running")
@@ -195,18 +205,28 @@ class Controller:
             self._s["step"] = "aborting"
             self.version += 1
             self._changed.notify_all()
+            control = self._control
+        if control is not None:
+            control.abort("aborted by the operator")
         self._answer = "abort"
         self._answered.set()
 
     def answer(self, answer: str) -> None:
+        """The operator's answer to the open question, checked like the engine checks it (``Question.check``);
+        ``abort`` abandons the run. A refused answer raises ``PromptRefused`` and the question stays open."""
         with self._lock:
-            p = self._s["prompt"]
-            if self._s["state"] != "prompt" or p is None:
+            p, q = self._s["prompt"], self._question
+            if self._s["state"] != "prompt" or p is None or q is None:
                 raise PanelError("no question is open")
-            a = str(answer).strip().lower()
-            if a not in p["choices"]:
-                raise PanelError(f"answer must be one of {', '.join(p['choices'])}, got {answer!r}")
-            self._answer = a
+            a = str(answer if answer is not None else "").strip()
+            if a.lower() == "abort":
+                self._answer = "abort"
+            else:
+                try:
+                    q.check(a)
+                except BadAnswer as e:
+                    raise PromptRefused(str(e)) from None
+                self._answer = a
             self._answered.set()
 
     def join(self, timeout: float | None = None) -> None:
@@ -214,15 +234,26 @@ class Controller:
             self._thread.join(timeout)
 
     # ---- the worker --------------------------------------------------------------------------------
-    def ask(self, text: str, choices: tuple[str, ...] = ("ok", "abort")) -> str:
-        """Block the run until the operator answers; "abort" (or ABORT) interrupts the run."""
+    def ask(self, question: Question | str) -> str:
+        """The engine's prompt (``s.ask``, ``ManualTouch``) on the page: blocks the run until the operator gives
+        an answer the question accepts; "abort" (or ABORT) interrupts the run."""
+        q = question if isinstance(question, Question) else Question(question)
         self._answered.clear()
         self._answer = None
-        self._set(state="prompt", prompt={"text": text, "choices": list(choices)})
+        prompt = {"text": q.text, "kind": q.kind, "choices": ["ok", "abort"] if q.kind == "confirm" else ["abort"],
+                  "input": None if q.kind == "confirm" else q.to_dict(), "point": q.point, "image": None,
+                  "sketch": None}
+        if q.point:
+            prompt.update(self.point_urls(q.point))
+        with self._lock:
+            self._question = q
+        self._set(state="prompt", prompt=prompt)
         while not self._answered.wait(0.2):
             if self._abort.is_set():
                 break
         answer = self._answer or "abort"
+        with self._lock:
+            self._question = None
         self._set(state="running", prompt=None)
         if answer == "abort" or self._abort.is_set():
             raise Aborted("aborted by the operator")
@@ -233,7 +264,39 @@ class Controller:
             raise Aborted("aborted by the operator")
         if self._s["session"] is None:
             self._find_session()
-        self._set(samples=done, samples_planned=total, step=text)
+        self._set(samples=done, samples_planned=total, step=text, **self._residuals())
+
+    def _residuals(self) -> dict:
+        """Each recorded sample's residual (``station.panel.residuals``) for the live plot."""
+        from station.panel.residuals import live_residuals
+
+        s = self._control.session if self._control is not None else None
+        if s is None:
+            return {}
+        try:
+            rows, which = live_residuals(s)
+        except Exception as e:  # the plot is a view: a failure to draw it must never stop the unit
+            return {"residuals_model": f"not available: {type(e).__name__}: {e}"}
+        return {"residuals": rows, "residuals_model": which}
+
+    # ---- the cell's reference points (prompt pictures) -----------------------------------------------
+    def cell(self):
+        if self._cell is None and self.config.cell:
+            from station.engine.cell import load_cell
+
+            self._cell = load_cell(self.config.cell)
+        return self._cell
+
+    def point_urls(self, label: str) -> dict:
+        """The picture of a point (its ``image:`` in the cell file) or, without one, its generated sketch."""
+        from urllib.parse import quote
+
+        cell = self.cell()
+        p = cell.points.get(label) if cell is not None else None
+        if p is None:
+            return {"image": None, "sketch": None}
+        base = f"/api/points/{quote(label, safe='')}"
+        return {"image": base + "/image" if p.image else None, "sketch": base + "/sketch.svg"}
 
     def _log(self, text: str) -> None:
         self._set(message=text)
@@ -243,7 +306,7 @@ class Controller:
             return self.config.touch
         from station.engine import ManualTouch
 
-        return ManualTouch(prompt=lambda text: self.ask(text))
+        return ManualTouch()  # asks through the session's prompt: this page
 
     def _work(self, serial: str, operator: str, proc: str, confirm: bool, resume_of: str | None) -> None:
         from station import api
@@ -263,10 +326,10 @@ class Controller:
             if resume_of is None:
                 out = api.run(proc, cfg.robot, serial, db=cfg.db, limits=cfg.limits, cell=cfg.cell,
                               operator=operator, options=dict(cfg.options), touch=self._touch(),
-                              progress=self._progress, log=self._log)
+                              progress=self._progress, log=self._log, prompt=self.ask, control=self._control)
             else:
                 out = api.resume(resume_of, db=cfg.db, touch=None if cfg.touch != "manual" else self._touch(),
-                                 progress=self._progress, log=self._log)
+                                 progress=self._progress, log=self._log, prompt=self.ask, control=self._control)
         except Exception as e:  # bad cell/limits file, wrong robot, unreachable bus: said in one line
             self._set(state="done", verdict="ERROR", message=f"{type(e).__name__}: {e}" if not str(e) else str(e),
                       step="stopped", finished=time.time())
@@ -279,7 +342,7 @@ class Controller:
         failing = [plain_failure(m) for m in verdict_doc.get("measurements") or [] if m.get("passed") is False]
         report = str(out.report) if out.report else None
         if out.status == "interrupted":
-            verdict, msg = "ABORTED", f"stopped; resumable: session {out.session}"
+            verdict, msg = "ABORTED", f"{out.error or 'stopped'}; resumable: session {out.session}"
         elif out.passed is not None and not stored:
             verdict = "NOT STORED"
             msg = ("the record is NOT in the database" + (f": {out.error}" if out.error else "")
@@ -299,7 +362,8 @@ class Controller:
                                  for k, p in (((out.record or {}).get("result") or {}).get("parameters") or {})
                                  .items()}}
         self._set(state="done", verdict=verdict, session=out.session, failing=failing, report=report,
-                  stored=stored, message=msg, result=result, step="finished", finished=time.time())
+                  stored=stored, message=msg, result=result, step="finished", finished=time.time(),
+                  **self._residuals())
 
     def _stored(self, out) -> bool:
         """Read the record back: PASS is shown only for a session the database really holds."""
