@@ -190,8 +190,10 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
                                             **keep_out_to_doc(the_cell.keep_out)},
         options=opts, db=_db_for_journal(db), versions=_versions())
     journal = Journal.create(folder / "journal.jsonl", header)
-    return Session(journal, robot, limits=table, limits_version=lim.version, cell=the_cell, options=opts,
-                   progress=progress, touch=None if isinstance(touch, str) else touch, log=log)
+    s = Session(journal, robot, limits=table, limits_version=lim.version, cell=the_cell, options=opts,
+                progress=progress, touch=None if isinstance(touch, str) else touch, log=log)
+    s.given = set(options or {})  # what the caller chose (checked against the procedure), not its DEFAULTS
+    return s
 
 
 def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, limits: str | Path | None = None,
