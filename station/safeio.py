@@ -3,8 +3,12 @@
 - ``write_atomic``: write a temporary file next to the destination, fsync, rename; never onto an input file
   of the same command; an unwritable destination is one line and leaves no ``.tmp`` behind.
 - ``dumps_json``: always valid JSON (``allow_nan=False``; a NaN/Infinity is ``null``, the field's reason says
-  why). ``read_json``: a regular file of bounded size, NaN/Infinity and deep nesting refused, one line naming
-  the file. Errors are ``ConfigError`` (exit 2)."""
+  why). The one JSON writer of the station's files: results, records, the journal, correction maps.
+- ``read_json``: a regular file of bounded size, NaN/Infinity and deep nesting refused, one line naming
+  the file. Errors are ``ConfigError`` (exit 2).
+
+Only the standard library at module level: the solver (map files), records and journal use ``dumps_json``
+without loading the robot package or YAML."""
 
 from __future__ import annotations
 
@@ -13,9 +17,6 @@ import json
 import math
 import os
 from pathlib import Path
-
-from station.robot.errors import ConfigError
-from station.yamlfile import decode, read_capped
 
 MAX_JSON_BYTES = 64 * 1024 * 1024  # a calibration result with a covariance of a few hundred parameters is < 10 MB
 
@@ -30,6 +31,8 @@ def _same_file(a: Path, b: Path) -> bool:
 def check_destination(path: str | Path, inputs: dict | None = None, option: str = "--out") -> None:
     """``ConfigError`` if ``path`` cannot take an output: an input file of the command, a directory, a missing
     folder or one the station may not write to. Call it before the work so nothing is computed in vain."""
+    from station.robot.errors import ConfigError
+
     path = Path(path)
     for opt, p in (inputs or {}).items():
         if p is not None and _same_file(path, Path(p)):
@@ -46,6 +49,8 @@ def write_atomic(path: str | Path, text: str, inputs: dict[str, str | Path | Non
                  option: str = "--out") -> None:
     """Write ``text`` to ``path`` atomically. ``inputs`` (option -> path) are the command's input files:
     writing over one of them is refused before anything is written."""
+    from station.robot.errors import ConfigError
+
     path = Path(path)
     check_destination(path, inputs, option)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
@@ -62,19 +67,26 @@ def write_atomic(path: str | Path, text: str, inputs: dict[str, str | Path | Non
 
 
 def _clean(x):
-    """``x`` with every non-finite float replaced by None (JSON has no NaN)."""
+    """``x`` with every non-finite float replaced by None (JSON has no NaN); numpy arrays and scalars become
+    plain lists and numbers (first, so a numpy NaN is caught too), tuples and sets lists."""
     if isinstance(x, float):
         return x if math.isfinite(x) else None
+    if isinstance(x, str | int | bool | None):
+        return x
     if isinstance(x, dict):
         return {k: _clean(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
+    if isinstance(x, list | tuple | set | frozenset):
         return [_clean(v) for v in x]
+    if hasattr(x, "tolist"):  # numpy array or scalar (no numpy import here)
+        return _clean(x.tolist())
     return x
 
 
-def dumps_json(doc, indent: int | None = 2) -> str:
-    """Valid JSON always: NaN/Infinity become null (``allow_nan=False`` guards the rule)."""
-    return json.dumps(_clean(doc), indent=indent, allow_nan=False)
+def dumps_json(doc, indent: int | None = 2, *, compact: bool = False, default=None) -> str:
+    """Valid JSON always: NaN/Infinity become null (``allow_nan=False`` guards the rule). ``compact``: one line
+    without spaces (journal lines, database columns); ``default`` as for ``json.dumps`` (other types)."""
+    return json.dumps(_clean(doc), indent=None if compact else indent, allow_nan=False, default=default,
+                      separators=(",", ":") if compact else None)
 
 
 def _no_constant(name: str):
@@ -83,6 +95,9 @@ def _no_constant(name: str):
 
 def read_json(path: str | Path, what: str = "JSON file"):
     """Parsed JSON of regular file ``path``; ``ConfigError`` in one line for anything else."""
+    from station.robot.errors import ConfigError
+    from station.yamlfile import decode, read_capped
+
     name = f"{what} {path}"
     text = decode(read_capped(path, ConfigError, name, MAX_JSON_BYTES), ConfigError, name)
     try:

@@ -29,9 +29,11 @@ def open_jog(url: str, *, serial: str | None = None, model: str | None = None, s
     from station.engine.limits import load_limits
     from station.robot import adopt_serial, open_robot
     from station.robot.errors import ConfigError
+    from station.robot.url import parse_url
     from station.tui.controller import JogController, parse_reference
     from station.tui.session import JogSession, joint_units, session_header
 
+    parse_url(url)  # a malformed URL is the same one-line error as for station run, before anything else
     ref = parse_reference(reference)
     the_cell = load_cell(cell) if cell is not None else None
     lim = load_limits(limits)

@@ -316,12 +316,9 @@ def build_command(
         cmap.statistics["registration"] = registration.to_dict()
     cost = _lookup_cost(cmap)
     cmap.statistics["lookup_seconds_per_query"] = cost
-    try:
-        tmp = out.with_name(out.name + ".tmp")
-        tmp.write_text(cmap.dumps())
-        os.replace(tmp, out)
-    except OSError as e:
-        raise _fail(f"{out}: cannot write ({e.strerror or e})") from None
+    from station.safeio import write_atomic
+
+    write_atomic(out, cmap.dumps())  # strict JSON, atomic; unwritable: one line, exit 2
     s = cmap.statistics
     kinds = [j.revolute for j in m.joints]
     typer.echo(f"map: {s['n_samples']} samples on {s['n_measured_nodes']} of {s['n_nodes']} grid nodes "

@@ -248,7 +248,6 @@ def export(fmt: str = typer.Option("csv", "--format", help="csv (one row per ses
     """Export sessions for analysis (SI units: m, rad; the unit of each value in its own column/field)."""
     import csv
     import io
-    import json
 
     from station.cli import fail
     from station.records.trend import EXPORT_COLUMNS, export_rows, export_sessions, parse_since
@@ -261,7 +260,9 @@ def export(fmt: str = typer.Option("csv", "--format", help="csv (one row per ses
         raise fail(str(e)) from None
     with _open(db) as rec:
         if fmt == "json":
-            text = json.dumps({"format": "station-records-export/1", "units": "SI (m, rad)", "since": since,
+            from station.safeio import dumps_json  # strict JSON: a NaN/inf is null
+
+            text = dumps_json({"format": "station-records-export/1", "units": "SI (m, rad)", "since": since,
                                "sessions": export_sessions(rec, serial, t0)}, indent=1, default=str) + "\n"
         else:
             buf = io.StringIO()

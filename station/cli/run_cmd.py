@@ -115,7 +115,8 @@ def summary(out, echo=typer.echo) -> None:
                 continue
             u, k = human_of(p.get("unit") or "m")
             if p["identifiable"]:
-                echo(f"  {name:14s} {(p['value'] - p['nominal']) * k:+10.4f} {u} ± {(p['std'] or 0) * k:.4f}")
+                sd = "-" if p.get("std") is None else f"{p['std'] * k:.4f}"  # no ± is never printed as ± 0
+                echo(f"  {name:14s} {(p['value'] - p['nominal']) * k:+10.4f} {u} ± {sd}")
             else:
                 echo(f"  {name:14s} {'not identifiable':>14s}  ({p.get('reason') or ''})"[:118])
         r = res["residuals"]

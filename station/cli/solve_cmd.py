@@ -209,6 +209,10 @@ def solve_command(
         if "parameter or group" in msg or msg.startswith("compliance."):
             raise _fail(f"--identify {identify!r}: {msg}") from None
         raise _fail(f"{samples}: {msg}") from None
+    _diagnose(res, m, obs, s, str(samples), noise_m,
+              lambda o: solve(m, o, identify, ref, None, instrument_frame=instrument_frame, max_std=max_std,
+                              noise=noise_m, priors=priors, loss=loss, distances=distances or None,
+                              planes=planes or None))
     res.settings.update(samples=str(samples), holdout=None if holdout is None else str(holdout), tool=tool)
     typer.echo(summary(res))
     if out is not None:
@@ -273,6 +277,23 @@ def constraint_lines(res) -> list[str]:
             out.append(f"  plane {c['labels'][0]}{where}: normal ({n}), offset {c['offset_m'] * 1e3:.4f} mm, "
                        f"{c['n_touches']} touches, residual RMS {rms} mm (max {mx} mm)")
     return out
+
+
+def _diagnose(res, model, obs, s, samples: str, noise_m: float | None, refit) -> None:
+    """Post-fit checks (station.solver.diagnose): a unit slip inside the joint limits is bad input (exit 2,
+    naming the column or row); noise-free data leave the ± not estimable (not trusted, exit 1)."""
+    from station.solver.diagnose import noise_free, unit_slip
+
+    slip = unit_slip(model, obs, res, refit, noise_m, samples, s.lines)
+    if slip is not None:
+        raise _fail(slip.message())
+    why = noise_free(res, noise_m)
+    if why is not None:  # no ± at all rather than a ± of 0: std and covariance are null, the result not trusted
+        import dataclasses
+
+        res.parameters = {n: dataclasses.replace(p, std=None) for n, p in res.parameters.items()}
+        res.covariance = None
+        res.trusted, res.failure = False, why if not res.failure else f"{why}; {res.failure}"
 
 
 def _priors(specs: list[str]) -> list[tuple[str, float, str]] | None:

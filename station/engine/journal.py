@@ -23,6 +23,7 @@ from pathlib import Path
 
 from station.engine import events as ev
 from station.engine.events import FORMAT, FORMAT_V1, Event, Header, SchemaError
+from station.safeio import dumps_json
 
 MIN_FREE_DEFAULT = 16 * 1024 * 1024  # bytes kept free for the journal: ~10^4 events of a busy session
 
@@ -96,7 +97,9 @@ def _fsync_dir(path: Path) -> None:
 
 
 def _line(event: Event) -> bytes:
-    return (json.dumps(event.to_dict(), separators=(",", ":")) + "\n").encode()
+    # strict JSON: events are already checked (a NaN in a nullable field is null, in a required one refused);
+    # dumps_json keeps a NaN that slipped through from ever reaching the file
+    return (dumps_json(event.to_dict(), compact=True) + "\n").encode()
 
 
 def make_header(header: Header | dict) -> Header:

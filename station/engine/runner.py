@@ -265,6 +265,7 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
                 progress=progress, touch=None if isinstance(touch, str) else touch, log=log, prompt=prompt)
     if control is not None:
         control.attach(s)
+    s.given = set(options or {})  # what the caller chose (checked against the procedure), not its DEFAULTS
     return s
 
 

@@ -55,6 +55,9 @@ class Session:
         self.limits_version = limits_version
         self.cell = cell
         self.options = dict(options or {})
+        # options the caller gave (--poses...), not the procedure's DEFAULTS: only those are held to rules such
+        # as "poses >= unknowns" (a procedure's own default is its author's choice, e.g. verify does not solve)
+        self.given: set[str] = set()
         self.replay: list[ev.Event] = list(replay or [])  # events of the interrupted run (resume)
         self.progress = progress or (lambda done, total, text: None)
         self.log = log or (lambda text: None)
@@ -248,6 +251,10 @@ class Session:
             n_holdout = opt.get("n_holdout", 4) if n_holdout is None else n_holdout
             rotate = kw.pop("rotate_joint", None)
             kw.setdefault("keep_out", self.cell.keep_out if self.cell else None)  # None: nothing below the base
+            if listed is None and "n_fit" in self.given:  # --poses: at least one pose per unknown
+                pts = [(points or self.points("socket"))[0]] if rotate is not None else (
+                    points or self.points("socket")[:1])
+                self.check_poses(int(opt["n_fit"]), identify, pts)
             if rotate is not None:
                 from station.engine.plan import generate_rotation_plan
 
@@ -266,6 +273,19 @@ class Session:
             self.event(ev.Plan(plan=plan.to_dict()))
         self.current_plan = plan
         return plan
+
+    def check_poses(self, n_fit: int, identify: str, points: list[RefPoint]) -> None:
+        """``--poses`` must be at least the unknowns of the procedure's group (its model parameters plus the
+        coordinates of every reference point solved as unknown): fewer poses leave the fit without the
+        redundancy that tells a bad touch from a good one. One line, before anything moves (ConfigError)."""
+        known = self.options.get("reference") == "cell" and self.cell is not None
+        names = self.model.select(identify) if identify else []
+        n_points = 0 if known else len(points)
+        need = len(names) + 3 * n_points
+        if n_fit < need:
+            raise ConfigError(f"--poses {n_fit}: the procedure identifies {identify!r}: {need} unknowns "
+                              f"({len(names)} model parameters + {3 * n_points} reference point coordinates); give "
+                              f"--poses {need} or more (nothing moved)")
 
     def check_plan(self, plan: PosePlan, identify: str) -> None:
         """Plan-time check (docs/solver.md, "prediction"): the posterior the planned fit poses would give, with

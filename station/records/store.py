@@ -22,6 +22,7 @@ from station.records import schema as S
 from station.records.verdict import finite_or_none as _float
 from station.records.verdict import measurement_status
 from station.robot.errors import ConfigError, StationError
+from station.safeio import dumps_json
 
 
 class RecordsError(StationError):
@@ -123,8 +124,9 @@ def _jsonable(o):
 
 
 def _dumps(obj) -> str:
-    # allow_nan: a result may hold inf (condition number); json.loads reads it back
-    return json.dumps(obj, default=_jsonable, allow_nan=True, separators=(",", ":"))
+    # strict JSON (a PostgreSQL json column, a report or any other reader takes it): a NaN/inf (e.g. the
+    # condition number of a rank-deficient solve) is stored as null, as the result file writes it
+    return dumps_json(obj, compact=True, default=_jsonable)
 
 
 def _loads(text: str | None):

@@ -17,13 +17,13 @@ parameters leave: compliance, backlash, gear errors). Pure: arrays and dicts in,
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from station.safeio import dumps_json
 from station.solver.map.grid import MESHES, Grid
 from station.solver.map.poses import (
     FULL,
@@ -272,7 +272,7 @@ class CorrectionMap:
         }
 
     def dumps(self) -> str:
-        return json.dumps(self.to_dict(), indent=1) + "\n"
+        return dumps_json(self.to_dict(), indent=1) + "\n"  # strict JSON: a NaN statistic is null
 
     @classmethod
     def from_dict(cls, d, where: str = "<map>") -> CorrectionMap:
