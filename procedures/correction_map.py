@@ -18,10 +18,12 @@ from station.kinematics import se3
 from station.robot.errors import ConfigError, DeviceFault
 from station.robot.registry import open_instrument
 from station.solver.map import FULL, MapError, build_map, plan, to_vectors
+from station.solver.map.plan import predicted_residual
 from station.solver.map.register import register
 
 DEFAULTS = {"grid": 2, "mesh": "simplex", "n_holdout": 12}
 HOLDOUT_INSET = 0.1  # held-out configurations are drawn this fraction of each actuator range inside the grid box
+PREDICTED_LIMIT = 0.5  # serial arms: refuse a work box where the map would leave more than this of a pose error
 
 
 def checklist(s):
@@ -74,6 +76,15 @@ def map_plan(s) -> PosePlan:
             raise ConfigError(f"correction_map: {e}") from None
         if len(p.x) == 0:
             raise ConfigError(f"correction_map: none of the grid configurations of {m.name} can be assembled")
+        predicted = None
+        if _serial(m) and m.n_joints == 6:
+            predicted = predicted_residual(m, p)
+            if not predicted <= PREDICTED_LIMIT:
+                raise ConfigError(
+                    f"correction_map: the work box (joints +-{float(s.options.get('span_deg', 20.0)):g} deg around "
+                    f"the current pose) comes too close to a singularity: a map there would leave "
+                    f"{predicted:.0%} of a pose error (at most {PREDICTED_LIMIT:.0%}); jog the arm away from it "
+                    f"(wrist centre off axis 1, elbow bent, wrist not straight) or give a smaller span_deg")
         held = holdout_configurations(m, p, int(s.options.get("n_holdout", 12)), int(s.options.get("seed", 0)))
         x, clash = clear_of_keep_outs(s, p.x)
         held, _ = clear_of_keep_outs(s, held)
@@ -85,7 +96,7 @@ def map_plan(s) -> PosePlan:
         poses = [PlannedPose(i, "map", q.tolist(), q.tolist(), "fit") for i, q in enumerate(x)]
         poses += [PlannedPose(len(x) + i, "map", q.tolist(), q.tolist(), "holdout") for i, q in enumerate(held)]
         settings = {"generated": True, "map": {"grid": q, "mesh": mesh, "levels": [lv.tolist() for lv in p.levels],
-                                               "left_out": len(p.dropped)}}
+                                               "left_out": len(p.dropped), "predicted_residual": predicted}}
         plan_ = PosePlan(poses, settings)
         s.event(ev.Plan(plan=plan_.to_dict()))
         if len(p.dropped):
@@ -203,6 +214,8 @@ def build(s, reg):
         except MapError as e:
             raise DeviceFault(f"correction_map: {e}") from None
         s.measure("samples", float(len(x)), "number")
+        if cfg.get("predicted_residual") is not None:  # serial arms: the plan's singularity check (informational)
+            s.measure("predicted_residual", float(cfg["predicted_residual"]), "number")
         big = np.asarray(cmap.statistics["summand_max"], float)  # largest correction per actuator (m or rad)
         rev = np.array([j.revolute for j in s.model.joints])
         if (~rev).any():
