@@ -235,3 +235,26 @@ def test_prismatic_offset_is_a_length(tmp_path, session):
     assert rows["offset.j3"]["unit"] == "m" and rows["offset.j1"]["unit"] == "rad"
     assert "10.5000" in html and "0.5000" in html  # mm
     assert f"{math.degrees(0.1002):.4f}" in html  # deg
+
+
+def test_informational_measurement_shows_no_limit_not_pass(tmp_path, session):
+    """A measurement without low/high was never judged: the table says "— no limit", never PASS; judged
+    measurements keep their result and a NO LIMITS session's banner stays NO LIMITS."""
+    s = copy.deepcopy(session)
+    judged = [m["name"] for m in s["verdict"]["measurements"]]
+    s["verdict"]["measurements"].append({"name": "fit_max", "value": 4e-5, "unit": "m", "low": None, "high": None,
+                                         "marginal": False, "passed": True, "note": "no limit (informational)"})
+    path = write_report(s, tmp_path / "a")
+    rep = json.loads((tmp_path / "a" / "report.json").read_text())
+    st = {m["name"]: m["status"] for m in rep["verdict"]["measurements"]}
+    assert st["fit_max"] == "NO LIMIT"
+    assert all(st[n] in ("PASS", "MARGINAL") for n in judged)
+    row = re.search(r"<tr><td>fit_max</td>.*?</tr>", path.read_text(), re.S).group(0)
+    assert "— no limit" in row and "PASS" not in row
+    # a session with no limits at all (every measurement informational)
+    s["verdict"] = {"passed": None, "status": "NO LIMITS", "measurements": [
+        {**m, "low": None, "high": None, "marginal": False, "passed": True} for m in s["verdict"]["measurements"]]}
+    html = write_report(s, tmp_path / "b").read_text()
+    table = re.search(r'<table id="verdict">.*?</table>', html, re.S).group(0)
+    assert ">PASS<" not in table and table.count("— no limit") == len(s["verdict"]["measurements"])
+    assert 'class="banner NO_LIMITS"' in html

@@ -6,7 +6,7 @@ import math
 from datetime import datetime
 
 from station import units
-from station.records.verdict import measurement_status, overall_status
+from station.records.verdict import finite_or_none, measurement_status, overall_status
 from station.report.analysis import coverage, load_session_model, per_pose_residuals, sample_arrays
 
 FORMAT = "station-report/1"
@@ -14,6 +14,17 @@ FORMAT = "station-report/1"
 
 class ReportError(ValueError):
     """The session dict cannot be reported (not a dict, no session id)."""
+
+
+NO_LIMIT = "NO LIMIT"  # an informational measurement: nothing to judge it against, so neither PASS nor FAIL
+
+
+def _status(m: dict) -> str:
+    """The report's result cell: PASS / MARGINAL / FAIL as judged, or NO LIMIT for a measurement without
+    low and high (informational; a "PASS" there would claim a check that never happened)."""
+    if finite_or_none(m.get("low")) is None and finite_or_none(m.get("high")) is None:
+        return NO_LIMIT
+    return measurement_status(m)
 
 
 def _clean(o):
@@ -64,7 +75,7 @@ def build_report(session: dict) -> dict:
         "n_fit": sum(1 for s in arrays["set"] if s == "fit"),
         "n_holdout": sum(1 for s in arrays["set"] if s == "holdout"),
     }
-    measurements = [{**m, "status": measurement_status(m)} for m in (verdict or {}).get("measurements") or []]
+    measurements = [{**m, "status": _status(m)} for m in (verdict or {}).get("measurements") or []]
 
     parameters, unidentifiable = [], []
     for name, p in ((result or {}).get("parameters") or {}).items():
