@@ -23,6 +23,8 @@ from station.solver.map.register import register
 
 DEFAULTS = {"grid": 2, "mesh": "simplex", "n_holdout": 12}
 HOLDOUT_INSET = 0.1  # held-out configurations are drawn this fraction of each actuator range inside the grid box
+APPROACH = np.radians(0.5)  # serial arms: every configuration is approached from this far below (> backlash)
+APPROACH_LENGTH = 0.5e-3  # m, the same for a prismatic joint
 PREDICTED_LIMIT = 0.5  # serial arms: refuse a work box where the map would leave more than this of a pose error
 
 
@@ -157,15 +159,20 @@ def clear_of_keep_outs(s, x: np.ndarray) -> tuple[np.ndarray, int]:
 
 def move(s, pose: PlannedPose) -> None:
     """A serial arm moves along a path checked against the keep-outs (vias where the straight one is
-    blocked; refused in one line if none is clear); a parallel robot moves straight in actuator space."""
+    blocked; refused in one line if none is clear) and approaches every configuration from below on every
+    joint (``APPROACH`` short of it first), so gear backlash sits on the same side at every sample; a parallel
+    robot moves straight in actuator space."""
     if not _serial(s.model):
         s.move_to(pose.q)
         return
     from station.engine.plan import route_from
 
-    for q in route_from(s.model, s.cell.keep_out if s.cell else None, s.robot.joint_positions().q, [pose.q],
-                        what=f"configuration {pose.index}"):
-        s.move_to(q)
+    m = s.model
+    q = np.asarray(pose.q, float)
+    short = np.maximum(q - np.array([APPROACH if j.revolute else APPROACH_LENGTH for j in m.joints]), m.lower)
+    for target in route_from(m, s.cell.keep_out if s.cell else None, s.robot.joint_positions().q, [short, q],
+                             what=f"configuration {pose.index}"):
+        s.move_to(target)
 
 
 def measure(s, tracker, pose: PlannedPose) -> ev.Sample:

@@ -322,3 +322,29 @@ def test_tracker_noise_has_the_stated_sigma_in_its_own_frame():
     poses = tracker @ measure_poses(np.broadcast_to(T, (300, 4, 4)), refl, tracker, rng)
     err = np.linalg.norm(poses[:, :3, 3] - T[:3, 3], axis=1)
     assert 0.5 * sigma(d) < rms(err) < 2.5 * sigma(d)  # centroid of 3 readings: ~sigma
+
+
+@pytest.mark.parametrize("centre, span, bad", [([0.0, 0.17, 0.17, 0.0, -0.87, 0.0], 10, False),
+                                               ([0.3, -0.9, 1.2, -0.8, 1.2, 0.4], 20, True)])
+def test_predicted_residual_foretells_a_serial_map_near_a_singularity(centre, span, bad):
+    """arm6: the plan's prediction (no measurement) against what a map built from the world's EXACT true poses
+    actually leaves on held-out configurations: near the shoulder singularity both say the map fails."""
+    from station.solver.map.plan import predicted_residual
+
+    w = World.default("arm6", seed=7)
+    nom = w.nominal
+    c = np.array(centre)
+    p = plan(nom, 1, mesh="simplex", lower=c - np.radians(span), upper=c + np.radians(span))
+    predicted = predicted_residual(nom, p)
+    cm = build_map(nom, p.x, to_vectors(w.truth.fk(p.x), FULL), FULL, mesh="simplex")
+    lo, hi = p.grid.lower, p.grid.upper
+    x = np.random.default_rng(3).uniform(lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo), (200, 6))
+    truth = w.truth.fk(x)[:, :3, 3]
+    e_nom = np.linalg.norm(nom.fk(x)[:, :3, 3] - truth, axis=1)
+    e_map = np.linalg.norm(cm.measure(nom, x)[0][:, :3] - truth, axis=1)
+    ratio = np.sqrt(np.mean(e_map ** 2) / np.mean(e_nom ** 2))
+    if bad:
+        assert predicted > 0.5 and ratio > 0.5, (predicted, ratio)  # refused by correction_map; rightly so
+    else:
+        assert predicted < 0.2 and ratio < 0.1, (predicted, ratio)
+    assert ratio < predicted  # real errors partly look like joint offsets, which the map holds exactly

@@ -61,17 +61,23 @@ def _unbounded(model):
     return model.with_joints(tuple(replace(j, lower=-np.inf, upper=np.inf) for j in model.joints))
 
 
+def _ik_closed(model, targets: np.ndarray, message: str) -> np.ndarray:
+    """A parallel robot's closed-form IK without limits; MapError ``message.format(row, reason)`` for the
+    first pose it cannot reach."""
+    q, ok, reasons = model.ik_closed(targets, check_limits=False)
+    if not ok.all():
+        i = int(np.flatnonzero(~ok)[0])
+        raise MapError(message.format(i + 1, reasons[i]), i)
+    return q
+
+
 def second_configurations(model, x: np.ndarray, measured: np.ndarray, cols: tuple[str, ...]) -> np.ndarray:
     """x' = IK(GDK(x)) for every sample: closed form for parallel robots, Newton from x for serial ones (for a
     position-only measurement of a redundant arm: the nearby solution). MapError names the first sample whose
     measured pose the model cannot produce near x."""
     targets = to_targets(measured, cols)
     if is_parallel(model):
-        q, ok, reasons = model.ik_closed(targets, check_limits=False)
-        if not ok.all():
-            i = int(np.flatnonzero(~ok)[0])
-            raise MapError(f"sample {i + 1}: the measured pose {reasons[i]}", i)
-        return q
+        return _ik_closed(model, targets, "sample {}: the measured pose {}")
     res = _unbounded(model).ik(targets, x, position_only=cols != FULL, tol_pos=1e-11, tol_rot=1e-11,
                                max_iter=100)
     bad = (res.position_error > IK_TOL) | (res.orientation_error > IK_TOL)
@@ -206,11 +212,7 @@ class CorrectionMap:
     def _ik(self, model, targets: np.ndarray, cols: tuple[str, ...]) -> np.ndarray:
         T = to_targets(targets, cols)
         if is_parallel(model):
-            q, ok, reasons = model.ik_closed(T, check_limits=False)
-            if not ok.all():
-                i = int(np.flatnonzero(~ok)[0])
-                raise MapError(f"target {i + 1}: unreachable: {reasons[i]}", i)
-            return q
+            return _ik_closed(model, T, "target {}: unreachable: {}")
         # serial: Newton from the sample configurations whose poses lie nearest to each target
         seeds_T = model.fk(self.samples_x).reshape(-1, 4, 4)
         pos = T[:, :3, 3] if T.ndim == 3 else T[:, :3]
