@@ -2,8 +2,9 @@
 
 What a factory script pays per call is the whole process: interpreter, imports, the work, the exit. This bench
 writes a UR5e touch data set (50 samples, offsets + TCP + one unknown point = 12 unknowns, the `bench/solver.py`
-case) and times, with `farm-bench` (whole-process wall/cpu, medians of paired runs) when it is installed, else
-with a plain subprocess loop:
+case) and times each command as a whole process (wall, and cpu = user + sys from wait4), paired run by run with
+`python -c pass` so that the ratio stays meaningful on a busy machine. Bytecode is written as an install has it
+(PYTHONDONTWRITEBYTECODE is dropped for the children, and a warm-up run precedes each case):
 
     station --help          the CLI tree alone
     station fk ...          50 rows of joint readings -> tool poses
@@ -18,8 +19,6 @@ from __future__ import annotations
 import argparse
 import csv
 import os
-import re
-import shutil
 import statistics
 import subprocess
 import sys
@@ -61,29 +60,24 @@ def write_data(folder: Path, n: int = 50, seed: int = 1) -> tuple[Path, Path]:
     return samples, joints
 
 
-def farm_bench(cmd: list[str], runs: int) -> tuple[float, float] | None:
-    """Median (wall, cpu) seconds of ``cmd`` measured by farm-bench, or None when it is not installed."""
-    fb = shutil.which("farm-bench")
-    if fb is None:
-        return None
-    out = subprocess.run([fb, "-n", str(runs), "--timeout", "300", "--", *cmd], capture_output=True, text=True)
-    text = out.stdout + out.stderr
-    wall = re.search(r"A wall s\s+([0-9.]+)\s+([0-9.]+)", text)
-    cpu = re.search(r"A cpu s\s+([0-9.]+)\s+([0-9.]+)", text)
-    return (float(wall.group(2)), float(cpu.group(2))) if wall and cpu else None
+def paired(cmd: list[str], floor: list[str], runs: int, env: dict) -> tuple[float, float, float]:
+    """Median wall and cpu (user + sys of the child, from wait4) seconds of ``cmd``, and the median ratio of its
+    cpu to ``floor``'s: the two run in turn (A B A B ...), so a machine whose speed drifts moves both alike."""
 
-
-def loop(cmd: list[str], runs: int) -> tuple[float, float]:
-    """Fallback: median wall and cpu (children's user + sys) seconds from a plain subprocess loop."""
-    walls, cpus = [], []
-    for _ in range(runs + 1):
-        c0 = os.times()
+    def once(c: list[str]) -> tuple[float, float]:
         t0 = time.perf_counter()
-        subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=False)
-        walls.append(time.perf_counter() - t0)
-        c1 = os.times()
-        cpus.append(c1.children_user - c0.children_user + c1.children_system - c0.children_system)
-    return statistics.median(walls[1:]), statistics.median(cpus[1:])
+        p = subprocess.Popen(c, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+        _, _, ru = os.wait4(p.pid, 0)
+        return time.perf_counter() - t0, ru.ru_utime + ru.ru_stime
+
+    once(cmd)  # warm-up: page cache, and the bytecode of every module it imports
+    walls, cpus, ratios = [], [], []
+    for _ in range(runs):
+        wall, cpu = once(cmd)
+        ratios.append(cpu / max(once(floor)[1], 1e-6))
+        walls.append(wall)
+        cpus.append(cpu)
+    return statistics.median(walls), statistics.median(cpus), statistics.median(ratios)
 
 
 def main() -> None:
@@ -105,19 +99,18 @@ def main() -> None:
         check = subprocess.run(cases[-1][1], capture_output=True, text=True)
         if check.returncode not in (0, 1):
             sys.exit(f"bench/startup.py: station solve failed: {check.stderr.strip()}")
-        env_note = "farm-bench medians" if shutil.which("farm-bench") else "subprocess loop medians"
-        print(f"station start-up, whole process ({env_note}, {args.runs} runs; {os.cpu_count()} cores)")
+        env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+        floor = cases[0][1]
+        print(f"station start-up, whole process (medians of {args.runs} runs paired with python -c pass; "
+              f"{os.cpu_count()} cores)")
         print("cpu = user + sys of the process (robust on a busy machine); wall = what a script waits")
         print(f"{'command':<26}{'cpu s':>8}{'wall s':>9}{'cpu vs python':>15}")
-        floor = None
         for label, cmd in cases:
-            wall, cpu = farm_bench(cmd, args.runs) or loop(cmd, args.runs)
-            floor = floor or cpu
-            print(f"{label:<26}{cpu:>8.3f}{wall:>9.3f}{cpu / floor:>14.1f}x")
+            wall, cpu, ratio = paired(cmd, floor, args.runs, env)
+            print(f"{label:<26}{cpu:>8.3f}{wall:>9.3f}{ratio:>14.1f}x")
             if label.startswith("station solve"):
                 verdict = "meets" if cpu <= TARGET_SOLVE_S else "MISSES"
                 print(f"{'':<26}target cpu <= {TARGET_SOLVE_S} s: {verdict}")
-
 
 if __name__ == "__main__":
     main()

@@ -12,27 +12,23 @@ import threading
 from pathlib import Path
 
 import typer
+from station.mocks.cliopts import SEED, WORLD
 from station.mocks.errors import MockError
 
 
 def build(world_file: Path | None, model: str, seed: int, nodes: str | None, contact: str | None,
           store: Path | None, channel: str):
     from station.mocks.canopen.emulator import CanopenEmulator
+    from station.mocks.cliopts import contact_id, world_for
     from station.mocks.ids import parse_id_list
-    from station.mocks.world import World, WorldFileError
 
-    try:
-        world = World.from_file(world_file) if world_file else World.default(model=model, seed=seed,
-                                                                             time_mode="realtime")
-    except (WorldFileError, ValueError, OSError) as e:
-        raise MockError(f"world: {e}") from None
+    world = world_for(world_file, model, seed)
     cfg = world.bus_config("canopen")
     try:
         node_list = parse_id_list(nodes) if nodes else None
     except ValueError:
         raise MockError(f"bad node id list {nodes!r}: expected e.g. 1-6 or 1,2,4") from None
-    c = contact if contact is not None else cfg.get("contact_node", -1)
-    c = None if c is None or str(c).lower() in ("none", "off", "") else int(c)
+    c = contact_id(contact, cfg.get("contact_node", -1))
     try:
         return CanopenEmulator(world, interface="virtual", channel=channel, nodes=node_list, contact_node=c,
                                store_path=store)
@@ -44,9 +40,9 @@ def register(mock_app: typer.Typer) -> None:
     @mock_app.command("canopen")
     def canopen(
         nodes: str = typer.Option(None, "--nodes", help="node ids in joint order, e.g. 1-6 (default 1..n)"),
-        world: Path = typer.Option(None, "--world", help="world file (docs/world.md); default: built-in world"),
+        world: Path = WORLD,
         model: str = typer.Option("arm6", "--model", help="model of the default world"),
-        seed: int = typer.Option(0, "--seed", help="seed of the default world's hidden errors"),
+        seed: int = SEED,
         host: str = typer.Option("127.0.0.1", "--host", help="address the socketcand hub listens on"),
         port: int = typer.Option(29536, "--port", help="TCP port of the socketcand hub (0: any free port)"),
         bus: str = typer.Option("can0", "--channel", help="bus name clients open (python-can channel)"),

@@ -11,6 +11,7 @@ import threading
 from pathlib import Path
 
 import typer
+from station.mocks.cliopts import SEED, WORLD
 from station.mocks.errors import MockError
 
 
@@ -35,14 +36,10 @@ def _save_eeprom(path: Path, images: dict[int, bytes]) -> None:
 def build_emulator(world_file: Path | None, model: str, ids: str | None, baud: int | None, wire_timing: bool,
                    return_delay: int | None, contact_id: str | None, servo: str | None, eeprom: Path | None,
                    seed: int = 0):
-    from station.mocks.world import World, WorldFileError
+    from station.mocks.cliopts import world_for
 
-    try:
-        world = World.from_file(world_file) if world_file else World.default(model=model, seed=seed,
-                                                                             time_mode="realtime")
-    except (WorldFileError, ValueError, OSError) as e:
-        raise MockError(f"world: {e}") from None
-    return emulator_for(world, ids, baud, wire_timing, return_delay, contact_id, servo, _load_eeprom(eeprom))
+    return emulator_for(world_for(world_file, model, seed), ids, baud, wire_timing, return_delay, contact_id, servo,
+                        _load_eeprom(eeprom))
 
 
 def emulator_for(world, ids: str | None = None, baud: int | None = None, wire_timing: bool = False,
@@ -50,6 +47,7 @@ def emulator_for(world, ids: str | None = None, baud: int | None = None, wire_ti
                  eeprom: dict[int, bytes] | None = None):
     """The emulator for ``world``: options given here win over the world file's ``buses.dynamixel`` section,
     which wins over the defaults (ids 1..n, contact sensor id 200, XM430, 1 Mbaud)."""
+    from station.mocks import cliopts
     from station.mocks.dynamixel.emulator import DEFAULT_CONTACT_ID, DynamixelEmulator
     from station.mocks.ids import parse_id_list
 
@@ -58,8 +56,7 @@ def emulator_for(world, ids: str | None = None, baud: int | None = None, wire_ti
         id_list = parse_id_list(ids) if ids else (parse_id_list(cfg["ids"]) if cfg.get("ids") else None)
     except (ValueError, TypeError):
         raise MockError(f"bad servo id list {ids or cfg.get('ids')!r}: expected e.g. 11-14 or 11,12,13,14") from None
-    c = contact_id if contact_id is not None else cfg.get("contact_id", DEFAULT_CONTACT_ID)
-    c = None if c is None or str(c).lower() in ("none", "off", "") else int(c)
+    c = cliopts.contact_id(contact_id, cfg.get("contact_id", DEFAULT_CONTACT_ID))
     try:
         return DynamixelEmulator(world, id_list, servo=servo or cfg.get("servo", "xm430"),
                                  baud=int(baud or cfg.get("baud", 1_000_000)),
@@ -74,9 +71,9 @@ def emulator_for(world, ids: str | None = None, baud: int | None = None, wire_ti
 def register(mock_app: typer.Typer) -> None:
     @mock_app.command("dynamixel")
     def dynamixel(
-        world: Path = typer.Option(None, "--world", help="world file (docs/world.md); default: built-in world"),
+        world: Path = WORLD,
         model: str = typer.Option("omx", "--model", help="model of the default world"),
-        seed: int = typer.Option(0, "--seed", help="seed of the default world's hidden errors"),
+        seed: int = SEED,
         ids: str = typer.Option(None, "--ids", help="servo ids in joint order, e.g. 11-14 (default 1..n)"),
         baud: int = typer.Option(None, "--baud", help="baud rate (default 1000000)"),
         wire_timing: bool = typer.Option(False, "--wire-timing", help="answer after real wire time"),

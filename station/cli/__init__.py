@@ -9,25 +9,87 @@ import importlib
 import sys
 
 import typer
+from typer.core import TyperGroup
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
-                  help="Robot calibration station: jog, record, solve, verify, report, write back.")
+# command -> (module defining ``register(app: typer.Typer) -> None``, its one-line help for ``station --help``).
+# Only the invoked command's module is imported (``station --help`` imports none): start-up of every command
+# (issue 8; bench/startup.py). tests/test_startup.py checks this table against what each module registers.
+COMMANDS = {
+    "solve": ("station.cli.solve_cmd", "Identify joint offsets, TCP, link geometry from touch samples."),
+    "fk": ("station.cli.solve_cmd", "Tool pose (x, y, z in m; rx, ry, rz rotation vector in rad) for each row of "
+                                    "joint readings."),
+    "run": ("station.cli.run_cmd", "Run a procedure end of line: unattended, PASS/FAIL, exit 0 pass / 1 fail / 2 "
+                                   "error."),
+    "resume": ("station.cli.run_cmd", "Continue an interrupted session: robot re-verified, recorded samples kept, "
+                                      "nothing repeated."),
+    "restore": ("station.cli.run_cmd", "Write the session's calibration-backup.json (the calibration before its "
+                                       "write-back) back into the robot, as a transaction: journaled (writeback "
+                                       "kind=restore), signals held, read back."),
+    "demo": ("station.cli.run_cmd", "Emulated robot with hidden offset errors and a socket: run zero_offsets end of "
+                                    "line through the real client library, print recovered offsets next to the "
+                                    "hidden truth, residuals and the report path."),
+    "jog": ("station.cli.jog_cmd", "Jog the robot, touch reference points, record samples, watch the live solve, "
+                                   "write back."),
+    "report": ("station.cli.records_cmd", "Rebuild the HTML and JSON report of a session from its journal."),
+    "panel": ("station.cli.panel_cmd", "Operator panel: sign in, scan the serial, START, live progress, full-screen "
+                                       "PASS/FAIL, history."),
+    "opcua": ("station.cli.opcua_cmd", "OPC UA server: object Station (State, Serial, Procedure, Step, Progress, "
+                                       "Verdict, LastResult; Start(serial, procedure) -> session, Abort())."),
+    "model": ("station.cli.model_cmd", "Kinematic models: built-in, model files, URDF (show, export, import)."),
+    "mock": ("station.cli.mock_cmd", "Emulated robots (wire-level) and the simulated world."),
+    "records": ("station.cli.records_cmd", "Calibration records per robot serial (list, show, export)."),
+    "map": ("station.cli.map_cmd", "Configuration-space correction map (seed 004): plan, build, apply, correct."),
+}
 
-# module -> it defines ``register(app: typer.Typer) -> None``
-COMMAND_MODULES = (
-    "station.cli.model_cmd",  # station model show|export|list
-    "station.cli.solve_cmd",  # station solve, station fk
-    "station.cli.mock_cmd",  # station mock dynamixel|canopen|ur|world
-    "station.cli.run_cmd",  # station run, resume, demo
-    "station.cli.jog_cmd",  # station jog
-    "station.cli.records_cmd",  # station records list|show, report
-    "station.cli.map_cmd",  # station map plan|build|apply|correct (seed 004 correction map)
-    "station.cli.panel_cmd",  # station panel (operator page, optional OPC UA)
-    "station.cli.opcua_cmd",  # station opcua (OPC UA server for the line)
-)
 
-for _name in COMMAND_MODULES:
-    importlib.import_module(_name).register(app)
+def load_commands(module: str) -> dict:
+    """The click commands ``module`` registers, by name (its ``register`` run on a scratch Typer app)."""
+    from typer.main import get_group
+
+    scratch = typer.Typer(rich_markup_mode=None)
+    scratch.callback()(lambda: None)  # a group even when the module registers one command
+    importlib.import_module(module).register(scratch)
+    return get_group(scratch).commands
+
+
+class LazyGroup(TyperGroup):
+    """The ``station`` group: lists COMMANDS from the table, imports a command's module when it is invoked."""
+
+    def list_commands(self, ctx) -> list[str]:
+        return list(COMMANDS)
+
+    def get_command(self, ctx, cmd_name: str):
+        if cmd_name not in self.commands and cmd_name in COMMANDS:
+            self.commands.update(load_commands(COMMANDS[cmd_name][0]))
+        return self.commands.get(cmd_name)
+
+    def format_commands(self, ctx, formatter) -> None:
+        from typer._click.utils import make_default_short_help
+
+        limit = formatter.width - 6 - max(len(n) for n in COMMANDS)
+        with formatter.section("Commands"):
+            formatter.write_dl([(n, make_default_short_help(h, limit)) for n, (_, h) in COMMANDS.items()])
+
+    def resolve_command(self, ctx, args):
+        try:
+            return super().resolve_command(ctx, args)
+        except Exception as e:  # a typo: the suggestion TyperGroup makes from the commands it holds, from all
+            from difflib import get_close_matches
+
+            matches = get_close_matches(args[0], list(COMMANDS)) if args and hasattr(e, "message") else []
+            if matches and "Did you mean" not in e.message:
+                e.message = f"{e.message.rstrip('.')}. Did you mean {', '.join(repr(m) for m in matches)}?"
+            raise
+
+
+# rich_markup_mode=None: plain click help, so that no command imports rich unless it prints a rich table
+app = typer.Typer(cls=LazyGroup, add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  rich_markup_mode=None)
+
+
+@app.callback(help="Robot calibration station: jog, record, solve, verify, report, write back.")
+def _station() -> None:
+    pass
 
 
 def fail(message: str, code: int = 2) -> typer.Exit:
@@ -84,8 +146,11 @@ def main() -> None:
 
 def _usage_error(e) -> None:
     """A click usage error (bad option value, missing argument) as one line and exit 2."""
-    message = e.format_message() if hasattr(e, "format_message") else str(e)
     ctx = getattr(e, "ctx", None)
+    if type(e).__name__ == "NoArgsIsHelpError" and ctx is not None:  # bare ``station`` / ``station mock``
+        typer.echo(ctx.get_help())
+        sys.exit(2)
+    message = e.format_message() if hasattr(e, "format_message") else str(e)
     where = f"{ctx.command_path}: " if ctx is not None and getattr(ctx, "command_path", None) else ""
     typer.echo(f"station: error: {where}{' '.join(str(message).split())}", err=True)
     sys.exit(2 if e.exit_code in (1, 2) else e.exit_code)

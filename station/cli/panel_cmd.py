@@ -8,6 +8,8 @@ from pathlib import Path
 
 import typer
 
+from station.cli.run_options import CONE, DB, HOLDOUT, LIMITS, POSES
+
 
 def panel(
     robot: str = typer.Option(..., "--robot", help="Robot URL, e.g. dynamixel:///dev/ttyUSB0?model=omx"),
@@ -17,14 +19,13 @@ def panel(
     port: int = typer.Option(8470, "--port", help="TCP port of the page and API."),
     token: str = typer.Option(None, "--token", help="Bearer token; required off loopback (or "
                               "$STATION_PANEL_TOKEN)."),
-    limits: Path = typer.Option(None, "--limits", help="Limits file (default: procedures/limits.yaml)."),
-    db: str = typer.Option(None, "--db", help="Records database URL (default $STATION_DB, else SQLite in "
-                           "$STATION_HOME)."),
+    limits: Path = LIMITS,
+    db: str = DB,
     touch: str = typer.Option(None, "--touch", help="seat, guarded or manual (the operator touches each point)."),
     reference: str = typer.Option(None, "--reference", help="unknown (solve the point) or cell (surveyed)."),
-    poses: int = typer.Option(None, "--poses", help="Number of fit poses (default from the procedure)."),
-    holdout: int = typer.Option(None, "--holdout", help="Number of held-out poses."),
-    cone: float = typer.Option(None, "--cone", help="Half-angle (deg) of the tool orientation cone."),
+    poses: int = POSES,
+    holdout: int = HOLDOUT,
+    cone: float = CONE,
     confirm: bool = typer.Option(True, "--confirm/--no-confirm", help="Ask the operator to confirm the unit is "
                                  "clamped before the robot moves."),
     opcua: str = typer.Option(None, "--opcua", help="Also serve OPC UA at this endpoint, e.g. "

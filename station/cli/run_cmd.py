@@ -10,6 +10,8 @@ from pathlib import Path
 
 import typer
 
+from station.cli.run_options import CONE, DB, HOLDOUT, LIMITS, POSES
+
 
 def _exit(code: int):
     # sys.exit, not typer.Exit: station.cli.main runs click with standalone_mode=False, where a typer.Exit comes
@@ -186,18 +188,17 @@ def run(
                                     "dh_full, verify) or a procedure .py file."),
     robot: str = typer.Option(..., "--robot", help="Robot URL, e.g. ur://127.0.0.2?model=ur5e"),
     serial: str = typer.Option(..., "--serial", help="Serial number of the robot under calibration."),
-    limits: Path = typer.Option(None, "--limits", help="Limits file (default: procedures/limits.yaml)."),
-    db: str = typer.Option(None, "--db", help="Records database URL (default $STATION_DB, else SQLite in "
-                           "$STATION_HOME)."),
+    limits: Path = LIMITS,
+    db: str = DB,
     apply: bool = typer.Option(False, "--apply", help="Write identified joint offsets back (two-phase)."),
     cell: Path = typer.Option(None, "--cell", help="Cell file (default $STATION_CELL, then ./cell.yaml)."),
     operator: str = typer.Option(None, "--operator", help="Who runs it (default: login name)."),
     touch: str = typer.Option(None, "--touch", help="seat (socket), guarded (contact input) or manual."),
     reference: str = typer.Option(None, "--reference", help="unknown (solve the point) or cell (use the cell "
                                   "file's surveyed positions)."),
-    poses: int = typer.Option(None, "--poses", help="Number of fit poses (default from the procedure)."),
-    holdout: int = typer.Option(None, "--holdout", help="Number of held-out poses."),
-    cone: float = typer.Option(None, "--cone", help="Half-angle (deg) of the tool orientation cone."),
+    poses: int = POSES,
+    holdout: int = HOLDOUT,
+    cone: float = CONE,
     seed: int = typer.Option(None, "--seed", help="Seed of the pose plan."),
     tracker: str = typer.Option(None, "--tracker", help="Measuring instrument URL (correction_map), e.g. "
                                 "tcp://127.0.0.1:5300 (station mock tracker)."),

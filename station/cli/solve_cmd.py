@@ -357,7 +357,6 @@ def fk_command(
 ) -> None:
     """Tool pose (x, y, z in m; rx, ry, rz rotation vector in rad) for each row of joint readings."""
     from station.kinematics import se3
-    from station.resultfile import load_calibration
     from station.safeio import write_atomic
 
     inputs = {"--joints": joints, "--calibration": calibration}
@@ -365,6 +364,8 @@ def fk_command(
         write_atomic_check(out, inputs)
     m = _load_model(model, tool, tip_link, base_link, payload)
     if calibration is not None:
+        from station.resultfile import load_calibration  # pydantic: only with a calibration
+
         m = load_calibration(calibration, m)
     try:
         q, _ = read_joints(joints, m)

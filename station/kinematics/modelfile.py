@@ -4,14 +4,11 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 import yaml
-from pydantic import Field, model_validator
 
 from station.kinematics.model import FRAME_AXES, Encoder, Joint, Model, from_dh, from_mdh, from_poe, screws_of
-from station.strict import Name, NonNeg, Num, Pair, Pos, Strict, Text, Vec3, check
 from station.yamlfile import YamlDoc
 
 FORMAT = "station-model/1"
@@ -22,99 +19,6 @@ ANGLE_KEYS = {"alpha", "theta", "beta", "rx", "ry", "rz"}
 
 class ModelFileError(ValueError):
     """Malformed model file; the message names the file and the field."""
-
-
-# ---- the schema of a serial model file: the shape, types and ranges; units and geometry are checked below ----
-class _Units(Strict):
-    length: Literal["m", "mm"]
-    angle: Literal["rad", "deg"]
-    mass: Literal["kg"] = "kg"
-
-
-class _Frame(Strict):
-    x: Num = 0.0
-    y: Num = 0.0
-    z: Num = 0.0
-    rx: Num = 0.0
-    ry: Num = 0.0
-    rz: Num = 0.0
-
-
-class _Encoder(Strict):
-    counts_per_rev: Pos | None = None
-    counts_per_m: Pos | None = None
-    gear: Pos = 1.0  # the sign is the direction's
-    direction: Literal[1, -1] = 1
-    zero: Num = 0.0
-
-    @model_validator(mode="after")
-    def _one_scale(self):
-        if (self.counts_per_rev is None) == (self.counts_per_m is None):
-            raise ValueError("needs exactly one of counts_per_rev (revolute) or counts_per_m (prismatic)")
-        return self
-
-
-class _Link(Strict):  # dh / mdh table of one joint
-    a: Num = 0.0
-    alpha: Num = 0.0
-    d: Num = 0.0
-    theta: Num = 0.0
-    beta: Num = 0.0
-
-
-class _Screw(Strict):
-    axis: Vec3
-    point: Vec3 = [0.0, 0.0, 0.0]
-
-
-class _Joint(Strict):
-    name: Name | None = None
-    type: Literal["revolute", "prismatic"] = "revolute"
-    limits: Pair
-    max_velocity: Pos = 1.0
-    max_acceleration: Pos | None = None
-    encoder: _Encoder | None = None
-    offset: Num = 0.0
-    compliance: NonNeg = 0.0
-    mass: NonNeg | None = None
-    com: Vec3 | None = None
-    dh: _Link | None = None
-    mdh: _Link | None = None
-    screw: _Screw | None = None
-
-
-class _Payload(Strict):
-    mass: NonNeg
-    com: Vec3 = [0.0, 0.0, 0.0]
-
-
-class _Collision(Strict):
-    link_radii: list[NonNeg] | None = None
-    tool_radius: NonNeg | None = None
-    tool_free: NonNeg | None = None
-
-
-class SerialModelSchema(Strict):
-    """``station-model/1``, kind serial (docs/formats.md)."""
-
-    format: Literal["station-model/1"] = FORMAT
-    kind: Literal["serial"] = "serial"
-    name: Name | None = None
-    description: Text = ""
-    convention: Literal["dh", "mdh", "poe"]
-    units: _Units
-    joints: list[_Joint] = Field(min_length=1, max_length=64)
-    base: _Frame | None = None
-    tool: _Frame | None = None
-    home: _Frame | None = None
-    payload: _Payload | None = None
-    gravity: Vec3 | None = None
-    collision: _Collision | None = None
-
-
-class _ParallelHead(Strict):
-    model_config = {**Strict.model_config, "extra": "allow"}
-    units: _Units
 
 
 def _num(v, where: str) -> float:
@@ -129,16 +33,19 @@ def _num(v, where: str) -> float:
     return x
 
 
-def model_from_dict(doc: dict | YamlDoc, where: str = "<model>") -> Model:
-    """The model of a parsed model file (a ``YamlDoc`` from ``station.yamlfile`` names lines in errors)."""
+def model_from_dict(doc: dict | YamlDoc, where: str = "<model>", *, shipped: bool = False) -> Model:
+    """The model of a parsed model file (a ``YamlDoc`` from ``station.yamlfile`` names lines in errors).
+
+    ``shipped``: a built-in model (package data): its schema check ran in tests/test_startup.py, so it is not
+    repeated on every command (the schema is pydantic, ~0.1 s of start-up; issue 8)."""
     if isinstance(doc, YamlDoc):
         ydoc, doc = doc, doc.data
     else:
         ydoc = YamlDoc(where, doc)
-    if isinstance(doc, dict) and doc.get("kind", "serial") == "serial":
-        check(SerialModelSchema, ydoc, ModelFileError)
-    elif isinstance(doc, dict):  # parallel: the units here, the rest in station/kinematics/parallelfile.py
-        check(_ParallelHead, ydoc, ModelFileError)
+    if not shipped and isinstance(doc, dict):
+        from station.kinematics.modelschema import check_schema
+
+        check_schema(ydoc, ModelFileError)
     if not isinstance(doc, dict):
         raise ModelFileError(f"{where}: not a mapping")
     if doc.get("format", FORMAT) != FORMAT:
