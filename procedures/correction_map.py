@@ -86,7 +86,7 @@ def map_plan(s) -> PosePlan:
                     f"correction_map: the work box (joints +-{float(s.options.get('span_deg', 20.0)):g} deg around "
                     f"the current pose) comes too close to a singularity: a map there would leave "
                     f"{predicted:.0%} of a pose error (at most {PREDICTED_LIMIT:.0%}); jog the arm away from it "
-                    f"(wrist centre off axis 1, elbow bent, wrist not straight) or give a smaller span_deg")
+                    f"(wrist centre off axis 1, elbow bent, wrist not straight) or give a smaller --span-deg")
         held = holdout_configurations(m, p, int(s.options.get("n_holdout", 12)), int(s.options.get("seed", 0)))
         x, clash = clear_of_keep_outs(s, p.x)
         held, _ = clear_of_keep_outs(s, held)

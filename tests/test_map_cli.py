@@ -267,3 +267,17 @@ def test_map_on_top_of_a_parametric_calibration(tmp_path):
         assert np.sqrt(np.mean(e ** 2)) < 0.15 * np.sqrt(np.mean(before ** 2)), (name, e, before)
     one_line_error("map", "build", "--model", "struts2", "--samples", tmp_path / "m.csv", "--calibration",
                    tmp_path / "cal.json", "--out", tmp_path / "x.json", contains=["cal.json", "arm6"])
+
+
+@pytest.mark.parametrize("span", ["0", "-5", "120", "nan"])
+def test_run_span_deg_out_of_range_is_one_line_before_any_robot(span, tmp_path):
+    # --span-deg (correction_map on a serial arm) is checked before the robot URL is even opened
+    one_line_error("run", "correction_map", "--robot", "canopen+virtual://nowhere?nodes=1-6&model=arm6",
+                   "--serial", "X1", "--span-deg", span, contains=("--span-deg",))
+
+
+def test_run_span_deg_reaches_the_procedure_options():
+    from station.cli.run_cmd import _options
+
+    assert _options(None, None, None, None, None, span_deg=10)["span_deg"] == 10.0
+    assert "span_deg" not in _options(None, None, None, None, None)

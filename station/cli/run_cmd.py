@@ -77,8 +77,14 @@ def preflight(robot: str, poses, holdout, cone, seed, touch, reference, limits, 
         load_cell(cell)
 
 
-def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None) -> dict:
+def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None, span_deg=None) -> dict:
+    from station.robot.errors import ConfigError
+
     opts = {}
+    if span_deg is not None:
+        if not 0 < span_deg <= 90:  # also refuses nan
+            raise ConfigError(f"--span-deg {span_deg!r}: expected a half-width in degrees in (0, 90]")
+        opts["span_deg"] = float(span_deg)  # correction_map (serial arms): +- this around the start pose
     if tracker is not None:
         opts["tracker"] = tracker  # correction_map: the measuring instrument's URL
     if grid is not None:
@@ -91,8 +97,6 @@ def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None) -> 
         opts["cone_deg"] = cone
     if reference is not None:
         if reference not in ("unknown", "cell"):
-            from station.robot.errors import ConfigError
-
             raise ConfigError(f"--reference must be 'unknown' or 'cell', got {reference!r}")
         opts["reference"] = reference
     if seed is not None:
@@ -203,16 +207,19 @@ def run(
     tracker: str = typer.Option(None, "--tracker", help="Measuring instrument URL (correction_map), e.g. "
                                 "tcp://127.0.0.1:5300 (station mock tracker)."),
     grid: int = typer.Option(None, "--grid", help="correction_map: Q sub-intervals per actuator (Q+1 levels)."),
+    span_deg: float = typer.Option(None, "--span-deg", help="correction_map on a serial arm: the work box is +- "
+                                   "this many degrees per joint around the start pose (default 20)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Run a procedure end of line: unattended, PASS/FAIL, exit 0 pass / 1 fail / 2 error."""
     from station.api import run as start
 
     preflight(robot, poses, holdout, cone, seed, touch, reference, limits, cell)
+    options = _options(poses, holdout, cone, reference, seed, tracker, grid, span_deg)
     cb, bar = _progress_bar(quiet)
     with bar:
         out = start(procedure, robot, serial, limits=limits, db=db, apply=apply, cell=cell, operator=operator,
-                    options=_options(poses, holdout, cone, reference, seed, tracker, grid), touch=touch, progress=cb,
+                    options=options, touch=touch, progress=cb,
                     log=lambda s: typer.echo(s, err=True))
     _finish(out)
 
