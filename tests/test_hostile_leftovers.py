@@ -197,3 +197,19 @@ def test_journal_sample_field_fuzz(field, value, where):
         assert code in (0, 2), err
         if code == 2:
             assert len(err.strip().splitlines()) == 1 and "internal error" not in err, err
+
+
+# ---- report cost linear in the samples ---------------------------------------------------------------------
+@pytest.mark.timeout(90)
+def test_residual_plot_of_many_poses_is_linear():
+    """20k poses: markers, not one bar patch per pose (bars took ~30 s per 1k under load; 100k samples did not
+    finish). The end-to-end figure: `station report` on 100k samples, see the issue notes."""
+    from station.report.plots import MAX_BARS, residual_per_pose
+
+    n = 20_000
+    rng = np.random.default_rng(0)
+    pp = {"before_m": list(rng.uniform(1e-3, 2e-3, n)), "after_m": list(rng.uniform(1e-5, 3e-5, n)),
+          "set": ["fit"] * (n - 100) + ["holdout"] * 100, "seq": list(range(n))}
+    assert n > MAX_BARS
+    png = residual_per_pose({"residuals": {"per_pose": pp}})
+    assert png and len(png) > 1000
