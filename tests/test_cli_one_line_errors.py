@@ -48,27 +48,33 @@ def test_serial_rules():
             adopt_serial(ident, "OTHER")
 
 
-def test_dh_full_with_one_socket_is_refused_with_a_reason(tmp_path, monkeypatch):
-    """Full link geometry from one unknown point is unobservable: the procedure says so instead of a FAIL."""
-    import uuid
-
-    from station.mocks.canopen.emulator import CanopenEmulator
-    from station.mocks.world import World
+def _run_arm6(tmp_path, monkeypatch, procedure: str, **kw):
+    """``procedure`` on the demo's emulated arm6 (CANopen, instant motion, one socket): the run's Outcome."""
+    from station.mocks.launch import launch
 
     from station.api import run as start
+    from station.cli.run_cmd import write_demo_files
 
     monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
-    world = World.default(model="arm6", seed=5, time_mode="instant")
-    cell = tmp_path / "cell.yaml"
-    import yaml
+    world_path, cell_path, serial = write_demo_files("canopen", tmp_path / "demo", 5, "instant")
+    with launch("canopen", world_path, serial=serial, process=False) as emu:
+        return start(procedure, emu.url, serial, cell=cell_path, db=f"sqlite:///{tmp_path / 'r.db'}", **kw)
 
-    cell.write_text(yaml.safe_dump(world.station_cell()))
-    channel = f"one{uuid.uuid4().hex[:8]}"
-    emu = CanopenEmulator(world, "virtual", channel).start()
-    try:
-        out = start("dh_full", f"canopen+virtual://{channel}?nodes=1-6&model=arm6", "A6-1", cell=cell,
-                    db=f"sqlite:///{tmp_path / 'r.db'}")
-    finally:
-        emu.stop()
+
+def test_dh_full_with_one_socket_is_refused_with_a_reason(tmp_path, monkeypatch):
+    """Full link geometry from one unknown point is unobservable: the procedure says so instead of a FAIL."""
+    out = _run_arm6(tmp_path, monkeypatch, "dh_full")
     assert out.status == "error" and out.exit_code == 2
     assert "at least 3 reference sockets" in str(out.error)
+
+
+def test_poses_below_the_unknowns_refused_before_motion(tmp_path, monkeypatch):
+    """zero_offsets on a 6-joint arm with an unknown socket: 6 offsets + 3 point coordinates = 9 unknowns
+    (6 joints of arm6 + one socket); --poses 8 is refused before anything is planned or touched."""
+    from station.engine.journal import read_journal
+
+    out = _run_arm6(tmp_path, monkeypatch, "zero_offsets", options={"n_fit": 8})
+    assert out.status == "error" and out.exit_code == 2
+    assert "--poses 8" in str(out.error) and "9 unknowns" in str(out.error) and "\n" not in str(out.error)
+    _, events = read_journal(out.folder / "journal.jsonl")
+    assert not [e for e in events if e.type in ("sample", "plan")]  # nothing planned, nothing touched

@@ -141,16 +141,20 @@ def test_missing_required_field_on_read(tmp_path):
         read_journal(j.path)
 
 
-def test_not_a_journal(tmp_path):
+@pytest.mark.parametrize("text, needle", [
+    ('{"type": "sample"}\n', "x.jsonl:1: not a station-journal/2"),
+    ('{"type": "header", "format": "station-journal/9", "seq": 0}\n', "header"),
+    (None, "does not exist"),
+])
+def test_not_a_journal(tmp_path, text, needle):
     p = tmp_path / "x.jsonl"
-    p.write_text('{"type": "sample"}\n')
-    with pytest.raises(JournalError, match="x.jsonl:1: not a station-journal/2"):
+    if text is not None:
+        p.write_text(text)
+    with pytest.raises(JournalError, match=needle):
         read_journal(p)
-    p.write_text('{"type": "header", "format": "station-journal/9", "seq": 0}\n')
-    with pytest.raises(JournalError, match="header"):
-        read_journal(p)
-    with pytest.raises(JournalError, match="does not exist"):
-        read_journal(tmp_path / "missing.jsonl")
+
+
+def test_create_refuses_an_existing_journal_and_a_bad_header(tmp_path):
     j = _journal(tmp_path)
     j.close()
     with pytest.raises(JournalError, match="already exists"):

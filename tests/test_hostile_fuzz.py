@@ -138,17 +138,6 @@ def _check_model(doc) -> None:
             assert j.encoder.direction in (1, -1) and j.encoder.gear > 0 and j.encoder.counts_per_unit > 0
 
 
-@fast
-@given(mutated(MODEL_DOC))
-def test_model_reader_fuzz(doc):
-    _check_model(doc)
-
-
-@pytest.mark.slow
-@slow
-@given(mutated(MODEL_DOC))
-def test_model_reader_fuzz_long(doc):
-    _check_model(doc)
 
 
 def _check_cell(doc) -> None:
@@ -162,17 +151,11 @@ def _check_cell(doc) -> None:
         assert np.all(np.isfinite(p.position)) and p.radius > 0
 
 
-@fast
-@given(mutated(CELL_DOC))
-def test_cell_reader_fuzz(doc):
-    _check_cell(doc)
-
-
-@pytest.mark.slow
-@slow
-@given(mutated(CELL_DOC))
-def test_cell_reader_fuzz_long(doc):
-    _check_cell(doc)
+# the model and cell readers: FAST examples each in the fast subset, SLOW in the slow one (one test, two sizes)
+@pytest.mark.parametrize("check, base", [(_check_model, MODEL_DOC), (_check_cell, CELL_DOC)], ids=["model", "cell"])
+@pytest.mark.parametrize("runs", [fast, pytest.param(slow, marks=pytest.mark.slow)], ids=["fast", "long"])
+def test_reader_fuzz(check, base, runs):
+    runs(given(mutated(base))(check))()
 
 
 @fast

@@ -18,7 +18,10 @@ from station.robot.errors import ConfigError
 
 
 def _canon(obj) -> str:
-    return json.dumps(obj, sort_keys=True, allow_nan=True)
+    """The session as the store keeps it: strict JSON, a NaN/Infinity (e.g. an unknown point's nominal) is null."""
+    from station.safeio import dumps_json
+
+    return json.dumps(json.loads(dumps_json(obj, compact=True, default=str)), sort_keys=True)
 
 
 @pytest.fixture

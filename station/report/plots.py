@@ -12,6 +12,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 BEFORE, AFTER, HOLDOUT, LIMIT = "#9aa5b1", "#1f6fb2", "#e08a1e", "#c0392b"
+MAX_BARS = 200  # poses drawn as bars; more are drawn as markers (linear cost, readable at 100k samples)
 
 
 def _png(fig: Figure) -> str:
@@ -34,11 +35,18 @@ def residual_per_pose(report: dict) -> str | None:
     x = np.arange(len(b))
     fig = Figure(figsize=(9, 3.4), layout="constrained")
     ax = fig.add_subplot()
-    w = 0.4
-    ax.bar(x - w / 2, b, w, color=BEFORE, label="before (nominal model)")
-    ax.bar(x[~holdout] + w / 2, a[~holdout], w, color=AFTER, label="after (calibrated), fit poses")
-    if holdout.any():
-        ax.bar(x[holdout] + w / 2, a[holdout], w, color=HOLDOUT, label="after, held-out poses")
+    if len(x) <= MAX_BARS:
+        w = 0.4
+        ax.bar(x - w / 2, b, w, color=BEFORE, label="before (nominal model)")
+        ax.bar(x[~holdout] + w / 2, a[~holdout], w, color=AFTER, label="after (calibrated), fit poses")
+        if holdout.any():
+            ax.bar(x[holdout] + w / 2, a[holdout], w, color=HOLDOUT, label="after, held-out poses")
+    else:  # one bar (a patch) per pose costs seconds per thousand: one marker line per series instead
+        dots = {"ls": "none", "marker": ".", "ms": 2}
+        ax.plot(x, b, color=BEFORE, label="before (nominal model)", **dots)
+        ax.plot(x[~holdout], a[~holdout], color=AFTER, label="after (calibrated), fit poses", **dots)
+        if holdout.any():
+            ax.plot(x[holdout], a[holdout], color=HOLDOUT, label="after, held-out poses", **dots)
     pos = np.concatenate([b[np.isfinite(b) & (b > 0)], a[np.isfinite(a) & (a > 0)]])
     if pos.size and pos.max() / max(pos.min(), 1e-12) > 30:
         ax.set_yscale("log")  # before is often 10-100x after: a linear axis would hide the after bars
