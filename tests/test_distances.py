@@ -79,7 +79,7 @@ def test_reported_std_matches_the_monte_carlo_spread(world):
     the estimates over independent data sets (fresh poses and noise each run)."""
     est, std = [], []
     d = true_distance(world)
-    for seed in range(14):
+    for seed in range(10):
         res = solve(world.nominal, data(world, np.random.default_rng(200 + seed), 15), "offsets,dh,tcp", "unknown",
                     distances=[("A", "B", d, 1e-6)])
         assert res.trusted, res.failure
@@ -90,9 +90,10 @@ def test_reported_std_matches_the_monte_carlo_spread(world):
     z = (est - truth) / std
     mc = est.std(axis=0, ddof=1)
     ratio = std.mean(axis=0) / mc
-    # 14 runs: the sample std is within ~ +-40 % of the true spread at 95 %; z^2 averages 1 (chi2(14)/14 < 2.1)
-    assert np.all((ratio > 0.6) & (ratio < 1.6)), (ratio, std.mean(axis=0), mc)
-    assert np.all(np.mean(z**2, axis=0) < 2.2), z
+    # 10 runs: the sample std is within ~ +-45 % of the true spread at 95 %; z^2 averages 1 (chi2(10)/10 < 2.4
+    # at 99 %): an inflated std (ratio > 1.7) or an optimistic one (z^2 large) fails
+    assert np.all((ratio > 0.55) & (ratio < 1.7)), (ratio, std.mean(axis=0), mc)
+    assert np.all(np.mean(z**2, axis=0) < 2.4), z
 
 
 def test_distance_uncertainty_is_a_weight(world):
@@ -240,6 +241,7 @@ def test_cell_file_distances_and_planes():
         cell_from_dict(dict(doc, distances=[{"between": ["A", "B"], "distance": -1.0}]))
 
 
+@pytest.mark.slow  # ~10 s CPU; the cell parsing and the solver's distances are covered by the fast tests above
 def test_station_run_uses_the_cell_distances(tmp_path, monkeypatch):
     """``distances:`` in the cell file reach every solve of a procedure (``station run``): dh_full on emulated
     CiA 402 drives (real canopen library) with unknown sockets, the distance A-B from the world's sockets."""
@@ -276,3 +278,16 @@ def test_station_run_uses_the_cell_distances(tmp_path, monkeypatch):
     assert c["kind"] == "distance" and c["labels"] == ["A", "B"] and c["stated_m"] == pytest.approx(d_ab)
     assert abs(c["residual_m"]) < 4 * c["stated_std_m"]
     assert not any((p["reason"] or "").startswith("scale") for p in res["parameters"].values())
+
+
+def test_distance_option_parsing():
+    from station.cli.solve_cmd import parse_distance
+    from station.robot.errors import ConfigError
+
+    assert parse_distance("A,B=50mm") == ("A", "B", pytest.approx(0.05), None)
+    assert parse_distance("A , B = 0.05m +- 10um") == ("A", "B", pytest.approx(0.05), pytest.approx(1e-5))
+    assert parse_distance("A,B=50mm±0.01")[3] == pytest.approx(1e-5)  # a bare std takes the distance's unit
+    for bad, msg in (("A-B=50mm", "expected A,B=LENGTH"), ("A,B=50deg", "must be a positive length"),
+                     ("A,A=50mm", "must differ")):
+        with pytest.raises(ConfigError, match=msg):
+            parse_distance(bad)
