@@ -79,7 +79,7 @@ def test_reported_std_matches_the_monte_carlo_spread(world):
     the estimates over independent data sets (fresh poses and noise each run)."""
     est, std = [], []
     d = true_distance(world)
-    for seed in range(14):
+    for seed in range(10):
         res = solve(world.nominal, data(world, np.random.default_rng(200 + seed), 15), "offsets,dh,tcp", "unknown",
                     distances=[("A", "B", d, 1e-6)])
         assert res.trusted, res.failure
@@ -90,9 +90,10 @@ def test_reported_std_matches_the_monte_carlo_spread(world):
     z = (est - truth) / std
     mc = est.std(axis=0, ddof=1)
     ratio = std.mean(axis=0) / mc
-    # 14 runs: the sample std is within ~ +-40 % of the true spread at 95 %; z^2 averages 1 (chi2(14)/14 < 2.1)
-    assert np.all((ratio > 0.6) & (ratio < 1.6)), (ratio, std.mean(axis=0), mc)
-    assert np.all(np.mean(z**2, axis=0) < 2.2), z
+    # 10 runs: the sample std is within ~ +-45 % of the true spread at 95 %; z^2 averages 1 (chi2(10)/10 < 2.4
+    # at 99 %): an inflated std (ratio > 1.7) or an optimistic one (z^2 large) fails
+    assert np.all((ratio > 0.55) & (ratio < 1.7)), (ratio, std.mean(axis=0), mc)
+    assert np.all(np.mean(z**2, axis=0) < 2.4), z
 
 
 def test_distance_uncertainty_is_a_weight(world):
@@ -215,9 +216,7 @@ def test_cli_distance_and_result_json(world, tmp_path):
 
 
 @pytest.mark.parametrize("arg, msg", [("A,B=50", "expected a number with a unit"),
-                                      ("A-B=50mm", "expected A,B=LENGTH"),
-                                      ("A,C=50mm", "no touches of point 'C'"),
-                                      ("A,B=50deg", "must be a positive length")])
+                                      ("A,C=50mm", "no touches of point 'C'")])
 def test_cli_distance_bad_input_is_one_line(world, tmp_path, arg, msg):
     f = _csv(tmp_path / "s.csv", data(world, np.random.default_rng(6), 6))
     code, out, err = run("solve", "--model", "ur5e", "--samples", f, "--distance", arg, cwd=tmp_path)
@@ -240,3 +239,55 @@ def test_cell_file_distances_and_planes():
         cell_from_dict(bad)
     with pytest.raises(CellError):
         cell_from_dict(dict(doc, distances=[{"between": ["A", "B"], "distance": -1.0}]))
+
+
+@pytest.mark.slow  # ~10 s CPU; the cell parsing and the solver's distances are covered by the fast tests above
+def test_station_run_uses_the_cell_distances(tmp_path, monkeypatch):
+    """``distances:`` in the cell file reach every solve of a procedure (``station run``): dh_full on emulated
+    CiA 402 drives (real canopen library) with unknown sockets, the distance A-B from the world's sockets."""
+    import uuid
+
+    import yaml
+    from station.mocks.canopen.emulator import CanopenEmulator
+
+    from station.api import run as start
+
+    monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
+    socks = [("A", [0.35, 0.0, 0.75]), ("B", [0.30, 0.35, 0.60]), ("C", [0.45, -0.30, 0.55])]
+    world = World.default(model="arm6", seed=5, time_mode="instant", noise={"seating": 10e-6},
+                          errors={"random": {"offsets": {"angle": math.radians(0.1)},
+                                             "dh": {"length": 0.2e-3, "angle": math.radians(0.02)}}},
+                          cell={"points": [{"label": k, "kind": "socket", "position": p, "approach": [0, 0, 1]}
+                                           for k, p in socks]})
+    doc = world.station_cell()
+    k = {"m": 1.0, "mm": 1e3}[doc["units"]["length"]]
+    d_ab = float(np.linalg.norm(world.points["A"].position - world.points["B"].position))
+    doc["distances"] = [{"between": ["A", "B"], "distance": d_ab * k}]
+    cell = tmp_path / "cell.yaml"
+    cell.write_text(yaml.safe_dump(doc))
+    channel = f"dist{uuid.uuid4().hex[:8]}"
+    emu = CanopenEmulator(world, "virtual", channel).start()
+    try:
+        out = start("dh_full", f"canopen+virtual://{channel}?nodes=1-6&model=arm6&serial=D-1", "D-1", cell=cell,
+                    db=f"sqlite:///{tmp_path / 'records.db'}")
+    finally:
+        emu.stop()
+    assert out.status == "completed", out.error
+    res = out.record["result"]
+    (c,) = res["constraints"]
+    assert c["kind"] == "distance" and c["labels"] == ["A", "B"] and c["stated_m"] == pytest.approx(d_ab)
+    assert abs(c["residual_m"]) < 4 * c["stated_std_m"]
+    assert not any((p["reason"] or "").startswith("scale") for p in res["parameters"].values())
+
+
+def test_distance_option_parsing():
+    from station.cli.solve_cmd import parse_distance
+    from station.robot.errors import ConfigError
+
+    assert parse_distance("A,B=50mm") == ("A", "B", pytest.approx(0.05), None)
+    assert parse_distance("A , B = 0.05m +- 10um") == ("A", "B", pytest.approx(0.05), pytest.approx(1e-5))
+    assert parse_distance("A,B=50mm±0.01")[3] == pytest.approx(1e-5)  # a bare std takes the distance's unit
+    for bad, msg in (("A-B=50mm", "expected A,B=LENGTH"), ("A,B=50deg", "must be a positive length"),
+                     ("A,A=50mm", "must differ")):
+        with pytest.raises(ConfigError, match=msg):
+            parse_distance(bad)
