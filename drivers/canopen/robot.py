@@ -36,7 +36,7 @@ from station.drivers.canopen.cia402 import (
 from station.drivers.canopen.faults import FaultLatch
 
 from station.kinematics import Model
-from station.robot.base import RobotBase
+from station.robot.base import CHAIN_OPTIONS, RobotBase
 from station.robot.errors import ConfigError, ConnectionLost, DeviceFault, IdentityMismatch, SafetyStop
 from station.robot.motion import MANUAL_TOOL_SPEED_CAP
 from station.robot.protocol import Identity, JointSnapshot, JointState, RobotStatus
@@ -71,6 +71,7 @@ class CanopenRobot(RobotBase):
                default_doc="from 0x1018"),
         Option("error_frames", integer(1), 1, "CAN error frames tolerated before `BusError` (bus-off is always "
                "immediate)"),
+        *CHAIN_OPTIONS,
     )
 
     def __init__(self, model: Model, nodes: list[int], *, interface: str, channel: str, host: str | None = None,
@@ -117,7 +118,7 @@ class CanopenRobot(RobotBase):
     @classmethod
     def from_url(cls, url: RobotURL, **overrides) -> CanopenRobot:
         o = cls.options.parse(url)
-        model = cls.load_url_model(url, o["model"])
+        model = cls.load_url_model(url, o["model"], o["tip_link"], o["base_link"])
         args = dict(sync_period=o["sync_ms"] / 1000.0, heartbeat_ms=o["heartbeat_ms"], touch_ms=o["touch_ms"],
                     contact=o["contact"], eds=o["eds"], serial=o["serial"], error_frame_limit=o["error_frames"],
                     heartbeat_timeout_ms=o["heartbeat_timeout_ms"],

@@ -17,7 +17,7 @@ from station.drivers.dynamixel import table as T
 from station.drivers.dynamixel.bus import DxlBus, unpack
 
 from station.kinematics import Model, load_model
-from station.robot.base import RobotBase
+from station.robot.base import CHAIN_OPTIONS, RobotBase
 from station.robot.errors import (
     BusError,
     ConfigError,
@@ -58,6 +58,7 @@ class DynamixelRobot(RobotBase):
                "per attempt by default): 50 keeps a loaded station PC's scheduling delays from counting as lost "
                "answers; `1` with the adapter's latency timer at 1 ms detects a dead servo sooner",
                default_doc="50"),
+        *CHAIN_OPTIONS,
     )
 
     def __init__(self, port: str, *, ids: list[int], model: Model | str = "omx", baud: int = 1_000_000,
@@ -105,7 +106,7 @@ class DynamixelRobot(RobotBase):
         o = cls.options.parse(url)
         if not url.path:
             raise ConfigError(f"robot URL {url.raw!r}: no serial port path (dynamixel:///dev/ttyUSB0?...)")
-        model = cls.load_url_model(url, overrides.pop("model", None) or o["model"])
+        model = cls.load_url_model(url, overrides.pop("model", None) or o["model"], o["tip_link"], o["base_link"])
         args = {"ids": o["ids"] or list(range(1, model.n_joints + 1)), "model": model, "baud": o["baud"],
                 "contact_id": o["contact"], "serial": o["serial"], "fast": o["fast"], "retries": o["retries"],
                 "latency_ms": o["latency"], "servo": o["servo"], "url": url.raw}

@@ -26,7 +26,7 @@ from station.drivers.ur.dashboard import DashboardClient
 from station.drivers.ur.identity import check_arm
 
 from station.kinematics import Model
-from station.robot.base import RobotBase
+from station.robot.base import CHAIN_OPTIONS, RobotBase
 from station.robot.errors import BusError, ConfigError, ConnectionLost, DeviceFault, LimitError, SafetyStop
 from station.robot.motion import MANUAL_TOOL_SPEED_CAP, check_joint_limits, joint_speed_for_tool_cap
 from station.robot.protocol import Identity, JointSnapshot, JointState, RobotStatus
@@ -85,6 +85,7 @@ class URRobot(RobotBase):
         Option("stall_ms", number(20, 10000, unit="ms"), STALL_MS, "RTDE stall timeout: no new 500 Hz package for "
                "this long is a fault (robot stopped); also bounds how long a lost link can go unnoticed inside a "
                "move", default_doc=f"`{STALL_MS:g}` (= 250 packages)"),
+        *CHAIN_OPTIONS,
     )
 
     def __init__(self, host: str, catalog: Model, *, deltas: dict[str, list[float]] | None = None,
@@ -131,7 +132,7 @@ class URRobot(RobotBase):
         if url.port is not None:
             raise ConfigError(f"robot URL {url.raw!r}: ur:// takes no port (RTDE 30004, dashboard 29999 and "
                               "script 30003 are fixed by the controller)")
-        catalog = cls.load_url_model(url, o["model"])
+        catalog = cls.load_url_model(url, o["model"], o["tip_link"], o["base_link"])
         deltas = read_calibration_conf(o["calibration"], catalog.n_joints) if o["calibration"] else None
         vmax = float(catalog.max_velocity.min())
         for key in ("speed", "jog_speed"):  # bounded by the model: checked once it is known

@@ -16,12 +16,19 @@ from abc import ABC, abstractmethod
 from typing import TYPE_CHECKING, ClassVar
 
 from station.robot.errors import ConfigError, ConnectionLost, LimitError, SafetyStop
-from station.robot.url import Options, RobotURL
+from station.robot.url import Option, Options, RobotURL, text
 
 if TYPE_CHECKING:
     import numpy as np
 
     from station.kinematics import Model
+
+
+# Every driver's URL takes these next to ``model=`` (a URDF with several chain ends needs its tip named).
+CHAIN_OPTIONS = (
+    Option("tip_link", text(), None, "URDF model: the link the tool is on", default_doc="the end of the only chain"),
+    Option("base_link", text(), None, "URDF model: the link the chain starts from", default_doc="the root link"),
+)
 
 
 class RobotBase(ABC):
@@ -39,14 +46,15 @@ class RobotBase(ABC):
         ``overrides`` replace constructor arguments (scripts, tests)."""
 
     @staticmethod
-    def load_url_model(url: RobotURL, name_or_model):
-        """The kinematic model a URL names (``model=``), a ``ConfigError`` naming the URL if it cannot load."""
+    def load_url_model(url: RobotURL, name_or_model, tip_link: str | None = None, base_link: str | None = None):
+        """The kinematic model a URL names (``model=``, with ``tip_link=``/``base_link=`` choosing the chain of a
+        URDF), a ``ConfigError`` naming the URL if it cannot load."""
         from station.kinematics import Model, ModelFileError, load_model
 
         if isinstance(name_or_model, Model):
             return name_or_model
         try:
-            return load_model(name_or_model)
+            return load_model(name_or_model, tip_link=tip_link, base_link=base_link)
         except (ModelFileError, OSError, ValueError, KeyError) as e:
             raise ConfigError(f"robot URL {url.raw!r}: model {name_or_model!r}: {e}") from None
 
