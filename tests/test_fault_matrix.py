@@ -344,3 +344,76 @@ def _db_down_row(cell, reference):
         stored = rec.session(out.session)
     assert len(stored["samples"]) == N_FIT + N_HOLDOUT
     assert ("PASS" if stored["verdict"]["passed"] else "FAIL") == reference
+
+
+# ==== phase triggers on the CANopen and UR emulators (world file ``at:``) =====================================
+def _world_file(tmp_path, model: str, faults: list[dict], **motion) -> Path:
+    doc = default_doc(model, seed=4)
+    doc["motion"].update(motion)
+    doc["faults"] = faults
+    path = tmp_path / "world.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def test_canopen_sdo_trigger_silences_the_drive_at_its_home_offset_write(tmp_path, emulators):
+    """``at: {sdo: {index: 0x607C}}``: drive 4 goes silent at the write-back's first home-offset write to it, the
+    request is never answered: one typed line, and drives 1-3 hold the new value while 4-6 are untouched."""
+    world = World.from_file(_world_file(tmp_path, "arm6", [
+        {"do": "disconnect", "device": 4, "at": {"sdo": {"node": 4, "index": 0x607C, "op": "write"}}}]))
+    emu = emulators("canopen", world)
+    with open_robot(emu.url) as robot:
+        before = robot.read_calibration()
+        assert not world.faults.fired  # reads of 0x607C do not arm it
+        new = {k: v + 0.01 for k, v in before.items()}
+        with pytest.raises(StationError) as e:
+            robot.write_calibration(new)
+        assert isinstance(e.value, ConnectionLost) and "node 4" in str(e.value) and "\n" not in str(e.value)
+    assert world.faults.fired == [("disconnect", 4)]
+    drives = emu.emulator.drives
+    counts = [int.from_bytes(bytes(d.node.sdo[0x607C].raw.to_bytes(4, "little", signed=True)), "little",
+                             signed=True) for d in drives.values()]
+    assert counts[:3] != [0, 0, 0] and counts[3:] == [0, 0, 0], counts
+
+
+def test_canopen_pdo_trigger_faults_the_drive_at_its_first_rpdo(tmp_path, emulators):
+    """``at: {pdo: {node: 2}}``: drive 2 reports a fault (EMCY) at the first RPDO it receives (the driver's
+    first mode/controlword frame): nothing before it (boot-up, SDO configuration) arms it."""
+    world = World.from_file(_world_file(tmp_path, "arm6", [
+        {"do": "device_fault", "device": 2, "code": 0x7300, "at": {"pdo": {"node": 2}}}]))
+    emu = emulators("canopen", world)
+    time.sleep(0.1)
+    assert not world.faults.fired
+    with pytest.raises(DeviceFault) as e, open_robot(emu.url) as robot:
+        robot.enable()
+        time.sleep(0.2)
+        robot.joint_positions()
+    assert "node 2" in str(e.value) and "0x7300" in str(e.value) and "\n" not in str(e.value)
+    assert world.faults.fired == [("device_fault", 2)]
+
+
+def test_ur_rtde_trigger_stops_the_arm_at_the_first_movej(tmp_path, emulators):
+    """``at: {rtde: {command: movej}}``: a protective stop at the controller's first moveJ: one typed line, the
+    UR program stopped, the arm still (dashboard truth)."""
+    path = _world_file(tmp_path, "ur5e", [{"do": "protective_stop", "at": {"rtde": {"command": "movej"}}}],
+                       time_mode="realtime")
+    emu = emulators("ur", path)
+    with open_robot(emu.url) as robot:
+        q0 = robot.joint_positions().q
+        assert "NORMAL" in emu.dashboard("safetymode")  # connecting, reading: not armed
+        with pytest.raises(StationError) as e:
+            robot.move_joints(q0 + np.array([0.2, 0, 0, 0, 0, 0]))
+        assert "\n" not in str(e.value)
+    assert "PROTECTIVE_STOP" in emu.dashboard("safetymode")
+    q1 = [float(x) for x in emu.dashboard("emulator encoder").split()[1:]]
+    time.sleep(0.1)
+    assert q1 == [float(x) for x in emu.dashboard("emulator encoder").split()[1:]]
+
+
+def test_world_file_triggers_are_checked(tmp_path):
+    from station.mocks.world import WorldFileError
+
+    with pytest.raises(WorldFileError, match=r"faults\[0\]\.at\.sdo.*bogus"):
+        World.from_file(_world_file(tmp_path, "arm6", [{"do": "timeout", "at": {"sdo": {"bogus": 1}}}]))
+    with pytest.raises(WorldFileError, match=r"faults\[0\]\.at.*nowhere"):
+        World.from_file(_world_file(tmp_path, "arm6", [{"do": "timeout", "at": {"nowhere": {}}}]))
