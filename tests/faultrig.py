@@ -171,14 +171,17 @@ def phase_hook(phase: str, act, *, in_write: bool = False):
     def hooked(self, *a, **kw):
         calls["n"] += 1
         if calls["n"] == nth:
-            if in_write:
-                write = self.robot.write_calibration
+            if in_write:  # the device write, or a UR's export (its controller keeps its own calibration)
+                robot, done = self.robot, []
+                for attr in ("write_calibration", "export_calibration"):
+                    if hasattr(robot, attr):
+                        def act_then(*a, _real=getattr(robot, attr), **k):
+                            if not done:
+                                done.append(True)
+                                act(self)
+                            return _real(*a, **k)
 
-                def write_then_act(values):
-                    act(self)
-                    return write(values)
-
-                self.robot.write_calibration = write_then_act
+                        setattr(robot, attr, act_then)
             else:
                 act(self)
         return orig(self, *a, **kw)
@@ -198,3 +201,25 @@ setattr(Session, *phase_hook(phase, lambda s: os.kill(os.getpid(), signal.SIGKIL
 sys.argv[0] = "station"
 from station.cli import main; main()
 """
+
+
+@contextlib.contextmanager
+def canopen_arm(start, *, seed: int = 11, query: str = "", **world_kw):
+    """(world, emulator, robot): the arm6 drives on a fresh python-can virtual channel in a realtime world, the
+    robot opened on it (``query``: extra URL options, e.g. ``&heartbeat_ms=100``); closed in reverse order."""
+    from station.mocks.canopen.emulator import CanopenEmulator
+    from station.mocks.world import World
+
+    from station.robot import open_robot
+
+    chan = f"f-{uuid.uuid4().hex[:8]}"
+    world = World.default(model="arm6", seed=seed, start=start, time_mode="realtime", **world_kw)
+    emu = CanopenEmulator(world, channel=chan, timeout_silence=1.0).start()
+    try:
+        robot = open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6{query}")
+        try:
+            yield world, emu, robot
+        finally:
+            robot.close()
+    finally:
+        emu.stop()

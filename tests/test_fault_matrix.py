@@ -255,7 +255,7 @@ def _step(cell, row, phase, session, monkeypatch, act):
         r = station(_cli_args(cell, session), cell.env, code=WRAPPER.replace("phase = sys.argv.pop(1)",
                                                                               f"phase = {phase!r}"))
         assert "Traceback" not in r.stderr, r.stderr
-        return r.returncode, "", cell.journal().parent.name
+        return r.returncode, r.stderr.strip(), cell.journal().parent.name
     with monkeypatch.context() as m:
         m.setattr(Session, *phase_hook(phase, act, in_write=in_write))
         old = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal (not pytest's)

@@ -9,7 +9,7 @@ Fault injection (``world.faults.inject(kind, device=<node id>)``):
 ``device_fault`` -> EMCY (code = the fault's ``code`` or 0x2310) + FAULT state + world halt;
 ``timeout`` -> the node is silent (no SDO answer, PDO, heartbeat or EMCY) for ``timeout_silence`` s;
 ``disconnect`` -> the node is silent until an emulated power cycle;
-``corrupt`` -> the node's next TPDO is replaced by a CAN error frame (protocol error) on the wire.
+``corrupt`` -> the node's next TPDO or SDO answer is replaced by a CAN error frame (protocol error) on the wire.
 Phase triggers (world file ``at: {sdo: {...}}`` / ``at: {pdo: {...}}``, docs/world.md): every SDO request a
 drive receives is reported as ``notice(sdo={"node", "index", "sub", "op": "write"|"read"})`` and every RPDO as
 ``notice(pdo={"node", "cob_id", "num"})``; a timeout/disconnect/device fault armed by that very frame bites
@@ -332,6 +332,9 @@ class CanopenEmulator:
             event = _sdo_event(d.id, data)
             if event is not None and self._notice(d, sdo=event):
                 return  # a fault armed by this request: the drive never answers it
+            if self.world.faults.take("corrupt", d.id):
+                self.inject_error_frame("protocol")  # the answer is destroyed on the wire
+                return
             with d.lock:
                 d.node.sdo.on_request(cob_id, bytearray(data), time.time())
             return
