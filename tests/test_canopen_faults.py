@@ -4,14 +4,12 @@ canopen + python-can on a virtual bus)."""
 from __future__ import annotations
 
 import time
-import uuid
 
 import numpy as np
 import pytest
-from station.mocks.canopen.emulator import CanopenEmulator
-from station.mocks.world import World
+from faultrig import canopen_arm
 
-from station.robot import BusError, ConnectionLost, DeviceFault, open_robot
+from station.robot import BusError, ConnectionLost, DeviceFault
 
 START = [0.3, -0.7, 0.9, 1.0, -0.6, 2.0]
 TARGET = np.array(START) + np.array([0.4, 0.3, -0.4, 0.5, 0.4, 0.6])
@@ -20,17 +18,12 @@ TARGET = np.array(START) + np.array([0.4, 0.3, -0.4, 0.5, 0.4, 0.6])
 @pytest.fixture
 def moving():
     """A robot in the middle of a slow realtime move."""
-    chan = f"f-{uuid.uuid4().hex[:8]}"
-    world = World.default(model="arm6", seed=11, start=START, time_mode="realtime")
-    emu = CanopenEmulator(world, channel=chan, timeout_silence=1.0).start()
-    robot = open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6&heartbeat_ms=100")
-    robot.enable()
-    robot.move_joints(TARGET, speed=0.3, wait=False)
-    time.sleep(0.1)
-    assert world.is_moving()
-    yield world, emu, robot
-    robot.close()
-    emu.stop()
+    with canopen_arm(START, query="&heartbeat_ms=100") as (world, emu, robot):
+        robot.enable()
+        robot.move_joints(TARGET, speed=0.3, wait=False)
+        time.sleep(0.1)
+        assert world.is_moving()
+        yield world, emu, robot
 
 
 def wait_fault(robot, timeout: float = 2.0):

@@ -10,11 +10,11 @@ import textwrap
 from pathlib import Path
 
 import pytest
-from station.mocks.launch import launch
+from faultrig import demo_cell
 
 from station.api import resume
 from station.api import run as start
-from station.cli.run_cmd import BUS_OPTIONS, write_demo_files
+from station.cli.run_cmd import BUS_OPTIONS
 from station.engine import events as ev
 from station.engine.journal import Journal, JournalWriteError, read_journal, torn_tail
 
@@ -114,10 +114,9 @@ def test_torn_last_line_is_reported_and_kept(tmp_path):
 # ---- whole sessions on the CANopen emulator (real canopen library on a python-can virtual bus) ---------------
 @pytest.fixture
 def cell(tmp_path, monkeypatch):
-    monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
-    world_path, cell_path, serial = write_demo_files("canopen", tmp_path, seed=21, time_mode="instant")
-    with launch("canopen", world_path, serial=serial) as emu:
-        yield emu, cell_path, serial, f"sqlite:///{tmp_path / 'records.db'}"
+    with demo_cell("canopen", tmp_path, seed=21) as c:
+        monkeypatch.setenv("STATION_HOME", str(c.home))
+        yield c.emu, c.cell_path, c.serial, c.db
 
 
 def _samples(path):

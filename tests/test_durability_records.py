@@ -2,6 +2,7 @@
 fails at the end leaves the run NOT STORED (exit 2, never PASS) with the journal complete, and
 ``station records sync`` stores it later from the journal (idempotent)."""
 
+import contextlib
 import os
 import shutil
 import sqlite3
@@ -121,3 +122,98 @@ def test_not_stored_on_the_command_line(tmp_path):
     errors = [x for x in r.stderr.splitlines() if x.startswith("station: error:")]
     assert len(errors) == 1 and "record not stored" in errors[0], r.stderr
     assert "station records sync" in r.stderr and "station resume" not in r.stderr
+
+
+class _Outage:
+    """A TCP relay in front of the PostgreSQL server: the station's records URL points here, so the test can cut
+    the database off mid-session (every connection reset, the port refused) and bring it back on the same port."""
+
+    def __init__(self, host: str, port: int):
+        import socket
+        import threading
+
+        self.target, self.threading, self.socket = (host, port), threading, socket
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.port = self.listener.getsockname()[1]
+        self.conns: list = []
+        self.up = True
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self):
+        while True:
+            try:
+                c, _ = self.listener.accept()
+            except OSError:
+                return
+            if not self.up:
+                c.close()
+                continue
+            s = self.socket.create_connection(self.target)
+            self.conns += [c, s]
+            for a, b in ((c, s), (s, c)):
+                self.threading.Thread(target=self._pipe, args=(a, b), daemon=True).start()
+
+    @staticmethod
+    def _pipe(a, b):
+        try:
+            while data := a.recv(65536):
+                b.sendall(data)
+        except OSError:
+            pass
+        finally:
+            for x in (a, b):
+                with contextlib.suppress(OSError):
+                    x.close()
+
+    def down(self):
+        self.up = False
+        for c in self.conns:
+            with contextlib.suppress(OSError):
+                c.shutdown(self.socket.SHUT_RDWR)
+        self.conns = []
+
+    def close(self):
+        self.down()
+        self.listener.close()
+
+
+@pytest.mark.postgres
+def test_postgres_outage_at_the_end_is_not_stored_then_synced(tmp_path, monkeypatch, pg_url):
+    """The factory database (a real PostgreSQL) becomes unreachable after the last sample: NOT STORED, exit 2,
+    never PASS, journal complete; ``station records sync`` stores it once the server is reachable again,
+    a second sync adds no duplicate rows."""
+    from sqlalchemy.engine import make_url
+
+    monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
+    real = make_url(pg_url)
+    relay = _Outage(real.host or "127.0.0.1", real.port or 5432)
+    db = real.set(host="127.0.0.1", port=relay.port).render_as_string(hide_password=False)
+    world_path, cell_path, serial = write_demo_files("dynamixel", tmp_path, seed=23, time_mode="instant")
+    serial = f"{serial}-{tmp_path.name[-12:]}"  # unique in a shared server
+    try:
+        def progress(done, total, text):
+            if done == total:
+                relay.down()
+
+        with launch("dynamixel", world_path, serial=serial) as emu:
+            out = start("zero_offsets", emu.url, serial, cell=cell_path, db=db, report=False,
+                        options=dict(BUS_OPTIONS["dynamixel"]), progress=progress)
+        assert out.verdict == "NOT STORED" and out.exit_code == 2 and out.passed is not None, \
+            (out.verdict, out.error, out.store_error)
+        assert out.store_error and "\n" not in out.store_error
+        events = read_journal(out.folder / "journal.jsonl")[1]
+        assert events[-1].type == "end" and events[-1].status == "completed"
+        n = len([e for e in events if e.type == "sample"])
+        env = {**os.environ, "STATION_HOME": str(tmp_path / "home")}
+        r = _station(["records", "sync", out.session], env)  # still unreachable: one line, exit 2
+        assert r.returncode == 2 and r.stderr.count("station: error:") == 1, r.stderr
+        relay.up = True  # the server is reachable again
+        for want in ("stored", "already stored"):
+            r = _station(["records", "sync"], env)
+            assert r.returncode == 0 and f"{out.session}: {want}" in r.stdout, (r.stdout, r.stderr)
+        with open_records(pg_url) as rec:
+            stored = rec.session(out.session)
+            (summary,) = rec.sessions(serial)
+        assert len(stored["samples"]) == n and summary["passed"] == out.passed
+    finally:
+        relay.close()

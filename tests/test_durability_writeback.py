@@ -59,7 +59,10 @@ def _close(want, have, tol=0.8e-3):  # half an XM430 tick (1.53e-3 rad): the dev
     return all(abs(have[k] - v) < tol for k, v in want.items())
 
 
-CAN_SPLIT_WRAPPER = """
+def _can_pause_wrapper(condition: str, note: str) -> str:
+    """A station entry point whose CANopen write-back pauses 4 s (after writing the marker file) at the first
+    SDO write for which ``condition`` (on node_id, index) holds: a window a signal can land in."""
+    return f"""
 import sys, time
 from pathlib import Path
 from station.drivers.canopen.robot import CanopenRobot
@@ -68,8 +71,8 @@ orig = CanopenRobot.write_calibration
 def write_calibration(self, values):
     real = self.bus.sdo_write
     def sdo_write(node_id, index, value, sub=None):
-        if index == 0x607C and node_id == 4 and not marker.exists():  # nodes 1-3 written, 4-6 not yet
-            marker.write_text("half")
+        if {condition} and not marker.exists():
+            marker.write_text({note!r})
             time.sleep(4.0)
         return real(node_id, index, value, sub=sub)
     self.bus.sdo_write = sdo_write
@@ -81,6 +84,10 @@ CanopenRobot.write_calibration = write_calibration
 sys.argv[0] = "station"
 from station.cli import main; main()
 """
+
+
+# nodes 1-3 written, 4-6 not yet
+CAN_SPLIT_WRAPPER = _can_pause_wrapper("index == 0x607C and node_id == 4", "half")
 
 
 class Rig:
@@ -239,28 +246,8 @@ def test_restore_without_a_backup_is_one_line_before_the_robot_is_opened(tmp_pat
 
 
 # ---- CANopen: killed after the 0x607C writes, before the 0x1010 store (issue 9 item 2) --------------------------
-CAN_WRAPPER = """
-import sys, time
-from pathlib import Path
-from station.drivers.canopen.robot import CanopenRobot
-marker = Path(sys.argv.pop(1))
-orig = CanopenRobot.write_calibration
-def write_calibration(self, values):
-    real = self.bus.sdo_write
-    def sdo_write(node_id, index, value, sub=None):
-        if index == 0x1010 and not marker.exists():  # every 0x607C sent, the store not yet
-            marker.write_text("home offsets written, store not sent")
-            time.sleep(4.0)
-        return real(node_id, index, value, sub=sub)
-    self.bus.sdo_write = sdo_write
-    try:
-        return orig(self, values)
-    finally:
-        self.bus.sdo_write = real
-CanopenRobot.write_calibration = write_calibration
-sys.argv[0] = "station"
-from station.cli import main; main()
-"""
+# every 0x607C sent, the store not yet
+CAN_WRAPPER = _can_pause_wrapper("index == 0x1010", "home offsets written, store not sent")
 
 
 @pytest.fixture

@@ -7,13 +7,11 @@ whatever path works and say so. Ground truth: the emulated drives' CiA 402 state
 from __future__ import annotations
 
 import time
-import uuid
 
 import pytest
-from station.mocks.canopen.emulator import CanopenEmulator
-from station.mocks.world import World
+from faultrig import canopen_arm
 
-from station.robot import BusError, open_robot
+from station.robot import BusError
 
 START = [0.3, -0.7, 0.9, 1.0, -0.6, 2.0]
 SAFE = ("SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON")
@@ -21,16 +19,11 @@ SAFE = ("SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON")
 
 @pytest.fixture
 def seated():
-    chan = f"td-{uuid.uuid4().hex[:8]}"
-    world = World.default(model="arm6", seed=11, start=START, time_mode="realtime")
-    emu = CanopenEmulator(world, channel=chan, timeout_silence=1.0).start()
-    robot = open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6")
-    robot.enable()
-    robot.set_compliant(True)
-    assert world.compliant
-    yield world, emu, robot
-    robot.close()
-    emu.stop()
+    with canopen_arm(START) as (world, emu, robot):
+        robot.enable()
+        robot.set_compliant(True)
+        assert world.compliant
+        yield world, emu, robot
 
 
 def _states(emu) -> list[str]:

@@ -211,43 +211,42 @@ class CanopenBus:
                               code=e.code) from None
 
     # ---- SDO (configuration only, never in the streaming cycle) ---------------------------------------------
-    def sdo_read(self, node_id: int, index: int, sub: int = 0):
-        node = self.drives[node_id]
+    @contextlib.contextmanager
+    def _sdo(self, node_id: int, verb: str, index: int, sub: int | None):
+        """One SDO transfer's errors as the station's: no answer -> ConnectionLost, an abort -> DeviceFault."""
+        obj = f"0x{index:04X}" if sub is None else f"0x{index:04X}:{sub:02X}"
         try:
-            return (node.sdo[index][sub] if sub else node.sdo[index]).raw
+            yield
         except canopen.SdoCommunicationError as e:
             raise ConnectionLost(f"canopen node {node_id} on {self.where} does not answer "
-                                 f"(SDO 0x{index:04X}:{sub:02X}: {e})") from None
+                                 f"(SDO {verb} {obj}: {e})") from None
         except canopen.SdoAbortedError as e:
-            raise DeviceFault(f"canopen node {node_id}: reading 0x{index:04X}:{sub:02X} aborted: {e}",
-                              device=f"node {node_id}", code=e.code) from None
+            raise DeviceFault(f"canopen node {node_id}: SDO {verb} {obj} aborted: {e}", device=f"node {node_id}",
+                              code=e.code) from None
+
+    def sdo_read(self, node_id: int, index: int, sub: int = 0):
+        node = self.drives[node_id]
+        with self._sdo(node_id, "read", index, sub):
+            return (node.sdo[index][sub] if sub else node.sdo[index]).raw
 
     def sdo_read_u32(self, node_id: int, index: int, sub: int) -> int | None:
         """An UNSIGNED32 by raw SDO upload (also for objects outside the driver's dictionary); None when the
         drive does not have the object (SDO abort: optional objects such as 0x608F)."""
         node = self.drives[node_id]
         try:
-            data = node.sdo.upload(index, sub)
-        except canopen.SdoCommunicationError as e:
-            raise ConnectionLost(f"canopen node {node_id} on {self.where} does not answer "
-                                 f"(SDO 0x{index:04X}:{sub:02X}: {e})") from None
-        except canopen.SdoAbortedError:
+            with self._sdo(node_id, "read", index, sub):
+                data = node.sdo.upload(index, sub)
+        except DeviceFault:
             return None
         return int.from_bytes(bytes(data[:4]).ljust(4, b"\0"), "little")
 
     def sdo_write(self, node_id: int, index: int, value, sub: int | None = None) -> None:
         node = self.drives[node_id]
-        try:
+        with self._sdo(node_id, "write", index, sub):
             if sub is None:
                 node.sdo[index].raw = value
             else:
                 node.sdo[index][sub].raw = value
-        except canopen.SdoCommunicationError as e:
-            raise ConnectionLost(f"canopen node {node_id} on {self.where} does not answer "
-                                 f"(SDO write 0x{index:04X}: {e})") from None
-        except canopen.SdoAbortedError as e:
-            raise DeviceFault(f"canopen node {node_id}: writing 0x{index:04X} aborted: {e}",
-                              device=f"node {node_id}", code=e.code) from None
 
     # ---- RPDOs (immediate) -------------------------------------------------------------------------------
     def send_rpdo1(self, node_id: int, cw: int, target: int | None = None) -> None:

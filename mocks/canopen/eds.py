@@ -103,6 +103,15 @@ def _pdo_objects() -> list[Obj]:
     return out
 
 
+def _pair(index: int, name: str, dtype: int, first: tuple[str, int], second: tuple[str, int]) -> Obj:
+    """A CiA 402 record of two stored rw entries (sub 1, sub 2) of one type, e.g. 0x607D min/max limit."""
+    return Obj(index, name, 8, (
+        Var(0, "Highest sub-index supported", U8, "const", 2),
+        *(Var(k, sub, dtype, "rw", default, storage="PERSIST_APP")
+          for k, (sub, default) in enumerate((first, second), 1)),
+    ))
+
+
 def objects() -> list[Obj]:
     C, A = "PERSIST_COMM", "PERSIST_APP"
     objs = [
@@ -155,11 +164,7 @@ def objects() -> list[Obj]:
         var(0x6077, "Torque actual value", I16, "ro", 0, pdo=True),
         var(0x607A, "Target position", I32, "rw", 0, pdo=True),
         var(0x607C, "Home offset", I32, "rw", 0, storage=A),
-        Obj(0x607D, "Software position limit", 8, (
-            Var(0, "Highest sub-index supported", U8, "const", 2),
-            Var(1, "Min position limit", I32, "rw", 0, storage=A),
-            Var(2, "Max position limit", I32, "rw", 0, storage=A),
-        )),
+        _pair(0x607D, "Software position limit", I32, ("Min position limit", 0), ("Max position limit", 0)),
         var(0x607F, "Max profile velocity", U32, "rw", 0, storage=A),
         var(0x6081, "Profile velocity", U32, "rw", 0, pdo=True, storage=A),
         var(0x6083, "Profile acceleration", U32, "rw", 0, storage=A),
@@ -168,16 +173,8 @@ def objects() -> list[Obj]:
         var(0x6087, "Torque slope", U32, "rw", 1000, storage=A),
         # scaling (CiA 402): encoder increments per motor revolution and gear ratio motor : shaft revolutions,
         # set per drive from the world's joint (rotary joints); the driver checks them against its model
-        Obj(0x608F, "Position encoder resolution", 8, (
-            Var(0, "Highest sub-index supported", U8, "const", 2),
-            Var(1, "Encoder increments", U32, "rw", 0, storage=A),
-            Var(2, "Motor revolutions", U32, "rw", 1, storage=A),
-        )),
-        Obj(0x6091, "Gear ratio", 8, (
-            Var(0, "Highest sub-index supported", U8, "const", 2),
-            Var(1, "Motor revolutions", U32, "rw", 1, storage=A),
-            Var(2, "Shaft revolutions", U32, "rw", 1, storage=A),
-        )),
+        _pair(0x608F, "Position encoder resolution", U32, ("Encoder increments", 0), ("Motor revolutions", 1)),
+        _pair(0x6091, "Gear ratio", U32, ("Motor revolutions", 1), ("Shaft revolutions", 1)),
         var(0x60FD, "Digital inputs", U32, "ro", 0, pdo=True),
         var(0x60FF, "Target velocity", I32, "rw", 0, pdo=True),
         var(0x6502, "Supported drive modes", U32, "ro", SUPPORTED_MODES),

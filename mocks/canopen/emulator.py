@@ -9,7 +9,11 @@ Fault injection (``world.faults.inject(kind, device=<node id>)``):
 ``device_fault`` -> EMCY (code = the fault's ``code`` or 0x2310) + FAULT state + world halt;
 ``timeout`` -> the node is silent (no SDO answer, PDO, heartbeat or EMCY) for ``timeout_silence`` s;
 ``disconnect`` -> the node is silent until an emulated power cycle;
-``corrupt`` -> the node's next TPDO is replaced by a CAN error frame (protocol error) on the wire.
+``corrupt`` -> the node's next TPDO or SDO answer is replaced by a CAN error frame (protocol error) on the wire.
+Phase triggers (world file ``at: {sdo: {...}}`` / ``at: {pdo: {...}}``, docs/world.md): every SDO request a
+drive receives is reported as ``notice(sdo={"node", "index", "sub", "op": "write"|"read"})`` and every RPDO as
+``notice(pdo={"node", "cob_id", "num"})``; a timeout/disconnect/device fault armed by that very frame bites
+before the drive answers it (a write to 0x607C that is never confirmed).
 ``inject_error_frame("busoff")`` puts a bus-off error frame on the wire; the station's controller is then off
 the bus for ``busoff_recovery`` s (world file ``buses.canopen.busoff_recovery_s``, default 0.2 s, SocketCAN's
 ``restart-ms``): frames it sends in that window never reach the drives, which keep their state (a seated,
@@ -62,6 +66,16 @@ class Snap:
         if self._contact is None:
             self._contact = bool(self.world.contact())
         return self._contact
+
+
+def _sdo_event(node_id: int, data: bytes) -> dict | None:
+    """The object an SDO request frame opens (CiA 301: initiate download ccs=1, initiate upload ccs=2, block
+    download ccs=6 / block upload ccs=5); None for the segments that follow an initiate."""
+    ccs = data[0] >> 5
+    op = {1: "write", 6: "write", 2: "read", 5: "read"}.get(ccs)
+    if op is None or (ccs in (5, 6) and data[0] & 0x03):  # block sub-commands other than initiate
+        return None
+    return {"node": node_id, "index": data[1] | data[2] << 8, "sub": data[3], "op": op}
 
 
 class _Rx(can.Listener):
@@ -315,11 +329,29 @@ class CanopenEmulator:
         if d is not None:
             if d.silent() or d.nmt not in (PRE_OPERATIONAL, OPERATIONAL) or len(data) < 8:
                 return
+            event = _sdo_event(d.id, data)
+            if event is not None and self._notice(d, sdo=event):
+                return  # a fault armed by this request: the drive never answers it
+            if self.world.faults.take("corrupt", d.id):
+                self.inject_error_frame("protocol")  # the answer is destroyed on the wire
+                return
             with d.lock:
                 d.node.sdo.on_request(cob_id, bytearray(data), time.time())
             return
         for d, p in self._rx_map.get(cob_id, ()):
+            if self._notice(d, pdo={"node": d.id, "cob_id": cob_id, "num": p.num}):
+                continue
             d.on_rpdo(p, data)
+
+    def _notice(self, d: Drive402, **event) -> bool:
+        """Report a wire event to the world's faults (arming those waiting for it) and act out at once what it
+        armed for this drive; True if the drive is now silent and must not act on the frame."""
+        faults = self.world.faults
+        if not faults.waiting():
+            return False
+        faults.notice(**event)
+        self._poll_drive(d, time.monotonic())
+        return d.silent()  # a drive in FAULT still answers SDOs (and ignores enable commands itself)
 
     def _on_sync(self) -> None:
         self.sync_count += 1
@@ -395,17 +427,20 @@ class CanopenEmulator:
             return due
 
     def _poll_faults(self, now: float) -> None:
-        faults = self.world.faults
         for d in self.drives.values():
-            if d.nmt in (INITIALISING, STOPPED) and not faults.peek("disconnect", d.id):
-                continue
-            f = faults.take_fault("device_fault", d.id)
-            if f is not None:
-                log.info("canopen emulator: device fault on node %d", d.id)
-                d.fault(f.code or 0x2310)
-            if faults.take("timeout", d.id):
-                d.silent_until = max(d.silent_until, now + self.timeout_silence)
-                d.connection_lost()
-            if faults.take("disconnect", d.id):
-                d.silent_until = math.inf
-                d.connection_lost()
+            self._poll_drive(d, now)
+
+    def _poll_drive(self, d: Drive402, now: float) -> None:
+        faults = self.world.faults
+        if d.nmt in (INITIALISING, STOPPED) and not faults.peek("disconnect", d.id):
+            return
+        f = faults.take_fault("device_fault", d.id)
+        if f is not None:
+            log.info("canopen emulator: device fault on node %d", d.id)
+            d.fault(f.code or 0x2310)
+        if faults.take("timeout", d.id):
+            d.silent_until = max(d.silent_until, now + self.timeout_silence)
+            d.connection_lost()
+        if faults.take("disconnect", d.id):
+            d.silent_until = math.inf
+            d.connection_lost()

@@ -37,6 +37,18 @@ def _take(world, kind: str) -> bool:
         return bool(faults.take(kind))
 
 
+# ur_rtde control-script command ids by name (``rtde: {command: movej}`` in a world file's fault trigger)
+COMMAND_NAMES = {v: k[4:].lower() for k, v in vars(S).items() if k.startswith("CMD_")}
+
+
+def notice(world, **event) -> None:
+    """Report a controller event (``dashboard``, ``script``, ``rtde``) to the world's faults, arming those that
+    wait for it (docs/world.md, phase triggers)."""
+    faults = getattr(world, "faults", None)
+    if faults is not None and hasattr(faults, "waiting") and faults.waiting():
+        faults.notice(**event)
+
+
 def robot_model_of(model_name: str) -> str:
     """``get robot model`` of a controller for a world model: ``ur5e`` -> ``UR5``; a model that is no UR arm
     (a model file named otherwise) reports its name in capitals, which no station model matches."""
@@ -248,6 +260,7 @@ class URController:
     # ---- program -----------------------------------------------------------------------------
     def load_program(self, name: str, text: str) -> None:
         """A script arrived on port 30003: it replaces whatever runs (as on the real controller)."""
+        notice(self.world, script={"program": name})
         with self.lock:
             self._halt_all()
             self.program = name
@@ -301,6 +314,11 @@ class URController:
             self._out_i(0, S.SCRIPT_DONE)
             return
         cmd = self._reg_i(0)
+        if cmd not in (S.CMD_NONE, S.CMD_WATCHDOG) and not (self.executing and cmd not in S.REALTIME_COMMANDS):
+            notice(self.world, rtde={"command": COMMAND_NAMES.get(cmd, str(cmd))})
+            self._faults()  # a fault armed by this very command bites before the controller acts on it
+            if self.runtime_state != S.PLAYING:
+                return
         if cmd in S.REALTIME_COMMANDS:
             self._execute(cmd)
             self._out_i(0, S.SCRIPT_READY)

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 from station.mocks.ur import rtde_wire as W
-from station.mocks.ur.controller import PERIOD, URController
+from station.mocks.ur.controller import PERIOD, URController, notice
 
 log = logging.getLogger("station.mocks.ur")
 
@@ -198,6 +198,7 @@ class DashboardConn(_Conn):
     def answer(self, line: str):
         ctl = self.ctl
         cmd = line.lower()
+        notice(ctl.world, dashboard={"command": cmd})
         states = {0: "STOPPING", 1: "STOPPED", 2: "PLAYING", 3: "PAUSING", 4: "PAUSED", 5: "RESUMING"}
         if cmd == "polyscopeversion":
             return ctl.polyscope, None

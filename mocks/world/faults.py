@@ -12,6 +12,15 @@ from collections.abc import Hashable
 from dataclasses import dataclass
 
 KINDS = ("timeout", "corrupt", "device_fault", "disconnect", "protective_stop")
+# wire events emulators report through ``Faults.notice`` (a world file's ``at:`` trigger), with their keys
+TRIGGERS = {
+    "packet": {"addr", "inst"},  # Dynamixel: a write / reg write / sync write starting at control-table addr
+    "sdo": {"node", "index", "sub", "op"},  # CANopen: an SDO request (op: write | read) a drive receives
+    "pdo": {"node", "cob_id", "num"},  # CANopen: an RPDO a drive receives
+    "rtde": {"command"},  # UR: a control-script command (movej, movel, stopj, teach_mode, ...) the controller runs
+    "dashboard": {"command"},  # UR: a dashboard line (lower case: "stop", "power off", ...)
+    "script": {"program"},  # UR: a program arriving on the script port (rtde_control)
+}
 
 
 def _matches_event(trigger: dict, event: dict) -> bool:
@@ -62,6 +71,11 @@ class Faults:
             for f in self._pending:
                 if f.trigger is not None and _matches_event(f.trigger, event):
                     f.trigger = None
+
+    def waiting(self) -> bool:
+        """True while some fault waits for a wire event (emulators skip building events otherwise)."""
+        with self._lock:
+            return any(f.trigger is not None for f in self._pending)
 
     @staticmethod
     def _matches(f: PendingFault, kind: str, device: Hashable | None) -> bool:

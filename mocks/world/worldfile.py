@@ -324,9 +324,12 @@ def _spec_from_dict(doc, where: str) -> WorldSpec:
 
 def _parse_faults(r, items) -> list[dict]:
     """``faults: [{do: timeout, device: 12, count: 1, after: 0, code: 0x20, at: {packet: {addr: 20}}}]``:
-    ``do`` one of the emulators' fault kinds; ``at`` (optional) arms it only once the emulator sees a matching
-    wire event (``packet: {addr: N}``: a Dynamixel write to address N) or ``after_s`` seconds after start."""
-    from station.mocks.world.faults import KINDS
+    ``do`` one of the emulators' fault kinds; ``at`` (optional) arms it only once an emulator sees a matching
+    wire event (one of ``TRIGGERS``: ``packet: {addr: N}`` a Dynamixel write to address N, ``sdo: {index: 0x607C}``
+    a CANopen SDO request, ``pdo: {cob_id: 0x201}`` a CANopen RPDO, ``rtde: {command: movej}`` /
+    ``dashboard: {command: stop}`` / ``script: {program: rtde_control}`` on a UR controller) or ``after_s``
+    seconds after start."""
+    from station.mocks.world.faults import KINDS, TRIGGERS
 
     if items is None:
         return []
@@ -339,9 +342,10 @@ def _parse_faults(r, items) -> list[dict]:
         kind = f.get("do")
         if kind not in KINDS:
             raise r.fail(f"{where}.do", f"{kind!r} is not one of {', '.join(KINDS)}")
-        at = r.mapping(f.get("at") or {}, f"{where}.at", {"packet", "after_s"})
-        if "packet" in at:
-            at["packet"] = r.mapping(at["packet"], f"{where}.at.packet", {"addr", "inst"})
+        at = r.mapping(f.get("at") or {}, f"{where}.at", {"after_s", *TRIGGERS})
+        for wire, keys in TRIGGERS.items():
+            if wire in at:
+                at[wire] = r.mapping(at[wire], f"{where}.at.{wire}", keys)
         if "after_s" in at:
             at["after_s"] = r.num(at["after_s"], f"{where}.at.after_s", nonneg=True)
         count, after = f.get("count", 1), f.get("after", 0)
