@@ -21,8 +21,12 @@ demo: $(STAMP)
 # module fixtures stay shared), then the tests that time the wire or load the machine (soak), alone
 test: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not exclusive"
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not exclusive and not fullmatrix"
 	$(BIN)/python -m pytest -q -m exclusive
+
+# every fault on every bus (make test runs each fault once, on one bus, through all four phases)
+test-matrix: $(STAMP)
+	$(BIN)/python -m pytest -q -n 2 -m fullmatrix tests/test_fault_matrix.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
