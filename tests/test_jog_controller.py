@@ -261,3 +261,59 @@ def test_hold_to_run_on_canopen(rig, mode, axis):
     assert 0.3 * 62.5e-3 < travel < 1.1 * 62.5e-3 * 1.0  # moving at (not above) the override
     assert delay < HOLD_WATCHDOG_S + 0.1, delay  # margin: the realtime world's decel on a loaded host
     assert not robot.status().moving
+
+
+def test_hold_release_adapts_to_the_terminals_key_repeat(rig):
+    """Without key-release events the release is inferred from the autorepeat: the UI measures the repeat
+    interval and delay of this terminal (the key-event times are the ground truth, on the controller's
+    injected clock) and takes a gap of 2.5 intervals as the release, never more than the 0.1 s UR watchdog
+    period; the first press keeps the arm moving through the repeat delay."""
+    from station.tui.controller import HOLD_FIRST_S, HOLD_RELEASE_S
+
+    world, robot, ctl = rig()
+    ctl.set_continuous()
+    # nothing measured yet: a press holds for the longest repeat delay, then stops
+    assert ctl.hold(1, -1, now=0.0)
+    assert not ctl.hold_check(HOLD_FIRST_S - 0.01) and ctl.hold_state is not None
+    assert ctl.hold_check(HOLD_FIRST_S + 0.001) and ctl.hold_state is None
+    # a held key: press, 300 ms repeat delay, then a repeat every 30 ms
+    t = 10.0
+    assert ctl.hold(1, -1, now=t)
+    assert not ctl.hold_check(t + 0.29)  # waiting for the first repeat does not stop the arm
+    events = [t + 0.3 + 0.03 * k for k in range(12)]
+    for e in events:
+        assert ctl.hold(1, -1, now=e)
+        assert not ctl.hold_check(e + 0.02)
+    last = events[-1]
+    assert ctl.release_gap() == pytest.approx(2.5 * 0.03)
+    assert not ctl.hold_check(last + 0.074)
+    assert ctl.hold_check(last + 0.076)  # released 75 ms after the last repeat
+    assert ctl.repeat_delay == pytest.approx(0.3)
+    # the next press: the first window is the measured delay + a quarter, not the 0.6 s default
+    t = 20.0
+    assert ctl.hold(1, -1, now=t)
+    assert not ctl.hold_check(t + 0.37)
+    assert ctl.hold_check(t + 0.376)
+    # a slow repeat (60 ms): the gap is capped at the watchdog period, never longer
+    t = 30.0
+    assert ctl.hold(1, -1, now=t)
+    for k in range(20):
+        ctl.hold(1, -1, now=t + 0.3 + 0.06 * k)
+    assert ctl.release_gap() == HOLD_RELEASE_S == 0.1
+    # a double tap (second press 150 ms after the first, then nothing) is not taken as a repeat delay
+    ctl.stop_hold()
+    ctl.repeat_delay = None
+    ctl.hold(1, -1, now=40.0)
+    ctl.hold(1, -1, now=40.15)
+    assert ctl.hold_check(40.15 + 0.101) and ctl.repeat_delay is None
+    robot.stop()
+
+
+def test_a_reported_key_release_stops_at_once(rig):
+    world, robot, ctl = rig()
+    ctl.set_continuous()
+    assert ctl.hold(0, +1)
+    ctl.release(0, -1)  # another key's release: still held
+    assert ctl.hold_state is not None
+    ctl.release(0, +1)
+    assert ctl.hold_state is None and ctl.release_events and "released" in ctl.message
