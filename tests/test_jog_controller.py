@@ -317,3 +317,25 @@ def test_a_reported_key_release_stops_at_once(rig):
     assert ctl.hold_state is not None
     ctl.release(0, +1)
     assert ctl.hold_state is None and ctl.release_events and "released" in ctl.message
+
+
+def test_shipped_limits_have_a_jog_section_that_judges_jog_sessions(rig):
+    """The shipped limits.yaml's ``jog`` section (read by the same reader as every procedure's) is what
+    `station jog` judges by default: a few touches are NOT YET and end FAIL, never PASS or NO LIMITS."""
+    from station.engine.limits import default_limits, load_limits
+
+    lim = load_limits()
+    for model in ("arm6", "ur5e", "omx", "scara"):
+        table = lim.for_procedure(model, "jog")
+        assert {"samples", "fit_rms", "offset_std_max"} <= set(table), model
+        assert table["samples"].low >= 12
+    assert lim.for_procedure("omx", "jog")["fit_rms"].high > lim.for_procedure("ur5e", "jog")["fit_rms"].high
+    world, robot, ctl = rig(limits=default_limits().read_text())
+    assert ctl.limits and ctl.guide.needed == 12
+    for dq in (0.05, -0.05, 0.1):
+        robot.move_joints(np.array(START) + dq, speed=1.0)
+        assert ctl.record(force=True) is not None, ctl.message
+    assert ctl.guide.status == "not yet"
+    assert not {c.name: c for c in ctl.guide.checks}["samples"].ok
+    ctl.close()
+    assert ctl.verdict_text == "FAIL"
