@@ -94,7 +94,8 @@ def rig(tmp_path):
     code = "import sys; from station.cli import main; sys.argv = ['station', *sys.argv[1:]]; main()"
     # no contact input on this URL: enter records wherever the arm is (the touch rule has its own tests)
     cmd = [sys.executable, "-c", code, "jog", "--robot", f"dynamixel://{path}?baud=1000000&ids=11-14&serial=OMX-7",
-           "--model", "omx", "--identify", "offsets", "--cell", str(cell), "--reference", "A=0.3,0,0.05"]
+           "--model", "omx", "--serial", "OMX-7", "--identify", "offsets", "--cell", str(cell),
+           "--reference", "A=0.3,0,0.05"]
     env = {"STATION_HOME": str(home), "TERM": "xterm-256color", "PATH": os.environ.get("PATH", ""),
            "COLUMNS": "170", "LINES": "55"}  # textual believes these over the tty
     term = Tmux(cmd, env)
