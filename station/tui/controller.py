@@ -466,12 +466,14 @@ class JogController:
         h["deadline"] = now + self.release_gap()
 
     def release_gap(self) -> float:
-        """Key-event gap taken as a release: HOLD_GAP_REPEATS measured repeat intervals (median of the last
+        """Key-event gap taken as a release: HOLD_GAP_REPEATS measured repeat intervals (mean of the last
         16), within [HOLD_GAP_MIN_S, HOLD_RELEASE_S]; HOLD_RELEASE_S until the cadence was measured, and in a
         terminal that reports releases (a lost release still stops within the watchdog period)."""
         if not self.repeat_intervals or self.release_events:
             return HOLD_RELEASE_S  # (the terminal reports releases: the gap is only the backup)
-        est = statistics.median(self.repeat_intervals)
+        # the mean, not the median: a busy UI receives repeats in bunches (intervals near 0 then one long),
+        # whose median would shrink the gap below the real cadence
+        est = statistics.fmean(self.repeat_intervals)
         return float(min(HOLD_RELEASE_S, max(HOLD_GAP_MIN_S, HOLD_GAP_REPEATS * est)))
 
     def first_window(self) -> float:
