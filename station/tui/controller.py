@@ -253,6 +253,15 @@ class JogController:
             return JOG_MAX_JOINT_SPEED * self.speed_percent / 100.0
         return JOG_MAX_JOINT_SPEED
 
+    def lead_rate(self, axis: int, q0: np.ndarray, target: np.ndarray, step: float) -> float:
+        """Lead-joint speed limit for a move from ``q0`` to ``target`` (one ``step`` on ``axis``): for a
+        Cartesian rotation the one that turns the tool at :meth:`joint_rate` (the lead joint may turn faster
+        or slower than the tool), else :meth:`joint_rate`."""
+        rate = self.joint_rate(axis)
+        if self.mode == "cartesian" and axis >= 3 and abs(step) > 0:
+            rate *= float(np.max(np.abs(target - q0))) / abs(step)
+        return rate
+
     def step_si(self, axis: int) -> float:
         """The current preset in SI for ``axis`` of the current mode."""
         return np.deg2rad(self.step) if self.axis_unit(axis) == "deg" else self.step * 1e-3
@@ -416,7 +425,8 @@ class JogController:
                     return False
                 # lead-joint speed that keeps the tool at or below the override along the whole step; the
                 # joint cap keeps wrist rotations (tool point nearly still) from snapping round
-                speed = joint_speed_for_tool_cap(self.model, q0, target, self.joint_rate(axis), cap=cap)
+                speed = joint_speed_for_tool_cap(self.model, q0, target, self.lead_rate(axis, start, target, step),
+                                                 cap=cap)
                 self.robot.move_joints(target, speed=speed, wait=False)
             except LimitError as e:
                 self.message = f"refused: {e}"
@@ -540,7 +550,8 @@ class JogController:
                 else:
                     step = d * (rate if rotational or self.mode == "joint" else cap) * horizon
                     target = self.target(q0, axis, step)
-                    speed = joint_speed_for_tool_cap(self.model, q0, target, rate, cap=cap)
+                    speed = joint_speed_for_tool_cap(self.model, q0, target, self.lead_rate(axis, q0, target, step),
+                                                     cap=cap)
                     lead = float(np.max(np.abs(target - q0)))
                     if lead > speed * horizon > 0:  # slower than asked (tool cap): shorten to the reachable part
                         step *= speed * horizon / lead
