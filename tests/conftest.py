@@ -217,3 +217,18 @@ def pg_url():
             cmd = ["runuser", "-u", "postgres", "--", *cmd]
         subprocess.run(cmd, capture_output=True, timeout=60)
         shutil.rmtree(data, ignore_errors=True)
+
+
+@pytest.fixture
+def tui_no_idle_wait(monkeypatch):
+    """For textual pilot tests next to bus threads: the pilot waits after each key until the process *looks*
+    idle (CPU time vs wall clock), at most 1 s, and the bus/emulator threads never let it look idle, so every
+    key cost 2 s. Key handling stays deterministic without it: ``press`` still waits until the screen has
+    processed every queued message. Use with ``pytestmark = pytest.mark.usefixtures("tui_no_idle_wait")``."""
+    import asyncio
+
+    async def yield_once(min_sleep: float = 0.0, max_sleep: float = 0.0) -> None:
+        await asyncio.sleep(0)
+
+    monkeypatch.setattr("textual.app.wait_for_idle", yield_once)
+    monkeypatch.setattr("textual.pilot.wait_for_idle", yield_once)

@@ -27,17 +27,7 @@ HIDDEN = {"offset.j1": 0.0009, "offset.j2": -0.0012, "offset.j3": 0.0010, "offse
           "offset.j5": -0.0011, "offset.j6": 0.0013, "tcp.x": 0.0003}
 
 
-@pytest.fixture(autouse=True)
-def _no_idle_wait(monkeypatch):
-    """textual's pilot waits after each key until the process *looks* idle (CPU time vs wall clock), at most
-    1 s; the bus threads (SYNC producer, emulated drives) never let it look idle, so every key cost 2 s.
-    Key handling stays deterministic without it: ``press`` still waits until the screen has processed every
-    queued message."""
-    async def yield_once(min_sleep: float = 0.0, max_sleep: float = 0.0) -> None:
-        await asyncio.sleep(0)
-
-    monkeypatch.setattr("textual.app.wait_for_idle", yield_once)
-    monkeypatch.setattr("textual.pilot.wait_for_idle", yield_once)
+pytestmark = pytest.mark.usefixtures("tui_no_idle_wait")  # see tests/conftest.py
 
 
 def quantum(model) -> np.ndarray:

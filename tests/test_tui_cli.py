@@ -13,7 +13,7 @@ from station.cli.jog_cmd import url_with_model
 def _station(*args, cwd):
     code = "import sys; from station.cli import main; sys.argv = ['station', *sys.argv[1:]]; main()"
     return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=60, cwd=cwd,
-                          env={"STATION_HOME": str(cwd / "home"), "PATH": "/usr/bin:/bin"})
+                          stdin=subprocess.DEVNULL, env={"STATION_HOME": str(cwd / "home"), "PATH": "/usr/bin:/bin"})
 
 
 @pytest.mark.parametrize("args, message", [
@@ -53,3 +53,22 @@ def test_serial_and_identify_checked_before_any_session(tmp_path):
     assert p.returncode == 2 and "reports serial" in p.stderr and "NOT-THIS-ONE" in p.stderr, p.stderr
     assert len(p.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "home").exists()
+
+
+def test_jog_without_serial_and_without_a_terminal_is_refused(tmp_path):
+    """The session is filed under a serial the technician confirms: with no --serial and no terminal to ask
+    on (and a Dynamixel bus, whose only ids are device ids), one line, exit 2, no session folder."""
+    from station.mocks.dynamixel import DynamixelEmulator
+    from station.mocks.world import World
+
+    emu = DynamixelEmulator(World.default(model="omx", seed=2), ids=[11, 12, 13, 14])
+    path = emu.start()
+    try:
+        p = _station("jog", "--robot", f"dynamixel://{path}?ids=11-14&model=omx", cwd=tmp_path)
+    finally:
+        emu.stop()
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.strip().splitlines()[-1].startswith("station: error: --serial is required")
+    assert "Traceback" not in p.stderr
+    sessions = tmp_path / "home" / "sessions"
+    assert not sessions.exists() or not any(sessions.iterdir())

@@ -19,14 +19,7 @@ from station.tui.app import JogApp
 START = [0.2, -0.3, 0.4, 0.1]
 
 
-@pytest.fixture(autouse=True)
-def _no_idle_wait(monkeypatch):
-    """See tests/test_tui_app.py: the emulator thread keeps the process from ever looking idle to the pilot."""
-    async def yield_once(min_sleep: float = 0.0, max_sleep: float = 0.0) -> None:
-        await asyncio.sleep(0)
-
-    monkeypatch.setattr("textual.app.wait_for_idle", yield_once)
-    monkeypatch.setattr("textual.pilot.wait_for_idle", yield_once)
+pytestmark = pytest.mark.usefixtures("tui_no_idle_wait")  # see tests/conftest.py
 
 
 @pytest.fixture
@@ -39,7 +32,7 @@ def rig(tmp_path, monkeypatch):
     emu = DynamixelEmulator(world, ids=[11, 12, 13, 14])
     path = emu.start()
     robot, ctl = open_jog(f"dynamixel://{path}?baud=1000000&ids=11-14&contact=200", model="omx",
-                          identify="offsets")
+                          identify="offsets", serial="OMX-7")
     yield world, robot, ctl
     ctl.close()
     robot.close()

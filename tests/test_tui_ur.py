@@ -22,14 +22,7 @@ from station.tui.session import JogSession, joint_units, session_header
 START = [0.1, -1.45, 1.6, -1.72, -1.5708, 0.2]
 
 
-@pytest.fixture(autouse=True)
-def _no_idle_wait(monkeypatch):
-    """See tests/test_tui_app.py: background I/O threads keep the process from ever looking idle."""
-    async def yield_once(min_sleep: float = 0.0, max_sleep: float = 0.0) -> None:
-        await asyncio.sleep(0)
-
-    monkeypatch.setattr("textual.app.wait_for_idle", yield_once)
-    monkeypatch.setattr("textual.pilot.wait_for_idle", yield_once)
+pytestmark = pytest.mark.usefixtures("tui_no_idle_wait")  # see tests/conftest.py
 
 
 @pytest.fixture
@@ -44,6 +37,13 @@ def ur(tmp_path, emulators):
         yield robot
     finally:
         robot.close()
+
+
+def jog_controller(robot, folder) -> JogController:
+    header = session_header(identity=robot.identity(), model_name="ur5e", serial="20235500001",
+                            identify="offsets", reference="unknown", url="ur://")
+    return JogController(robot, JogSession.create(header=header, joint_units=joint_units(robot.model),
+                                                  folder=folder), identify="offsets")
 
 
 async def wait_still(pilot, ctl, timeout=10.0):
@@ -61,10 +61,7 @@ async def wait_still(pilot, ctl, timeout=10.0):
 def test_jog_and_record_on_ur(ur, tmp_path):
     robot = ur
     robot.enable()
-    header = session_header(identity=robot.identity(), model_name="ur5e", serial="20235500001",
-                            identify="offsets", reference="unknown", url="ur://")
-    ctl = JogController(robot, JogSession.create(header=header, joint_units=joint_units(robot.model),
-                                                 folder=tmp_path / "s"), identify="offsets")
+    ctl = jog_controller(robot, tmp_path / "s")
     model = robot.model
 
     async def run():
@@ -99,10 +96,7 @@ def test_ur_writeback_is_an_honest_export(ur, tmp_path):
 
     robot = ur
     robot.enable()
-    header = session_header(identity=robot.identity(), model_name="ur5e", serial="20235500001",
-                            identify="offsets", reference="unknown", url="ur://")
-    ctl = JogController(robot, JogSession.create(header=header, joint_units=joint_units(robot.model),
-                                                 folder=tmp_path / "s"), identify="offsets")
+    ctl = jog_controller(robot, tmp_path / "s")
     assert ctl.ur_rotvec
     rng = np.random.default_rng(3)
     for _ in range(8):  # forced records at spread poses: enough for a solve to export
@@ -161,10 +155,7 @@ def test_hold_to_run_on_ur_uses_the_velocity_jog(ur, tmp_path):
     measured 8 of 25 mm/s, standstill 0.5 s late); the key's repeats stopping stops the arm."""
     robot = ur
     robot.enable()
-    header = session_header(identity=robot.identity(), model_name="ur5e", serial="20235500001",
-                            identify="offsets", reference="unknown", url="ur://")
-    ctl = JogController(robot, JogSession.create(header=header, joint_units=joint_units(robot.model),
-                                                 folder=tmp_path / "s"), identify="offsets")
+    ctl = jog_controller(robot, tmp_path / "s")
     try:
         ctl.set_continuous()
         assert ctl.continuous, ctl.message

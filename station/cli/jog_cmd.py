@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 from urllib.parse import parse_qs, urlencode, urlsplit, urlunsplit
 
@@ -18,13 +19,36 @@ def url_with_model(url: str, model: str | None) -> str:
     return urlunsplit(parts._replace(query=urlencode(query, safe=",-/:")))
 
 
+def ask_serial(reported: str | None) -> str:
+    """The technician confirms the serial the session is filed under (Enter takes the one the robot or the URL
+    reports, if any). Never asked without a terminal: then ``--serial`` is required."""
+    import sys
+
+    from station.robot.errors import ConfigError
+
+    if not sys.stdin.isatty():
+        raise ConfigError("--serial is required: the session is filed under the robot's serial, and there is no "
+                          "terminal to confirm it on")
+    hint = f"the robot reports {reported}: Enter confirms it" if reported else "the robot reports none"
+    for _ in range(3):
+        answer = typer.prompt(f"robot serial for this jog session ({hint})", default=reported or "",
+                              show_default=False).strip()
+        if answer:
+            return answer
+    raise ConfigError("no serial confirmed: the session is filed under the robot's serial (--serial SN)")
+
+
 def open_jog(url: str, *, serial: str | None = None, model: str | None = None, session: Path | None = None,
              identify: str = "offsets,tcp", reference: list[str] | str | None = None, cell: Path | None = None,
-             limits: Path | None = None, judge: str = "jog"):
+             limits: Path | None = None, judge: str = "jog", confirm_serial=None):
     """Connect, create the session (journal + samples.csv) and return ``(robot, controller)``.
     Bad ``--reference``, cell or limits files fail before the robot is opened; the robot is closed again when
     anything after connecting fails. ``judge``: the limits section (procedure name) that judges the session;
-    a model without one ends the session with the verdict NO LIMITS."""
+    a model without one ends the session with the verdict NO LIMITS.
+
+    The session is filed under a serial the technician confirmed: ``serial`` (``--serial``, checked against
+    the one the robot or the URL reports), else ``confirm_serial(reported)``, which is offered the serial the
+    robot/URL reports but never one the driver made up from device ids. Neither: ConfigError."""
     from station.engine.cell import load_cell
     from station.engine.limits import load_limits
     from station.robot import adopt_serial, open_robot
@@ -41,8 +65,16 @@ def open_jog(url: str, *, serial: str | None = None, model: str | None = None, s
     robot = open_robot(full_url)
     try:
         robot.model.select(identify)  # unknown group: one-line error before anything is written
-        ident = adopt_serial(robot.identity(), serial)  # same rule as station run
-        sn = serial or ident.serial or "unknown"
+        ident = robot.identity()
+        if not serial:
+            reported = ident.serial if ident.serial and ident.serial_source != "derived" else None
+            if confirm_serial is None:
+                raise ConfigError("--serial is required: the session is filed under the robot's serial"
+                                  + (f" (the robot reports {reported})" if reported else
+                                     " (the robot reports none; device ids are no serial)"))
+            serial = str(confirm_serial(reported))
+        ident = adopt_serial(ident, serial)  # same rule as station run: the wrong robot fails here
+        sn = serial
         header = session_header(identity=ident, model_name=robot.model.name, serial=sn, identify=identify,
                                 reference=ref, url=full_url)
         header.limits = {"path": lim.path, "version": lim.version, "sha256": lim.sha256, "procedure": judge}
@@ -69,12 +101,17 @@ def open_jog(url: str, *, serial: str | None = None, model: str | None = None, s
 
 def store_in_records(folder: Path, db: str | None) -> bool:
     """Project the journal into the records database. A failure is reported, not fatal: the session folder
-    (journal + samples.csv) is complete and can be stored again later."""
+    (journal + samples.csv) is complete and can be stored again later. A session without a kept sample is
+    not stored (nothing to file under the robot's history; its journal stays in the folder)."""
     from station.engine.session_record import session_from_journal
     from station.publish import store_record
 
     try:
-        store_record(session_from_journal(folder), db)
+        record = session_from_journal(folder)
+        if not record.get("samples"):
+            typer.echo("no samples kept: the session is not stored in the records database", err=True)
+            return False
+        store_record(record, db)
     except Exception as e:  # any database/driver error: the journal is the truth, say so and go on
         typer.echo(f"station: warning: session not stored in the records database: {e}", err=True)
         return False
@@ -110,12 +147,14 @@ def register(app: typer.Typer) -> None:
 
         try:
             rob, ctl = open_jog(robot, serial=serial, model=model, session=session, identify=identify,
-                                reference=reference, cell=cell, limits=limits, judge=judge)
+                                reference=reference, cell=cell, limits=limits, judge=judge,
+                                confirm_serial=ask_serial)
         except (KeyError, SolverInputError) as e:
             typer.echo(f"station: error: --identify {identify!r}: {e.args[0] if e.args else e}", err=True)
             raise typer.Exit(2) from None
+        app = JogApp(ctl)
         try:
-            JogApp(ctl).run()
+            app.run()
         finally:
             ctl.close()
             rob.close()
@@ -124,3 +163,7 @@ def register(app: typer.Typer) -> None:
                    f"  verdict: {ctl.verdict_text or 'none'} (limits: {ctl.judged_as} for {rob.model.name}"
                    f"{'' if ctl.limits else ', none defined'})\n"
                    f"  solve it: {ctl.solve_command()}")
+        if app.interrupted is not None:  # SIGTERM/SIGINT: quit cleanly as ctrl+q does, exit status 130
+            typer.echo(f"station: interrupted ({signal.Signals(app.interrupted).name}); robot stopped, session "
+                       "saved", err=True)
+            raise typer.Exit(130)

@@ -3,7 +3,10 @@ without waiting, so the UI thread is never blocked by motion and the stop key is
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
+import signal
+import threading
 
 import numpy as np
 from rich.text import Text
@@ -14,7 +17,7 @@ from textual.css.query import NoMatches
 from textual.screen import ModalScreen
 from textual.widgets import Button, DataTable, Footer, Header, Static
 
-from station.tui.controller import HOLD_TICK_S, STEP_PRESETS, ExportPlan, JogController, WritebackPlan
+from station.tui.controller import HOLD_CHECK_S, STEP_PRESETS, ExportPlan, JogController, WritebackPlan
 from station.units import human, human_of, joint_quantity
 
 # (plus key, minus key) per axis: J1..J6 in joint mode, X Y Z Rx Ry Rz in Cartesian mode
@@ -166,6 +169,8 @@ class JogApp(App):
         self.ctl = controller
         self.poll_s = poll_s
         self._timer = None
+        self.interrupted: int | None = None  # the signal that ended the app (SIGTERM/SIGINT), if any
+        self._old_handlers: dict = {}
         n = controller.model.n_joints
         for i, (plus, minus) in enumerate(JOG_KEYS[:max(n, 6)]):
             self._bindings.bind(plus, f"jog({i},1)", show=False)
@@ -208,8 +213,9 @@ class JogApp(App):
         if r is not None and not r.enabled and not self.ctl.fault:
             self.ctl.message = "robot disabled (torque off): press c to enable"
         self.refresh_view()
+        self._catch_signals()
         self._timer = self.set_interval(self.poll_s, self._tick)
-        self._hold_timer = self.set_interval(HOLD_TICK_S, self._hold_tick)
+        self._hold_timer = self.set_interval(HOLD_CHECK_S, self._hold_tick)
 
     def _keys_text(self) -> Text:
         n = max(self.ctl.model.n_joints, 6)
@@ -220,6 +226,49 @@ class JogApp(App):
             "[b]p[/b] point  [b]enter[/b] record  [b]![/b] record w/o contact\n"
             "[b]↑ ↓[/b] select  [b]k[/b] retake  [b]del[/b] discard  [b]W[/b] write\n"
             "[b][reverse] space [/reverse][/b] STOP (x)  [b]c[/b] clear fault  [b]ctrl+q[/b] quit")
+
+    def _catch_signals(self) -> None:
+        """SIGTERM and SIGINT quit like ctrl+q (stop, journal the end, store): the handler only schedules the
+        quit on the event loop. Inside a write-back the engine holds both (station.engine.writeback
+        .signals_held) and delivers them here once the device is written and read back."""
+        if threading.current_thread() is not threading.main_thread():
+            return
+        loop = asyncio.get_running_loop()
+
+        def quit_on(signum, frame) -> None:
+            self.interrupted = signum
+            loop.call_soon_threadsafe(self.exit)
+
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            with contextlib.suppress(ValueError, OSError):
+                self._old_handlers[sig] = signal.signal(sig, quit_on)
+
+    def get_driver_class(self):
+        """Textual's driver, on Linux/macOS the one that asks the terminal for key releases (station.tui.keys)."""
+        cls = super().get_driver_class()
+        try:
+            from textual.drivers.linux_driver import LinuxDriver
+
+            from station.tui.keys import JogDriver
+        except ImportError:  # no termios (Windows): repeats only
+            return cls
+        return JogDriver if cls is LinuxDriver else cls
+
+    def on_key(self, event) -> None:
+        """A key release (kitty keyboard protocol, station.tui.keys): a released jog key ends its hold."""
+        from station.tui.keys import RELEASED
+
+        if not event.key.startswith(RELEASED):
+            return
+        event.stop()
+        key = event.key[len(RELEASED):]
+        for i, (plus, minus) in enumerate(JOG_KEYS):
+            if key in (plus, minus):
+                was = self.ctl.hold_state is not None
+                self.ctl.release(i, 1 if key == plus else -1)
+                if was and self.ctl.hold_state is None:
+                    self.refresh_view()
+                return
 
     def _hold_tick(self) -> None:
         if self.ctl.hold_state is None or self.ctl.closed:
@@ -471,3 +520,5 @@ class JogApp(App):
             self._timer.stop()
             self._hold_timer.stop()
         self.ctl.close()
+        for sig, handler in self._old_handlers.items():
+            signal.signal(sig, handler)

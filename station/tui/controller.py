@@ -5,8 +5,10 @@ write-back. Textual widgets only render this state and call these methods (and t
 from __future__ import annotations
 
 import re
+import statistics
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,14 +38,21 @@ SPEED_PERCENT = (1, 2, 5, 10, 25, 50, 100)  # speed override, % of the manual to
 POINT_LABELS = tuple("ABCDEFGH")
 CART_AXES = ("X", "Y", "Z", "Rx", "Ry", "Rz")
 JOG_MAX_JOINT_SPEED = np.deg2rad(30.0)  # rad/s (m/s prismatic): manual jog never faster than this per joint
-# hold-to-run: terminals send no key release, only repeats (first after a 250-660 ms delay, then every
-# 30-40 ms). A gap of HOLD_RELEASE_S without a repeat counts as released: the UI (ticking every HOLD_TICK_S)
-# sends stop, and every commanded target ends where the robot would be at that deadline, so the arm stands
-# still within HOLD_WATCHDOG_S of the last repeat even if the UI stalls. Before the first repeat,
-# HOLD_FIRST_S covers the terminal's repeat delay.
-HOLD_RELEASE_S = 0.15
-HOLD_TICK_S = 0.05  # the UI re-commands the motion this often while a key is held
-HOLD_WATCHDOG_S = 0.3  # release + one tick + deceleration: standstill after the last key repeat
+# hold-to-run (docs/jog.md "Hold-to-run"). A terminal with the kitty keyboard protocol reports the key release
+# (station.tui.keys): the release stops at once. Elsewhere only the autorepeat shows a held key: the press, a
+# repeat delay (250-600 ms), then a repeat every 30-40 ms. The release is then inferred from a gap of
+# HOLD_GAP_REPEATS measured repeat intervals, never shorter than HOLD_GAP_MIN_S (terminal input jitter) and
+# never longer than HOLD_RELEASE_S (the UR's RTDE watchdog period). Before the first repeat of a hold the
+# window is the terminal's repeat delay as measured on earlier holds (HOLD_FIRST_S until one was measured), so
+# the first press never stop-starts the arm. The UI checks for a release every HOLD_CHECK_S and re-commands
+# the motion every HOLD_TICK_S; every position target ends where the arm would be shortly after the
+# deadline, so a stalled UI stops it there too (HOLD_WATCHDOG_S: standstill after the last key event).
+HOLD_RELEASE_S = 0.1
+HOLD_GAP_REPEATS = 2.5
+HOLD_GAP_MIN_S = 0.05
+HOLD_TICK_S = 0.05
+HOLD_CHECK_S = 0.01
+HOLD_WATCHDOG_S = 0.3
 HOLD_FIRST_S = 0.6
 
 
@@ -138,6 +147,9 @@ class JogController:
         self.point_index = 0
         self.numbers: dict[int, int] = {}  # journal seq -> sample number 1..n in this session
         self.hold_state: dict | None = None
+        self.repeat_intervals: deque[float] = deque(maxlen=16)  # the terminal's autorepeat, measured (s)
+        self.repeat_delay: float | None = None  # the terminal's delay before the first repeat, measured (s)
+        self.release_events = False  # the terminal reported a key release (kitty keyboard protocol)
         self.predicted: dict[str, float | None] = {}
         self.guide: gd.Guidance = gd.guidance(self.model, self._guide_labels(), [], None, self.limits, None)
         self.verdict: dict | None = None
@@ -232,6 +244,23 @@ class JogController:
         else:
             rotational = axis >= 3
         return "deg" if rotational else "mm"
+
+    def joint_rate(self, axis: int) -> float:
+        """Lead-joint speed limit of a jog on ``axis`` (rad/s, m/s prismatic); the tool-speed cap at the
+        override applies on top. A Cartesian rotation (the TCP stands still, so the tool cap does not bite)
+        turns at the override's share of 30 deg/s, as a pendant's speed slider scales it."""
+        if self.mode == "cartesian" and axis >= 3:
+            return JOG_MAX_JOINT_SPEED * self.speed_percent / 100.0
+        return JOG_MAX_JOINT_SPEED
+
+    def lead_rate(self, axis: int, q0: np.ndarray, target: np.ndarray, step: float) -> float:
+        """Lead-joint speed limit for a move from ``q0`` to ``target`` (one ``step`` on ``axis``): for a
+        Cartesian rotation the one that turns the tool at :meth:`joint_rate` (the lead joint may turn faster
+        or slower than the tool), else :meth:`joint_rate`."""
+        rate = self.joint_rate(axis)
+        if self.mode == "cartesian" and axis >= 3 and abs(step) > 0:
+            rate *= float(np.max(np.abs(target - q0))) / abs(step)
+        return rate
 
     def step_si(self, axis: int) -> float:
         """The current preset in SI for ``axis`` of the current mode."""
@@ -396,7 +425,8 @@ class JogController:
                     return False
                 # lead-joint speed that keeps the tool at or below the override along the whole step; the
                 # joint cap keeps wrist rotations (tool point nearly still) from snapping round
-                speed = joint_speed_for_tool_cap(self.model, q0, target, JOG_MAX_JOINT_SPEED, cap=cap)
+                speed = joint_speed_for_tool_cap(self.model, q0, target, self.lead_rate(axis, start, target, step),
+                                                 cap=cap)
                 self.robot.move_joints(target, speed=speed, wait=False)
             except LimitError as e:
                 self.message = f"refused: {e}"
@@ -423,24 +453,72 @@ class JogController:
         d = 1 if direction > 0 else -1
         h = self.hold_state
         if h is not None and h["axis"] == axis and h["dir"] == d and h["mode"] == self.mode:
-            h["deadline"] = now + HOLD_RELEASE_S
-            h["events"] += 1
+            self._repeat_seen(h, now)
             return True
         if h is not None:
             self.stop_hold(quiet=True)
         self.axis = axis
         self.hold_state = {"axis": axis, "dir": d, "mode": self.mode, "frame": self.frame, "events": 1,
-                           "deadline": now + HOLD_FIRST_S, "started": now}
+                           "deadline": now + self.first_window(), "started": now, "last": now, "sent": None}
         return self._hold_command(now)
 
-    def hold_tick(self, now: float | None = None) -> None:
-        """Called every HOLD_TICK_S by the UI: re-command the held motion, or stop once the key events stopped."""
+    def _repeat_seen(self, h: dict, now: float) -> None:
+        """A repeat of the held key: measure the terminal's cadence and move the release deadline."""
+        dt = now - h["last"]
+        if h["events"] == 1:
+            h["delay"] = dt  # the repeat delay (or a second press: confirmed by the cadence that follows)
+        else:
+            self.repeat_intervals.append(dt)
+            if h["events"] == 2 and dt < 0.6 * h["delay"]:
+                self.repeat_delay = h["delay"]
+        h["events"] += 1
+        h["last"] = now
+        h["deadline"] = now + self.release_gap()
+
+    def release_gap(self) -> float:
+        """Key-event gap taken as a release: HOLD_GAP_REPEATS measured repeat intervals (mean of the last
+        16), within [HOLD_GAP_MIN_S, HOLD_RELEASE_S]; HOLD_RELEASE_S until the cadence was measured, and in a
+        terminal that reports releases (a lost release still stops within the watchdog period)."""
+        if not self.repeat_intervals or self.release_events:
+            return HOLD_RELEASE_S  # (the terminal reports releases: the gap is only the backup)
+        # the mean, not the median: a busy UI receives repeats in bunches (intervals near 0 then one long),
+        # whose median would shrink the gap below the real cadence
+        est = statistics.fmean(self.repeat_intervals)
+        return float(min(HOLD_RELEASE_S, max(HOLD_GAP_MIN_S, HOLD_GAP_REPEATS * est)))
+
+    def first_window(self) -> float:
+        """How long a press keeps the arm moving before its first repeat: the measured repeat delay plus a
+        quarter (input jitter), at most HOLD_FIRST_S; HOLD_FIRST_S until a delay was measured."""
+        if self.repeat_delay is None:
+            return HOLD_FIRST_S
+        return float(min(HOLD_FIRST_S, self.repeat_delay + max(HOLD_GAP_MIN_S, 0.25 * self.repeat_delay)))
+
+    def release(self, axis: int, direction: int) -> None:
+        """The terminal reported the release of a jog key (kitty keyboard protocol): stop now if it is the
+        held one."""
+        self.release_events = True
+        h = self.hold_state
+        if h is not None and h["axis"] == axis and h["dir"] == (1 if direction > 0 else -1):
+            self.stop_hold()
+
+    def hold_check(self, now: float | None = None) -> bool:
+        """Stop once the release deadline passed (cheap: the UI calls it every HOLD_CHECK_S). True if it stopped."""
         h = self.hold_state
         if h is None:
-            return
-        now = time.monotonic() if now is None else now
-        if now >= h["deadline"]:
+            return False
+        if (time.monotonic() if now is None else now) >= h["deadline"]:
             self.stop_hold()
+            return True
+        return False
+
+    def hold_tick(self, now: float | None = None) -> None:
+        """Called by the UI every HOLD_CHECK_S: stop once the key events stopped, else re-command the held
+        motion every HOLD_TICK_S."""
+        now = time.monotonic() if now is None else now
+        if self.hold_check(now):
+            return
+        h = self.hold_state
+        if h is None or (h["sent"] is not None and now - h["sent"] < HOLD_TICK_S * 0.9):
             return
         self._hold_command(now)
 
@@ -456,26 +534,30 @@ class JogController:
         """Command a target no farther than the robot travels at the override until the deadline: if the UI
         stalls, the robot still stops there by itself."""
         h = self.hold_state
-        # the target is where the arm would be at the deadline (a target much closer makes the drives'
-        # profiles brake on every command): a stalled UI still stops the arm there
-        horizon = max(h["deadline"] - now, HOLD_TICK_S)
+        h["sent"] = now
+        # the target is where the arm would be two ticks after the deadline (a target much closer makes the
+        # drives' profiles brake between commands): a stalled UI still stops the arm there
+        horizon = max(h["deadline"] - now, 0.0) + 2 * HOLD_TICK_S
         axis, d = h["axis"], h["dir"]
         cap = self.speed_mm_s * 1e-3
         rotational = self.axis_unit(axis) == "deg"
-        rate = JOG_MAX_JOINT_SPEED if rotational or self.mode == "joint" else cap
+        rate = self.joint_rate(axis)
         with self.io_lock:
             try:
                 q0 = np.asarray(self.robot.joint_positions().q, dtype=float)
                 if self.velocity_jog:
-                    return self._hold_velocity(h, q0, cap, rate)
-                step = d * rate * horizon
-                target = self.target(q0, axis, step)
-                speed = joint_speed_for_tool_cap(self.model, q0, target, JOG_MAX_JOINT_SPEED, cap=cap)
-                lead = float(np.max(np.abs(target - q0)))
-                if lead > speed * horizon > 0:  # slower than asked (tool cap): shorten to the reachable part
-                    step *= speed * horizon / lead
+                    sent = self._hold_velocity(axis, d, q0, cap, rate)
+                else:
+                    step = d * (rate if rotational or self.mode == "joint" else cap) * horizon
                     target = self.target(q0, axis, step)
-                self.robot.move_joints(target, speed=speed, wait=False)
+                    speed = joint_speed_for_tool_cap(self.model, q0, target, self.lead_rate(axis, q0, target, step),
+                                                     cap=cap)
+                    lead = float(np.max(np.abs(target - q0)))
+                    if lead > speed * horizon > 0:  # slower than asked (tool cap): shorten to the reachable part
+                        step *= speed * horizon / lead
+                        target = self.target(q0, axis, step)
+                    self.robot.move_joints(target, speed=speed, wait=False)
+                    sent = {"step": step, "speed": speed, "target": target}
             except LimitError as e:
                 self.hold_state = None
                 self.stop(quiet=True)
@@ -485,40 +567,25 @@ class JogController:
                 self.hold_state = None
                 self._on_error(e, f"jog {self.axis_names()[axis]}")
                 return False
-        self.last_jog = {"mode": self.mode, "frame": self.frame, "axis": axis, "step": step, "speed": speed,
-                         "q0": q0, "target": target, "cap_m_s": cap, "hold": True}
+        self.last_jog = {"mode": self.mode, "frame": self.frame, "axis": axis, "q0": q0, "cap_m_s": cap,
+                         "hold": True, **sent}
         self.message = (f"hold-to-run {self.axis_names()[axis]} {'+' if d > 0 else '-'} at {self.speed_percent} % "
                         f"({self.speed_mm_s:g} mm/s)")
         return True
 
-    def _hold_velocity(self, h: dict, q0: np.ndarray, cap: float, rate: float) -> bool:
-        """Velocity hold (caller holds io_lock): re-send the speed each tick; the driver's watchdog stops the
-        arm if the ticks stop. Joint speed is limited so the tool stays within the override."""
-        axis, d = h["axis"], h["dir"]
-        if self.mode == "joint" or self.axis_unit(axis) == "deg":
+    def _hold_velocity(self, axis: int, d: int, q0: np.ndarray, cap: float, rate: float) -> dict:
+        """Velocity hold (caller holds io_lock and handles errors): re-send the speed each tick; the driver's
+        watchdog stops the arm if the ticks stop. Joint speed is limited so the tool stays within the override."""
+        if self.mode == "joint":
             probe = self.target(q0, axis, d * 1e-3)  # direction of motion, for the tool-speed bound
-            if self.mode == "joint":
-                speed = joint_speed_for_tool_cap(self.model, q0, probe, JOG_MAX_JOINT_SPEED, cap=cap)
-            else:
-                speed = rate
+            speed = joint_speed_for_tool_cap(self.model, q0, probe, rate, cap=cap)
+        elif self.axis_unit(axis) == "deg":
+            self.target(q0, axis, d * 1e-3)  # reachable and clear of the keep-out (LimitError otherwise)
+            speed = rate  # rad/s about the TCP: the override's share of 30 deg/s
         else:
             speed = cap
-        try:
-            self.robot.jog_velocity(self.mode, axis, d * speed, self.frame)
-        except LimitError as e:
-            self.hold_state = None
-            self.stop(quiet=True)
-            self.message = f"refused: {e}"
-            return False
-        except StationError as e:
-            self.hold_state = None
-            self._on_error(e, f"jog {self.axis_names()[axis]}")
-            return False
-        self.last_jog = {"mode": self.mode, "frame": self.frame, "axis": axis, "velocity": d * speed,
-                         "q0": q0, "cap_m_s": cap, "hold": True}
-        self.message = (f"hold-to-run {self.axis_names()[axis]} {'+' if d > 0 else '-'} at {self.speed_percent} % "
-                        f"({self.speed_mm_s:g} mm/s)")
-        return True
+        self.robot.jog_velocity(self.mode, axis, d * speed, self.frame)
+        return {"velocity": d * speed}
 
     def enable(self) -> None:
         """Reset a fault: re-enable the robot and clear the banner only if the robot then reports OK."""
