@@ -77,15 +77,16 @@ def test_manual_touch_by_a_technician(cell):
             robot.move_joints(r.q[0])
             robot.set_compliant(True)
 
-    with station.session(robot, serial, cell=cell_path, options={"n_fit": 8, "n_holdout": 0}, db=db,
+    with station.session(robot, serial, cell=cell_path, options={"n_fit": 9, "n_holdout": 0}, db=db,
                          touch=ManualTouch(prompt=technician, timeout=2.0)) as s:
         plan = s.plan(s.points("socket"), identify="offsets")
         for pose in s.todo(plan):
             s.seat(pose)
             s.record(pose)
             s.leave(pose)
-    assert len(s.samples()) == 8 and all(x["status"]["touch"] for x in s.samples())
-    assert sum("onto point A" in p for p in prompts) == 8 and sum("clear of point" in p for p in prompts) == 8
+    # 9 poses: the plan needs at least one per unknown (6 offsets + the point's 3 coordinates)
+    assert len(s.samples()) == 9 and all(x["status"]["touch"] for x in s.samples())
+    assert sum("onto point A" in p for p in prompts) == 9 and sum("clear of point" in p for p in prompts) == 9
     tips = emu.world.truth.position(np.array([x["q"] for x in s.samples()]))
     assert np.abs(tips - target).max() < 1e-4  # every recorded touch is in the socket
 
