@@ -146,3 +146,20 @@ def test_solve_exit_codes_prior_noise_loss(data):
         code, out, err = run(*base, opt, val, cwd=d)
         assert code == 2, (opt, val, out, err)
         assert err.startswith("station: error: ") and len(err.strip().splitlines()) == 1 and opt in err, err
+
+
+def test_an_excluded_outlier_is_named_by_its_1_based_row(tmp_path):
+    """A slipped touch (truth: the one row we disturbed) is excluded and printed with the row number the samples
+    reader's own messages use (1-based), while the JSON keeps the 0-based index."""
+    nominal = load_model("ur5e").with_params({"tcp.z": 0.1})
+    truth = nominal.with_params(HIDDEN)
+    rng = np.random.default_rng(5)
+    obs = touch_observations(truth, {"A": truth.position(UR_HOME)}, 30, rng, centre=UR_HOME, spread=0.3)
+    q = obs.q + rng.normal(0.0, 2e-5, obs.q.shape)  # encoder-class noise (~20 um at the tool)
+    q[7, 1] += 0.01  # row 8 of the file: a slipped touch, ~5 mm off
+    write(tmp_path / "s.csv", q, "rad")
+    code, out, err = run("solve", "--model", "ur5e", "--samples", "s.csv", "--identify", "offsets",
+                         "--tool", "0,0,100mm", "--out", "r.json", cwd=tmp_path)
+    res = json.loads((tmp_path / "r.json").read_text())
+    assert [o["index"] for o in res["outliers"]] == [7], (out, err)
+    assert "  row 8 point A:" in out

@@ -132,7 +132,7 @@ def summary(res) -> str:
         lines += [f"  {n}: {why}" for n, why in bad.items()]
     if res.outliers:
         lines.append(f"outliers excluded ({len(res.outliers)}):")
-        lines += [f"  row {o['index']} point {o['point']}: {o['residual_m'] * 1e3:.4f} mm" for o in res.outliers]
+        lines += [f"  row {o['index'] + 1} point {o['point']}: {o['residual_m'] * 1e3:.4f} mm" for o in res.outliers]
     lines += [f"note: {n}" for n in res.notes]
     t = "" if res.solve_time_s is None else f" (solve {res.solve_time_s * 1e3:.1f} ms)"
     lines.append(("result: trusted" if res.trusted else f"result: NOT TRUSTED: {res.failure}") + t)
