@@ -62,7 +62,7 @@ def _standstill(recv, timeout: float = 3.0) -> tuple[float, float]:
 # KNOWN DEFECT (issue 15, open): in the lead's full runs the arm stopped once inside the terminal's 450 ms initial
 # repeat delay and started again at the first repeat (a stop-start), 2 runs of 2 with the suite's exclusive part;
 # the helper saw it pass alone. Suspect: the UI loop's speed re-commands vs the emulator's sim-time watchdog.
-# Marked xfail (visible as "xfailed" in every run) until fixed; the stop-after-release checks below run regardless.
+# Marked xfail (visible as "xfailed" in every run) until fixed.
 @pytest.mark.xfail(reason="stop-start inside the initial key-repeat delay on a UR (issue 15, open)", strict=False)
 @pytest.mark.timeout(240)
 def test_hold_to_run_on_a_ur_in_a_real_terminal(tmp_path, emulators):
