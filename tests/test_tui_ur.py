@@ -39,8 +39,8 @@ def ur(tmp_path, emulators):
         robot.close()
 
 
-def jog_controller(robot, folder) -> JogController:
-    header = session_header(identity=robot.identity(), model_name="ur5e", serial="20235500001",
+def jog_controller(robot, folder, serial: str = "20235500001") -> JogController:
+    header = session_header(identity=robot.identity(), model_name="ur5e", serial=serial,
                             identify="offsets", reference="unknown", url="ur://")
     return JogController(robot, JogSession.create(header=header, joint_units=joint_units(robot.model),
                                                   folder=folder), identify="offsets")

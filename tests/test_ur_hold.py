@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 import yaml
 from station.mocks.world import World, default_doc
+from test_tui_ur import jog_controller
 
 from station.robot import open_robot
 from station.robot.capabilities import VelocityJog
 from station.tui.controller import HOLD_RELEASE_S, HOLD_TICK_S, JogController
-from station.tui.session import JogSession, joint_units, session_header
 
 pytestmark = pytest.mark.exclusive  # timing on the wire: run alone, not next to another test (make test)
 
@@ -53,10 +53,7 @@ def ur(tmp_path, emulators):
 
 
 def controller(robot, tmp_path) -> JogController:
-    header = session_header(identity=robot.identity(), model_name="ur5e", serial="20235500011",
-                            identify="offsets", reference="unknown", url="ur://")
-    return JogController(robot, JogSession.create(header=header, joint_units=joint_units(robot.model),
-                                                  folder=tmp_path / "s"), identify="offsets")
+    return jog_controller(robot, tmp_path / "s", serial="20235500011")
 
 
 def sample(robot, world):
