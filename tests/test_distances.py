@@ -245,37 +245,21 @@ def test_cell_file_distances_and_planes():
 def test_station_run_uses_the_cell_distances(tmp_path, monkeypatch):
     """``distances:`` in the cell file reach every solve of a procedure (``station run``): dh_full on emulated
     CiA 402 drives (real canopen library) with unknown sockets, the distance A-B from the world's sockets."""
-    import uuid
-
-    import yaml
-    from station.mocks.canopen.emulator import CanopenEmulator
-
-    from station.api import run as start
+    from tests.test_e2e_dh_full import run_dh_full
 
     monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
-    socks = [("A", [0.35, 0.0, 0.75]), ("B", [0.30, 0.35, 0.60]), ("C", [0.45, -0.30, 0.55])]
-    world = World.default(model="arm6", seed=5, time_mode="instant", noise={"seating": 10e-6},
-                          errors={"random": {"offsets": {"angle": math.radians(0.1)},
-                                             "dh": {"length": 0.2e-3, "angle": math.radians(0.02)}}},
-                          cell={"points": [{"label": k, "kind": "socket", "position": p, "approach": [0, 0, 1]}
-                                           for k, p in socks]})
-    doc = world.station_cell()
-    k = {"m": 1.0, "mm": 1e3}[doc["units"]["length"]]
-    d_ab = float(np.linalg.norm(world.points["A"].position - world.points["B"].position))
-    doc["distances"] = [{"between": ["A", "B"], "distance": d_ab * k}]
-    cell = tmp_path / "cell.yaml"
-    cell.write_text(yaml.safe_dump(doc))
-    channel = f"dist{uuid.uuid4().hex[:8]}"
-    emu = CanopenEmulator(world, "virtual", channel).start()
-    try:
-        out = start("dh_full", f"canopen+virtual://{channel}?nodes=1-6&model=arm6&serial=D-1", "D-1", cell=cell,
-                    db=f"sqlite:///{tmp_path / 'records.db'}")
-    finally:
-        emu.stop()
+    d_ab = []
+
+    def add_distance(doc, world):
+        k = {"m": 1.0, "mm": 1e3}[doc["units"]["length"]]
+        d_ab.append(float(np.linalg.norm(world.points["A"].position - world.points["B"].position)))
+        doc["distances"] = [{"between": ["A", "B"], "distance": d_ab[0] * k}]
+
+    _, out = run_dh_full(tmp_path, add_distance, serial="D-1")
     assert out.status == "completed", out.error
     res = out.record["result"]
     (c,) = res["constraints"]
-    assert c["kind"] == "distance" and c["labels"] == ["A", "B"] and c["stated_m"] == pytest.approx(d_ab)
+    assert c["kind"] == "distance" and c["labels"] == ["A", "B"] and c["stated_m"] == pytest.approx(d_ab[0])
     assert abs(c["residual_m"]) < 4 * c["stated_std_m"]
     assert not any((p["reason"] or "").startswith("scale") for p in res["parameters"].values())
 

@@ -30,22 +30,30 @@ ERRORS = {"random": {"offsets": {"angle": math.radians(0.1)},
                      "dh": {"length": 0.2e-3, "angle": math.radians(0.02)}}}
 
 
-@pytest.fixture
-def run(tmp_path, monkeypatch):
-    monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
+def run_dh_full(tmp_path, edit_cell=None, serial: str = "DH-5"):
+    """dh_full on the arm6 world with three unknown sockets; ``edit_cell(doc, world)`` may add to the cell file."""
     world = World.default(model="arm6", seed=5, time_mode="instant", errors=ERRORS, noise={"seating": SEATING},
                           cell={"points": [{"label": k, "kind": "socket", "position": p, "approach": [0, 0, 1]}
                                            for k, p in SOCKETS]})
+    doc = world.station_cell()
+    if edit_cell is not None:
+        edit_cell(doc, world)
     cell = tmp_path / "cell.yaml"
-    cell.write_text(yaml.safe_dump(world.station_cell()))
+    cell.write_text(yaml.safe_dump(doc))
     channel = f"dh{uuid.uuid4().hex[:8]}"
     emu = CanopenEmulator(world, "virtual", channel).start()
     try:
-        out = start("dh_full", f"canopen+virtual://{channel}?nodes=1-6&model=arm6&serial=DH-5", "DH-5", cell=cell,
-                    db=f"sqlite:///{tmp_path / 'records.db'}")
+        out = start("dh_full", f"canopen+virtual://{channel}?nodes=1-6&model=arm6&serial={serial}", serial,
+                    cell=cell, db=f"sqlite:///{tmp_path / 'records.db'}")
     finally:
         emu.stop()
     return world, out
+
+
+@pytest.fixture
+def run(tmp_path, monkeypatch):
+    monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
+    return run_dh_full(tmp_path)
 
 
 def _projected_truth(world: World, record: dict) -> dict[str, float]:
