@@ -46,7 +46,7 @@ def test_zero_offsets_apply_then_verify(cell):
     assert all(abs(wb["after"][n] - wb["before"][n] - (p["value"] - p["nominal"])) < 1e-6
                for n, p in out.record["result"]["parameters"].items() if n.startswith("offset.") and p["identifiable"])
     after = start("verify", emu.url, serial, cell=cell_path, db=db)
-    assert after.passed, after.record["verdict"]
+    assert after.passed, (after.status, after.error, after.record.get("verdict"))
     with open_records(db) as rec:
         ids = {s["session"] for s in rec.sessions(serial)}
     assert {before.session, out.session, after.session} <= ids
