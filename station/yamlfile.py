@@ -125,6 +125,24 @@ for _tag in ("omap", "pairs", "set", "timestamp", "binary", "merge", "value", "y
     StrictLoader.add_constructor(f"tag:yaml.org,2002:{_tag}", _refuse_tag)
 
 
+class _ShippedLoader(getattr(yaml, "cyaml", None) and yaml.cyaml.CParser or yaml.SafeLoader,
+                     yaml.constructor.SafeConstructor, yaml.resolver.Resolver):
+    """StrictLoader's scalars, constructors and line record on libyaml's parser (~10x faster than the pure
+    Python one: ~15 ms of every command that loads a built-in model; issue 8). For the station's own package
+    data only: its composer does not refuse aliases or deep nesting, which shipped files do not have
+    (tests/test_startup.py parses every built-in both ways and compares)."""
+
+    yaml_constructors = StrictLoader.yaml_constructors
+    yaml_implicit_resolvers = StrictLoader.yaml_implicit_resolvers
+
+    def __init__(self, stream):
+        super().__init__(stream)
+        yaml.constructor.SafeConstructor.__init__(self)
+        yaml.resolver.Resolver.__init__(self)
+        self.depth = 0
+        self.lines: dict[int, dict] = {}
+
+
 @dataclass
 class YamlDoc:
     """A parsed YAML file: ``data`` (plain dicts, lists, str, int, float, bool, None) and the line of every
@@ -183,15 +201,16 @@ def decode(data: bytes, error: type[Exception], name: str) -> str:
     return text
 
 
-def parse_yaml_doc(text: str | bytes, error: type[Exception], name: str) -> YamlDoc:
+def parse_yaml_doc(text: str | bytes, error: type[Exception], name: str, *, shipped: bool = False) -> YamlDoc:
     """Parse ``text`` (of file ``name``) strictly; ``error(message)`` for anything refused:
-    ``NAME:LINE: not valid YAML (problem)``."""
+    ``NAME:LINE: not valid YAML (problem)``. ``shipped``: the station's own package data, parsed by libyaml
+    (``_ShippedLoader``)."""
     text = decode(text if isinstance(text, bytes) else text.encode("utf-8", "surrogatepass"), error, name)
     if len(text) > MAX_BYTES:
         raise error(f"{name}: larger than {MAX_BYTES // 1024 // 1024} MiB; refused")
     loader = None
     try:
-        loader = StrictLoader(text)
+        loader = (_ShippedLoader if shipped else StrictLoader)(text)
         data = loader.get_single_data()
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)

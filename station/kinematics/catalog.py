@@ -51,7 +51,8 @@ def load_model(name_or_path: str | Path, *, tip_link: str | None = None, base_li
         from station.yamlfile import parse_yaml_doc
 
         name = f"{s} (built-in)"
-        return model_from_dict(parse_yaml_doc(builtin_text(s), ModelFileError, name), name, shipped=True)
+        return model_from_dict(parse_yaml_doc(builtin_text(s), ModelFileError, name, shipped=True), name,
+                               shipped=True)
     if Path(s).exists() or s.endswith((".yaml", ".yml")):
         return load_model_file(s)
     raise ModelFileError(f"unknown model {s!r}: not a built-in ({', '.join(builtin_names())}) nor a file")
