@@ -100,7 +100,6 @@ def _input_errors() -> tuple[type[BaseException], ...]:
 
 
 def main() -> None:
-    _quiet_bus_libraries()
     try:
         # in non-standalone mode click *returns* the code of a raised Exit instead of exiting
         rc = _run(sys.argv[1:])
@@ -129,6 +128,7 @@ def _run(args: list[str]):
         if hasattr(module, "click_commands"):
             command = module.click_commands()[args[0]]
             return command.main(args[1:], prog_name=f"station {args[0]}", standalone_mode=False)
+    _quiet_bus_libraries()  # not for the click commands: they open no bus, and logging costs ~10 ms to import
     from station.cli.group import app
 
     return app(standalone_mode=False)

@@ -2,22 +2,32 @@
 
 from __future__ import annotations
 
-from importlib import resources
 from pathlib import Path
 
 from station.kinematics.model import Model
 from station.kinematics.modelfile import ModelFileError, load_model_file, model_from_dict
 
 
+def _models():
+    """The folder of the built-in models (package data next to this module). Plain on disk it is read directly:
+    ``importlib.resources`` costs every command that loads a model ~10 ms of imports (issue 8); it is asked
+    only when the package is not a folder (a zip import)."""
+    here = Path(__file__).with_name("models")
+    if here.is_dir():
+        return here
+    from importlib import resources
+
+    return resources.files("station.kinematics") / "models"
+
+
 def builtin_names() -> list[str]:
-    folder = resources.files("station.kinematics") / "models"
-    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".yaml"))
+    return sorted(p.name[:-5] for p in _models().iterdir() if p.name.endswith(".yaml"))
 
 
 def builtin_text(name: str) -> str:
     if name not in builtin_names():
         raise ModelFileError(f"unknown model {name!r}; built-in: {', '.join(builtin_names())}")
-    return (resources.files("station.kinematics") / "models" / f"{name}.yaml").read_text()
+    return (_models() / f"{name}.yaml").read_text(encoding="utf-8")
 
 
 def is_urdf(path: str | Path) -> bool:
