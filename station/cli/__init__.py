@@ -121,17 +121,65 @@ def main() -> None:
         _internal_error(e)
 
 
+_click_command_ran = False  # set by _run: console() may then end the process without the interpreter's teardown
+
+
+def console() -> None:
+    """The ``station`` console script: :func:`main`. After a click command (solve, fk) the process ends without
+    the interpreter's teardown: freeing numpy and every module costs ~10 % of a solve's cpu (bench/startup.py),
+    and they have closed their files; their output is flushed here, and a failed flush is a one-line error
+    (a full disk under ``> out.csv``), never lost in silence. Other commands exit normally (their emulators,
+    threads and atexit handlers need it). ``main()`` itself never does this: tests and scripts call it."""
+    try:
+        main()
+        code = 0
+    except SystemExit as e:
+        code = e.code
+    if not _click_command_ran:
+        sys.exit(code)
+    if not isinstance(code, int):
+        if code is not None:
+            print(code, file=sys.stderr)
+        code = 0 if code is None else 1
+    import contextlib
+    import os
+
+    try:
+        sys.stdout.flush()
+    except OSError as e:
+        if not isinstance(e, BrokenPipeError):  # a reader that went away (| head) is not an error
+            _err(f"station: error: standard output: {e.strerror or e}")
+            code = 2
+    with contextlib.suppress(OSError):
+        sys.stderr.flush()
+    os._exit(code)
+
+
 def _run(args: list[str]):
     """``station NAME ...`` of a click-defined command runs it directly; everything else goes through typer."""
     if args and args[0] in COMMANDS:
         module = importlib.import_module(COMMANDS[args[0]][0])
         if hasattr(module, "click_commands"):
+            global _click_command_ran
+            _click_command_ran = True
+            _one_blas_thread()
             command = module.click_commands()[args[0]]
             return command.main(args[1:], prog_name=f"station {args[0]}", standalone_mode=False)
     _quiet_bus_libraries()  # not for the click commands: they open no bus, and logging costs ~10 ms to import
     from station.cli.group import app
 
     return app(standalone_mode=False)
+
+
+def _one_blas_thread() -> None:
+    """solve and fk do 12 x 12 to 150 x 12 linear algebra: BLAS worker threads only cost their start when numpy
+    is imported (~10 % of a solve's cpu, bench/startup.py) and their spinning. One thread unless the user says
+    otherwise; set only before numpy is imported (OpenBLAS reads it then), so never inside a process that already
+    has numpy (a test) and whose children would inherit it."""
+    import os
+
+    if "numpy.linalg" not in sys.modules:  # not "numpy": station.lazy registers a module that is not loaded yet
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
 def _usage_error(e) -> None:
