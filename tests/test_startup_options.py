@@ -137,3 +137,18 @@ def test_a_path_option_is_not_checked_by_click(tmp_path):
     missing = tmp_path / "nope.csv"
     got = click_values(FK_OPTIONS, ["--model", "ur5e", "--joints", str(missing)])
     assert got["joints"] == Path(missing)
+
+
+def test_the_typer_group_still_runs_the_click_commands(tmp_path):
+    """``station.cli.app`` (used directly by scripts and tests) hands ``solve``/``fk`` their arguments unparsed."""
+    from typer.testing import CliRunner
+
+    from station.cli import app
+
+    joints = tmp_path / "q.csv"
+    joints.write_text("q1[deg],q2[deg],q3[deg],q4[deg],q5[deg],q6[deg]\n0,-90,90,-90,-90,0\n10,-80,70,-90,-90,0\n")
+    r = CliRunner().invoke(app, ["fk", "--model", "ur5e", "--joints", str(joints)])
+    assert r.exit_code == 0, r.output
+    assert len([x for x in r.output.splitlines() if x and not x.startswith(("#", "x["))]) == 2
+    r = CliRunner().invoke(app, ["fk", "--model", "ur5e", "--joints", str(joints), "--modle", "x"])
+    assert r.exit_code != 0 and type(r.exception).__name__ == "NoSuchOption"

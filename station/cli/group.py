@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import typer
 from typer import _click
-from typer.core import TyperGroup
+from typer.core import TyperCommand, TyperGroup
 
 from station.cli import COMMANDS, load_commands
 
@@ -41,7 +41,7 @@ class LazyGroup(TyperGroup):
             raise
 
 
-class _Forward(_click.Command):
+class _Forward(TyperCommand):
     """A plain click command (another click than the one typer vendors) inside this group: its arguments are
     handed over unparsed. ``station.cli.main`` does not come here; ``app`` used directly (tests) does."""
 
