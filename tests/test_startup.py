@@ -95,19 +95,22 @@ def ur5e_touches(path, n: int = 50) -> None:
 
 
 def test_a_whole_solve_and_fk_load_no_typer_pydantic_or_numpy_ma(tmp_path):
+    from station.kinematics.catalog import _builtin_doc
+
     samples, out = tmp_path / "s.csv", tmp_path / "r.json"
     ur5e_touches(samples)
+    _builtin_doc("ur5e")  # its parse cached (as the first command after an install does): no yaml below
     mods = loaded(["solve", "--model", "ur5e", "--samples", str(samples), "--tool", "0.02,-0.01,0.12",
                    "--out", str(out)])
     import json
 
     result = json.loads(out.read_text())  # it did solve, to the end
     assert result["solve_time_s"] > 0 and "station.solver.estimator" in mods
-    assert not set(NOT_ON_THE_HOT_PATH) & mods
+    assert not set(NOT_ON_THE_HOT_PATH + ("yaml",)) & mods
     assert not set(HEAVY) & mods
     mods = loaded(["fk", "--model", "ur5e", "--joints", str(samples)])
     assert "station.kinematics.model" in mods
-    assert not set(NOT_ON_THE_HOT_PATH) & mods
+    assert not set(NOT_ON_THE_HOT_PATH + ("yaml",)) & mods
 
 
 def test_the_console_script_flushes_everything_before_its_fast_exit(tmp_path):
@@ -142,6 +145,31 @@ def test_shipped_models_parse_alike_with_libyaml():
         fast = parse_yaml_doc(builtin_text(name), ModelFileError, name, shipped=True)
         assert fast.data == strict.data and fast.lines == strict.lines, name
         assert len(fast.lines) > 20
+
+
+def test_the_cached_parse_of_a_builtin_model_is_the_parse_and_is_dropped_when_stale():
+    """``station.kinematics.catalog._builtin_doc`` keeps libyaml's parse beside the model with the text it came
+    from; the strict loader is the reference. A torn, foreign or stale cache is parsed over, never believed."""
+    import marshal
+    import sys
+
+    from station.kinematics.catalog import _builtin_doc, _models, builtin_names, builtin_text
+    from station.kinematics.modelfile import ModelFileError
+    from station.yamlfile import parse_yaml_doc
+
+    for name in builtin_names():
+        strict = parse_yaml_doc(builtin_text(name), ModelFileError, f"{name} (built-in)")
+        for _ in range(2):  # parsed (and kept), then from the cache
+            doc = _builtin_doc(name)
+            assert (doc.name, doc.data, doc.lines) == (strict.name, strict.data, strict.lines), name
+    cache = _models() / "__pycache__" / f"ur5e.{sys.implementation.cache_tag}.marshal"
+    strict = parse_yaml_doc(builtin_text("ur5e"), ModelFileError, "ur5e (built-in)")
+    assert cache.is_file()
+    for bad in (b"\x00torn", marshal.dumps(("an older ur5e.yaml", {"joints": []}, {})), b""):
+        cache.write_bytes(bad)
+        doc = _builtin_doc("ur5e")
+        assert (doc.data, doc.lines) == (strict.data, strict.lines)
+        assert marshal.loads(cache.read_bytes())[0] == builtin_text("ur5e")  # rewritten
 
 
 def test_the_estimators_median_is_numpys():
