@@ -5,6 +5,7 @@ Errors the station raises on purpose (``StationError``, bad model files, bad inp
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import sys
 
@@ -141,7 +142,6 @@ def console() -> None:
         if code is not None:
             print(code, file=sys.stderr)
         code = 0 if code is None else 1
-    import contextlib
     import os
 
     try:
@@ -164,7 +164,8 @@ def _run(args: list[str]):
             _click_command_ran = True
             _one_blas_thread()
             command = module.click_commands()[args[0]]
-            return command.main(args[1:], prog_name=f"station {args[0]}", standalone_mode=False)
+            with _fewer_collections():
+                return command.main(args[1:], prog_name=f"station {args[0]}", standalone_mode=False)
     _quiet_bus_libraries()  # not for the click commands: they open no bus, and logging costs ~10 ms to import
     from station.cli.group import app
 
@@ -180,6 +181,22 @@ def _one_blas_thread() -> None:
 
     if "numpy.linalg" not in sys.modules:  # not "numpy": station.lazy registers a module that is not loaded yet
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
+@contextlib.contextmanager
+def _fewer_collections():
+    """solve and fk allocate their start-up (numpy, the model, the station's modules: objects that live to the
+    end of the process) and little else; Python's cyclic collector, every 700 allocations, would scan those same
+    live objects again and again (~5 % of a solve's cpu, bench/startup.py). A collection every 100 000 keeps a
+    long run's garbage cycles bounded still; the caller's setting is restored (main() runs inside tests)."""
+    import gc
+
+    before = gc.get_threshold()
+    gc.set_threshold(100_000, *before[1:])
+    try:
+        yield
+    finally:
+        gc.set_threshold(*before)
 
 
 def _usage_error(e) -> None:
