@@ -218,3 +218,20 @@ def test_every_builtin_model_passes_the_strict_schema():
     assert "ur5e" in names
     for name in names:
         check_schema(parse_yaml_doc(builtin_text(name), ModelFileError, name), ModelFileError)
+
+
+def test_main_in_process_leaves_the_callers_process_as_it_was(tmp_path, capsys, monkeypatch):
+    """The start-up settings of solve/fk (collector threshold, one BLAS thread) stay inside the command: main()
+    run by a script or a test changes neither the collector nor the environment its children inherit."""
+    import gc
+    import os
+
+    from station.cli import main
+
+    joints = tmp_path / "q.csv"
+    joints.write_text("q1[rad],q2[rad],q3[rad],q4[rad],q5[rad],q6[rad]\n0.1,-1.2,1.5,-1.9,-1.57,0.4\n")
+    before, blas = gc.get_threshold(), os.environ.get("OPENBLAS_NUM_THREADS")
+    monkeypatch.setattr(sys, "argv", ["station", "fk", "--model", "ur5e", "--joints", str(joints)])
+    main()
+    assert len(capsys.readouterr().out.splitlines()) == 3
+    assert gc.get_threshold() == before and os.environ.get("OPENBLAS_NUM_THREADS") == blas
