@@ -101,7 +101,7 @@ def parse_table(text: str, path: str = "<text>") -> Table:
 
 
 def read_table(path: str | Path) -> Table:
-    from station.yamlfile import decode, read_capped
+    from station.textfile import decode, read_capped
 
     p = Path(path)
     if not p.exists() and not p.is_symlink():

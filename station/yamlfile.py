@@ -14,16 +14,15 @@ The parsed document keeps the line of every key and item (``YamlDoc.line``) so a
 
 from __future__ import annotations
 
-import os
 import re
-import stat
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
 from yaml.events import AliasEvent
 
-MAX_BYTES = 4 * 1024 * 1024  # a model/world/cell/limits file is a few kB; 4 MiB is generous
+# the strict reading of a text file and a parsed file's shape live where no yaml is imported (station.textfile)
+from station.textfile import MAX_BYTES, YamlDoc, decode, dotted, read_capped  # noqa: F401
+
 MAX_DEPTH = 64  # nesting of mappings and lists
 MAX_INT_DIGITS = 30  # beyond any physical quantity in any unit; a 400-digit integer is not a reading
 
@@ -125,37 +124,22 @@ for _tag in ("omap", "pairs", "set", "timestamp", "binary", "merge", "value", "y
     StrictLoader.add_constructor(f"tag:yaml.org,2002:{_tag}", _refuse_tag)
 
 
-@dataclass
-class YamlDoc:
-    """A parsed YAML file: ``data`` (plain dicts, lists, str, int, float, bool, None) and the line of every
-    key and item by path (``("joints", 2, "encoder")``)."""
+class _ShippedLoader(getattr(yaml, "cyaml", None) and yaml.cyaml.CParser or yaml.SafeLoader,
+                     yaml.constructor.SafeConstructor, yaml.resolver.Resolver):
+    """StrictLoader's scalars, constructors and line record on libyaml's parser (~10x faster than the pure
+    Python one: ~15 ms of every command that loads a built-in model; issue 8). For the station's own package
+    data only: its composer does not refuse aliases or deep nesting, which shipped files do not have
+    (tests/test_startup.py parses every built-in both ways and compares)."""
 
-    name: str
-    data: object
-    lines: dict[tuple, int] = field(default_factory=dict)
+    yaml_constructors = StrictLoader.yaml_constructors
+    yaml_implicit_resolvers = StrictLoader.yaml_implicit_resolvers
 
-    def line(self, path) -> int | None:
-        """Line of ``path`` or of its nearest located ancestor."""
-        path = tuple(path)
-        while path:
-            if path in self.lines:
-                return self.lines[path]
-            path = path[:-1]
-        return None
-
-    def where(self, path=()) -> str:
-        """``NAME:LINE: FIELD`` for an error message (``NAME: FIELD`` when the line is unknown)."""
-        line = self.line(path)
-        head = f"{self.name}:{line}" if line else self.name
-        return f"{head}: {dotted(path)}" if path else head
-
-
-def dotted(path) -> str:
-    """``("joints", 2, "encoder", "gear")`` -> ``joints[2].encoder.gear``."""
-    out = ""
-    for p in path:
-        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
-    return out
+    def __init__(self, stream):
+        super().__init__(stream)
+        yaml.constructor.SafeConstructor.__init__(self)
+        yaml.resolver.Resolver.__init__(self)
+        self.depth = 0
+        self.lines: dict[int, dict] = {}
 
 
 def _paths(data, lines_by_id: dict, prefix: tuple, out: dict) -> None:
@@ -167,31 +151,16 @@ def _paths(data, lines_by_id: dict, prefix: tuple, out: dict) -> None:
             _paths(v, lines_by_id, prefix + (k,), out)
 
 
-def decode(data: bytes, error: type[Exception], name: str) -> str:
-    """UTF-8 text of ``data`` or ``error`` naming the line of the first byte that is not text."""
-    if data[:2] in (b"\xff\xfe", b"\xfe\xff") or data[:4] in (b"\x00\x00\xfe\xff", b"\xff\xfe\x00\x00"):
-        raise error(f"{name}:1: the file is UTF-16/UTF-32 text; save it as UTF-8")
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        line = data[:e.start].count(b"\n") + 1
-        raise error(f"{name}:{line}: not UTF-8 text (byte 0x{data[e.start]:02x}); save the file as UTF-8") from None
-    bad = re.search(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f\ufffe\uffff]", text)
-    if bad:
-        line = text[:bad.start()].count("\n") + 1
-        raise error(f"{name}:{line}: binary data (control character U+{ord(bad.group()):04X}); not a text file")
-    return text
-
-
-def parse_yaml_doc(text: str | bytes, error: type[Exception], name: str) -> YamlDoc:
+def parse_yaml_doc(text: str | bytes, error: type[Exception], name: str, *, shipped: bool = False) -> YamlDoc:
     """Parse ``text`` (of file ``name``) strictly; ``error(message)`` for anything refused:
-    ``NAME:LINE: not valid YAML (problem)``."""
+    ``NAME:LINE: not valid YAML (problem)``. ``shipped``: the station's own package data, parsed by libyaml
+    (``_ShippedLoader``)."""
     text = decode(text if isinstance(text, bytes) else text.encode("utf-8", "surrogatepass"), error, name)
     if len(text) > MAX_BYTES:
         raise error(f"{name}: larger than {MAX_BYTES // 1024 // 1024} MiB; refused")
     loader = None
     try:
-        loader = StrictLoader(text)
+        loader = (_ShippedLoader if shipped else StrictLoader)(text)
         data = loader.get_single_data()
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
@@ -211,30 +180,6 @@ def parse_yaml_doc(text: str | bytes, error: type[Exception], name: str) -> Yaml
 def parse_yaml(text: str | bytes, error: type[Exception], name: str):
     """Parsed content of ``text`` (the bytes of file ``name``, e.g. kept for a checksum); see ``parse_yaml_doc``."""
     return parse_yaml_doc(text, error, name).data
-
-
-def read_capped(path: str | Path, error: type[Exception], name: str, limit: int = MAX_BYTES, hint: str = "") -> bytes:
-    """The bytes of regular file ``path`` (at most ``limit``), or ``error`` in one line: a FIFO, device or
-    directory is refused before anything is read from it (reading ``/dev/zero`` or a FIFO would never end)."""
-    try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
-    except OSError as e:
-        raise error(f"{name}: cannot read ({e.strerror or e}){hint}") from None
-    try:
-        mode = os.fstat(fd).st_mode
-        if not stat.S_ISREG(mode):
-            kind = ("a directory" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode)
-                    else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a regular file")
-            raise error(f"{name}: is {kind}, not a regular file; refused{hint}")
-        with os.fdopen(fd, "rb", closefd=False) as f:
-            data = f.read(limit + 1)
-    except OSError as e:
-        raise error(f"{name}: cannot read ({e.strerror or e}){hint}") from None
-    finally:
-        os.close(fd)
-    if len(data) > limit:
-        raise error(f"{name}: larger than {limit // 1024} KiB; refused (is it the right file?)")
-    return data
 
 
 def load_yaml_doc(path: str | Path, error: type[Exception], what: str = "", hint: str = "") -> YamlDoc:

@@ -5,15 +5,14 @@ Errors the station raises on purpose (``StationError``, bad model files, bad inp
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import sys
 
-import typer
-from typer.core import TyperGroup
-
-# command -> (module defining ``register(app: typer.Typer) -> None``, its one-line help for ``station --help``).
-# Only the invoked command's module is imported (``station --help`` imports none): start-up of every command
-# (issue 8; bench/startup.py). tests/test_startup.py checks this table against what each module registers.
+# command -> (module defining ``register(app: typer.Typer) -> None`` or ``click_commands() -> {name: command}``,
+# its one-line help for ``station --help``). Only the invoked command's module is imported (``station --help``
+# imports none), and a click module's commands run without typer: start-up of every command (issue 8;
+# bench/startup.py). tests/test_startup.py checks this table against what each module registers.
 COMMANDS = {
     "solve": ("station.cli.solve_cmd", "Identify joint offsets, TCP, link geometry from touch samples."),
     "fk": ("station.cli.solve_cmd", "Tool pose (x, y, z in m; rx, ry, rz rotation vector in rad) for each row of "
@@ -43,59 +42,39 @@ COMMANDS = {
 
 
 def load_commands(module: str) -> dict:
-    """The click commands ``module`` registers, by name (its ``register`` run on a scratch Typer app)."""
+    """The commands ``module`` defines, by name: its ``click_commands()``, or what its ``register`` adds to a
+    scratch Typer app."""
+    mod = importlib.import_module(module)
+    if hasattr(mod, "click_commands"):
+        return mod.click_commands()
+    import typer
     from typer.main import get_group
 
     scratch = typer.Typer(rich_markup_mode=None)
     scratch.callback()(lambda: None)  # a group even when the module registers one command
-    importlib.import_module(module).register(scratch)
+    mod.register(scratch)
     return get_group(scratch).commands
 
 
-class LazyGroup(TyperGroup):
-    """The ``station`` group: lists COMMANDS from the table, imports a command's module when it is invoked."""
+def __getattr__(name: str):
+    """``app`` (the typer group of every command) is built on first use: a click command never imports typer."""
+    if name in ("app", "LazyGroup"):
+        from station.cli import group
 
-    def list_commands(self, ctx) -> list[str]:
-        return list(COMMANDS)
-
-    def get_command(self, ctx, cmd_name: str):
-        if cmd_name not in self.commands and cmd_name in COMMANDS:
-            self.commands.update(load_commands(COMMANDS[cmd_name][0]))
-        return self.commands.get(cmd_name)
-
-    def format_commands(self, ctx, formatter) -> None:
-        from typer._click.utils import make_default_short_help
-
-        limit = formatter.width - 6 - max(len(n) for n in COMMANDS)
-        with formatter.section("Commands"):
-            formatter.write_dl([(n, make_default_short_help(h, limit)) for n, (_, h) in COMMANDS.items()])
-
-    def resolve_command(self, ctx, args):
-        try:
-            return super().resolve_command(ctx, args)
-        except Exception as e:  # a typo: the suggestion TyperGroup makes from the commands it holds, from all
-            from difflib import get_close_matches
-
-            matches = get_close_matches(args[0], list(COMMANDS)) if args and hasattr(e, "message") else []
-            if matches and "Did you mean" not in e.message:
-                e.message = f"{e.message.rstrip('.')}. Did you mean {', '.join(repr(m) for m in matches)}?"
-            raise
+        return getattr(group, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-# rich_markup_mode=None: plain click help, so that no command imports rich unless it prints a rich table
-app = typer.Typer(cls=LazyGroup, add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
-                  rich_markup_mode=None)
+def fail(message: str, code: int = 2):
+    """Print the one-line error and return the ``typer.Exit`` to raise."""
+    import typer
 
-
-@app.callback(help="Robot calibration station: jog, record, solve, verify, report, write back.")
-def _station() -> None:
-    pass
-
-
-def fail(message: str, code: int = 2) -> typer.Exit:
-    """Print the one-line error and return the exit to raise."""
-    typer.echo(f"station: error: {message}", err=True)
+    _err(f"station: error: {message}")
     return typer.Exit(code)
+
+
+def _err(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
 
 
 def _quiet_bus_libraries() -> None:
@@ -122,37 +101,113 @@ def _input_errors() -> tuple[type[BaseException], ...]:
 
 
 def main() -> None:
-    _quiet_bus_libraries()
     try:
         # in non-standalone mode click *returns* the code of a raised Exit instead of exiting
-        rc = app(standalone_mode=False)
+        rc = _run(sys.argv[1:])
         if isinstance(rc, int) and rc != 0:
             sys.exit(rc)
-    except typer.Exit as e:
-        sys.exit(e.exit_code)
     except _input_errors() as e:  # evaluated only when something was raised
-        typer.echo(f"station: error: {e}", err=True)
+        _err(f"station: error: {e}")
         sys.exit(2)
     except KeyboardInterrupt:
-        typer.echo("station: interrupted", err=True)
+        _err("station: interrupted")
         sys.exit(130)
-    except Exception as e:  # click usage errors arrive here in non-standalone mode (typer vendors click)
+    except Exception as e:  # click usage errors arrive here in non-standalone mode (typer vendors its own click)
         if type(e).__name__ == "Abort":
             sys.exit(130)
+        if type(e).__name__ == "Exit" and isinstance(getattr(e, "exit_code", None), int):  # typer.Exit
+            sys.exit(e.exit_code)
         if hasattr(e, "show") and isinstance(getattr(e, "exit_code", None), int):
             _usage_error(e)
         _internal_error(e)
+
+
+_click_command_ran = False  # set by _run: console() may then end the process without the interpreter's teardown
+
+
+def console() -> None:
+    """The ``station`` console script: :func:`main`. After a click command (solve, fk) the process ends without
+    the interpreter's teardown: freeing numpy and every module costs ~10 % of a solve's cpu (bench/startup.py),
+    and they have closed their files; their output is flushed here, and a failed flush is a one-line error
+    (a full disk under ``> out.csv``), never lost in silence. Other commands exit normally (their emulators,
+    threads and atexit handlers need it). ``main()`` itself never does this: tests and scripts call it."""
+    try:
+        main()
+        code = 0
+    except SystemExit as e:
+        code = e.code
+    if not _click_command_ran:
+        sys.exit(code)
+    if not isinstance(code, int):
+        if code is not None:
+            print(code, file=sys.stderr)
+        code = 0 if code is None else 1
+    import os
+
+    try:
+        sys.stdout.flush()
+    except OSError as e:
+        if not isinstance(e, BrokenPipeError):  # a reader that went away (| head) is not an error
+            _err(f"station: error: standard output: {e.strerror or e}")
+            code = 2
+    with contextlib.suppress(OSError):
+        sys.stderr.flush()
+    os._exit(code)
+
+
+def _run(args: list[str]):
+    """``station NAME ...`` of a click-defined command runs it directly; everything else goes through typer."""
+    if args and args[0] in COMMANDS:
+        module = importlib.import_module(COMMANDS[args[0]][0])
+        if hasattr(module, "click_commands"):
+            global _click_command_ran
+            _click_command_ran = True
+            _one_blas_thread()
+            command = module.click_commands()[args[0]]
+            with _fewer_collections():
+                return command.main(args[1:], prog_name=f"station {args[0]}", standalone_mode=False)
+    _quiet_bus_libraries()  # not for the click commands: they open no bus, and logging costs ~10 ms to import
+    from station.cli.group import app
+
+    return app(standalone_mode=False)
+
+
+def _one_blas_thread() -> None:
+    """solve and fk do 12 x 12 to 150 x 12 linear algebra: BLAS worker threads only cost their start when numpy
+    is imported (~10 % of a solve's cpu, bench/startup.py) and their spinning. One thread unless the user says
+    otherwise; set only before numpy is imported (OpenBLAS reads it then), so never inside a process that already
+    has numpy (a test) and whose children would inherit it."""
+    import os
+
+    if "numpy.linalg" not in sys.modules:  # not "numpy": station.lazy registers a module that is not loaded yet
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
+@contextlib.contextmanager
+def _fewer_collections():
+    """solve and fk allocate their start-up (numpy, the model, the station's modules: objects that live to the
+    end of the process) and little else; Python's cyclic collector, every 700 allocations, would scan those same
+    live objects again and again (~5 % of a solve's cpu, bench/startup.py). A collection every 100 000 keeps a
+    long run's garbage cycles bounded still; the caller's setting is restored (main() runs inside tests)."""
+    import gc
+
+    before = gc.get_threshold()
+    gc.set_threshold(100_000, *before[1:])
+    try:
+        yield
+    finally:
+        gc.set_threshold(*before)
 
 
 def _usage_error(e) -> None:
     """A click usage error (bad option value, missing argument) as one line and exit 2."""
     ctx = getattr(e, "ctx", None)
     if type(e).__name__ == "NoArgsIsHelpError" and ctx is not None:  # bare ``station`` / ``station mock``
-        typer.echo(ctx.get_help())
+        print(ctx.get_help(), flush=True)
         sys.exit(2)
     message = e.format_message() if hasattr(e, "format_message") else str(e)
     where = f"{ctx.command_path}: " if ctx is not None and getattr(ctx, "command_path", None) else ""
-    typer.echo(f"station: error: {where}{' '.join(str(message).split())}", err=True)
+    _err(f"station: error: {where}{' '.join(str(message).split())}")
     sys.exit(2 if e.exit_code in (1, 2) else e.exit_code)
 
 
@@ -163,11 +218,11 @@ def _internal_error(e: BaseException) -> None:
 
     if isinstance(e, OSError):  # a file or device the user named: say which, as the station's own errors do
         where = f"{e.filename}: " if getattr(e, "filename", None) else ""
-        typer.echo(f"station: error: {where}{e.strerror or e}", err=True)
+        _err(f"station: error: {where}{e.strerror or e}")
         sys.exit(2)
     if os.environ.get("STATION_DEBUG"):
         traceback.print_exception(e)
     text = " ".join(str(e).split())[:300]
     hint = "" if os.environ.get("STATION_DEBUG") else " (STATION_DEBUG=1 shows the traceback)"
-    typer.echo(f"station: error: internal error: {type(e).__name__}: {text}{hint}", err=True)
+    _err(f"station: error: internal error: {type(e).__name__}: {text}{hint}")
     sys.exit(2)

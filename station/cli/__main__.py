@@ -1,5 +1,5 @@
-"""``python -m station.cli`` runs the ``station`` command."""
+"""``python -m station.cli`` runs the ``station`` command (as the console script does)."""
 
-from station.cli import main
+from station.cli import console
 
-main()
+console()

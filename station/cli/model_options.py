@@ -1,6 +1,9 @@
 """The options that choose a model, shared by every command that takes ``--model`` (solve, fk, model ...).
 
-Use them as parameter defaults and load through :func:`load_cli_model`::
+Each is declared once (:class:`station.cli.optspec.Opt`, in ``MODEL_OPTIONS``). The click commands (solve, fk)
+take ``MODEL_OPTIONS`` as click options; typer commands use ``MODEL``, ``TIP_LINK``, ``BASE_LINK``, ``PAYLOAD``
+as parameter defaults (built on first access, so that the click commands never import typer) and load through
+:func:`load_cli_model`::
 
     def cmd(model: str = MODEL, tip_link: str = TIP_LINK, base_link: str = BASE_LINK, payload: str = PAYLOAD):
         m = load_cli_model(model, tip_link, base_link, payload)
@@ -10,14 +13,27 @@ from __future__ import annotations
 
 import re
 
-import typer
+from station.cli.optspec import REQUIRED, Opt
 
-MODEL = typer.Option(..., "--model", help="built-in model name, model file (station-model/1) or URDF")
-TIP_LINK = typer.Option(None, "--tip-link", help="URDF: the link at the end of the chain (default: the end of "
-                                                 "the only longest chain)")
-BASE_LINK = typer.Option(None, "--base-link", help="URDF: the link the chain starts from (default: the root)")
-PAYLOAD = typer.Option(None, "--payload", help="mass at the tool, e.g. 0.1kg or 250g, optionally with its centre "
-                                               "in the tool frame: 0.5kg@0,0,30mm (loads the joints: compliance)")
+MODEL_OPTIONS = [
+    Opt("model", "--model", "built-in model name, model file (station-model/1) or URDF", REQUIRED),
+    Opt("tip_link", "--tip-link", "URDF: the link at the end of the chain (default: the end of the only longest "
+                                  "chain)"),
+    Opt("base_link", "--base-link", "URDF: the link the chain starts from (default: the root)"),
+    Opt("payload", "--payload", "mass at the tool, e.g. 0.1kg or 250g, optionally with its centre in the tool "
+                                "frame: 0.5kg@0,0,30mm (loads the joints: compliance)"),
+]
+_TYPER_NAMES = {"MODEL": "model", "TIP_LINK": "tip_link", "BASE_LINK": "base_link", "PAYLOAD": "payload"}
+
+
+def __getattr__(name: str):
+    """``MODEL``/``TIP_LINK``/``BASE_LINK``/``PAYLOAD``: the typer options, made on first use (PEP 562)."""
+    if name in _TYPER_NAMES:
+        opt = next(o for o in MODEL_OPTIONS if o.name == _TYPER_NAMES[name]).typer()
+        globals()[name] = opt
+        return opt
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 MASS_UNITS = {"kg": 1.0, "g": 1e-3}
 _PAYLOAD = re.compile(r"^\s*([-+0-9.eE]+)\s*(kg|g)\s*(?:@(.+))?$")

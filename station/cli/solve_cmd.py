@@ -10,9 +10,8 @@ import re
 import sys
 from pathlib import Path
 
-import typer
-
-from station.cli.model_options import BASE_LINK, MODEL, PAYLOAD, TIP_LINK
+from station.cli.model_options import MODEL_OPTIONS
+from station.cli.optspec import REQUIRED, Opt, click_command
 from station.lazy import lazy_module
 from station.robot.errors import ConfigError
 from station.samplesfile import LENGTH_UNITS, SamplesFileError, read_joints, read_samples
@@ -139,32 +138,33 @@ def summary(res) -> str:
     return "\n".join(lines)
 
 
-def solve_command(
-    model: str = MODEL,
-    tip_link: str = TIP_LINK,
-    base_link: str = BASE_LINK,
-    payload: str = PAYLOAD,
-    samples: Path = typer.Option(..., "--samples", help="CSV: q1..qN [point] [x,y,z]; units in headers"),
-    identify: str = typer.Option("offsets,tcp", "--identify", help="groups/names/globs, e.g. offsets,tcp,dh"),
-    reference: list[str] = typer.Option(None, "--reference",
-                                        help="unknown | x,y,z (m, or suffix mm) | LABEL=x,y,z (repeatable)"),
-    tool: str = typer.Option(None, "--tool", help="nominal TCP x,y,z in the flange frame (m, or suffix mm)"),
-    holdout: Path = typer.Option(None, "--holdout", help="CSV of validation samples (same columns)"),
-    out: Path = typer.Option(None, "--out", help="write the result JSON here"),
-    instrument_frame: str = typer.Option("unknown", "--instrument-frame",
-                                         help="x,y,z columns: unknown (solve the instrument frame) | base"),
-    max_std: float = typer.Option(1e-3, "--max-std", help="m at the tool: weaker directions are not estimated"),
-    prior: list[str] = typer.Option(None, "--prior", help="SELECTOR=STD with a unit, e.g. offsets=0.5deg, "
-                                    "dh=0.3mm, dh.j2.a=0.1mm, compliance=1e-4rad/Nm (repeatable; overrides the model "
-                                    "file's tolerances)"),
-    noise: str = typer.Option(None, "--noise", help="declared touch noise per axis with a unit, e.g. 20um "
-                              "(default: fitted from the residual of the fitted model)"),
-    loss: str = typer.Option("linear", "--loss", help="linear (outliers > 4 sigma excluded) | huber | soft_l1"),
-    distance: list[str] = typer.Option(None, "--distance", help="A,B=50mm[±0.01mm]: the measured distance between "
-                                       "points A and B (repeatable; default uncertainty 0.01 mm)"),
-    plane: list[str] = typer.Option(None, "--plane", help="LABEL: the touches labelled LABEL lie on one unknown "
-                                    "plane (touch-probing a flat surface; repeatable)"),
-) -> None:
+SOLVE_OPTIONS = [
+    *MODEL_OPTIONS,
+    Opt("samples", "--samples", "CSV: q1..qN [point] [x,y,z]; units in headers", REQUIRED, Path),
+    Opt("identify", "--identify", "groups/names/globs, e.g. offsets,tcp,dh", "offsets,tcp"),
+    Opt("reference", "--reference", "unknown | x,y,z (m, or suffix mm) | LABEL=x,y,z (repeatable)", multiple=True),
+    Opt("tool", "--tool", "nominal TCP x,y,z in the flange frame (m, or suffix mm)"),
+    Opt("holdout", "--holdout", "CSV of validation samples (same columns)", kind=Path),
+    Opt("out", "--out", "write the result JSON here", kind=Path),
+    Opt("instrument_frame", "--instrument-frame", "x,y,z columns: unknown (solve the instrument frame) | base",
+        "unknown"),
+    Opt("max_std", "--max-std", "m at the tool: weaker directions are not estimated", 1e-3, float),
+    Opt("prior", "--prior", "SELECTOR=STD with a unit, e.g. offsets=0.5deg, dh=0.3mm, dh.j2.a=0.1mm, "
+        "compliance=1e-4rad/Nm (repeatable; overrides the model file's tolerances)", multiple=True),
+    Opt("noise", "--noise", "declared touch noise per axis with a unit, e.g. 20um (default: fitted from the "
+        "residual of the fitted model)"),
+    Opt("loss", "--loss", "linear (outliers > 4 sigma excluded) | huber | soft_l1", "linear"),
+    Opt("distance", "--distance", "A,B=50mm[±0.01mm]: the measured distance between points A and B (repeatable; "
+        "default uncertainty 0.01 mm)", multiple=True),
+    Opt("plane", "--plane", "LABEL: the touches labelled LABEL lie on one unknown plane (touch-probing a flat "
+        "surface; repeatable)", multiple=True),
+]
+
+
+def solve_command(model: str, tip_link: str | None, base_link: str | None, payload: str | None, samples: Path,
+                  identify: str, reference: tuple[str, ...], tool: str | None, holdout: Path | None,
+                  out: Path | None, instrument_frame: str, max_std: float, prior: tuple[str, ...],
+                  noise: str | None, loss: str, distance: tuple[str, ...], plane: tuple[str, ...]) -> None:
     """Identify joint offsets, TCP, link geometry from touch samples. Exit 0: trusted result; 1: the solve
     failed or its result cannot be trusted (one line says why; the JSON is still written); 2: bad input."""
     from station.safeio import dumps_json, write_atomic
@@ -214,13 +214,13 @@ def solve_command(
                               noise=noise_m, priors=priors, loss=loss, distances=distances or None,
                               planes=planes or None))
     res.settings.update(samples=str(samples), holdout=None if holdout is None else str(holdout), tool=tool)
-    typer.echo(summary(res))
+    print(summary(res), flush=True)
     if out is not None:
         write_atomic(out, dumps_json(res.to_dict()) + "\n", {"--samples": samples, "--holdout": holdout})
-        typer.echo(f"result: {out}")
+        print(f"result: {out}", flush=True)
     if not res.trusted:
-        typer.echo(f"station: solve failed: {res.failure or 'result not trusted'}", err=True)
-        sys.exit(1)  # sys.exit: station.cli.main runs click non-standalone (a typer.Exit would be dropped)
+        print(f"station: solve failed: {res.failure or 'result not trusted'}", file=sys.stderr, flush=True)
+        sys.exit(1)
 
 
 _DISTANCE = re.compile(r"^\s*([A-Za-z0-9_-]+)\s*,\s*([A-Za-z0-9_-]+)\s*=\s*([^±]+?)\s*(?:(?:±|\+-|\+/-)\s*(.+?))?\s*$")
@@ -345,16 +345,17 @@ def _noise(text: str | None) -> float | None:
     return v
 
 
-def fk_command(
-    model: str = MODEL,
-    tip_link: str = TIP_LINK,
-    base_link: str = BASE_LINK,
-    payload: str = PAYLOAD,
-    joints: Path = typer.Option(..., "--joints", help="CSV with q1..qN (units in headers: q1[deg], q3[mm])"),
-    calibration: Path = typer.Option(None, "--calibration", help="result JSON of station solve"),
-    tool: str = typer.Option(None, "--tool", help="nominal TCP x,y,z (m, or suffix mm), before the calibration"),
-    out: Path = typer.Option(None, "--out", help="write CSV here (default: stdout)"),
-) -> None:
+FK_OPTIONS = [
+    *MODEL_OPTIONS,
+    Opt("joints", "--joints", "CSV with q1..qN (units in headers: q1[deg], q3[mm])", REQUIRED, Path),
+    Opt("calibration", "--calibration", "result JSON of station solve", kind=Path),
+    Opt("tool", "--tool", "nominal TCP x,y,z (m, or suffix mm), before the calibration"),
+    Opt("out", "--out", "write CSV here (default: stdout)", kind=Path),
+]
+
+
+def fk_command(model: str, tip_link: str | None, base_link: str | None, payload: str | None, joints: Path,
+               calibration: Path | None, tool: str | None, out: Path | None) -> None:
     """Tool pose (x, y, z in m; rx, ry, rz rotation vector in rad) for each row of joint readings."""
     from station.kinematics import se3
     from station.safeio import write_atomic
@@ -393,6 +394,7 @@ def write_atomic_check(out: Path, inputs: dict) -> None:
     check_destination(out, inputs)
 
 
-def register(app: typer.Typer) -> None:
-    app.command("solve")(solve_command)
-    app.command("fk")(fk_command)
+def click_commands() -> dict:
+    """``solve`` and ``fk`` as plain click commands (station.cli.optspec says why not typer)."""
+    return {"solve": click_command("solve", solve_command, SOLVE_OPTIONS),
+            "fk": click_command("fk", fk_command, FK_OPTIONS)}

@@ -2,22 +2,67 @@
 
 from __future__ import annotations
 
-from importlib import resources
 from pathlib import Path
 
 from station.kinematics.model import Model
 from station.kinematics.modelfile import ModelFileError, load_model_file, model_from_dict
 
 
+def _models():
+    """The folder of the built-in models (package data next to this module). Plain on disk it is read directly:
+    ``importlib.resources`` costs every command that loads a model ~10 ms of imports (issue 8); it is asked
+    only when the package is not a folder (a zip import)."""
+    here = Path(__file__).with_name("models")
+    if here.is_dir():
+        return here
+    from importlib import resources
+
+    return resources.files("station.kinematics") / "models"
+
+
 def builtin_names() -> list[str]:
-    folder = resources.files("station.kinematics") / "models"
-    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".yaml"))
+    return sorted(p.name[:-5] for p in _models().iterdir() if p.name.endswith(".yaml"))
 
 
 def builtin_text(name: str) -> str:
     if name not in builtin_names():
         raise ModelFileError(f"unknown model {name!r}; built-in: {', '.join(builtin_names())}")
-    return (resources.files("station.kinematics") / "models" / f"{name}.yaml").read_text()
+    return (_models() / f"{name}.yaml").read_text(encoding="utf-8")
+
+
+def _builtin_doc(name: str):
+    """The parsed built-in model ``name`` (values and the line of every field). libyaml parses it once; the
+    parse is kept beside the file (``models/__pycache__/NAME.<python>.marshal``, as Python keeps bytecode) with
+    the text it came from, and used while that text is the same: a solve or fk then imports no yaml (~20 ms of
+    their start-up; issue 8). A cache that cannot be written (a read-only install) or read only costs the parse."""
+    import contextlib
+    import marshal
+    import os
+    import sys
+
+    from station.textfile import YamlDoc
+
+    label, text = f"{name} (built-in)", builtin_text(name)
+    folder = _models()
+    cache = folder / "__pycache__" / f"{name}.{sys.implementation.cache_tag}.marshal" if isinstance(folder, Path) \
+        else None
+    with contextlib.suppress(Exception):  # no cache yet, another Python's, a foreign file: parse
+        kept, data, lines = marshal.loads(cache.read_bytes()) if cache else (None, None, None)
+        if kept == text:
+            return YamlDoc(label, data, lines)
+    from station.yamlfile import parse_yaml_doc
+
+    doc = parse_yaml_doc(text, ModelFileError, label, shipped=True)
+    if cache is not None:
+        tmp = cache.with_name(f"{cache.name}.{os.getpid()}.tmp")
+        try:
+            cache.parent.mkdir(exist_ok=True)
+            tmp.write_bytes(marshal.dumps((text, doc.data, doc.lines)))
+            os.replace(tmp, cache)  # whole or not at all for a reader in parallel
+        except (OSError, ValueError):
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+    return doc
 
 
 def is_urdf(path: str | Path) -> bool:
@@ -48,10 +93,8 @@ def load_model(name_or_path: str | Path, *, tip_link: str | None = None, base_li
         raise ModelFileError(f"{s}: a {which} link applies to a URDF model only (this is "
                              f"{'a built-in model' if s in builtin_names() else 'not a URDF'})")
     if s in builtin_names():
-        from station.yamlfile import parse_yaml_doc
-
-        name = f"{s} (built-in)"
-        return model_from_dict(parse_yaml_doc(builtin_text(s), ModelFileError, name), name, shipped=True)
+        doc = _builtin_doc(s)
+        return model_from_dict(doc, doc.name, shipped=True)
     if Path(s).exists() or s.endswith((".yaml", ".yml")):
         return load_model_file(s)
     raise ModelFileError(f"unknown model {s!r}: not a built-in ({', '.join(builtin_names())}) nor a file")

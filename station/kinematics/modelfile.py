@@ -6,10 +6,9 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from station.kinematics.model import FRAME_AXES, Encoder, Joint, Model, from_dh, from_mdh, from_poe, screws_of
-from station.yamlfile import YamlDoc
+from station.textfile import YamlDoc
 
 FORMAT = "station-model/1"
 LENGTH = {"m": 1.0, "mm": 1e-3}
@@ -288,4 +287,6 @@ def dump_model(model: Model, length: str = "m", angle: str = "rad") -> str:
     header = (f"# station kinematic model '{model.name}' ({model.convention.upper()}); "
               f"lengths in {length}, angles in {angle}, masses in kg, compliance in {angle} per N m, "
               f"gravity in m/s^2. Format: docs/formats.md\n")
+    import yaml
+
     return header + yaml.safe_dump(model_to_dict(model, length, angle), sort_keys=False)

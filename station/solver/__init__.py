@@ -3,16 +3,22 @@
 ``solve`` (maximum a-posteriori Levenberg-Marquardt with priors, identifiability, posterior covariance,
 outliers and the refusal of untrustworthy results), ``predict`` (the plan-time check: posterior std of
 every parameter from planned poses, before anything moves) and the closed-form TCP methods
-``tcp_from_flange_poses``, ``tcp_scara_4point``, ``tcp_circle_fit``. See docs/solver.md."""
+``tcp_from_flange_poses``, ``tcp_scara_4point``, ``tcp_circle_fit``. See docs/solver.md.
 
-from station.solver.estimator import select_names, solve
-from station.solver.observations import Observations, SolverInputError, observations_from_samples
-from station.solver.predict import ParameterPrediction, Prediction, predict
-from station.solver.result import CalibrationResult, ParameterEstimate
-from station.solver.tcp import CircleFit, TcpFit, tcp_circle_fit, tcp_from_flange_poses, tcp_scara_4point
+The names are imported on first use (PEP 562): ``station solve`` loads the estimator, not the plan-time
+prediction or the TCP methods (start-up, issue 8)."""
 
-__all__ = [
-    "CalibrationResult", "CircleFit", "Observations", "ParameterEstimate", "SolverInputError", "TcpFit",
-    "ParameterPrediction", "Prediction", "observations_from_samples", "predict", "select_names", "solve",
-    "tcp_circle_fit", "tcp_from_flange_poses", "tcp_scara_4point",
-]
+from station.lazy import lazy_names
+
+_WHERE = {
+    "select_names": "station.solver.estimator", "solve": "station.solver.estimator",
+    "Observations": "station.solver.observations", "SolverInputError": "station.solver.observations",
+    "observations_from_samples": "station.solver.observations",
+    "ParameterPrediction": "station.solver.predict", "Prediction": "station.solver.predict",
+    "predict": "station.solver.predict",
+    "CalibrationResult": "station.solver.result", "ParameterEstimate": "station.solver.result",
+    "CircleFit": "station.solver.tcp", "TcpFit": "station.solver.tcp", "tcp_circle_fit": "station.solver.tcp",
+    "tcp_from_flange_poses": "station.solver.tcp", "tcp_scara_4point": "station.solver.tcp",
+}
+__all__ = sorted(_WHERE)
+__getattr__ = lazy_names(__name__, _WHERE)
