@@ -34,7 +34,8 @@ class Emulator:
                                       "--canopen", "--can-port", str(can_port)], stdout=subprocess.PIPE,
                                      stderr=subprocess.PIPE, text=True)
         self.tracker = self.proc.stdout.readline().split()[3]
-        self.robot = self.proc.stdout.readline().split()[5]
+        # a slower SYNC and a longer heartbeat consumer time (driver URL options): the CI machine is shared
+        self.robot = self.proc.stdout.readline().split()[5] + "&sync_ms=20&heartbeat_timeout_ms=5000"
 
     def kill(self) -> None:  # a crash: no teardown of its sockets
         if self.proc.poll() is None:
