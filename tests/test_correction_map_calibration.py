@@ -1,6 +1,7 @@
 """correction_map on top of a parametric calibration, on a 6R arm whose world has what no geometric model holds:
-hidden geometry errors, gravity compliance under a 15 kg payload and gear backlash. arm6 on six emulated CiA 402
-drives (python-can virtual channel, real canopen library), the laser-tracker emulator on loopback TCP.
+hidden geometry errors, gravity compliance under a 15 kg payload and gear backlash. ``station mock tracker --canopen``
+as a real process: arm6 on six emulated CiA 402 drives behind socketcand (real canopen and python-can libraries)
+and the laser-tracker emulator on loopback TCP.
 
 The calibration engineer's flow (docs/map.md, "On top of a parametric calibration"): tracker readings at
 configurations of the work box -> ``station solve --identify offsets,dh,tcp`` (instrument frame solved) ->
@@ -9,23 +10,29 @@ the tool's orientation; the map, built from 6-DoF readings, corrects it: calibra
 alone in orientation far beyond the tracker's noise. In position the calibration of this box alone is already
 near the noise floor and a Q = 1 map on top adds its interpolation error (bench/map.py part f; near the 0.10 mm
 limit, judged as it falls), and the procedure warns that the map is worse in position than the calibration.
-The truth is the world's true tool pose, recorded at every tracker reading (compliance and backlash included)."""
+The truth is the world's true tool pose at each held-out reading, from a replica of the world file driven the way
+the procedure drives the arm (approached from 0.5 deg below: backlash and compliance included)."""
 
 import json
+import os
+import socket
 import subprocess
 import sys
-import uuid
 
 import numpy as np
-from station.mocks.canopen.emulator import CanopenEmulator
+import yaml
 from station.mocks.tracker.config import tracker_config
 from station.mocks.tracker.server import TrackerServer
 from station.mocks.world import World
 from station.mocks.world.tracker import measure_poses
+from trackerproc import TrackerProcess
+from typer.testing import CliRunner
 
 from station.api import resume
 from station.api import run as start
+from station.cli import app
 from station.engine import read_journal
+from station.engine.session_record import session_from_journal
 from station.kinematics import se3
 from station.solver.map import CorrectionMap
 
@@ -37,16 +44,11 @@ JOINTS = {"compliance": {"j2": 2e-5, "j3": 3e-5, "j5": 4e-5}, "backlash": {"j1":
           "payload": 15.0}  # rad/(N m), rad, kg: as bench/map.py
 
 
-class RecordingTracker(TrackerServer):
-    """The tracker emulator, unchanged on the wire; the test keeps the world's TRUE tool pose at every reading."""
-
-    def __init__(self, *a, **kw):
-        super().__init__(*a, **kw)
-        self.truth: list[tuple[np.ndarray, np.ndarray]] = []
-
-    def measure(self):
-        self.truth.append((self.world.encoder_q().copy(), self.world.tip_pose_true().copy()))
-        return super().measure()
+def _true_pose(world, q):
+    """The world's true tool pose at encoder reading ``q``, approached from below as the procedure does."""
+    world.command_q(q - np.radians(0.5))
+    world.command_q(q)
+    return world.tip_pose_true()
 
 
 def _calibration_file(world, cfg, tmp_path):
@@ -57,69 +59,120 @@ def _calibration_file(world, cfg, tmp_path):
     q = START + rng.uniform(-SPAN, SPAN, (40, 6))
     rows = []
     for qi in q:
-        world.command_q(qi - np.radians(0.5))
-        world.command_q(qi)
+        _true_pose(world, qi)
         rows.append([*world.encoder_q(), "P", *trk.measure()[:3]])
     world.command_q(START)
     csv = tmp_path / "tracker-samples.csv"
     csv.write_text("q1[rad],q2[rad],q3[rad],q4[rad],q5[rad],q6[rad],point,x[m],y[m],z[m]\n"
                    + "".join(",".join(str(v) for v in r) + "\n" for r in rows))
     out = tmp_path / "result.json"
-    r = subprocess.run([sys.executable, "-m", "station.cli", "solve", "--model", "arm6", "--samples", str(csv),
-                        "--identify", "offsets,dh,tcp", "--out", str(out)], capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
+    r = CliRunner().invoke(app, ["solve", "--model", "arm6", "--samples", str(csv), "--identify", "offsets,dh,tcp",
+                                 "--out", str(out)])
+    assert r.exit_code == 0, r.output
     return out
 
 
-def test_map_on_top_of_a_calibration_beats_the_calibration_alone(tmp_path, monkeypatch):
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _resume_cli(tmp_path, session, tracker):
+    env = {**os.environ, "STATION_HOME": str(tmp_path / "home")}
+    return subprocess.run([sys.executable, "-m", "station.cli", "resume", session, "--tracker", tracker, "-q", "--db",
+                           f"sqlite:///{tmp_path / 'records.db'}"], capture_output=True, text=True, timeout=300,
+                          env=env)
+
+
+def test_map_on_a_calibration_resumed_on_a_restarted_tracker(tmp_path, monkeypatch):
+    """One session, every check on the way: a calibration of another model is refused before anything moves; the
+    emulator process is killed after 30 configurations and comes back with the tracker on another port; there an
+    instrument with another serial is refused, a changed calibration file is refused, then
+    ``station resume SESSION --tracker NEW_URL`` completes the session on the same tracker and calibration."""
     monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
-    world = World.default("arm6", seed=7, start=START, joints=JOINTS)
+    world = World.default("arm6", seed=7, start=START, joints=JOINTS,
+                          buses={"canopen": {"nodes": [1, 2, 3, 4, 5, 6]}, "tracker": {"serial": "LT-EMU-0001"}})
+    world_file = tmp_path / "world.yaml"
+    world_file.write_text(yaml.safe_dump(world.to_dict()))
+    doc = world.to_dict()
+    doc["buses"]["tracker"]["serial"] = "LT-OTHER-0002"  # another instrument, same place, same world
+    other_file = tmp_path / "other.yaml"
+    other_file.write_text(yaml.safe_dump(doc))
     cfg = tracker_config({})
     cal_file = _calibration_file(world, cfg, tmp_path)
     original = cal_file.read_bytes()
     cal_doc = json.loads(original)
     wrong = tmp_path / "ur5e.json"
     wrong.write_text(json.dumps({**cal_doc, "model": "ur5e"}))
-    channel = f"m7{uuid.uuid4().hex[:8]}"
-    # a slower SYNC and a longer heartbeat consumer time (driver URL options): the CI machine is shared
-    url = f"canopen+virtual://{channel}?nodes=1-6&model=arm6&serial={SERIAL}&sync_ms=20&heartbeat_timeout_ms=5000"
     db = f"sqlite:///{tmp_path / 'records.db'}"
-    emu = CanopenEmulator(world, "virtual", channel).start()
+    can_port = _free_port()
+    emu = TrackerProcess(world_file, can_port, seed=11)
     try:
-        with RecordingTracker(world, cfg, seed=11) as trk:
-            # a calibration of another model: one line before the tracker is touched or anything moves
-            out = start("correction_map", url, SERIAL, db=db, report=False,
-                        options={"tracker": trk.url, "grid": 1, "span_deg": 10, "calibration": str(wrong)})
-            assert out.status == "error" and out.exit_code == 2
-            assert "\n" not in str(out.error) and "'ur5e', not 'arm6'" in str(out.error), out.error
-            assert trk.measurements == 0 and np.allclose(world.encoder_q(), START, atol=1e-6)
+        # a calibration of another model: one line before the tracker is touched or anything moves
+        out = start("correction_map", emu.robot, SERIAL, db=db, report=False,
+                    options={"tracker": emu.tracker, "grid": 1, "span_deg": 10, "calibration": str(wrong)})
+        assert out.status == "error" and out.exit_code == 2
+        assert "\n" not in str(out.error) and "'ur5e', not 'arm6'" in str(out.error), out.error
+        _, events = read_journal(out.folder / "journal.jsonl")
+        assert not [e for e in events if e.type in ("instrument", "sample", "plan")]  # nothing measured or planned
 
-            def stop(done, total, text):
-                if done == 30:
-                    raise KeyboardInterrupt  # Ctrl-C after 30 configurations
+        def crash(done, total, text):
+            if done == 30:
+                emu.kill()  # the emulator process dies after 30 configurations
 
-            out = start("correction_map", url, SERIAL, db=db, report=False, progress=stop,
-                        options={"tracker": trk.url, "grid": 1, "span_deg": 10, "n_holdout": 16,
-                                 "calibration": str(cal_file)})
-            assert out.status == "interrupted", out.error
-            # the file changes under the session: resume refuses it before measuring anything
-            cal_file.write_text(json.dumps({**cal_doc, "notes": ["edited"]}))
-            again = resume(out.session, db=db, report=False)
-            assert again.status == "error" and again.exit_code == 2
-            assert "changed since session" in str(again.error) and "\n" not in str(again.error)
-            assert trk.measurements == 30
-            cal_file.write_bytes(original)  # the file as the session started with it
-            again = resume(out.session, db=db, report=False)
+        out = start("correction_map", emu.robot, SERIAL, db=db, report=False, progress=crash,
+                    options={"tracker": emu.tracker, "grid": 1, "span_deg": 10, "calibration": str(cal_file)})
     finally:
-        emu.stop()
-    assert again.status == "completed", again.error
-    rec = again.record
+        emu.kill()
+    assert out.status == "error" and out.exit_code == 2
+    old_url = emu.tracker
+    _, events = read_journal(out.folder / "journal.jsonl")
+    kept = [e for e in events if e.type == "sample"]
+    assert 25 <= len(kept) <= 30  # journaled before the crash (the one under way when it died may be lost)
+
+    # it comes back on a new port with ANOTHER serial: refused in one line, nothing measured
+    with TrackerProcess(other_file, can_port) as emu:
+        assert emu.tracker != old_url
+        r = _resume_cli(tmp_path, out.session, emu.tracker)
+    assert r.returncode == 2, r.stderr
+    err = [line for line in r.stderr.splitlines() if line.startswith("station: error:")]
+    assert len(err) == 1 and "LT-OTHER-0002" in err[0] and "LT-EMU-0001" in err[0], r.stderr
+
+    # the same tracker on yet another port, but the calibration file changed under the session: refused
+    with TrackerProcess(world_file, can_port, seed=12) as emu:
+        cal_file.write_text(json.dumps({**cal_doc, "notes": ["edited"]}))
+        again = resume(out.session, db=db, report=False, instruments={"tracker": emu.tracker})
+        assert again.status == "error" and again.exit_code == 2
+        assert "changed since session" in str(again.error) and "\n" not in str(again.error)
+        cal_file.write_bytes(original)  # the file as the session started with it
+        _, events = read_journal(out.folder / "journal.jsonl")
+        assert len([e for e in events if e.type == "sample"]) == len(kept)  # nothing measured since
+        # the address given last is journaled: the CLI resume needs no --tracker now, but gives it anyway
+        r = _resume_cli(tmp_path, out.session, emu.tracker)
+        for _ in range(2):  # a CAN timeout of the shared CI machine: resumed again, as a technician would
+            if r.returncode != 2 or "canopen" not in r.stderr or "continue with: station resume" not in r.stderr:
+                break
+            r = _resume_cli(tmp_path, out.session, emu.tracker)
+        new_url = emu.tracker
+    assert r.returncode in (0, 1), r.stderr
+    _, events = read_journal(out.folder / "journal.jsonl")
+    moves = [e.data for e in events if e.type == "instrument_url"]
+    assert moves[0]["old"] == old_url and moves[-1]["new"] == new_url
+    assert {e.data["serial"] for e in events if e.type == "instrument"} == {"LT-EMU-0001"}
+    samples = [e for e in events if e.type == "sample"]
+    assert [smp.seq for smp in samples[:len(kept)]] == [smp.seq for smp in kept]  # kept as journaled
+    assert {smp.status["instrument"] for smp in samples} == {"LT-EMU-0001"}
+    rec = session_from_journal(out.folder)
+    assert rec["status"] == "completed"
     meas = {m["name"]: m for m in rec["verdict"]["measurements"]}
     # judged honestly either way: the map on top of this calibration sits near the 0.10 mm limit (0.086-0.104 mm
     # measured), which is what it is; the verdict and the exit code must say the same
-    assert again.stored and again.passed is not None and again.exit_code == (0 if again.passed else 1)
-    assert again.passed == (meas["holdout_rms"]["value"] <= 0.10 and meas["holdout_max"]["value"] <= 0.25)
-    assert trk.measurements == len(rec["samples"]) == 64 + 16  # every configuration measured once
+    passed = meas["holdout_rms"]["value"] <= 0.10 and meas["holdout_max"]["value"] <= 0.25
+    assert rec["verdict"]["passed"] == passed and r.returncode == (0 if passed else 1)
+    assert r.stdout.strip().splitlines()[-1] == ("PASS" if passed else "FAIL")
+    poses = [smp["pose"] for smp in rec["samples"]]
+    assert len(poses) == len(set(poses)) == 64 + 12  # every configuration measured once
 
     # stored with the map: which calibration, and the map sits on exactly its parameters
     stored = rec["correction_map"]
@@ -131,10 +184,9 @@ def test_map_on_top_of_a_calibration_beats_the_calibration_alone(tmp_path, monke
 
     # truth from the world: the true tool pose at each held-out reading, in the tracker's frame; the calibrated
     # model alone and calibrated + map seen through the session's registration
-    truth = {tuple(np.round(q, 9)): T for q, T in trk.truth}
-    held = [s for s in rec["samples"] if s["set"] == "holdout"]
-    x = np.array([s["q"] for s in held])
-    true_t = se3.invert(cfg.tracker_in_base) @ np.array([truth[tuple(np.round(q, 9))] for q in x])
+    held = [smp for smp in rec["samples"] if smp["set"] == "holdout"]
+    x = np.array([smp["q"] for smp in held])
+    true_t = se3.invert(cfg.tracker_in_base) @ np.array([_true_pose(world, q) for q in x])
     reg = se3.invert(se3.pose_to_matrix(np.array(stored["registration"]["instrument_in_base"])))
     cal = world.nominal.with_params(model_params)
     mapped, _ = cmap.measure(world.nominal, x)
@@ -153,13 +205,11 @@ def test_map_on_top_of_a_calibration_beats_the_calibration_alone(tmp_path, monke
                                              axis=1))))
     # orientation: what a position calibration leaves, the map corrects, far beyond the noise
     assert rms["rcal"] - rms["rmap"] > 3 * rot_floor and rms["rmap"] < 0.5 * rms["rcal"], (rms, rot_floor)
-    # position: the map on top stays within the limit; both numbers the procedure judged agree with the truth
-    assert rms["map"] < 1e-4, rms
+    # position: both numbers the procedure judged agree with the truth
     assert abs(meas["holdout_calibrated_rms"]["value"] * 1e-3 - rms["cal"]) < 0.25 * rms["cal"] + floor, rms
     assert meas["holdout_rms"]["value"] * 1e-3 < 1.3 * np.sqrt(rms["map"] ** 2 + floor ** 2), rms
     assert abs(np.radians(meas["holdout_calibrated_rotation_rms"]["value"]) - rms["rcal"]) < 0.25 * rms["rcal"]
     assert meas["calibration_parameters"]["value"] == len(model_params)
     # the engineer is told when the map is worse in position than the calibration alone (and only then)
-    _, events = read_journal(again.folder / "journal.jsonl")
     warned = any(e.type == "warning" and "calibration alone" in e.message for e in events)
     assert warned == (meas["holdout_rms"]["value"] > meas["holdout_calibrated_rms"]["value"])
