@@ -20,6 +20,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 import yaml
 from station.mocks.tracker.config import tracker_config
 from station.mocks.tracker.server import TrackerServer
@@ -85,6 +86,7 @@ def _resume_cli(tmp_path, session, tracker):
                           env=env)
 
 
+@pytest.mark.slow  # ~30 s CPU idle, more under load; fast counterparts: tests/test_correction_map_resume.py
 def test_map_on_a_calibration_resumed_on_a_restarted_tracker(tmp_path, monkeypatch):
     """One session, every check on the way: a calibration of another model is refused before anything moves; the
     emulator process is killed after 30 configurations and comes back with the tracker on another port; there an
