@@ -24,6 +24,8 @@ def test_resume_tracker_option_needs_a_session_that_used_one(tmp_path, monkeypat
     assert opts["tracker"] == "tcp://127.0.0.1:3" and changes == {"tracker": ("tcp://127.0.0.1:2", "tcp://127.0.0.1:3")}
     with pytest.raises(ConfigError, match="expected an instrument URL"):
         _instrument_urls(header, [], {"tracker": "127.0.0.1:3"})
+    planted = ev.Custom("instrument_url", {"option": "apply", "old": False, "new": "tcp://x:1"})
+    assert _instrument_urls(header, [planted], None)[0]["apply"] is False  # only URL options are ever replaced
 
 
 def test_run_calibration_option_is_checked_before_the_robot_is_opened(tmp_path):

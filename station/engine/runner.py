@@ -375,15 +375,20 @@ def _instrument_urls(header: ev.Header, events: list, given: dict[str, str] | No
     """The session's options for a resume: the header's, with every journaled ``instrument_url`` replacement
     applied in order, then the ``given`` ones (``{option: URL}``); and which of the given ones change a URL
     (``{option: (old, new)}``, to journal). Only an instrument URL option the session has can be replaced."""
+    def is_url(v) -> bool:
+        return isinstance(v, str) and "://" in v
+
     opts = dict(header.options)
-    for e in events:
-        if getattr(e, "type", None) == "instrument_url" and isinstance(getattr(e, "data", None), dict):
-            opts[str(e.data.get("option"))] = e.data.get("new")
+    for e in events:  # only a URL option replaced by a URL: a damaged journal cannot turn on e.g. "apply"
+        d = getattr(e, "data", None)
+        if getattr(e, "type", None) == "instrument_url" and isinstance(d, dict) and is_url(d.get("new")) \
+                and is_url(opts.get(str(d.get("option")))):
+            opts[str(d["option"])] = d["new"]
     moved = {}
     for name, url in (given or {}).items():
-        if not opts.get(name):
+        if not is_url(opts.get(name)):
             raise ConfigError(f"--{name} {url}: session {header.session} used no --{name}; nothing to redirect")
-        if not isinstance(url, str) or "://" not in url:
+        if not is_url(url):
             raise ConfigError(f"--{name} {url!r}: expected an instrument URL like tcp://HOST:PORT")
         if url != opts[name]:
             moved[name] = (opts[name], url)
