@@ -8,7 +8,16 @@ each is read and measured at rest and journaled before the next move, so a resum
 is missing. The tracker's frame is registered to the base frame by a best fit on the grid samples; the
 held-out configurations are never used to build or register. Limits: ``procedures/limits.yaml``, section
 ``correction_map``. The map (``station-map/1``) is written to the session folder as ``map.json`` and stored in
-the record (``correction_map``)."""
+the record (``correction_map``).
+
+On top of a parametric calibration (``--calibration result.json``, a ``station solve`` result of this robot's
+model): the file is checked before anything moves and journaled (a resume uses the same one and refuses a
+changed file); the summands are what the calibrated model leaves (compliance, backlash, gear errors), and the
+held-out configurations compare the calibrated model alone with the calibrated model plus the map."""
+
+import hashlib
+import json
+from pathlib import Path
 
 import numpy as np
 
@@ -17,7 +26,7 @@ from station.engine.plan import PlannedPose, PosePlan
 from station.kinematics import se3
 from station.robot.errors import ConfigError, DeviceFault
 from station.robot.registry import open_instrument
-from station.solver.map import FULL, MapError, build_map, plan, to_vectors
+from station.solver.map import FULL, POSITION, MapError, build_map, plan, to_vectors, working_model
 from station.solver.map.plan import predicted_residual
 from station.solver.map.register import register
 
@@ -31,7 +40,8 @@ PREDICTED_LIMIT = 0.5  # serial arms: refuse a work box where the map would leav
 def checklist(s):
     s.connect()                                  # 1. connect and identify the robot (serial must match)
     s.check_state()                              # 2. no fault or stop, powered
-    tracker = connect_tracker(s)                 # 3. connect and identify the tracker (journaled)
+    calibration(s)                               # 3. the parametric calibration the map sits on, if any
+    tracker = connect_tracker(s)                 #    connect and identify the tracker (journaled; same one)
     try:
         todo = map_plan(s)                       # 4. grid of actuator levels + held-out configurations
         for pose in s.todo(todo):                # 5. every configuration not yet measured:
@@ -47,14 +57,76 @@ def checklist(s):
 
 
 # ---- the steps ---------------------------------------------------------------------------------------------
+def calibration(s) -> dict | None:
+    """``--calibration result.json``: the identified model parameters of a ``station solve`` result for this
+    robot's model, checked (readable, trusted, model name and parameters) before anything moves and journaled
+    as a ``calibration`` event with the file's sha256. A resumed session uses the journaled values and refuses
+    the file if it changed since (the summands measured so far belong to the journaled calibration)."""
+    path = s.options.get("calibration")
+    if not path:
+        return None
+    old = s.events("calibration")
+    with s.step("calibration", path=str(path)):
+        try:
+            data = Path(path).read_bytes()
+        except OSError as e:
+            raise ConfigError(f"calibration {path}: cannot read ({e.strerror or e})") from None
+        sha = hashlib.sha256(data).hexdigest()
+        if old:
+            if sha != old[-1].data.get("sha256"):
+                raise ConfigError(f"calibration {path} changed since session {s.id} started (sha256 differs): the "
+                                  "samples so far belong to the journaled calibration; restore the file or start a "
+                                  "new session")
+            return dict(old[-1].data["parameters"])
+        from station.resultfile import load_calibration
+        from station.solver import CalibrationResult
+
+        load_calibration(path, s.model)  # one line naming file and field: format, model name, parameter names
+        res = CalibrationResult.from_dict(json.loads(data))
+        if not res.trusted:
+            raise ConfigError(f"calibration {path}: the result is not trusted ({res.failure or 'see the solve'}); "
+                              "a map on top of it would hide that")
+        params = {k: float(v) for k, v in res.values("model").items()}
+        s.event({"type": "calibration", "path": str(path), "sha256": sha, "model": res.model,
+                 "parameters": params, "identified": len(params)})
+    return params
+
+
+def _calibration(s) -> dict | None:
+    """The journaled calibration's parameters (None: the map sits on the nominal model)."""
+    old = s.events("calibration")
+    return dict(old[-1].data["parameters"]) if old else None
+
+
+def _working(s):
+    """The model the map sits on: nominal, or the journaled parametric calibration of it."""
+    return working_model(s.model, _calibration(s))
+
+
 def connect_tracker(s):
+    """Open the instrument at ``--tracker URL`` (``station resume --tracker URL``: the address it came back on)
+    and check it is the one the session started with: its protocol, serial and model as journaled; another
+    tracker mid-calibration measures in another frame (refused in one line)."""
     url = s.options.get("tracker")
     if not url:
         raise ConfigError("correction_map needs a measuring instrument: --tracker tcp://HOST:PORT")
+    first = (s.events("instrument") or [None])[0]
     with s.step("connect_tracker", url=url):
         tracker = open_instrument(url)
+        ident = {"serial": tracker.serial, "model": getattr(tracker, "spec", {}).get("model")}
+        if first is not None:
+            was = {"serial": first.data.get("serial"), "model": (first.data.get("spec") or {}).get("model")}
+            if was != ident:
+                tracker.close()
+                raise ConfigError(
+                    f"instrument at {url} is {_who(ident)}, the session started with {_who(was)}: another "
+                    "tracker measures in another frame; reconnect that one, or start a new session")
         s.event({"type": "instrument", "url": url, "serial": tracker.serial, "spec": tracker.spec})
     return tracker
+
+
+def _who(ident: dict) -> str:
+    return f"serial {ident['serial']!r}" + (f" model {ident['model']!r}" if ident.get("model") else "")
 
 
 def map_plan(s) -> PosePlan:
@@ -203,9 +275,17 @@ def _arrays(s, which: str):
 
 
 def register_tracker(s):
+    """The tracker frame in the base frame, fitted on the grid samples: to the nominal model's tool frames
+    (positions and orientations), or to a parametric calibration's tool POSITIONS only: a calibration is fitted
+    on positions (``station solve`` on x,y,z), its orientation is not known better than nominal, and weighing
+    it would tilt the frame (measured: held-out 0.149 mm calibrated-only with, 0.057 mm without; docs/map.md)."""
     with s.step("register_tracker"):
         x, meas = _arrays(s, "fit")
-        reg = register(to_vectors(s.model.fk(x), FULL), meas, FULL)
+        model = _working(s)
+        if _calibration(s) is None:
+            reg = register(to_vectors(model.fk(x), FULL), meas, FULL)
+        else:
+            reg = register(model.fk(x)[:, :3, 3], meas[:, :3], POSITION)
         s.measure("registration_rms", reg.rms)
     return reg
 
@@ -216,8 +296,11 @@ def build(s, reg):
         cfg = (s.current_plan.settings or {}).get("map", {})
         levels = [np.asarray(lv, float) for lv in cfg["levels"]]
         try:
+            cal = _calibration(s)
+            source = (s.events("calibration") or [None])[-1]
             cmap = build_map(s.model, x, reg.to_base(meas, FULL), FULL, mesh=cfg.get("mesh", "simplex"),
-                             levels=levels)
+                             levels=levels, calibration=cal,
+                             calibration_source=None if source is None else Path(source.data["path"]).name)
         except MapError as e:
             raise DeviceFault(f"correction_map: {e}") from None
         s.measure("samples", float(len(x)), "number")
@@ -233,22 +316,44 @@ def build(s, reg):
 
 
 def verify(s, cmap, reg):
-    """Held-out configurations: position error of the nominal model and of the map's measuring kinematics
-    DK(x - KSF(x)) against the tracker (registered to the base frame)."""
+    """Held-out configurations: position error of the nominal model (and of the calibrated model alone, when
+    the map sits on a calibration) and of the map's measuring kinematics DK(x - KSF(x)) against the tracker
+    (registered to the base frame). Each model is compared in its own best-fit tracker frame (fitted on the grid
+    samples only): a calibration moves the model's frames, and the tracker frame follows."""
     with s.step("verify"):
         x, meas = _arrays(s, "holdout")
         truth = reg.to_base(meas, FULL)
         nominal = to_vectors(s.model.fk(x), FULL)
+        if _calibration(s) is not None:  # the nominal model's own registration, for a fair "before"
+            xf, mf = _arrays(s, "fit")
+            nominal_truth = register(to_vectors(s.model.fk(xf), FULL), mf, FULL).to_base(meas, FULL)
+        else:
+            nominal_truth = truth
         try:
             mapped, _ = cmap.measure(s.model, x)
         except MapError as e:
             raise DeviceFault(f"correction_map: held-out {e}") from None
-        e_nom = np.linalg.norm(nominal[:, :3] - truth[:, :3], axis=1)
+        e_nom = np.linalg.norm(nominal[:, :3] - nominal_truth[:, :3], axis=1)
         e_map = np.linalg.norm(mapped[:, :3] - truth[:, :3], axis=1)
         r_map = np.linalg.norm(se3.orientation_error(se3.rotvec_to_matrix(truth[:, 3:]),
                                                      se3.rotvec_to_matrix(mapped[:, 3:])), axis=1)
         s.measure("holdout", float(len(x)), "number")
         s.measure("holdout_nominal_rms", float(np.sqrt(np.mean(e_nom ** 2))))
+        if _calibration(s) is not None:  # what the parametric calibration alone gives: the map's baseline
+            s.measure("calibration_parameters", float(len(_calibration(s))), "number")
+            cal_T = _working(s).fk(x)
+            e_cal = np.linalg.norm(cal_T[:, :3, 3] - truth[:, :3], axis=1)
+            r_cal = np.linalg.norm(se3.orientation_error(se3.rotvec_to_matrix(truth[:, 3:]), cal_T[:, :3, :3]), axis=1)
+            s.measure("holdout_calibrated_rms", float(np.sqrt(np.mean(e_cal ** 2))))
+            s.measure("holdout_calibrated_max", float(np.max(e_cal)))
+            s.measure("holdout_calibrated_rotation_rms", float(np.sqrt(np.mean(r_cal ** 2))), "angle")
+            rc, rm = float(np.sqrt(np.mean(e_cal ** 2))), float(np.sqrt(np.mean(e_map ** 2)))
+            if rm > rc:  # the map's interpolation error exceeds what it corrects in position: say so
+                s.event(ev.Warn(step="verify", message=(
+                    f"the map leaves more position error than the calibration alone on the held-out configurations "
+                    f"({rm * 1e3:.3f} vs {rc * 1e3:.3f} mm RMS; orientation "
+                    f"{np.degrees(np.sqrt(np.mean(r_map ** 2))):.4f} vs {np.degrees(np.sqrt(np.mean(r_cal ** 2))):.4f}"
+                    f" deg): for positions use the calibration alone, or a finer --grid / smaller --span-deg")))
         s.measure("holdout_rms", float(np.sqrt(np.mean(e_map ** 2))))
         s.measure("holdout_max", float(np.max(e_map)))
         s.measure("holdout_rotation_rms", float(np.sqrt(np.mean(r_map ** 2))), "angle")
@@ -262,7 +367,6 @@ def verify(s, cmap, reg):
 
 
 def store(s, cmap, reg):
-    import json
     import os
 
     with s.step("store_map"):
@@ -273,5 +377,8 @@ def store(s, cmap, reg):
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+        cal = (s.events("calibration") or [None])[-1]
         s.event({"type": "correction_map", "file": path.name, "registration": reg.to_dict(),
+                 "calibration": None if cal is None else {k: cal.data.get(k) for k in
+                                                          ("path", "sha256", "model", "parameters")},
                  "map": json.loads(cmap.dumps())})

@@ -47,6 +47,7 @@ def test_protocol_lines_and_exact_reading(hexapod):
     with TrackerServer(hexapod, cfg) as trk:
         ident, meas, bad, bye = _ask(trk.port, "ID", "MEASURE", "FOO", "QUIT")
     assert ident.split()[:3] == ["OK", "station-tracker/1", cfg.serial]
+    assert f"model={cfg.model}" in ident.split()[3:]  # with the serial: the identity a resume checks
     assert bad.startswith("ERR unknown command") and bye == "OK bye"
     v = [float(x) for x in meas.split()[1:]]
     assert meas.startswith("OK ") and len(v) == 7

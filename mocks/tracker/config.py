@@ -7,6 +7,7 @@ buses:
     pose: {x: 2500, y: 0, z: 1000, rx: 0, ry: 0, rz: 90}   # instrument frame in the robot base frame (fixed-axis rpy)
     reflectors: [[100, 0, 20], [-50, 86.6, 20], [-50, -86.6, 20]]   # >= 3 reflectors on the tool (tool frame)
     serial: LT-0001
+    model: LT-EMU                          # with the serial, the identity ID reports (a resume checks it)
     noise: true                            # false: exact readings (the instrument's noise off)
 ```
 
@@ -26,7 +27,7 @@ DEFAULT_POSE = (2.5, 0.0, 1.0, 0.0, 0.0, np.pi / 2)  # m, rad (x, y, z, rx, ry, 
 DEFAULT_REFLECTORS = ((0.10, 0.0, 0.02), (-0.05, 0.0866, 0.02), (-0.05, -0.0866, 0.02))  # m, tool frame
 LENGTH = {"m": 1.0, "mm": 1e-3}
 ANGLE = {"rad": 1.0, "deg": np.pi / 180}
-KEYS = {"units", "pose", "reflectors", "serial", "noise"}
+KEYS = {"units", "pose", "reflectors", "serial", "model", "noise"}
 
 
 @dataclass(frozen=True)
@@ -35,6 +36,7 @@ class TrackerConfig:
     reflectors: np.ndarray  # (K, 3) m, tool frame
     serial: str = "LT-EMU-0001"
     noise: bool = True
+    model: str = "LT-EMU"  # what ID reports as model= (with the serial: the instrument's identity)
 
 
 def tracker_config(doc: dict | None, where: str = "buses.tracker") -> TrackerConfig:
@@ -76,4 +78,7 @@ def tracker_config(doc: dict | None, where: str = "buses.tracker") -> TrackerCon
     noise = doc.get("noise", True)
     if not isinstance(noise, bool):
         raise MockError(f"{where}.noise: expected true or false")
-    return TrackerConfig(se3.pose_to_matrix(pose, "rpy"), refl, str(doc.get("serial", "LT-EMU-0001")), noise)
+    model = str(doc.get("model", "LT-EMU"))
+    if not model or any(c.isspace() or c == "=" for c in model):
+        raise MockError(f"{where}.model: one word without spaces or '=', got {model!r}")
+    return TrackerConfig(se3.pose_to_matrix(pose, "rpy"), refl, str(doc.get("serial", "LT-EMU-0001")), noise, model)

@@ -2,7 +2,7 @@
 
 Each request is one ASCII line ending in LF; each answer is one line:
 
-- ``ID`` -> ``OK station-tracker/1 SERIAL sigma0_m=S0 sigma_per_m=S1``
+- ``ID`` -> ``OK station-tracker/1 SERIAL model=MODEL sigma0_m=S0 sigma_per_m=S1``
 - ``MEASURE`` -> ``OK x y z rx ry rz t``: the tool frame (6-DoF probe: rigid fit of its reflectors) in the
   instrument's OWN frame, position in m, rotation vector in rad, ``t`` the instrument clock in s; or
   ``ERR moving: ...`` while the target moves (a tracker does not give a stationary reading of a moving probe).
@@ -106,7 +106,8 @@ class TrackerServer:
         """The reply line to one request, and whether the connection ends after it."""
         cmd = request.upper()
         if cmd == "ID":
-            return f"OK {PROTOCOL} {self.config.serial} sigma0_m={SIGMA_0:g} sigma_per_m={SIGMA_PER_M:g}", False
+            return (f"OK {PROTOCOL} {self.config.serial} model={self.config.model} sigma0_m={SIGMA_0:g} "
+                    f"sigma_per_m={SIGMA_PER_M:g}"), False
         if cmd == "QUIT":
             return "OK bye", True
         if cmd == "MEASURE":

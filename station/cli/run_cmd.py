@@ -77,10 +77,13 @@ def preflight(robot: str, poses, holdout, cone, seed, touch, reference, limits, 
         load_cell(cell)
 
 
-def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None, span_deg=None) -> dict:
+def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None, span_deg=None,
+             calibration=None) -> dict:
     from station.robot.errors import ConfigError
 
     opts = {}
+    if calibration is not None:  # correction_map: the map on top of this parametric calibration
+        opts["calibration"] = str(check_calibration_file(calibration))
     if span_deg is not None:
         if not 0 < span_deg <= 90:  # also refuses nan
             raise ConfigError(f"--span-deg {span_deg!r}: expected a half-width in degrees in (0, 90]")
@@ -102,6 +105,19 @@ def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None, spa
     if seed is not None:
         opts["seed"] = seed
     return opts
+
+
+def check_calibration_file(path: Path) -> Path:
+    """``--calibration``: a readable ``station-calibration/1`` result (schema checked; the model name and its
+    parameters are checked against the robot's model once it is connected, before anything moves). Returns
+    the absolute path (journaled: a resume from another folder finds it)."""
+    from station.resultfile import CalibrationSchema
+    from station.robot.errors import ConfigError
+    from station.safeio import read_json
+    from station.strict import check
+
+    check(CalibrationSchema, read_json(path, "calibration"), ConfigError, f"calibration {path}")
+    return Path(path).resolve()
 
 
 def _fmt(value: float | None, unit: str) -> str:
@@ -209,13 +225,15 @@ def run(
     grid: int = typer.Option(None, "--grid", help="correction_map: Q sub-intervals per actuator (Q+1 levels)."),
     span_deg: float = typer.Option(None, "--span-deg", help="correction_map on a serial arm: the work box is +- "
                                    "this many degrees per joint around the start pose (default 20)."),
+    calibration: Path = typer.Option(None, "--calibration", help="correction_map: build the map on top of this "
+                                     "parametric calibration (result JSON of station solve for the robot's model)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Run a procedure end of line: unattended, PASS/FAIL, exit 0 pass / 1 fail / 2 error."""
     from station.api import run as start
 
     preflight(robot, poses, holdout, cone, seed, touch, reference, limits, cell)
-    options = _options(poses, holdout, cone, reference, seed, tracker, grid, span_deg)
+    options = _options(poses, holdout, cone, reference, seed, tracker, grid, span_deg, calibration)
     cb, bar = _progress_bar(quiet)
     with bar:
         out = start(procedure, robot, serial, limits=limits, db=db, apply=apply, cell=cell, operator=operator,
@@ -227,6 +245,8 @@ def run(
 def resume_cmd(
     session: str = typer.Argument(..., help="Session id (in $STATION_HOME/sessions) or its folder/journal."),
     db: str = typer.Option(None, "--db", help="Records database URL (default: the one the session used)."),
+    tracker: str = typer.Option(None, "--tracker", help="The session's measuring instrument at a new address "
+                                "(e.g. tcp://127.0.0.1:5301 after a restart); it must be the same instrument."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Continue an interrupted session: robot re-verified, recorded samples kept, nothing repeated."""
@@ -234,7 +254,8 @@ def resume_cmd(
 
     cb, bar = _progress_bar(quiet)
     with bar:
-        out = resume(session, db=db, progress=cb, log=lambda s: typer.echo(s, err=True))
+        out = resume(session, db=db, progress=cb, log=lambda s: typer.echo(s, err=True),
+                     instruments={"tracker": tracker} if tracker is not None else None)
     _finish(out)
 
 

@@ -302,9 +302,12 @@ def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, lim
 
 def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int, str], None] | None = None,
            log: Callable[[str], None] | None = None, robot=None, prompt=None,
-           control: RunControl | None = None) -> Outcome:
+           control: RunControl | None = None, instruments: dict[str, str] | None = None) -> Outcome:
     """Continue an interrupted session: same procedure file (hash checked), same plan, recorded samples kept.
-    The outcome's ``db`` is the records URL the journal names."""
+    The outcome's ``db`` is the records URL the journal names. ``instruments`` (``{"tracker": URL}``) gives an
+    instrument option of the session a new address (the instrument came back on another port): journaled as an
+    ``instrument_url`` event and used by every later resume too; the procedure checks the instrument there is
+    the one the session started with."""
     from station.robot import open_robot
 
     path = find_session(session_ref)
@@ -339,6 +342,7 @@ def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int,
     lim = load_limits(lim_info.get("path"))
     if lim.sha256 != lim_info.get("sha256"):
         raise ConfigError(f"limits file {lim.path} changed since session {header.session} started")
+    options, moved = _instrument_urls(header, events, instruments)  # a bad --tracker: before the robot opens
     _disk_ok(path.parent, "not resuming")
     robot = robot or open_robot(header.url)
     try:
@@ -348,7 +352,7 @@ def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int,
         robot.close()
         raise
     s = Session(journal, robot, limits=table, limits_version=lim.version, cell=_cell_from_header(header.cell),
-                options=dict(header.options), replay=events, progress=progress, touch=touch, log=log, prompt=prompt)
+                options=options, replay=events, progress=progress, touch=touch, log=log, prompt=prompt)
     if control is not None:
         control.attach(s)
     try:
@@ -356,6 +360,8 @@ def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int,
             s.log(f"station: warning: {journal.torn}")
             s.event(ev.Warn(step="resume", message=journal.torn))
         s.event(ev.Resume(samples_kept=len(s.samples()), events_before=len(events)))
+        for name, (old, new) in moved.items():
+            s.event({"type": "instrument_url", "option": name, "old": old, "new": new})
     except BaseException:
         robot.close()
         journal.close()
@@ -363,6 +369,31 @@ def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int,
     out = _execute(s, proc.checklist, control)
     out.db = header.db
     return out
+
+
+def _instrument_urls(header: ev.Header, events: list, given: dict[str, str] | None) -> tuple[dict, dict]:
+    """The session's options for a resume: the header's, with every journaled ``instrument_url`` replacement
+    applied in order, then the ``given`` ones (``{option: URL}``); and which of the given ones change a URL
+    (``{option: (old, new)}``, to journal). Only an instrument URL option the session has can be replaced."""
+    def is_url(v) -> bool:
+        return isinstance(v, str) and "://" in v
+
+    opts = dict(header.options)
+    for e in events:  # only a URL option replaced by a URL: a damaged journal cannot turn on e.g. "apply"
+        d = getattr(e, "data", None)
+        if getattr(e, "type", None) == "instrument_url" and isinstance(d, dict) and is_url(d.get("new")) \
+                and is_url(opts.get(str(d.get("option")))):
+            opts[str(d["option"])] = d["new"]
+    moved = {}
+    for name, url in (given or {}).items():
+        if not is_url(opts.get(name)):
+            raise ConfigError(f"--{name} {url}: session {header.session} used no --{name}; nothing to redirect")
+        if not is_url(url):
+            raise ConfigError(f"--{name} {url!r}: expected an instrument URL like tcp://HOST:PORT")
+        if url != opts[name]:
+            moved[name] = (opts[name], url)
+            opts[name] = url
+    return opts, moved
 
 
 def check_journal_folder() -> Path:
