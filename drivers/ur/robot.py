@@ -570,6 +570,14 @@ class URRobot(RobotBase):
             self._speeding = False
             self._refused("speed command")
 
+    def jog_keep_alive(self) -> None:
+        """Between velocity jogs: feed the jog watchdog (armed for the control script's lifetime) while no
+        speed command runs, so the controller does not end the program a watchdog period after each stop.
+        The arm stands still (speedStop was sent); if this process dies the watchdog ends an idle program."""
+        if self._watchdog_armed and not self._speeding:
+            self._check_link()
+            self._kick()
+
     def _velocity_jog(self, send, remaining, v: float, a: float) -> None:
         total = remaining(self.joint_positions().q)
         deadline = time.monotonic() + total / v + v / a + 1.0  # the jog watchdog
