@@ -465,13 +465,17 @@ class JogController:
             if not self._arrivals_seen(h):
                 self._repeat_seen(h, now)
             return True
+        seen, times = self._arrivals(axis, d, self._arrival_mark.get((axis, d), 0))
+        # the press as the terminal delivered it: the first arrival of this key after the last hold, unless
+        # older than a repeat delay (step presses before hold-to-run was chosen, or a UI stalled that long)
+        times = [t for t in times if t >= now - HOLD_FIRST_S]
+        if seen and not times:
+            # a repeat that arrived before the held key's release (or the inferred one) and waited in the UI's
+            # queue: the key is no longer held, so it must not start the arm again
+            return False
         if h is not None:
             self.stop_hold(quiet=True)
         self.axis = axis
-        seen, times = self._arrivals(axis, d, self._arrival_mark.get((axis, d), 0))
-        # the press as the terminal delivered it: the first arrival of this key after the last hold, unless
-        # older than a repeat delay (step presses before hold-to-run was chosen)
-        times = [t for t in times if t >= now - HOLD_FIRST_S]
         t0 = times[0] if times else now
         self.hold_state = h = {"axis": axis, "dir": d, "mode": self.mode, "frame": self.frame, "events": 1,
                                "deadline": t0 + self.first_window(), "started": t0, "last": t0, "sent": None,
