@@ -37,10 +37,6 @@ def test_plain_input_is_parsed_as_textual_does():
     assert REPORT_EVENT_TYPES == "\x1b[=2;2u"  # set flag 2 (report event types), OR mode
 
 
-# KNOWN DEFECT (issue 15, open): in the lead's fresh-clone .ci/run the 2nd and 3rd holds after a kitty release
-# did not move the UR at all (speed 0 at release), the first one did; the helper saw it pass alone. xfail
-# (visible in every run) until fixed.
-@pytest.mark.xfail(reason="UR hold after a kitty release does not start again (issue 15, open)", strict=False)
 @pytest.mark.exclusive  # stop timing on the wire: run alone (make test)
 @pytest.mark.timeout(180)
 def test_kitty_release_stops_a_ur_hold_in_a_pty(tmp_path, emulators):
