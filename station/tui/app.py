@@ -269,10 +269,18 @@ class JogApp(App):
         key = event.key[len(RELEASED):]
         for i, (plus, minus) in enumerate(JOG_KEYS):
             if key in (plus, minus):
-                was = self.ctl.hold_state is not None
+                self.ctl.release(i, 1 if key == plus else -1)  # (already stopped on the input thread, mostly)
+                self.refresh_view()
+                return
+
+    def key_released(self, key: str) -> None:
+        """On the terminal's input thread (station.tui.keys): a jog key's release stops its hold at once, not
+        after the key events queued before it (JogController.release is safe from this thread)."""
+        if self.ctl.closed:
+            return
+        for i, (plus, minus) in enumerate(JOG_KEYS):
+            if key in (plus, minus):
                 self.ctl.release(i, 1 if key == plus else -1)
-                if was and self.ctl.hold_state is None:
-                    self.refresh_view()
                 return
 
     def _key_arrivals(self, axis: int, direction: int, count: int) -> tuple[int, list[float]]:

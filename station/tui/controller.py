@@ -57,6 +57,7 @@ HOLD_TICK_S = 0.05
 HOLD_CHECK_S = 0.01
 HOLD_WATCHDOG_S = 0.3
 HOLD_FIRST_S = 0.6
+RELEASE_LOCK_S = 0.2  # s: a release waits at most this for a re-command in flight, then stops regardless
 HOLD_DELAY_MIN_S = 0.15  # s: no terminal's repeat delay is shorter
 
 
@@ -537,11 +538,24 @@ class JogController:
 
     def release(self, axis: int, direction: int) -> None:
         """The terminal reported the release of a jog key (kitty keyboard protocol): stop now if it is the
-        held one."""
+        held one. Safe from the terminal's input thread (the app calls it there, ahead of the UI's queue): a
+        re-command in flight is waited for (``io_lock``, at most RELEASE_LOCK_S) and none starts after the hold
+        ended (``_hold_command`` re-checks under the lock). If the lock does not come free, a velocity jog is
+        stopped anyway (``stop()`` bypasses the lock, as the STOP key does); a position-controlled robot (bus
+        not thread-safe) is left to the same release on the UI thread, its targets end near the deadline."""
         self.release_events = True
-        h = self.hold_state
-        if h is not None and h["axis"] == axis and h["dir"] == (1 if direction > 0 else -1):
-            self.stop_hold()
+        d = 1 if direction > 0 else -1
+        locked = self.io_lock.acquire(timeout=RELEASE_LOCK_S)
+        try:
+            h = self.hold_state
+            if h is None or h["axis"] != axis or h["dir"] != d or not (locked or self.velocity_jog):
+                return
+            self._end_hold()
+            self.stop(quiet=True)
+            self.message = "key released: stopped"
+        finally:
+            if locked:
+                self.io_lock.release()
 
     def hold_check(self, now: float | None = None) -> bool:
         """Stop once the release deadline passed (cheap: the UI calls it every HOLD_CHECK_S). True if it stopped."""
@@ -596,6 +610,8 @@ class JogController:
         """Command a target no farther than the robot travels at the override until the deadline: if the UI
         stalls, the robot still stops there by itself."""
         h = self.hold_state
+        if h is None:
+            return False
         h["sent"] = now
         # the target is where the arm would be two ticks after the deadline (a target much closer makes the
         # drives' profiles brake between commands): a stalled UI still stops the arm there
@@ -605,6 +621,8 @@ class JogController:
         rotational = self.axis_unit(axis) == "deg"
         rate = self.joint_rate(axis)
         with self.io_lock:
+            if self.hold_state is not h:  # released (from the input thread) while this waited for the lock
+                return False
             try:
                 q0 = np.asarray(self.robot.joint_positions().q, dtype=float)
                 if self.velocity_jog:

@@ -68,9 +68,10 @@ class KeyArrivals:
 class ReleaseParser(XTermParser):
     """Textual's parser, plus the kitty event types (above); notes every press/repeat in ``arrivals``."""
 
-    def __init__(self, *args, arrivals: KeyArrivals | None = None, **kwargs) -> None:
+    def __init__(self, *args, arrivals: KeyArrivals | None = None, on_release=None, **kwargs) -> None:
         super().__init__(*args, **kwargs)
         self.arrivals = arrivals
+        self.on_release = on_release  # called with the key name on the input thread, before the event is queued
 
     def _sequence_to_key_events(self, sequence: str, alt: bool = False) -> Iterable[events.Key]:
         plain, kind = split_event_type(sequence)
@@ -81,6 +82,8 @@ class ReleaseParser(XTermParser):
                 yield key
             return
         for key in super()._sequence_to_key_events(plain, alt):
+            if self.on_release is not None:
+                self.on_release(key.key)
             yield events.Key(RELEASED + key.key, None)
 
 
@@ -96,7 +99,9 @@ class JogDriver(linux_driver.LinuxDriver):
     def run_input_thread(self) -> None:
         # LinuxDriver.run_input_thread builds its parser by this module-level name (textual 8 offers no
         # other hook); ReleaseParser parses everything else exactly as XTermParser does. The app's
-        # ``key_arrivals`` (a KeyArrivals) gets the time of every press/repeat
+        # ``key_arrivals`` (a KeyArrivals) gets the time of every press/repeat, ``key_released(key)`` every
+        # release at once (a release must not wait behind the UI's queue: the arm stops on it)
         linux_driver.XTermParser = functools.partial(ReleaseParser,
-                                                     arrivals=getattr(self._app, "key_arrivals", None))
+                                                     arrivals=getattr(self._app, "key_arrivals", None),
+                                                     on_release=getattr(self._app, "key_released", None))
         super().run_input_thread()
