@@ -342,6 +342,12 @@ def test_hold_reads_key_times_from_the_terminal_input_thread(rig):
         arrivals.note("s", t + dt)
     assert ctl.hold(1, -1, now=t + 0.17) and ctl.hold_state is not None
     assert ctl.repeat_delay == pytest.approx(0.3)
+    ctl.stop_hold()
+    # a tap whose release the input thread handles before the UI reads the press: the press must not start
+    # the arm after the key came up
+    arrivals.note("s", 30.0)
+    ctl.release(1, -1)
+    assert not ctl.hold(1, -1, now=30.2) and ctl.hold_state is None
     robot.stop()
 
 

@@ -547,6 +547,9 @@ class JogController:
         d = 1 if direction > 0 else -1
         locked = self.io_lock.acquire(timeout=RELEASE_LOCK_S)
         try:
+            # every press/repeat of this key so far belongs to before the release: one still queued for the UI
+            # (this runs ahead of the queue) is stale and must not start the arm after the key came up
+            self._arrival_mark[(axis, d)] = self._arrivals(axis, d, 0)[0]
             h = self.hold_state
             if h is None or h["axis"] != axis or h["dir"] != d or not (locked or self.velocity_jog):
                 return
