@@ -83,12 +83,9 @@ class URController:
         self.in_double = [0.0] * 48
         self.out_int = [0] * 48
         self.out_double = [0.0] * 48
-        # watchdog: controller time (s) a client last wrote input_int_register_0, counted in controller cycles
-        # as the real script's rtde_set_watchdog does; and the host's time of that write. A real controller's
-        # cycle is wall time; this one lags on a busy host and then catches up in a burst of cycles, which must
-        # not count as the client falling silent: it expires only when both clocks passed the period
+        # watchdog: controller time (s) a client last wrote input_int_register_0. Counted in controller cycles as
+        # the real script's rtde_set_watchdog does, so a lagging emulator tick cannot shorten or stretch it
         self.in_int0_written = 0.0
-        self.in_int0_wall = 0.0
         # controller state
         self.tick_count = 0
         self.late_ticks = 0  # cycles that started after their deadline (host scheduling), for benchmarks
@@ -195,8 +192,7 @@ class URController:
 
     def _watchdog(self) -> None:
         if (self.watchdog_hz > 0 and self.runtime_state == S.PLAYING
-                and self.controller_time() - self.in_int0_written > 1.0 / self.watchdog_hz
-                and time.monotonic() - self.in_int0_wall > 1.0 / self.watchdog_hz):
+                and self.controller_time() - self.in_int0_written > 1.0 / self.watchdog_hz):
             self.messages.append("RTDE watchdog expired: program stopped")
             self._halt_all()
             self._end_program()
@@ -402,7 +398,7 @@ class URController:
             self.protective_stop("triggerProtectiveStop() from the client")
         elif cmd == S.CMD_SET_WATCHDOG:
             self.watchdog_hz = float(self._reg_d(0))
-            self.in_int0_written, self.in_int0_wall = self.controller_time(), time.monotonic()
+            self.in_int0_written = self.controller_time()
         elif cmd == S.CMD_GET_STEPTIME:
             self._out_d(0, PERIOD)
         elif cmd == S.CMD_GET_ACTUAL_JOINT_POSITIONS_HISTORY:
@@ -575,7 +571,7 @@ class URController:
                     i = int(name.rsplit("_", 1)[1])
                     self.in_int[i] = int(v)
                     if i == self.reg_offset:
-                        self.in_int0_written, self.in_int0_wall = self.controller_time(), time.monotonic()
+                        self.in_int0_written = self.controller_time()
                         if not self.cmd_log or self.cmd_log[-1][1] != int(v):
                             self.cmd_log.append((self.tick_count, int(v)))
                 elif name.startswith("input_double_register_"):
