@@ -309,6 +309,48 @@ def test_hold_release_adapts_to_the_terminals_key_repeat(rig):
     robot.stop()
 
 
+def test_hold_reads_key_times_from_the_terminal_input_thread(rig):
+    """A UI busy in a robot call sees key events late and in bunches. The release is inferred from when the
+    terminal input thread received them (station.tui.keys.KeyArrivals, fed here by hand on an injected
+    clock): queued repeats keep the hold alive, a resumed hold teaches no repeat delay, and a repeat that
+    arrived before the release but is read after it does not start the arm again."""
+    from station.tui.keys import KeyArrivals
+
+    world, robot, ctl = rig()
+    ctl.set_continuous()
+    arrivals = KeyArrivals()
+    ctl.key_arrivals = lambda axis, d, count: arrivals.since("w" if d > 0 else "s", count)
+    t = 10.0
+    arrivals.note("s", t)
+    assert ctl.hold(1, -1, now=t + 0.05)  # the press, read 50 ms late: its window counts from its arrival
+    assert ctl.hold_state["started"] == t
+    for k in range(12):
+        arrivals.note("s", t + 0.3 + 0.03 * k)
+    last = t + 0.3 + 0.03 * 11
+    # the UI was stuck for 0.4 s and reads the repeats only now: not a release, the hold goes on
+    assert not ctl.hold_check(last + 0.02) and ctl.hold_state is not None
+    assert ctl.repeat_delay == pytest.approx(0.3) and ctl.release_gap() == pytest.approx(0.075)
+    for _ in range(12):  # the queued events themselves: already counted
+        assert ctl.hold(1, -1, now=last + 0.03)
+    assert ctl.hold_check(last + 0.076) and ctl.hold_state is None  # 75 ms after the last arrival
+    # a repeat read after that stop, which had arrived before it: the key is not held any more
+    assert not ctl.hold(1, -1, now=last + 0.08) and ctl.hold_state is None
+    # the key still held after a stop: new arrivals resume it; the first gap of a resumed hold (a late repeat,
+    # 100 ms, then the 30 ms cadence) is shorter than any terminal's repeat delay: not learned as one
+    t = 20.0
+    for dt in (0.0, 0.1, 0.13, 0.16):
+        arrivals.note("s", t + dt)
+    assert ctl.hold(1, -1, now=t + 0.17) and ctl.hold_state is not None
+    assert ctl.repeat_delay == pytest.approx(0.3)
+    ctl.stop_hold()
+    # a tap whose release the input thread handles before the UI reads the press: the press must not start
+    # the arm after the key came up
+    arrivals.note("s", 30.0)
+    ctl.release(1, -1)
+    assert not ctl.hold(1, -1, now=30.2) and ctl.hold_state is None
+    robot.stop()
+
+
 def test_a_reported_key_release_stops_at_once(rig):
     world, robot, ctl = rig()
     ctl.set_continuous()

@@ -43,6 +43,15 @@ class Tmux:
     def keys(self, *keys: str) -> None:
         subprocess.run(["tmux", "-L", self.sock, "send-keys", "-t", "jog", *keys], check=True)
 
+    def type_key(self, key: str) -> None:
+        """One key through a tmux control-mode client kept open: a keyboard's autorepeat every ~33 ms, which a
+        ``tmux send-keys`` process per key (fork + exec) cannot keep up with on a loaded host."""
+        if getattr(self, "_ctl", None) is None:
+            self._ctl = subprocess.Popen(["tmux", "-L", self.sock, "-C", "attach-session", "-t", "jog"],
+                                         stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        self._ctl.stdin.write(f"send-keys -t jog {key}\n".encode())
+        self._ctl.stdin.flush()
+
     def screen(self) -> str:
         return subprocess.run(["tmux", "-L", self.sock, "capture-pane", "-p", "-t", "jog"], capture_output=True,
                               text=True).stdout
@@ -57,6 +66,10 @@ class Tmux:
         raise AssertionError(f"{text!r} not on screen after {timeout} s:\n{self.screen()}")
 
     def kill(self) -> None:
+        ctl = getattr(self, "_ctl", None)
+        if ctl is not None:
+            ctl.kill()
+            ctl.wait(5)
         subprocess.run(["tmux", "-L", self.sock, "kill-server"], capture_output=True)
 
 

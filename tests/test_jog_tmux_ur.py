@@ -41,7 +41,7 @@ def _hold(term, recv, key: str, delay: float, interval: float, seconds: float) -
     while time.monotonic() - t0 < seconds:
         now = time.monotonic()
         if now >= next_key:
-            term.keys(key)
+            term.type_key(key)
             sent.append(time.monotonic())
             next_key = now + (delay if first else interval)
             first = False
@@ -59,11 +59,10 @@ def _standstill(recv, timeout: float = 3.0) -> tuple[float, float]:
     return time.monotonic(), recv.getTimestamp()
 
 
-# KNOWN DEFECT (issue 15, open): in the lead's full runs the arm stopped once inside the terminal's 450 ms initial
-# repeat delay and started again at the first repeat (a stop-start), 2 runs of 2 with the suite's exclusive part;
-# the helper saw it pass alone. Suspect: the UI loop's speed re-commands vs the emulator's sim-time watchdog.
-# Marked xfail (visible as "xfailed" in every run) until fixed.
-@pytest.mark.xfail(reason="stop-start inside the initial key-repeat delay on a UR (issue 15, open)", strict=False)
+# KNOWN DEFECT (issue 15, open; jog3 fixed the causes found, see docs/jog.md): under heavy host load (load 9-14 on
+# 2 cores) the station process or the test's own key sender is starved for 0.1-2 s, which shows as stop-starts;
+# 2 of 5 runs passed with two extra CPU burners. xfail until a loaded run passes reliably.
+@pytest.mark.xfail(reason="UR hold-to-run in tmux under heavy host load: stop-starts (issue 15, open)", strict=False)
 @pytest.mark.timeout(240)
 def test_hold_to_run_on_a_ur_in_a_real_terminal(tmp_path, emulators):
     import rtde_receive
@@ -108,7 +107,7 @@ def test_hold_to_run_on_a_ur_in_a_real_terminal(tmp_path, emulators):
         print(f"UR hold-to-run in tmux: {len(h['sent'])} key events, repeat every {np.median(gaps) * 1e3:.0f} ms "
               f"(p90 {np.percentile(gaps, 90) * 1e3:.0f} ms); standstill {wall * 1e3:.0f} ms (wall) / "
               f"{ctrl * 1e3:.0f} ms (controller) after the last key was sent")
-    for h, _wall, ctrl in results:
+    for h, wall, ctrl in results:
         log = [(t, v) for t, _, v in h["log"]]
         start = h["sent"][0]
         # the first press keeps the arm moving through the 450 ms repeat delay: once started (the first speed
@@ -124,7 +123,9 @@ def test_hold_to_run_on_a_ur_in_a_real_terminal(tmp_path, emulators):
         # standstill after the last key event: the inferred release (2.5 repeat intervals, at most the 0.1 s
         # watchdog period) + the UI's 10 ms check + the brake; tmux/pty input latency on top (wall clock)
         assert ctrl <= HOLD_RELEASE_S + 0.01 + BRAKE_S + 0.1, ctrl
-        assert ctrl >= HOLD_GAP_MIN_S - 0.02, ctrl  # it waited for a gap, it did not stop between repeats
+        # it waited for a gap, it did not stop between repeats: on the wall clock of the key times (the emulated
+        # controller's clock falls behind wall time on a loaded host)
+        assert wall >= HOLD_GAP_MIN_S - 0.02, wall
     assert "EXIT=0" in out, out
     (folder,) = list((home / "sessions").iterdir())
     header, _ = read_journal(folder / "journal.jsonl")

@@ -51,6 +51,7 @@ LOCAL_HOSTS = ("localhost", "127.0.0.1")
 # 2-core PC (issue 15); 500 ms (250 packages) soaked with zero spurious faults under two busy loops
 # (tests/test_soak_buses.py) and still stops the arm within half a second of a dead link.
 STALL_MS = 500.0  # ur_rtde skips its remote-control check only for these
+JOG_IDLE_WATCHDOG_HZ = 1.0  # the RTDE watchdog between velocity jogs (arm standing; jog_keep_alive feeds it)
 
 
 class URRobot(RobotBase):
@@ -104,6 +105,7 @@ class URRobot(RobotBase):
         self.stale_timeout = stale_timeout
         self.jog_watchdog = jog_watchdog  # Hz: controller-side RTDE watchdog armed for speed jogs (0: off)
         self._watchdog_armed = False
+        self._watchdog_idle = False  # armed at JOG_IDLE_WATCHDOG_HZ between velocity jogs
         self._rt_sent = self._last_kick = 0.0
         self.url = url or f"ur://{host}?model={catalog.name}"
         self.url_serial = serial  # used only when the controller does not report one (PolyScope < 5.6)
@@ -549,8 +551,9 @@ class URRobot(RobotBase):
         if tool > MANUAL_TOOL_SPEED_CAP:
             scale = min(scale, MANUAL_TOOL_SPEED_CAP / tool)
         self._ready_for_motion()
-        if self.jog_watchdog > 0 and not self._watchdog_armed:
+        if self.jog_watchdog > 0 and (not self._watchdog_armed or self._watchdog_idle):
             self._watchdog_armed = bool(self._c.setWatchdog(self.jog_watchdog))
+            self._watchdog_idle = False
         self._speeding = True
         for attempt in range(2):
             if mode == "joint":
@@ -570,12 +573,29 @@ class URRobot(RobotBase):
             self._speeding = False
             self._refused("speed command")
 
+    def _watchdog_to_idle(self) -> None:
+        """After a velocity jog's speedStop: the arm stands, so the armed watchdog may wait longer
+        (JOG_IDLE_WATCHDOG_HZ) for the keep-alive until the next jog sets ``jog_watchdog`` again before its
+        first speed command. At 10 Hz a keep-alive late by 0.1 s (a busy station PC) ended the program, and
+        the next press had to upload the script first (or met the program ending under its speed command)."""
+        if self._watchdog_armed and self.jog_watchdog > JOG_IDLE_WATCHDOG_HZ:
+            self._watchdog_idle = bool(self._bounded("setWatchdog", self._c.setWatchdog, JOG_IDLE_WATCHDOG_HZ))
+
+    def jog_keep_alive(self) -> None:
+        """Between velocity jogs: feed the jog watchdog (armed for the control script's lifetime) while no
+        speed command runs, so the controller does not end the program a watchdog period after each stop.
+        The arm stands still (speedStop was sent); if this process dies the watchdog ends an idle program."""
+        if self._watchdog_armed and not self._speeding:
+            self._check_link()
+            self._kick()
+
     def _velocity_jog(self, send, remaining, v: float, a: float) -> None:
         total = remaining(self.joint_positions().q)
         deadline = time.monotonic() + total / v + v / a + 1.0  # the jog watchdog
         self._speeding = True
         try:
-            if self.jog_watchdog > 0 and not self._watchdog_armed:
+            if self.jog_watchdog > 0 and (not self._watchdog_armed or self._watchdog_idle):
+                self._watchdog_idle = False
                 # if this process or the network dies mid-jog, the controller stops the program itself
                 # (the script's rtde_set_watchdog(..., "stop")); it stays armed until the program ends
                 self._watchdog_armed = bool(self._c.setWatchdog(self.jog_watchdog))
@@ -611,6 +631,7 @@ class URRobot(RobotBase):
                 if self._speeding:
                     self._bounded("speedStop", self._c.speedStop, 10.0)
                     self._speeding = False
+                    self._watchdog_to_idle()
                 self._bounded("stopJ", self._c.stopJ, 2.0, False)
             elif any(abs(v) > 1e-4 for v in self._r.getActualQd()):
                 self._dash.stop_program()

@@ -169,6 +169,10 @@ class JogApp(App):
         self.ctl = controller
         self.poll_s = poll_s
         self._timer = None
+        from station.tui.keys import KeyArrivals
+
+        self._shown: dict[str, object] = {}  # what each panel shows (refresh_view skips unchanged panels)
+        self.key_arrivals = KeyArrivals()  # fed by the terminal input thread (JogDriver), read by hold-to-run
         self.interrupted: int | None = None  # the signal that ended the app (SIGTERM/SIGINT), if any
         self._old_handlers: dict = {}
         n = controller.model.n_joints
@@ -214,6 +218,7 @@ class JogApp(App):
             self.ctl.message = "robot disabled (torque off): press c to enable"
         self.refresh_view()
         self._catch_signals()
+        self.ctl.key_arrivals = self._key_arrivals
         self._timer = self.set_interval(self.poll_s, self._tick)
         self._hold_timer = self.set_interval(HOLD_CHECK_S, self._hold_tick)
 
@@ -264,14 +269,30 @@ class JogApp(App):
         key = event.key[len(RELEASED):]
         for i, (plus, minus) in enumerate(JOG_KEYS):
             if key in (plus, minus):
-                was = self.ctl.hold_state is not None
-                self.ctl.release(i, 1 if key == plus else -1)
-                if was and self.ctl.hold_state is None:
-                    self.refresh_view()
+                self.ctl.release(i, 1 if key == plus else -1)  # (already stopped on the input thread, mostly)
+                self.refresh_view()
                 return
 
+    def key_released(self, key: str) -> None:
+        """On the terminal's input thread (station.tui.keys): a jog key's release stops its hold at once, not
+        after the key events queued before it (JogController.release is safe from this thread)."""
+        if self.ctl.closed:
+            return
+        for i, (plus, minus) in enumerate(JOG_KEYS):
+            if key in (plus, minus):
+                self.ctl.release(i, 1 if key == plus else -1)
+                return
+
+    def _key_arrivals(self, axis: int, direction: int, count: int) -> tuple[int, list[float]]:
+        """Arrival times of a jog key at the terminal input thread (station.tui.keys.JogDriver)."""
+        plus, minus = JOG_KEYS[axis]
+        return self.key_arrivals.since(plus if direction > 0 else minus, count)
+
     def _hold_tick(self) -> None:
-        if self.ctl.hold_state is None or self.ctl.closed:
+        if self.ctl.closed:
+            return
+        if self.ctl.hold_state is None:
+            self.ctl.hold_idle()
             return
         self.ctl.hold_tick()
         if self.ctl.hold_state is None:
@@ -302,7 +323,7 @@ class JogApp(App):
                 joints.append(f"J{i + 1} {j.name[:8]:<8}{_fmt_value(r.q[i], j.revolute)}", style=style)
                 lo, hi = (np.rad2deg([j.lower, j.upper]) if j.revolute else np.array([j.lower, j.upper]) * 1e3)
                 joints.append(f"  [{lo:.0f}, {hi:.0f}]\n", style="dim")
-        self.query_one("#joints", Static).update(joints)
+        self._show("#joints", joints)
         tcp = Text()
         if r is not None:
             x, y, z = r.tcp[:3] * 1e3
@@ -314,7 +335,7 @@ class JogApp(App):
                 u = "deg"
             tcp.append(f"X {x:+10.3f} mm   Rx {rx:+9.4f} {u}\nY {y:+10.3f} mm   Ry {ry:+9.4f} {u}\n"
                        f"Z {z:+10.3f} mm   Rz {rz:+9.4f} {u}")
-        self.query_one("#tcp", Static).update(tcp)
+        self._show("#tcp", tcp)
         jog = Text()
         jog.append("mode  ")
         jog.append(f"{ctl.mode:<10}", style="bold cyan")
@@ -339,15 +360,27 @@ class JogApp(App):
         jog.append(f"   {state}", style="green" if state == "still" else "yellow")
         if r is not None and not r.enabled:
             jog.append("  disabled", style="red")
-        self.query_one("#jog", Static).update(jog)
+        self._show("#jog", jog)
         self._refresh_samples()
-        self.query_one("#guide", Static).update(self._guide_text())
-        self.query_one("#solve", Static).update(self._solve_text())
-        self.query_one("#message", Static).update(ctl.message)
+        self._show("#guide", self._guide_text())
+        self._show("#solve", self._solve_text())
+        self._show("#message", ctl.message)
+
+    def _show(self, selector: str, content) -> None:
+        """Update a panel only when its content changed: every update re-lays out the screen, and doing it for
+        all panels at each poll kept the UI thread busy enough to delay hold-to-run on a loaded host."""
+        if self._shown.get(selector) == content:
+            return
+        self.query_one(selector, Static).update(content)
+        self._shown[selector] = content.copy() if isinstance(content, Text) else content
 
     def _refresh_samples(self) -> None:
         table = self.query_one("#samples", DataTable)
         samples = self.ctl.session.samples
+        key = (tuple((s.seq, s.point, s.status.get("touch"), self.ctl.number(s)) for s in samples), self.ctl.selected)
+        if key == self._shown.get("#samples"):
+            return
+        self._shown["#samples"] = key
         table.clear()
         for s in samples:
             touch = s.status.get("touch")
@@ -431,6 +464,14 @@ class JogApp(App):
         self.refresh_view()
 
     def action_jog(self, axis: int, direction: int) -> None:
+        if self.ctl.continuous:
+            # hold-to-run: a repeat only keeps the hold alive; the UI's time belongs to the re-commands and
+            # the release check (the 200 ms poll refreshes the view)
+            held = self.ctl.hold_state is not None
+            self.ctl.jog(axis, direction)
+            if not held:
+                self.refresh_view()
+            return
         self.ctl.jog(axis, direction)
         self.ctl.poll(block=True)
         self.refresh_view()

@@ -44,9 +44,12 @@ JOG_MAX_JOINT_SPEED = np.deg2rad(30.0)  # rad/s (m/s prismatic): manual jog neve
 # HOLD_GAP_REPEATS measured repeat intervals, never shorter than HOLD_GAP_MIN_S (terminal input jitter) and
 # never longer than HOLD_RELEASE_S (the UR's RTDE watchdog period). Before the first repeat of a hold the
 # window is the terminal's repeat delay as measured on earlier holds (HOLD_FIRST_S until one was measured), so
-# the first press never stop-starts the arm. The UI checks for a release every HOLD_CHECK_S and re-commands
-# the motion every HOLD_TICK_S; every position target ends where the arm would be shortly after the
-# deadline, so a stalled UI stops it there too (HOLD_WATCHDOG_S: standstill after the last key event).
+# the first press never stop-starts the arm (a "delay" under HOLD_DELAY_MIN_S is a hold resumed mid-repeat,
+# never learned). Key times are when the terminal input thread parsed the key (``key_arrivals``,
+# station.tui.keys.KeyArrivals), not when the busy UI got round to it. The UI checks for a release every
+# HOLD_CHECK_S and re-commands the motion every HOLD_TICK_S; every position target ends where the arm would be
+# shortly after the deadline, so a stalled UI stops it there too (HOLD_WATCHDOG_S: standstill after the last
+# key event).
 HOLD_RELEASE_S = 0.1
 HOLD_GAP_REPEATS = 2.5
 HOLD_GAP_MIN_S = 0.05
@@ -54,6 +57,8 @@ HOLD_TICK_S = 0.05
 HOLD_CHECK_S = 0.01
 HOLD_WATCHDOG_S = 0.3
 HOLD_FIRST_S = 0.6
+RELEASE_LOCK_S = 0.2  # s: a release waits at most this for a re-command in flight, then stops regardless
+HOLD_DELAY_MIN_S = 0.15  # s: no terminal's repeat delay is shorter
 
 
 @dataclass
@@ -150,6 +155,11 @@ class JogController:
         self.repeat_intervals: deque[float] = deque(maxlen=16)  # the terminal's autorepeat, measured (s)
         self.repeat_delay: float | None = None  # the terminal's delay before the first repeat, measured (s)
         self.release_events = False  # the terminal reported a key release (kitty keyboard protocol)
+        # (axis, direction, count) -> (arrivals so far, times of those after count) of that jog key as the
+        # terminal's input thread saw them (set by the app; None: key times are the calls' ``now``)
+        self.key_arrivals = None
+        self._arrival_mark: dict[tuple[int, int], int] = {}  # arrivals already taken by an ended hold
+        self._idle_kick = 0.0
         self.predicted: dict[str, float | None] = {}
         self.guide: gd.Guidance = gd.guidance(self.model, self._guide_labels(), [], None, self.limits, None)
         self.verdict: dict | None = None
@@ -285,7 +295,7 @@ class JogController:
 
     def stop(self, quiet: bool = False) -> None:
         """Always available: no lock, no precondition."""
-        self.hold_state = None
+        self._end_hold()
         try:
             self.robot.stop()
             if not quiet:
@@ -453,14 +463,47 @@ class JogController:
         d = 1 if direction > 0 else -1
         h = self.hold_state
         if h is not None and h["axis"] == axis and h["dir"] == d and h["mode"] == self.mode:
-            self._repeat_seen(h, now)
+            if not self._arrivals_seen(h):
+                self._repeat_seen(h, now)
             return True
+        seen, times = self._arrivals(axis, d, self._arrival_mark.get((axis, d), 0))
+        # the press as the terminal delivered it: the first arrival of this key after the last hold, unless
+        # older than a repeat delay (step presses before hold-to-run was chosen, or a UI stalled that long)
+        times = [t for t in times if t >= now - HOLD_FIRST_S]
+        if seen and not times:
+            # a repeat that arrived before the held key's release (or the inferred one) and waited in the UI's
+            # queue: the key is no longer held, so it must not start the arm again
+            return False
         if h is not None:
             self.stop_hold(quiet=True)
         self.axis = axis
-        self.hold_state = {"axis": axis, "dir": d, "mode": self.mode, "frame": self.frame, "events": 1,
-                           "deadline": now + self.first_window(), "started": now, "last": now, "sent": None}
+        t0 = times[0] if times else now
+        self.hold_state = h = {"axis": axis, "dir": d, "mode": self.mode, "frame": self.frame, "events": 1,
+                               "deadline": t0 + self.first_window(), "started": t0, "last": t0, "sent": None,
+                               "seen": seen - len(times) + 1 if times else seen}
+        self._arrivals_seen(h)  # repeats that arrived while the press waited in the UI's queue
         return self._hold_command(now)
+
+    def _end_hold(self) -> None:
+        h, self.hold_state = self.hold_state, None
+        if h is not None:  # the key's arrivals so far belong to the ended hold; the next press comes after them
+            self._arrival_mark[(h["axis"], h["dir"])] = self._arrivals(h["axis"], h["dir"], 0)[0]
+
+    def _arrivals(self, axis: int, d: int, count: int) -> tuple[int, list[float]]:
+        if self.key_arrivals is None:
+            return 0, []
+        return self.key_arrivals(axis, d, count)
+
+    def _arrivals_seen(self, h: dict) -> bool:
+        """Take the held key's repeats the input thread saw since the last look (their own times). False when
+        there are no arrival times (no terminal input thread: the caller's ``now`` counts)."""
+        seen, times = self._arrivals(h["axis"], h["dir"], h["seen"])
+        if not seen:
+            return False
+        h["seen"] = seen
+        for t in times:
+            self._repeat_seen(h, max(t, h["last"]))
+        return True
 
     def _repeat_seen(self, h: dict, now: float) -> None:
         """A repeat of the held key: measure the terminal's cadence and move the release deadline."""
@@ -469,7 +512,7 @@ class JogController:
             h["delay"] = dt  # the repeat delay (or a second press: confirmed by the cadence that follows)
         else:
             self.repeat_intervals.append(dt)
-            if h["events"] == 2 and dt < 0.6 * h["delay"]:
+            if h["events"] == 2 and dt < 0.6 * h["delay"] and h["delay"] >= HOLD_DELAY_MIN_S:
                 self.repeat_delay = h["delay"]
         h["events"] += 1
         h["last"] = now
@@ -495,18 +538,38 @@ class JogController:
 
     def release(self, axis: int, direction: int) -> None:
         """The terminal reported the release of a jog key (kitty keyboard protocol): stop now if it is the
-        held one."""
+        held one. Safe from the terminal's input thread (the app calls it there, ahead of the UI's queue): a
+        re-command in flight is waited for (``io_lock``, at most RELEASE_LOCK_S) and none starts after the hold
+        ended (``_hold_command`` re-checks under the lock). If the lock does not come free, a velocity jog is
+        stopped anyway (``stop()`` bypasses the lock, as the STOP key does); a position-controlled robot (bus
+        not thread-safe) is left to the same release on the UI thread, its targets end near the deadline."""
         self.release_events = True
-        h = self.hold_state
-        if h is not None and h["axis"] == axis and h["dir"] == (1 if direction > 0 else -1):
-            self.stop_hold()
+        d = 1 if direction > 0 else -1
+        locked = self.io_lock.acquire(timeout=RELEASE_LOCK_S)
+        try:
+            # every press/repeat of this key so far belongs to before the release: one still queued for the UI
+            # (this runs ahead of the queue) is stale and must not start the arm after the key came up
+            self._arrival_mark[(axis, d)] = self._arrivals(axis, d, 0)[0]
+            h = self.hold_state
+            if h is None or h["axis"] != axis or h["dir"] != d or not (locked or self.velocity_jog):
+                return
+            self._end_hold()
+            self.stop(quiet=True)
+            self.message = "key released: stopped"
+        finally:
+            if locked:
+                self.io_lock.release()
 
     def hold_check(self, now: float | None = None) -> bool:
         """Stop once the release deadline passed (cheap: the UI calls it every HOLD_CHECK_S). True if it stopped."""
         h = self.hold_state
         if h is None:
             return False
-        if (time.monotonic() if now is None else now) >= h["deadline"]:
+        now = time.monotonic() if now is None else now
+        if now >= h["deadline"]:
+            self._arrivals_seen(h)  # a repeat may wait in the UI's queue: the key is still held
+            if now < h["deadline"]:
+                return False
             self.stop_hold()
             return True
         return False
@@ -522,10 +585,26 @@ class JogController:
             return
         self._hold_command(now)
 
+    def hold_idle(self, now: float | None = None) -> None:
+        """Called by the UI between holds: a velocity-jog robot's watchdog stays armed after a release (UR:
+        the RTDE watchdog lives as long as the control script), so keep feeding it every HOLD_TICK_S; else the
+        controller ends the program a watchdog period after each release and the next press waits for the
+        script to be uploaded again. If the UI stalls anyway, the next press restarts it (slower, still safe)."""
+        keep = getattr(self.robot, "jog_keep_alive", None) if self.velocity_jog and not self.fault else None
+        now = time.monotonic() if now is None else now
+        if keep is None or now - self._idle_kick < HOLD_TICK_S or not self.io_lock.acquire(blocking=False):
+            return
+        try:
+            self._idle_kick = now
+            keep()
+        except StationError as e:
+            self._on_error(e, "jog watchdog")
+        finally:
+            self.io_lock.release()
+
     def stop_hold(self, quiet: bool = False) -> None:
         if self.hold_state is None:
             return
-        self.hold_state = None
         self.stop(quiet=True)
         if not quiet:
             self.message = "key released: stopped"
@@ -534,6 +613,8 @@ class JogController:
         """Command a target no farther than the robot travels at the override until the deadline: if the UI
         stalls, the robot still stops there by itself."""
         h = self.hold_state
+        if h is None:
+            return False
         h["sent"] = now
         # the target is where the arm would be two ticks after the deadline (a target much closer makes the
         # drives' profiles brake between commands): a stalled UI still stops the arm there
@@ -543,6 +624,8 @@ class JogController:
         rotational = self.axis_unit(axis) == "deg"
         rate = self.joint_rate(axis)
         with self.io_lock:
+            if self.hold_state is not h:  # released (from the input thread) while this waited for the lock
+                return False
             try:
                 q0 = np.asarray(self.robot.joint_positions().q, dtype=float)
                 if self.velocity_jog:
@@ -559,12 +642,11 @@ class JogController:
                     self.robot.move_joints(target, speed=speed, wait=False)
                     sent = {"step": step, "speed": speed, "target": target}
             except LimitError as e:
-                self.hold_state = None
                 self.stop(quiet=True)
                 self.message = f"refused: {e}"
                 return False
             except StationError as e:
-                self.hold_state = None
+                self._end_hold()
                 self._on_error(e, f"jog {self.axis_names()[axis]}")
                 return False
         self.last_jog = {"mode": self.mode, "frame": self.frame, "axis": axis, "q0": q0, "cap_m_s": cap,

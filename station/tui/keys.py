@@ -13,7 +13,11 @@ UI then infers the release from the autorepeat (``station.tui.controller.HOLD_*`
 
 from __future__ import annotations
 
+import functools
 import re
+import threading
+import time
+from collections import deque
 from collections.abc import Iterable
 
 from textual import constants, events
@@ -35,15 +39,51 @@ def split_event_type(sequence: str) -> tuple[str, int]:
     return f"\x1b[{code};{mods or '1'}{text}{final}", int(kind)
 
 
+class KeyArrivals:
+    """When the terminal input thread parsed each press or repeat of a key (``time.monotonic``), before the
+    event waits in the UI's message queue. Hold-to-run infers a release from a gap in the autorepeat: measured
+    here, a UI busy with a robot call cannot mistake its own lateness for a released key. Thread-safe: the
+    input thread writes, the UI thread reads."""
+
+    def __init__(self, keep: int = 64) -> None:
+        self._keep = keep
+        self._lock = threading.Lock()
+        self._times: dict[str, deque[float]] = {}
+        self._count: dict[str, int] = {}
+
+    def note(self, key: str, t: float | None = None) -> None:
+        with self._lock:
+            self._times.setdefault(key, deque(maxlen=self._keep)).append(time.monotonic() if t is None else t)
+            self._count[key] = self._count.get(key, 0) + 1
+
+    def since(self, key: str, count: int) -> tuple[int, list[float]]:
+        """``(arrivals of key so far, times of those numbered after count)``; (0, []) for a key never seen."""
+        with self._lock:
+            n = self._count.get(key, 0)
+            times = self._times.get(key, ())
+            new = max(0, min(n - count, len(times)))
+            return n, list(times)[len(times) - new:] if new else []
+
+
 class ReleaseParser(XTermParser):
-    """Textual's parser, plus the kitty event types (above)."""
+    """Textual's parser, plus the kitty event types (above); notes every press/repeat in ``arrivals``."""
+
+    def __init__(self, *args, arrivals: KeyArrivals | None = None, on_release=None, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.arrivals = arrivals
+        self.on_release = on_release  # called with the key name on the input thread, before the event is queued
 
     def _sequence_to_key_events(self, sequence: str, alt: bool = False) -> Iterable[events.Key]:
         plain, kind = split_event_type(sequence)
         if kind != 3:
-            yield from super()._sequence_to_key_events(plain, alt)
+            for key in super()._sequence_to_key_events(plain, alt):
+                if self.arrivals is not None:
+                    self.arrivals.note(key.key)
+                yield key
             return
         for key in super()._sequence_to_key_events(plain, alt):
+            if self.on_release is not None:
+                self.on_release(key.key)
             yield events.Key(RELEASED + key.key, None)
 
 
@@ -58,6 +98,10 @@ class JogDriver(linux_driver.LinuxDriver):
 
     def run_input_thread(self) -> None:
         # LinuxDriver.run_input_thread builds its parser by this module-level name (textual 8 offers no
-        # other hook); ReleaseParser parses everything else exactly as XTermParser does
-        linux_driver.XTermParser = ReleaseParser
+        # other hook); ReleaseParser parses everything else exactly as XTermParser does. The app's
+        # ``key_arrivals`` (a KeyArrivals) gets the time of every press/repeat, ``key_released(key)`` every
+        # release at once (a release must not wait behind the UI's queue: the arm stops on it)
+        linux_driver.XTermParser = functools.partial(ReleaseParser,
+                                                     arrivals=getattr(self._app, "key_arrivals", None),
+                                                     on_release=getattr(self._app, "key_released", None))
         super().run_input_thread()
