@@ -151,6 +151,31 @@ def assert_safe(cell: DemoCell, *, settle: float = 0.3, kill_9: bool = False) ->
     return "stopped, holding"
 
 
+# ---- the calibration the devices hold, read on the emulator side -------------------------------------------
+def device_offsets(cell: DemoCell) -> list:
+    """Per joint, the raw zero offset the emulated devices hold: Dynamixel Homing Offset (20) ticks; CANopen
+    (volatile 0x607C, value stored by 0x1010) counts, so an offset that would not survive a power cycle shows."""
+    if cell.bus == "dynamixel":
+        emu = cell.emu.emulator
+        return [int(emu.devices[i].get("homing_offset")) for i in emu.joint_ids]
+    drives = getattr(cell.emu, "drives", None) or cell.emu.emulator.drives
+    out = []
+    for d in drives.values():
+        stored = d.stored.get((0x607C, 0))
+        out.append((d.home_offset, None if stored is None else int.from_bytes(stored[:4], "little", signed=True)))
+    return out
+
+
+def counts_of(cell: DemoCell, offsets: dict[str, float]) -> list:
+    """``{"offset.jN": rad}`` in the devices' raw units (the model's encoder), shaped as :func:`device_offsets`."""
+    out = []
+    for j, joint in enumerate(cell.world.nominal.joints):
+        enc = joint.encoder
+        c = int(round(offsets[f"offset.j{j + 1}"] * enc.counts_per_unit * enc.gear * enc.direction))
+        out.append(c if cell.bus == "dynamixel" else (c, c))
+    return out
+
+
 # ---- a fault in a phase of a real session ------------------------------------------------------------------
 # the engine call each phase of the checklist starts with (procedures/zero_offsets.py), and which call of it
 PHASE_CALLS = {"motion": ("approach", 3), "record": ("record", 3), "solve": ("solve", 1),

@@ -424,7 +424,10 @@ class CanopenRobot(RobotBase):
         return list(self.nodes)
 
     def write_calibration(self, values: dict[str, float]) -> None:
-        """Write absolute home offsets (SI) to 0x607C, store them (0x1010 "save"), read them back."""
+        """Write absolute home offsets (SI) to 0x607C, store them (0x1010 "save"), read them back. Refused while a
+        fault is latched (EMCY, bus error, lost node): a calibration is never started on a drive train in error."""
+        self._check_open("write_calibration")
+        self.faults.raise_if_latched()
         plan = {}
         for name, value in values.items():
             idx = None

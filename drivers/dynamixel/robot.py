@@ -487,7 +487,8 @@ class DynamixelRobot(RobotBase):
             ticks[self.ids[j]] = t
         if not ticks:
             return
-        was_on, _ = self._guard(self._read_all, T.TORQUE_ENABLE, 1, False)
+        was_on, errors = self._guard(self._read_all, T.TORQUE_ENABLE, 1, False)
+        self._check_alerts(errors)  # a servo in hardware error: no calibration is written (nothing was yet)
         restore = [i for i, on in zip(self.ids, was_on, strict=True) if on and i in ticks]
         done = False
         try:
@@ -497,11 +498,16 @@ class DynamixelRobot(RobotBase):
                 if err & 0x7F:
                     raise DeviceFault(f"write_calibration: {self._name(i)} refused homing offset {t}: "
                                       f"{T.PACKET_ERRORS.get(err & 0x7F, err)}", device=f"dynamixel:{i}", code=err)
-            back, _ = self._guard(self._read_all, T.HOMING_OFFSET, 4)
+            back, errors = self._guard(self._read_all, T.HOMING_OFFSET, 4)
             bad = [i for i, b in zip(self.ids, back, strict=True) if i in ticks and b != ticks[i]]
             if bad:
                 raise DeviceFault(f"write_calibration: read-back mismatch on {', '.join(self._name(i) for i in bad)}",
                                   device=f"dynamixel:{bad[0]}")
+            # a servo that latched a hardware error during the write (alert bit) took its offset (EEPROM is
+            # writable with torque off) but is not fit to move: every offset is written and read back first, so
+            # the device never holds half a calibration, then the fault is raised (the write-back is "failed" and
+            # a resume writes and checks again after the power cycle)
+            self._check_alerts(errors)
             done = True
         finally:
             if restore and done:
