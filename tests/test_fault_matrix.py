@@ -17,6 +17,7 @@ absorbed, a persistent one is one typed ``StationError`` with the arm stopped.""
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import time
@@ -242,6 +243,17 @@ class _DiskFull:
         self.full = False
 
 
+class _Warnings(logging.Handler):
+    """The station's warnings of one step, as the CLI would print them (its teardown's loud lines)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append(record.getMessage())
+
+
 _REFERENCE: dict[str, str] = {}
 
 
@@ -293,7 +305,7 @@ def _step(cell, row, phase, session, monkeypatch, act):
 
 
 @pytest.mark.parametrize("bus, row", CELLS)
-def test_fault_matrix_row(tmp_path, monkeypatch, bus, row):
+def test_fault_matrix_row(tmp_path, monkeypatch, request, bus, row):
     reference = _undisturbed(bus, tmp_path)
     with demo_cell(bus, tmp_path, SEEDS[bus], cross_process=row == "kill -9") as cell:
         monkeypatch.setenv("STATION_HOME", str(cell.home))
@@ -310,6 +322,9 @@ def test_fault_matrix_row(tmp_path, monkeypatch, bus, row):
         else:
             act, recover, want = None, None, 2
         session, kept, results = None, [], []
+        warnings = _Warnings()
+        logging.getLogger("station").addHandler(warnings)
+        request.addfinalizer(lambda: logging.getLogger("station").removeHandler(warnings))
         for phase in COLUMNS:
             if want == 2 and row in BUS_ROWS:
                 act, recover = _bus_fault(cell, row, phase)
@@ -327,7 +342,8 @@ def test_fault_matrix_row(tmp_path, monkeypatch, bus, row):
             assert len({s.pose for s in now}) == len(now), "a pose was recorded twice"
             kept = now
             recover()
-            safe = assert_safe(cell, kill_9=row == "kill -9")
+            safe = assert_safe(cell, kill_9=row == "kill -9", loud=warnings.lines)
+            warnings.lines.clear()
             results.append(f"{phase}: exit {code}, {len(now)} samples kept, {safe}")
         final = api.resume(session, report=False)
         assert final.status == "completed", final.error

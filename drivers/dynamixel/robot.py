@@ -8,6 +8,7 @@ Profile Velocity + Goal Position. Ticks <-> SI through each joint's encoder scal
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import threading
 import time
@@ -30,6 +31,8 @@ from station.robot.errors import (
 from station.robot.motion import MANUAL_TOOL_SPEED_CAP
 from station.robot.protocol import Identity, JointSnapshot, JointState, RobotStatus
 from station.robot.url import Option, Options, RobotURL, either, flag, id_list, integer, number, text
+
+log = logging.getLogger("station.drivers.dynamixel")
 
 LATENCY_MS = 50.0  # default latency term: a dead servo is reported after (1 + retries) x ~102 ms ~= 0.4 s
 
@@ -545,10 +548,17 @@ class DynamixelRobot(RobotBase):
                               f"({T.describe_hardware_error(bits)}) after reboot", device=f"dynamixel:{i}", code=bits)
 
     def _shutdown(self) -> None:
-        """Every servo holds where it is (torque stays on: an arm must not drop), then the port is released."""
+        """Every servo holds where it is (torque stays on: an arm must not drop), then the port is released. An arm
+        still compliant (the teardown could not switch it back: the bus is gone) is said loudly, in one line."""
         try:
-            self.stop()
-        except StationError:
-            pass  # closing a robot on a dead bus must still release the port
+            with contextlib.suppress(StationError):  # closing a robot on a dead bus must still release the port
+                self.stop()
+            if self._compliant:
+                self.set_compliant(False)
+        except StationError as e:
+            log.warning("dynamixel: could not leave the bus safe: servos %s (%s) are left COMPLIANT in current-"
+                        "limited mode (%s); support the arm before approaching it, then resume: the next run "
+                        "switches compliance off first", self.ids, ", ".join(j.name for j in self.model.joints),
+                        e)
         finally:
             self.bus.close()
