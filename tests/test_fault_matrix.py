@@ -8,7 +8,9 @@ run``; every cell asserts the exit code (2, 130 for signals, -9 for kill -9), on
 safe state read on the emulator/world side, and every sample journaled so far kept unchanged; the operator's
 recovery (power cycle, unlock, space back) follows, then ``station resume`` carries the session to the next
 column's fault. The last resume must end with the verdict of an undisturbed run of the same world, every pose
-recorded exactly once and the write-back verified. A fast subset covers every row and, through its chain, every
+recorded exactly once, the write-back verified (UR: exported) and the emulated devices holding the whole new
+calibration (CANopen: stored by 0x1010 too). A bus fault in the write-back is keyed on the device write itself
+(world-file trigger), so it strikes with part of the calibration already written. A fast subset covers every row and, through its chain, every
 column; the remaining rows x buses are ``slow``.
 
 The driver-side rows below them (``test_fault_in_phase``) arm faults from the WORLD FILE (``faults: [{do,
@@ -139,23 +141,8 @@ N_FIT, N_HOLDOUT = 12, 2  # the zero_offsets limits want >= 12 fit samples
 FAST = {("dynamixel", "timeout"), ("canopen", "corrupt"), ("ur", "disconnect"), ("ur", "drive fault"),
         ("canopen", "SIGTERM"), ("dynamixel", "SIGINT"), ("dynamixel", "kill -9"), ("ur", "disk full"),
         ("dynamixel", "records DB down")}
-# found by this matrix, not fixed yet (drivers are another part's; docs/reliability.md lists them as FAIL)
-KNOWN = {
-    ("ur", "disconnect"): "after a link drop the teardown cannot reach the controller: the ur_rtde control script "
-                          "stays PLAYING (arm still) and the next resume's moveJ is not acknowledged",
-    ("canopen", "corrupt"): "a corrupt fault armed for the write-back never reaches the wire (fired count "
-                            "unchanged): the write-back cell tests nothing yet",
-    # first run of the full matrix (lead, 2026-11-23): found failing, cause not yet separated rig vs product
-    ("dynamixel", "disconnect"): "a link drop while seated leaves the servos compliant (the teardown cannot "
-                                 "reach them); the check should accept a loud 'could not' and the next run's reset",
-    ("dynamixel", "drive fault"): "the drive fault armed for the write-back never reaches the wire",
-    ("canopen", "drive fault"): "the drive fault armed for the write-back never reaches the wire",
-    ("ur", "records DB down"): "the rig expects the write-back 'verified'; a UR write-back ends 'exported'",
-}
 CELLS = [pytest.param(bus, row, id=f"{bus}-{row.replace(' ', '_')}",
-                      marks=[*(() if (bus, row) in FAST else (pytest.mark.slow, pytest.mark.fullmatrix)),
-                             *((pytest.mark.xfail(reason=KNOWN[bus, row], strict=False),) if (bus, row) in KNOWN
-                               else ())])
+                      marks=() if (bus, row) in FAST else (pytest.mark.slow, pytest.mark.fullmatrix))
          for row in ROWS for bus in ("dynamixel", "canopen", "ur") if (bus, row) != ("ur", "corrupt")]
 
 
