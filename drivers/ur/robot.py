@@ -704,16 +704,19 @@ class URRobot(RobotBase):
         if on:
             if self._compliant_mode is not None:
                 return
-            if self._c.freedriveMode():
+            # bounded like every command that waits for the controller: a link lost here would block in ur_rtde's
+            # reconnect loop for minutes (seen in the fault matrix: UR x disconnect while seated)
+            if self._bounded("freedriveMode", self._c.freedriveMode):
                 self._compliant_mode = "freedrive"
-            elif self._c.teachMode():
+            elif self._bounded("teachMode", self._c.teachMode):
                 self._compliant_mode = "teach"
             else:
                 self._refused("freedrive/teach mode")
         else:
             if self._compliant_mode is None:
                 return
-            ok = self._c.endFreedriveMode() if self._compliant_mode == "freedrive" else self._c.endTeachMode()
+            ok = (self._bounded("endFreedriveMode", self._c.endFreedriveMode) if self._compliant_mode == "freedrive"
+                  else self._bounded("endTeachMode", self._c.endTeachMode))
             self._compliant_mode = None
             if not ok:
                 self._refused("end of freedrive")
