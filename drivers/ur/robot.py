@@ -167,9 +167,21 @@ class URRobot(RobotBase):
         except Exception as e:
             self._dash.close()
             raise ConnectionLost(f"ur://{self.host}: RTDE (port 30004) connection failed: {e}") from None
-        try:
-            self._c = rtde_control.RTDEControlInterface(self.host)
-        except Exception as e:
+        deadline = time.monotonic() + 2.0
+        while True:
+            try:
+                self._c = rtde_control.RTDEControlInterface(self.host)
+                break
+            except Exception as e:  # noqa: BLE001 - ur_rtde raises RuntimeError
+                # a previous client's connection may still be closing (its registers are freed when its socket
+                # closes): give it a moment before calling the robot taken
+                if "already in use" in str(e) and time.monotonic() < deadline:
+                    time.sleep(0.2)
+                    continue
+                err = e
+                break
+        if self._c is None:
+            e = err
             self._r.disconnect()
             self._r = None
             self._dash.close()
@@ -229,6 +241,17 @@ class URRobot(RobotBase):
         self._drop_interfaces()
         if lost:
             self._stop_program_after_link_loss()
+        zombie, self._abandoned = getattr(self, "_abandoned", None), None
+        if zombie is not None:
+            # the control interface abandoned in a hanging call still holds its RTDE connection (and the input
+            # registers the next client needs): disconnect it where a hang does no harm, waited for a moment
+            def release() -> None:
+                with contextlib.suppress(Exception):
+                    zombie.disconnect()
+
+            t = threading.Thread(target=release, name="ur-abandoned-disconnect", daemon=True)
+            t.start()
+            t.join(1.0)
 
     def _stop_program_after_link_loss(self) -> bool:
         """``stop`` over the dashboard (a fresh connection each try) until it answers or TEARDOWN_S passed; the
