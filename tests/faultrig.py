@@ -125,11 +125,13 @@ def ur_truth(emu, timeout: float = 3.0) -> tuple[str, str, list[float]]:
             time.sleep(0.1)
 
 
-def assert_safe(cell: DemoCell, *, settle: float = 0.3, kill_9: bool = False) -> str:
+def assert_safe(cell: DemoCell, *, settle: float = 0.3, kill_9: bool = False, loud: list[str] = ()) -> str:
     """The bus is in its safe state: nothing moves, the arm is not left compliant, and per bus: Dynamixel servos
     hold their position (torque stays on by design: an arm must not drop), CiA 402 drives are not in OPERATION
     ENABLED (power stage off, brakes hold), the UR program is stopped. After ``kill_9`` (no teardown ran) only
-    that nothing moves: the devices' own reaction (the move ends, heartbeat/watchdog). Returns a description."""
+    that nothing moves: the devices' own reaction (the move ends, heartbeat/watchdog). A Dynamixel arm left
+    compliant is accepted only when the teardown said so in ``loud`` (the station's warnings): one line "could
+    not leave the bus safe" naming the servos (a pulled cable cannot be talked through). Returns a description."""
     time.sleep(settle)
     if cell.bus == "ur":
         state, safety, q0 = ur_truth(cell.emu)
@@ -143,12 +145,43 @@ def assert_safe(cell: DemoCell, *, settle: float = 0.3, kill_9: bool = False) ->
     assert not world.is_moving(), "the arm still moves"
     if kill_9:
         return "not moving" + (", compliant (the next run resets it)" if world.compliant else "")
+    if world.compliant and cell.bus == "dynamixel":
+        said = [x for x in loud if "could not leave the bus safe" in x and "COMPLIANT" in x and "\n" not in x]
+        assert len(said) == 1, f"the arm was left compliant and the teardown did not say so once: {loud}"
+        ids = cell.emu.emulator.joint_ids
+        assert str(list(ids)) in said[0], said[0]
+        return "not moving, compliant: said loudly (the next run resets it)"
     assert not world.compliant, "the arm was left compliant"
     if cell.bus == "canopen":
         states = canopen_states(cell.emu)
         assert "OPERATION ENABLED" not in states, states
         return ", ".join(sorted(set(states)))
     return "stopped, holding"
+
+
+# ---- the calibration the devices hold, read on the emulator side -------------------------------------------
+def device_offsets(cell: DemoCell) -> list:
+    """Per joint, the raw zero offset the emulated devices hold: Dynamixel Homing Offset (20) ticks; CANopen
+    (volatile 0x607C, value stored by 0x1010) counts, so an offset that would not survive a power cycle shows."""
+    if cell.bus == "dynamixel":
+        emu = cell.emu.emulator
+        return [int(emu.devices[i].get("homing_offset")) for i in emu.joint_ids]
+    drives = getattr(cell.emu, "drives", None) or cell.emu.emulator.drives
+    out = []
+    for d in drives.values():
+        stored = d.stored.get((0x607C, 0))
+        out.append((d.home_offset, None if stored is None else int.from_bytes(stored[:4], "little", signed=True)))
+    return out
+
+
+def counts_of(cell: DemoCell, offsets: dict[str, float]) -> list:
+    """``{"offset.jN": rad}`` in the devices' raw units (the model's encoder), shaped as :func:`device_offsets`."""
+    out = []
+    for j, joint in enumerate(cell.world.nominal.joints):
+        enc = joint.encoder
+        c = int(round(offsets[f"offset.j{j + 1}"] * enc.counts_per_unit * enc.gear * enc.direction))
+        out.append(c if cell.bus == "dynamixel" else (c, c))
+    return out
 
 
 # ---- a fault in a phase of a real session ------------------------------------------------------------------

@@ -28,7 +28,8 @@ class FaultLatch:
             self.messages.append(str(err))
             self.fatal = self.fatal or fatal
         if first:
-            log.warning("canopen: %s", err)
+            # not a warning: every later call raises it, and the CLI prints it once as its error line
+            log.info("canopen: fault latched: %s", err)
             for action in self.on_first:
                 action()
 

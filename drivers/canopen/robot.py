@@ -69,7 +69,8 @@ class CanopenRobot(RobotBase):
                "dictionary", default_doc="built-in"),
         Option("serial", text(), None, "robot serial for records (default `VENDORID-SERIAL` of the first drive)",
                default_doc="from 0x1018"),
-        Option("error_frames", integer(1), 1, "CAN error frames tolerated before `BusError` (bus-off is always "
+        Option("error_frames", integer(1), 1, "CAN error frames tolerated within any 1 s (an isolated one is normal: "
+               "the damaged frame is retransmitted); one more within that second is `BusError` (bus-off is always "
                "immediate)"),
         *CHAIN_OPTIONS,
     )
@@ -424,7 +425,10 @@ class CanopenRobot(RobotBase):
         return list(self.nodes)
 
     def write_calibration(self, values: dict[str, float]) -> None:
-        """Write absolute home offsets (SI) to 0x607C, store them (0x1010 "save"), read them back."""
+        """Write absolute home offsets (SI) to 0x607C, store them (0x1010 "save"), read them back. Refused while a
+        fault is latched (EMCY, bus error, lost node): a calibration is never started on a drive train in error."""
+        self._check_open("write_calibration")
+        self.faults.raise_if_latched()
         plan = {}
         for name, value in values.items():
             idx = None
@@ -513,5 +517,6 @@ class CanopenRobot(RobotBase):
                     bus.send_rpdo1(node_id, CW_SHUTDOWN)
         elif bus.drives and not self._secured:
             report = self._disable_after_fault()
-            log.warning("canopen: closing after a fault (%s): %s", self.faults.error, report)
+            # the fault itself is the caller's error line; only a drive left unconfirmed is worth a warning
+            (log.info if self._secured else log.warning)("canopen: closing after a fault: %s", report)
         bus.close()

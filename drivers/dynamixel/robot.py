@@ -8,6 +8,7 @@ Profile Velocity + Goal Position. Ticks <-> SI through each joint's encoder scal
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import threading
 import time
@@ -30,6 +31,8 @@ from station.robot.errors import (
 from station.robot.motion import MANUAL_TOOL_SPEED_CAP
 from station.robot.protocol import Identity, JointSnapshot, JointState, RobotStatus
 from station.robot.url import Option, Options, RobotURL, either, flag, id_list, integer, number, text
+
+log = logging.getLogger("station.drivers.dynamixel")
 
 LATENCY_MS = 50.0  # default latency term: a dead servo is reported after (1 + retries) x ~102 ms ~= 0.4 s
 
@@ -487,7 +490,8 @@ class DynamixelRobot(RobotBase):
             ticks[self.ids[j]] = t
         if not ticks:
             return
-        was_on, _ = self._guard(self._read_all, T.TORQUE_ENABLE, 1, False)
+        was_on, errors = self._guard(self._read_all, T.TORQUE_ENABLE, 1, False)
+        self._check_alerts(errors)  # a servo in hardware error: no calibration is written (nothing was yet)
         restore = [i for i, on in zip(self.ids, was_on, strict=True) if on and i in ticks]
         done = False
         try:
@@ -497,11 +501,16 @@ class DynamixelRobot(RobotBase):
                 if err & 0x7F:
                     raise DeviceFault(f"write_calibration: {self._name(i)} refused homing offset {t}: "
                                       f"{T.PACKET_ERRORS.get(err & 0x7F, err)}", device=f"dynamixel:{i}", code=err)
-            back, _ = self._guard(self._read_all, T.HOMING_OFFSET, 4)
+            back, errors = self._guard(self._read_all, T.HOMING_OFFSET, 4)
             bad = [i for i, b in zip(self.ids, back, strict=True) if i in ticks and b != ticks[i]]
             if bad:
                 raise DeviceFault(f"write_calibration: read-back mismatch on {', '.join(self._name(i) for i in bad)}",
                                   device=f"dynamixel:{bad[0]}")
+            # a servo that latched a hardware error during the write (alert bit) took its offset (EEPROM is
+            # writable with torque off) but is not fit to move: every offset is written and read back first, so
+            # the device never holds half a calibration, then the fault is raised (the write-back is "failed" and
+            # a resume writes and checks again after the power cycle)
+            self._check_alerts(errors)
             done = True
         finally:
             if restore and done:
@@ -539,10 +548,17 @@ class DynamixelRobot(RobotBase):
                               f"({T.describe_hardware_error(bits)}) after reboot", device=f"dynamixel:{i}", code=bits)
 
     def _shutdown(self) -> None:
-        """Every servo holds where it is (torque stays on: an arm must not drop), then the port is released."""
+        """Every servo holds where it is (torque stays on: an arm must not drop), then the port is released. An arm
+        still compliant (the teardown could not switch it back: the bus is gone) is said loudly, in one line."""
         try:
-            self.stop()
-        except StationError:
-            pass  # closing a robot on a dead bus must still release the port
+            with contextlib.suppress(StationError):  # closing a robot on a dead bus must still release the port
+                self.stop()
+            if self._compliant:
+                self.set_compliant(False)
+        except StationError as e:
+            log.warning("dynamixel: could not leave the bus safe: servos %s (%s) are left COMPLIANT in current-"
+                        "limited mode (%s); support the arm before approaching it, then resume: the next run "
+                        "switches compliance off first", self.ids, ", ".join(j.name for j in self.model.joints),
+                        e)
         finally:
             self.bus.close()

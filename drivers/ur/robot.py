@@ -169,9 +169,21 @@ class URRobot(RobotBase):
         except Exception as e:
             self._dash.close()
             raise ConnectionLost(f"ur://{self.host}: RTDE (port 30004) connection failed: {e}") from None
-        try:
-            self._c = rtde_control.RTDEControlInterface(self.host)
-        except Exception as e:
+        deadline = time.monotonic() + 2.0
+        while True:
+            try:
+                self._c = rtde_control.RTDEControlInterface(self.host)
+                break
+            except Exception as e:  # noqa: BLE001 - ur_rtde raises RuntimeError
+                # a previous client's connection may still be closing (its registers are freed when its socket
+                # closes): give it a moment before calling the robot taken
+                if "already in use" in str(e) and time.monotonic() < deadline:
+                    time.sleep(0.2)
+                    continue
+                err = e
+                break
+        if self._c is None:
+            e = err
             self._r.disconnect()
             self._r = None
             self._dash.close()
@@ -182,6 +194,7 @@ class URRobot(RobotBase):
             raise ConnectionLost(f"ur://{self.host}: RTDE control (script upload on 30003) failed: {e}") from None
         self._last_ts = None
         self._watchdog_armed = False
+        self._link_lost = False
         log.info("ur://%s connected: serial %s, %s", self.host, self.serial, self.firmware)
 
     def _drop_interfaces(self) -> None:
@@ -207,23 +220,72 @@ class URRobot(RobotBase):
                     raise ConnectionLost(f"ur://{self.host}: reconnect failed for {timeout:g} s: {e}") from None
                 time.sleep(0.25)
 
+    TEARDOWN_S = 2.0  # s: how long close() keeps trying to stop the program of a controller it lost
+
     def _shutdown(self) -> None:
-        """Stop motion, end the control script on the controller, close every channel."""
-        if self._c is not None:
+        """Stop motion, end the control script on the controller, close every channel. After a link loss (the
+        RTDE link dropped, or a hanging call abandoned the control interface) the program is stopped over the
+        dashboard instead, retried for TEARDOWN_S (a short outage: the controller's ports come back); a
+        controller that stays unreachable is said loudly: its program may still run."""
+        # after a link loss the control interface is not trusted (ur_rtde may report a half-reconnected state)
+        lost = getattr(self, "_link_lost", False) or getattr(self, "_abandoned", None) is not None
+        if self._c is not None and not lost:
             try:
-                if self._c.isConnected() and self._c.isProgramRunning():
-                    self.stop()
-                    self._c.stopScript()
+                if self._c.isConnected():
+                    if self._c.isProgramRunning():
+                        self.stop()
+                        self._c.stopScript()
+                else:
+                    lost = True
             except Exception as e:  # closing must not fail (the link may already be gone)
                 log.warning("ur://%s: close: %s", self.host, e)
+                lost = True
         self._drop_interfaces()
+        if lost:
+            self._stop_program_after_link_loss()
+        zombie, self._abandoned = getattr(self, "_abandoned", None), None
+        if zombie is not None:
+            # the control interface abandoned in a hanging call still holds its RTDE connection (and the input
+            # registers the next client needs): disconnect it where a hang does no harm, waited for a moment
+            def release() -> None:
+                with contextlib.suppress(Exception):
+                    zombie.disconnect()
+
+            t = threading.Thread(target=release, name="ur-abandoned-disconnect", daemon=True)
+            t.start()
+            t.join(1.0)
+
+    def _stop_program_after_link_loss(self) -> bool:
+        """``stop`` over the dashboard (a fresh connection each try) until it answers or TEARDOWN_S passed; the
+        control script ends with it, and a later connect uploads a fresh one. False (and a warning) if not."""
+        deadline = time.monotonic() + self.TEARDOWN_S
+        why: Exception | None = None
+        while True:
+            dash = DashboardClient(self.host, timeout=0.5)
+            try:
+                reply = dash.stop_program()
+                log.info("ur://%s: program stopped over the dashboard after the link loss (%s)", self.host, reply)
+                return True
+            except (ConnectionLost, BusError) as e:
+                why = e
+            finally:
+                dash.close()
+            if time.monotonic() > deadline:
+                break
+            time.sleep(0.1)
+        log.warning("ur://%s: could not stop the robot program after the link loss: the controller stayed "
+                    "unreachable for %g s (%s); it may still run: press Stop on the teach pendant before "
+                    "approaching the arm", self.host, self.TEARDOWN_S, why)
+        return False
 
     # ---- link and safety checks --------------------------------------------------------------
     def _check_link(self) -> None:
         if self._r is None or self._c is None:
+            self._link_lost = True
             raise ConnectionLost(f"ur://{self.host}: not connected to the controller; check the network, then "
                                  "resume the session")
         if not self._r.isConnected() or not self._c.isConnected():
+            self._link_lost = True
             raise ConnectionLost(f"ur://{self.host}: connection to the controller lost (RTDE port 30004 closed); "
                                  "resume the session when the network is back")
 
@@ -320,6 +382,7 @@ class URRobot(RobotBase):
         if self._c is not None:
             self._c, self._abandoned = None, self._c  # kept referenced: destroying it would block on the link
         self._speeding = False
+        self._link_lost = True
 
         def stop() -> None:
             with contextlib.suppress(Exception):
@@ -685,16 +748,19 @@ class URRobot(RobotBase):
         if on:
             if self._compliant_mode is not None:
                 return
-            if self._c.freedriveMode():
+            # bounded like every command that waits for the controller: a link lost here would block in ur_rtde's
+            # reconnect loop for minutes (seen in the fault matrix: UR x disconnect while seated)
+            if self._bounded("freedriveMode", self._c.freedriveMode):
                 self._compliant_mode = "freedrive"
-            elif self._c.teachMode():
+            elif self._bounded("teachMode", self._c.teachMode):
                 self._compliant_mode = "teach"
             else:
                 self._refused("freedrive/teach mode")
         else:
             if self._compliant_mode is None:
                 return
-            ok = self._c.endFreedriveMode() if self._compliant_mode == "freedrive" else self._c.endTeachMode()
+            ok = (self._bounded("endFreedriveMode", self._c.endFreedriveMode) if self._compliant_mode == "freedrive"
+                  else self._bounded("endTeachMode", self._c.endTeachMode))
             self._compliant_mode = None
             if not ok:
                 self._refused("end of freedrive")
