@@ -9,6 +9,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -68,12 +69,46 @@ def wait_still(robot, timeout=5.0) -> None:
         time.sleep(0.002)
 
 
+class Observer:
+    """An independent RTDE client sampling the controller's clock and joints every ~2 ms in a thread: when the
+    arm stood still is read from the controller, not from this process's status reads (on a busy host the
+    station's own stop call and reads lag the controller, and that lag is not the arm moving)."""
+
+    def __init__(self, host: str):
+        import rtde_receive
+
+        self.recv = rtde_receive.RTDEReceiveInterface(host)
+        self.seen: list[tuple[float, np.ndarray]] = []
+        self._on = threading.Event()
+        self._on.set()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while self._on.is_set():
+            self.seen.append((self.recv.getTimestamp(), np.array(self.recv.getActualQ())))
+            time.sleep(0.002)
+
+    def close(self) -> None:
+        self._on.clear()
+        self._thread.join(5)
+        self.recv.disconnect()
+
+    def standstill_after(self, t0: float) -> tuple[float, np.ndarray]:
+        """Controller time of the first sample after ``t0`` from which the joints no longer move, and where."""
+        seen = [(t, q) for t, q in self.seen if t >= t0]
+        q_end = seen[-1][1]
+        moved = [k for k, (_, q) in enumerate(seen) if np.max(np.abs(q - q_end)) > 1e-7]
+        return (seen[moved[-1] + 1][0] if moved else seen[0][0]), q_end
+
+
 @pytest.mark.timeout(120)
 def test_hold_moves_at_override_and_stops_on_release(ur, tmp_path):
     """Hold +x for ~1 s at the 25 mm/s override: the true tool moves straight at 25 mm/s (controller time),
     and stands still within one watchdog period + one controller tick after the UI sees the release."""
-    _, robot, world = ur
+    emu, robot, world = ur
     assert isinstance(robot, VelocityJog)
+    observer = Observer(emu.host)
     ctl = controller(robot, tmp_path)
     try:
         ctl.set_continuous()
@@ -106,9 +141,12 @@ def test_hold_moves_at_override_and_stops_on_release(ur, tmp_path):
                 ctl.hold_tick()
         assert ctl.hold_state is None and "released" in ctl.message
         wait_still(robot)
-        t_still, p_still, _ = sample(robot, world)
+        time.sleep(0.05)  # the observer's last samples, standing
     finally:
+        observer.close()
         ctl.close()
+    t_still, q_end = observer.standstill_after(t_rel)
+    p_still = world.truth.position(q_end)
     ts = np.array([t for t, _ in log])
     ps = np.array([p for _, p in log])
     keep = np.r_[True, np.diff(ts) > 0]
@@ -155,15 +193,20 @@ def test_velocity_jog_is_capped_and_stops_without_refresh(ur):
         assert tool.max() > 0.02, (mode, tool.max())  # it did move
         assert np.all(joint <= robot.model.max_velocity * 1.02)
     # one command, no refresh: the watchdog (not the station) stops it
-    robot.jog_velocity("joint", 0, 0.2)
-    sent = time.monotonic()
-    t_sent = robot.joint_positions().t_device
-    time.sleep(0.03)
-    assert robot.status().moving
-    while robot.status().moving:
-        assert time.monotonic() - sent < 2.0, "the watchdog did not stop the arm"
-        time.sleep(0.002)
-    t_still = robot.joint_positions().t_device
+    observer = Observer(emu.host)
+    try:
+        robot.jog_velocity("joint", 0, 0.2)
+        sent = time.monotonic()
+        t_sent = robot.joint_positions().t_device
+        time.sleep(0.03)
+        assert robot.status().moving
+        while robot.status().moving:
+            assert time.monotonic() - sent < 2.0, "the watchdog did not stop the arm"
+            time.sleep(0.002)
+        time.sleep(0.05)  # the observer's last samples, standing
+    finally:
+        observer.close()
+    t_still, _ = observer.standstill_after(t_sent)
     print(f"\nno refresh: standstill {(t_still - t_sent) * 1e3:.0f} ms (controller) after the command")
     assert "RTDE watchdog expired" in emu.dashboard("emulator log")  # the controller stopped it, not us
     assert t_still - t_sent <= WATCHDOG_S + BRAKE_S + TICK_S + SEEN_S, t_still - t_sent
