@@ -7,8 +7,10 @@ arm6 on six emulated CiA 402 drives (python-can virtual channel, real canopen li
 on loopback TCP; the world hides geometry errors, gravity compliance under a 15 kg payload and gear backlash. The
 truth is the world's true tool pose at each held-out reading (approached from below as the procedure does)."""
 
+import hashlib
 import json
 import os
+import re
 import subprocess
 import sys
 import uuid
@@ -26,6 +28,7 @@ from station.api import run as start
 from station.cli import app
 from station.engine import read_journal
 from station.kinematics import se3
+from station.report import write_report
 from station.robot.errors import ConfigError
 from station.solver.map import CorrectionMap
 
@@ -200,3 +203,19 @@ def test_map_on_a_compliance_calibration_uses_the_payload(rig, tmp_path, monkeyp
     judged = meas["holdout_calibrated_rms"]["value"] * 1e-3
     assert abs(judged - with_c) < 0.25 * with_c + floor, (judged, with_c, without_c)
     assert meas["calibration_parameters"]["value"] == len(params)
+
+    # the report shows the calibration the map was built on and the held-out rows side by side
+    html = write_report(rec, tmp_path / "report").read_text()
+    section = html[html.index('<h2>Correction map</h2>'):html.index('<h2>Pose coverage</h2>')]
+    sha = hashlib.sha256(cal.read_bytes()).hexdigest()  # of the file as given, computed here
+    assert f"<code>{cal.name}</code>" in section and f"<code title=\"{sha}\">{sha[:12]}</code>" in section
+    assert f"{len(params)} parameters (" in section and "15 kg at [0, 0, 0] mm" in section
+    rows = dict(re.findall(r'<tr><td>([a-z +]+?)(?: <span class="note">\(judged\)</span>)?</td>(.*?)</tr>',
+                           section[section.index('id="map-holdout"'):]))
+    cells = {k: re.findall(r'<td class="n">([^<]*)</td>', v) for k, v in rows.items()}
+    assert list(cells) == ["nominal model", "calibrated only", "calibrated + map"]
+    for row, names in (("calibrated only", ("holdout_calibrated_rms", "holdout_calibrated_max",
+                                            "holdout_calibrated_rotation_rms")),
+                       ("calibrated + map", ("holdout_rms", "holdout_max", "holdout_rotation_rms"))):
+        assert cells[row] == [f"{meas[n]['value']:.4f}" for n in names], (row, cells[row])
+    assert cells["nominal model"][0] == f"{meas['holdout_nominal_rms']['value']:.4f}"
