@@ -151,6 +151,11 @@ def test_a_compliance_calibration_is_refused_without_payload_before_motion(rig, 
     assert not [e for e in events if e.type in ("calibration", "instrument", "plan", "sample")]
     with pytest.raises(ConfigError, match="without a payload"):
         resume(out.session, report=False, store=False, payload=PAYLOAD)
+    for arg, expect in (("15kg", "was run without a payload"), ("15", "--payload '15'")):  # the CLI: one line
+        r = _cli(tmp_path, "resume", out.session, "--payload", arg)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("station: error: --payload"), r.stderr
+        assert expect in lines[0], lines
 
 
 def test_map_on_a_compliance_calibration_uses_the_payload(rig, tmp_path, monkeypatch):
