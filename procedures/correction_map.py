@@ -66,6 +66,9 @@ def payload(s) -> tuple[float, list] | None:
     p = s.options.get("payload")
     if p is None:
         return None
+    if not hasattr(s.model, "with_payload"):  # a parallel robot's model has no joint compliance
+        raise ConfigError(f"correction_map: --payload: model {s.model.name} ({getattr(s.model, 'kind', '?')}) has "
+                          "no compliance terms for a payload to load; leave --payload out")
     try:
         mass, com = float(p["mass"]), [float(c) for c in p["com"]]
         if len(com) != 3 or not all(np.isfinite([mass, *com])):

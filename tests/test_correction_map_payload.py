@@ -224,3 +224,19 @@ def test_map_on_a_compliance_calibration_uses_the_payload(rig, tmp_path, monkeyp
                        ("calibrated + map", ("holdout_rms", "holdout_max", "holdout_rotation_rms"))):
         assert cells[row] == [f"{meas[n]['value']:.4f}" for n in names], (row, cells[row])
     assert cells["nominal model"][0] == f"{meas['holdout_nominal_rms']['value']:.4f}"
+
+
+def test_a_payload_on_a_parallel_robot_is_refused_before_motion(tmp_path, monkeypatch):
+    """A hexapod's model has no joint compliance for a payload to load: one line, nothing measured or moved."""
+    from station.mocks.launch import launch
+
+    monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
+    world = World.default("hexapod", seed=7)
+    q0 = world.encoder_q().copy()
+    with launch("canopen", world, serial="HX-0043") as emu, TrackerServer(world, tracker_config({}), seed=11) as trk:
+        out = start("correction_map", emu.url, "HX-0043", db=f"sqlite:///{tmp_path / 'r.db'}", report=False,
+                    options={"grid": 1, "tracker": trk.url, "payload": PAYLOAD})
+        measured = trk.measurements
+    assert out.status == "error" and out.exit_code == 2
+    assert "\n" not in str(out.error) and "--payload" in str(out.error) and "hexapod" in str(out.error), out.error
+    assert measured == 0 and np.array_equal(world.encoder_q(), q0)
