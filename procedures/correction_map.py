@@ -103,8 +103,13 @@ def calibration(s) -> dict | None:
         from station.resultfile import load_calibration
         from station.solver import CalibrationResult
 
-        compliance = sorted(n for n, p in (json.loads(data).get("parameters") or {}).items()
-                            if n.startswith("compliance.") and isinstance(p, dict) and p.get("identifiable")
+        try:
+            doc = json.loads(data)
+        except ValueError:
+            doc = None  # load_calibration says what is wrong with the file, in one line
+        given = doc.get("parameters") if isinstance(doc, dict) else None
+        compliance = sorted(n for n, p in (given if isinstance(given, dict) else {}).items()
+                            if str(n).startswith("compliance.") and isinstance(p, dict) and p.get("identifiable")
                             and n not in s.model.param_names)
         if compliance:  # solved under a payload the session was not given: its deflection would be left out
             raise ConfigError(
