@@ -13,7 +13,9 @@ the record (``correction_map``).
 On top of a parametric calibration (``--calibration result.json``, a ``station solve`` result of this robot's
 model): the file is checked before anything moves and journaled (a resume uses the same one and refuses a
 changed file); the summands are what the calibrated model leaves (compliance, backlash, gear errors), and the
-held-out configurations compare the calibrated model alone with the calibrated model plus the map."""
+held-out configurations compare the calibrated model alone with the calibrated model plus the map. A calibration
+with compliance terms (``station solve --payload 15kg --identify ...,compliance``) needs the same payload here
+(``--payload 15kg``): the model then carries it and the calibration is applied with the joints' deflection."""
 
 import hashlib
 import json
