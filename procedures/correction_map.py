@@ -13,7 +13,9 @@ the record (``correction_map``).
 On top of a parametric calibration (``--calibration result.json``, a ``station solve`` result of this robot's
 model): the file is checked before anything moves and journaled (a resume uses the same one and refuses a
 changed file); the summands are what the calibrated model leaves (compliance, backlash, gear errors), and the
-held-out configurations compare the calibrated model alone with the calibrated model plus the map."""
+held-out configurations compare the calibrated model alone with the calibrated model plus the map. A calibration
+with compliance terms (``station solve --payload 15kg --identify ...,compliance``) needs the same payload here
+(``--payload 15kg``): the model then carries it and the calibration is applied with the joints' deflection."""
 
 import hashlib
 import json
@@ -40,7 +42,8 @@ PREDICTED_LIMIT = 0.5  # serial arms: refuse a work box where the map would leav
 def checklist(s):
     s.connect()                                  # 1. connect and identify the robot (serial must match)
     s.check_state()                              # 2. no fault or stop, powered
-    calibration(s)                               # 3. the parametric calibration the map sits on, if any
+    payload(s)                                   # 3. the payload on the tool, if any: the compliance terms
+    calibration(s)                               #    the parametric calibration the map sits on, if any
     tracker = connect_tracker(s)                 #    connect and identify the tracker (journaled; same one)
     try:
         todo = map_plan(s)                       # 4. grid of actuator levels + held-out configurations
@@ -57,6 +60,27 @@ def checklist(s):
 
 
 # ---- the steps ---------------------------------------------------------------------------------------------
+def payload(s) -> tuple[float, list] | None:
+    """``--payload MASS[@x,y,z]`` (``{"mass": kg, "com": [x, y, z] m in the tool frame}``, journaled with the
+    session's options: a resume uses the same one): the model carries it, so it has the compliance parameters
+    ``compliance.jN`` of a ``station solve --payload`` calibration and deflects its joints under that load the way
+    the calibration was solved. Nominal compliance is zero: without a calibration the payload changes nothing."""
+    p = s.options.get("payload")
+    if p is None:
+        return None
+    if not hasattr(s.model, "with_payload"):  # a parallel robot's model has no joint compliance
+        raise ConfigError(f"correction_map: --payload: model {s.model.name} ({getattr(s.model, 'kind', '?')}) has "
+                          "no compliance terms for a payload to load; leave --payload out")
+    try:
+        mass, com = float(p["mass"]), [float(c) for c in p["com"]]
+        if len(com) != 3 or not all(np.isfinite([mass, *com])):
+            raise ValueError
+        s.model = s.model.with_payload(mass, com)
+    except (KeyError, TypeError, ValueError):
+        raise ConfigError(f"correction_map: payload {p!r}: expected {{mass: kg >= 0, com: [x, y, z] m}}") from None
+    return mass, com
+
+
 def calibration(s) -> dict | None:
     """``--calibration result.json``: the identified model parameters of a ``station solve`` result for this
     robot's model, checked (readable, trusted, model name and parameters) before anything moves and journaled
@@ -81,6 +105,19 @@ def calibration(s) -> dict | None:
         from station.resultfile import load_calibration
         from station.solver import CalibrationResult
 
+        try:
+            doc = json.loads(data)
+        except ValueError:
+            doc = None  # load_calibration says what is wrong with the file, in one line
+        given = doc.get("parameters") if isinstance(doc, dict) else None
+        compliance = sorted(n for n, p in (given if isinstance(given, dict) else {}).items()
+                            if str(n).startswith("compliance.") and isinstance(p, dict) and p.get("identifiable")
+                            and n not in s.model.param_names)
+        if compliance:  # solved under a payload the session was not given: its deflection would be left out
+            raise ConfigError(
+                f"calibration {path}: parameters.{compliance[0]}: a compliance term (solved under a payload, station "
+                f"solve --payload); give the same payload: --payload MASS (e.g. 15kg)"
+                + ("" if s.options.get("payload") is None else ", not 0"))
         load_calibration(path, s.model)  # one line naming file and field: format, model name, parameter names
         res = CalibrationResult.from_dict(json.loads(data))
         if not res.trusted:
@@ -88,7 +125,7 @@ def calibration(s) -> dict | None:
                               "a map on top of it would hide that")
         params = {k: float(v) for k, v in res.values("model").items()}
         s.event({"type": "calibration", "path": str(path), "sha256": sha, "model": res.model,
-                 "parameters": params, "identified": len(params)})
+                 "parameters": params, "identified": len(params), "payload": s.options.get("payload")})
     return params
 
 
@@ -380,5 +417,6 @@ def store(s, cmap, reg):
         cal = (s.events("calibration") or [None])[-1]
         s.event({"type": "correction_map", "file": path.name, "registration": reg.to_dict(),
                  "calibration": None if cal is None else {k: cal.data.get(k) for k in
-                                                          ("path", "sha256", "model", "parameters")},
+                                                          ("path", "sha256", "model", "parameters", "payload")},
+                 "payload": s.options.get("payload"),
                  "map": json.loads(cmap.dumps())})

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import typer
 
+from station.cli.model_options import PAYLOAD
 from station.cli.run_options import CONE, DB, HOLDOUT, LIMITS, POSES
 
 
@@ -78,12 +79,14 @@ def preflight(robot: str, poses, holdout, cone, seed, touch, reference, limits, 
 
 
 def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None, span_deg=None,
-             calibration=None) -> dict:
+             calibration=None, payload=None) -> dict:
     from station.robot.errors import ConfigError
 
     opts = {}
+    if payload is not None:  # the procedure's model carries it (compliance terms); journaled with the options
+        opts["payload"] = payload_option(payload)
     if calibration is not None:  # correction_map: the map on top of this parametric calibration
-        opts["calibration"] = str(check_calibration_file(calibration))
+        opts["calibration"] = str(check_calibration_file(calibration, "payload" in opts))
     if span_deg is not None:
         if not 0 < span_deg <= 90:  # also refuses nan
             raise ConfigError(f"--span-deg {span_deg!r}: expected a half-width in degrees in (0, 90]")
@@ -107,16 +110,30 @@ def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None, spa
     return opts
 
 
-def check_calibration_file(path: Path) -> Path:
+def payload_option(text: str) -> dict:
+    """``--payload 15kg[@x,y,z mm]`` (the declaration of ``station solve --payload``) as the procedure option
+    ``{"mass": kg, "com": [x, y, z] m in the tool frame}``; one line, exit 2 on a bad value."""
+    from station.cli.model_options import parse_payload
+
+    mass, com = parse_payload(text)
+    return {"mass": float(mass), "com": [float(c) for c in com]}
+
+
+def check_calibration_file(path: Path, payload: bool = False) -> Path:
     """``--calibration``: a readable ``station-calibration/1`` result (schema checked; the model name and its
-    parameters are checked against the robot's model once it is connected, before anything moves). Returns
-    the absolute path (journaled: a resume from another folder finds it)."""
+    parameters are checked against the robot's model once it is connected, before anything moves). A result
+    with compliance parameters was solved under a payload (``station solve --payload``): refused without
+    ``--payload``. Returns the absolute path (journaled: a resume from another folder finds it)."""
     from station.resultfile import CalibrationSchema
     from station.robot.errors import ConfigError
     from station.safeio import read_json
     from station.strict import check
 
-    check(CalibrationSchema, read_json(path, "calibration"), ConfigError, f"calibration {path}")
+    cal = check(CalibrationSchema, read_json(path, "calibration"), ConfigError, f"calibration {path}")
+    compliance = [n for n, p in cal.parameters.items() if n.startswith("compliance.") and p.identifiable]
+    if compliance and not payload:
+        raise ConfigError(f"calibration {path}: parameters.{compliance[0]}: a compliance term (solved under a "
+                          "payload, station solve --payload); give the same payload: --payload MASS (e.g. 15kg)")
     return Path(path).resolve()
 
 
@@ -227,13 +244,14 @@ def run(
                                    "this many degrees per joint around the start pose (default 20)."),
     calibration: Path = typer.Option(None, "--calibration", help="correction_map: build the map on top of this "
                                      "parametric calibration (result JSON of station solve for the robot's model)."),
+    payload: str = PAYLOAD,
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Run a procedure end of line: unattended, PASS/FAIL, exit 0 pass / 1 fail / 2 error."""
     from station.api import run as start
 
     preflight(robot, poses, holdout, cone, seed, touch, reference, limits, cell)
-    options = _options(poses, holdout, cone, reference, seed, tracker, grid, span_deg, calibration)
+    options = _options(poses, holdout, cone, reference, seed, tracker, grid, span_deg, calibration, payload)
     cb, bar = _progress_bar(quiet)
     with bar:
         out = start(procedure, robot, serial, limits=limits, db=db, apply=apply, cell=cell, operator=operator,
@@ -247,15 +265,18 @@ def resume_cmd(
     db: str = typer.Option(None, "--db", help="Records database URL (default: the one the session used)."),
     tracker: str = typer.Option(None, "--tracker", help="The session's measuring instrument at a new address "
                                 "(e.g. tcp://127.0.0.1:5301 after a restart); it must be the same instrument."),
+    payload: str = PAYLOAD,
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Continue an interrupted session: robot re-verified, recorded samples kept, nothing repeated."""
     from station.api import resume
 
+    # --payload on a resume is only checked: the journaled one is used, another one is refused
+    given = payload_option(payload) if payload is not None else None
     cb, bar = _progress_bar(quiet)
     with bar:
         out = resume(session, db=db, progress=cb, log=lambda s: typer.echo(s, err=True),
-                     instruments={"tracker": tracker} if tracker is not None else None)
+                     instruments={"tracker": tracker} if tracker is not None else None, payload=given)
     _finish(out)
 
 

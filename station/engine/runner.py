@@ -302,12 +302,14 @@ def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, lim
 
 def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int, str], None] | None = None,
            log: Callable[[str], None] | None = None, robot=None, prompt=None,
-           control: RunControl | None = None, instruments: dict[str, str] | None = None) -> Outcome:
+           control: RunControl | None = None, instruments: dict[str, str] | None = None,
+           payload: dict | None = None) -> Outcome:
     """Continue an interrupted session: same procedure file (hash checked), same plan, recorded samples kept.
     The outcome's ``db`` is the records URL the journal names. ``instruments`` (``{"tracker": URL}``) gives an
     instrument option of the session a new address (the instrument came back on another port): journaled as an
     ``instrument_url`` event and used by every later resume too; the procedure checks the instrument there is
-    the one the session started with."""
+    the one the session started with. ``payload`` (``{"mass": kg, "com": [x, y, z] m}``) is only checked: the
+    session's journaled payload is used, and a resume given another one is refused before the robot opens."""
     from station.robot import open_robot
 
     path = find_session(session_ref)
@@ -343,6 +345,8 @@ def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int,
     if lim.sha256 != lim_info.get("sha256"):
         raise ConfigError(f"limits file {lim.path} changed since session {header.session} started")
     options, moved = _instrument_urls(header, events, instruments)  # a bad --tracker: before the robot opens
+    if payload is not None:
+        _same_payload(header, payload)
     _disk_ok(path.parent, "not resuming")
     robot = robot or open_robot(header.url)
     try:
@@ -394,6 +398,28 @@ def _instrument_urls(header: ev.Header, events: list, given: dict[str, str] | No
             moved[name] = (opts[name], url)
             opts[name] = url
     return opts, moved
+
+
+def _same_payload(header: ev.Header, given: dict) -> None:
+    """A resume given ``--payload``: the session's journaled payload must be that one (same mass and centre of
+    mass to 1 g / 0.1 mm): the model's compliance terms and every sample so far belong to it."""
+    def show(p) -> str:
+        return f"{p['mass']:g} kg at [{', '.join(f'{c * 1e3:g}' for c in p['com'])}] mm"
+
+    had = header.options.get("payload")
+    if not isinstance(had, dict):
+        raise ConfigError(f"--payload {show(given)}: session {header.session} was run without a payload; resume "
+                          "it without --payload, or start a new session")
+    try:
+        same = abs(float(had["mass"]) - float(given["mass"])) <= 1e-3 and all(
+            abs(float(a) - float(b)) <= 1e-4 for a, b in zip(had["com"], given["com"], strict=True))
+    except (KeyError, TypeError, ValueError):
+        same = False
+    if not same:
+        was = show(had) if {"mass", "com"} <= set(had) else repr(had)
+        raise ConfigError(f"--payload {show(given)}: session {header.session} was run with {was}; the samples so "
+                          "far were measured under that load: resume with it (or without --payload), or start a new "
+                          "session")
 
 
 def check_journal_folder() -> Path:

@@ -8,6 +8,7 @@ from datetime import datetime
 from station import units
 from station.records.verdict import finite_or_none, measurement_status, overall_status
 from station.report.analysis import coverage, load_session_model, per_pose_residuals, sample_arrays
+from station.report.mapsection import correction_map_section
 
 FORMAT = "station-report/1"
 
@@ -125,4 +126,5 @@ def build_report(session: dict) -> dict:
         "residuals": {"summary": residual_summary, "holdout": (result or {}).get("holdout"), "per_pose": per_pose},
         "coverage": {**coverage(model, arrays), "model_note": model_note},
         "writeback": wb,
+        "correction_map": correction_map_section(session),
     })
