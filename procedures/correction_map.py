@@ -118,6 +118,14 @@ def calibration(s) -> dict | None:
                 f"calibration {path}: parameters.{compliance[0]}: a compliance term (solved under a payload, station "
                 f"solve --payload); give the same payload: --payload MASS (e.g. 15kg)"
                 + ("" if s.options.get("payload") is None else ", not 0"))
+        solved_under = (doc.get("settings") or {}).get("payload") if isinstance(doc, dict) else None
+        if solved_under is not None and any(str(n).startswith("compliance.") for n in given or {}):
+            from station.kinematics.gravity import same_payload, show_payload
+
+            if not same_payload(solved_under, s.options.get("payload")):  # its compliance holds under that load only
+                raise ConfigError(f"calibration {path}: settings.payload: solved under "
+                                  f"{show_payload(solved_under)}, this session has "
+                                  f"{show_payload(s.options.get('payload'))}; give the same --payload")
         load_calibration(path, s.model)  # one line naming file and field: format, model name, parameter names
         res = CalibrationResult.from_dict(json.loads(data))
         if not res.trusted:

@@ -30,7 +30,7 @@ from station.engine import read_journal
 from station.kinematics import se3
 from station.report import write_report
 from station.robot.errors import ConfigError
-from station.solver.map import CorrectionMap
+from station.solver.map import CorrectionMap, MapError
 
 SIGMA_0, SIGMA_PER_M = 15e-6, 6e-6  # the tracker's specification (issue 12), one sigma per reflector and axis
 SERIAL = "A6-0014"
@@ -110,6 +110,12 @@ def test_run_refuses_a_compliance_calibration_without_payload_before_the_robot_o
     r = _cli(tmp_path, *base, "--payload", "15kg")
     assert r.returncode == 2 and "calibration" not in r.stderr.splitlines()[0] and "compliance" not in r.stderr, \
         r.stderr  # past the calibration check: the robot at 127.0.0.1:9 is what fails
+    # the result records the load it was solved under; another one is refused, naming both
+    assert json.loads(cal.read_text())["settings"]["payload"] == PAYLOAD
+    r = _cli(tmp_path, *base, "--payload", "10kg")
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and "settings.payload" in lines[0] and "15 kg" in lines[0] \
+        and "10 kg" in lines[0], lines
 
 
 def _session(tmp_path, monkeypatch, world, options, progress=None):
@@ -182,8 +188,21 @@ def test_map_on_a_compliance_calibration_uses_the_payload(rig, tmp_path, monkeyp
     assert cmap.calibration["parameters"] == params
     heavy = world.nominal.with_payload(MASS)  # the model the map belongs to carries the payload
     assert {"compliance.j2", "compliance.j3", "compliance.j5"} <= set(cmap.nominal)  # the payload model: all
-    with pytest.raises(Exception, match="compliance"):
+    with pytest.raises(MapError, match="15 kg.*no payload"):
         cmap.measure(world.nominal, np.array([START]))  # the weightless model is not the map's
+    assert cmap.payload == PAYLOAD  # the map records the load it was built under ...
+    with pytest.raises(MapError, match="15 kg.*10 kg"):  # ... and another load is not its model either
+        cmap.measure(world.nominal.with_payload(10.0), np.array([START]))
+    # the same from the command line: station map correct takes the payload the map was built with
+    (tmp_path / "map.json").write_text(json.dumps(stored["map"]))
+    (tmp_path / "q.csv").write_text("x1,x2,x3,x4,x5,x6\n" + ",".join(str(v) for v in START) + "\n")
+    cmd = ["map", "correct", "--model", "arm6", "--map", str(tmp_path / "map.json"), "--joints",
+           str(tmp_path / "q.csv"), "--out", str(tmp_path / "poses.csv")]
+    for extra, rc in (([], 2), (["--payload", "10kg"], 2), (["--payload", "15kg"], 0)):
+        r = subprocess.run([sys.executable, "-m", "station.cli", *cmd, *extra], capture_output=True, text=True,
+                           timeout=60)
+        assert r.returncode == rc, (extra, r.stderr)
+        assert rc == 0 or (len(r.stderr.strip().splitlines()) == 1 and "payload" in r.stderr), r.stderr
 
     # truth from the world, in the tracker's frame, seen through the session's registration: a replica of the world
     # (same seed, same hidden errors), since the session left the emulated drives disabled

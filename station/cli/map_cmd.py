@@ -17,6 +17,7 @@ from pathlib import Path
 
 import typer
 
+from station.cli.model_options import PAYLOAD
 from station.lazy import lazy_module
 from station.robot.errors import ConfigError
 from station.samplesfile import ANGLE_UNITS, LENGTH_UNITS, SamplesFileError, Table, read_table
@@ -160,10 +161,18 @@ def _instrument(t: Table, model, x: np.ndarray, samples: Path, frame: str):
     return reg.to_base(pose, cols), cols, reg
 
 
-def _model(name: str):
+def _model(name: str, payload: str | None = None):
     from station.kinematics import load_model
 
-    return load_model(name)  # ModelFileError -> one line in station.cli.main
+    m = load_model(name)  # ModelFileError -> one line in station.cli.main
+    if payload:
+        if not hasattr(m, "with_payload"):
+            raise _fail(f"--payload: model {m.name} ({getattr(m, 'kind', '?')}) has no compliance terms for a "
+                        "payload to load; leave --payload out")
+        from station.cli.model_options import parse_payload
+
+        m = m.with_payload(*parse_payload(payload))
+    return m
 
 
 def _load_map(path: Path):
@@ -262,6 +271,7 @@ def plan_command(
 @map_app.command("build")
 def build_command(
     model: str = typer.Option(..., "--model", help="built-in model name or model file"),
+    payload: str = PAYLOAD,
     samples: Path = typer.Option(..., "--samples", help="CSV: x1..xN and the measured pose (base frame)"),
     calibration: Path = typer.Option(None, "--calibration", help="result JSON of station solve: map on top of it"),
     mesh: str = typer.Option("grid", "--mesh", help="grid (multilinear) or simplex (barycentric): as planned"),
@@ -279,7 +289,7 @@ def build_command(
     from station.solver import CalibrationResult
     from station.solver.map import MESHES, MapError, build_map, grid_levels
 
-    m = _model(model)
+    m = _model(model, payload)
     if mesh not in MESHES:
         raise _fail(f"--mesh {mesh!r}: expected grid or simplex")
     levels = None
@@ -337,6 +347,7 @@ def build_command(
 @map_app.command("apply")
 def apply_command(
     model: str = typer.Option(..., "--model", help="built-in model name or model file"),
+    payload: str = PAYLOAD,
     map_file: Path = typer.Option(..., "--map", help="the map (station-map/1 JSON)"),
     poses: Path = typer.Option(..., "--poses", help="CSV of target poses (base frame)"),
     out: Path = typer.Option(..., "--out", help="CSV of actuator commands x1..xN"),
@@ -345,7 +356,7 @@ def apply_command(
     """Calibrated control: the actuator commands that reach the target poses."""
     from station.solver.map import MapError
 
-    m = _model(model)
+    m = _model(model, payload)
     cmap = _load_map(map_file)
     t = _read(poses)
     target, cols = _pose(t, m, "targets")
@@ -367,6 +378,7 @@ def apply_command(
 @map_app.command("correct")
 def correct_command(
     model: str = typer.Option(..., "--model", help="built-in model name or model file"),
+    payload: str = PAYLOAD,
     map_file: Path = typer.Option(..., "--map", help="the map (station-map/1 JSON)"),
     joints: Path = typer.Option(..., "--joints", help="CSV of actuator readings x1..xN"),
     out: Path = typer.Option(..., "--out", help="CSV of corrected poses"),
@@ -375,7 +387,7 @@ def correct_command(
     """Measuring kinematics: the corrected pose DK(x - KSF(x)) of each actuator reading."""
     from station.solver.map import MapError
 
-    m = _model(model)
+    m = _model(model, payload)
     cmap = _load_map(map_file)
     t = _read(joints)
     x = _actuators(t, m)

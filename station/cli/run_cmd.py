@@ -86,7 +86,7 @@ def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None, spa
     if payload is not None:  # the procedure's model carries it (compliance terms); journaled with the options
         opts["payload"] = payload_option(payload)
     if calibration is not None:  # correction_map: the map on top of this parametric calibration
-        opts["calibration"] = str(check_calibration_file(calibration, "payload" in opts))
+        opts["calibration"] = str(check_calibration_file(calibration, opts.get("payload")))
     if span_deg is not None:
         if not 0 < span_deg <= 90:  # also refuses nan
             raise ConfigError(f"--span-deg {span_deg!r}: expected a half-width in degrees in (0, 90]")
@@ -119,7 +119,7 @@ def payload_option(text: str) -> dict:
     return {"mass": float(mass), "com": [float(c) for c in com]}
 
 
-def check_calibration_file(path: Path, payload: bool = False) -> Path:
+def check_calibration_file(path: Path, payload: dict | None = None) -> Path:
     """``--calibration``: a readable ``station-calibration/1`` result (schema checked; the model name and its
     parameters are checked against the robot's model once it is connected, before anything moves). A result
     with compliance parameters was solved under a payload (``station solve --payload``): refused without
@@ -134,6 +134,13 @@ def check_calibration_file(path: Path, payload: bool = False) -> Path:
     if compliance and not payload:
         raise ConfigError(f"calibration {path}: parameters.{compliance[0]}: a compliance term (solved under a "
                           "payload, station solve --payload); give the same payload: --payload MASS (e.g. 15kg)")
+    solved_under = (getattr(cal, "settings", None) or {}).get("payload")
+    if compliance and solved_under is not None:
+        from station.kinematics.gravity import same_payload, show_payload
+
+        if not same_payload(solved_under, payload):  # its compliance terms hold under that load only
+            raise ConfigError(f"calibration {path}: settings.payload: solved under {show_payload(solved_under)}, "
+                              f"--payload gives {show_payload(payload)}; give the same --payload")
     return Path(path).resolve()
 
 

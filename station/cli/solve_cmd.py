@@ -213,7 +213,8 @@ def solve_command(model: str, tip_link: str | None, base_link: str | None, paylo
               lambda o: solve(m, o, identify, ref, None, instrument_frame=instrument_frame, max_std=max_std,
                               noise=noise_m, priors=priors, loss=loss, distances=distances or None,
                               planes=planes or None))
-    res.settings.update(samples=str(samples), holdout=None if holdout is None else str(holdout), tool=tool)
+    res.settings.update(samples=str(samples), holdout=None if holdout is None else str(holdout), tool=tool,
+                        payload=_payload_setting(payload))
     print(summary(res), flush=True)
     if out is not None:
         write_atomic(out, dumps_json(res.to_dict()) + "\n", {"--samples": samples, "--holdout": holdout})
@@ -221,6 +222,17 @@ def solve_command(model: str, tip_link: str | None, base_link: str | None, paylo
     if not res.trusted:
         print(f"station: solve failed: {res.failure or 'result not trusted'}", file=sys.stderr, flush=True)
         sys.exit(1)
+
+
+def _payload_setting(payload: str | None) -> dict | None:
+    """``--payload`` as the result records it (SI): the compliance terms of a result hold only under this load,
+    so whoever uses the result (``station run correction_map --calibration``) can check it is the same."""
+    if not payload:
+        return None
+    from station.cli.model_options import parse_payload
+
+    mass, com = parse_payload(payload)
+    return {"mass": float(mass), "com": [float(c) for c in com]}
 
 
 _DISTANCE = re.compile(r"^\s*([A-Za-z0-9_-]+)\s*,\s*([A-Za-z0-9_-]+)\s*=\s*([^±]+?)\s*(?:(?:±|\+-|\+/-)\s*(.+?))?\s*$")

@@ -403,23 +403,17 @@ def _instrument_urls(header: ev.Header, events: list, given: dict[str, str] | No
 def _same_payload(header: ev.Header, given: dict) -> None:
     """A resume given ``--payload``: the session's journaled payload must be that one (same mass and centre of
     mass to 1 g / 0.1 mm): the model's compliance terms and every sample so far belong to it."""
-    def show(p) -> str:
-        return f"{p['mass']:g} kg at [{', '.join(f'{c * 1e3:g}' for c in p['com'])}] mm"
+    from station.kinematics.gravity import same_payload, show_payload
 
     had = header.options.get("payload")
     if not isinstance(had, dict):
-        raise ConfigError(f"--payload {show(given)}: session {header.session} was run without a payload; resume "
-                          "it without --payload, or start a new session")
-    try:
-        same = abs(float(had["mass"]) - float(given["mass"])) <= 1e-3 and all(
-            abs(float(a) - float(b)) <= 1e-4 for a, b in zip(had["com"], given["com"], strict=True))
-    except (KeyError, TypeError, ValueError):
-        same = False
-    if not same:
-        was = show(had) if {"mass", "com"} <= set(had) else repr(had)
-        raise ConfigError(f"--payload {show(given)}: session {header.session} was run with {was}; the samples so "
-                          "far were measured under that load: resume with it (or without --payload), or start a new "
-                          "session")
+        raise ConfigError(f"--payload {show_payload(given)}: session {header.session} was run without a payload; "
+                          "resume it without --payload, or start a new session")
+    if not same_payload(had, given):
+        was = show_payload(had) if {"mass", "com"} <= set(had) else repr(had)
+        raise ConfigError(f"--payload {show_payload(given)}: session {header.session} was run with {was}; the "
+                          "samples so far were measured under that load: resume with it (or without --payload), or "
+                          "start a new session")
 
 
 def check_journal_folder() -> Path:

@@ -128,3 +128,40 @@ def torques(chain: Chain, frames: np.ndarray, load: Load, q: np.ndarray, derivat
         turn = np.einsum("k,nijk->nij", g, C) * mt[None, :, None]
         dtau = np.where((~rev)[None, :, None], np.where(~after[None] & rev[jj][None], turn, 0.0), dtau)
     return tau, dtau
+
+
+PAYLOAD_MASS_TOL = 1e-3  # kg: one gram
+PAYLOAD_COM_TOL = 1e-4  # m: 0.1 mm
+
+
+def payload_dict(model) -> dict | None:
+    """The payload a model carries as files record it, ``{"mass": kg, "com": [x, y, z] m in the tool frame}``,
+    or None without one (no gravity load, or mass 0)."""
+    load = getattr(model, "load", None)
+    if load is None:
+        return None
+    mass, com = load.payload
+    return {"mass": float(mass), "com": [float(c) for c in com]} if mass > 0 else None
+
+
+def same_payload(a: dict | None, b: dict | None) -> bool:
+    """Two recorded payloads (``payload_dict`` shape, None or mass 0 for none) are the same load: mass to 1 g,
+    centre of mass to 0.1 mm. A compliance term, or a sample, measured under one load belongs to it."""
+    def parts(p):
+        if p is None or float(p.get("mass", 0.0)) == 0.0:
+            return 0.0, (0.0, 0.0, 0.0)
+        return float(p["mass"]), tuple(float(c) for c in p["com"])
+
+    try:
+        (ma, ca), (mb, cb) = parts(a), parts(b)
+    except (KeyError, TypeError, ValueError, AttributeError):
+        return False
+    return (abs(ma - mb) <= PAYLOAD_MASS_TOL and len(ca) == len(cb) == 3
+            and all(abs(x - y) <= PAYLOAD_COM_TOL for x, y in zip(ca, cb, strict=True)))
+
+
+def show_payload(p: dict | None) -> str:
+    """``15 kg at [0, 0, 30] mm``, or ``no payload``."""
+    if p is None or not float(p.get("mass", 0.0)):
+        return "no payload"
+    return f"{float(p['mass']):g} kg at [{', '.join(f'{float(c) * 1e3:g}' for c in p['com'])}] mm"

@@ -134,6 +134,9 @@ class CorrectionMap:
     samples_pose: np.ndarray  # (S, k)
     samples_summand: np.ndarray  # (S, n)
     statistics: dict = field(default_factory=dict)
+    # the payload the model carried when the map was built ({"mass": kg, "com": [x, y, z] m}): the compliance
+    # terms of a calibration under the map deflect the joints under that load only
+    payload: dict | None = None
 
     @property
     def n(self) -> int:
@@ -147,6 +150,12 @@ class CorrectionMap:
             raise MapError(f"the map was built for model {self.model!r}, not {nominal.name!r}")
         if nominal.n_joints != self.n:
             raise MapError(f"the map has {self.n} actuators, model {nominal.name} has {nominal.n_joints}")
+        # first: a load missing or different is what a user must be told, not the compliance names it implies
+        from station.kinematics.gravity import payload_dict, same_payload, show_payload
+
+        if not same_payload(self.payload, payload_dict(nominal)):
+            raise MapError(f"the map was built with {show_payload(self.payload)} on the tool, model {nominal.name} "
+                           f"carries {show_payload(payload_dict(nominal))}: give the same --payload")
         have = model_parameters(nominal)
         for name, v in self.nominal.items():
             if name not in have or not math.isclose(have[name], v, rel_tol=0, abs_tol=1e-12):
@@ -260,7 +269,7 @@ class CorrectionMap:
             "units": UNITS,
             "model": {"name": self.model, "kind": self.kind, "actuators": list(self.actuators),
                       "lower": [float(v) for v in self.lower], "upper": [float(v) for v in self.upper],
-                      "parameters": dict(self.nominal)},
+                      "parameters": dict(self.nominal), "payload": self.payload},
             "calibration": self.calibration,
             "pose": list(self.pose),
             "mesh": {"type": self.mesh, "levels": [[float(v) for v in lv] for lv in self.grid.levels],
@@ -325,12 +334,22 @@ class CorrectionMap:
             sp_ = arr(s["pose"], "samples.pose", (len(sx), len(pose)))
             ss = arr(s["summand"], "samples.summand", (len(sx), n))
             dom = d["domain"]
+            payload = m.get("payload")
+            if payload is not None:
+                if not (isinstance(payload, dict) and set(payload) == {"mass", "com"}):
+                    raise fail("model.payload", "expected null or {mass: kg, com: [x, y, z] m}")
+                mass = arr(payload["mass"], "model.payload.mass", ())
+                if mass < 0:
+                    raise fail("model.payload.mass", "a mass is >= 0")
+                payload = {"mass": float(mass), "com": [float(c) for c in arr(payload["com"], "model.payload.com",
+                                                                             (3,))]}
             cal = d.get("calibration")
             if cal is not None and not (isinstance(cal, dict) and isinstance(cal.get("parameters"), dict)):
                 raise fail("calibration", "expected null or {source, parameters: {name: value}}")
             return cls(str(m["name"]), str(m.get("kind", "serial")), acts, lower, upper, nominal, cal, pose,
                        mesh["type"], grid, values, counts, arr(dom["lower"], "domain.lower", (n,)),
-                       arr(dom["upper"], "domain.upper", (n,)), sx, sp_, ss, dict(d.get("statistics") or {}))
+                       arr(dom["upper"], "domain.upper", (n,)), sx, sp_, ss, dict(d.get("statistics") or {}),
+                       payload)
         except KeyError as e:
             raise MapError(f"{where}: missing field {e.args[0]!r}") from None
         except (TypeError, AttributeError) as e:
@@ -388,9 +407,11 @@ def build_map(nominal, x, measured, pose, *, mesh: str = "grid", levels=None, ca
     cal = None
     if calibration:
         cal = {"source": calibration_source, "parameters": {k: float(v) for k, v in calibration.items()}}
+    from station.kinematics.gravity import payload_dict
+
     cm = CorrectionMap(nominal.name, getattr(nominal, "kind", "serial"), acts, lo.copy(), hi.copy(),
                        model_parameters(nominal), cal, cols, mesh, grid, values, counts, dom_lo, dom_hi, x,
-                       measured, summand)
+                       measured, summand, payload=payload_dict(nominal))
     resid = np.abs(cm.grid.interpolate(values, x, mesh) - summand)
     cm.statistics = {
         "n_samples": int(len(x)), "n_nodes": int(grid.size), "n_measured_nodes": int(known.sum()),
