@@ -15,6 +15,11 @@ def cell(tmp_path, monkeypatch):
     monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
     world_path, cell_path, serial = write_demo_files("canopen", tmp_path, seed=61, time_mode="instant")
     with launch("canopen", world_path, serial=serial) as emu:
+        # not a heartbeat test: the emulator runs in this process, so at load ~9 on 2 cores its heartbeat thread
+        # waits for the GIL/CPU behind the solver and the station's threads (2009 ms gaps measured); the consumer
+        # time is the documented URL option heartbeat_timeout_ms (production default 800 ms is unchanged;
+        # tests/test_canopen_faults.py covers heartbeat loss)
+        emu.url += "&heartbeat_timeout_ms=5000"
         yield emu, cell_path, serial, f"sqlite:///{tmp_path / 'records.db'}"
 
 

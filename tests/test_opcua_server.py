@@ -50,7 +50,10 @@ async def _connect(endpoint: str, proc):
 
     end = time.monotonic() + 60
     while True:
-        client = Client(endpoint, timeout=10)
+        # asyncua's client probes the server every watchdog_intervall (default 1 s) and must get the answer
+        # within that time, else it drops the connection ("client is disconnected"): at load ~9 on 2 cores the
+        # server answered later than 1 s while a procedure ran. A client-side liveness setting, not the server's.
+        client = Client(endpoint, timeout=10, watchdog_intervall=10.0)
         try:
             await client.connect()
             return client

@@ -211,13 +211,15 @@ def test_stalled_data_stream_is_a_bus_error(tmp_path, emulator, robots):
     emu = emulator(path)
     robot = robots(f"ur://{emu.host}")
     robot.joint_positions()
-    emu.dashboard("emulator stall 1.0")
-    time.sleep(0.02)
+    emu.dashboard("emulator stall 1.5")
+    # packages sent just before the stall may still be in ur_rtde's receive path when the machine is busy
+    # (seen at load ~9: DID NOT RAISE): let them land first; 1.2 s of stall remain, > the 0.5 s stall timeout
+    time.sleep(0.3)
     t0 = time.monotonic()
     with pytest.raises(BusError, match="stalled"):
         robot.joint_positions()
     assert time.monotonic() - t0 < robot.stale_timeout + 0.3  # the stall timeout (URL stall_ms, default 500 ms)
-    time.sleep(1.2)
+    time.sleep(1.5)
     s = robot.joint_positions()  # the stream is back
     np.testing.assert_array_equal(s.q, world.encoder_q())
     robot.move_joints(s.q + 0.02, speed=1.0)  # control script re-uploaded after the fault stop

@@ -516,7 +516,13 @@ class URRobot(RobotBase):
                 raise DeviceFault(f"ur://{self.host}: moveL ended {err * 1e3:.3f} mm from its target")
 
     def _wait_move(self, target: np.ndarray | None, budget: float) -> None:
-        deadline = time.monotonic() + budget
+        # The budget (planned motion + margin) runs on the controller's clock (RTDE timestamp): the motion
+        # runs on that clock, which on a real UR is wall time, so nothing is loosened there; an emulated
+        # controller starved of CPU (busy CI machine) runs its world slower and cannot use up a wall-clock
+        # budget while the arm is still on plan. A stream that stops advancing is caught on the wall clock
+        # by the RTDE stall timeout, as everywhere else.
+        t_start = self._r.getTimestamp()
+        ts_seen, seen_at = t_start, time.monotonic()
         while True:
             if self._interrupt.is_set():
                 raise SafetyStop(f"ur://{self.host}: move interrupted by stop(); the arm holds where it stopped")
@@ -529,9 +535,17 @@ class URRobot(RobotBase):
             if self._c.getAsyncOperationProgress() < 0:
                 break
             self._kick()
-            if time.monotonic() > deadline:
+            ts = self._r.getTimestamp()
+            if ts != ts_seen:
+                ts_seen, seen_at = ts, time.monotonic()
+            elif time.monotonic() - seen_at > self.stale_timeout:
+                self._halt_quietly(dashboard=True)
+                raise BusError(f"ur://{self.host}: RTDE data stream stalled during the move: no new package for "
+                               f"{self.stale_timeout * 1e3:.0f} ms (last controller time {ts:.3f} s); robot stopped")
+            if ts - t_start > budget:
                 self._halt_quietly()
-                raise BusError(f"ur://{self.host}: move not finished within {budget:.1f} s; robot stopped")
+                raise BusError(f"ur://{self.host}: move not finished within {budget:.1f} s (controller time); "
+                               "robot stopped")
             time.sleep(0.004)
         # the receive connection may be a package behind the control connection that saw the end of the
         # move: read a package two cycles newer than the newest one at that moment

@@ -253,7 +253,7 @@ class DashboardConn(_Conn):
     def emulator(self, args: list[str]):
         """``emulator protective_stop [AFTER]``, ``emulator stall SECONDS [AFTER]``, ``emulator drop SECONDS
         [AFTER]``, ``emulator estop on|off``, ``emulator encoder``, ``emulator tip``, ``emulator log``.
-        AFTER (s) delays the fault, so a client can be mid-command when it bites."""
+        AFTER (s of controller time) delays the fault, so a client can be mid-command when it bites."""
         ctl = self.ctl
         if not args:
             return ("emulator: commands: protective_stop [after], stall S [after], drop S [after], "
@@ -265,10 +265,19 @@ class DashboardConn(_Conn):
             return f"emulator: bad number in {' '.join(rest)!r}", None
 
         def later(after: float, fn) -> None:
-            if after > 0:
-                threading.Timer(after, fn).start()
-            else:
+            # counted on the controller's clock, as the motion it should interrupt: a wall-clock timer bit
+            # before a sim world had moved when the emulator was starved of CPU (busy CI machine)
+            if after <= 0:
                 fn()
+                return
+            due = ctl.controller_time() + after
+
+            def wait() -> None:
+                while ctl.controller_time() < due and ctl._running:
+                    time.sleep(0.002)
+                fn()
+
+            threading.Thread(target=wait, name="ur-emulator-after", daemon=True).start()
 
         if what == "protective_stop":
             later(nums[0] if nums else 0.0, lambda: ctl.protective_stop("injected on the dashboard"))
