@@ -37,11 +37,9 @@ def test_plain_input_is_parsed_as_textual_does():
     assert REPORT_EVENT_TYPES == "\x1b[=2;2u"  # set flag 2 (report event types), OR mode
 
 
-# KNOWN DEFECT (issue 15, open; jog3 fixed the causes found, see docs/jog.md): passes alone at load ~8 (4 of 4
-# runs), but on the 2-core host at load 9-14 (two extra CPU burners or heavy neighbours) some holds still show
-# speed 0 when released or a 0.1-0.3 s stop; 2 of 5 and 0 of 3 runs passed there. xfail until that is understood.
-@pytest.mark.xfail(reason="UR hold under heavy host load: some holds do not move or stop late (issue 15, open)",
-                   strict=False)
+# Runs alone (exclusive), as a technician's station PC runs the jog UI: 3 of 3 at idle after the causes found were
+# fixed (docs/jog.md). With the 2-core host overloaded (load 9-14) the station process is starved for 0.1-2 s and
+# some holds stop late or do not start: docs/jog.md says so; it is a limit of the host, measured, not hidden here.
 @pytest.mark.exclusive  # stop timing on the wire: run alone (make test)
 @pytest.mark.timeout(180)
 def test_kitty_release_stops_a_ur_hold_in_a_pty(tmp_path, emulators):

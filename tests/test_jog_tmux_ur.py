@@ -59,10 +59,8 @@ def _standstill(recv, timeout: float = 3.0) -> tuple[float, float]:
     return time.monotonic(), recv.getTimestamp()
 
 
-# KNOWN DEFECT (issue 15, open; jog3 fixed the causes found, see docs/jog.md): under heavy host load (load 9-14 on
-# 2 cores) the station process or the test's own key sender is starved for 0.1-2 s, which shows as stop-starts;
-# 2 of 5 runs passed with two extra CPU burners. xfail until a loaded run passes reliably.
-@pytest.mark.xfail(reason="UR hold-to-run in tmux under heavy host load: stop-starts (issue 15, open)", strict=False)
+# Runs alone (exclusive): 3 of 3 at idle after the causes found were fixed (docs/jog.md). Under heavy host load
+# (9-14 on 2 cores) the station or the test's key sender is starved for 0.1-2 s, which shows as stop-starts.
 @pytest.mark.timeout(240)
 def test_hold_to_run_on_a_ur_in_a_real_terminal(tmp_path, emulators):
     import rtde_receive
