@@ -143,3 +143,26 @@ def test_check_clear_names_link_and_obstacle_in_one_line():
     with pytest.raises(LimitError, match="obstacle 'camera'"):
         check_clear(m, box, np.zeros(6))  # the stretched arm lies across the camera box
     check_clear(m, KeepOut.none(), down)  # no keep-out at all: nothing to refuse
+
+
+def _models_with_urdf(tmp_path):
+    import urdf_robots
+
+    names = [n for n in builtin_names() if load_model(n).convention != "parallel"]
+    return [load_model(n) for n in names] + [load_model(str(urdf_robots.write(tmp_path, "arm7")), tip_link="ball")]
+
+
+def test_key_points_are_the_chain_frames_for_every_model(tmp_path):
+    """The collision key points (folded chain, ``_origins``) are the origins of the frames after each element the
+    envelope asks for, as the plain chain FK gives them — for every built-in model and a URDF arm whose envelope
+    asks for one element in two slots (two capsules sharing an end; those slots were left unwritten once)."""
+    from station.kinematics.collision import _origins
+
+    for m in _models_with_urdf(tmp_path):
+        env = envelope(m)
+        q = RNG.uniform(-1.0, 1.0, (4, m.n_joints))
+        T, prefix = forward(m.chain, q, m.params, keep_prefix=True)
+        after = np.concatenate([prefix[:, 1:], T[:, None]], axis=1)[..., :3, 3]  # frame after element k
+        want = np.stack([np.zeros((len(q), 3)) if e < 0 else after[:, e] for e in env.element], axis=1)
+        got = _origins(m, q, env.element)
+        np.testing.assert_allclose(got, want, atol=1e-12, err_msg=m.name)

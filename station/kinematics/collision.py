@@ -215,7 +215,9 @@ def _compile(model, elements: np.ndarray, params) -> list[tuple]:
     parameters are fixed during a check), with the key points inside a run as constant offsets."""
     ch = model.chain
     v = ch.const + np.where(ch.param >= 0, params[np.maximum(ch.param, 0)], 0.0)
-    want = {int(e): i for i, e in enumerate(elements)}
+    want: dict[int, list[int]] = {}  # element -> every slot that asks for it (two capsules may share an end)
+    for i, e in enumerate(elements):
+        want.setdefault(int(e), []).append(i)
     ops: list[tuple] = []
     acc = np.eye(4)
     pending: list[tuple[int, np.ndarray]] = []  # (slot, offset in the frame where the run started)
@@ -227,8 +229,8 @@ def _compile(model, elements: np.ndarray, params) -> list[tuple]:
             ops.append(("const", acc.copy(), [(sl, off.copy()) for sl, off in pending]))
         acc, pending = np.eye(4), []
 
-    if -1 in want:
-        pending.append((want[-1], np.zeros(3)))
+    for slot in want.get(-1, ()):
+        pending.append((slot, np.zeros(3)))
     for k in range(last + 1):
         if ch.joint[k] >= 0:
             flush()
@@ -237,9 +239,9 @@ def _compile(model, elements: np.ndarray, params) -> list[tuple]:
             acc = acc @ _element_matrix(int(ch.axis[k]), float(v[k]))
         if k in want:
             if ch.joint[k] >= 0:
-                ops.append(("const", np.eye(4), [(want[k], np.zeros(3))]))
+                ops.append(("const", np.eye(4), [(slot, np.zeros(3)) for slot in want[k]]))
             else:
-                pending.append((want[k], acc[:3, 3].copy()))
+                pending.extend((slot, acc[:3, 3].copy()) for slot in want[k])
     flush()
     return ops
 
@@ -252,7 +254,7 @@ def _origins(model, Q: np.ndarray, elements: np.ndarray, params=None, ops: list 
     N = Q.shape[0]
     R = np.broadcast_to(np.eye(3), (N, 3, 3)).copy()
     t = np.zeros((N, 3))
-    out = np.empty((N, len(elements), 3))
+    out = np.full((N, len(elements), 3), np.nan)  # every slot is written below; NaN would show one that is not
     for op in ops:
         if op[0] == "joint":
             _, axis, j, c = op
