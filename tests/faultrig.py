@@ -256,3 +256,15 @@ def canopen_arm(start, *, seed: int = 11, query: str = "", **world_kw):
             robot.close()
     finally:
         emu.stop()
+
+
+def realtime_ur(tmp_path: Path, emulators, seed: int):
+    """A UR5e emulator process on a real-time world (faults and hangs are timed on the wall clock)."""
+    import yaml
+    from station.mocks.world import default_doc
+
+    doc = default_doc("ur5e", seed=seed)
+    doc["motion"].update(time_mode="realtime")
+    path = tmp_path / "w.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return emulators("ur", path)

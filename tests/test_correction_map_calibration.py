@@ -52,9 +52,9 @@ def _true_pose(world, q):
     return world.tip_pose_true()
 
 
-def _calibration_file(world, cfg, tmp_path):
+def calibration_file(world, cfg, tmp_path, solve: tuple = ("--identify", "offsets,dh,tcp")):
     """The parametric calibration: 40 tracker readings in the work box (approached from below, as the procedure
-    does), solved by the real ``station solve`` with the tracker frame unknown."""
+    does), solved by the real ``station solve`` (options ``solve``) with the tracker frame unknown."""
     rng = np.random.default_rng(3)
     trk = TrackerServer(world, cfg, seed=5)  # not started: its measure() is the instrument's reading
     q = START + rng.uniform(-SPAN, SPAN, (40, 6))
@@ -67,8 +67,7 @@ def _calibration_file(world, cfg, tmp_path):
     csv.write_text("q1[rad],q2[rad],q3[rad],q4[rad],q5[rad],q6[rad],point,x[m],y[m],z[m]\n"
                    + "".join(",".join(str(v) for v in r) + "\n" for r in rows))
     out = tmp_path / "result.json"
-    r = CliRunner().invoke(app, ["solve", "--model", "arm6", "--samples", str(csv), "--identify", "offsets,dh,tcp",
-                                 "--out", str(out)])
+    r = CliRunner().invoke(app, ["solve", "--model", "arm6", "--samples", str(csv), *solve, "--out", str(out)])
     assert r.exit_code == 0, r.output
     return out
 
@@ -102,7 +101,7 @@ def test_map_on_a_calibration_resumed_on_a_restarted_tracker(tmp_path, monkeypat
     other_file = tmp_path / "other.yaml"
     other_file.write_text(yaml.safe_dump(doc))
     cfg = tracker_config({})
-    cal_file = _calibration_file(world, cfg, tmp_path)
+    cal_file = calibration_file(world, cfg, tmp_path)
     original = cal_file.read_bytes()
     cal_doc = json.loads(original)
     wrong = tmp_path / "ur5e.json"

@@ -21,11 +21,10 @@ from station.mocks.canopen.emulator import CanopenEmulator
 from station.mocks.tracker.config import tracker_config
 from station.mocks.tracker.server import TrackerServer
 from station.mocks.world import World
-from typer.testing import CliRunner
+from test_correction_map_calibration import _true_pose, calibration_file
 
 from station.api import resume
 from station.api import run as start
-from station.cli import app
 from station.engine import read_journal
 from station.kinematics import se3
 from station.report import write_report
@@ -42,33 +41,6 @@ JOINTS = {"compliance": {"j2": 2e-5, "j3": 3e-5, "j5": 4e-5}, "backlash": {"j1":
 PAYLOAD = {"mass": MASS, "com": [0.0, 0.0, 0.0]}
 
 
-def _true_pose(world, q):
-    """The world's true tool pose at encoder reading ``q``, approached from below as the procedure does."""
-    world.command_q(q - np.radians(0.5))
-    world.command_q(q)
-    return world.tip_pose_true()
-
-
-def _calibration_with_compliance(world, cfg, tmp_path):
-    """40 tracker readings in the work box, solved by the real ``station solve`` with the payload known and the
-    compliance term identified (tracker frame unknown)."""
-    rng = np.random.default_rng(3)
-    trk = TrackerServer(world, cfg, seed=5)  # not started: its measure() is the instrument's reading
-    rows = []
-    for qi in START + rng.uniform(-SPAN, SPAN, (40, 6)):
-        _true_pose(world, qi)
-        rows.append([*world.encoder_q(), "P", *trk.measure()[:3]])
-    world.command_q(START)
-    csv = tmp_path / "tracker-samples.csv"
-    csv.write_text("q1[rad],q2[rad],q3[rad],q4[rad],q5[rad],q6[rad],point,x[m],y[m],z[m]\n"
-                   + "".join(",".join(str(v) for v in r) + "\n" for r in rows))
-    out = tmp_path / "result.json"
-    r = CliRunner().invoke(app, ["solve", "--model", "arm6", "--payload", "15kg", "--samples", str(csv),
-                                 "--identify", "offsets,dh,tcp,compliance", "--out", str(out)])
-    assert r.exit_code == 0, r.output
-    return out
-
-
 def _world():
     return World.default("arm6", seed=7, start=START, joints=JOINTS)
 
@@ -79,7 +51,7 @@ def rig(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("payload")
     world = _world()
     cfg = tracker_config({})
-    cal = _calibration_with_compliance(world, cfg, tmp)
+    cal = calibration_file(world, cfg, tmp, ("--payload", "15kg", "--identify", "offsets,dh,tcp,compliance"))
     doc = json.loads(cal.read_text())
     params = {n: p["value"] for n, p in doc["parameters"].items() if p["kind"] == "model" and p["identifiable"]}
     assert {"compliance.j2", "compliance.j3"} <= set(params)  # what this test is about (j5: not in this box)

@@ -12,20 +12,14 @@ import time
 
 import numpy as np
 import pytest
-import yaml
-from faultrig import ur_truth
-from station.mocks.world import default_doc
+from faultrig import realtime_ur, ur_truth
 
 from station.robot import ConnectionLost, open_robot
 
 
 @pytest.fixture
 def ur(tmp_path, emulators):
-    doc = default_doc("ur5e", seed=6)
-    doc["motion"].update(time_mode="realtime")
-    path = tmp_path / "w.yaml"
-    path.write_text(yaml.safe_dump(doc))
-    return emulators("ur", path)
+    return realtime_ur(tmp_path, emulators, seed=6)
 
 
 def _drop_and_fail_a_move(emu, robot, seconds: float) -> None:

@@ -11,8 +11,7 @@ import threading
 import time
 
 import pytest
-import yaml
-from station.mocks.world import default_doc
+from faultrig import realtime_ur
 
 from station.robot import ConnectionLost, open_robot
 
@@ -37,11 +36,7 @@ class _FreezeBefore:
 
 @pytest.fixture
 def frozen_before_movej(tmp_path, emulators):
-    doc = default_doc("ur5e", seed=5)
-    doc["motion"].update(time_mode="realtime")
-    path = tmp_path / "w.yaml"
-    path.write_text(yaml.safe_dump(doc))
-    emu = emulators("ur", path)
+    emu = realtime_ur(tmp_path, emulators, seed=5)
     robot = open_robot(emu.url + "&stall_ms=300")
     robot.enable()
     robot._c = _FreezeBefore(robot._c, emu.proc, "moveJ")
