@@ -695,6 +695,9 @@ class URRobot(RobotBase):
                 self._speeding = False
                 try:
                     self._bounded("speedStop", self._c.speedStop, a * 4)
+                    # the arm stands: relax the armed 10 Hz watchdog, or a late first kick of the fix move that
+                    # follows a step ends the script under it (moveJ refused, runtime_state STOPPED: seen in CI)
+                    self._watchdog_to_idle()
                 except Exception:
                     self._halt_quietly()
 
