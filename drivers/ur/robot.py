@@ -480,7 +480,14 @@ class URRobot(RobotBase):
 
     def _move(self, target: np.ndarray, v: float, wait: bool) -> None:
         start = self.joint_positions().q
-        if not self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True):
+        ok = self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True)
+        if not ok and self._watchdog_armed and not self._c.isProgramRunning():
+            # the jog watchdog ended the (standing) script between kicks before this command was read: the
+            # controller had stopped nothing in motion; upload a fresh script and send the move once more
+            self._watchdog_armed = self._watchdog_idle = False
+            self._ready_for_motion()
+            ok = self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True)
+        if not ok:
             self._refused("moveJ")
         if wait:
             lead = float(np.max(np.abs(target - start)))
