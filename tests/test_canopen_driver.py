@@ -274,3 +274,35 @@ def test_touch_right_after_a_move_is_read_after_the_move(cell):
         assert world.contact() and robot.touch() is True
         robot.move_joints(q_off, speed=2.0)
         assert not world.contact() and robot.touch() is False
+
+
+def test_sdo_timeout_ms_is_the_answer_time_of_every_sdo():
+    """``sdo_timeout_ms`` is what an unanswered SDO waits: a bus without drives fails after about that long
+    (python-canopen makes one retry: 2 x the time), never sooner."""
+    for ms in (50, 1500):
+        chan = f"d-{uuid.uuid4().hex[:8]}"
+        t = time.monotonic()
+        with pytest.raises(ConnectionLost, match="node 1 .*does not answer"):
+            open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6&sdo_timeout_ms={ms}")
+        took = time.monotonic() - t
+        assert took >= ms / 1000.0, (ms, took)
+        if ms == 50:
+            assert took < 1.5, took  # the 1.5 s setting is not a floor the short one also waits
+    with pytest.raises(ConfigError, match="sdo_timeout_ms"):
+        open_robot("canopen+virtual://x?nodes=1-6&model=arm6&sdo_timeout_ms=5")
+
+
+def test_store_waits_for_a_drive_writing_its_flash(cell):
+    """A real drive answers "store parameters" (0x1010) after writing its flash, longer than an ordinary SDO
+    answer: the write-back waits for it (at the default 300 ms SDO time) instead of calling the drive lost."""
+    world, emu, robot, chan = cell
+    emu.store_s = 0.8  # the emulated flash write: each drive answers the store 0.8 s late
+    values = {"offset.j1": 0.01, "offset.j3": -0.02}
+    t = time.monotonic()
+    robot.write_calibration(values)
+    assert time.monotonic() - t >= 2 * 0.8  # both stores were answered late, and waited for
+    emu.store_s = 0.0
+    back = robot.read_calibration()
+    for name, v in values.items():
+        assert back[name] == pytest.approx(v, abs=2 * float(quantum(world.nominal).max()))
+    assert robot.persist_calibration() == robot.nodes

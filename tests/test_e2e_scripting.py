@@ -19,7 +19,7 @@ def cell(tmp_path, monkeypatch):
         # waits for the GIL/CPU behind the solver and the station's threads (2009 ms gaps measured); the consumer
         # time is the documented URL option heartbeat_timeout_ms (production default 800 ms is unchanged;
         # tests/test_canopen_faults.py covers heartbeat loss)
-        emu.url += "&heartbeat_timeout_ms=5000"
+        emu.url += "&heartbeat_timeout_ms=5000&sdo_timeout_ms=2000"  # SDO answers too (sdo_timeout_ms)
         yield emu, cell_path, serial, f"sqlite:///{tmp_path / 'records.db'}"
 
 

@@ -6,7 +6,7 @@ import subprocess
 import sys
 
 # a slower SYNC and a longer heartbeat consumer time (driver URL options): the CI machine is shared
-ROBOT_OPTIONS = "&sync_ms=20&heartbeat_timeout_ms=5000"
+ROBOT_OPTIONS = "&sync_ms=20&heartbeat_timeout_ms=5000&sdo_timeout_ms=2000"
 
 
 class TrackerProcess:

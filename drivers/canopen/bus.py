@@ -28,7 +28,8 @@ with bus_library("python-can"):
 with bus_library("canopen"):
     import canopen
 
-from station.drivers.canopen.faults import FaultLatch  # noqa: E402 - after the wrapped bus library imports
+from station.drivers.canopen.cia402 import SAVE  # noqa: E402 - after the wrapped bus library imports
+from station.drivers.canopen.faults import FaultLatch  # noqa: E402
 from station.drivers.canopen.od import CONTACT_WIRED, standard_od  # noqa: E402
 
 log = logging.getLogger("station.drivers.canopen")
@@ -89,6 +90,10 @@ class _BusWatch(can.Listener):
         self.bus.faults.latch(ConnectionLost(f"CAN interface {self.bus.where} failed: {exc}"))
 
 
+SDO_TIMEOUT_MS = 300.0  # python-canopen's own default answer time; a URL option (sdo_timeout_ms)
+STORE_TIMEOUT_S = 3.0  # the store command (0x1010 "save") writes flash before it answers
+
+
 class CanopenBus:
     """The drives ``nodes`` on one CAN network. ``open()`` connects and starts streaming; ``close()`` stops the
     threads and disconnects (the robot leaves the drives safe before)."""
@@ -96,7 +101,8 @@ class CanopenBus:
     def __init__(self, nodes: list[int], faults: FaultLatch, *, interface: str, channel: str,
                  host: str | None = None, port: int | None = None, sync_period: float = 0.004,
                  heartbeat_ms: int = 100, touch_ms: int = 10, eds: str | None = None,
-                 error_frame_limit: int = 1, heartbeat_timeout_ms: float | None = None) -> None:
+                 error_frame_limit: int = 1, heartbeat_timeout_ms: float | None = None,
+                 sdo_timeout_ms: float = SDO_TIMEOUT_MS) -> None:
         self.nodes = list(nodes)
         self.faults = faults
         self.interface, self.channel, self.host, self.port = interface, channel, host, port
@@ -108,6 +114,7 @@ class CanopenBus:
         self.hb_timeout = (heartbeat_timeout_ms / 1000.0 if heartbeat_timeout_ms
                            else heartbeat_consumer_s(heartbeat_ms))
         self.touch_ms = touch_ms
+        self.sdo_timeout = sdo_timeout_ms / 1000.0
         self.error_frame_limit = max(1, error_frame_limit)
         self.eds = eds
         self.contact_node: int | None = None
@@ -153,7 +160,7 @@ class CanopenBus:
             od = canopen.import_od(self.eds, node_id) if self.eds else standard_od(node_id)
             node = canopen.BaseNode402(node_id, od)
             self.network.add_node(node)
-            node.sdo.RESPONSE_TIMEOUT = 0.3
+            node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout
             self.drives[node_id] = node
         for node_id, node in self.drives.items():
             dtype = self._first_contact(node_id)
@@ -265,13 +272,26 @@ class CanopenBus:
             return None
         return int.from_bytes(bytes(data[:4]).ljust(4, b"\0"), "little")
 
-    def sdo_write(self, node_id: int, index: int, value, sub: int | None = None) -> None:
+    def sdo_write(self, node_id: int, index: int, value, sub: int | None = None, timeout: float | None = None) -> None:
+        """``timeout`` (s) replaces the URL's ``sdo_timeout_ms`` for this one transfer (the store command)."""
         node = self.drives[node_id]
-        with self._sdo(node_id, "write", index, sub):
-            if sub is None:
-                node.sdo[index].raw = value
-            else:
-                node.sdo[index][sub].raw = value
+        usual = node.sdo.RESPONSE_TIMEOUT
+        if timeout is not None:
+            node.sdo.RESPONSE_TIMEOUT = max(timeout, usual)
+        try:
+            with self._sdo(node_id, "write", index, sub):
+                if sub is None:
+                    node.sdo[index].raw = value
+                else:
+                    node.sdo[index][sub].raw = value
+        finally:
+            node.sdo.RESPONSE_TIMEOUT = usual
+
+    def store_parameters(self, node_id: int) -> None:
+        """0x1010:01 "save": CiA 301 lets a drive answer only after its non-volatile memory is written, which
+        takes a real drive hundreds of ms (longer than an ordinary SDO answer), so this transfer waits
+        ``STORE_TIMEOUT_S`` at least."""
+        self.sdo_write(node_id, 0x1010, SAVE, sub=1, timeout=STORE_TIMEOUT_S)
 
     # ---- RPDOs (immediate) -------------------------------------------------------------------------------
     def send_rpdo1(self, node_id: int, cw: int, target: int | None = None) -> None:

@@ -27,7 +27,6 @@ from station.drivers.canopen.cia402 import (
     FAULTED,
     MODE_PP,
     MODE_PT,
-    SAVE,
     SW_SETPOINT_ACK,
     SW_TARGET_REACHED,
     next_controlword,
@@ -62,6 +61,9 @@ class CanopenRobot(RobotBase):
         Option("heartbeat_timeout_ms", number(20, 60000, unit="ms"), None, "heartbeat consumer time: a drive "
                "silent this long is lost (ConnectionLost, robot stopped); must exceed `heartbeat_ms`",
                default_doc="3 x `heartbeat_ms` + 500 (= 800)"),
+        Option("sdo_timeout_ms", number(10, 60000, unit="ms"), 300.0, "SDO answer time (configuration, "
+               "identity, write-back); no answer is `ConnectionLost`. The store command (0x1010 \"save\") waits at "
+               "least 3 s: a drive answers it after writing its flash"),
         Option("touch_ms", integer(1, 65535), 10, "event timer of the contact-input TPDO (ms)"),
         Option("contact", either("auto", none=("none",), otherwise=integer(1, 127)), "auto",
                "node with the contact input; `auto` reads 0x2000 on each node, `none` = no input"),
@@ -79,7 +81,7 @@ class CanopenRobot(RobotBase):
                  port: int | None = None, sync_period: float = 0.004, heartbeat_ms: int = 100,
                  touch_ms: int = 10, contact: int | None | str = "auto", eds: str | None = None,
                  serial: str | None = None, error_frame_limit: int = 1, heartbeat_timeout_ms: float | None = None,
-                 url: str = "") -> None:
+                 sdo_timeout_ms: float = 300.0, url: str = "") -> None:
         if len(nodes) != model.n_joints:
             raise ConfigError(f"canopen: {len(nodes)} node ids {nodes} for model {model.name} with "
                               f"{model.n_joints} joints; give one node per joint (nodes=1-{model.n_joints})")
@@ -102,7 +104,8 @@ class CanopenRobot(RobotBase):
         self.faults.on_first.append(self._quick_stop_all)
         self.bus = CanopenBus(self.nodes, self.faults, interface=interface, channel=channel, host=host, port=port,
                               sync_period=sync_period, heartbeat_ms=heartbeat_ms, touch_ms=touch_ms, eds=eds,
-                              error_frame_limit=error_frame_limit, heartbeat_timeout_ms=heartbeat_timeout_ms)
+                              error_frame_limit=error_frame_limit, heartbeat_timeout_ms=heartbeat_timeout_ms,
+                              sdo_timeout_ms=sdo_timeout_ms)
         try:
             self.bus.open(contact, self._on_emcy)
             self._check_scaling()  # a model for another arm must not move this one: before the first RPDO
@@ -122,7 +125,7 @@ class CanopenRobot(RobotBase):
         model = cls.load_url_model(url, o["model"], o["tip_link"], o["base_link"])
         args = dict(sync_period=o["sync_ms"] / 1000.0, heartbeat_ms=o["heartbeat_ms"], touch_ms=o["touch_ms"],
                     contact=o["contact"], eds=o["eds"], serial=o["serial"], error_frame_limit=o["error_frames"],
-                    heartbeat_timeout_ms=o["heartbeat_timeout_ms"],
+                    heartbeat_timeout_ms=o["heartbeat_timeout_ms"], sdo_timeout_ms=o["sdo_timeout_ms"],
                     url=url.raw)
         args.update(overrides)
         nodes = o["nodes"] or list(range(1, model.n_joints + 1))
@@ -421,7 +424,7 @@ class CanopenRobot(RobotBase):
         ``DeviceFault`` naming the node that refused it."""
         self._check_open("persist_calibration")
         for node_id in self.nodes:
-            self.bus.sdo_write(node_id, 0x1010, SAVE, sub=1)
+            self.bus.store_parameters(node_id)
         return list(self.nodes)
 
     def write_calibration(self, values: dict[str, float]) -> None:
@@ -447,7 +450,7 @@ class CanopenRobot(RobotBase):
         for node_id, (_name, counts) in plan.items():
             self.bus.sdo_write(node_id, 0x607C, counts)
         for node_id in plan:
-            self.bus.sdo_write(node_id, 0x1010, SAVE, sub=1)
+            self.bus.store_parameters(node_id)
         for node_id, (name, counts) in plan.items():
             back = int(self.bus.sdo_read(node_id, 0x607C))
             if back != counts:

@@ -122,6 +122,8 @@ class CanopenEmulator:
         self.fault_poll = fault_poll
         serial_base = int(cfg.get("serial_base", DEFAULT_SERIAL_BASE))
         self.busoff_recovery = float(cfg.get("busoff_recovery_s", 0.2))
+        # how long a drive takes to write its flash on "store parameters" (0x1010) before it answers
+        self.store_s = float(cfg.get("store_s", 0.0))
         self.offbus_until = 0.0  # monotonic: the station's controller is bus-off (its frames are lost) until then
         # identity overrides for staging a wrong device (world file buses.canopen.device_type: e.g. 0x00020191)
         self.device_type = int(str(cfg["device_type"]), 0) if "device_type" in cfg else None
@@ -335,13 +337,22 @@ class CanopenEmulator:
             if self.world.faults.take("corrupt", d.id):
                 self.inject_error_frame("protocol")  # the answer is destroyed on the wire
                 return
-            with d.lock:
-                d.node.sdo.on_request(cob_id, bytearray(data), time.time())
+            if event is not None and event["op"] == "write" and event["index"] == 0x1010 and self.store_s > 0:
+                # writing flash: the drive answers "store parameters" store_s late (CiA 301 allows it) while its
+                # PDOs, SYNC answers and heartbeat go on, so the answer comes from a thread of its own
+                threading.Timer(self.store_s, self._sdo_request, (d, cob_id, bytearray(data))).start()
+                return
+            self._sdo_request(d, cob_id, bytearray(data))
             return
         for d, p in self._rx_map.get(cob_id, ()):
             if self._notice(d, pdo={"node": d.id, "cob_id": cob_id, "num": p.num}):
                 continue
             d.on_rpdo(p, data)
+
+    @staticmethod
+    def _sdo_request(d: Drive402, cob_id: int, data: bytearray) -> None:
+        with d.lock:
+            d.node.sdo.on_request(cob_id, data, time.time())
 
     def _notice(self, d: Drive402, **event) -> bool:
         """Report a wire event to the world's faults (arming those waiting for it) and act out at once what it
