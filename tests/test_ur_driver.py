@@ -128,6 +128,33 @@ def test_speed_jogs_use_speedj_and_speedl_and_cap_tool_speed(tmp_path, emulator,
         robot.move_linear(goal, speed=2.0)
 
 
+def test_step_jog_finishes_when_the_jog_watchdog_ends_the_script(tmp_path, emulator, robots, caplog, monkeypatch):
+    """A station kept from kicking the jog watchdog for a whole period (a loaded PC: the process is not
+    scheduled) has the arm stopped by the controller mid-step: the driver notices the ended script, starts a
+    fresh one and finishes the step with a move. The step lands on its target -- not "moveJ was not executed"
+    (seen in CI), not a deadline fault. The starvation is made certain by withholding the kicks (the default
+    10 Hz watchdog; each step's speed part lasts well over 0.1 s)."""
+    path, world = world_file(tmp_path)
+    emu = emulator(path)
+    robot = robots(f"ur://{emu.host}")
+    kick = robot._kick
+    for axis, step in ((0, 0.1), (3, -0.08), (0, -0.1)):
+        q0 = robot.joint_positions().q
+        expired = emu.dashboard("emulator log").count("watchdog expired")
+        monkeypatch.setattr(robot, "_kick", lambda: None)  # starved: no kick reaches the controller
+        with caplog.at_level("WARNING", logger="station.drivers.ur"):
+            robot.jog("joint", axis, step, speed=0.3)
+        monkeypatch.setattr(robot, "_kick", kick)
+        want = q0.copy()
+        want[axis] += step
+        np.testing.assert_allclose(robot.joint_positions().q, want, atol=1e-9)
+        assert emu.dashboard("emulator log").count("watchdog expired") == expired + 1  # the path was taken
+    assert sum("ended the step's speed command" in r.getMessage() for r in caplog.records) == 3  # and said so
+    assert not robot.status().moving
+    robot.jog("joint", 0, 0.02, speed=0.3)  # kicked again: an ordinary step, no watchdog stop
+    assert emu.dashboard("emulator log").count("watchdog expired") == expired + 1
+
+
 def test_freedrive_seats_tip_in_socket(tmp_path, emulator, robots):
     path, world = world_file(tmp_path)
     emu = emulator(path)

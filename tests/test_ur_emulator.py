@@ -105,7 +105,10 @@ def test_control_script_handshake_protective_stop_and_unlock(emu):
         assert c.moveJ(q0.tolist(), 1.0, 1.4)
         time.sleep(0.01)
         np.testing.assert_allclose(r.getActualQ(), q0, atol=1e-9)
-        c.stopScript()
+        c.stopScript()  # returns once the CONTROL connection sees the program stopped
+        deadline = time.monotonic() + 0.5  # the receive connection may be packages behind (seen in CI: 2)
+        while r.getRuntimeState() != 1 and time.monotonic() < deadline:
+            time.sleep(0.002)
         assert r.getRuntimeState() == 1
     finally:
         c.disconnect()

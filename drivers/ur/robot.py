@@ -104,9 +104,10 @@ class URRobot(RobotBase):
         self.jog_speed, self.tool_speed = jog_speed, tool_speed
         self.stale_timeout = stale_timeout
         self.jog_watchdog = jog_watchdog  # Hz: controller-side RTDE watchdog armed for speed jogs (0: off)
-        self._watchdog_armed = False
-        self._watchdog_idle = False  # armed at JOG_IDLE_WATCHDOG_HZ between velocity jogs
+        # the RTDE watchdog the running control script carries (0: none); JOG_IDLE_WATCHDOG_HZ between jogs
+        self._watchdog_hz = 0.0
         self._rt_sent = self._last_kick = 0.0
+        self._last_write = 0.0  # monotonic: our last write to the command register (what the watchdog watches)
         self.url = url or f"ur://{host}?model={catalog.name}"
         self.url_serial = serial  # used only when the controller does not report one (PolyScope < 5.6)
         self.serial = serial or ""
@@ -193,7 +194,7 @@ class URRobot(RobotBase):
                                "on the controller") from None
             raise ConnectionLost(f"ur://{self.host}: RTDE control (script upload on 30003) failed: {e}") from None
         self._last_ts = None
-        self._watchdog_armed = False
+        self._watchdog_hz = 0.0
         self._link_lost = False
         log.info("ur://%s connected: serial %s, %s", self.host, self.serial, self.firmware)
 
@@ -396,7 +397,7 @@ class URRobot(RobotBase):
         now = time.monotonic()
         if self._watchdog_armed and now - self._rt_sent > 0.01 and now - self._last_kick > 0.02:
             self._c.kickWatchdog()
-            self._last_kick = now
+            self._last_kick = self._last_write = now
 
     def _disarm_watchdog(self) -> None:
         """Before anything that is not followed by kicks (freedrive, unwatched moves): end the script that
@@ -405,14 +406,14 @@ class URRobot(RobotBase):
             self._check_link()
             if self._c.isProgramRunning():
                 self._c.stopScript()
-            self._watchdog_armed = False
+            self._watchdog_hz = 0.0
 
     def _ready_for_motion(self) -> None:
         self._check_link()
         self._check_safety()
         self._kick()
         if not self._c.isProgramRunning():
-            self._watchdog_armed = False  # a new script has no watchdog
+            self._watchdog_hz = 0.0  # a new script has no watchdog
             # after an unlock, a dashboard stop or a watchdog stop, the control script must run again
             log.info("ur://%s: control script not running: re-uploading", self.host)
             self._c.reuploadScript()
@@ -428,11 +429,28 @@ class URRobot(RobotBase):
         self._check_link()
         bits = int(self._r.getSafetyStatusBits())
         err = self._safety_error(bits)
+        # a field diagnosis: the controller ends the program when its RTDE watchdog starves (PolyScope's log
+        # says so; RTDE does not), so say whether one was armed and how long ago we last wrote
+        watchdog = (f"; its RTDE watchdog ({self._watchdog_hz:g} Hz) was armed, last write "
+                    f"{(time.monotonic() - self._last_write) * 1e3:.0f} ms before" if self._watchdog_armed else "")
         self._halt_quietly()
         if err is not None:
             raise err
         raise DeviceFault(f"ur://{self.host}: {what} was not executed by the controller (runtime_state "
-                          f"{self._r.getRuntimeState()}, robot_mode {self._r.getRobotMode()})")
+                          f"{self._r.getRuntimeState()}, robot_mode {self._r.getRobotMode()}){watchdog}")
+
+    @property
+    def _watchdog_armed(self) -> bool:
+        return self._watchdog_hz > 0
+
+    def _arm_watchdog(self, hz: float) -> None:
+        """The script's rtde_set_watchdog on the command register at ``hz`` (``"stop"``: a station or network
+        that stops writing stops the program); it stays armed until the script ends. No-op when already at hz."""
+        if hz <= 0 or self._watchdog_hz == hz:
+            return
+        ok = bool(self._bounded("setWatchdog", self._c.setWatchdog, hz))
+        self._watchdog_hz = hz if ok else 0.0
+        self._last_write = time.monotonic()
 
     # ---- Robot protocol ----------------------------------------------------------------------
     def identity(self) -> Identity:
@@ -480,12 +498,19 @@ class URRobot(RobotBase):
 
     def _move(self, target: np.ndarray, v: float, wait: bool) -> None:
         start = self.joint_positions().q
+        self._last_write = time.monotonic()
         ok = self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True)
-        if not ok and self._watchdog_armed and not self._c.isProgramRunning():
-            # the jog watchdog ended the (standing) script between kicks before this command was read: the
-            # controller had stopped nothing in motion; upload a fresh script and send the move once more
-            self._watchdog_armed = self._watchdog_idle = False
+        if not ok and not self._c.isProgramRunning():
+            # the script ended between the check before this move and the move (the jog watchdog of a station
+            # starved of CPU for longer than its period, seen on a loaded CI host): as before every motion, a
+            # stopped script is started again -- unless safety stopped it, which _why_script_stopped raises
+            log.warning("ur://%s: the control script ended before moveJ was read (RTDE watchdog %s, our last "
+                        "write %.0f ms before); moveJ is sent again on a fresh script", self.host,
+                        f"{self._watchdog_hz:g} Hz" if self._watchdog_armed else "off",
+                        (time.monotonic() - self._last_write) * 1e3)
+            self._why_script_stopped()
             self._ready_for_motion()
+            self._last_write = time.monotonic()
             ok = self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True)
         if not ok:
             self._refused("moveJ")
@@ -601,6 +626,7 @@ class URRobot(RobotBase):
             self._velocity_jog(lambda: self._bounded("speedJ", self._c.speedJ, qd, self.accel, 0.0),
                                lambda q: lead - float(np.dot(q - q0, u)), v, self.accel)
             v_fix = v
+        self._ready_for_motion()  # the jog watchdog may have ended the script under the velocity part
         self._move(target, max(min(v_fix, self.jog_speed), 1e-3), True)
 
     def jog_velocity(self, mode: str, axis: int, velocity: float, frame: str = "base") -> None:
@@ -635,24 +661,32 @@ class URRobot(RobotBase):
         if tool > MANUAL_TOOL_SPEED_CAP:
             scale = min(scale, MANUAL_TOOL_SPEED_CAP / tool)
         self._ready_for_motion()
-        if self.jog_watchdog > 0 and (not self._watchdog_armed or self._watchdog_idle):
-            self._watchdog_armed = bool(self._c.setWatchdog(self.jog_watchdog))
-            self._watchdog_idle = False
+        if mode == "joint":
+            self._send_speed(lambda: self._bounded("speedJ", self._c.speedJ, (qd * scale).tolist(), self.accel, 0.0))
+        else:
+            self._send_speed(lambda: self._bounded("speedL", self._c.speedL, (xd * scale).tolist(), 0.5, 0.0))
+
+    def _send_speed(self, send) -> None:
+        """A speed command (``send()`` -> ur_rtde's answer) under the jog watchdog. When the watchdog ended the
+        standing script between the check before it and the command (a refresh late by a whole period on a
+        loaded station PC), the controller had already stopped the arm: restart the script once and send again,
+        with a warning. Refused otherwise (``DeviceFault``, robot stopped)."""
+        self._arm_watchdog(self.jog_watchdog)
         self._speeding = True
-        for attempt in range(2):
-            if mode == "joint":
-                ok = self._bounded("speedJ", self._c.speedJ, (qd * scale).tolist(), self.accel, 0.0)
-            else:
-                ok = self._bounded("speedL", self._c.speedL, (xd * scale).tolist(), 0.5, 0.0)
-            self._rt_sent = time.monotonic()
-            # the watchdog may have ended the program between our check and the command (a late refresh):
-            # restart the script once and re-send; the arm was already stopped by the controller
-            if ok or attempt or self._c.isProgramRunning():
-                break
-            self._watchdog_armed = False
+        previous = self._last_write
+        ok = send()
+        self._rt_sent = self._last_write = time.monotonic()  # kicks wait for the script to read the command
+        if not ok and not self._c.isProgramRunning():
+            log.warning("ur://%s: the control script ended before the speed command was read (RTDE watchdog %s, "
+                        "our previous write %.0f ms before); sent again on a fresh script", self.host,
+                        f"{self._watchdog_hz:g} Hz" if self._watchdog_armed else "off",
+                        (time.monotonic() - previous) * 1e3)
+            self._why_script_stopped()
+            self._watchdog_hz = 0.0
             self._ready_for_motion()
-            if self.jog_watchdog > 0:
-                self._watchdog_armed = bool(self._c.setWatchdog(self.jog_watchdog))
+            self._arm_watchdog(self.jog_watchdog)
+            ok = send()
+            self._rt_sent = self._last_write = time.monotonic()
         if not ok:
             self._speeding = False
             self._refused("speed command")
@@ -662,8 +696,11 @@ class URRobot(RobotBase):
         (JOG_IDLE_WATCHDOG_HZ) for the keep-alive until the next jog sets ``jog_watchdog`` again before its
         first speed command. At 10 Hz a keep-alive late by 0.1 s (a busy station PC) ended the program, and
         the next press had to upload the script first (or met the program ending under its speed command)."""
-        if self._watchdog_armed and self.jog_watchdog > JOG_IDLE_WATCHDOG_HZ:
-            self._watchdog_idle = bool(self._bounded("setWatchdog", self._c.setWatchdog, JOG_IDLE_WATCHDOG_HZ))
+        if self._watchdog_armed and self._watchdog_hz > JOG_IDLE_WATCHDOG_HZ:
+            before = self._watchdog_hz
+            self._arm_watchdog(JOG_IDLE_WATCHDOG_HZ)
+            if not self._watchdog_armed and self._c.isProgramRunning():
+                self._watchdog_hz = before  # refused: the script still carries the faster one
 
     def jog_keep_alive(self) -> None:
         """Between velocity jogs: feed the jog watchdog (armed for the control script's lifetime) while no
@@ -678,20 +715,22 @@ class URRobot(RobotBase):
         deadline = time.monotonic() + total / v + v / a + 1.0  # the jog watchdog
         self._speeding = True
         try:
-            if self.jog_watchdog > 0 and (not self._watchdog_armed or self._watchdog_idle):
-                self._watchdog_idle = False
-                # if this process or the network dies mid-jog, the controller stops the program itself
-                # (the script's rtde_set_watchdog(..., "stop")); it stays armed until the program ends
-                self._watchdog_armed = bool(self._c.setWatchdog(self.jog_watchdog))
-            ok = send()
-            self._rt_sent = time.monotonic()  # the command is on the wire now; kicks wait for the script to read it
-            if not ok:
-                self._refused("speed command")
+            # if this process or the network dies mid-jog, the controller stops the program itself
+            # (the script's rtde_set_watchdog(..., "stop")); it stays armed until the program ends
+            self._send_speed(send)
             while True:
                 self._check_link_moving()
                 snap = self.joint_positions()
                 self._check_safety()
                 if remaining(snap.q) <= v * v / (2 * a) + v * 0.004:
+                    break
+                if not self._c.isProgramRunning():
+                    # the jog watchdog stopped the arm: this process was kept from kicking it for a whole
+                    # period (a loaded station PC). The arm stands; the fix move finishes the step.
+                    self._why_script_stopped()
+                    log.warning("ur://%s: the RTDE watchdog (%g Hz) ended the step's speed command %.0f ms after "
+                                "our last write; the step is finished with a move", self.host, self._watchdog_hz,
+                                (time.monotonic() - self._last_write) * 1e3)
                     break
                 if time.monotonic() > deadline:
                     raise BusError(f"ur://{self.host}: jog watchdog: the step did not complete in time; stopped")
