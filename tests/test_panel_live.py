@@ -185,7 +185,10 @@ def test_prompts_plot_and_abort_mid_move(tmp_path, emulators, browser, panels): 
     # 3. ABORT in the middle of the next move: the world stops short of the target
     plan = next(e for e in events if e["type"] == "plan")["plan"]
     # inside a move with time left (a move's last millimetres end before the world's profile does)
-    _wait(lambda: _remaining(world) > 0.1, 60, "a move of the approach to pose 3 with 0.3 s left")
+    try:
+        _wait(lambda: _remaining(world) > 0.1, 60, "a move of the approach to pose 3 with 0.3 s left")
+    except AssertionError as e:  # say where the session is (a fault? ended?), not only that no move came
+        raise AssertionError(f"{e}; panel state: {panel.state()}") from None
     going_to = _destination(world)  # where the world's joints are headed (the move under way)
     page.click("#abort")
     t_abort = time.monotonic()
