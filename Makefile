@@ -19,6 +19,9 @@ demo: $(STAMP)
 
 # two parts: everything that tolerates a neighbour, two at a time on the two cores (whole files per worker:
 # module fixtures stay shared), then the tests that time the wire or load the machine (soak), alone
+# bytecode caches on for the test run (a host may set PYTHONDONTWRITEBYTECODE): else every pytest process
+# rewrites and compiles all test modules again (~10 s of CPU each) and every station subprocess its modules
+test test-matrix: export PYTHONDONTWRITEBYTECODE :=
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not exclusive and not fullmatrix"
