@@ -5,6 +5,9 @@ fixed) and builds the same World from the same file to know the hidden truth."""
 
 from __future__ import annotations
 
+import os
+import signal
+import threading
 import time
 
 import numpy as np
@@ -153,6 +156,35 @@ def test_step_jog_finishes_when_the_jog_watchdog_ends_the_script(tmp_path, emula
     assert not robot.status().moving
     robot.jog("joint", 0, 0.02, speed=0.3)  # kicked again: an ordinary step, no watchdog stop
     assert emu.dashboard("emulator log").count("watchdog expired") == expired + 1
+
+
+def test_a_paused_station_host_is_not_a_stalled_link(tmp_path, emulator, robots, monkeypatch):
+    """The whole station PC stops for 0.8 s mid-move (a loaded host; a virtual machine paused by its host): the
+    controller's packages stop with it, and when the station wakes first the next one is a few ms away. That is
+    not a stalled stream (default 500 ms, station.robot.silence): the move goes on to its target. Seen on the
+    old wall-clock rule as "RTDE data stream stalled during the move" at load 4 on 2 cores."""
+    path, world = world_file(tmp_path)
+    emu = emulator(path)
+    robot = robots(f"ur://{emu.host}")
+    q0 = robot.joint_positions().q
+    kick, paused = robot._kick, []
+
+    def kick_then_pause() -> None:  # called every turn of the driver's move-watching loop
+        kick()
+        if not paused and robot.status().moving:
+            paused.append(time.monotonic())
+            os.kill(emu.proc.pid, signal.SIGSTOP)  # the controller stops first...
+        elif len(paused) == 1 and time.monotonic() - paused[0] > 0.02:  # ...and 20 ms later the station
+            paused.append(time.monotonic())
+            time.sleep(0.8)
+            # the station wakes first; the controller's next package comes 30 ms later
+            threading.Timer(0.03, os.kill, (emu.proc.pid, signal.SIGCONT)).start()
+
+    monkeypatch.setattr(robot, "_kick", kick_then_pause)
+    target = q0 + np.array([0.3, 0, 0, 0, 0, 0])
+    robot.move_joints(target, speed=0.5)
+    assert len(paused) == 2
+    np.testing.assert_allclose(robot.joint_positions().q, target, atol=1e-9)
 
 
 def test_freedrive_seats_tip_in_socket(tmp_path, emulator, robots):
