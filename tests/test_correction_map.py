@@ -31,13 +31,43 @@ def cell(tmp_path, monkeypatch):
         yield world, cfg, emu, trk, f"sqlite:///{tmp_path / 'records.db'}"
 
 
-def test_map_from_tracker_beats_nominal_within_noise_bound(cell):
-    world, cfg, emu, trk, db = cell
-    out = start("correction_map", emu.url, SERIAL, db=db, options={"tracker": trk.url, "grid": 1}, report=False)
+@pytest.fixture(scope="module")
+def resumed(tmp_path_factory):
+    """ONE hexapod session for the two tests below (a session of 76 configurations is most of their time): Ctrl-C
+    after 25 configurations, then resumed to completion on the same robot and tracker. What each test asserts is
+    its own; the uninterrupted start-to-PASS path runs in test_command_line_over_socketcand_and_tcp."""
+    tmp = tmp_path_factory.mktemp("resumed")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("STATION_HOME", str(tmp / "home"))
+        world = World.default("hexapod", seed=7)
+        cfg = tracker_config({})
+        db = f"sqlite:///{tmp / 'records.db'}"
+        with launch("canopen", world, serial=SERIAL) as emu, TrackerServer(world, cfg, seed=11) as trk:
+
+            def progress(done, total, text):
+                if done >= 25:
+                    raise KeyboardInterrupt  # the operator's Ctrl-C after 25 configurations
+
+            out = start("correction_map", emu.url, SERIAL, db=db, options={"tracker": trk.url, "grid": 1},
+                        report=False, progress=progress)
+            _, events = read_journal(out.folder / "journal.jsonl")
+            first = {"events": events, "measured": trk.measurements}
+            seen = {"n": 0}
+
+            def count(done, total, text):
+                seen["n"] = total
+
+            again = resume(out.session, db=db, report=False, progress=count)
+            yield {"world": world, "cfg": cfg, "db": db, "out": out, "first": first, "again": again,
+                   "total": seen["n"], "measured": trk.measurements}
+
+
+def test_map_from_tracker_beats_nominal_within_noise_bound(resumed):
+    world, cfg, db, out = resumed["world"], resumed["cfg"], resumed["db"], resumed["again"]
     assert out.status == "completed", out.error
     assert out.passed and out.exit_code == 0 and out.stored
     plan_len = len(out.record["samples"])
-    assert trk.measurements == plan_len  # one tracker reading per configuration, none repeated
+    assert resumed["measured"] == plan_len  # one tracker reading per configuration, none repeated
     # the map as stored: in the session folder and in the record
     doc = json.loads((out.folder / "map.json").read_text())
     cmap = CorrectionMap.from_dict(doc)
@@ -76,33 +106,21 @@ def test_map_from_tracker_beats_nominal_within_noise_bound(cell):
     assert np.sqrt(np.mean(e_c ** 2)) < min(np.sqrt(3) * sigma, 0.3 * np.sqrt(np.mean(e_c_nom ** 2)))
 
 
-def test_resume_after_interruption_measures_no_pose_twice(cell):
-    world, cfg, emu, trk, db = cell
-    seen = {"n": 0}
-
-    def progress(done, total, text):
-        if done >= 25:
-            raise KeyboardInterrupt  # the operator's Ctrl-C after 25 configurations
-
-    out = start("correction_map", emu.url, SERIAL, db=db, options={"tracker": trk.url, "grid": 1},
-                report=False, progress=progress)
+def test_resume_after_interruption_measures_no_pose_twice(resumed):
+    out = resumed["out"]
     assert out.status == "interrupted" and out.exit_code == 130
-    _, events = read_journal(out.folder / "journal.jsonl")
-    first = [e for e in events if e.type == "sample"]
-    assert len(first) == 25 and trk.measurements == 25
+    first = [e for e in resumed["first"]["events"] if e.type == "sample"]
+    assert len(first) == 25 and resumed["first"]["measured"] == 25
 
-    def count(done, total, text):
-        seen["n"] = total
-
-    again = resume(out.session, db=db, report=False, progress=count)
+    again = resumed["again"]
     assert again.status == "completed", again.error
     assert again.passed
     _, events = read_journal(again.folder / "journal.jsonl")
     samples = [e for e in events if e.type == "sample"]
     poses = [s.pose for s in samples]
-    assert len(poses) == len(set(poses)) == seen["n"]  # every configuration once
+    assert len(poses) == len(set(poses)) == resumed["total"]  # every configuration once
     assert [s.seq for s in samples[:25]] == [s.seq for s in first]  # the first 25 kept as journaled
-    assert trk.measurements == seen["n"]  # the tracker measured no configuration twice
+    assert resumed["measured"] == resumed["total"]  # the tracker measured no configuration twice
     assert len([e for e in events if e.type == "plan"]) == 1  # the same plan, not a new one
 
 
@@ -129,10 +147,10 @@ def test_command_line_over_socketcand_and_tcp(tmp_path):
     import subprocess
     import sys
 
+    from station.mocks.world.example import example_text
+
     world = tmp_path / "w.yaml"
-    with world.open("w") as f:
-        subprocess.run([sys.executable, "-m", "station.cli", "mock", "world", "example", "--model", "hexapod"],
-                       stdout=f, check=True)
+    world.write_text(example_text("hexapod"))  # what `station mock world example --model hexapod` prints
     proc = subprocess.Popen([sys.executable, "-m", "station.cli", "mock", "tracker", "--world", str(world),
                              "--canopen"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

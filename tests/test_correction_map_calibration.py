@@ -89,18 +89,15 @@ def _resume_cli(tmp_path, session, tracker):
 def test_map_on_a_calibration_resumed_on_a_restarted_tracker(tmp_path, monkeypatch):
     """One session, every check on the way: a calibration of another model is refused before anything moves; the
     emulator process is killed after 30 configurations and comes back with the tracker on another port; there an
-    instrument with another serial is refused, a changed calibration file is refused, then
+    instrument with another serial (on a third port) is refused, a changed calibration file is refused, then
     ``station resume SESSION --tracker NEW_URL`` completes the session on the same tracker and calibration."""
     monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
     world = World.default("arm6", seed=7, start=START, joints=JOINTS,
                           buses={"canopen": {"nodes": [1, 2, 3, 4, 5, 6]}, "tracker": {"serial": "LT-EMU-0001"}})
     world_file = tmp_path / "world.yaml"
     world_file.write_text(yaml.safe_dump(world.to_dict()))
-    doc = world.to_dict()
-    doc["buses"]["tracker"]["serial"] = "LT-OTHER-0002"  # another instrument, same place, same world
-    other_file = tmp_path / "other.yaml"
-    other_file.write_text(yaml.safe_dump(doc))
     cfg = tracker_config({})
+    other_cfg = tracker_config({"serial": "LT-OTHER-0002"})  # another instrument, same place, same world
     cal_file = calibration_file(world, cfg, tmp_path)
     original = cal_file.read_bytes()
     cal_doc = json.loads(original)
@@ -136,16 +133,20 @@ def test_map_on_a_calibration_resumed_on_a_restarted_tracker(tmp_path, monkeypat
     kept = [e for e in events if e.type == "sample"]
     assert 25 <= len(kept) <= 30  # journaled before the crash (the one under way when it died may be lost)
 
-    # it comes back on a new port with ANOTHER serial: refused in one line, nothing measured
-    with TrackerProcess(other_file, can_port) as emu:
-        assert emu.tracker != old_url
-        r = _resume_cli(tmp_path, out.session, emu.tracker)
-    assert r.returncode == 2, r.stderr
-    err = [line for line in r.stderr.splitlines() if line.startswith("station: error:")]
-    assert len(err) == 1 and "LT-OTHER-0002" in err[0] and "LT-EMU-0001" in err[0], r.stderr
-
-    # the same tracker on yet another port, but the calibration file changed under the session: refused
+    # the emulator process comes back (drives on the same CAN port, the tracker on a new TCP port); first a tracker
+    # with ANOTHER serial is given (a TrackerServer of this process on its own port: the drives are the restarted
+    # process's, so one process start is saved): refused in one line, nothing measured
     with TrackerProcess(world_file, can_port, seed=12) as emu:
+        with TrackerServer(world, other_cfg, seed=13) as other:
+            assert other.url not in (old_url, emu.tracker)
+            r = _resume_cli(tmp_path, out.session, other.url)
+            assert other.measurements == 0
+        assert r.returncode == 2, r.stderr
+        err = [line for line in r.stderr.splitlines() if line.startswith("station: error:")]
+        assert len(err) == 1 and "LT-OTHER-0002" in err[0] and "LT-EMU-0001" in err[0], r.stderr
+
+        # the same tracker on yet another port, but the calibration file changed under the session: refused
+        assert emu.tracker != old_url
         cal_file.write_text(json.dumps({**cal_doc, "notes": ["edited"]}))
         again = resume(out.session, db=db, report=False, instruments={"tracker": emu.tracker})
         assert again.status == "error" and again.exit_code == 2
