@@ -63,3 +63,42 @@ def test_drives_that_stay_unreachable_are_reported_loudly(seated):
     assert "drives NOT confirmed disabled on nodes [1, 2, 3, 4, 5, 6]" in msg
     assert "switch off drive power at the cabinet" in msg
     assert all(s == "OPERATION ENABLED" for s in _states(emu))  # the truth the message reports
+
+
+def test_a_closed_socketcand_link_is_reported_not_waited_out_twice(caplog):
+    """The socketcand server goes away (the connection is closed: it cannot come back on this bus). The fault's
+    own attempt to disable the drives reports loudly what it could not confirm; close() then says so again at
+    once instead of waiting out a second attempt (2 x the heartbeat consumer time each)."""
+    import uuid
+
+    from station.mocks.canopen.emulator import CanopenEmulator
+    from station.mocks.canopen.hub import SocketcandHub
+    from station.mocks.world import World
+
+    from station.robot import ConnectionLost, StationError, open_robot
+
+    chan = f"d-{uuid.uuid4().hex[:8]}"
+    emu = CanopenEmulator(World.default(model="arm6", seed=7, start=START), channel=chan).start()
+    hub = SocketcandHub(chan, port=0).start()
+    try:
+        robot = open_robot(f"canopen+socketcand://127.0.0.1:{hub.port}?channel=can0&nodes=1-6&model=arm6")
+        robot.enable()
+        hub.stop()  # the server closes every connection
+        deadline = time.monotonic() + 5.0
+        while robot.faults.error is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert isinstance(robot.faults.error, ConnectionLost), robot.faults.error
+        with pytest.raises(StationError) as e:
+            robot.set_compliant(False)  # what the engine's teardown calls: the drives' safe state, attempted
+        assert "drives NOT confirmed disabled" in str(e.value)
+        caplog.clear()
+        t0 = time.monotonic()
+        with caplog.at_level("WARNING", logger="station.drivers.canopen"):
+            robot.close()
+        took = time.monotonic() - t0
+        assert took < 0.8, took  # a second attempt would take 2 x 0.8 s
+        loud = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+        assert any("NOT confirmed disabled" in m and "is closed" in m for m in loud), loud
+    finally:
+        hub.stop()
+        emu.stop()

@@ -476,6 +476,10 @@ class CanopenBus:
                         return
                     break
 
+    def link_closed(self) -> bool:
+        """The transport is gone for good (a socketcand server that closed the connection)."""
+        return self._server_closed()
+
     def _server_closed(self) -> bool:
         """True if the socketcand TCP connection reached end-of-file."""
         sock = getattr(self.network.bus, "_SocketCanDaemonBus__socket", None)

@@ -459,6 +459,7 @@ class CanopenRobot(RobotBase):
 
     # ---- the safe state after a fault -----------------------------------------------------------------------
     _secured = False  # every drive confirmed disabled after the latest fault (close() need not repeat it)
+    _secure_tried = False  # a _disable_after_fault ran (close() repeats it only while the link can come back)
     SAFE_STATES = ("SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON", "FAULT", "NOT READY TO SWITCH ON")
 
     def _disable_after_fault(self, timeout: float | None = None) -> str:
@@ -498,6 +499,7 @@ class CanopenRobot(RobotBase):
                     pass
         self._compliant = False
         self._secured = not pending
+        self._secure_tried = True
         done = [n for n in self.nodes if n not in pending]
         if not pending:
             return f"every drive disabled instead (power stage off, brakes engaged; confirmed on nodes {done})"
@@ -518,6 +520,11 @@ class CanopenRobot(RobotBase):
                 time.sleep(2 * bus.sync_period)
                 for node_id in bus.drives:
                     bus.send_rpdo1(node_id, CW_SHUTDOWN)
+        elif bus.drives and not self._secured and self._secure_tried and bus.link_closed():
+            # the socketcand server closed the connection (it cannot come back on this bus object): a second
+            # attempt would only wait out its deadline again (2 x the heartbeat consumer time)
+            log.warning("canopen: closing after a fault: drives NOT confirmed disabled (the CAN link %s is closed): "
+                        "switch off drive power at the cabinet before approaching the arm", bus.where)
         elif bus.drives and not self._secured:
             report = self._disable_after_fault()
             # the fault itself is the caller's error line; only a drive left unconfirmed is worth a warning
