@@ -56,7 +56,9 @@ def test_read_only_database_refused_by_the_api_before_motion(tmp_path, monkeypat
 
 def test_database_lost_at_the_end_is_not_stored_then_synced(tmp_path, monkeypatch):
     monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
-    world_path, cell_path, serial = write_demo_files("canopen", tmp_path, seed=21, time_mode="instant")
+    # the bus is not what is tested here: the Dynamixel arm (position-only plan, 4 joints) runs the same
+    # zero_offsets session (24 touches, solve, report, store) in half the time of the 6-axis CiA 402 one
+    world_path, cell_path, serial = write_demo_files("dynamixel", tmp_path, seed=21, time_mode="instant")
     dbfile = tmp_path / "records.db"
     db = f"sqlite:///{dbfile}"
 
@@ -65,8 +67,8 @@ def test_database_lost_at_the_end_is_not_stored_then_synced(tmp_path, monkeypatc
             dbfile.unlink()                    # where the file was cannot be opened by SQLite
             dbfile.mkdir()
 
-    with launch("canopen", world_path, serial=serial) as emu:
-        out = start("zero_offsets", emu.url, serial, cell=cell_path, db=db, options=dict(BUS_OPTIONS["canopen"]),
+    with launch("dynamixel", world_path, serial=serial) as emu:
+        out = start("zero_offsets", emu.url, serial, cell=cell_path, db=db, options=dict(BUS_OPTIONS["dynamixel"]),
                     progress=progress)
     assert out.verdict == "NOT STORED" and out.exit_code == 2 and not out.stored and out.store_error
     assert out.report is not None and out.report.exists()  # the report is written all the same
