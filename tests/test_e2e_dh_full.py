@@ -30,8 +30,9 @@ ERRORS = {"random": {"offsets": {"angle": math.radians(0.1)},
                      "dh": {"length": 0.2e-3, "angle": math.radians(0.02)}}}
 
 
-def run_dh_full(tmp_path, edit_cell=None, serial: str = "DH-5"):
-    """dh_full on the arm6 world with three unknown sockets; ``edit_cell(doc, world)`` may add to the cell file."""
+def run_dh_full(tmp_path, edit_cell=None, serial: str = "DH-5", options: dict | None = None, report: bool = True):
+    """dh_full on the arm6 world with three unknown sockets; ``edit_cell(doc, world)`` may add to the cell file,
+    ``options`` go to the procedure (e.g. ``n_fit``), ``report=False`` skips the HTML report."""
     world = World.default(model="arm6", seed=5, time_mode="instant", errors=ERRORS, noise={"seating": SEATING},
                           cell={"points": [{"label": k, "kind": "socket", "position": p, "approach": [0, 0, 1]}
                                            for k, p in SOCKETS]})
@@ -44,7 +45,7 @@ def run_dh_full(tmp_path, edit_cell=None, serial: str = "DH-5"):
     emu = CanopenEmulator(world, "virtual", channel).start()
     try:
         out = start("dh_full", f"canopen+virtual://{channel}?nodes=1-6&model=arm6&serial={serial}", serial,
-                    cell=cell, db=f"sqlite:///{tmp_path / 'records.db'}")
+                    cell=cell, db=f"sqlite:///{tmp_path / 'records.db'}", options=options, report=report)
     finally:
         emu.stop()
     return world, out
@@ -87,6 +88,7 @@ def test_dh_full_recovers_identifiable_geometry(run):
     world, out = run
     assert out.status == "completed", out.error
     assert out.passed and out.exit_code == 0 and out.stored
+    assert out.report is not None and out.report.is_file()  # the only test that renders a dh_full report
     res = out.record["result"]
     params = res["parameters"]
 
