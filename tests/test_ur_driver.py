@@ -154,8 +154,11 @@ def test_step_jog_finishes_when_the_jog_watchdog_ends_the_script(tmp_path, emula
         assert emu.dashboard("emulator log").count("watchdog expired") == expired + 1  # the path was taken
     assert sum("ended the step's speed command" in r.getMessage() for r in caplog.records) == 3  # and said so
     assert not robot.status().moving
-    robot.jog("joint", 0, 0.02, speed=0.3)  # kicked again: an ordinary step, no watchdog stop
-    assert emu.dashboard("emulator log").count("watchdog expired") == expired + 1
+    # kicked again: an ordinary step lands on its target (on a busy host its kicks may still come late: the
+    # same path then finishes it, so the count of watchdog stops is not asserted here; seen 1 in 13 -n 2 runs)
+    q0 = robot.joint_positions().q
+    robot.jog("joint", 0, 0.02, speed=0.3)
+    np.testing.assert_allclose(robot.joint_positions().q, q0 + np.array([0.02, 0, 0, 0, 0, 0]), atol=1e-9)
 
 
 def test_a_paused_station_host_is_not_a_stalled_link(tmp_path, emulator, robots, monkeypatch):
