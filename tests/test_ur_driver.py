@@ -16,7 +16,7 @@ import yaml
 from station.mocks.launch import Emulator, launch
 from station.mocks.world import World, default_doc
 
-from station.robot import BusError, ConnectionLost, LimitError, SafetyStop, open_robot
+from station.robot import BusError, ConnectionLost, DeviceFault, LimitError, SafetyStop, open_robot
 
 START = [0.1, -1.45, 1.6, -1.72, -1.5708, 0.2]
 
@@ -152,13 +152,30 @@ def test_step_jog_finishes_when_the_jog_watchdog_ends_the_script(tmp_path, emula
         want[axis] += step
         np.testing.assert_allclose(robot.joint_positions().q, want, atol=1e-9)
         assert emu.dashboard("emulator log").count("watchdog expired") == expired + 1  # the path was taken
-    assert sum("ended the step's speed command" in r.getMessage() for r in caplog.records) == 3  # and said so
+    assert sum("the step is finished with a move" in r.getMessage() for r in caplog.records) == 3  # and said so
     assert not robot.status().moving
     # kicked again: an ordinary step lands on its target (on a busy host its kicks may still come late: the
     # same path then finishes it, so the count of watchdog stops is not asserted here; seen 1 in 13 -n 2 runs)
     q0 = robot.joint_positions().q
     robot.jog("joint", 0, 0.02, speed=0.3)
     np.testing.assert_allclose(robot.joint_positions().q, q0 + np.array([0.02, 0, 0, 0, 0, 0]), atol=1e-9)
+
+
+def test_a_script_stopped_by_someone_else_mid_step_is_not_resumed(tmp_path, emulator, robots):
+    """The control script ends mid-step while the station keeps feeding the watchdog (a Stop at the pendant
+    or the dashboard): the driver must not take it for a starved watchdog and finish the step on a fresh script.
+    The jog fails loudly and the arm stays short of the target."""
+    path, world = world_file(tmp_path)
+    emu = emulator(path)
+    robot = robots(f"ur://{emu.host}")
+    q0 = robot.joint_positions().q
+    threading.Timer(0.3, emu.dashboard, ("stop",)).start()  # the step's speed part lasts ~1 s
+    with pytest.raises(DeviceFault, match="stopped during the jog"):
+        robot.jog("joint", 0, 0.3, speed=0.3)
+    time.sleep(0.3)
+    q = robot.joint_positions().q
+    assert 0.01 < q[0] - q0[0] < 0.25, q[0] - q0[0]  # it had moved, and it stopped short of the 0.3 rad step
+    assert not robot.status().moving
 
 
 def test_a_paused_station_host_is_not_a_stalled_link(tmp_path, emulator, robots, monkeypatch):

@@ -453,6 +453,23 @@ class URRobot(RobotBase):
         self._watchdog_hz = hz if ok else 0.0
         self._last_write = time.monotonic()
 
+    def _watchdog_ended_script(self, previous_write: float) -> bool:
+        """The script is gone and the jog watchdog can be what ended it: armed, and nothing written for at least
+        its period (the controller counts from receiving our write, which is later than sending it). Anything
+        else that ends the script (Stop on the pendant, a script error) is never resumed by the driver."""
+        return (not self._c.isProgramRunning() and self._watchdog_armed
+                and time.monotonic() - previous_write >= 1.0 / self._watchdog_hz)
+
+    def _restart_after_watchdog(self, what: str, previous_write: float) -> None:
+        """A station starved of CPU for a whole watchdog period (a loaded PC) had the arm stopped by the
+        controller: say so, then a fresh script (a safety stop found meanwhile is raised instead)."""
+        log.warning("ur://%s: the RTDE watchdog (%g Hz) ended the control script %.0f ms after our last write "
+                    "(this process was not scheduled); %s on a fresh script", self.host, self._watchdog_hz,
+                    (time.monotonic() - previous_write) * 1e3, what)
+        self._why_script_stopped()
+        self._watchdog_hz = 0.0
+        self._ready_for_motion()
+
     # ---- Robot protocol ----------------------------------------------------------------------
     def identity(self) -> Identity:
         return Identity(vendor=self.vendor, model=self.model.name, serial=self.serial, firmware=self.firmware,
@@ -499,20 +516,14 @@ class URRobot(RobotBase):
 
     def _move(self, target: np.ndarray, v: float, wait: bool) -> None:
         start = self.joint_positions().q
-        self._last_write = time.monotonic()
+        previous = self._last_write
         ok = self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True)
-        if not ok and not self._c.isProgramRunning():
-            # the script ended between the check before this move and the move (the jog watchdog of a station
-            # starved of CPU for longer than its period, seen on a loaded CI host): as before every motion, a
-            # stopped script is started again -- unless safety stopped it, which _why_script_stopped raises
-            log.warning("ur://%s: the control script ended before moveJ was read (RTDE watchdog %s, our last "
-                        "write %.0f ms before); moveJ is sent again on a fresh script", self.host,
-                        f"{self._watchdog_hz:g} Hz" if self._watchdog_armed else "off",
-                        (time.monotonic() - self._last_write) * 1e3)
-            self._why_script_stopped()
-            self._ready_for_motion()
-            self._last_write = time.monotonic()
+        self._last_write = time.monotonic()
+        if not ok and self._watchdog_ended_script(previous):
+            # between the check before this move and the move (seen on a loaded CI host)
+            self._restart_after_watchdog("moveJ is sent again", previous)
             ok = self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True)
+            self._last_write = time.monotonic()
         if not ok:
             self._refused("moveJ")
         if wait:
@@ -629,7 +640,6 @@ class URRobot(RobotBase):
             self._velocity_jog(lambda: self._bounded("speedJ", self._c.speedJ, qd, self.accel, 0.0),
                                lambda q: lead - float(np.dot(q - q0, u)), v, self.accel)
             v_fix = v
-        self._ready_for_motion()  # the jog watchdog may have ended the script under the velocity part
         self._move(target, max(min(v_fix, self.jog_speed), 1e-3), True)
 
     def jog_velocity(self, mode: str, axis: int, velocity: float, frame: str = "base") -> None:
@@ -679,14 +689,8 @@ class URRobot(RobotBase):
         previous = self._last_write
         ok = send()
         self._rt_sent = self._last_write = time.monotonic()  # kicks wait for the script to read the command
-        if not ok and not self._c.isProgramRunning():
-            log.warning("ur://%s: the control script ended before the speed command was read (RTDE watchdog %s, "
-                        "our previous write %.0f ms before); sent again on a fresh script", self.host,
-                        f"{self._watchdog_hz:g} Hz" if self._watchdog_armed else "off",
-                        (time.monotonic() - previous) * 1e3)
-            self._why_script_stopped()
-            self._watchdog_hz = 0.0
-            self._ready_for_motion()
+        if not ok and self._watchdog_ended_script(previous):
+            self._restart_after_watchdog("the speed command is sent again", previous)
             self._arm_watchdog(self.jog_watchdog)
             ok = send()
             self._rt_sent = self._last_write = time.monotonic()
@@ -728,12 +732,14 @@ class URRobot(RobotBase):
                 if remaining(snap.q) <= v * v / (2 * a) + v * 0.004:
                     break
                 if not self._c.isProgramRunning():
-                    # the jog watchdog stopped the arm: this process was kept from kicking it for a whole
-                    # period (a loaded station PC). The arm stands; the fix move finishes the step.
-                    self._why_script_stopped()
-                    log.warning("ur://%s: the RTDE watchdog (%g Hz) ended the step's speed command %.0f ms after "
-                                "our last write; the step is finished with a move", self.host, self._watchdog_hz,
-                                (time.monotonic() - self._last_write) * 1e3)
+                    if not self._watchdog_ended_script(self._last_write):
+                        self._why_script_stopped()  # a safety stop says so; else a stop nobody here asked for
+                        self._speeding = False
+                        raise DeviceFault(f"ur://{self.host}: the control script stopped during the jog (not by "
+                                          "the station); the arm holds where it stopped")
+                    # this process was kept from kicking the watchdog for a whole period: the arm stands, and the
+                    # step is finished with its move
+                    self._restart_after_watchdog("the step is finished with a move", self._last_write)
                     break
                 if time.monotonic() > deadline:
                     raise BusError(f"ur://{self.host}: jog watchdog: the step did not complete in time; stopped")
