@@ -466,7 +466,7 @@ class CanopenBus:
                     self.faults.latch(ConnectionLost(
                         f"canopen node {node_id} on {self.where}: heartbeat lost ({quiet * 1e3:.0f} ms "
                         f"without one, expected every {self.heartbeat_ms} ms); robot stopped"))
-                    if self._server_closed():
+                    if self.link_closed():
                         # python-can's socketcand client spins on a closed socket (select says readable,
                         # recv returns b""): stop its receive thread instead of burning a core until close()
                         self.faults.latch(ConnectionLost(f"socketcand server {self.host}:{self.port} closed the "
@@ -477,11 +477,7 @@ class CanopenBus:
                     break
 
     def link_closed(self) -> bool:
-        """The transport is gone for good (a socketcand server that closed the connection)."""
-        return self._server_closed()
-
-    def _server_closed(self) -> bool:
-        """True if the socketcand TCP connection reached end-of-file."""
+        """The transport is gone for good: the socketcand TCP connection reached end-of-file."""
         sock = getattr(self.network.bus, "_SocketCanDaemonBus__socket", None)
         if self.interface != "socketcand" or sock is None:
             return False
