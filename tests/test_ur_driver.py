@@ -161,6 +161,34 @@ def test_step_jog_finishes_when_the_jog_watchdog_ends_the_script(tmp_path, emula
     np.testing.assert_allclose(robot.joint_positions().q, q0 + np.array([0.02, 0, 0, 0, 0, 0]), atol=1e-9)
 
 
+@pytest.mark.parametrize("late", ["speedStop", "setWatchdog"])
+def test_step_jog_finishes_when_the_station_starves_after_its_speed_part(tmp_path, emulator, robots, caplog,
+                                                                          monkeypatch, late):
+    """The station is not scheduled for longer than the 10 Hz jog watchdog's period right after a step's speed
+    part: before its speedStop, or between the speedStop and relaxing the watchdog for the standing arm. The
+    controller ends the script there; the step's closing moveJ must restart it and land on the target, not fail
+    with "moveJ was not executed by the controller (runtime_state 1)" (seen in CI on a loaded host)."""
+    path, world = world_file(tmp_path)
+    emu = emulator(path)
+    robot = robots(f"ur://{emu.host}")
+    bounded = robot._bounded
+
+    def starved_before(what, fn, *args):
+        if what == late and (what == "speedStop" or args == (1.0,)):
+            time.sleep(0.35)  # > 0.1 s: the watchdog period; this process is not scheduled
+        return bounded(what, fn, *args)
+
+    q0 = robot.joint_positions().q
+    expired = emu.dashboard("emulator log").count("watchdog expired")
+    monkeypatch.setattr(robot, "_bounded", starved_before)
+    with caplog.at_level("WARNING", logger="station.drivers.ur"):
+        robot.jog("joint", 5, 0.05, speed=0.3)
+    np.testing.assert_allclose(robot.joint_positions().q, q0 + np.array([0, 0, 0, 0, 0, 0.05]), atol=1e-9)
+    assert emu.dashboard("emulator log").count("watchdog expired") == expired + 1  # the path was taken
+    assert any("RTDE watchdog" in r.getMessage() for r in caplog.records)  # and said so
+    assert not robot.status().moving
+
+
 def test_a_script_stopped_by_someone_else_mid_step_is_not_resumed(tmp_path, emulator, robots):
     """The control script ends mid-step while the station keeps feeding the watchdog (a Stop at the pendant
     or the dashboard): the driver must not take it for a starved watchdog and finish the step on a fresh script.

@@ -449,9 +449,11 @@ class URRobot(RobotBase):
         that stops writing stops the program); it stays armed until the script ends. No-op when already at hz."""
         if hz <= 0 or self._watchdog_hz == hz:
             return
-        ok = bool(self._bounded("setWatchdog", self._c.setWatchdog, hz))
-        self._watchdog_hz = hz if ok else 0.0
-        self._last_write = time.monotonic()
+        if self._bounded("setWatchdog", self._c.setWatchdog, hz):
+            self._watchdog_hz = hz
+            self._last_write = time.monotonic()
+        # refused: the script is gone (a new one starts without a watchdog: _ready_for_motion). What it carried
+        # and our last write are kept, so the next command can tell whether that watchdog ended it.
 
     def _watchdog_ended_script(self, previous_write: float) -> bool:
         """The script is gone and the jog watchdog can be what ended it: armed, and nothing written for at least
@@ -704,10 +706,7 @@ class URRobot(RobotBase):
         first speed command. At 10 Hz a keep-alive late by 0.1 s (a busy station PC) ended the program, and
         the next press had to upload the script first (or met the program ending under its speed command)."""
         if self._watchdog_armed and self._watchdog_hz > JOG_IDLE_WATCHDOG_HZ:
-            before = self._watchdog_hz
             self._arm_watchdog(JOG_IDLE_WATCHDOG_HZ)
-            if not self._watchdog_armed and self._c.isProgramRunning():
-                self._watchdog_hz = before  # refused: the script still carries the faster one
 
     def jog_keep_alive(self) -> None:
         """Between velocity jogs: feed the jog watchdog (armed for the control script's lifetime) while no
@@ -749,7 +748,8 @@ class URRobot(RobotBase):
             if self._speeding:
                 self._speeding = False
                 try:
-                    self._bounded("speedStop", self._c.speedStop, a * 4)
+                    if self._bounded("speedStop", self._c.speedStop, a * 4):
+                        self._last_write = time.monotonic()
                     # the arm stands: relax the armed 10 Hz watchdog, or a late first kick of the fix move that
                     # follows a step ends the script under it (moveJ refused, runtime_state STOPPED: seen in CI)
                     self._watchdog_to_idle()
@@ -764,7 +764,8 @@ class URRobot(RobotBase):
                 return  # already halted by the safety system; commands would be refused
             if self._c.isProgramRunning():
                 if self._speeding:
-                    self._bounded("speedStop", self._c.speedStop, 10.0)
+                    if self._bounded("speedStop", self._c.speedStop, 10.0):
+                        self._last_write = time.monotonic()
                     self._speeding = False
                     self._watchdog_to_idle()
                 self._bounded("stopJ", self._c.stopJ, 2.0, False)
