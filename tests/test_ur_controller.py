@@ -3,6 +3,9 @@ control-script register handshake drives the world (fast, deterministic: sim tim
 
 from __future__ import annotations
 
+import threading
+import time
+
 import numpy as np
 from station.mocks.ur import state as S
 from station.mocks.ur.controller import URController
@@ -97,3 +100,48 @@ def test_contact_bit_and_nominal_tcp_pose():
     world.run_until_idle()
     ticks(ctl, 1)
     assert world.contact() and ctl.value("actual_digital_input_bits") == 1 << S.DEFAULT_CONTACT_BIT
+
+
+
+
+def test_a_cycle_thread_kept_waiting_slips_instead_of_firing_the_watchdog():
+    """rtde_set_watchdog at 10 Hz, a client writing every 10 ms, and one controller cycle held up for 0.3 s (the
+    emulator's host did not schedule it). Catching up with 150 cycles back to back would compress 0.3 s of
+    controller time into a few ms of real time, with at most one write in it: the watchdog fired under a station
+    that had written on time (seen under load). The cycle slips instead; a client that stops writing is still
+    stopped one period later."""
+    world = World.default("ur5e", seed=5, time_mode="sim")
+    ctl = URController(world)
+    ctl.load_program("rtde_control", SCRIPT)
+    command(ctl, S.CMD_SET_WATCHDOG, [10.0])
+    ctl.tick()
+    stop, held = threading.Event(), threading.Event()
+
+    def writer() -> None:
+        while not stop.is_set():
+            command(ctl, S.CMD_NONE)
+            time.sleep(0.01)
+
+    advance = world.advance
+
+    def advance_once_late(dt: float) -> None:
+        if not held.is_set() and ctl.tick_count > 50:
+            held.set()
+            time.sleep(0.3)
+        advance(dt)
+
+    world.advance = advance_once_late
+    threading.Thread(target=writer, daemon=True).start()
+    ctl.start()
+    try:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 1.0:
+            time.sleep(0.05)
+            assert ctl.runtime_state == S.PLAYING, ctl.messages
+        assert held.is_set()
+        stop.set()
+        time.sleep(0.3)
+        assert ctl.runtime_state == S.STOPPED and "watchdog expired" in ctl.messages[-1]
+    finally:
+        stop.set()
+        ctl.stop()
