@@ -150,6 +150,15 @@ CELLS = [pytest.param(bus, row, id=f"{bus}-{row.replace(' ', '_')}",
          for row in ROWS for bus in ("dynamixel", "canopen", "ur") if (bus, row) != ("ur", "corrupt")]
 
 
+# the emulated controller refuses "unlock protective stop" for 5 s, as a real one; the four unlocks of the drive-fault
+# chain wait 1 s each instead (the refusal itself: tests/test_ur_emulator.py, tests/test_ur_driver.py)
+UR_UNLOCK_DELAY_S = 1.0
+
+
+def _quick_unlock(doc: dict) -> None:
+    doc.setdefault("buses", {}).setdefault("ur", {})["unlock_delay_s"] = UR_UNLOCK_DELAY_S
+
+
 def _bus_fault(cell, row: str, phase: str):
     """(act, recover): put the row's bus fault on the wire as a phase starts; the operator's recovery after it.
     Dynamixel servo 12 (shoulder) / CANopen node 3 / the UR controller; faults outlast the drivers' documented
@@ -158,7 +167,7 @@ def _bus_fault(cell, row: str, phase: str):
     value; CANopen: node 3's 0x607C write, nodes 1-2 already written), never before the write starts."""
     if cell.bus == "ur":
         command, wait = {"timeout": ("emulator stall 1.0", 1.1), "disconnect": ("emulator drop 1.0", 1.2),
-                         "drive fault": ("emulator protective_stop", 5.2)}[row]
+                         "drive fault": ("emulator protective_stop", UR_UNLOCK_DELAY_S + 0.2)}[row]
         armed = {}
 
         def act(s):
@@ -298,7 +307,8 @@ def _step(cell, row, phase, session, monkeypatch, act):
 @pytest.mark.parametrize("bus, row", CELLS)
 def test_fault_matrix_row(tmp_path, monkeypatch, request, bus, row):
     reference = _undisturbed(bus, tmp_path)
-    with demo_cell(bus, tmp_path, SEEDS[bus], cross_process=row == "kill -9") as cell:
+    with demo_cell(bus, tmp_path, SEEDS[bus], cross_process=row == "kill -9",
+                   world_doc=_quick_unlock if bus == "ur" else None) as cell:
         monkeypatch.setenv("STATION_HOME", str(cell.home))
         if row == "records DB down":
             return _db_down_row(cell, reference)

@@ -200,10 +200,17 @@ class URRobot(RobotBase):
         log.info("ur://%s connected: serial %s, %s", self.host, self.serial, self.firmware)
 
     def _drop_interfaces(self) -> None:
-        for obj in (self._c, self._r):
-            if obj is not None:
-                with contextlib.suppress(Exception):  # already broken: nothing to release
-                    obj.disconnect()
+        # ur_rtde's disconnect() waits 0.5 s after closing (with the GIL released): both interfaces at once
+        def disconnect(obj) -> None:
+            with contextlib.suppress(Exception):  # already broken: nothing to release
+                obj.disconnect()
+
+        workers = [threading.Thread(target=disconnect, args=(obj,), name="ur-disconnect", daemon=True)
+                   for obj in (self._c, self._r) if obj is not None]
+        for t in workers:
+            t.start()
+        for t in workers:
+            t.join()
         self._c = self._r = None
         self._dash.close()
 

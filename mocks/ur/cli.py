@@ -49,7 +49,7 @@ def ur(host: str = typer.Option("127.0.0.1", "--host", help="Address to listen o
        exit_with_parent: bool = typer.Option(False, "--exit-with-parent", help="Stop when the process that "
                                              "started this one ends (tests: no orphan after a crash).")) -> None:
     """Emulate a Universal Robots e-Series controller (RTDE, dashboard, script port) for ur_rtde."""
-    from station.mocks.ur.controller import URController
+    from station.mocks.ur.controller import UNLOCK_DELAY, URController
     from station.mocks.ur.server import URServer
     from station.mocks.ur.state import DEFAULT_CONTACT_BIT
 
@@ -65,10 +65,15 @@ def ur(host: str = typer.Option("127.0.0.1", "--host", help="Address to listen o
         os.nice(-10)
     w = build(world, model, seed)
     cfg = w.bus_config("ur")
+    numbers = {}
+    for key, kind, default in (("contact_bit", int, DEFAULT_CONTACT_BIT), ("stall_s", float, 1.0),
+                               ("drop_s", float, 1.0), ("unlock_delay_s", float, UNLOCK_DELAY)):
+        try:
+            numbers[key] = kind(cfg.get(key, default))
+        except (TypeError, ValueError):
+            raise _fail(f"{world}: buses.ur.{key}: {cfg.get(key)!r} is not a number") from None
     ctl = URController(w, serial=str(serial or cfg.get("serial", "20235500001")), model_name=w.nominal.name,
-                       robot_model=cfg.get("robot_model"), polyscope=cfg.get("polyscope"),
-                       contact_bit=int(cfg.get("contact_bit", DEFAULT_CONTACT_BIT)),
-                       stall_s=float(cfg.get("stall_s", 1.0)), drop_s=float(cfg.get("drop_s", 1.0)),
+                       robot_model=cfg.get("robot_model"), polyscope=cfg.get("polyscope"), **numbers,
                        remote_control=not (no_remote or cfg.get("remote_control") is False))
     server = URServer(ctl, host, dump_script=str(dump_script) if dump_script else None)
     try:

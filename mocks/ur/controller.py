@@ -71,7 +71,7 @@ class URController:
     def __init__(self, world, *, serial: str = "20235500001", model_name: str = "ur5e",
                  contact_bit: int = S.DEFAULT_CONTACT_BIT, stall_s: float = 1.0, drop_s: float = 1.0,
                  remote_control: bool = True, robot_model: str | None = None,
-                 polyscope: str | None = None) -> None:
+                 polyscope: str | None = None, unlock_delay_s: float = UNLOCK_DELAY) -> None:
         self.world = world
         self.nominal = world.nominal
         self.n = self.nominal.n_joints
@@ -83,6 +83,7 @@ class URController:
         self.polyscope = str(polyscope or POLYSCOPE)
         self.contact_bit = contact_bit
         self.stall_s, self.drop_s = stall_s, drop_s
+        self.unlock_delay_s = unlock_delay_s
         self.remote_control = remote_control
         self.lock = threading.RLock()
         # registers (lower and upper range: 0..47)
@@ -234,8 +235,8 @@ class URController:
         with self.lock:
             if self.safety_mode != S.SAFETY_PROTECTIVE_STOP:
                 return "Protective stop releasing"  # the real dashboard answers the same when not stopped
-            if time.monotonic() - (self.pstop_at or 0.0) < UNLOCK_DELAY:
-                return ("Cannot unlock protective stop until 5s after occurrence. "
+            if time.monotonic() - (self.pstop_at or 0.0) < self.unlock_delay_s:
+                return (f"Cannot unlock protective stop until {self.unlock_delay_s:g}s after occurrence. "
                         "Always inspect cause of protective stop before unlocking")
             self.safety_mode, self.safety_bits, self.pstop_at = S.SAFETY_NORMAL, S.SS_NORMAL, None
             self.world.clear_protective_stop()
