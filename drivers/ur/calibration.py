@@ -17,9 +17,9 @@ import re
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from station.kinematics import Model
+from station.kinematics.se3 import matrix_to_rpy, rot_x, rot_y, rot_z, rpy_to_matrix
 from station.robot.errors import ConfigError
 
 KEYS = ("delta_theta", "delta_a", "delta_d", "delta_alpha")
@@ -112,9 +112,9 @@ def _values_of(result_or_values) -> dict[str, float]:
 
 def _link_transform(a: float, d: float, alpha: float, theta: float, beta: float = 0.0) -> np.ndarray:
     """Fixed part of a standard DH link after the joint rotation: Rz(theta) Tz(d) Tx(a) Rx(alpha) Ry(beta)."""
-    rz = Rotation.from_rotvec([0, 0, theta]).as_matrix()
+    rz = rot_z(theta)
     T = np.eye(4)
-    T[:3, :3] = rz @ Rotation.from_rotvec([alpha, 0, 0]).as_matrix() @ Rotation.from_rotvec([0, beta, 0]).as_matrix()
+    T[:3, :3] = rz @ rot_x(alpha) @ rot_y(beta)
     T[:3, 3] = np.array([0.0, 0.0, d]) + rz @ np.array([a, 0.0, 0.0])
     return T
 
@@ -140,7 +140,7 @@ def _origins(model: Model) -> list[np.ndarray]:
 
 
 def _xyzrpy(T: np.ndarray) -> dict[str, float]:
-    roll, pitch, yaw = Rotation.from_matrix(T[:3, :3]).as_euler("xyz")  # URDF rpy: fixed axes X, Y, Z
+    roll, pitch, yaw = matrix_to_rpy(T[:3, :3])  # URDF rpy: fixed axes X, Y, Z
     return {"x": float(T[0, 3]), "y": float(T[1, 3]), "z": float(T[2, 3]),
             "roll": float(roll), "pitch": float(pitch), "yaw": float(yaw)}
 
@@ -217,11 +217,11 @@ def urdf_chain_fk(urdf_path: str | Path, q) -> np.ndarray:
         xyz = [float(v) for v in o.get("xyz").split()]
         rpy = [float(v) for v in o.get("rpy").split()]
         F = np.eye(4)
-        F[:3, :3] = Rotation.from_euler("xyz", rpy).as_matrix()
+        F[:3, :3] = rpy_to_matrix(rpy)
         F[:3, 3] = xyz
         T = T @ F
         if joint.get("type") == "revolute":
             R = np.eye(4)
-            R[:3, :3] = Rotation.from_rotvec([0, 0, q.pop(0)]).as_matrix()
+            R[:3, :3] = rot_z(q.pop(0))
             T = T @ R
     return T
