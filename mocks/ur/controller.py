@@ -480,7 +480,7 @@ class URController:
             self._speed_joints(self.speed_qd)
         elif self.speed_xd is not None:
             q = self.q_prev
-            T, Jq, _ = self.flange_model.jacobians(q)
+            T, Jq = self.flange_model.fk_and_jacobian_q(q)
             J = Jq[0].copy()
             r = T[0, :3, :3] @ self.tcp[:3, 3]
             skew = np.array([[0, -r[2], r[1]], [r[2], 0, -r[0]], [-r[1], r[0], 0]])

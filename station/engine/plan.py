@@ -132,10 +132,9 @@ def _candidates(model: Model, point: RefPoint, q_start, n, cone, clearance, roll
         # converged solutions are candidates: the arm's other configurations (shoulder back, wrist flipped)
         # are what separates the zeros of parallel joints, and the keep-outs forbid some of them
         seeds = _seeds(model, q_start, 6, rng, p)[[0, 3, 4]]
-        res = [model.ik(T, s, max_iter=120) for s in seeds]
-        q_touch = np.concatenate([r.q for r in res])
-        ok = np.concatenate([r.ok for r in res])
-        T = np.concatenate([T] * len(seeds))
+        T = np.concatenate([T] * len(seeds))  # one batch, seed-major: the IK's rows are independent
+        res = model.ik(T, np.repeat(seeds, n, axis=0), max_iter=120)
+        q_touch, ok = res.q, res.ok
         Ta = T.copy()
         Ta[:, :3, 3] = back
         ra = model.ik(Ta, q_touch, max_iter=80)

@@ -81,3 +81,61 @@ def element_twists(chain: Chain, T: np.ndarray, prefix: np.ndarray) -> np.ndarra
         out[:, :3, rot] = np.swapaxes(np.cross(w[:, rot], p[:, None, :] - o), 1, 2)
         out[:, 3:, rot] = np.swapaxes(w[:, rot], 1, 2)
     return out
+
+
+@dataclass(frozen=True)
+class Fused:
+    """A chain for ONE parameter vector: every run of elements without a joint multiplied into one constant
+    transform, so a configuration costs one elementary transform per joint element and one product per run
+    (a 6-axis DH chain: 42 elements -> 6 + 7). Same tool transform and joint Jacobian as the elements give."""
+
+    between: np.ndarray  # (M+1, 4, 4): before joint element 0, between consecutive ones, after the last
+    axis: np.ndarray  # (M,) axis of each joint element
+    joint: np.ndarray  # (M,) its joint index
+    offset: np.ndarray  # (M,) its value without the joint: const + parameter
+    n_joints: int
+
+
+def fuse(chain: Chain, params: np.ndarray) -> Fused:
+    between, axis, joint, offset = [], [], [], []
+    T = np.eye(4)[None].copy()
+    for k in range(chain.n_elements):
+        v = chain.const[k] + (params[chain.param[k]] if chain.param[k] >= 0 else 0.0)
+        if chain.joint[k] < 0:
+            _apply(T, int(chain.axis[k]), np.array([v]))
+            continue
+        between.append(T[0])
+        T = np.eye(4)[None].copy()
+        axis.append(int(chain.axis[k]))
+        joint.append(int(chain.joint[k]))
+        offset.append(float(v))
+    between.append(T[0])
+    n = int(chain.joint.max()) + 1 if (chain.joint >= 0).any() else 0
+    return Fused(np.array(between), np.array(axis, dtype=int), np.array(joint, dtype=int),
+                 np.array(offset, dtype=float), n)
+
+
+def forward_fused(f: Fused, q: np.ndarray, jacobian: bool = False):
+    """Tool transform ``(N,4,4)``; with ``jacobian`` also the joint Jacobian ``(N,6,n)`` (tool position rows,
+    then world angular velocity), built from each joint element's world axis as :func:`element_twists` does."""
+    N = q.shape[0]
+    T = np.broadcast_to(f.between[0], (N, 4, 4)).copy()
+    frames = []
+    for m in range(len(f.axis)):
+        if jacobian:
+            frames.append(T[:, :3, :].copy())
+        _apply(T, int(f.axis[m]), q[:, f.joint[m]] + f.offset[m])
+        T = T @ f.between[m + 1]
+    if not jacobian:
+        return T
+    Jq = np.zeros((N, 6, f.n_joints))
+    p = T[:, :3, 3]
+    for m, F in enumerate(frames):
+        a, j = int(f.axis[m]), int(f.joint[m])
+        w = F[:, :, a % 3]
+        if a >= 3:
+            Jq[:, :3, j] += np.cross(w, p - F[:, :, 3])
+            Jq[:, 3:, j] += w
+        else:
+            Jq[:, :3, j] += w
+    return T, Jq

@@ -38,8 +38,9 @@ def solve_ik(model, target, q0, *, params=None, position_only: bool | None = Non
     p_t = tgt[:, :3, 3] if pose else tgt
     lam = np.full(N, damping)
     it = 0
+    fast = getattr(model, "fk_and_jacobian_q", None)  # serial models: no parameter Jacobian to build
     for it in range(1, max_iter + 1):  # noqa: B007
-        T, Jq, _ = model.jacobians(q, params)
+        T, Jq = fast(q, params) if fast is not None else model.jacobians(q, params)[:2]
         e = p_t - T[:, :3, 3]
         J = Jq[:, :3]
         if not position_only:

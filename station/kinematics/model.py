@@ -20,7 +20,7 @@ from functools import cached_property
 import numpy as np
 
 from station.kinematics import gravity, se3
-from station.kinematics.chain import RX, RY, RZ, TX, TY, TZ, Chain, element_twists, forward
+from station.kinematics.chain import RX, RY, RZ, TX, TY, TZ, Chain, element_twists, forward, forward_fused, fuse
 
 FRAME_AXES = (("x", TX), ("y", TY), ("z", TZ), ("rz", RZ), ("ry", RY), ("rx", RX))
 PARALLEL_TOL = np.deg2rad(5.0)  # |alpha| below this (or near pi): next axis near-parallel -> Hayati beta
@@ -212,8 +212,29 @@ class Model:
     def fk(self, q, params=None) -> np.ndarray:
         """Tool (TCP) transform in the base frame: ``(N,4,4)``, or ``(4,4)`` for one pose."""
         q, p, single = self._prep(q, params)
-        T = forward(self.chain, q + self._deflection(q, p)[0], p)
+        T = forward_fused(self._fused(p), q + self._deflection(q, p)[0])
         return T[0] if single else T
+
+    def _fused(self, p: np.ndarray):
+        """The chain fused for parameter vector ``p`` (the last few kept: IK and planning reuse one)."""
+        cache = self.__dict__.setdefault("_fused_cache", {})
+        key = p.tobytes()
+        f = cache.get(key)
+        if f is None:
+            if len(cache) >= 8:  # a solver's iterations: each vector once
+                cache.clear()
+            f = cache[key] = fuse(self.chain, p)
+        return f
+
+    def fk_and_jacobian_q(self, q, params=None) -> tuple[np.ndarray, np.ndarray]:
+        """``(T, Jq)`` of :meth:`jacobians` without the parameter Jacobian (what IK and jogging need): through
+        the fused chain, a few times faster. Under a gravity load with compliance the full routine is used."""
+        q, p, _ = self._prep(q, params)
+        js, _ = self.compliance_index
+        if self.load is not None and len(js):
+            T, Jq, _ = self.jacobians(q, p)
+            return T, Jq
+        return forward_fused(self._fused(p), q, jacobian=True)
 
     def position(self, q, params=None) -> np.ndarray:
         """Tool position ``(N,3)`` (m)."""
@@ -250,7 +271,7 @@ class Model:
         return T, Jq, Jp
 
     def jacobian_q(self, q, params=None) -> np.ndarray:
-        return self.jacobians(q, params)[1]
+        return self.fk_and_jacobian_q(q, params)[1]
 
     def jacobian_params(self, q, params=None, names: list[str] | None = None) -> np.ndarray:
         Jp = self.jacobians(q, params)[2]
