@@ -31,7 +31,9 @@ def _session(tmp_path, monkeypatch, start_q, options):
     emu = CanopenEmulator(world, "virtual", channel).start()
     try:
         with TrackerServer(world, cfg, seed=11) as trk:
-            out = start("correction_map", f"canopen+virtual://{channel}?nodes=1-6&model=arm6&serial={SERIAL}",
+            # SDO answers widened: the emulator shares this process with the station (seen: "No SDO response" at -n 2)
+            out = start("correction_map", f"canopen+virtual://{channel}?nodes=1-6&model=arm6&serial={SERIAL}"
+                        "&sdo_timeout_ms=2000&heartbeat_ms=1000",
                         SERIAL, db=f"sqlite:///{tmp_path / 'records.db'}", options={"tracker": trk.url, **options},
                         report=False)
             measured = trk.measurements

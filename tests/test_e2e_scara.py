@@ -145,7 +145,9 @@ def test_tcp_procedure_recovers_hidden_tool(scara, monkeypatch, capsys, procedur
 
 def test_tcp_4point_on_uncalibrated_arm_fails(scara, monkeypatch, capsys):
     """The default world's hidden link and zero errors (0.2 mm, 0.1 deg) are not a tool offset: the residuals
-    exceed the 0.10 mm fit limit, the run prints FAIL and exits 1 (the record is stored all the same)."""
+    exceed their limits -- the 0.10 mm fit limit, or the 0.15 mm hold-out limit when the planned poses let the
+    tool offset absorb the errors on the fit poses (seen: fit 0.03 mm, hold-out 0.35 mm) -- the run prints FAIL
+    and exits 1 (the record is stored all the same)."""
     world, url, cell, db = scara(0, errors=None)
     assert any(n.startswith("dh.") for n in world.errors())
     code, out = _station_run(monkeypatch, capsys, "tcp_4point", "--robot", url, "--serial", "SCARA-0",
@@ -154,4 +156,4 @@ def test_tcp_4point_on_uncalibrated_arm_fails(scara, monkeypatch, capsys):
     assert out.rstrip().splitlines()[-1] == "FAIL"
     record = _stored(db, out)
     failed = {m["name"] for m in record["verdict"]["measurements"] if not m["passed"]}
-    assert "fit_rms" in failed
+    assert failed & {"fit_rms", "holdout_rms"}, failed  # on the fit poses or on the held-out ones
