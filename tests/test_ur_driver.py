@@ -21,10 +21,11 @@ from station.robot import BusError, ConnectionLost, DeviceFault, LimitError, Saf
 START = [0.1, -1.45, 1.6, -1.72, -1.5708, 0.2]
 
 
-def world_file(tmp_path, seed: int = 7, serial: str = "20235512345", start=START, name: str = "world.yaml"):
+def world_file(tmp_path, seed: int = 7, serial: str = "20235512345", start=START, name: str = "world.yaml",
+               **ur):
     doc = default_doc("ur5e", seed=seed)
     doc["motion"].update(time_mode="sim", start=list(start))  # the controller's 2 ms cycle drives the world
-    doc["buses"] = {"ur": {"serial": serial}}
+    doc["buses"] = {"ur": {"serial": serial, **ur}}
     path = tmp_path / name
     path.write_text(yaml.safe_dump(doc))
     return path, World.from_file(path)
@@ -265,7 +266,7 @@ def test_freedrive_seats_tip_in_socket(tmp_path, emulator, robots):
 
 @pytest.mark.exclusive  # where the arm stops depends on timing: run alone (make test)
 def test_protective_stop_mid_move_then_unlock_and_continue(tmp_path, emulator, robots):
-    path, world = world_file(tmp_path)
+    path, world = world_file(tmp_path, unlock_delay_s=1.5)  # 5 s on the robot: the driver reads neither
     emu = emulator(path)
     robot = robots(f"ur://{emu.host}")
     q0 = robot.joint_positions().q
@@ -286,7 +287,7 @@ def test_protective_stop_mid_move_then_unlock_and_continue(tmp_path, emulator, r
     assert 0.01 < qa[0] - q0[0] < 0.9  # stopped part-way
     with pytest.raises(SafetyStop):
         robot.move_joints(target, speed=0.5)  # refused while protective-stopped
-    with pytest.raises(SafetyStop, match="5s"):
+    with pytest.raises(SafetyStop, match="1.5s"):
         robot.unlock_protective_stop(wait=False)  # a real controller refuses for 5 s
     assert robot.unlock_protective_stop(wait=True) == "Protective stop releasing"
     assert not robot.status().protective_stop
