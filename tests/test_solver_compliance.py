@@ -85,12 +85,12 @@ def test_sigma_matches_the_monte_carlo_spread(world):
     the scatter of the estimates about the world's truth over independent data sets (fresh poses and noise
     each). Every band is the sampling distribution of its statistic at an honest sigma (chi-square, Student
     t) at MC_ALPHA per tail: at most 18 x 5e-4 = 0.9 % false alarms (union bound; the sigma checks nearly
-    coincide). Measured by resampling 600 data sets (seeds 100-399 and 1000-1299; compliance.j4's reported
-    std scaled by k, or its errors shifted): fails at the truth 0.5 %; std x 1.3 / 1.4 / 1.5: 36 / 80 / 98 %;
-    std / 1.2 / 1.3: 56 / 92 %; a bias of 0.5 std: 92 %. The former check (40 sets, fixed bands [0.45, 1.85]
-    on mean z^2 and [0.65, 1.35] on the ratio) failed 2.8 % at the truth and caught 30 / 55 / 79 %, 20 / 47 %
-    and 7 %. Measured over the 600 sets, rms std / scatter: j2 1.06, j3 0.99, j4 0.97 (95 % intervals
-    [1.01, 1.12], [0.94, 1.04], [0.92, 1.02])."""
+    coincide). Measured by resampling 2400 data sets (seeds 100-399, 1000-1299, 2000-2599, 3000-4199;
+    compliance.j4's reported std scaled by k, or its errors shifted): fails at the truth 0.7 %; std x 1.3 /
+    1.4 / 1.5: 44 / 82 / 98 %; std / 1.2 / 1.3: 48 / 85 %; a bias of 0.5 std: 91 %. The former check (40 sets,
+    fixed bands [0.45, 1.85] on mean z^2 and [0.65, 1.35] on the ratio) failed 3.3 % at the truth and caught
+    34 / 58 / 80 %, 18 / 42 % and 6 %. Over the 2400 sets, rms std / scatter: j2 1.02, j3 1.00, j4 0.98
+    (95 % intervals [0.995, 1.054], [0.970, 1.025], [0.950, 1.004])."""
     model = world.nominal.with_payload(PAYLOAD)
     names = ["compliance.j2", "compliance.j3", "compliance.j4"]
     est, std = [], []
