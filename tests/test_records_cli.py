@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -105,7 +106,7 @@ def _write_journal(folder: Path, session: dict) -> Path:
     return path
 
 
-def test_report_from_journal(tmp_path, session_factory):
+def test_report_from_journal(tmp_path, session_factory, monkeypatch):
     session, _ = session_factory(seed=13)
     folder = tmp_path / "sessions" / session["session"]
     _write_journal(folder, session)
@@ -122,11 +123,18 @@ def test_report_from_journal(tmp_path, session_factory):
     out_dir = tmp_path / "elsewhere"
     code, out = _run("report", str(folder / "journal.jsonl"), "--out", str(out_dir))
     assert code == 0 and (out_dir / "report.html").is_file()
+    # the session id, as station resume takes it: looked up in $STATION_HOME/sessions
+    home = tmp_path / "home"
+    (home / "sessions").mkdir(parents=True)
+    shutil.copytree(folder, home / "sessions" / "S-1")
+    monkeypatch.setenv("STATION_HOME", str(home))
+    code, out = _run("report", "S-1", "--out", str(tmp_path / "by-id"))
+    assert code == 0 and (tmp_path / "by-id" / "report.html").is_file(), out
 
 
 @pytest.mark.parametrize("make, message", [
-    (lambda p: p, "no such session folder or journal"),
-    (lambda p: (p.mkdir(), p)[1], "no journal.jsonl in this folder"),
+    (lambda p: p, "no journal at"),
+    (lambda p: (p.mkdir(), p)[1], "no journal at"),
     (lambda p: (p.write_text("not json\n"), p)[1], ""),
 ])
 def test_report_bad_input_exit_2(tmp_path, make, message):

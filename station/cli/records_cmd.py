@@ -333,18 +333,20 @@ def _show_session(con: Console, s: dict) -> None:
         con.print(t)
 
 
-def report(source: Path = typer.Argument(..., help="session folder (holding journal.jsonl) or a journal file"),
+def report(source: str = typer.Argument(..., help="session id (in $STATION_HOME/sessions, as station resume "
+                                          "takes it), session folder (holding journal.jsonl) or a journal file"),
            out: Path = typer.Option(None, "--out", help="folder for report.html/report.json "
                                                         "(default: the session folder)")) -> None:
     """Rebuild the HTML and JSON report of a session from its journal."""
     from station.cli import fail
+    from station.engine.runner import find_session
     from station.report import ReportError, write_report
+    from station.robot.errors import ConfigError
 
-    if not source.exists():
-        raise fail(f"{source}: no such session folder or journal")
-    journal = source / "journal.jsonl" if source.is_dir() else source
-    if not journal.is_file():
-        raise fail(f"{source}: no journal.jsonl in this folder")
+    try:
+        journal = find_session(source)  # the same lookup as station resume
+    except ConfigError as e:
+        raise fail(str(e)) from None
     from station.engine.journal import JournalError
     from station.engine.session_record import session_from_journal
 
