@@ -75,8 +75,9 @@ class Header(Event):
     t: float | None = None  # when the session was created
     session: str
     procedure: str  # procedure name ("jog" for a technician session, the script's name for a script)
-    procedure_path: str | None = None  # the file resume loads again (None: nothing to resume)
-    procedure_sha256: str | None = None
+    procedure_path: str | None = None  # where the file was (informative; None: nothing to resume)
+    procedure_sha256: str | None = None  # resume finds the procedure by name and runs it only with this sha256
+    procedure_version: str | None = None  # the file's VERSION (a shipped one: the station's version)
     procedure_title: str = ""
     mode: Literal["procedure", "script", "technician"] = "procedure"
     serial: str  # serial of the robot under calibration

@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import getpass
-import hashlib
 import os
 import platform
 import signal
@@ -26,7 +25,7 @@ from station.engine import events as ev
 from station.engine.cell import Cell, RefPoint, load_cell
 from station.engine.journal import Journal, JournalError, JournalWriteError, check_space, check_writable, read_journal
 from station.engine.limits import load_limits
-from station.engine.procedure import Procedure, ProcedureError, load_procedure
+from station.engine.procedure import Procedure, is_name, load_procedure, procedure_for_resume
 from station.engine.session import Session
 from station.kinematics.collision import keep_out_to_doc
 from station.robot.errors import ConfigError, DeviceFault, StationError
@@ -252,6 +251,7 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
     header = ev.Header(
         session=sid, procedure=name, procedure_path=str(procedure.path.resolve()) if procedure else path,
         procedure_sha256=procedure.sha256 if procedure else sha256,
+        procedure_version=procedure.version if procedure else None,
         procedure_title=procedure.title if procedure else title, mode="procedure" if procedure else "script",
         serial=str(serial), operator=operator or getpass.getuser(), station=socket.gethostname(),
         url=robot_url or getattr(robot, "url", "") or ident.url, model=robot.model.name, robot=_identity_dict(ident),
@@ -303,13 +303,17 @@ def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, lim
 def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int, str], None] | None = None,
            log: Callable[[str], None] | None = None, robot=None, prompt=None,
            control: RunControl | None = None, instruments: dict[str, str] | None = None,
-           payload: dict | None = None) -> Outcome:
-    """Continue an interrupted session: same procedure file (hash checked), same plan, recorded samples kept.
-    The outcome's ``db`` is the records URL the journal names. ``instruments`` (``{"tracker": URL}``) gives an
-    instrument option of the session a new address (the instrument came back on another port): journaled as an
-    ``instrument_url`` event and used by every later resume too; the procedure checks the instrument there is
-    the one the session started with. ``payload`` (``{"mass": kg, "com": [x, y, z] m}``) is only checked: the
-    session's journaled payload is used, and a resume given another one is refused before the robot opens."""
+           payload: dict | None = None, procedure: str | Path | None = None) -> Outcome:
+    """Continue an interrupted session: the same procedure, same plan, recorded samples kept. The procedure is
+    found again by the journaled name in the shipped package and the configured folders
+    (``station.engine.procedure.procedure_for_resume``), or is the ``procedure`` file the caller's own command
+    line names; it runs only if its SHA-256 is the journaled one (checked before it is compiled): a journal
+    never names the code that runs. The outcome's ``db`` is the records URL the journal names. ``instruments``
+    (``{"tracker": URL}``) gives an instrument option of the session a new address (the instrument came back on
+    another port): journaled as an ``instrument_url`` event and used by every later resume too; the procedure
+    checks the instrument there is the one the session started with. ``payload`` (``{"mass": kg, "com": [x, y, z]
+    m}``) is only checked: the session's journaled payload is used, and a resume given another one is refused
+    before the robot opens."""
     from station.robot import open_robot
 
     path = find_session(session_ref)
@@ -322,24 +326,17 @@ def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int,
     if any(isinstance(e, ev.Writeback) and e.kind == "restore" and e.phase == "written" for e in events):
         raise ConfigError(f"session {header.session}: its write-back was rolled back with station restore; "
                           "start a new session with station run")
-    if not header.procedure_path:
+    if not header.procedure_path or header.mode != "procedure":
         kind = header.procedure or "this kind of session"
-        raise ConfigError(f"session {header.session} ({kind}) has no procedure file to resume; its samples "
-                          f"are kept in {path} (use station solve on its samples.csv, or start a new session)")
+        what = "is a script's session (run the script again)" if header.mode == "script" else \
+            "has no procedure file to resume"
+        raise ConfigError(f"session {header.session} ({kind}) {what}; its samples are kept in {path} (use station "
+                          "solve on its samples.csv, or start a new session)")
     _check_header(path, header)
-    # the file the journal names is hashed BEFORE it is imported: a damaged or planted journal cannot make the
-    # station run code the session did not start with
-    proc_path = Path(header.procedure_path)
-    try:
-        data = proc_path.read_bytes()
-    except OSError as e:
-        raise ProcedureError(f"procedure {proc_path} of session {header.session}: {e.strerror or e}") from None
-    if hashlib.sha256(data).hexdigest() != header.procedure_sha256:
-        raise ProcedureError(f"procedure {proc_path} changed since session {header.session} started "
-                             "(sha256 differs); resuming would mix two procedures (not loaded)")
-    proc = load_procedure(proc_path)
-    if proc.sha256 != header.procedure_sha256:  # changed between the check and the import
-        raise ProcedureError(f"procedure {proc.path} changed while session {header.session} was being resumed")
+    # found by NAME where the station's configuration says procedures live, and hashed BEFORE it is compiled:
+    # the path the journal names is never read, so a damaged or planted journal cannot run code
+    proc = procedure_for_resume(header.procedure, header.procedure_sha256, file=procedure,
+                                where=f"session {header.session}")
     lim_info = header.limits or {}
     lim = load_limits(lim_info.get("path"))
     if lim.sha256 != lim_info.get("sha256"):
@@ -474,6 +471,8 @@ def _check_header(path: Path, header: ev.Header) -> None:
     """The header fields resume acts on, beyond their types (the schema checked those): one line naming the
     journal and the field."""
     where = f"journal {path}:1"
+    if not is_name(header.procedure):
+        raise ConfigError(f"{where}: field procedure: {header.procedure[:80]!r} is not a procedure name")
     sha = header.procedure_sha256 or ""
     if len(sha) != 64 or any(c not in "0123456789abcdef" for c in sha):
         raise ConfigError(f"{where}: field procedure_sha256: {sha!r} is not a sha256 hex digest")
