@@ -223,3 +223,120 @@ def test_off_loopback_with_tls_client_certificates_and_refusals(tmp_path):
     finally:
         proc.terminate()
         proc.communicate(timeout=30)
+
+
+EVIL_PAGE = """<!doctype html><html><body><h1>cat pictures</h1>
+<iframe name="sink" style="display:none"></iframe>
+<form id="f" method="POST" enctype="text/plain" target="sink" action="{panel}/api/start">
+<input name='{{"serial":"SN-EVIL","operator":"eve","x":"' value='"}}'></form>
+<script>
+const P = "{panel}";
+async function attack() {{
+  const send = (path, body, type) => fetch(P + path, {{method: "POST", mode: "no-cors", credentials: "include",
+      headers: {{"Content-Type": type}}, body: JSON.stringify(body)}}).catch(() => null);
+  for (let i = 0; i < 3; i++) {{
+    await send("/api/start", {{serial: "SN-EVIL", operator: "eve"}}, "text/plain");
+    await send("/api/prompt", {{answer: "ok"}}, "text/plain");
+    await send("/api/clear", {{}}, "text/plain");
+    await send("/api/resume", {{session: "S-1"}}, "text/plain");
+    await send("/api/abort", {{}}, "text/plain");
+    // a JSON request needs a preflight the panel never grants: it must not even be sent
+    await fetch(P + "/api/start", {{method: "POST", credentials: "include",
+      headers: {{"Content-Type": "application/json"}}, body: JSON.stringify({{serial: "SN-EVIL", operator: "e"}})}})
+      .catch(() => null);
+  }}
+  document.getElementById("f").submit();
+  // reading the panel is refused too (no CORS): the page cannot learn a CSRF token
+  const r = await fetch(P + "/api/csrf", {{credentials: "include"}}).then((x) => x.text()).catch(() => "blocked");
+  document.title = "done:" + r;
+}}
+attack();
+</script></body></html>"""
+
+
+def _evil_site(panel_base: str):
+    """Another web site open on the station PC (another origin on this machine)."""
+    import threading
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    page = EVIL_PAGE.format(panel=panel_base).encode()
+
+    class Handler(BaseHTTPRequestHandler):
+        def do_GET(self):  # noqa: N802 - http.server's name
+            self.send_response(200)
+            self.send_header("Content-Type", "text/html")
+            self.send_header("Content-Length", str(len(page)))
+            self.end_headers()
+            self.wfile.write(page)
+
+        def log_message(self, *a):
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    return server
+
+
+def test_real_browser_page_works_with_its_tokens_and_other_sites_cannot_drive_it(tmp_path):
+    """Debian's chromium (Playwright): the panel with ``--token`` opened as the operator does (``/?token=``),
+    sign in, scan, START, the confirm prompt, the verdict, the next scan (start, prompt and clear: each a state
+    change with the page's CSRF token). Meanwhile a page of another site in the same browser (same machine,
+    another port: the token cookie is "same-site" and goes along) fires every state change as simple requests and
+    as a form: nothing starts. A rebinding name mapped to 127.0.0.1 gets 403 for the page itself."""
+    from test_panel_browser import CHROMIUM
+
+    if not os.path.exists(CHROMIUM):
+        pytest.fail("needs Debian's chromium (apt-get install -y chromium; .ci/run does)", pytrace=False)
+    from playwright.sync_api import sync_playwright
+
+    _, cell = _files(tmp_path, seed=73)
+    panel = Panel(tmp_path, ROBOT, cell, f"sqlite:///{tmp_path / 'r.db'}", "--token", "line-token-73")
+    evil = _evil_site(panel.base)
+    home = tmp_path / "home"
+    _plant(home, "S-1", "zero_offsets", Path("/nonexistent/zero_offsets.py"), "0" * 64)
+    try:
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=[
+                "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu",
+                "--host-resolver-rules=MAP evil.example 127.0.0.1"])
+            ctx = browser.new_context(viewport={"width": 1280, "height": 800})
+            page = ctx.new_page()
+            page.goto(panel.base + "/?token=line-token-73")  # sets the HttpOnly SameSite=Strict cookie
+            page.fill("#operator", "a.operator")
+            page.press("#operator", "Enter")
+            page.keyboard.type("SN-PAGE-73")
+            page.keyboard.press("Enter")
+            # another site in the same browser, while the operator's page is signed in and armed
+            bad = ctx.new_page()
+            bad.goto(f"http://127.0.0.1:{evil.server_address[1]}/")
+            bad.wait_for_function("document.title.startsWith('done:')", timeout=30_000)
+            assert "csrf" not in bad.title()  # it could not read a token
+            time.sleep(0.5)
+            st = _req(panel.base, "GET", "/api/state", headers={"Authorization": "Bearer line-token-73"})[1]
+            assert st["state"] == "idle" and st["serial"] is None, st
+            assert sorted(p.name for p in (home / "sessions").iterdir()) == ["S-1"]
+            # a rebinding name for this machine: the panel refuses to serve its page under it
+            r = bad.goto(f"http://evil.example:{panel.port}/?token=line-token-73")
+            assert r.status == 403 and "Host" in bad.content()
+            # the operator's page works: START, the confirm prompt, the verdict, the next scan
+            page.click("#start")
+            page.wait_for_selector("#prompt-text", state="visible", timeout=20_000)
+            assert "Confirm to start the robot" in page.inner_text("#prompt-text")
+            page.click("#prompt-ok")
+            page.wait_for_selector("#verdict.error", timeout=60_000)  # the robot at /dev/null: ERROR in words
+            assert "/dev/null" in page.inner_text("#verdict-message") or panel_msg(panel)
+            page.focus("#next-serial")
+            page.keyboard.type("SN-NEXT")
+            page.keyboard.press("Enter")
+            page.wait_for_selector("#verdict.error", state="hidden")
+            st = _req(panel.base, "GET", "/api/state", headers={"Authorization": "Bearer line-token-73"})[1]
+            assert st["state"] == "idle"
+            browser.close()
+    finally:
+        evil.shutdown()
+        panel.close()
+    assert not (home / "sessions" / "S-1" / "journal.jsonl").read_text().count('"type":"resume"')
+
+
+def panel_msg(panel: Panel) -> str:
+    return str(_req(panel.base, "GET", "/api/state", headers={"Authorization": "Bearer line-token-73"})[1]["message"])

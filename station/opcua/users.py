@@ -149,9 +149,8 @@ class UserManager:
         self._dummy = hash_password(secrets.token_hex(8))  # unknown names cost the same time as known ones
 
     def get_user(self, iserver, username: str | None = None, password: str | None = None, certificate=None):
-        if self.accounts is None:
-            return _asyncua_user("anonymous", frozenset(RIGHTS)) if username is None and certificate is None \
-                else None
+        if self.accounts is None:  # loopback without a users file: anonymous tokens only (the server's policy)
+            return _asyncua_user("anonymous", frozenset(RIGHTS)) if username is None else None
         if username is None or password is None:
             return None
         now = time.monotonic()
