@@ -53,13 +53,6 @@ def create_app(controller: Controller, token: str | None = None, *, host: str = 
     page = _page()
     app_guard: Guard | None = None  # set below; the page and /api/csrf issue its tokens
 
-    def authorized(request: Request) -> bool:
-        if not token:
-            return True
-        given = request.headers.get("authorization", "")
-        given = given[7:] if given.lower().startswith("bearer ") else request.cookies.get(COOKIE, "")
-        return hmac.compare_digest(given.encode(), token.encode())
-
     async def body(request: Request) -> dict:
         try:
             data = await request.json()
@@ -190,26 +183,15 @@ def create_app(controller: Controller, token: str | None = None, *, host: str = 
         return Response(sketch(controller.cell(), p.label), media_type="image/svg+xml",
                         headers={"Content-Security-Policy": "default-src 'none'; style-src 'unsafe-inline'"})
 
-    def guarded(handler):
-        async def endpoint(request: Request):
-            if handler is index and request.query_params.get("token"):
-                return await handler(request)
-            if not authorized(request):
-                return JSONResponse({"error": "token required (Authorization: Bearer or open /?token=...)"},
-                                    status_code=401)
-            return await handler(request)
-
-        return endpoint
-
     post = {"methods": ["POST"]}
-    routes = [Route("/", guarded(index)), Route("/api/state", guarded(state)),
-              Route("/api/start", guarded(start), **post), Route("/api/abort", guarded(abort), **post),
-              Route("/api/prompt", guarded(prompt), **post), Route("/api/clear", guarded(clear), **post),
-              Route("/api/resume", guarded(resume), **post), Route("/api/resumable", guarded(resumable)),
-              Route("/api/history/{serial:path}", guarded(history)), Route("/api/events", guarded(events)),
-              Route("/api/points/{label}/image", guarded(point_image)),
-              Route("/api/points/{label}/sketch.svg", guarded(point_sketch)),
-              Route("/report/{session}", guarded(report)), Route("/api/csrf", guarded(csrf))]
+    routes = [Route("/", index), Route("/api/state", state),
+              Route("/api/start", start, **post), Route("/api/abort", abort, **post),
+              Route("/api/prompt", prompt, **post), Route("/api/clear", clear, **post),
+              Route("/api/resume", resume, **post), Route("/api/resumable", resumable),
+              Route("/api/history/{serial:path}", history), Route("/api/events", events),
+              Route("/api/points/{label}/image", point_image),
+              Route("/api/points/{label}/sketch.svg", point_sketch),
+              Route("/report/{session}", report), Route("/api/csrf", csrf)]
     app_guard = Guard(Starlette(routes=routes), bind=host, port=port, loopback=loopback, tls=tls,
-                      allow_hosts=allow_hosts)
+                      allow_hosts=allow_hosts, token=token, cookie=COOKIE)
     return app_guard

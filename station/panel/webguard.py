@@ -4,6 +4,8 @@
   on, the machine's names, loopback names on loopback, and the names given with ``--allow-host``; with the
   port it listens on. A page of another site whose name was re-pointed at this machine (DNS rebinding) sends
   its own name and is refused: it can neither read the state nor fetch a CSRF token.
+- **Token** (with ``--token``): ``Authorization: Bearer TOKEN`` or the ``station_token`` cookie, else 401;
+  ``GET /?token=TOKEN`` (the right one) passes to the page, which sets the cookie.
 - **State changes** (every method but GET/HEAD): ``Origin`` (else ``Referer``) must be the panel itself (a
   request without either comes from no browser); the body is ``application/json`` (a browser sends a cross-site
   form or ``text/plain`` request without asking first; JSON needs a CORS preflight this server never grants);
@@ -85,8 +87,10 @@ class Guard:
     """The Host, Origin/Referer, content type and CSRF rules of one panel (an ASGI middleware around its app)."""
 
     def __init__(self, app, *, bind: str, port: int, loopback: bool, tls: bool = False,
-                 allow_hosts: list[str] | tuple[str, ...] = ()) -> None:
+                 allow_hosts: list[str] | tuple[str, ...] = (), token: str | None = None,
+                 cookie: str = "station_token") -> None:
         self.app = app
+        self.token, self.cookie = token, cookie
         self.port = port
         self.scheme = "https" if tls else "http"
         self.names = own_names(bind, loopback=loopback)
@@ -134,6 +138,25 @@ class Guard:
             return False, f"{name} {value[:80]!r} is not this panel ({self.scheme}://{host})"
         return True, ""
 
+    # ---- token ---------------------------------------------------------------------------------------------
+    def authorized(self, headers: dict[str, str], path: str, query: str) -> bool:
+        if not self.token:
+            return True
+        want = self.token.encode()
+        auth = headers.get("authorization", "")
+        if auth.lower().startswith("bearer "):
+            return hmac.compare_digest(auth[7:].strip().encode(), want)
+        from starlette.requests import cookie_parser
+
+        if hmac.compare_digest(cookie_parser(headers.get("cookie", "")).get(self.cookie, "").encode(), want):
+            return True
+        if path == "/":  # opening the page with ?token=TOKEN once: the page sets the cookie
+            from urllib.parse import parse_qs
+
+            given = parse_qs(query).get("token", [""])[0]
+            return bool(given) and hmac.compare_digest(given.encode(), want)
+        return False
+
     # ---- CSRF ---------------------------------------------------------------------------------------------
     def new_token(self) -> str:
         """A token for one page: a random nonce and its MAC under this process's secret."""
@@ -162,6 +185,8 @@ class Guard:
                             "--allow-host adds a name)")
         elif scope["type"] == "websocket":
             refusal = (403, "no websockets here")
+        elif not self.authorized(headers, scope.get("path", ""), scope.get("query_string", b"").decode("latin-1")):
+            refusal = (401, "token required (Authorization: Bearer or open /?token=...)")
         elif scope["method"] not in SAFE_METHODS:
             ok, why = self.origin_ok(headers.get("origin"), headers.get("referer"), host)
             ctype = headers.get("content-type", "").split(";")[0].strip().lower()
