@@ -5,6 +5,7 @@ a traceback, never another exception, never a hang (pytest-timeout bounds each t
 
 The fast subset runs ``FAST`` examples per property; ``-m slow`` runs ``SLOW`` (set HYPOTHESIS_SLOW_EXAMPLES)."""
 
+import contextlib
 import copy
 import json
 import math
@@ -398,7 +399,9 @@ def _clean_cli(argv, env: dict | None = None) -> tuple[int, str, str]:
     return code, out, err
 
 
-FUZZ_SIZES = [pytest.param(fast, id="fast"), pytest.param(slow, id="long", marks=pytest.mark.slow)]
+# a command line costs 0.1-0.4 s in process: the fast subset runs a dozen per reader, -m slow runs SLOW
+fast_cli = settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+FUZZ_SIZES = [pytest.param(fast_cli, id="fast"), pytest.param(slow, id="long", marks=pytest.mark.slow)]
 JOINTS_UR = "q1[rad],q2[rad],q3[rad],q4[rad],q5[rad],q6[rad]\n0.1,-1.2,1.4,-1.7,-1.5,0.3\n"
 
 
@@ -626,3 +629,93 @@ def test_journal_issue_cases(tmp_path, where, value, says):
     for argv in readers:
         code, _, err = _clean_cli(argv, env)
         assert code == 2 and f"{path}:{i + 1}: {says}" in err, (argv, err)
+
+
+# ---- correction maps (station-map/1) ---------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def map_files(tmp_path_factory):
+    """A real map of the planar two-strut robot with hidden errors (plan, 'measure' with the true model, build),
+    and a readings and a targets file for ``map correct`` / ``map apply``."""
+    d = tmp_path_factory.mktemp("map")
+    truth = load_model("struts2").with_params({"strut.1.offset": 2.5e-4, "pivot.2.y": -6e-4})
+    assert _cli(["map", "plan", "--model", "struts2", "--grid", "2", "--out", d / "plan.csv"])[0] == 0
+    rows = [r.split(",") for r in (d / "plan.csv").read_text().splitlines() if r and not r.startswith("#")]
+    x = np.array([[float(v) for v in r] for r in rows[1:]])
+    xy = truth.fk(x)[:, :2, 3]
+    (d / "m.csv").write_text("x1,x2,x,y\n" + "".join(",".join(repr(float(v)) for v in (*a, *b)) + "\n"
+                                                     for a, b in zip(x, xy, strict=True)))
+    code, _, err = _cli(["map", "build", "--model", "struts2", "--samples", d / "m.csv", "--out", d / "map.json"])
+    assert code == 0, err
+    (d / "readings.csv").write_text("x1,x2\n" + "".join(f"{a!r},{b!r}\n" for a, b in x[:3]))
+    (d / "targets.csv").write_text("x,y\n" + "".join(f"{a!r},{b!r}\n" for a, b in xy[:3]))
+    return d, json.loads((d / "map.json").read_text())
+
+
+@pytest.mark.parametrize("runs", FUZZ_SIZES)
+def test_cli_map_file_fuzz(runs, map_files, tmp_path):
+    d, base = map_files
+
+    def prop(doc):
+        f = tmp_path / "map.json"
+        f.write_text(json.dumps(doc))
+        _clean_cli(["map", "correct", "--model", "struts2", "--map", f, "--joints", d / "readings.csv",
+                    "--out", tmp_path / "o.csv"])
+        _clean_cli(["map", "apply", "--model", "struts2", "--map", f, "--poses", d / "targets.csv",
+                    "--out", tmp_path / "o.csv"])
+
+    runs(given(mutated(base))(prop))()
+
+
+# ---- robot URLs ---------------------------------------------------------------------------------------------------
+def _url_parts():
+    from station.robot.registry import driver_class
+
+    return {s: [o.name for o in driver_class(s).options] for s in ("ur", "dynamixel", "canopen+virtual",
+                                                                    "canopen+socketcand")}
+
+
+URL_OPTIONS = _url_parts()
+url_value = st.one_of(st.sampled_from(["", "0", "1", "-1", "nan", "inf", "-inf", "1e308", "1e-320", "99999999999",
+                                       "1-6", "11,12,14", "6-1", "0-255", "0-300", "omx", "ur5e", "ur10e", "arm6",
+                                       "scara", "hexapod", "/etc/passwd", "../x", "%00", "yes", "any", "XM430-W350"]),
+                      st.floats(allow_nan=True, allow_infinity=True).map(repr), st.integers(-10**20, 10**20).map(str),
+                      st.text(max_size=12))
+
+
+@st.composite
+def robot_urls(draw) -> str:
+    from urllib.parse import quote
+
+    scheme = draw(st.sampled_from([*URL_OPTIONS, "UR", "ftp", "canopen", "", "ur+x"]))
+    names = URL_OPTIONS.get(scheme.lower(), ["model"]) + ["bogus"]
+    query = [(draw(st.sampled_from(names)), draw(url_value)) for _ in range(draw(st.integers(0, 5)))]
+    host = draw(st.sampled_from(["", "127.0.0.1", "[::1]", "[::1", "host:99999", "h:0", "a@b", "ur5", "chan0",
+                                 "192.0.2.7:29536", "%41", "\u00e9t\u00e9"]))
+    path = draw(st.sampled_from(["", "/", "/dev/nonexistent-tty", "/x/../y", "/" + "a" * 300]))
+    q = "&".join(f"{quote(k)}={quote(v, safe='')}" for k, v in query)
+    return f"{scheme}://{host}{path}" + (f"?{q}" if q or draw(st.booleans()) else "")
+
+
+@pytest.mark.parametrize("runs", FUZZ_SIZES)
+def test_cli_robot_url_fuzz(runs, tmp_path):
+    """``station run --robot URL``: every option parsed, the model loaded and checked against the URL, the
+    calibration file a URL may name read, before anything is opened. The drivers' constructors (which open the
+    bus) are replaced by one that refuses: no connection is ever attempted, whatever the URL says."""
+    from unittest import mock
+
+    from station.robot.errors import DeviceFault
+    from station.robot.registry import driver_class
+
+    def refuse(self, *a, **kw):
+        raise DeviceFault("the fuzzed URL was accepted up to opening the bus (not opened)")
+
+    env = {"STATION_HOME": str(tmp_path / "home")}
+
+    def prop(url):
+        with contextlib.ExitStack() as stack:
+            for scheme in URL_OPTIONS:
+                stack.enter_context(mock.patch.object(driver_class(scheme), "__init__", refuse))
+            code, _, err = _clean_cli(["run", "zero_offsets", "--robot", url, "--serial", "S"], env)
+        assert code == 2, err
+
+    runs(given(robot_urls())(prop))()
