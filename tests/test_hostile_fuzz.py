@@ -401,7 +401,8 @@ def _clean_cli(argv, env: dict | None = None) -> tuple[int, str, str]:
 
 # a command line costs 0.1-0.4 s in process: the fast subset runs a dozen per reader, -m slow runs SLOW
 fast_cli = settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-FUZZ_SIZES = [pytest.param(fast_cli, id="fast"), pytest.param(slow, id="long", marks=pytest.mark.slow)]
+long_cli = settings(max_examples=max(SLOW // 3, 12), deadline=None, suppress_health_check=[HealthCheck.too_slow])
+FUZZ_SIZES = [pytest.param(fast_cli, id="fast"), pytest.param(long_cli, id="long", marks=pytest.mark.slow)]
 JOINTS_UR = "q1[rad],q2[rad],q3[rad],q4[rad],q5[rad],q6[rad]\n0.1,-1.2,1.4,-1.7,-1.5,0.3\n"
 
 
@@ -583,7 +584,7 @@ def test_cli_journal_fuzz(runs, tmp_path):
     rebuilds the report."""
     env = {"STATION_HOME": str(tmp_path / "home")}
     db = f"sqlite:///{tmp_path / 'r.db'}"
-    report = runs is slow
+    report = runs is long_cli
 
     def prop(lines):
         done = _write_journal(tmp_path / "done", lines, end=True)
