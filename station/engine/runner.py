@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import getpass
+import hashlib
 import math
 import os
 import platform
@@ -396,6 +397,13 @@ def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int,
     proc = procedure_for_resume(header.procedure, header.procedure_sha256, file=procedure,
                                 where=f"session {header.session}")
     lim_info = header.limits or {}
+    if lim_info.get("path") is not None:  # hashed before it is parsed: a journal may name any file
+        from station.textfile import read_capped
+
+        data = read_capped(lim_info["path"], ConfigError, f"limits file {lim_info['path']}")
+        if hashlib.sha256(data).hexdigest() != lim_info.get("sha256"):
+            raise ConfigError(f"limits file {lim_info['path']} changed since session {header.session} started "
+                              "(sha256 differs)")
     lim = load_limits(lim_info.get("path"))
     if lim.sha256 != lim_info.get("sha256"):
         raise ConfigError(f"limits file {lim.path} changed since session {header.session} started")

@@ -379,7 +379,11 @@ class Controller:
                               operator=operator, options=dict(cfg.options), touch=self._touch(),
                               progress=self._progress, log=self._log, prompt=self.ask, control=self._control)
             else:
-                out = api.resume(resume_of, db=cfg.db, touch=None if cfg.touch != "manual" else self._touch(),
+                from station.records.store import default_url
+
+                # the panel's own database, never the one a journal names (a journal is data; it may be planted)
+                out = api.resume(resume_of, db=cfg.db or default_url(),
+                                 touch=None if cfg.touch != "manual" else self._touch(),
                                  progress=self._progress, log=self._log, prompt=self.ask, control=self._control,
                                  procedure=self._procedure_file(proc))
         except Exception as e:  # bad cell/limits file, wrong robot, unreachable bus: said in one line
