@@ -340,3 +340,29 @@ def test_real_browser_page_works_with_its_tokens_and_other_sites_cannot_drive_it
 
 def panel_msg(panel: Panel) -> str:
     return str(_req(panel.base, "GET", "/api/state", headers={"Authorization": "Bearer line-token-73"})[1]["message"])
+
+
+def test_host_and_origin_rules_of_the_guard():
+    """The rules themselves (no server): loopback names with the port; a reverse proxy's name by --allow-host;
+    Origin must be the Host the request came to, in the panel's scheme."""
+    from station.panel.webguard import Guard
+
+    g = Guard(None, bind="127.0.0.1", port=8470, loopback=True, allow_hosts=("station.line3.example",
+                                                                                  "proxy.example:443"))
+    for ok in ("127.0.0.1:8470", "localhost:8470", "[::1]:8470", "LocalHost:8470", "station.line3.example",
+               "station.line3.example:8443", "proxy.example:443"):
+        assert g.host_ok(ok), ok
+    for bad in ("127.0.0.1", "127.0.0.1:80", "evil.example:8470", "proxy.example", "proxy.example:8470",
+                "localhost.:8471", "a@127.0.0.1:8470", "127.0.0.1:8470/x", "[::1", ""):
+        assert not g.host_ok(bad), bad
+    assert g.origin_ok("http://127.0.0.1:8470", None, "127.0.0.1:8470")[0]
+    assert g.origin_ok(None, "http://localhost:8470/x?y", "localhost:8470")[0]
+    assert g.origin_ok(None, None, "localhost:8470")[0]  # no browser: the CSRF token still decides
+    assert g.origin_ok("https://station.line3.example", None, "station.line3.example")[0]  # TLS at the proxy
+    for origin, host in (("http://localhost:8470", "127.0.0.1:8470"), ("https://127.0.0.1:8470", "127.0.0.1:8470"),
+                         ("http://127.0.0.1:8471", "127.0.0.1:8470"), ("null", "127.0.0.1:8470"),
+                         ("http://evil.example", "127.0.0.1:8470"), ("file://", "127.0.0.1:8470")):
+        assert not g.origin_ok(origin, None, host)[0], (origin, host)
+    token = g.new_token()
+    assert g.token_ok(token) and not g.token_ok(token[:-1] + "0") and not g.token_ok("x.y") and not g.token_ok(None)
+    assert not Guard(None, bind="127.0.0.1", port=8470, loopback=True).token_ok(token)  # another panel process
