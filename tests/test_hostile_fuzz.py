@@ -7,6 +7,7 @@ The fast subset runs ``FAST`` examples per property; ``-m slow`` runs ``SLOW`` (
 
 import contextlib
 import copy
+import functools
 import json
 import math
 import os
@@ -668,14 +669,15 @@ def test_cli_map_file_fuzz(runs, map_files, tmp_path):
 
 
 # ---- robot URLs ---------------------------------------------------------------------------------------------------
-def _url_parts():
+URL_SCHEMES = ("ur", "dynamixel", "canopen+virtual", "canopen+socketcand")
+
+
+@functools.cache
+def _url_options() -> dict[str, list[str]]:
+    """Each driver's URL option names (imports the drivers: only when a URL is drawn)."""
     from station.robot.registry import driver_class
 
-    return {s: [o.name for o in driver_class(s).options] for s in ("ur", "dynamixel", "canopen+virtual",
-                                                                    "canopen+socketcand")}
-
-
-URL_OPTIONS = _url_parts()
+    return {s: [o.name for o in driver_class(s).options] for s in URL_SCHEMES}
 url_value = st.one_of(st.sampled_from(["", "0", "1", "-1", "nan", "inf", "-inf", "1e308", "1e-320", "99999999999",
                                        "1-6", "11,12,14", "6-1", "0-255", "0-300", "omx", "ur5e", "ur10e", "arm6",
                                        "scara", "hexapod", "/etc/passwd", "../x", "%00", "yes", "any", "XM430-W350"]),
@@ -687,8 +689,8 @@ url_value = st.one_of(st.sampled_from(["", "0", "1", "-1", "nan", "inf", "-inf",
 def robot_urls(draw) -> str:
     from urllib.parse import quote
 
-    scheme = draw(st.sampled_from([*URL_OPTIONS, "UR", "ftp", "canopen", "", "ur+x"]))
-    names = URL_OPTIONS.get(scheme.lower(), ["model"]) + ["bogus"]
+    scheme = draw(st.sampled_from([*URL_SCHEMES, "UR", "ftp", "canopen", "", "ur+x"]))
+    names = _url_options().get(scheme.lower(), ["model"]) + ["bogus"]
     query = [(draw(st.sampled_from(names)), draw(url_value)) for _ in range(draw(st.integers(0, 5)))]
     host = draw(st.sampled_from(["", "127.0.0.1", "[::1]", "[::1", "host:99999", "h:0", "a@b", "ur5", "chan0",
                                  "192.0.2.7:29536", "%41", "\u00e9t\u00e9"]))
@@ -714,7 +716,7 @@ def test_cli_robot_url_fuzz(runs, tmp_path):
 
     def prop(url):
         with contextlib.ExitStack() as stack:
-            for scheme in URL_OPTIONS:
+            for scheme in URL_SCHEMES:
                 stack.enter_context(mock.patch.object(driver_class(scheme), "__init__", refuse))
             code, _, err = _clean_cli(["run", "zero_offsets", "--robot", url, "--serial", "S"], env)
         assert code == 2, err
