@@ -169,8 +169,8 @@ def _fit_params(catalog: Model, table: DHTable, qs: np.ndarray) -> dict[str, flo
     for _ in range(40):
         T, _, Jp = flange.jacobians(qs, p)
         r = np.concatenate([(T[:, :3, 3] - target[:, :3, 3]).reshape(-1),
-                            np.stack([orientation_error(target[k, :3, :3], T[k, :3, :3])
-                                      for k in range(len(qs))]).reshape(-1)])
+                            -np.stack([orientation_error(target[k, :3, :3], T[k, :3, :3])
+                                       for k in range(len(qs))]).reshape(-1)])
         if np.max(np.abs(r)) < 1e-13:
             break
         J = np.concatenate([Jp[:, :3, idx].reshape(-1, len(idx)), Jp[:, 3:, idx].reshape(-1, len(idx))])
