@@ -51,7 +51,7 @@ from station.robot.motion import MANUAL_TOOL_SPEED_CAP, check_joint_limits, join
 from station.robot.protocol import Identity, JointSnapshot, JointState, RobotStatus
 from station.robot.registry import bus_library
 from station.robot.silence import Silence
-from station.robot.url import Option, Options, RobotURL, either, flag, integer, number, text
+from station.robot.url import Option, Options, RobotURL, either, integer, number, text
 
 with bus_library("ur-rtde"):
     import rtde_control
@@ -98,9 +98,9 @@ class URRobot(RobotBase):
     options = Options(
         Option("model", text(), "ur5e", "kinematic model (`ur3e`, `ur5e`, `ur10e` or a model file)",
                default_doc="`ur5e`"),
-        Option("power_on", flag(), False, "`yes`: the station may power the arm on and release its brakes "
+        Option("power_on", either("yes", "no"), "no", "`yes`: the station may power the arm on and release its brakes "
                "(dashboard `power on`, wait for IDLE, `brake release`, wait for RUNNING); `no`: an arm that is not "
-               "RUNNING is refused before any motion, naming this option", default_doc="`no`"),
+               "RUNNING is refused before any motion, naming this option"),
         Option("calibration", either("controller", "none", otherwise=text()), "controller", "the station's "
                "nominal model: `controller` reads the factory calibration the controller reports (KinematicsInfo on "
                "the primary interface, port 30001); a path reads a copied `calibration.conf` (`[mounting]` deltas); "
@@ -189,7 +189,7 @@ class URRobot(RobotBase):
                 raise ConfigError(f"robot URL {url.raw!r}: {key}={o[key]:g} must be in (0, {vmax:g}] rad/s "
                                   f"(model {catalog.name})")
         args = dict(deltas=deltas, calibration=cal if cal in ("controller", None) else "file",
-                    power_on=o["power_on"], export_dir=o["export"], contact_bit=o["contact_bit"],
+                    power_on=o["power_on"] == "yes", export_dir=o["export"], contact_bit=o["contact_bit"],
                     speed=o["speed"] or min(0.5, vmax), jog_speed=o["jog_speed"] or min(0.2, vmax),
                     tool_speed=o["tool_speed"], jog_watchdog=o["jog_watchdog"], serial=o["serial"],
                     robot_type=o["robot_type"], stale_timeout=o["stall_ms"] / 1000.0, url=url.raw)
@@ -434,9 +434,9 @@ class URRobot(RobotBase):
             if silence.tick() > self.stale_timeout:
                 self._abandon_control()
                 raise ConnectionLost(f"ur://{self.host}: the controller did not acknowledge {what} within "
-                                     f"{self.stale_timeout * 1e3:.0f} ms (RTDE stall timeout): link lost, nothing "
-                                     "more was sent and a stop went out over the dashboard; reconnect the robot "
-                                     "when the network is back")
+                                     f"{self.stale_timeout * 1e3:.0f} ms (RTDE stall timeout; {silence.note()}): "
+                                     "link lost, nothing more was sent and a stop went out over the dashboard; "
+                                     "reconnect the robot when the network is back")
         if "error" in box:
             raise box["error"]
         return box["value"]
@@ -649,9 +649,9 @@ class URRobot(RobotBase):
             if silence.tick() > self.stale_timeout:
                 self._check_link()
                 self._halt_quietly(dashboard=True)
-                raise BusError(f"ur://{self.host}: RTDE data stream stalled: no new package for "
-                               f"{self.stale_timeout * 1e3:.0f} ms (last controller time {ts2:.3f} s); "
-                               "robot stopped")
+                raise BusError(f"ur://{self.host}: RTDE stall timeout: no new package for "
+                               f"{self.stale_timeout * 1e3:.0f} ms (last controller time {ts2:.3f} s; "
+                               f"{silence.note()}); RTDE data stream stalled, robot stopped")
             time.sleep(0.0003)
         self._last_ts = ts1
         qa = np.asarray(q, dtype=float)
@@ -743,8 +743,9 @@ class URRobot(RobotBase):
                 silence.reset()
             elif silence.tick() > self.stale_timeout:
                 self._halt_quietly(dashboard=True)
-                raise BusError(f"ur://{self.host}: RTDE data stream stalled during the move: no new package for "
-                               f"{self.stale_timeout * 1e3:.0f} ms (last controller time {ts:.3f} s); robot stopped")
+                raise BusError(f"ur://{self.host}: RTDE stall timeout: data stream stalled during the move, no new "
+                               f"package for {self.stale_timeout * 1e3:.0f} ms (last controller time {ts:.3f} s; "
+                               f"{silence.note()}); robot stopped")
             if ts - t_start > budget:
                 self._halt_quietly()
                 raise BusError(f"ur://{self.host}: move not finished within {budget:.1f} s (controller time); "

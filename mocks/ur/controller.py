@@ -135,6 +135,10 @@ class URController:
         self.async_wr_count = 0
         self.async_op_id = 0
         self.stall_until = 0.0
+        # fault injection (emulator dashboard "hold_scripts S"): programs received before this controller time start
+        # only then, as on a controller too busy to start them (what a station sees as a silent script start)
+        self.hold_scripts_until = 0.0
+        self.pending_program: tuple[str, str] | None = None
         self.messages: list[str] = []
         self.cmd_log: deque[tuple[int, int]] = deque(maxlen=40)  # (tick, command id) written by clients
         self.q_prev = np.asarray(world.encoder_q(), dtype=float)
@@ -238,6 +242,7 @@ class URController:
             self.tcp = self.installation_tcp.copy()
             self.freedrive_axes = [1] * 6
             self.stall_until = 0.0
+            self.hold_scripts_until, self.pending_program = 0.0, None
             self.cmd_log.clear()
             self.messages.append("power cycle: controller rebooted")
 
@@ -267,6 +272,9 @@ class URController:
             if self._sim:
                 self.world.advance(PERIOD)
             self._faults()
+            if self.pending_program is not None and self.controller_time() >= self.hold_scripts_until:
+                program, self.pending_program = self.pending_program, None
+                self.load_program(*program)
             self._power_step()
             self._watchdog()
             self._motion_step()
@@ -363,6 +371,10 @@ class URController:
         """A script arrived on port 30003: it replaces whatever runs (as on the real controller)."""
         notice(self.world, script={"program": name})
         with self.lock:
+            if self.controller_time() < self.hold_scripts_until:
+                self.pending_program = (name, text)
+                self.messages.append(f"program {name!r} held until controller time {self.hold_scripts_until:.3f} s")
+                return
             self._halt_all()
             self.program = name
             if name != "rtde_control":

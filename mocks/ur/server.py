@@ -260,13 +260,14 @@ class DashboardConn(_Conn):
 
     def emulator(self, args: list[str]):
         """``emulator protective_stop [AFTER]``, ``emulator stall SECONDS [AFTER]``, ``emulator drop SECONDS
-        [AFTER]``, ``emulator estop on|off``, ``emulator power_cycle [BOOT_S]``, ``emulator encoder``,
+        [AFTER]``, ``emulator estop on|off``, ``emulator power_cycle [BOOT_S]``, ``emulator hold_scripts S``,
+        ``emulator encoder``,
         ``emulator tip``, ``emulator log``.
         AFTER (s of controller time) delays the fault, so a client can be mid-command when it bites."""
         ctl = self.ctl
         if not args:
             return ("emulator: commands: protective_stop [after], stall S [after], drop S [after], "
-                    "estop on|off, power_cycle [boot_s], encoder, tip, log"), None
+                    "estop on|off, power_cycle [boot_s], hold_scripts S, encoder, tip, log"), None
         what, rest = args[0], args[1:]
         try:
             nums = [float(x) for x in rest if x not in ("on", "off")]
@@ -299,6 +300,10 @@ class DashboardConn(_Conn):
             seconds = nums[0] if nums else ctl.drop_s
             return "emulator: dropping connections", lambda: later(nums[1] if len(nums) > 1 else 0.0,
                                                                   lambda: ctl.drop(seconds))
+        if what == "hold_scripts":
+            with ctl.lock:
+                ctl.hold_scripts_until = ctl.controller_time() + (nums[0] if nums else 10.0)
+            return "emulator: holding scripts", None
         if what == "power_cycle":
             boot = nums[0] if nums else self.server.boot_s
             return "emulator: power cycle", lambda: threading.Thread(
