@@ -182,13 +182,13 @@ class URRobot(RobotBase):
                               "script 30003 are fixed by the controller)")
         catalog = cls.load_url_model(url, o["model"], o["tip_link"], o["base_link"])
         cal = o["calibration"]
-        deltas = read_calibration_conf(cal, catalog.n_joints) if cal not in ("controller", None) else None
+        deltas = read_calibration_conf(cal, catalog.n_joints) if cal not in ("controller", "none") else None
         vmax = float(catalog.max_velocity.min())
         for key in ("speed", "jog_speed"):  # bounded by the model: checked once it is known
             if o[key] is not None and o[key] > vmax:
                 raise ConfigError(f"robot URL {url.raw!r}: {key}={o[key]:g} must be in (0, {vmax:g}] rad/s "
                                   f"(model {catalog.name})")
-        args = dict(deltas=deltas, calibration=cal if cal in ("controller", None) else "file",
+        args = dict(deltas=deltas, calibration={"controller": "controller", "none": None}.get(cal, "file"),
                     power_on=o["power_on"] == "yes", export_dir=o["export"], contact_bit=o["contact_bit"],
                     speed=o["speed"] or min(0.5, vmax), jog_speed=o["jog_speed"] or min(0.2, vmax),
                     tool_speed=o["tool_speed"], jog_watchdog=o["jog_watchdog"], serial=o["serial"],
