@@ -941,7 +941,7 @@ class URRobot(RobotBase):
 
     def disable(self) -> None:
         self.stop()
-        self._dash.command("power off")
+        self._dash.power_off()
 
     def status(self) -> RobotStatus:
         self._check_link()
