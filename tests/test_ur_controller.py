@@ -55,6 +55,7 @@ def test_boots_power_off_powers_on_to_idle_then_running_after_brake_release():
     ticks(ctl, 10)
     assert ctl.mode == S.ROBOT_MODE_POWER_OFF and ctl.value("robot_mode") == 3
     assert not ctl.robot_status_bits() & S.RS_POWER_ON
+    assert not world.enabled().any() and world.brakes.all()  # held by its brakes
     ctl.load_program("rtde_control", SCRIPT)
     assert ctl.runtime_state == S.STOPPED and "not RUNNING" in ctl.messages[-1]
     ctl.brake_release()  # in POWER_OFF: no effect
@@ -70,7 +71,7 @@ def test_boots_power_off_powers_on_to_idle_then_running_after_brake_release():
     assert ctl.runtime_state == S.STOPPED  # brakes on: no program
     ctl.brake_release()
     ticks(ctl, round(ctl.brake_release_s / 0.002) + 1)
-    assert ctl.mode == S.ROBOT_MODE_RUNNING and ctl.value("joint_mode") == [253] * 6
+    assert ctl.mode == S.ROBOT_MODE_RUNNING and ctl.value("joint_mode") == [253] * 6 and world.enabled().all()
     ctl.load_program("rtde_control", SCRIPT)
     assert ctl.runtime_state == S.PLAYING
 

@@ -124,6 +124,10 @@ class URController:
         self.mode = S.ROBOT_MODE_POWER_OFF
         self.mode_due: tuple[int, float] | None = None  # (next robot_mode, controller time it is reached)
         self.power_on_s, self.brake_release_s = float(power_on_s), float(brake_release_s)
+        # every UR joint has a brake: off RUNNING the arm is held by them and ignores commands
+        if hasattr(world, "default_brakes"):
+            world.default_brakes(True)
+        self._arm_enabled(False)
         self.teach = False
         self.freedrive_axes = [1] * 6
         self.speed_qd: np.ndarray | None = None  # speedj target (rad/s) held until stopped
@@ -215,12 +219,19 @@ class URController:
             self._halt_all()
             self._end_program()
             self.mode, self.mode_due = S.ROBOT_MODE_POWER_OFF, None
+            self._arm_enabled(False)
             self.messages.append("powered off")
 
     def _power_step(self) -> None:
         if self.mode_due is not None and self.controller_time() >= self.mode_due[1]:
             self.mode, self.mode_due = self.mode_due[0], None
             self.messages.append(f"robot mode {self.mode_name}")
+            self._arm_enabled(self.mode == S.ROBOT_MODE_RUNNING)
+
+    def _arm_enabled(self, on: bool) -> None:
+        """The world's joints powered (RUNNING: brakes released) or held by their brakes."""
+        if hasattr(self.world, "set_enabled"):
+            self.world.set_enabled(on)
 
     def power_cycle(self) -> None:
         """The controller reboots: what it keeps on disk stays (serial, factory calibration, installation and its
@@ -232,6 +243,7 @@ class URController:
             self._end_program()
             self.program = None
             self.mode, self.mode_due = S.ROBOT_MODE_POWER_OFF, None
+            self._arm_enabled(False)
             if self.safety_mode == S.SAFETY_PROTECTIVE_STOP:
                 self.safety_mode, self.safety_bits, self.pstop_at = S.SAFETY_NORMAL, S.SS_NORMAL, None
                 self.world.clear_protective_stop()
@@ -327,6 +339,7 @@ class URController:
                 self.safety_mode = S.SAFETY_ROBOT_EMERGENCY_STOP
                 self.safety_bits = S.SS_ROBOT_EMERGENCY_STOPPED | S.SS_EMERGENCY_STOPPED | S.SS_STOPPED_DUE_TO_SAFETY
                 self.mode, self.mode_due = S.ROBOT_MODE_POWER_OFF, None
+                self._arm_enabled(False)
                 self._end_program()
             else:
                 self.estop = False
