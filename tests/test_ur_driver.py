@@ -365,9 +365,9 @@ def test_write_calibration_exports_and_reads_back(tmp_path, emulator, robots):
     robot.write_calibration(values)
     conf = out / "calibration.conf"
     assert conf.exists() and (out / "ur_calibrated.urdf").exists() and (out / "ur_kinematics.yaml").exists()
-    robot.enable()  # the control interface opens with the first motion
-    other = robots(f"ur://{emu.host}?power_on=yes")
-    with pytest.raises(BusError, match="another RTDE client"):  # one controlling client at a time
+    robot.enable()  # the arm RUNNING and controlled by this station
+    with pytest.raises(BusError, match="another RTDE client"):  # noqa: PT012 - one controlling client at a time
+        other = robots(f"ur://{emu.host}?power_on=yes")  # a running arm: the control interface opens at connect
         other.enable()
     robot.close()
     again = robots(f"ur://{emu.host}?calibration={conf}")

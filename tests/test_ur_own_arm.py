@@ -9,7 +9,6 @@ import sys
 import numpy as np
 import pytest
 import yaml
-from station.mocks.launch import launch
 from station.mocks.world import World, default_doc
 
 from station.robot import IdentityMismatch, open_robot
@@ -80,6 +79,10 @@ def test_mock_ur_refuses_an_arm_a_ur_controller_cannot_drive(tmp_path):
 
 
 def test_mock_ur_refuses_bad_bus_settings_in_one_line(tmp_path):
+    """buses.ur as a controller could be: an unknown key, a robot model no controller reports, an unknown
+    calibration choice or a negative time are one line naming the field (``station mock ur`` prints it)."""
+    from station.mocks.ur.cli import controller_for
+
     path, _ = _own_arm_world(tmp_path, ur5e_urdf())
     doc = yaml.safe_load(path.read_text())
     for bad, needle in (({"robot_model": "MYARM"}, "buses.ur.robot_model"), ({"calibration": "some"},
@@ -87,5 +90,6 @@ def test_mock_ur_refuses_bad_bus_settings_in_one_line(tmp_path):
                         ({"power_on_s": -1}, "buses.ur.power_on_s"), ({"bogus": 1}, "unknown key")):
         doc["buses"]["ur"] = {"serial": "20235500990", **bad}
         path.write_text(yaml.safe_dump(doc))
-        with pytest.raises(RuntimeError, match=needle):
-            launch("ur", path).start(timeout=30)
+        with pytest.raises(ValueError, match=needle) as e:
+            controller_for(World.from_file(path))
+        assert "\n" not in str(e.value)

@@ -4,7 +4,7 @@ the primary client interface (its factory calibration) (options: ``URRobot.optio
 
 Connecting needs no running arm: the dashboard, the RTDE receive stream and the controller's calibration are
 read first; the control interface (ur_rtde's control script, which a controller runs only when the arm is
-RUNNING) is opened with the first motion. Powering on and releasing the brakes happen only where the URL allows
+RUNNING) is opened then if the arm is RUNNING, else with the first motion. Powering on and releasing the brakes happen only where the URL allows
 it (``power_on=yes``), in the order UR's own ROS driver uses: ``power on``, wait for IDLE, ``brake release``,
 wait for RUNNING.
 
@@ -228,6 +228,16 @@ class URRobot(RobotBase):
         self._last_ts = None
         self._watchdog_hz = 0.0
         self._link_lost = False
+        if int(self._r.getRobotMode()) == ROBOT_MODE_RUNNING and \
+                self._safety_error(int(self._r.getSafetyStatusBits())) is None:
+            # a running arm: take control now, as ur_rtde does (a stale control script of a station that died is
+            # stopped and a fresh one started; the teardown stops ours)
+            try:
+                self._open_control()
+                self._start_script()
+            except Exception:
+                self._drop_interfaces()
+                raise
         log.info("ur://%s connected: serial %s, %s, robot mode %s", self.host, self.serial, self.firmware,
                  self._mode_name())
 
@@ -965,7 +975,9 @@ class URRobot(RobotBase):
 
     def set_compliant(self, on: bool) -> None:
         """Freedrive (falls back to teach mode) so the tip can settle in a socket; off keeps the position."""
-        if not on and self._compliant_mode is None:
+        if not on and self._compliant_mode is None:  # nothing to end; a safety stop is still said (teardown)
+            self._check_link()
+            self._check_safety()
             return
         if on:
             self._disarm_watchdog()  # the arm rests in freedrive without kicks
