@@ -4,9 +4,9 @@ the primary client interface (its factory calibration) (options: ``URRobot.optio
 
 Connecting needs no running arm: the dashboard, the RTDE receive stream and the controller's calibration are
 read first; the control interface (ur_rtde's control script, which a controller runs only when the arm is
-RUNNING) is opened then if the arm is RUNNING, else with the first motion. Powering on and releasing the brakes happen only where the URL allows
-it (``power_on=yes``), in the order UR's own ROS driver uses: ``power on``, wait for IDLE, ``brake release``,
-wait for RUNNING.
+RUNNING) is opened then if the arm is RUNNING, else with the first motion. Powering on and releasing the brakes
+happen only where the URL allows it (``power_on=yes``), in the order UR's own ROS driver uses: ``power on``, wait
+for IDLE, ``brake release``, wait for RUNNING.
 
 Units: joints in rad, joint speed rad/s, tool speed m/s. Every motion command checks limits first (a refused
 command sends nothing) and is then watched: protective/emergency stop -> SafetyStop, lost link ->
