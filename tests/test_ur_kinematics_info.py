@@ -95,6 +95,7 @@ def test_the_session_model_is_the_controllers_calibration_with_its_checksum(tmp_
         assert robot.identity().devices[0]["calibration"] == "published table"
 
 
+@pytest.mark.slow
 def test_a_power_cycle_keeps_the_calibration_and_boots_powered_off(tmp_path, emulators):
     path, _ = _world(tmp_path)
     emu = emulators("ur", path)

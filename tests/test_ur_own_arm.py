@@ -32,6 +32,7 @@ def _own_arm_world(tmp_path, urdf_text: str, start=START, **robot) -> tuple:
     return path, World.from_file(path)
 
 
+@pytest.mark.slow
 def test_own_urdf_arm_runs_with_the_url_the_emulator_prints(tmp_path, emulators):
     path, world = _own_arm_world(tmp_path, ur5e_urdf())
     emu = emulators("ur", path)

@@ -92,6 +92,7 @@ def test_station_connects_to_a_powered_off_arm_and_refuses_to_power_it_by_defaul
     np.testing.assert_array_equal(_encoders(emu), world.encoder_q())
 
 
+@pytest.mark.slow
 def test_power_on_yes_waits_for_idle_before_brake_release(tmp_path, emulators):
     """robot_state_helper.cpp: in POWER_ON the helper waits for IDLE; only then "brake release". The emulator
     ignores a brake release sent earlier, so a driver that did not wait would hang until its timeout."""
