@@ -392,6 +392,9 @@ def run_demo(bus: str, *, time_mode: str = "instant", seed: int = 5, quiet: bool
     t0 = time.monotonic()
     with launch(bus, world_path, serial=serial, process=bus != "canopen") as emu:  # realtime: own GIL
         typer.echo(f"demo: emulator up, robot URL {emu.url}")
+        if "power_on=yes" in emu.url:
+            typer.echo("demo: the controller boots with the arm powered off, as a real one; power_on=yes in the URL "
+                       "lets the station power it on and release the brakes")
         cb, bar = _progress_bar(quiet)
         with bar:
             out = start("zero_offsets", emu.url, serial, cell=cell_path, options=dict(BUS_OPTIONS[bus]),
