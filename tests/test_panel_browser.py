@@ -253,7 +253,7 @@ def test_failing_unit_names_the_limit(tmp_path, emulators, browser, panels):
     with open_records(db) as rec:
         stored = rec.session(st["session"])
     (m,) = [m for m in stored["verdict"]["measurements"] if not m["passed"]]
-    assert m["name"] == "fit_rms" and "fit rms" in failing and "above the limit of 0.001 mm" in failing
+    assert m["name"] == "fit_rms" and "Fit error (rms): " in failing and "above the limit of 0.001 mm" in failing
     assert f"{m['value']:.4g}" in failing
     r, g, b = _green_red(page.screenshot(path=str(tmp_path / "fail-1920x1080.png")))
     assert r > 100 and r > 1.5 * g, (r, g, b)

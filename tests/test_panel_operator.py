@@ -81,7 +81,7 @@ def test_error_resume_pass_at_phone_desktop_and_line_monitor(tmp_path, emulators
     for k, (w, h) in enumerate(WIDTHS):
         page.set_viewport_size({"width": w, "height": h})
         # running: the big state and its one action in view
-        base = panel.state()["samples"]
+        base = len(kept[-1]) if kept else 0  # the journal's count (a resumed run reports its own soon)
         _wait(lambda n=base + 2: panel.state()["samples"] >= n, 120, "two more samples", panel)
         assert page.inner_text("#state-word") == "CALIBRATING" and "of 14 points measured" in page.inner_text(
             "#samples")

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from station.engine.procedure import BadAnswer, Question
 from station.engine.runner import Aborted, RunControl
-from station.panel.reasons import Reason, explain, refused, where
+from station.panel.reasons import Reason, explain, plain_failure, refused, where
 
 STATES = ("idle", "running", "prompt", "done")
 NO_RESULT = "no unit has finished since the station started"
@@ -48,21 +48,6 @@ class PanelConfig:
     options: dict = field(default_factory=dict)
     touch: str | None = None  # "manual": the operator touches each point (a prompt per pose)
     confirm: bool = True  # ask the operator to confirm the unit is clamped before anything moves
-
-
-def plain_failure(m: dict) -> str:
-    """A failing verdict measurement in words an operator can act on."""
-    name = str(m.get("name") or "?").replace("_", " ")
-    value, unit = m.get("value"), m.get("unit") or ""
-    lo, hi = m.get("low"), m.get("high")
-    if value is None:
-        return f"{name}: no value could be measured"
-    v = f"{float(value):.4g} {unit}".strip()
-    if hi is not None and float(value) > float(hi):
-        return f"{name} is {v}, above the limit of {float(hi):.4g} {unit}".strip()
-    if lo is not None and float(value) < float(lo):
-        return f"{name} is {v}, below the limit of {float(lo):.4g} {unit}".strip()
-    return f"{name} is {v}, outside its limits"
 
 
 _STEPS = {"starting": "Starting", "resuming": "Resuming", "connecting": "Connecting to the robot",
@@ -275,12 +260,14 @@ class Controller:
         """Continue an interrupted session (a panel crash, an abort, an error) where it stopped; with the
         confirm prompt (unless ``--no-confirm``) before the robot moves again: someone may be in the cell."""
         header = self.check_resumable(session)
+        kept = self._kept_samples(header.session)
         with self._lock:
             if self.busy:
                 raise WrongState(f"unit {self._s['serial']} is still running")
             self._s = {**self._blank(), "state": "running", "serial": header.serial,
                        "operator": operator or header.operator, "procedure": header.procedure,
-                       "session": header.session, "step": "resuming", "started": time.time()}
+                       "session": header.session, "step": "resuming", "started": time.time(),
+                       "samples": kept}
             self.version += 1
             self._abort.clear()
             self._control = RunControl()
@@ -481,6 +468,19 @@ class Controller:
             return
         self._conclude(out)
 
+    @staticmethod
+    def _kept_samples(session: str) -> int:
+        """Samples the session's journal holds (the resumed run's own progress follows)."""
+        from station.engine.journal import read_journal
+        from station.engine.runner import station_home
+        from station.engine.session_record import live_samples
+
+        try:
+            _, events = read_journal(station_home() / "sessions" / session / "journal.jsonl")
+        except Exception:
+            return 0
+        return len(live_samples(events))
+
     def _can_resume(self, session: str | None) -> bool:
         """The unit's session can be continued from this panel (a journal without a completed end)."""
         if not session:
@@ -527,7 +527,7 @@ class Controller:
                           action="Scan the next unit.", step="finished", **common)
             else:
                 n = len(failing)
-                self._end(verdict="FAIL", reason=f"{n} limit{'s are' if n != 1 else ' is'} not met: "
+                self._end(verdict="FAIL", reason=f"{n} limit{'s are' if n != 1 else ' is'} not met — "
                           + "; ".join(failing) + ".", action="Set the unit aside as failed and scan the next unit.",
                           step="finished", **common)
         elif out.status == "completed":  # nothing to judge against: never a PASS

@@ -105,6 +105,34 @@ def refused(text: str) -> Reason:
     return Reason(f"Not started: {text}.", "Scan the unit's label again.", text, "serial")
 
 
+# the limits file's measurement names (procedures/limits.yaml) as an operator reads them
+MEASUREMENTS = {"samples": "points measured", "identified": "calibration parameters determined",
+                "fit_rms": "fit error (rms)", "holdout_rms": "check-point error (rms)",
+                "holdout_max": "largest check-point error", "offset_abs_max": "largest zero offset",
+                "offset_std_max": "largest zero-offset uncertainty (1σ)"}
+# operator units: lengths in mm, angles in degrees, counts without a unit
+TO_OPERATOR = {"m": (1e3, "mm"), "um": (1e-3, "mm"), "µm": (1e-3, "mm"), "rad": (57.29577951308232, "deg"),
+               "mrad": (0.05729577951308232, "deg"), "urad": (5.729577951308232e-05, "deg"),
+               "µrad": (5.729577951308232e-05, "deg"), "count": (1.0, "")}
+
+
+def plain_failure(m: dict) -> str:
+    """A failing verdict measurement in words and units an operator reads: ``Fit error (rms): 0.0123 mm,
+    above the limit of 0.001 mm``."""
+    name = MEASUREMENTS.get(str(m.get("name")), str(m.get("name") or "?").replace("_", " "))
+    scale, unit = TO_OPERATOR.get(str(m.get("unit") or ""), (1.0, str(m.get("unit") or "")))
+    value, lo, hi = (None if x is None else float(x) * scale for x in (m.get("value"), m.get("low"), m.get("high")))
+    name = name[:1].upper() + name[1:]
+    if value is None:
+        return f"{name}: no value could be measured"
+    u = f" {unit}" if unit else ""
+    if hi is not None and value > hi:
+        return f"{name}: {value:.4g}{u}, above the limit of {hi:.4g}{u}"
+    if lo is not None and value < lo:
+        return f"{name}: {value:.4g}{u}, below the limit of {lo:.4g}{u}"
+    return f"{name}: {value:.4g}{u}, outside its limits"
+
+
 def where(samples: int, planned: int) -> str:
     """How far the unit got, for the operator: ``Stopped after 4 of 14 points; all 4 are kept.``"""
     if not planned:
