@@ -463,7 +463,9 @@ class Controller:
         except Exception as e:  # bad cell/limits file, wrong robot, unreachable bus: before the run's journal
             session = self._s["session"] or resume_of
             can = self._can_resume(session)
-            self._ended_by(explain(e, serial=serial, resumable=can), "ERROR", session=session, resumable=can,
+            # raised before the run's body: the robot was not (yet) reached in this run
+            self._ended_by(explain(e, serial=serial, resumable=can, reached=False), "ERROR",
+                           session=session, resumable=can,
                            message=str(e) or type(e).__name__)
             return
         self._conclude(out)

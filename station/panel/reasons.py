@@ -35,9 +35,11 @@ def _again(resumable: bool) -> str:
     return RESUME if resumable else TRY_AGAIN
 
 
-def explain(err: BaseException | None, *, serial: str | None = None, resumable: bool = False) -> Reason:
+def explain(err: BaseException | None, *, serial: str | None = None, resumable: bool = False,
+            reached: bool = True) -> Reason:
     """The plain reason for an error that ended (or refused) a unit. ``resumable``: the unit's session can be
-    continued (RESUME), else the operator starts it again (TRY AGAIN)."""
+    continued (RESUME), else the operator starts it again (TRY AGAIN); ``reached``: the station had connected
+    to the robot (a session exists), else a lost connection is one never made."""
     from station.engine.journal import JournalError
     from station.engine.plan import PlanError
     from station.engine.runner import Aborted, DiskError
@@ -58,13 +60,17 @@ def explain(err: BaseException | None, *, serial: str | None = None, resumable: 
     if isinstance(err, errors.IdentityMismatch):
         return Reason("The robot in the cell is not the robot type this station is set up for.",
                       "Nothing moved. Call the technician.", detail, "setup")
+    if isinstance(err, errors.BusError) and not reached:
+        return Reason("The station cannot reach the robot.",
+                      f"Check that the robot is switched on and its cable is plugged in, then {go}. If it still "
+                      "fails, call the technician (robot address or port).", detail, "robot")
     if isinstance(err, errors.ConnectionLost):
         return Reason("The robot stopped answering.",
                       "Check that the robot is switched on, its emergency stop is released and its cable is "
                       f"plugged in, then {go}.", detail, "robot")
     if isinstance(err, errors.BusError):
         return Reason("The connection to the robot stalled or was disturbed.",
-                      f"The robot was stopped. {go[0].upper() + go[1:]}. If it happens again, call the technician "
+                      f"The robot was stopped. Check its cable, then {go}. If it happens again, call the technician "
                       "(the station PC may be overloaded or the cable faulty).", detail, "robot")
     if isinstance(err, errors.SafetyStop):
         return Reason("The robot stopped for safety (protective or emergency stop).",
