@@ -88,7 +88,8 @@ def test_start_refusals_abort_and_last_result_over_the_wire(tmp_path, emulators)
             assert "not a serial number" in (await _last(n))["reason"]
             code, args, _ = await _call(client, station, n["Start"], serial, "no_such_procedure")
             assert (code, args) == ("BadInvalidArgument", ["Good", "BadInvalidArgument"])
-            assert "no_such_procedure" in (await _last(n))["reason"]
+            unknown = await _last(n)
+            assert "no_such_procedure" in unknown["reason"] and unknown["cause"] == "setup"
 
             # the right unit starts (Good, the session id); a second Start while it runs: BadInvalidState, and
             # neither the running unit's state nor LastResult changes

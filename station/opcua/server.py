@@ -165,7 +165,8 @@ class StationServer:
             return _result(ua.StatusCodes.BadInvalidState)
         except PanelError as e:
             bad_procedure = isinstance(e, BadProcedure)
-            self.ctl.refuse(s, operator, str(e), procedure=None if bad_procedure else p or None)
+            self.ctl.refuse(s, operator, str(e), procedure=None if bad_procedure else p or None,
+                            bad_procedure=bad_procedure)
             await self.publish()
             return _result(ua.StatusCodes.BadInvalidArgument, argument=1 if bad_procedure else 0)
         snap = self.ctl.snapshot()

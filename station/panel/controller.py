@@ -244,7 +244,8 @@ class Controller:
             raise PanelError(" ".join(str(e).split()) or type(e).__name__) from None
         return header
 
-    def refuse(self, serial: str, operator: str, text: str, procedure: str | None = None) -> None:
+    def refuse(self, serial: str, operator: str, text: str, procedure: str | None = None, *,
+               bad_procedure: bool = False) -> None:
         """A start the line asked for and the station refused before anything ran (a malformed serial, an
         unknown procedure): the verdict ``ERROR`` with the reason, so ``LastResult`` says why. Never while a
         unit runs (that unit's state stays)."""
@@ -253,7 +254,7 @@ class Controller:
                 return
             self._s = {**self._blank(), "serial": str(serial or "")[:80] or None, "operator": operator,
                        "procedure": procedure or self.config.procedure, "started": time.time()}
-        self._ended_by(refused(text), "ERROR", message=text)
+        self._ended_by(refused(text, procedure=bad_procedure), "ERROR", message=text)
 
     def resume(self, session: str, operator: str | None = None, wait_session: float = 0.0, *,
                confirm: bool | None = None) -> str | None:

@@ -106,8 +106,12 @@ def explain(err: BaseException | None, *, serial: str | None = None, resumable: 
                   f"{go[0].upper() + go[1:]}. If it happens again, call the technician.", detail, "station")
 
 
-def refused(text: str) -> Reason:
-    """A start the station refused before anything ran (a malformed serial, an unknown procedure)."""
+def refused(text: str, procedure: bool = False) -> Reason:
+    """A start the station refused before anything ran: a malformed serial, or (``procedure``) a procedure the
+    station does not have."""
+    if procedure:
+        return Reason(f"Not started: {text}.", "The line asked for a procedure this station does not run; call the "
+                      "technician.", text, "setup")
     return Reason(f"Not started: {text}.", "Scan the unit's label again.", text, "serial")
 
 
