@@ -85,7 +85,7 @@ class JogApp(App):
     BINDINGS = [
         Binding("space", "stop", "STOP", priority=True),
         Binding("x", "stop", "STOP", show=False, priority=True),
-        Binding("ctrl+c", "stop", "STOP", show=False, priority=True),
+        Binding("ctrl+c", "stop('ctrl+c')", "STOP", show=False, priority=True),
         Binding("m", "toggle_mode", "joint/cart"),
         Binding("o", "toggle_frame", "base/tool", show=False),
         Binding("1", "step(0)", show=False),
@@ -333,11 +333,18 @@ class JogApp(App):
         """While a dialog is open only STOP and quit reach the app (no jog or record behind the dialog)."""
         return len(self.screen_stack) <= 1 or action in ("stop", "quit")
 
-    def action_stop(self) -> None:
-        # (the input thread stopped it already when the key came from a terminal; this is the UI's own stop,
-        # and the one for keys that do not pass the input thread, e.g. a test's pilot)
+    def action_stop(self, key: str = "") -> None:
+        # the input thread stopped the robot already when the key came from a terminal (stop_mark after the
+        # key's time): stop again (cheap, idempotent) but keep what that stop said; a key that did not pass the
+        # input thread (a test's pilot) is stopped here
+        first = self.ctl.stop_mark >= self._key_time and self.ctl.message.startswith("STOPPED")
+        said = self.ctl.message
         self.ctl.stop_mark = max(self.ctl.stop_mark, self._key_time)
         self.ctl.stop()
+        if first:
+            self.ctl.message = said
+        if key == "ctrl+c" and "quits" not in self.ctl.message:
+            self.ctl.message += " (ctrl+c stops; ctrl+q quits)"
         self.refresh_view()
 
     def action_help_quit(self) -> None:

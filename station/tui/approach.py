@@ -136,12 +136,14 @@ def _seeds(model, q: np.ndarray, goal_xyz: np.ndarray) -> np.ndarray:
 
 
 def _ik_goal(model, q: np.ndarray, goal: np.ndarray, checker) -> np.ndarray | None:
-    """The joint solution for ``goal`` nearest the arm's posture (joint travel in time at the joints' speed
-    limits) that keeps every link clear; None when there is none."""
+    """The joint solution for ``goal`` (4x4, or several (k,4,4) of which any will do) nearest the arm's posture
+    (joint travel in time at the joints' speed limits) that keeps every link clear; None when there is none."""
     full = model.n_joints >= 6
-    seeds = _seeds(model, q, goal[:3, 3])
-    tgt = np.repeat(goal[None] if full else goal[None, :3, 3], len(seeds), axis=0)
-    res = model.ik(tgt, seeds, position_only=not full, max_iter=150)
+    goals = goal.reshape(-1, 4, 4)
+    seeds = _seeds(model, q, goals[0, :3, 3])
+    tgt = np.repeat(goals, len(seeds), axis=0)
+    res = model.ik(tgt if full else tgt[:, :3, 3], np.tile(seeds, (len(goals), 1)), position_only=not full,
+                   max_iter=150)
     cand = res.q[res.ok]
     if not len(cand):
         return None
@@ -154,10 +156,14 @@ def _ik_goal(model, q: np.ndarray, goal: np.ndarray, checker) -> np.ndarray | No
     return cand[int(np.argmin(cost))]
 
 
-def _closest(model, a: np.ndarray, b: np.ndarray, point: np.ndarray, n: int = 24) -> float:
+def _closest(model, a: np.ndarray, b: np.ndarray, point: np.ndarray, n: int = 400) -> float:
     """Nearest approach of the tool to ``point`` on the straight joint path a -> b (nominal, sampled)."""
     s = np.linspace(0.0, 1.0, n)[:, None]
     return float(np.min(np.linalg.norm(model.position(a + s * (b - a)) - point, axis=1)))
+
+
+def _distance(model, q: np.ndarray, target: Target) -> float:
+    return float(np.linalg.norm(model.position(q[None])[0] - target.position))
 
 
 def _tool_travel(model, path: list[np.ndarray], n: int = 24) -> float:
@@ -176,8 +182,11 @@ def plan_near(model, keep_out, q_now: np.ndarray, target: Target, cap: float, *,
     plan) and never sweeping the tool closer to the point than the standoff allows; speeds at the tool cap
     ``cap`` (m/s, at most 250 mm/s). Raises LimitError (one line, nothing moves) when it cannot."""
     from station.engine.plan import PlanError, route_from
+    from station.kinematics.collision import Checker
 
     cap = float(min(cap, MANUAL_TOOL_SPEED_CAP))
+    if checker is None and getattr(model, "kind", "serial") != "parallel":
+        checker = Checker(model, keep_out)
     q_now = np.asarray(q_now, float)
     T = model.fk(q_now)
     goal, turned = _goal(model, T, target, standoff)
@@ -188,21 +197,28 @@ def plan_near(model, keep_out, q_now: np.ndarray, target: Target, cap: float, *,
                          f"{target.label} within joint limits and clear of the keep-out; jog closer first")
     notes: list[str] = []
     targets = [q_goal]
-    if np.linalg.norm(T[:3, 3] - target.position) > standoff * 1.5 and \
-            _closest(model, q_now, q_goal, target.position) < standoff * NEAR_CLEAR:
+    keep = standoff * NEAR_CLEAR
+    if _closest(model, q_now, q_goal, target.position) < min(keep, _distance(model, q_now, target)):
         # the straight joint path would sweep the tool past the point: come in along the approach instead
         entry, _ = _goal(model, goal, target, standoff + NEAR_ENTRY)
-        entry[:3, :3] = goal[:3, :3]
         q_entry = _ik_goal(model, q_goal, entry, checker)
-        if q_entry is None or _closest(model, q_entry, q_goal, target.position) < standoff * NEAR_CLEAR:
-            raise LimitError(f"{what}: the path would sweep the tool across the point and no entry pose "
-                             f"{(standoff + NEAR_ENTRY) * 1e3:g} mm out avoids it; jog the tool above it first")
+        if q_entry is None:
+            raise LimitError(f"{what}: the path would sweep the tool across the point and the arm cannot reach "
+                             f"an entry pose {(standoff + NEAR_ENTRY) * 1e3:g} mm out; jog the tool above it first")
         targets = [q_entry, q_goal]
-        notes.append(f"enters along the approach from {(standoff + NEAR_ENTRY) * 1e3:g} mm")
+        notes.append(f"enters along the approach from {(standoff + NEAR_ENTRY) * 1e3:g} mm out")
     try:
         path = route_from(model, keep_out, q_now, targets, what=what)
     except PlanError as e:
         raise LimitError(str(e)) from None
+    # on every segment (via poses too) the tool stays out of the sphere of ``keep`` round the point, or at least
+    # comes no closer than where that segment starts (a tool starting on the point may leave it)
+    prev = q_now
+    for q in path:
+        if _closest(model, prev, q, target.position) < min(keep, _distance(model, prev, target)) - 1e-4:
+            raise LimitError(f"{what}: the path would sweep the tool across the point (closer than "
+                             f"{keep * 1e3:.0f} mm on the way); jog the tool out above it first")
+        prev = q
     speeds, seconds, prev = [], 0.0, q_now
     for q in path:
         v = joint_speed_for_tool_cap(model, prev, q, NEAR_JOINT_SPEED, cap=cap)
@@ -226,16 +242,17 @@ def reach_problem(model, target: Target, checker=None, q_hint: np.ndarray | None
         x /= np.linalg.norm(x)
         T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
     T[:3, 3] = target.position
-    best = None
-    for roll in np.linspace(0.0, 2 * np.pi, 6, endpoint=False):  # any roll about the approach will do
-        R = T.copy()
-        R[:3, :3] = T[:3, :3] @ se3.rotvec_to_matrix([0.0, 0.0, roll])
-        best = _ik_goal(model, q, R, checker)
-        if best is not None or model.n_joints < 6:
-            break
-    if best is None:
+    rolls = np.linspace(0.0, 2 * np.pi, 6, endpoint=False) if model.n_joints >= 6 else [0.0]
+    goals = np.array([T @ _rz(r) for r in rolls])  # any roll about the approach will do
+    if _ik_goal(model, q, goals, checker) is None:
         return "out of reach of the nominal model (tool pointing into its approach, links clear)"
     return None
+
+
+def _rz(angle: float) -> np.ndarray:
+    R = np.eye(4)
+    R[:3, :3] = se3.rotvec_to_matrix([0.0, 0.0, angle])
+    return R
 
 
 @dataclass

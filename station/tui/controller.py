@@ -573,8 +573,8 @@ class JogController:
             out.append(f"the session ends with {n} sample{'s' if n != 1 else ''} ({verdict}); no more can be added")
         forced = self.solve_state.forced
         if forced:
-            out.append(f"{forced} forced sample{'s are' if forced != 1 else ' is'} (no contact) still in it: the "
-                       "session cannot pass")
+            out.append(f"{forced} forced sample{'s' if forced != 1 else ''} (no contact) "
+                       f"{'are' if forced != 1 else 'is'} still in it: the session cannot pass")
         if (self.solve_state.result is not None and self.writeback_done is None and not self.exported
                 and self.solve_state.identified_ok and corrections_of(self.solve_state.result)):
             out.append("the identified offsets are not written back (W)")
@@ -803,6 +803,7 @@ class JogController:
         self.solve()
         if self.guided and self.guide.next_point in self.labels and point is None:
             self.point_index = self.labels.index(self.guide.next_point)  # suggest the next point to touch
+            self._update_proximity()
         return sample
 
     def retake(self, force: bool = False) -> ev.Sample | None:

@@ -4,6 +4,8 @@ each in a wide form and a compact one (an 80x24 terminal: two 40-column halves).
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 from rich.text import Text
 
@@ -142,12 +144,16 @@ def _touch(ctl: JogController, t: Text) -> None:
 
 
 def _arm_state(ctl: JogController, t: Text, compact: bool) -> None:
+    p = ctl.proximity
     if not ctl.can_seat:
         t.append("arm stiff", style="dim")
         t.append("" if compact else f" ({ctl.compliant_name} mode: none on this robot)", style="dim")
     elif ctl.compliant:
         t.append(f" {ctl.compliant_name.upper()} ", style="bold black on yellow")
         t.append(f" {SEAT_KEY}: hold stiff", style="yellow")
+    elif p is not None and p.within and p.kind == "socket":
+        t.append("arm stiff", style="green")
+        t.append(f"  in capture radius: {SEAT_KEY} seats", style="bold green")
     else:
         t.append("arm stiff", style="green")
         t.append(f"  {SEAT_KEY}: {ctl.compliant_name}", style="dim")
@@ -172,10 +178,7 @@ def _proximity(ctl: JogController, t: Text, compact: bool) -> None:
     dx, dy, dz = (("" if v.startswith("-") else "+") + v for v in map(_mm, p.delta))
     t.append(f"go X{dx} Y{dy} Z{dz}", style="cyan")
     t.append(f" ({p.frame})" if compact else f" ({p.frame} frame)", style="dim")
-    if p.within and p.kind == "socket":
-        t.append(f"  in capture: {SEAT_KEY} seats" if ctl.can_seat and not ctl.compliant else "  in capture",
-                 style="bold green")
-    elif p.kind == "needle" and p.distance < 0.002:
+    if p.kind == "needle" and p.distance < 0.002:
         t.append("  fine steps (2, 1)", style="bold yellow")
     elif not compact and p.label not in ctl.blocked:
         t.append(f"   {NEAR_KEY}: go near", style="dim")
@@ -262,7 +265,7 @@ def guide_text(ctl: JogController, compact: bool) -> Text:
         t.append(f"\nno limits for {ctl.model.name}/{ctl.judged_as}: the session cannot PASS" +
                  ("" if compact else " (--judge PROCEDURE to use a procedure's limits)"), style="dim")
     if compact:
-        marks = [("✓" if c.ok else "✗") + SHORT.get(c.name, c.name) for c in g.checks
+        marks = [("✓ " if c.ok else "✗ ") + SHORT.get(c.name, c.name) for c in g.checks
                  if c.ok is not None and c.name != "samples"]
         if marks:
             t.append("\n" + " ".join(marks), style="dim")
@@ -281,7 +284,11 @@ def solve_text(ctl: JogController, compact: bool) -> Text:
         return t
     t.append(f"{st.n_samples} sample{'s' if st.n_samples != 1 else ''} · ")
     if st.status == "error":
-        t.append(st.message, style="bold yellow")
+        need = re.search(r"need at least (\d+) samples", st.message)
+        if compact and need:  # the solver's sentence does not fit a 40-column half
+            t.append(f"too few: need at least {need.group(1)}", style="bold yellow")
+        else:
+            t.append(st.message, style="bold yellow")
         return t
     res = st.residuals
     before, after, mx = (res.get(k) for k in ("rms_before_m", "rms_after_m", "max_after_m"))
