@@ -253,7 +253,7 @@ def guide_text(ctl: JogController, compact: bool) -> Text:
                 t.append(f"  not offered: {g.blocked[label]}", style="yellow")
             t.append("\n")
     if g.next_point is not None:
-        t.append(f"next: {g.next_point}", style="bold")
+        t.append(f"next: {g.next_point}" if compact else f"next: touch {g.next_point}", style="bold")
         t.append(" (fewest samples; vary the orientation)\n" if not compact else "  ", style="dim")
     elif ctl.guided and g.blocked and len(g.blocked) == len(ctl.labels):
         t.append("no point this arm can be sent to: check the cell file\n", style="bold yellow")
