@@ -29,11 +29,12 @@ from station.engine.writeback import (
 )
 from station.kinematics import Model, se3
 from station.kinematics.collision import Checker, KeepOut
-from station.robot.capabilities import CalibrationExport, CalibrationStore, Compliant, ContactSensor, VelocityJog
-from station.robot.errors import ConfigError, LimitError, StationError
+from station.robot.capabilities import CalibrationExport, CalibrationStore, ContactSensor, VelocityJog
+from station.robot.errors import LimitError, StationError
 from station.robot.motion import MANUAL_TOOL_SPEED_CAP, jog_target, joint_speed_for_tool_cap
 from station.tui import approach as ap
 from station.tui import guidance as gd
+from station.tui.aids import ApproachAids
 from station.tui.hold import (  # noqa: F401  (the hold-to-run constants, importable from here as before)
     HOLD_CHECK_S,
     HOLD_DELAY_MIN_S,
@@ -54,13 +55,18 @@ SPEED_PERCENT = (1, 2, 5, 10, 25, 50, 100)  # speed override, % of the manual to
 POINT_LABELS = tuple("ABCDEFGH")
 CART_AXES = ("X", "Y", "Z", "Rx", "Ry", "Rz")
 JOG_MAX_JOINT_SPEED = ap.NEAR_JOINT_SPEED  # rad/s (m/s prismatic): manual jog never faster than this per joint
-NEAR_STALL_S = 1.0  # s: a "go near" segment that shows no motion for this long after its command has stopped
 STOP_LOCK_S = 0.2  # s: a STOP key on the terminal's input thread waits at most this for a robot call in flight
+
+
+def _part_attr(part: str, name: str) -> property:
+    """An attribute of one of the controller's parts, reachable on the controller itself."""
+    return property(lambda self: getattr(getattr(self, part), name),
+                    lambda self, v: setattr(getattr(self, part), name, v))
 
 
 def _hold_attr(name: str) -> property:
     """An attribute of the hold-to-run part, reachable on the controller as before the split."""
-    return property(lambda self: getattr(self.holding, name), lambda self, v: setattr(self.holding, name, v))
+    return _part_attr("holding", name)
 
 
 @dataclass
@@ -145,22 +151,10 @@ class JogController:
         self.numbers: dict[int, int] = {}  # journal seq -> sample number 1..n in this session
         self.holding = HoldToRun(self)
         self.predicted: dict[str, float | None] = {}
-        # where the technician can be sent: points with a nominal position, and the ones they cannot be
-        # (a socket without a compliant mode to seat it; out of reach: checked at the first reading)
-        self.targets: dict[str, ap.Target] = ap.targets_of(
-            cell, reference, None if self.keep_out.mounting is None else self.keep_out.mounting.normal)
-        self.can_seat = isinstance(robot, Compliant)
-        self.blocked: dict[str, str] = {} if self.can_seat else {
-            lb: "socket: this robot has no compliant (freedrive) mode to seat the ball"
-            for lb, t in self.targets.items() if t.kind == "socket"}
-        self._reach_checked = False
-        self.compliant = False  # as commanded here, or as the robot reports it (freedrive from its pendant)
-        self.near: ap.NearMove | None = None  # a running "go near"
-        self.near_plan: ap.NearPlan | None = None  # planned, waiting for the technician's confirmation
-        self.proximity: ap.Proximity | None = None  # of the tool to the selected point (nominal)
+        self.aids = ApproachAids(self)  # proximity cue, go near, seat key (station.tui.aids)
         self.stop_mark = 0.0  # monotonic time of the last STOP: key events that arrived before it are dropped
         self.guide: gd.Guidance = gd.guidance(self.model, self._guide_labels(), [], None, self.limits, None,
-                                              self.blocked)
+                                              self.aids.blocked)
         self.verdict: dict | None = None
         self.ur_rotvec = isinstance(robot, CalibrationExport)  # UR pendant shows the rotation vector
         # hold-to-run re-targets position moves, except on a robot with a velocity jog (UR: speedJ/speedL
@@ -310,7 +304,7 @@ class JogController:
             if not quiet:
                 self._on_error(e, "stop")
             return
-        held = self._stiffen(quiet)
+        held = self.aids._stiffen(quiet)
         if not quiet:
             self.message = "STOPPED" + (f": go near {near.plan.label} cancelled" if near else "") + (
                 "; arm held stiff again" if held else "")
@@ -330,20 +324,6 @@ class JogController:
         finally:
             if locked:
                 self.io_lock.release()
-
-    def _stiffen(self, quiet: bool = True) -> bool:
-        """Leave the compliant mode if it is on (teardown, STOP, fault). True if it was on."""
-        if not self.compliant or not self.can_seat:
-            return False
-        try:
-            self.robot.set_compliant(False)
-        except StationError as e:
-            if not quiet:
-                self._on_error(e, "compliance off")
-            return False
-        self.compliant = False
-        self._journal_step("compliant off", {"by": "stop"})
-        return True
 
     def _journal_step(self, name: str, info: dict) -> None:
         try:
@@ -377,43 +357,14 @@ class JogController:
             self.message = "FAULT: motion stopped"
             self.stop(quiet=True)
             self.session.event(ev.Fault(step="status", error="status", message=self.fault))
-        compliant = bool(getattr(status, "compliant", False))
-        if self.can_seat and compliant != self.compliant:  # changed behind the UI (pendant, protective stop)
-            self.compliant = compliant
         q = np.asarray(snap.q, float)
         T = self.model.fk(q)
         rot = se3.matrix_to_rotvec(T[:3, :3]) if self.ur_rotvec else se3.matrix_to_rpy(T[:3, :3])
         tcp = np.concatenate([T[:3, 3], rot])
-        self.readout = Readout(q, tcp, touch, status.moving, status.enabled, snap.t, compliant, T)
-        self._update_proximity()
-        if not self._reach_checked:
-            self._check_reach(q)
-        if self.near is not None:
-            self._advance_near(status.moving, q)
+        self.readout = Readout(q, tcp, touch, status.moving, status.enabled, snap.t,
+                               bool(getattr(status, "compliant", False)), T)
+        self.aids.reading(status, q)
         return self.readout
-
-    # ---- approach: proximity cue, go near, seat ------------------------------------------------------------
-    @property
-    def compliant_name(self) -> str:
-        """What the vendor calls the yielding mode (UR: freedrive)."""
-        return "freedrive" if self.ur_rotvec else "compliant"
-
-    def _update_proximity(self) -> None:
-        target = self.targets.get(self.point)
-        r = self.readout
-        self.proximity = None if target is None or r is None or r.T is None else ap.proximity(r.T, target, self.frame)
-
-    def _check_reach(self, q: np.ndarray) -> None:
-        """Once, at the first reading: the points the nominal arm cannot bring its tool onto are not offered
-        as the next point (a cell laid out for another arm, a point beyond the reach)."""
-        self._reach_checked = True
-        for label, target in self.targets.items():
-            if label in self.blocked:
-                continue
-            why = ap.reach_problem(self.model, target, self._get_checker(), q)
-            if why is not None:
-                self.blocked[label] = why
-        self._update_guidance()
 
     def _get_checker(self) -> Checker | None:
         if self._checker is None:  # built once: the envelope compile is the expensive part
@@ -421,142 +372,6 @@ class JogController:
                 return None  # a parallel model has no link capsules (as in the planner): joint limits only
             self._checker = Checker(self.model, self.keep_out)
         return self._checker
-
-    def toggle_compliant(self) -> bool:
-        """The seat key: make the arm compliant (UR: freedrive) so a socket's cone can pull the ball in, or
-        hold it stiff again. Journaled as a step; refused while moving or faulted."""
-        name = self.compliant_name
-        if not self.can_seat:
-            self.message = (f"this robot has no {name} mode: sockets cannot be seated here; touch needles "
-                            "(the contact input) instead")
-            return False
-        if self.fault:
-            self.message = "clear the fault first (c)"
-            return False
-        on = not self.compliant
-        if on and (self.near is not None or self.holding.hold_state is not None or (
-                self.readout is not None and self.readout.moving)):
-            self.message = f"robot is moving: wait, or STOP (space), before {name}"
-            return False
-        with self.io_lock:
-            try:
-                self.robot.set_compliant(on)
-            except ConfigError as e:  # this robot's devices cannot yield (e.g. a servo without current control)
-                self.message = f"refused: {e}"
-                return False
-            except StationError as e:
-                self._on_error(e, f"{name} {'on' if on else 'off'}")
-                return False
-        self.compliant = on
-        self._journal_step("compliant on" if on else "compliant off", {"point": self.point})
-        target = self.targets.get(self.point)
-        if on and target is not None and target.kind == "socket":
-            self.message = (f"{name} ON: the ball settles into socket {self.point} (guide it in by hand if it "
-                            "does not); enter records once CONTACT lights; v holds the arm")
-        elif on:
-            self.message = f"{name} ON: the arm yields; v holds it stiff again (jogging is refused meanwhile)"
-        else:
-            self.message = "arm held stiff again: jog clear of the point before the next one"
-        return True
-
-    def _near_refusal(self) -> str | None:
-        if self.fault:
-            return "clear the fault first (c)"
-        if self.compliant:
-            return f"the arm is {self.compliant_name}: v holds it stiff first"
-        if self.near is not None:
-            return f"already going near {self.near.plan.label}: wait, or STOP (space)"
-        if self.point not in self.targets:
-            return (f"point {self.point} has no nominal position: give it in the cell file (--cell) or as "
-                    f"--reference {self.point}=x,y,z")
-        return None
-
-    def plan_near(self) -> ap.NearPlan | None:
-        """Plan "go near the selected point" (``station.tui.approach.plan_near``): nothing moves until
-        :meth:`start_near` is called with the plan (after the technician confirmed it)."""
-        self.near_plan = None
-        refusal = self._near_refusal()
-        if refusal:
-            self.message = refusal
-            return None
-        with self.io_lock:
-            try:
-                status = self.robot.status()
-                q = np.asarray(self.robot.joint_positions().q, float)
-            except StationError as e:
-                self._on_error(e, "go near")
-                return None
-        if status.moving or self.holding.hold_state is not None:
-            self.message = "robot is moving: wait, or STOP (space)"
-            return None
-        try:
-            plan = ap.plan_near(self.model, self.keep_out, q, self.targets[self.point], self.speed_mm_s * 1e-3,
-                                checker=self._get_checker())
-        except LimitError as e:
-            self.message = f"refused: {e}"
-            return None
-        self.near_plan = plan
-        return plan
-
-    def start_near(self, plan: ap.NearPlan) -> bool:
-        """Start a confirmed "go near": its first segment now, the next ones as the arm arrives (``poll``)."""
-        self.near_plan = None
-        refusal = self._near_refusal()
-        if refusal:
-            self.message = refusal
-            return False
-        with self.io_lock:
-            try:
-                q = np.asarray(self.robot.joint_positions().q, float)
-            except StationError as e:
-                self._on_error(e, "go near")
-                return False
-        if np.max(np.abs(q - plan.start)) > 1e-3:  # the arm moved since the plan was made: plan again
-            self.message = "the arm moved since the plan was shown: press n again"
-            return False
-        self.near = ap.NearMove(plan)
-        if not self._send_near():
-            return False
-        self.message = (f"going near {plan.label} at {plan.cap * 1e3:g} mm/s (about {plan.seconds:.0f} s): "
-                        "STOP with space or ctrl+c")
-        return True
-
-    def _send_near(self) -> bool:
-        nm = self.near
-        if nm is None:
-            return False
-        with self.io_lock:
-            try:
-                self.robot.move_joints(nm.segment, speed=nm.speed, wait=False)
-            except LimitError as e:
-                self.near = None
-                self.message = f"refused: {e}"
-                return False
-            except StationError as e:
-                self.near = None
-                self._on_error(e, f"go near {nm.plan.label}")
-                return False
-        nm.started, nm.seen_moving = time.monotonic(), False
-        return True
-
-    def _advance_near(self, moving: bool, q: np.ndarray) -> None:
-        nm = self.near
-        if moving:
-            nm.seen_moving = True
-            return
-        tol = max(0.01, 10 * max((self.count_si(j) for j in range(self.model.n_joints)), default=0.0))
-        if np.max(np.abs(q - nm.segment)) > tol:
-            if nm.seen_moving or time.monotonic() - nm.started > NEAR_STALL_S:
-                self.near = None
-                self.message = f"go near {nm.plan.label}: the arm stopped short of the target"
-            return
-        if not nm.last:
-            nm.index += 1
-            self._send_near()
-            return
-        self.near = None
-        self.message = (f"near {nm.plan.label}: {nm.plan.standoff * 1e3:g} mm out along its approach; jog in with "
-                        "steps (3: 1 mm, 2: 0.1 mm) watching the distance")
 
     def quit_concerns(self) -> list[str]:
         """What quitting now would do beyond closing an idle session (the app asks before it does)."""
@@ -729,6 +544,31 @@ class JogController:
 
     def first_window(self) -> float:
         return self.holding.first_window()
+
+    # ---- proximity, go near, seat (station.tui.aids) -------------------------------------------------------
+    targets = _part_attr("aids", "targets")
+    blocked = _part_attr("aids", "blocked")
+    can_seat = _part_attr("aids", "can_seat")
+    compliant = _part_attr("aids", "compliant")
+    near = _part_attr("aids", "near")
+    near_plan = _part_attr("aids", "near_plan")
+    proximity = _part_attr("aids", "proximity")
+
+    @property
+    def compliant_name(self) -> str:
+        return self.aids.compliant_name
+
+    def toggle_compliant(self) -> bool:
+        return self.aids.toggle_compliant()
+
+    def plan_near(self) -> ap.NearPlan | None:
+        return self.aids.plan_near()
+
+    def start_near(self, plan: ap.NearPlan) -> bool:
+        return self.aids.start_near(plan)
+
+    def _update_proximity(self) -> None:
+        self.aids._update_proximity()
 
     def enable(self) -> None:
         """Reset a fault: re-enable the robot and clear the banner only if the robot then reports OK."""
