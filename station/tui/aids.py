@@ -35,6 +35,7 @@ class ApproachAids:
             lb: "socket: this robot has no compliant (freedrive) mode to seat the ball"
             for lb, t in self.targets.items() if t.kind == "socket"}
         self._reach_checked = False
+        self._reached: set[str] = set()  # points found reachable so far
         self.compliant = False  # as commanded here, or as the robot reports it (freedrive from its pendant)
         self.near: ap.NearMove | None = None  # a running "go near"
         self.near_plan: ap.NearPlan | None = None  # planned, waiting for the technician's confirmation
@@ -81,17 +82,22 @@ class ApproachAids:
         self.proximity = ap.proximity(r.T, target, c.frame) if ok else None
 
     def _check_reach(self, q: np.ndarray) -> None:
-        """Once, at the first reading: the points the nominal arm cannot bring its tool onto are not offered
-        as the next point (a cell laid out for another arm, a point beyond the reach)."""
+        """One point per reading (an IK search costs 10-200 ms: spread over the first readings, never during a
+        hold): the points the nominal arm cannot bring its tool onto are not offered as the next point (a cell
+        laid out for another arm, a point beyond the reach). A parallel robot has no link capsules: skipped."""
         c = self.ctl
-        self._reach_checked = True
-        for label, target in self.targets.items():
-            if label in self.blocked:
-                continue
-            why = ap.reach_problem(c.model, target, c._get_checker(), q)
-            if why is not None:
-                self.blocked[label] = why
-        c._update_guidance()
+        if c.holding.hold_state is not None or self.near is not None:
+            return
+        todo = [lb for lb in self.targets if lb not in self.blocked and lb not in self._reached]
+        if not todo or getattr(c.model, "kind", "serial") == "parallel":
+            self._reach_checked = True
+            return
+        label = todo[0]
+        why = ap.reach_problem(c.model, self.targets[label], c._get_checker(), q)
+        self._reached.add(label)
+        if why is not None:
+            self.blocked[label] = why
+            c._update_guidance()
 
     def toggle_compliant(self) -> bool:
         """The seat key: make the arm compliant (UR: freedrive) so a socket's cone can pull the ball in, or
@@ -135,6 +141,8 @@ class ApproachAids:
         c = self.ctl
         if c.fault:
             return "clear the fault first (c)"
+        if getattr(c.model, "kind", "serial") == "parallel":
+            return "go near plans with the link capsules of a serial arm: jog a parallel robot by hand"
         if self.compliant:
             return f"the arm is {self.compliant_name}: v holds it stiff first"
         if self.near is not None:
