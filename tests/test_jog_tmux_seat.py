@@ -140,7 +140,7 @@ def test_seat_record_stop_and_quit_at_80x24(tmp_path, emulators):
         screen = term.wait_for("STOPPED")
         _show("after ctrl+c", screen)
         assert "go near B cancelled" in screen and "live solve" in screen  # still running
-        assert wall < 0.5, wall
+        assert wall < 0.6, wall  # run alone (exclusive); seen 32-188 ms at load 7-17
 
         # a terminal smaller than 80x24 says so
         subprocess.run(["tmux", "-L", term.sock, "resize-window", "-t", "jog", "-x", "70", "-y", "20"], check=True)

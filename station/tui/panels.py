@@ -213,12 +213,12 @@ def jog_text(ctl: JogController, compact: bool) -> Text:
     _touch(ctl, t)
     if ctl.near is not None:
         state, colour = "going near" if compact else f"going near {ctl.near.plan.label}", "yellow"
+    elif r is not None and not r.enabled and not ctl.stale:
+        state, colour = "disabled (c)", "red"
     else:
         state = "no reading" if ctl.stale else ("moving" if r and r.moving else "still")
         colour = "green" if state == "still" else "yellow"
     t.append(f" {state}", style=colour)
-    if r is not None and not r.enabled:
-        t.append(" disabled", style="red")
     t.append("\n")
     _arm_state(ctl, t, compact)
     t.append("\n")
