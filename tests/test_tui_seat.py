@@ -108,10 +108,14 @@ def test_seat_a_socket_and_record_a_real_touch(rig):
             await pilot.press("m", "4", "d")
             await until(pilot, lambda: still(robot) and ctl.proximity.above < 0.0101, what="the 10 mm step")
             await pilot.press("3")
-            while ctl.proximity.distance > 0.007:
+            for _ in range(6):  # 10 mm above: 3 or 4 steps of 1 mm
+                if ctl.proximity.distance <= 0.007:
+                    break
+                before = ctl.proximity.distance
                 await pilot.press("d")
-                await until(pilot, lambda: still(robot) and not robot.status().moving, what="a 1 mm step")
-                await pilot.pause(0.15)
+                await until(pilot, lambda b=before: still(robot) and ctl.proximity.distance < b - 5e-4,
+                            what=f"a 1 mm step ({ctl.message})")
+            assert ctl.proximity.distance <= 0.007, ctl.message
             assert ctl.proximity.within and not ctl.readout.touch  # close, but a stiff arm does not seat
             await pilot.press("enter")
             assert "no contact" in ctl.message and not ctl.session.samples
