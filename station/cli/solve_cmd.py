@@ -181,6 +181,8 @@ def solve_command(model: str, tip_link: str | None, base_link: str | None, paylo
         raise _fail(f"--loss {loss!r}: expected linear, huber or soft_l1")
 
     m = _load_model(model, tool, tip_link, base_link, payload)
+    from station.cli.model_options import warn_lines
+
     try:
         s = read_samples(samples, m)
         obs = Observations(s.q, s.point, s.measured, s.weight, s.fixture)
@@ -190,6 +192,7 @@ def solve_command(model: str, tip_link: str | None, base_link: str | None, paylo
             ho = Observations(h.q, h.point, h.measured, h.weight, h.fixture)
     except SamplesFileError as e:
         raise _fail(str(e)) from None
+    warn_lines(s.warnings + (h.warnings if holdout is not None else []))
     if instrument_frame not in ("unknown", "base"):
         raise _fail(f"--instrument-frame {instrument_frame!r}: expected unknown or base")
     ref = _references(list(reference or []), obs.labels, str(samples))
@@ -381,9 +384,12 @@ def fk_command(model: str, tip_link: str | None, base_link: str | None, payload:
 
         m = load_calibration(calibration, m)
     try:
-        q, _ = read_joints(joints, m)
+        q, table = read_joints(joints, m)
     except SamplesFileError as e:
         raise _fail(str(e)) from None
+    from station.cli.model_options import warn_lines
+
+    warn_lines(table.warnings)
     pose = se3.matrix_to_pose(m.fk(q).reshape(-1, 4, 4), "rotvec")
     header = ["x[m]", "y[m]", "z[m]", "rx[rad]", "ry[rad]", "rz[rad]"]
     buf = io.StringIO()
