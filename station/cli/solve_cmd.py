@@ -117,11 +117,16 @@ def summary(res) -> str:
         h = res.holdout
         lines.append(f"holdout ({h['n_samples']} samples): RMS {h['rms_m'] * 1e3:.4f} mm, max {h['max_m'] * 1e3:.4f} "
                      f"mm (nominal model {h['rms_nominal_m'] * 1e3:.4f} mm)")
-    lines.append(f"{'parameter':<16} {'value':>12} {'std':>10}  unit")
+    lines.append(f"{'parameter':<16} {'value':>12} {'std':>10}  {'unit':<10} prior")
     for n, p in res.parameters.items():
         if p.identifiable:
             val, std, unit = _fmt(p)
-            lines.append(f"{n:<16} {val:>12} {std:>10}  {unit}")
+            # the prior's share of what is known of the parameter: 0 % the data alone, "freed" a prior the data
+            # contradicted (estimated from the data alone), "-" no prior (points, instrument frame)
+            share = "-" if p.prior_share is None else f"{100 * p.prior_share:.0f} %"
+            if any(c.get("parameter") == n and c.get("freed") for c in res.conflicts):
+                share = "freed"
+            lines.append(f"{n:<16} {val:>12} {std:>10}  {unit:<10} {share}")
     if res.constraints:
         lines.append("constraints:")
         lines += constraint_lines(res)

@@ -36,6 +36,8 @@ SIGMA_TOL = 0.05  # relative change of sigma between fits below which the prior 
 MAX_ROUNDS = 12  # decide / refit rounds before "the identified set did not settle"
 POSE_TOL = 1e-3  # rad or m: joint readings closer than this are the same pose
 RUNAWAY = 5.0  # prior standard deviations from nominal: beyond this a result is not trusted
+CONFLICT_Z = 5.0  # |data estimate - nominal| / sqrt(data var + prior var) beyond this: the prior contradicts the data
+DETERMINED_M = 1e-3  # m at the tool: a parameter whose data std is within this (or max_std) is determined by the data
 OUTLIER_THRESHOLD = 4.0  # standardised residual (any axis) above which a touch is excluded
 MAX_OUTLIER_FRACTION = 0.2  # more outliers than this: the model does not fit the data
 LOSSES = ("linear", "huber", "soft_l1")
@@ -167,7 +169,9 @@ class _Estimation:
     """The state of one solve: decide, fit, re-decide; outliers; final statistics."""
 
     def __init__(self, prob: Problem, prior, noise, max_std, loss, threshold, max_iter, joint_noise=None) -> None:
-        self.prob, self.prior, self.noise, self.max_std = prob, prior, noise, max_std
+        self.prob, self.prior, self.noise, self.max_std = prob, prior.copy(), noise, max_std
+        self.prior0 = prior.copy()  # as given: a prior freed by a prior-data conflict is reported with it
+        self.conflicts: list[dict] = []  # prior-data conflicts: each names the data's estimate, std and what was done
         self.loss, self.threshold, self.max_iter = loss, threshold, max_iter
         self.x0 = prob.x_nominal
         self.tool = prob.tool_per_unit()  # m of tool motion per unit
@@ -203,6 +207,8 @@ class _Estimation:
         sigma_w = self.noise if self.noise is not None else SIGMA_FIRST
         restructured = 0
         first = True
+        seen: list[list[int]] = []  # identified sets decided so far
+        frozen = False  # the decision went round in a circle: the union of the circle is kept (see below)
         for _ in range(MAX_ROUNDS):
             self.noise_model.set(sigma=sigma_w, w=self.w)
             x, r, J, it, conv = _fit(prob, x, A, self.noise_model, sigma_w, self.prior, self.x0, self.max_iter)
@@ -217,7 +223,15 @@ class _Estimation:
                 self.first = (r.copy(), len(A))  # residual and size of the (nearly) unconstrained fit
                 first = False
             dec = decide(BtB, S, self.order, [], sigma, self.prior, self.tool, self.max_std, tfac)
-            stable = dec.accepted == A and abs(sigma / sigma_w - 1.0) < SIGMA_TOL
+            accepted = dec.accepted
+            if frozen:
+                accepted = A
+            elif accepted != A and accepted in seen:
+                # a parameter at the line is in, then out, then in again as sigma moves with it: estimate it (the
+                # data carry about half its information either way; a circle must not become a failure)
+                accepted, frozen = sorted(set(A) | set(accepted)), True
+            seen.append(list(accepted))
+            stable = accepted == A and abs(sigma / sigma_w - 1.0) < SIGMA_TOL
             if stable and self.loss != "linear":
                 stable = not self._reweight(r, J, A, sigma)
             if stable:
@@ -236,29 +250,46 @@ class _Estimation:
                 self.settled = True
                 break
             for j in A:
-                if j not in dec.accepted:
+                if j not in accepted:
                     x[j] = self.x0[j]  # back to nominal: never keep numbers for a direction the data do not see
-            A, sigma_w = dec.accepted, sigma
+            A, sigma_w = accepted, sigma
         self.x, self.r, self.J, self.accepted, self.S = x, r, J, A, S
 
     def _conflicts(self, x, BtB, A, sigma) -> None:
-        """Prior-data conflict: the (nearly) unconstrained fit puts a parameter more than RUNAWAY prior
-        std from nominal, and the data are sure of it (also RUNAWAY of its own std). The MAP estimate
-        would then be dragged back by the prior with an inflated sigma: the result is not trusted."""
+        """Prior-data conflict, judged on the (nearly) unconstrained first fit: the data put a parameter further
+        from nominal than data and prior together allow (``CONFLICT_Z`` std of their difference). The MAP
+        estimate would be dragged back by the prior and the fit left with the difference. Where the data
+        determine the parameter (its std at the tool within ``max_std``, default 1 mm), its prior is freed and it
+        is estimated from the data alone, reported as such; where they cannot, the result is not trusted."""
         post = posterior(BtB, A, [], sigma, np.full(len(self.prior), np.inf))
-        hits = []
+        lim = self.max_std if self.max_std is not None else DETERMINED_M
+        freed, undetermined = [], []
         for i, j in enumerate(post.cols):
             pr = self.prior[j]
-            dev = abs(x[j] - self.x0[j])
-            if math.isfinite(pr) and dev > RUNAWAY * pr and dev > RUNAWAY * post.std[i]:
-                hits.append(f"{self.prob.names[j]} {_q(x[j] - self.x0[j], self.prob.units[j], True)} "
-                            f"({dev / pr:.1f}x its tolerance {_q(pr, self.prob.units[j])})")
-                self.conflict.add(j)
-        if hits:
-            more = f" and {len(hits) - 3} more" if len(hits) > 3 else ""
-            self.failure.append(f"prior-data conflict: the data put {', '.join(hits[:3])}{more} from nominal; if "
-                                "that is real, widen the prior (--prior NAME=VALUE), else the model or the data are "
-                                "wrong")
+            if not math.isfinite(pr):
+                continue
+            dev, sd = float(x[j] - self.x0[j]), float(post.std[i])
+            z = abs(dev) / math.hypot(sd, pr)
+            if not z > CONFLICT_Z:
+                continue
+            unit = self.prob.units[j]
+            determined = sd * self.tool[j] <= lim
+            text = (f"{self.prob.names[j]}: the data put it at {_q(dev, unit, True)} ± {_q(sd, unit)} from nominal "
+                    f"({abs(dev) / pr:.1f}x its tolerance {_q(pr, unit)})")
+            self.conflicts.append({"parameter": self.prob.names[j], "data_offset": dev, "data_std": sd,
+                                   "prior_std": float(pr), "z": z, "freed": bool(determined), "unit": unit})
+            self.conflict.add(j)
+            (freed if determined else undetermined).append(text)
+            if determined:
+                self.prior[j] = np.inf  # estimated from the data alone
+        if freed:
+            self.notes.append(f"prior-data conflict: {'; '.join(freed)}: estimated from the data alone (prior freed); "
+                              f"check the model, or state the tolerance with --prior NAME=STD")
+        if undetermined:
+            self.failure.append(f"prior-data conflict the data cannot settle: {'; '.join(undetermined[:3])}"
+                                f"{f' and {len(undetermined) - 3} more' if len(undetermined) > 3 else ''}: its "
+                                f"std at the tool exceeds {lim * 1e3:g} mm; take more varied poses (or the model or "
+                                f"the data are wrong)")
 
     def _btb(self, J: np.ndarray, x: np.ndarray, sigma: float) -> np.ndarray:
         """``B^T W B`` of the touches plus the known distances' information ``sigma^2 G^T G / s^2`` (so that
@@ -367,25 +398,32 @@ class _Estimation:
             cov = post.cov
             std[post.cols] = np.sqrt(np.maximum(np.diag(cov), 0.0))
         params: dict[str, ParameterEstimate] = {}
+        info = np.full(prob.n_unknowns, np.nan)  # H_A^-1: the noise part of the variance, prior included
+        if post is not None:
+            info[post.cols] = np.diag(post.info_inv)
         for i, n in enumerate(prob.names):
             kind, unit = prob.kinds[i], prob.units[i]
-            pr = float(self.prior[i]) if math.isfinite(self.prior[i]) else None
+            pr = float(self.prior0[i]) if math.isfinite(self.prior0[i]) else None
             nominal = float(self.x0[i]) if kind != "point" else math.nan
             if i in A:
                 shr = None if pr is None else max(0.0, 1.0 - (std[i] / pr) ** 2)
-                params[n] = ParameterEstimate(n, float(x[i]), nominal, float(std[i]), True, "", kind, unit, pr, shr)
+                # the prior's share of the estimate's information (0: the data alone; freed priors count 0)
+                share = None if pr is None else (0.0 if not math.isfinite(self.prior[i]) else
+                                                 float(min(1.0, info[i] / self.prior[i] ** 2)))
+                params[n] = ParameterEstimate(n, float(x[i]), nominal, float(std[i]), True, "", kind, unit, pr, shr,
+                                              prior_share=share)
                 continue
             value = nominal if kind == "model" else math.nan
             if i in self.struct.nulls:
                 nl: Null = self.struct.nulls[i]
                 params[n] = ParameterEstimate(n, value, nominal, None, False, nl.reason, kind, unit, pr, 0.0,
-                                              nl.fix, nl.cause)
+                                              nl.fix, nl.cause, prior_share=None if pr is None else 1.0)
             else:
                 would, _ = dec.weak.get(i, (math.nan, pr))
                 reason, fix = self._weak_reason(i, would, BtB, sigma, tfac)
                 shr = None if pr is None or not math.isfinite(would) else max(0.0, 1.0 - (would / pr) ** 2)
                 params[n] = ParameterEstimate(n, value, nominal, None, False, reason, kind, unit, pr, shr, fix,
-                                              "weak")
+                                              "weak", prior_share=None if pr is None else 1.0)
         rms0, max0 = _stats(self.r_before)
         act = self.w > 0
         rr = r.reshape(-1, 3)[act].ravel()
@@ -408,7 +446,7 @@ class _Estimation:
             rank=len(A), n_parameters=prob.n_unknowns, converged=self.converged, iterations=self.iterations,
             condition_number=cond, observability_index=o1, sigma_m=self.sigma_fit, covariance=cov,
             n_samples=len(prob.obs), n_residuals=r.size, notes=notes,
-            trusted=not self.failure, failure="; ".join(self.failure) or None,
+            trusted=not self.failure, failure="; ".join(self.failure) or None, conflicts=list(self.conflicts),
             outliers=self._outlier_list(sigma), constraints=self._constraints(x, r, post, A),
             noise={"sigma_m": sigma, "source": "declared" if self.noise is not None and not getattr(
                 self, "noise_contradicted", False) else "fitted", "declared_m": self.noise,
@@ -494,23 +532,6 @@ class _Estimation:
         if run:
             more = f" and {len(run) - 3} more" if len(run) > 3 else ""
             self.failure.append(f"collapse or runaway: {', '.join(run[:3])}{more} from nominal")
-        # the parameters left at nominal as weak must not be what the data need: were they within their
-        # tolerances, fixing them would raise the cost per dropped parameter by at most (delta/std)^2 sigma^2
-        # <= (RUNAWAY / MAX_RATIO)^2 sigma^2 for delta up to RUNAWAY prior std (F statistic against the fit of
-        # everything the structure allows)
-        r1, n1 = getattr(self, "first", (None, 0))
-        k = n1 - len(self.accepted)
-        m = self._rows()
-        c1 = float(np.sum(self.noise_model.residual(r1) ** 2)) if r1 is not None else 0.0  # same whitening
-        if r1 is not None and k > 0 and m > n1 and not self.outliers and c1 > 0:
-            rw = self.noise_model.residual(self.r)
-            F = ((float(rw @ rw) - c1) / k) / (c1 / (m - n1))
-            if F > (RUNAWAY / MAX_RATIO) ** 2 and not self.conflict:
-                self.failure.append(
-                    f"prior-data conflict: the {k} parameter(s) left at nominal as poorly observed are what the data "
-                    f"need (fit residual {math.sqrt(c1 / (m - n1)) * 1e3:.4f} mm per axis with them, "
-                    f"{math.sqrt(float(rw @ rw) / max(m - len(self.accepted), 1)) * 1e3:.4f} mm without): the model "
-                    "is wrong or its tolerances too tight; widen the prior or take more varied poses")
         if dof <= 0:
             self.failure.append("no degrees of freedom left to judge the fit")
 
