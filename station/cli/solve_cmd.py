@@ -81,8 +81,11 @@ def _references(specs: list[str], labels: list[str], samples: str):
     return ref
 
 
-def check_max_std(max_std: float) -> float:
-    """``--max-std`` (m at the tool): 0, negative or non-finite would switch identifiability off."""
+def check_max_std(max_std: float | None) -> float | None:
+    """``--max-std`` (m at the tool): 0, negative or non-finite would switch identifiability off. None (not
+    given): the priors decide what the data determine (docs/solver.md, section 3)."""
+    if max_std is None:
+        return None
     if not (math.isfinite(max_std) and 0 < max_std <= 1.0):
         raise _fail(f"--max-std {max_std!r}: expected a positive finite length in m (at most 1 m), e.g. 0.001")
     return max_std
@@ -153,7 +156,8 @@ SOLVE_OPTIONS = [
     Opt("out", "--out", "write the result JSON here", kind=Path),
     Opt("instrument_frame", "--instrument-frame", "x,y,z columns: unknown (solve the instrument frame) | base",
         "unknown"),
-    Opt("max_std", "--max-std", "m at the tool: weaker directions are not estimated", 1e-3, float),
+    Opt("max_std", "--max-std", "m at the tool: also leave at nominal what the data leave a larger std than this "
+        "(default: none, a parameter the data determine to within its prior is estimated)", None, float),
     Opt("prior", "--prior", "SELECTOR=STD with a unit, e.g. offsets=0.5deg, dh=0.3mm, dh.j2.a=0.1mm, "
         "compliance=1e-4rad/Nm (repeatable; overrides the model file's tolerances)", multiple=True),
     Opt("noise", "--noise", "declared touch noise per axis with a unit, e.g. 20um (default: fitted from the "
@@ -168,7 +172,7 @@ SOLVE_OPTIONS = [
 
 def solve_command(model: str, tip_link: str | None, base_link: str | None, payload: str | None, samples: Path,
                   identify: str, reference: tuple[str, ...], tool: str | None, holdout: Path | None,
-                  out: Path | None, instrument_frame: str, max_std: float, prior: tuple[str, ...],
+                  out: Path | None, instrument_frame: str, max_std: float | None, prior: tuple[str, ...],
                   noise: str | None, loss: str, distance: tuple[str, ...], plane: tuple[str, ...]) -> None:
     """Identify joint offsets, TCP, link geometry from touch samples. Exit 0: trusted result; 1: the solve
     failed or its result cannot be trusted (one line says why; the JSON is still written); 2: bad input."""

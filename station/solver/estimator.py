@@ -195,6 +195,46 @@ class _Estimation:
 
     # ---- the loop ---------------------------------------------------------------------------------
     def run(self) -> None:
+        """Fit, decide, refit until the identified set settles; a parameter the fit then puts far beyond its
+        tolerance (``RUNAWAY`` prior std) although the first fit did not flag it is a prior-data conflict found
+        late: freed where the data determine it, and the whole solve run again (at most twice)."""
+        self._run_once()
+        for _ in range(2):
+            if not self._late_conflicts():
+                break
+            self._run_once()
+
+    def _late_conflicts(self) -> bool:
+        """Free the priors of identified parameters beyond ``RUNAWAY`` prior std that the data determine; True
+        when any was freed (the caller solves again)."""
+        A = self.accepted
+        late = [j for j in A if math.isfinite(self.prior[j]) and abs(self.x[j] - self.x0[j]) > RUNAWAY * self.prior[j]]
+        if not late:
+            return False
+        sigma, tfac, _ = self._sigma(self.r, len(A))
+        BtB = self._btb(self.J, self.x, sigma)
+        lim = self.max_std if self.max_std is not None else DETERMINED_M
+        freed = []
+        for j in late:
+            own = self.prior.copy()
+            own[j] = np.inf  # the data's std of it: its own prior out, the others' in
+            post = posterior(BtB, A, [], sigma, own, tfac)
+            sd = float(post.std[post.cols.index(j)])
+            if sd * self.tool[j] > lim:
+                continue  # the data cannot settle it: the runaway stays a failure (_trust)
+            dev, pr, unit = float(self.x[j] - self.x0[j]), float(self.prior[j]), self.prob.units[j]
+            self.conflicts.append({"parameter": self.prob.names[j], "data_offset": dev, "data_std": sd,
+                                   "prior_std": pr, "z": abs(dev) / math.hypot(sd, pr), "freed": True, "unit": unit})
+            self.conflict.add(j)
+            self.prior[j] = np.inf
+            freed.append(f"{self.prob.names[j]}: the data put it at {_q(dev, unit, True)} ± {_q(sd, unit)} from "
+                         f"nominal ({abs(dev) / pr:.1f}x its tolerance {_q(pr, unit)})")
+        if freed:
+            self.notes.append(f"prior-data conflict: {'; '.join(freed)}: estimated from the data alone (prior "
+                              f"freed); check the model, or state the tolerance with --prior NAME=STD")
+        return bool(freed)
+
+    def _run_once(self) -> None:
         prob = self.prob
         x, r, J = prob.initial_with_jacobian()
         self.r_before = r
