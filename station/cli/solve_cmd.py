@@ -167,13 +167,16 @@ SOLVE_OPTIONS = [
         "default uncertainty 0.01 mm)", multiple=True),
     Opt("plane", "--plane", "LABEL: the touches labelled LABEL lie on one unknown plane (touch-probing a flat "
         "surface; repeatable)", multiple=True),
+    Opt("touch", "--touch", "how the tip meets the points: socket (a seated ball) | needle (aligned by eye); a fit "
+        "far above what that gives is not trusted and says why", "socket"),
 ]
 
 
 def solve_command(model: str, tip_link: str | None, base_link: str | None, payload: str | None, samples: Path,
                   identify: str, reference: tuple[str, ...], tool: str | None, holdout: Path | None,
                   out: Path | None, instrument_frame: str, max_std: float | None, prior: tuple[str, ...],
-                  noise: str | None, loss: str, distance: tuple[str, ...], plane: tuple[str, ...]) -> None:
+                  noise: str | None, loss: str, distance: tuple[str, ...], plane: tuple[str, ...],
+                  touch: str = "socket") -> None:
     """Identify joint offsets, TCP, link geometry from touch samples. Exit 0: trusted result; 1: the solve
     failed or its result cannot be trusted (one line says why; the JSON is still written); 2: bad input."""
     from station.safeio import dumps_json, write_atomic
@@ -188,6 +191,8 @@ def solve_command(model: str, tip_link: str | None, base_link: str | None, paylo
     planes = [_plane_label(p) for p in plane or []]
     if loss not in ("linear", "huber", "soft_l1"):
         raise _fail(f"--loss {loss!r}: expected linear, huber or soft_l1")
+    if touch not in ("socket", "needle"):
+        raise _fail(f"--touch {touch!r}: expected socket or needle (instrument samples are judged as a tracker's)")
 
     m = _load_model(model, tool, tip_link, base_link, payload)
     from station.cli.model_options import warn_lines
@@ -209,7 +214,8 @@ def solve_command(model: str, tip_link: str | None, base_link: str | None, paylo
         raise _fail(f"--reference: {samples} has instrument columns x,y,z; known points are not used with them")
     try:
         res = solve(m, obs, identify, ref, ho, instrument_frame=instrument_frame, max_std=max_std,
-                    noise=noise_m, priors=priors, loss=loss, distances=distances or None, planes=planes or None)
+                    noise=noise_m, priors=priors, loss=loss, distances=distances or None, planes=planes or None,
+                    touch=touch)
     except SolverInputError as e:
         msg = str(e)
         if msg.startswith("distance "):
@@ -224,7 +230,7 @@ def solve_command(model: str, tip_link: str | None, base_link: str | None, paylo
     _diagnose(res, m, obs, s, str(samples), noise_m,
               lambda o: solve(m, o, identify, ref, None, instrument_frame=instrument_frame, max_std=max_std,
                               noise=noise_m, priors=priors, loss=loss, distances=distances or None,
-                              planes=planes or None))
+                              planes=planes or None, touch=touch))
     res.settings.update(samples=str(samples), holdout=None if holdout is None else str(holdout), tool=tool,
                         payload=_payload_setting(payload))
     print(summary(res), flush=True)

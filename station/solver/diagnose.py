@@ -102,6 +102,28 @@ def _row_residuals(model, obs: Observations, res: CalibrationResult) -> np.ndarr
     return np.where(np.isfinite(d), d, 0.0)
 
 
+SCREEN = 0.8  # a hypothesis must pull the nominal model's touches of each point this much closer to be refitted
+
+
+def _spread(model, obs: Observations, q: np.ndarray) -> float | None:
+    """RMS distance of the nominal model's tips from the centroid of their point's touches (touch mode): a unit
+    slip scatters the poses by radians or metres, and its fix brings them back to the model's error, so a
+    hypothesis that leaves this spread where it was is not worth a refit (each costs a whole solve)."""
+    if obs.measured is not None:
+        return None
+    try:
+        P = model.position(q)
+    except Exception:  # noqa: BLE001 - a reading the model cannot take: no screen
+        return None
+    keys = obs.point.astype(str) if obs.fixture is None else np.char.add(obs.point.astype(str),
+                                                                           obs.fixture.astype(str))
+    d = []
+    for k in np.unique(keys):
+        p = P[keys == k]
+        d.append(np.sum((p - p.mean(axis=0)) ** 2))
+    return float(np.sqrt(np.sum(d) / len(P)))
+
+
 def _gross_outliers(res: CalibrationResult) -> list[tuple[int, float]]:
     """(row, residual m) of the touches the fit excluded that are too far off for a bad touch."""
     out = []
@@ -131,10 +153,14 @@ def unit_slip(model, obs: Observations, res: CalibrationResult,
     rms0 = float(res.residuals.get("rms_after_m", math.inf))
     best: Slip | None = None
 
+    spread0 = _spread(model, obs, q)
+
     def attempt(qn: np.ndarray, where: str, factor: float, unit: str, before: float, fits) -> None:
         nonlocal best
         if np.any(qn < lo) or np.any(qn > hi):
             return  # the rescaled readings are impossible: not this hypothesis
+        if spread0 is not None and not _spread(model, obs, qn) < SCREEN * spread0:
+            return  # the nominal model's touches do not come together: no refit can explain the misfit with it
         try:
             r = refit(dataclasses.replace(obs, q=qn))
         except Exception:  # a hypothesis the solver refuses is simply not the explanation

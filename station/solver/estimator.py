@@ -59,7 +59,8 @@ def select_names(model, identify) -> list[str]:
 def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown", holdout: Observations | None = None,
           *, instrument_frame: str = "unknown", noise: float | None = None, priors=None,
           max_std: float | None = None, loss: str = "linear", outlier_threshold: float | None = OUTLIER_THRESHOLD,
-          distances=None, planes=None, joint_noise=None, max_iter: int = 100) -> CalibrationResult:
+          distances=None, planes=None, joint_noise=None, max_iter: int = 100,
+          touch: str = "socket") -> CalibrationResult:
     """Identify ``identify`` of ``model`` from touch observations (MAP estimate with priors).
 
     ``reference``: ``"unknown"`` (every touched point is a nuisance unknown ``point.LABEL.{x,y,z}``) or
@@ -80,6 +81,9 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
     uncertainty, default ``DISTANCE_STD``; with several fixture positions, one per position), reported in
     ``result.constraints``, and scores the holdout. ``planes``: labels whose touches lie on one unknown
     plane each (per fixture position). Per-touch weights and fixture positions come with ``obs``.
+    ``touch``: how the tip meets the points (``socket``, ``needle``; instrument samples are ``tracker``): a fit far
+    above what that method gives, or one that leaves the residual where it started, is not trusted and says the
+    likely cause with its evidence (``result.diagnosis``; ``station.solver.misfit``).
     ``joint_noise`` (rad or m, one number or one per joint): std of the joint readings; default:
     the quantisation of the model's encoders (``station.solver.noise``); 0: none. A result carries
     ``trusted``; an untrusted one says why in ``failure``."""
@@ -93,6 +97,8 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
         raise SolverInputError(f"model {model.name} has {model.n_joints} joints, observations have {obs.q.shape[1]}")
     if instrument_frame not in ("unknown", "base"):
         raise SolverInputError(f"instrument_frame must be 'unknown' or 'base', got {instrument_frame!r}")
+    if touch not in ("socket", "needle", "tracker"):
+        raise SolverInputError(f"touch must be socket, needle or tracker, got {touch!r}")
     if loss not in LOSSES:
         raise SolverInputError(f"loss must be one of {', '.join(LOSSES)}, got {loss!r}")
     if noise is not None and not (math.isfinite(noise) and noise > 0):
@@ -119,6 +125,7 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
         est = _Estimation(prob, prior, noise, max_std, loss, outlier_threshold, max_iter, joint_noise)
     except ValueError as e:
         raise SolverInputError(str(e)) from None
+    est.method = "tracker" if obs.measured is not None else touch
     est.run()
     res = est.result()
     if holdout is not None:
@@ -132,6 +139,7 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
                         priors={n: float(prior[i]) for i, n in enumerate(prob.names) if math.isfinite(prior[i])},
                         distances=[{"between": [a, b], "distance_m": v, "std_m": sd} for a, b, v, sd in dist],
                         planes=list(planes or []), weighted=obs.weight is not None, fixtures=obs.fixtures,
+                        touch=est.method,
                         estimator="maximum a posteriori, Levenberg-Marquardt on the analytic Jacobian")
     res.solve_time_s = time.perf_counter() - t0
     return res
@@ -470,6 +478,9 @@ class _Estimation:
         rms1, max1 = _stats(rr)
         notes = list(self.notes)
         self._trust(params, dof)
+        diagnosis = self._misfit(x, r, sigma, rms0, rms1)
+        if diagnosis is not None:  # the cause first: conflicts and runaways are its symptoms
+            self.failure.insert(0, diagnosis.pop("line"))
         if isinstance(prob.known, dict) and prob.known and prob.unknown_points:
             notes.append(f"reference point(s) {', '.join(prob.unknown_points)} not given: solved as unknown")
         if self.noise is not None and getattr(self, "noise_contradicted", False):
@@ -487,6 +498,7 @@ class _Estimation:
             condition_number=cond, observability_index=o1, sigma_m=self.sigma_fit, covariance=cov,
             n_samples=len(prob.obs), n_residuals=r.size, notes=notes,
             trusted=not self.failure, failure="; ".join(self.failure) or None, conflicts=list(self.conflicts),
+            diagnosis=diagnosis,
             outliers=self._outlier_list(sigma), constraints=self._constraints(x, r, post, A),
             noise={"sigma_m": sigma, "source": "declared" if self.noise is not None and not getattr(
                 self, "noise_contradicted", False) else "fitted", "declared_m": self.noise,
@@ -494,6 +506,27 @@ class _Estimation:
                 "joint": [float(v) for v in self.joint_noise],
                 "resolution": [float(v) for v in self.resolution]})
         return res
+
+    def _misfit(self, x, r, sigma, rms0, rms1) -> dict | None:
+        """Why nothing improved (``station.solver.misfit``), or None when the fit is as good as the method allows."""
+        from station.solver.misfit import explain
+
+        prob = self.prob
+        obs = prob.obs
+        keys = obs.point.astype(str)
+        if obs.fixture is not None:
+            keys = np.array([f"{p}@{f}" for p, f in zip(keys, obs.fixture.astype(str), strict=True)], dtype=object)
+        Jtcp = None
+        tcp = [f"tcp.{a}" for a in "xyz"]
+        if not any(n in prob.names and prob.names.index(n) in self.accepted for n in tcp):
+            try:
+                _, _, Jp = prob.model.jacobians(obs.q, prob.full_params(x))
+                Jtcp = Jp[:, :3, [prob.model.index(n) for n in tcp]]
+            except (KeyError, ValueError):
+                Jtcp = None
+        return explain(obs.q, keys, r.reshape(-1, 3), self.w > 0, prob.joint_jacobian(x), Jtcp, rms0, rms1,
+                       sigma, self.method, [j.name for j in prob.model.joints],
+                       [j.revolute for j in prob.model.joints])
 
     def _constraints(self, x, r, post, A) -> list[dict]:
         """The known distances and planes of the fit, each with its stated and fitted value and residual."""
