@@ -152,7 +152,8 @@ SOLVE_OPTIONS = [
     Opt("identify", "--identify", "groups/names/globs, e.g. offsets,tcp,dh", "offsets,tcp"),
     Opt("reference", "--reference", "unknown | x,y,z (m, or suffix mm) | LABEL=x,y,z (repeatable)", multiple=True),
     Opt("tool", "--tool", "nominal TCP x,y,z in the flange frame (m, or suffix mm)"),
-    Opt("holdout", "--holdout", "CSV of validation samples (same columns)", kind=Path),
+    Opt("holdout", "--holdout", "CSV of validation samples (same columns), or fixture=F1[,F2] / point=A[,B]: hold "
+        "out the samples' rows of those fixture positions (or points) and score the fit on them", kind=Path),
     Opt("out", "--out", "write the result JSON here", kind=Path),
     Opt("instrument_frame", "--instrument-frame", "x,y,z columns: unknown (solve the instrument frame) | base",
         "unknown"),
@@ -197,16 +198,20 @@ def solve_command(model: str, tip_link: str | None, base_link: str | None, paylo
     m = _load_model(model, tool, tip_link, base_link, payload)
     from station.cli.model_options import warn_lines
 
+    group = _holdout_group(holdout)
     try:
         s = read_samples(samples, m)
         obs = Observations(s.q, s.point, s.measured, s.weight, s.fixture)
         ho = None
-        if holdout is not None:
+        if holdout is not None and group is None:
             h = read_samples(holdout, m)
             ho = Observations(h.q, h.point, h.measured, h.weight, h.fixture)
+            s.warnings += h.warnings
     except SamplesFileError as e:
         raise _fail(str(e)) from None
-    warn_lines(s.warnings + (h.warnings if holdout is not None else []))
+    warn_lines(s.warnings)
+    if group is not None:
+        obs, ho = split_holdout(obs, group, str(samples))
     if instrument_frame not in ("unknown", "base"):
         raise _fail(f"--instrument-frame {instrument_frame!r}: expected unknown or base")
     ref = _references(list(reference or []), obs.labels, str(samples))
@@ -240,6 +245,44 @@ def solve_command(model: str, tip_link: str | None, base_link: str | None, paylo
     if not res.trusted:
         print(f"station: solve failed: {res.failure or 'result not trusted'}", file=sys.stderr, flush=True)
         sys.exit(1)
+
+
+_GROUP = re.compile(r"^(fixture|point)=([A-Za-z0-9_-]+(?:,[A-Za-z0-9_-]+)*)$")
+
+
+def _holdout_group(holdout: Path | None) -> tuple[str, list[str]] | None:
+    """``--holdout fixture=2,3`` / ``point=C``: (column, labels); None for a file (an existing file wins)."""
+    if holdout is None or holdout.exists():
+        return None
+    m = _GROUP.match(str(holdout))
+    return None if m is None else (m.group(1), m.group(2).split(","))
+
+
+def split_holdout(obs, group: tuple[str, list[str]], samples: str):
+    """(fit, held out) by a label group of the samples: the rows of fixture positions (or points) ``labels`` are
+    left out of the fit and scored on it. Held-out fixture positions are new places: their points are scored by
+    consistency (their touches must meet), each position on its own."""
+    import numpy as np
+
+    from station.solver import Observations
+
+    col, labels = group
+    have = obs.fixture if col == "fixture" else obs.point
+    if have is None:
+        raise _fail(f"--holdout {col}=...: {samples} has no '{col}' column")
+    known = sorted(set(have.astype(str).tolist()))
+    missing = [lb for lb in labels if lb not in known]
+    if missing:
+        raise _fail(f"--holdout {col}={','.join(labels)}: no {col} {missing[0]!r} in {samples} ({col}s: "
+                    f"{', '.join(known)})")
+    out = np.isin(have.astype(str), labels)
+    if out.all():
+        raise _fail(f"--holdout {col}={','.join(labels)}: that is every row of {samples}; nothing left to fit")
+    fit, ho = obs.subset(~out), obs.subset(out)
+    if ho.fixture is not None:  # each held-out position's points are its own: LABEL@FIXTURE
+        ho = Observations(ho.q, np.array([f"{p}@{f}" for p, f in zip(ho.point, ho.fixture, strict=True)],
+                                         dtype=object), ho.measured, ho.weight, None)
+    return fit, ho
 
 
 def _payload_setting(payload: str | None) -> dict | None:
