@@ -115,11 +115,12 @@ def _spread(model, obs: Observations, q: np.ndarray) -> float | None:
         P = model.position(q)
     except Exception:  # noqa: BLE001 - a reading the model cannot take: no screen
         return None
-    keys = obs.point.astype(str) if obs.fixture is None else np.char.add(obs.point.astype(str),
-                                                                           obs.fixture.astype(str))
+    keys = [str(p) for p in obs.point] if obs.fixture is None else [f"{p}@{f}" for p, f in
+                                                                   zip(obs.point, obs.fixture, strict=True)]
+    arr = np.array(keys, dtype=object)
     d = []
-    for k in np.unique(keys):
-        p = P[keys == k]
+    for k in dict.fromkeys(keys):  # np.unique of objects would import numpy.ma on the solve path
+        p = P[arr == k]
         d.append(np.sum((p - p.mean(axis=0)) ** 2))
     return float(np.sqrt(np.sum(d) / len(P)))
 
@@ -153,13 +154,15 @@ def unit_slip(model, obs: Observations, res: CalibrationResult,
     rms0 = float(res.residuals.get("rms_after_m", math.inf))
     best: Slip | None = None
 
-    spread0 = _spread(model, obs, q)
+    spread0: list[float | None] = []  # computed on the first hypothesis that needs it
 
     def attempt(qn: np.ndarray, where: str, factor: float, unit: str, before: float, fits) -> None:
         nonlocal best
         if np.any(qn < lo) or np.any(qn > hi):
             return  # the rescaled readings are impossible: not this hypothesis
-        if spread0 is not None and not _spread(model, obs, qn) < SCREEN * spread0:
+        if not spread0:
+            spread0.append(_spread(model, obs, q))
+        if spread0[0] is not None and not _spread(model, obs, qn) < SCREEN * spread0[0]:
             return  # the nominal model's touches do not come together: no refit can explain the misfit with it
         try:
             r = refit(dataclasses.replace(obs, q=qn))

@@ -84,7 +84,7 @@ def explain(q: np.ndarray, keys: np.ndarray, r: np.ndarray, active: np.ndarray, 
     facts: dict[str, float | str] = {"sigma_m": sigma, "method": method, "method_noise_m": typical}
     # repeatability between touches of one point in one arm configuration
     pairs = []
-    for k in np.unique(keys[act]):
+    for k in dict.fromkeys(keys[act].tolist()):
         idx = act[keys[act] == k]
         for a in range(len(idx)):
             near = idx[a + 1:][np.max(np.abs(q[idx[a + 1:]] - q[idx[a]]), axis=1) < SAME_POSE]
