@@ -67,7 +67,7 @@ def load_cli_model(model: str, tip_link: str | None = None, base_link: str | Non
     from station.kinematics import load_model
 
     m = load_model(model, tip_link=tip_link, base_link=base_link)  # ModelFileError: one line, exit 2
-    warn_lines(m.source.get("warnings") or [])
+    warn_lines((getattr(m, "source", None) or {}).get("warnings") or [])
     if payload:
         mass, com = parse_payload(payload)
         m = m.with_payload(mass, com)
