@@ -204,3 +204,22 @@ def test_cli_prints_each_warning_as_one_line_on_stderr(tmp_path):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 2 and all(s.startswith("station: warning: ") for s in lines)
     assert "x[m]" in r.stdout and "warning" not in r.stdout
+
+
+def test_a_chain_whose_tip_sits_on_its_only_axis_solves(tmp_path):
+    """A quadcopter rotor (one joint, the tip on its axis): nothing moves the tip, which the solve must say (it
+    divided by the tip's zero motion before)."""
+    from station.kinematics.urdf import chain as urdf_chain
+
+    path = erd("iris_description/robots/iris.urdf")
+    ch = urdf_chain(read_urdf(path), "iris__rotor_0")
+    rng = np.random.default_rng(3)
+    q = rng.uniform(-3, 3, (12, 1))
+    xyz = np.array([ch.fk(v)[:3, 3] for v in q]) + rng.normal(0, 2e-5, (12, 3))
+    (tmp_path / "s.csv").write_text("q1,x,y,z\n" + "\n".join(",".join(repr(float(v)) for v in (*a, *b))
+                                                              for a, b in zip(q, xyz, strict=True)) + "\n")
+    p = subprocess.run([STATION, "solve", "--model", str(path), "--tip-link", "iris__rotor_0", "--samples", "s.csv",
+                        "--instrument-frame", "base", "--identify", "offsets,tcp"], capture_output=True, text=True,
+                       cwd=tmp_path, timeout=60)
+    assert p.returncode == 0, p.stderr
+    assert "offset.j1: the TCP is free" in p.stdout
