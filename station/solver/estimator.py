@@ -509,8 +509,12 @@ class _Estimation:
 
     def _misfit(self, x, r, sigma, rms0, rms1) -> dict | None:
         """Why nothing improved (``station.solver.misfit``), or None when the fit is as good as the method allows."""
-        from station.solver.misfit import explain
+        if not (math.isfinite(sigma) and math.isfinite(rms0) and math.isfinite(rms1)):
+            return None
+        from station.solver.misfit import explain, nothing_improved
 
+        if not nothing_improved(rms0, rms1, sigma, self.method):
+            return None  # the common case costs no Jacobian
         prob = self.prob
         obs = prob.obs
         keys = obs.point.astype(str)

@@ -64,6 +64,12 @@ def joint_play(r: np.ndarray, Jq: np.ndarray) -> tuple[float, np.ndarray, np.nda
     return float(np.sqrt(v[0])), np.sqrt(v[1:]), parts[1:] / total
 
 
+def nothing_improved(rms_before: float, rms_after: float, sigma: float, method: str) -> bool:
+    """The fit is far above what the touch method gives, or left the residual where it started."""
+    typical = METHOD_NOISE.get(method, METHOD_NOISE["socket"])
+    return sigma > FAR * typical or (rms_after > STUCK * rms_before and sigma > 3.0 * typical)
+
+
 def explain(q: np.ndarray, keys: np.ndarray, r: np.ndarray, active: np.ndarray, Jq: np.ndarray,
             Jtcp: np.ndarray | None, rms_before: float, rms_after: float, sigma: float, method: str,
             joint_names: list[str], revolute: list[bool]) -> dict | None:
