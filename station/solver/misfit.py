@@ -42,14 +42,38 @@ def _explained(r: np.ndarray, X: np.ndarray) -> tuple[float, np.ndarray]:
     return float(1.0 - (e @ e) / (r @ r)), b
 
 
+def _nnls(A: np.ndarray, y: np.ndarray, max_iter: int = 100) -> np.ndarray:
+    """``min |A x - y|, x >= 0`` by Lawson and Hanson's active set (a dozen unknowns here; scipy.optimize would cost
+    the command ~0.3 s of imports for it)."""
+    n = A.shape[1]
+    x = np.zeros(n)
+    free = np.zeros(n, dtype=bool)
+    for _ in range(max_iter):
+        w = A.T @ (y - A @ x)
+        cand = np.flatnonzero(~free & (w > 1e-12 * max(1.0, float(np.abs(w).max()))))
+        if not len(cand):
+            break
+        free[cand[np.argmax(w[cand])]] = True
+        while True:
+            z = np.zeros(n)
+            z[free] = np.linalg.lstsq(A[:, free], y, rcond=None)[0]
+            if np.all(z[free] > 0):
+                x = z
+                break
+            neg = free & (z <= 0)
+            alpha = float(np.min(x[neg] / (x[neg] - z[neg])))
+            x = x + alpha * (z - x)
+            free &= x > 1e-15
+            x[~free] = 0.0
+    return x
+
+
 def joint_play(r: np.ndarray, Jq: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """Variance components of the residual: ``r_i r_i^T ~ s_t^2 I + sum_j v_j g_ij g_ij^T`` (``g_ij`` joint j's
     effect on touch i's tip) by non-negative least squares on the products' six distinct entries. Returns the
     tip's own std ``s_t`` (seating, the instrument), each joint's reading std ``sqrt(v_j)`` and each joint's
     share of the residual variance. Touch noise sits at the tip, isotropic whatever the pose; play in a joint
     (backlash) moves the tip along that joint's direction of motion, more where its lever is long."""
-    from scipy.optimize import nnls  # only when a misfit is being explained
-
     n = Jq.shape[2]
     iu = np.triu_indices(3)
     A = np.empty((len(r) * 6, n + 1))
@@ -58,7 +82,7 @@ def joint_play(r: np.ndarray, Jq: np.ndarray) -> tuple[float, np.ndarray, np.nda
         g = Jq[:, :, j]
         A[:, j + 1] = np.einsum("ni,nj->nij", g, g)[:, iu[0], iu[1]].ravel()
     y = np.einsum("ni,nj->nij", r, r)[:, iu[0], iu[1]].ravel()
-    v, _ = nnls(A, y)
+    v = _nnls(A, y)
     parts = np.r_[3 * v[0], v[1:] * np.mean(np.sum(Jq**2, axis=1), axis=0)]
     total = float(parts.sum()) or 1.0
     return float(np.sqrt(v[0])), np.sqrt(v[1:]), parts[1:] / total
