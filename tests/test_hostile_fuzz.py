@@ -461,13 +461,6 @@ def urdf_text(draw):
     return URDF.format(**values)
 
 
-# the URDF and model readers belong to the kinematics (issue 21 makes them refuse 1e308 origins and axes)
-URDF_XFAIL = pytest.mark.xfail(reason="URDF reader (station/kinematics/urdf.py, issue 21's engineer): values like "
-                                      "an origin of 1e308 or an axis of 0 0 -1e308 still end in an internal error "
-                                      "or a numpy warning", strict=False)
-
-
-@URDF_XFAIL
 @pytest.mark.parametrize("runs", FUZZ_SIZES)
 def test_cli_urdf_fuzz(runs, tmp_path):
     joints = tmp_path / "j.csv"
@@ -486,7 +479,6 @@ def test_cli_urdf_fuzz(runs, tmp_path):
                                   URDF.format(**{**URDF_GOOD, "axis2": "0 0 -1e308"}),
                                   URDF.format(**{**URDF_GOOD, "rpy1": "1e308 0 0"})],
                          ids=["origin-1e308", "axis-minus-1e308", "rpy-1e308"])
-@URDF_XFAIL
 def test_cli_urdf_issue_cases(tmp_path, text):
     f = tmp_path / "arm.urdf"
     f.write_text(text)
