@@ -80,8 +80,7 @@ def explain(err: BaseException | None, *, serial: str | None = None, resumable: 
                       f"The robot keeps a backup. {go[0].upper() + go[1:]} to write it again; if it fails again, "
                       "call the technician.", detail, "robot")
     if isinstance(err, errors.DeviceFault):
-        who = f" ({err.device})" if getattr(err, "device", None) else ""
-        return Reason(f"The robot reported a fault{who}.",
+        return Reason("The robot reported a fault.",
                       f"Read the fault on the robot, clear it, then {go}. If it comes back, call the technician.",
                       detail, "robot")
     if isinstance(err, errors.LimitError):
