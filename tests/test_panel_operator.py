@@ -48,6 +48,17 @@ def _visible_text(page) -> str:
     return page.evaluate("() => document.body.innerText")
 
 
+def _screen(page, panel: Panel, selector: str, timeout_ms: int) -> None:
+    """Wait for a screen of the page; a timeout says the panel's state (another verdict? still running?)."""
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+    try:
+        page.wait_for_selector(selector, timeout=timeout_ms)
+    except PlaywrightTimeout:
+        st = {k: v for k, v in panel.state().items() if k != "residuals"}
+        raise AssertionError(f"no {selector} on the page; panel state: {st}") from None
+
+
 def _wait(pred, timeout: float, what: str, panel: Panel):
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -72,7 +83,7 @@ def test_error_resume_pass_at_phone_desktop_and_line_monitor(tmp_path, emulators
     page.goto(panel.base + "/")
     _sign_in_and_scan(page, serial)
     page.keyboard.press("Enter")  # START
-    page.wait_for_selector("#prompt-text", state="visible", timeout=30_000)
+    _screen(page, panel, "#prompt-text >> visible=true", 30_000)
     _fits(page, 390, 844, "#prompt-ok")
     page.click("#prompt-ok")
 
@@ -89,7 +100,7 @@ def test_error_resume_pass_at_phone_desktop_and_line_monitor(tmp_path, emulators
         page.screenshot(path=str(tmp_path / f"running-{w}.png"))
         # the servos stop answering at the next move (more lost answers than the driver's retries)
         world.faults.inject("timeout", device=None, count=4, trigger=MOVE)
-        page.wait_for_selector("#verdict.error", timeout=60_000)
+        _screen(page, panel, "#verdict.error", 60_000)
         st = panel.state()
         sid = sid or st["session"]
         assert st["verdict"] == "ERROR" and st["session"] == sid and st["resumable"] is True, st
@@ -114,7 +125,7 @@ def test_error_resume_pass_at_phone_desktop_and_line_monitor(tmp_path, emulators
         assert len(kept[-1]) == st["samples"] >= 2 * (k + 1)
         # RESUME: the operator confirms the cell before the robot moves again (someone may have been inside)
         page.click("#verdict-resume")
-        page.wait_for_selector("#prompt-text", state="visible", timeout=30_000)
+        _screen(page, panel, "#prompt-text >> visible=true", 30_000)
         assert "finish the unit" in page.inner_text("#prompt-text") and not page.is_visible("#verdict")
         _fits(page, w, h, "#prompt-ok")
         page.click("#prompt-ok")
@@ -125,7 +136,7 @@ def test_error_resume_pass_at_phone_desktop_and_line_monitor(tmp_path, emulators
         assert "stopped answering" not in text and "ERROR" not in text, text
         assert page.inner_text("#notice") == "" and page.inner_text("#message") == ""
 
-    page.wait_for_selector("#verdict.pass", timeout=180_000)
+    _screen(page, panel, "#verdict.pass", 180_000)
     st = panel.state()
     assert st["verdict"] == "PASS" and st["session"] == sid and st["stored"] is True
     for w, h in reversed(WIDTHS):
