@@ -97,6 +97,14 @@ def test_error_resume_pass_at_phone_desktop_and_line_monitor(tmp_path, emulators
         assert page.inner_text("#state-word") == "CALIBRATING" and "of 14 points measured" in page.inner_text(
             "#samples")
         _fits(page, w, h, "#state-word", "#abort")
+        # the plot explains its colours; on a line monitor the page uses its width: state left, plot right
+        legend = page.inner_text("#plot-box .legend")
+        assert "used to calibrate" in legend and "check point" in legend
+        unit, plot = (page.locator(sel).bounding_box() for sel in ("#unit", "#plot-box"))
+        if w >= 1400:
+            assert plot["x"] > unit["x"] + unit["width"] and plot["x"] + plot["width"] > 0.95 * w, (unit, plot)
+        else:
+            assert plot["y"] > unit["y"] + unit["height"], (unit, plot)  # one column
         page.screenshot(path=str(tmp_path / f"running-{w}.png"))
         # the servos stop answering at the next move (more lost answers than the driver's retries)
         world.faults.inject("timeout", device=None, count=4, trigger=MOVE)
