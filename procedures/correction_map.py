@@ -27,7 +27,6 @@ from station.engine import events as ev
 from station.engine.plan import PlannedPose, PosePlan
 from station.kinematics import se3
 from station.robot.errors import ConfigError, DeviceFault
-from station.robot.registry import open_instrument
 from station.solver.map import FULL, POSITION, MapError, build_map, plan, to_vectors, working_model
 from station.solver.map.plan import predicted_residual
 from station.solver.map.register import register
@@ -44,14 +43,11 @@ def checklist(s):
     s.check_state()                              # 2. no fault or stop, powered
     payload(s)                                   # 3. the payload on the tool, if any: the compliance terms
     calibration(s)                               #    the parametric calibration the map sits on, if any
-    tracker = connect_tracker(s)                 #    connect and identify the tracker (journaled; same one)
-    try:
-        todo = map_plan(s)                       # 4. grid of actuator levels + held-out configurations
-        for pose in s.todo(todo):                # 5. every configuration not yet measured:
-            move(s, pose)                        #    drive the actuators there (keep-outs checked)
-            measure(s, tracker, pose)            #    read actuators and tracker at rest, journal the sample
-    finally:
-        tracker.close()
+    tracker = s.instrument("tracker")            #    connect and identify the tracker (journaled; same one)
+    todo = map_plan(s)                           # 4. grid of actuator levels + held-out configurations
+    for pose in s.todo(todo):                    # 5. every configuration not yet measured:
+        move(s, pose)                            #    drive the actuators there (keep-outs checked)
+        s.measure_pose(pose, tracker)            #    read actuators and tracker at rest, journal the sample
     reg = register_tracker(s)                    # 6. tracker frame -> base frame (best fit, grid samples only)
     cmap = build(s, reg)                         # 7. correction summands KSF_PM, the map KSF_KR
     verify(s, cmap, reg)                         # 8. held-out: nominal vs. mapped pose against the tracker
@@ -146,32 +142,6 @@ def _calibration(s) -> dict | None:
 def _working(s):
     """The model the map sits on: nominal, or the journaled parametric calibration of it."""
     return working_model(s.model, _calibration(s))
-
-
-def connect_tracker(s):
-    """Open the instrument at ``--tracker URL`` (``station resume --tracker URL``: the address it came back on)
-    and check it is the one the session started with: its protocol, serial and model as journaled; another
-    tracker mid-calibration measures in another frame (refused in one line)."""
-    url = s.options.get("tracker")
-    if not url:
-        raise ConfigError("correction_map needs a measuring instrument: --tracker tcp://HOST:PORT")
-    first = (s.events("instrument") or [None])[0]
-    with s.step("connect_tracker", url=url):
-        tracker = open_instrument(url)
-        ident = {"serial": tracker.serial, "model": getattr(tracker, "spec", {}).get("model")}
-        if first is not None:
-            was = {"serial": first.data.get("serial"), "model": (first.data.get("spec") or {}).get("model")}
-            if was != ident:
-                tracker.close()
-                raise ConfigError(
-                    f"instrument at {url} is {_who(ident)}, the session started with {_who(was)}: another "
-                    "tracker measures in another frame; reconnect that one, or start a new session")
-        s.event({"type": "instrument", "url": url, "serial": tracker.serial, "spec": tracker.spec})
-    return tracker
-
-
-def _who(ident: dict) -> str:
-    return f"serial {ident['serial']!r}" + (f" model {ident['model']!r}" if ident.get("model") else "")
 
 
 def map_plan(s) -> PosePlan:
@@ -290,22 +260,6 @@ def move(s, pose: PlannedPose) -> None:
     for target in route_from(m, s.cell.keep_out if s.cell else None, s.robot.joint_positions().q, [short, q],
                              what=f"configuration {pose.index}"):
         s.move_to(target)
-
-
-def measure(s, tracker, pose: PlannedPose) -> ev.Sample:
-    """Read all actuators, then the tracker (it answers only once the probe stands still), then the actuators
-    again: a reading that moved in between is a fault, not a sample. Journaled (fsynced) before the next move."""
-    snap = s.robot.joint_positions()
-    m = tracker.measure()
-    again = s.robot.joint_positions()
-    q, q2 = np.asarray(snap.q, float), np.asarray(again.q, float)
-    if not np.all(np.isfinite(q)) or np.max(np.abs(q2 - q)) > 1e-6:
-        raise DeviceFault(f"measure: the robot moved while the tracker measured configuration {pose.index} "
-                          f"(actuators changed by {np.max(np.abs(q2 - q)):.3g})")
-    return s.event(ev.Sample(
-        point=pose.point, q=q.tolist(), raw=list(snap.raw), raw_unit=snap.raw_unit, t_read=snap.t,
-        t_device=snap.t_device, measured=list(m.xyz), measured_rotation=list(m.rv), pose=pose.index, set=pose.set,
-        status={"instrument": tracker.serial, "t_instrument": m.t}))
 
 
 def _arrays(s, which: str):
