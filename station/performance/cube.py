@@ -28,6 +28,10 @@ APPROACH = 0.01  # m: an approach pose this far back along the approach directio
 JOINT_MARGIN = np.radians(5.0)  # rad (m for a prismatic joint: PRISMATIC_MARGIN) from every joint limit
 PRISMATIC_MARGIN = 0.005
 BRANCH = 2.0  # rad: no joint may turn further than this from its value at the centre (no configuration flip)
+# every joint turns at least this much on the last motion onto a pose (m for a prismatic joint: PRELOAD_LENGTH), so
+# its gear backlash is taken up on the same side every time, also for a joint the approach direction hardly turns
+PRELOAD = np.radians(0.2)
+PRELOAD_LENGTH = 0.5e-3
 MIN_CONDITION = 0.02  # smallest / largest singular value of the Jacobian (rotation rows in ROTATION_LENGTH)
 ROTATION_LENGTH = 0.3  # m per rad: weighs the Jacobian's rotation rows against its position rows
 PLANES = ("x+", "x-", "y+", "y-", "z+", "z-")
@@ -195,7 +199,21 @@ def plan_cube(model, cube: TestCube, q_centre: np.ndarray, directions: dict[str,
             poses[name] = q
         else:
             approach.setdefault(name, {})[d] = q
+    for name, by_dir in approach.items():
+        for d, qa in by_dir.items():
+            by_dir[d] = preloaded(model, poses[name], qa)
     return Plan(cube, poses, approach), None
+
+
+def preloaded(model, q: np.ndarray, q_approach: np.ndarray) -> np.ndarray:
+    """The approach configuration with every joint at least ``PRELOAD`` from the pose, on the side the approach
+    direction turns it from (a joint it does not turn: from below). The last motion then takes up each joint's
+    backlash on a side fixed by the pose and the direction alone, whatever the arm did before (a joint that did
+    not move would keep the side of an earlier, different motion)."""
+    least = np.array([PRELOAD if j.revolute else PRELOAD_LENGTH for j in model.joints])
+    delta = np.asarray(q, float) - np.asarray(q_approach, float)
+    side = np.where(np.abs(delta) > 1e-9, np.sign(delta), 1.0)
+    return np.asarray(q, float) - side * np.maximum(np.abs(delta), least)
 
 
 def largest_cube(model, q_start, directions: dict[str, tuple[str, ...]], *, plane: str = "x+", checker=None,
