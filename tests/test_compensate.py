@@ -202,3 +202,46 @@ def test_predicted_uncertainty_is_calibrated_over_monte_carlo():
     r2 = np.mean(np.square(ratios))
     assert 0.6 < r2 < 1.6, r2  # errors within a world are correlated: a wide band, a mis-scaled sigma falls out
     assert max(ratios) < 4.0
+
+
+@pytest.mark.slow  # ~10 s: a scripted session on the emulated arm6 with the tracker, then a solve
+def test_calibration_from_a_session(calibrated, tmp_path, monkeypatch):
+    """``--calibration SESSION``: the session's solve result, its samples weigh the uncertainty (the tracker frame
+    solved as a nuisance there: the readings are in the instrument's frame)."""
+    from station.mocks.tracker.server import TrackerServer
+
+    from station.engine.plan import PlannedPose
+
+    monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
+    world = World.default("arm6", seed=9, start=GOOD.tolist())
+    channel = f"cs{uuid.uuid4().hex[:8]}"
+    emu = CanopenEmulator(world, "virtual", channel).start()
+    rng = np.random.default_rng(4)
+    try:
+        with TrackerServer(world, tracker_config({}), seed=2) as trk, station.session(
+                f"canopen+virtual://{channel}?nodes=1-6&model=arm6&serial=CS1&sdo_timeout_ms=2000&heartbeat_ms=1000",
+                "CS1", name="tracker_calibration", options={"tracker": trk.url}, db=f"sqlite:///{tmp_path}/r.db",
+                report=False) as s:
+            tracker = s.instrument("tracker")
+            for i, q in enumerate(GOOD + rng.uniform(-np.radians(25), np.radians(25), (50, 6))):
+                s.move_to(q)
+                s.measure_pose(PlannedPose(i, "P", q.tolist(), q.tolist()), tracker)
+            res = s.solve(identify="offsets,dh,tcp")
+            assert res.trusted, res.failure
+            sid = s.id
+    finally:
+        emu.stop()
+    out = tmp_path / "o.csv"
+    r = _station_env({"STATION_HOME": str(tmp_path / "home")}, "compensate", "--model", "arm6", "--calibration", sid,
+                     "--poses", str(calibrated["targets"]), "--out", str(out), "--start",
+                     ",".join(str(v) for v in GOOD))
+    assert r.returncode == 1 and "posterior of its 50 samples" in r.stdout, r.stdout + r.stderr
+    head, rows = _read(out)
+    assert [row[2] for row in rows[:20]] == ["ok"] * 20
+
+
+def _station_env(env, *args):
+    import os
+
+    return subprocess.run([sys.executable, "-m", "station.cli", *args], capture_output=True, text=True, timeout=180,
+                          env={**os.environ, **env})

@@ -216,8 +216,10 @@ def compensate_command(
     urscript: Path = typer.Option(None, "--urscript", help="also write a URScript program: one movej per reached "
                                   "target (6-axis models)"),
 ) -> None:
-    """Compensated targets: joint (or corrected Cartesian) commands that a controller with the nominal model turns
-    into the calibrated pose; per row the predicted residual, its uncertainty and the correction."""
+    """Compensated targets: joint (or corrected Cartesian) commands that a controller with its nominal model turns
+    into the calibrated pose.
+
+    Per row: the status, the predicted residual, its uncertainty and the correction."""
     from station.cli.solve_cmd import _load_model
     from station.performance.compensate import compensate
     from station.performance.compensate import urscript as ur_program
