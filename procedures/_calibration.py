@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from station.robot.errors import ConfigError
+from station.safeio import DuplicateKeyError, loads_strict
 from station.solver.map import working_model
 
 
@@ -62,7 +63,9 @@ def calibration(s) -> dict | None:
         from station.solver import CalibrationResult
 
         try:
-            doc = json.loads(data)
+            doc = loads_strict(data, f"calibration {path}")
+        except DuplicateKeyError as e:
+            raise ConfigError(str(e)) from None
         except ValueError:
             doc = None  # load_calibration says what is wrong with the file, in one line
         given = doc.get("parameters") if isinstance(doc, dict) else None
