@@ -22,6 +22,7 @@ from station.kinematics import se3
 from station.robot.errors import ConfigError, ConnectionLost
 
 SERIAL = "HX-0007"
+SLACK = "&sdo_timeout_ms=2000&heartbeat_ms=1000"  # the emulator shares this process (and a busy CI host)
 
 
 @pytest.fixture
@@ -54,9 +55,9 @@ def test_tracker_is_an_instrument_plug(world):
     cfg = tracker_config({"noise": False})
     assert "tcp" in schemes() and url_examples() == "tcp://HOST:PORT"
     with TrackerServer(world, cfg) as trk:
-        inst = open_instrument(f"{trk.url}?timeout_ms=500&settle_ms=100")
+        inst = open_instrument(f"{trk.url}?timeout_ms=1500&settle_ms=100")
         assert isinstance(inst, InstrumentBase) and isinstance(inst, PoseInstrument)
-        assert (inst.timeout, inst.settle_timeout) == (0.5, 0.1)
+        assert (inst.timeout, inst.settle_timeout) == (1.5, 0.1)
         ident = inst.identity()
         assert (ident.serial, ident.model, ident.kind) == (cfg.serial, cfg.model, "tracker")
         assert float(ident.spec["sigma0_m"]) == 15e-6
@@ -100,7 +101,7 @@ def test_session_opens_measures_and_the_teardown_closes(tmp_path, monkeypatch, w
     with launch("canopen", world, serial=SERIAL) as emu, TrackerServer(world, cfg) as trk:
         kept = {}
         with pytest.raises(RuntimeError, match="the script failed"), \
-                station.session(emu.url, SERIAL, options={"tracker": trk.url}, db=f"sqlite:///{tmp_path}/r.db",
+                station.session(emu.url + SLACK, SERIAL, options={"tracker": trk.url}, db=f"sqlite:///{tmp_path}/r.db",
                                 report=False) as s:
             tracker = s.instrument("tracker")
             assert s.instrument("tracker") is tracker  # one per session
@@ -129,6 +130,6 @@ def test_session_opens_measures_and_the_teardown_closes(tmp_path, monkeypatch, w
 def test_session_without_the_instrument_option_says_what_is_missing(tmp_path, monkeypatch, world):
     monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
     with launch("canopen", world, serial=SERIAL) as emu, pytest.raises(ConfigError) as e, \
-            station.session(emu.url, SERIAL, name="probe", db=f"sqlite:///{tmp_path}/r.db", report=False) as s:
+            station.session(emu.url + SLACK, SERIAL, name="probe", db=f"sqlite:///{tmp_path}/r.db", report=False) as s:
         s.instrument("tracker")
     assert str(e.value) == "probe needs a measuring instrument: --tracker tcp://HOST:PORT"
