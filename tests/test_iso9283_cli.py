@@ -88,10 +88,9 @@ def test_mm_and_m_give_the_same_answer(export, tmp_path):
         body.append(",".join(f))
     si = tmp_path / "si.csv"
     si.write_text("\n".join([head, *body]) + "\n")
-    a, b = tmp_path / "a.json", tmp_path / "b.json"
-    assert _station("iso9283", "--samples", str(path), "--out", str(a)).returncode == 0
-    assert _station("iso9283", "--samples", str(si), "--out", str(b)).returncode == 0
-    ra, rb = json.loads(a.read_text()), json.loads(b.read_text())
+    from station.cli.iso_cmd import evaluate_file  # what the command evaluates, in process
+
+    ra, rb = evaluate_file(path), evaluate_file(si)
     for p in POSES:
         for key in ("AP_p", "RP_l", "AP_a", "RP_c"):
             assert ra["poses"][p][key] == pytest.approx(rb["poses"][p][key], rel=1e-6, abs=1e-12)
@@ -105,12 +104,17 @@ def test_mm_and_m_give_the_same_answer(export, tmp_path):
     (lambda t: t.replace("P1,2,-z", "P1,1,-z"), "export.csv:4: pose P1 cycle 1 direction -z is also on line 3"),
     (lambda t: t.replace("P1,3,-z", "P1,three,-z"), "export.csv:5: column 'cycle': not an integer ('three')"),
 ])
-def test_bad_files_are_one_line_and_write_nothing(export, tmp_path, edit, expect):
+def test_bad_files_are_one_line_and_write_nothing(export, tmp_path, edit, expect, monkeypatch, capsys):
+    """In process (``station.cli.main``, as the console script runs it): one line, exit 2, nothing written."""
+    from station.cli import main
+
     path, _ = export
     bad = tmp_path / "export.csv"
     bad.write_text(edit(path.read_text()))
     out = tmp_path / "r.json"
-    r = _station("iso9283", "--samples", str(bad), "--out", str(out))
-    assert r.returncode == 2 and not out.exists()
-    lines = r.stderr.strip().splitlines()
+    monkeypatch.setattr(sys, "argv", ["station", "iso9283", "--samples", str(bad), "--out", str(out)])
+    with pytest.raises(SystemExit) as e:
+        main()
+    assert e.value.code == 2 and not out.exists()
+    lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("station: error: ") and expect in lines[0], lines
