@@ -161,14 +161,20 @@ def test_a_report_alone_gives_the_conservative_uncertainty(calibrated, tmp_path)
     (["--start", "1,2,3"], "--start '1,2,3': expected 6 joint values"),
     (["--units", "furlong,deg"], "--units 'furlong,deg'"),
 ])
-def test_bad_input_is_one_line(calibrated, tmp_path, args, expect):
+def test_bad_input_is_one_line(calibrated, tmp_path, args, expect, monkeypatch, capsys):
+    """In process (``station.cli.main``, as the console script runs it): one line, exit 2, nothing written."""
+    from station.cli import main
+
     c = calibrated
     base = {"--calibration": str(c["result"]), "--poses": str(c["targets"]), "--out": str(tmp_path / "o.csv")}
     for k in range(0, len(args), 2):
         base[args[k]] = args[k + 1]
-    r = _station("compensate", "--model", "arm6", *[x for kv in base.items() for x in kv])
-    assert r.returncode == 2 and not (tmp_path / "o.csv").exists()
-    lines = r.stderr.strip().splitlines()
+    monkeypatch.setattr(sys, "argv", ["station", "compensate", "--model", "arm6",
+                                      *[x for kv in base.items() for x in kv]])
+    with pytest.raises(SystemExit) as e:
+        main()
+    assert e.value.code == 2 and not (tmp_path / "o.csv").exists()
+    lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("station: error: ") and expect in lines[0], lines
 
 
