@@ -209,3 +209,44 @@ def test_iso9283_resumes_without_measuring_a_pose_twice(tmp_path, monkeypatch):
     assert len([e for e in events if e.type == "plan"]) == 1
     assert len([e for e in events if e.type == "instrument"]) == 2  # connected on start and on resume, same one
     assert out.record["iso9283"]["cycles"] == 4
+
+
+def _population_rp(world, q, sigma, cfg, n=20000):
+    """RP_l of a robot whose joints end N(0, sigma) off where their encoders say (the world's noise.positioning),
+    seen through the tracker: the population value, simulated from the TRUE model and the tracker's measurement
+    model (independent of the procedure and of the statistics module)."""
+    rng = np.random.default_rng(2)
+    T = world.truth.fk(q[None] + rng.normal(0.0, sigma, (n, len(q))))
+    M = measure_poses(T, cfg.reflectors, cfg.tracker_in_base, rng)
+    p = M[:, :3, 3]
+    lj = np.linalg.norm(p - p.mean(axis=0), axis=1)
+    return float(lj.mean() + 3 * lj.std())
+
+
+@pytest.mark.slow  # ~20 s: one uncalibrated run of 8 cycles
+def test_iso9283_rp_recovers_the_robots_own_repeatability(tmp_path, monkeypatch):
+    """A world whose joints scatter where they end (noise.positioning 80 urad): RP must see the robot, not only the
+    tracker; every pose's interval holds the population RP of robot + tracker (4 of 5 at least: 95 % intervals)."""
+    sigma = 8e-5
+    world = World.default("arm6", seed=7, start=GOOD.tolist(), noise={"positioning": sigma})
+    out, cfg, truths = _run(tmp_path, monkeypatch, world, {"cube": [0.58, 0.0, 0.78, 0.2]})
+    assert out.status == "completed", out.error
+    res = out.record["iso9283"]["results"]["nominal"]
+    plan = next(e for e in read_journal(out.folder / "journal.jsonl")[1] if e.type == "plan").plan
+    series = plan["settings"]["iso9283"]["series"]
+    cmd = {}
+    for s in out.record["samples"]:
+        label, _, d = series[s["pose"]]
+        if label not in ("register", "static") and d == "+z":
+            cmd[s["point"]] = np.array(plan["poses"][s["pose"]]["q"])
+    inside, robot_only = [], []
+    for p, q in cmd.items():
+        expected = _population_rp(world, q, sigma, cfg)
+        lo, hi = res["poses"][p]["RP_l_ci"]
+        inside.append(lo <= expected <= hi)
+        T = world.truth.fk(q[None] + np.random.default_rng(4).normal(0.0, sigma, (20000, 6)))[:, :3, 3]
+        lj = np.linalg.norm(T - T.mean(axis=0), axis=1)
+        robot_only.append(float(lj.mean() + 3 * lj.std()))
+    floor = res["instrument"]["rp_floor_m"]
+    assert min(robot_only) > 1.5 * floor, (robot_only, floor)  # the robot's own scatter dominates the tracker's
+    assert sum(inside) >= 4, [(p, res["poses"][p]["RP_l_ci"]) for p in cmd]
