@@ -4,6 +4,7 @@ steps nest; a fault, an abort and the record name the innermost step and its pos
 
 from __future__ import annotations
 
+import re
 import time
 
 import pytest
@@ -17,7 +18,10 @@ from station.engine.session import Session
 from station.engine.session_record import session_from_journal
 from station.engine.steps import Steps, step, summarize
 from station.engine.touch import SocketSeating
+from station.report import write_report
+from station.report.content import steps_rows
 from station.robot.errors import DeviceFault
+from tests.test_hostile_fuzz import _cli
 
 
 # ---- the mechanism alone ---------------------------------------------------------------------------------------
@@ -151,11 +155,22 @@ def test_every_step_of_a_run_is_traced_with_its_arguments_and_duration_and_nests
     assert out.passed, out.record["verdict"]  # so that it writes back: its check touch nests in write_back
     inner = [(n, depth) for n, _, _, _, depth in pairs if depth == 1]
     assert ("approach", 1) in inner and ("seat", 1) in inner and ("write_back", {}) in top
-    # the record (and so the report and `station records show`) lists them
-    rec = {e["name"]: e for e in session_from_journal(out.folder)["steps"]}
-    assert rec["approach"]["runs"] >= n_poses and rec["approach"]["done"] == rec["approach"]["runs"]
+    # the record lists them, and so do `station records show` and the report
+    steps = session_from_journal(out.folder)["steps"]
+    rec = {e["name"]: e for e in steps if e["parent"] is None}
+    assert rec["approach"]["runs"] == n_poses and rec["approach"]["done"] == n_poses
+    check = [(e["name"], e["depth"], e["info"]) for e in steps if e["parent"] == "write_back"]
+    assert [c[:2] for c in check] == [("approach", 1), ("seat", 1), ("leave", 1)] and "pose" in check[0][2]
     assert rec["solve"]["info"] == {"identify": "offsets"} and rec["solve"]["duration_s"] > 0
     assert rec["connect"]["started"].endswith("Z")
+    code, shown, err = _cli(["records", "show", cell.serial, "--db", cell.db])
+    assert code == 0, err
+    table = shown[shown.index("Steps"):]
+    assert re.search(rf"│ approach\s+│\s+{n_poses}\s+│ done", table), table
+    assert re.search(r"│   approach\s+│\s+1\s+│ done\s+│\s+[\d.]+\s+│ pose=\d+", table), table  # the check touch
+    assert re.search(r"solve\s+│\s+1\s+│ done\s+│\s+[\d.]+\s+│ identify=offsets", table), table
+    html = write_report(out.record, out.folder).read_text()
+    assert '<table id="steps">' in html and "identify=offsets" in html
 
 
 def test_a_fault_names_the_innermost_step_and_its_pose(cell):
@@ -176,3 +191,5 @@ def test_a_fault_names_the_innermost_step_and_its_pose(cell):
     rec = {e["name"]: e for e in session_from_journal(out.folder)["steps"]}
     assert rec["seat"]["not_done"] == [{"status": "failed", "info": {"pose": 2}, "started": rec["seat"]["not_done"][0][
         "started"], "error": "DeviceFault", "message": "the ball slipped out of the socket"}]
+    assert [r for r in steps_rows({"steps": list(rec.values())}) if r["name"] == "seat"][0]["notes"] == [
+        "pose 2: DeviceFault: the ball slipped out of the socket"]

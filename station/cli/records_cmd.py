@@ -10,6 +10,7 @@ from pathlib import Path
 import typer
 from rich import box
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from station.units import human_of
@@ -283,7 +284,7 @@ def export(fmt: str = typer.Option("csv", "--format", help="csv (one row per ses
 def _show_session(con: Console, s: dict) -> None:
     from station.records import measurement_status, overall_status
     from station.report.analysis import load_session_model
-    from station.report.content import param_unit
+    from station.report.content import param_unit, steps_rows
 
     model, _ = load_session_model(s)  # joint kinds: a prismatic joint's offset is shown in mm
 
@@ -330,6 +331,17 @@ def _show_session(con: Console, s: dict) -> None:
         for name in dict.fromkeys([*before, *after]):
             unit = param_unit(name, params.get(name) or {}, model)
             t.add_row(name, _human(before.get(name), unit), _human(after.get(name), unit), _hunit(unit))
+        con.print(t)
+    steps = steps_rows(s)
+    if steps:
+        t = Table(title="Steps", title_justify="left")
+        for col in ("step", "runs", "outcome", "time s", "arguments / why not done"):
+            t.add_column(col, justify="right" if col in ("runs", "time s") else "left")
+        for st in steps:
+            colour = {"done": "green", "skipped": "default"}.get(st["status"], "red")
+            t.add_row("  " * st["depth"] + escape(st["name"]), str(st["runs"]), f"[{colour}]{escape(st['outcome'])}[/]",
+                      "" if st["duration_s"] is None else f"{st['duration_s']:.1f}",
+                      escape("; ".join([st["args"]] * bool(st["args"]) + st["notes"])))
         con.print(t)
 
 

@@ -160,26 +160,29 @@ def step(name: str | None = None, *, args: tuple[str, ...] = ()):
 
 # ---- the steps of a journal, as the record keeps them ------------------------------------------------------
 def summarize(events: list[ev.Event], when: Callable[[float | None], Any] = lambda t: t) -> list[dict]:
-    """The steps of a session's events, one entry per step name in the order each first ran: ``runs``, how many
-    ended ``done``/``failed``/``skipped`` and how many never ended (``unfinished``: the process died, or the
-    session is still running), ``duration_s`` (the ended runs' total), ``started`` (host time of the first
-    start, as ``when`` writes it), ``depth`` (0: a step of the checklist itself; 1: inside another step),
-    ``info`` (the arguments, when it ran once) and ``not_done`` (every run that did not end done: its arguments
-    and why). A ``resume`` event ends every step still open before it as unfinished."""
-    out: dict[str, dict] = {}
-    open_: list[tuple[str, dict, float | None]] = []
+    """The steps of a session's events, one entry per step name and the step it ran in (``parent``, None for a
+    step of the checklist itself), in the order each first ran: ``runs``, how many ended
+    ``done``/``failed``/``skipped`` and how many never ended (``unfinished``: the process died, or the session is
+    still running), ``duration_s`` (the ended runs' total), ``started`` (host time of the first start, as
+    ``when`` writes it), ``depth`` (how many steps it ran in), ``info`` (the arguments, when it ran once) and
+    ``not_done`` (every run that did not end done: its arguments and why). A ``resume`` event ends every step
+    still open before it as unfinished."""
+    out: dict[tuple, dict] = {}
+    open_: list[tuple[tuple, dict, float | None]] = []  # (key, info, t) of the steps running, outermost first
 
-    def entry(name: str, info: dict, t: float | None) -> dict:
-        e = out.get(name)
-        if e is None:
-            e = out[name] = {"name": name, "runs": 0, "done": 0, "failed": 0, "skipped": 0, "unfinished": 0,
-                             "duration_s": 0.0, "started": when(t), "depth": len(open_), "info": info, "not_done": []}
-        return e
+    def entry(name: str, info: dict, t: float | None) -> tuple:
+        parent = open_[-1][0][1] if open_ else None
+        key = (parent, name)
+        if key not in out:
+            out[key] = {"name": name, "parent": parent, "runs": 0, "done": 0, "failed": 0, "skipped": 0,
+                        "unfinished": 0, "duration_s": 0.0, "started": when(t), "depth": len(open_), "info": info,
+                        "not_done": []}
+        out[key]["runs"] += 1
+        return key
 
-    def unfinished(name: str, info: dict, t: float | None) -> None:
-        e = out[name]
-        e["unfinished"] += 1
-        e["not_done"].append({"status": "unfinished", "info": info, "started": when(t)})
+    def unfinished(key: tuple, info: dict, t: float | None) -> None:
+        out[key]["unfinished"] += 1
+        out[key]["not_done"].append({"status": "unfinished", "info": info, "started": when(t)})
 
     for event in events:
         if isinstance(event, ev.Resume):
@@ -187,28 +190,26 @@ def summarize(events: list[ev.Event], when: Callable[[float | None], Any] = lamb
                 unfinished(*open_.pop())
         if not isinstance(event, ev.Step):
             continue
+        info = dict(event.info)
         if event.status == "start":
-            e = entry(event.name, dict(event.info), event.t)
-            e["runs"] += 1
-            open_.append((event.name, dict(event.info), event.t))
+            open_.append((entry(event.name, info, event.t), info, event.t))
         elif event.status == "skipped":
-            e = entry(event.name, dict(event.info), event.t)
-            e["runs"] += 1
-            e["skipped"] += 1
-            e["not_done"].append({"status": "skipped", "info": dict(event.info), "reason": event.reason,
-                                  "started": when(event.t)})
-        elif any(name == event.name for name, _, _ in open_):
-            while open_[-1][0] != event.name:  # an inner step whose end was never written
+            key = entry(event.name, info, event.t)
+            out[key]["skipped"] += 1
+            out[key]["not_done"].append({"status": "skipped", "info": info, "reason": event.reason,
+                                         "started": when(event.t)})
+        elif any(key[1] == event.name for key, _, _ in open_):
+            while open_[-1][0][1] != event.name:  # an inner step whose end was never written
                 unfinished(*open_.pop())
-            name, info, t = open_.pop()
-            e = out[name]
+            key, info, t = open_.pop()
+            e = out[key]
             e[event.status] += 1
             e["duration_s"] += event.duration or 0.0
             if event.status == "failed":
                 e["not_done"].append({"status": "failed", "info": info, "started": when(t), "error": event.error,
                                       "message": event.message})
-    for name, info, t in reversed(open_):
-        unfinished(name, info, t)
+    while open_:
+        unfinished(*open_.pop())
     for e in out.values():
         if e["runs"] != 1:
             e["info"] = {}
