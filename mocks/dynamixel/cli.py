@@ -46,7 +46,8 @@ def emulator_for(world, ids: str | None = None, baud: int | None = None, wire_ti
                  return_delay: int | None = None, contact_id: str | None = None, servo: str | None = None,
                  eeprom: dict[int, bytes] | None = None):
     """The emulator for ``world``: options given here win over the world file's ``buses.dynamixel`` section,
-    which wins over the defaults (ids 1..n, contact sensor id 200, XM430, 1 Mbaud)."""
+    which wins over the defaults (ids 1..n, contact sensor id 200, XM430, 1 Mbaud, firmware 46 with Fast Sync
+    Read, Status Return Level 2)."""
     from station.mocks import cliopts
     from station.mocks.dynamixel.emulator import DEFAULT_CONTACT_ID, DynamixelEmulator
     from station.mocks.ids import parse_id_list
@@ -57,13 +58,22 @@ def emulator_for(world, ids: str | None = None, baud: int | None = None, wire_ti
     except (ValueError, TypeError):
         raise MockError(f"bad servo id list {ids or cfg.get('ids')!r}: expected e.g. 11-14 or 11,12,13,14") from None
     c = cliopts.contact_id(contact_id, cfg.get("contact_id", DEFAULT_CONTACT_ID))
+    fast = cfg.get("fast_sync_read", True)
+    if not isinstance(fast, bool):
+        raise MockError(f"buses.dynamixel.fast_sync_read: {fast!r} is not true or false")
+    for key in ("firmware", "status_return_level"):
+        if cfg.get(key) is not None and (isinstance(cfg[key], bool) or not isinstance(cfg[key], int)):
+            raise MockError(f"buses.dynamixel.{key}: {cfg[key]!r} is not an integer")
     try:
         return DynamixelEmulator(world, id_list, servo=servo or cfg.get("servo", "xm430"),
                                  baud=int(baud or cfg.get("baud", 1_000_000)),
                                  return_delay=int(return_delay if return_delay is not None
                                                   else cfg.get("return_delay", 0)),
                                  wire_timing=wire_timing or bool(cfg.get("wire_timing", False)),
-                                 contact_id=c, eeprom=eeprom or {})
+                                 contact_id=c, eeprom=eeprom or {}, fast_sync_read=fast,
+                                 firmware=None if cfg.get("firmware") is None else int(cfg["firmware"]),
+                                 status_return_level=None if cfg.get("status_return_level") is None
+                                 else int(cfg["status_return_level"]))
     except ValueError as e:
         raise MockError(str(e)) from None
 
@@ -89,10 +99,10 @@ def register(mock_app: typer.Typer) -> None:
         done = threading.Event()
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: done.set())
-        path = emu.start()
+        emu.start()
         parent = os.getppid()
         try:
-            sys.stdout.write(f"{path}\nrobot URL {emu.url(path)}\n")
+            sys.stdout.write(f"{emu.path}\nrobot URL {emu.url}\n")
             sys.stdout.flush()
             while not done.wait(0.5):
                 if exit_with_parent and os.getppid() != parent:
