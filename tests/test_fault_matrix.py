@@ -39,11 +39,21 @@ from station.publish import sync_sessions
 from station.records import open_records
 from station.robot import ConnectionLost, DeviceFault, StationError, open_robot
 
-PROFILE_ACCELERATION, HOMING_OFFSET, OPERATING_MODE = 108, 20, 11  # a move is one sync write from 108
+PROFILE_ACCELERATION, HOMING_OFFSET, GOAL_PWM = 108, 20, 100  # a move is one sync write from 108
+
+
+def _write_back(r, values):
+    """The write-back as the engine does it (no cell here): to where no joint to be written carries gravity
+    torque (a DYNAMIXEL has no brake; its EEPROM is written with the torque off), then the write."""
+    while (q := r.write_pose(values)) is not None:
+        r.move_joints(q)
+    r.write_calibration(values)
+
+
 DRIVER_PHASES = {  # phase -> (first write address of the phase, what the phase does)
     "motion": (PROFILE_ACCELERATION, lambda r, q0: r.move_joints(q0 + np.array([0.3, -0.2, 0.2, 0.3]))),
-    "compliance": (OPERATING_MODE, lambda r, q0: (r.set_compliant(True), r.set_compliant(False))),
-    "write-back": (HOMING_OFFSET, lambda r, q0: r.write_calibration({"offset.j2": 0.01})),
+    "compliance": (GOAL_PWM, lambda r, q0: (r.set_compliant(True), r.set_compliant(False))),
+    "write-back": (HOMING_OFFSET, lambda r, q0: _write_back(r, {"offset.j2": 0.01})),
 }
 # fault -> (world-file fault entry without ``at``, expected error type or None = absorbed by retries)
 DRIVER_FAULTS = {

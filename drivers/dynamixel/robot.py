@@ -634,18 +634,22 @@ class DynamixelRobot(RobotBase):
                 out[j] = t
         return out
 
+    def _torque_units(self) -> np.ndarray:
+        """N m (at the joint) per unit of each servo's Present Current / Present Load reading."""
+        out = []
+        for k in range(len(self.ids)):
+            number = self.devices[k]["model_number"]
+            torque, current = T.STALL.get(number, T.STALL[1020])
+            unit = T.CURRENT_UNIT * torque / current if number in T.CURRENT_CAPABLE else T.LOAD_UNIT * torque
+            out.append(unit * self._enc(k).gear)
+        return np.array(out)
+
     def _holding_torques(self) -> np.ndarray:
         """Per joint, the torque (N m, model direction) the motor applies now: Present Current (126) through the
         servo's stall torque / current, or Present Load (0.1 % of the stall torque) without current sensing."""
         values, _ = self._guard(self._read_all, T.PRESENT_CURRENT, 2)
-        out = []
-        for k, v in enumerate(values):
-            number = self.devices[k]["model_number"]
-            torque, current = T.STALL.get(number, T.STALL[1020])
-            tau = v * T.CURRENT_UNIT * torque / current if number in T.CURRENT_CAPABLE else v * T.LOAD_UNIT * torque
-            f = self.frames[k]
-            out.append(f.sign * self._enc(k).direction * tau * self._enc(k).gear)
-        return np.array(out)
+        sign = np.array([f.sign * self._enc(k).direction for k, f in enumerate(self.frames)])
+        return sign * np.array(values, dtype=float) * self._torque_units()
 
     def write_pose(self, values: dict[str, float] | None = None) -> np.ndarray | None:
         """Where the arm must stand for ``write_calibration(values)`` (None: every joint, e.g. before the servos'
@@ -676,7 +680,9 @@ class DynamixelRobot(RobotBase):
             # the joints that carry load now (one moved into load: probe again, with it)
             joints = sorted(set(loaded) | set(self._balance.joints if self._balance else ()))
             moves = self._balance.moves if self._balance else 0
-            self._balance = Balancer(self.model.lower, self.model.upper, joints, self.hold_torque)
+            ticks = [1.0 / (self._enc(k).counts_per_unit * self._enc(k).gear) for k in range(len(self.ids))]
+            self._balance = Balancer(self.model.lower, self.model.upper, joints, self.hold_torque,
+                                     self._torque_units(), ticks)
             self._balance.moves = moves
         try:
             return self._balance.next_pose(q, tau[self._balance.joints])
@@ -738,7 +744,6 @@ class DynamixelRobot(RobotBase):
         before = self._confirm_state()
         p0 = [unpack(before[x][0][k:k + 4]) for x in self.ids]
         c0 = self._physical(p0)
-        old_offset = f.offset
         err = 0
         try:
             if torque_on:  # three packets back to back: the joint is free only for one round trip
@@ -756,13 +761,14 @@ class DynamixelRobot(RobotBase):
         if torque_on and not after[i][0][0] and i not in alerts:
             raise DeviceFault(f"write_calibration: {self._name(i)} did not take its torque back after the homing "
                               "offset write", device=f"dynamixel:{i}")
-        old_reading = f.reading(p0[j])
+        old_reading, old_ticks = f.reading(p0[j]), f.offset_ticks
         f.stored_offset = ho
         p1 = [unpack(after[x][0][k:k + 4]) for x in self.ids]
         c1 = self._physical(p1)
         # the proof: at the same physical pose the reading changed by exactly the offset's change (a servo that
-        # did not apply it shows as a joint that "moved" by that change with an unchanged reading)
-        if f.offset != old_offset and abs(f.reading(p1[j]) - old_reading) <= WRITE_DEVIATION:
+        # did not apply it shows as an unchanged reading where the offset changed by more than the tolerance)
+        change = f.reading(p1[j]) - old_reading
+        if abs(f.offset_ticks - old_ticks) > 2 * WRITE_DEVIATION and abs(change) <= WRITE_DEVIATION:
             raise DeviceFault(f"write_calibration: {self._name(i)} stores homing offset {ho} but its reading did "
                               f"not change by it (operating mode {describe_mode(f.mode)})", device=f"dynamixel:{i}")
         moved = [(x, abs(a - b)) for x, a, b in zip(self.ids, c0, c1, strict=True) if abs(a - b) > WRITE_DEVIATION]

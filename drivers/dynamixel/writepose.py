@@ -11,8 +11,11 @@ Finding that pose is done by measurement, as a technician would with the servo's
 holds for the arm as built (link masses, a tool, cables) and not only for the model:
 1. a first guess from the model's geometry: the links beyond each loaded joint straight up over its axis;
 2. then Newton steps on the measured holding torques (Present Current): the gravity stiffness is probed by
-   moving each loaded joint a few degrees (one move per joint), then steps of ``-J^-1 tau`` until every joint to
-   be written holds less than the hold torque (re-probing when a step does not halve the torque).
+   moving each loaded joint a few degrees (one move per joint), then steps of ``-J^-1 tau`` (re-probing when a
+   step does not halve the torque);
+3. within a few units of the current reading (its resolution, 2.69 mA on an XM430) the reading is too coarse
+   for full Newton steps: damped ones in whole encoder ticks, halved each time the readings all change sign,
+   until every joint to be written holds less than the hold torque.
 Each pose is returned to the caller, which takes the arm there along its collision-checked route; the servos
 never move on their own here."""
 
@@ -27,7 +30,8 @@ from station.kinematics.chain import forward_marked, fuse_marked
 PROBE = math.radians(4.0)  # rad: probe step of the gravity stiffness
 MAX_STEP = math.radians(25.0)  # rad: largest Newton step per joint
 LIMIT_MARGIN = math.radians(3.0)  # rad: targets stay this far inside the joint limits
-MAX_MOVES = 24  # probes + steps before giving up
+MAX_MOVES = 40  # probes + steps before giving up
+FINE = 3  # units of the torque reading: below this, tick steps instead of Newton steps
 VERTICAL = math.cos(math.radians(2.0))  # |axis . z| above this: a vertical axis, gravity never loads it
 
 
@@ -110,17 +114,24 @@ class Balancer:
     """Measured Newton steps to a pose where ``joints`` hold less than ``hold`` N m: feed it the pose and the
     measured holding torques (N m) of ``joints``; it answers the next pose to go to, or None when balanced."""
 
-    def __init__(self, lower: np.ndarray, upper: np.ndarray, joints: list[int], hold: float) -> None:
+    def __init__(self, lower: np.ndarray, upper: np.ndarray, joints: list[int], hold: float,
+                 unit: np.ndarray, tick: np.ndarray) -> None:
+        """``unit``: N m per unit of each joint's torque reading; ``tick``: rad per encoder tick of each joint
+        (both for every joint of the arm)."""
         self.lo = np.asarray(lower, float) + LIMIT_MARGIN
         self.hi = np.asarray(upper, float) - LIMIT_MARGIN
         self.joints = list(joints)
         self.hold = float(hold)
+        self.unit = np.asarray(unit, float)[self.joints]
+        self.tick = np.asarray(tick, float)[self.joints]
         self.moves = 0
         self._base: tuple[np.ndarray, np.ndarray] | None = None  # (pose, torque) the probes started from
         self._probes: list[np.ndarray] = []  # torque at each probe
         self._deltas: list[float] = []
         self._J: np.ndarray | None = None
         self._last: float | None = None  # |torque| before the last Newton step
+        self._fine_sign: np.ndarray | None = None  # reading signs at the last fine step
+        self._fine_gain = 0.5
 
     def balanced(self, tau: np.ndarray) -> bool:
         return bool(np.all(np.abs(tau) <= self.hold))
@@ -133,6 +144,9 @@ class Balancer:
             raise RuntimeError(f"no pose found within {MAX_MOVES} moves where the joints to be written hold less "
                                f"than {self.hold:g} N m (still {np.max(np.abs(tau)):.3g} N m)")
         self.moves += 1
+        fine = bool(np.all(np.abs(tau) <= FINE * self.unit))
+        if self._J is not None and fine:
+            return self._tick_step(q, tau)
         if self._J is not None and self._last is not None and np.max(np.abs(tau)) > 0.5 * self._last:
             self._J = None  # the step did not halve the torque: probe the stiffness again here
         if self._J is None:
@@ -161,4 +175,21 @@ class Balancer:
         step = np.clip(step, -MAX_STEP, MAX_STEP)
         target = q.copy()
         target[self.joints] = np.clip(q[self.joints] + step, self.lo[self.joints], self.hi[self.joints])
+        return target
+
+    def _tick_step(self, q: np.ndarray, tau: np.ndarray) -> np.ndarray:
+        """Near zero the reading is coarser than the joints' resolution: a damped Newton step in whole ticks (at
+        least one on the joint reading most), halved again whenever every reading changed sign since the last
+        step (it went past the zero)."""
+        sign = np.sign(tau)
+        if self._fine_sign is not None and np.all(sign * self._fine_sign < 0):
+            self._fine_gain *= 0.5
+        self._fine_sign = sign
+        ticks = self._fine_gain * np.linalg.solve(self._J, -tau) / self.tick
+        n = np.round(ticks)
+        k = int(np.argmax(np.abs(tau) / self.unit))
+        if n[k] == 0:
+            n[k] = math.copysign(1.0, ticks[k]) if ticks[k] else -math.copysign(1.0, tau[k] * self._J[k, k])
+        target = q.copy()
+        target[self.joints] = np.clip(q[self.joints] + n * self.tick, self.lo[self.joints], self.hi[self.joints])
         return target
