@@ -663,9 +663,9 @@ class DynamixelRobot(RobotBase):
         todo = [j for j in todo if on[j]]
         snap = self.joint_positions()
         q = snap.q
-        if todo:
-            can = loadable(self.model, q)
-            todo = [j for j in todo if can[j]]
+        can = loadable(self.model, q)
+        free = [j for j in range(len(self.ids)) if can[j]]  # the joints whose angle changes gravity's torques
+        todo = [j for j in todo if can[j]]
         tau = self._holding_torques()
         loaded = [j for j in todo if abs(tau[j]) > self.hold_torque]
         if not loaded:
@@ -673,7 +673,7 @@ class DynamixelRobot(RobotBase):
             return None
         if not self._guessed:
             self._guessed = True
-            guess = upright_guess(self.model, q, todo)
+            guess = upright_guess(self.model, q, todo, free)
             if np.max(np.abs(guess - q)) > math.radians(1.0):
                 return guess
         if self._balance is None or not set(loaded) <= set(self._balance.joints):
@@ -681,7 +681,7 @@ class DynamixelRobot(RobotBase):
             joints = sorted(set(loaded) | set(self._balance.joints if self._balance else ()))
             moves = self._balance.moves if self._balance else 0
             ticks = [1.0 / (self._enc(k).counts_per_unit * self._enc(k).gear) for k in range(len(self.ids))]
-            self._balance = Balancer(self.model.lower, self.model.upper, joints, self.hold_torque,
+            self._balance = Balancer(self.model.lower, self.model.upper, joints, free, self.hold_torque,
                                      self._torque_units(), ticks)
             self._balance.moves = moves
         try:

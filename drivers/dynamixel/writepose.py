@@ -58,14 +58,14 @@ def loadable(model, q: np.ndarray) -> list[bool]:
     return out
 
 
-def upright_guess(model, q: np.ndarray, joints: list[int]) -> np.ndarray:
-    """A pose near ``q`` where the link-frame origins beyond each of ``joints`` (and the tool) stand straight over
-    the joint's axis: no gravity torque whatever the masses along the links (model geometry; the arm as built
-    differs, the measured Newton steps finish the job)."""
+def upright_guess(model, q: np.ndarray, joints: list[int], free: list[int]) -> np.ndarray:
+    """A pose near ``q``, moving the joints ``free``, where the link-frame origins beyond each of ``joints`` (and
+    the tool) stand straight over the joint's axis: no gravity torque whatever the masses along the links (model
+    geometry; the arm as built differs, the measured Newton steps finish the job)."""
     q = np.asarray(q, dtype=float).copy()
     lo, hi = model.lower + LIMIT_MARGIN, model.upper - LIMIT_MARGIN
     program = fuse_marked(model.chain, model.params, model.frames)
-    free = sorted(set(range(min(joints), model.n_joints)))  # the joints that carry the links beyond them
+    free = sorted(free)
 
     def residual(x):
         qq = q.copy()
@@ -111,19 +111,22 @@ def upright_guess(model, q: np.ndarray, joints: list[int]) -> np.ndarray:
 
 
 class Balancer:
-    """Measured Newton steps to a pose where ``joints`` hold less than ``hold`` N m: feed it the pose and the
-    measured holding torques (N m) of ``joints``; it answers the next pose to go to, or None when balanced."""
+    """Measured Newton steps to a pose where ``joints`` hold less than ``hold`` N m, moving the joints ``free``
+    (those whose position changes gravity's torque on them: a joint beyond its reach can be unloaded by the ones
+    before it; least-norm steps when there are more of them): feed it the pose and the measured holding torques
+    (N m) of ``joints``; it answers the next pose to go to, or None when balanced."""
 
-    def __init__(self, lower: np.ndarray, upper: np.ndarray, joints: list[int], hold: float,
+    def __init__(self, lower: np.ndarray, upper: np.ndarray, joints: list[int], free: list[int], hold: float,
                  unit: np.ndarray, tick: np.ndarray) -> None:
         """``unit``: N m per unit of each joint's torque reading; ``tick``: rad per encoder tick of each joint
         (both for every joint of the arm)."""
         self.lo = np.asarray(lower, float) + LIMIT_MARGIN
         self.hi = np.asarray(upper, float) - LIMIT_MARGIN
         self.joints = list(joints)
+        self.free = sorted(free)
         self.hold = float(hold)
         self.unit = np.asarray(unit, float)[self.joints]
-        self.tick = np.asarray(tick, float)[self.joints]
+        self.tick = np.asarray(tick, float)[self.free]
         self.moves = 0
         self._base: tuple[np.ndarray, np.ndarray] | None = None  # (pose, torque) the probes started from
         self._probes: list[np.ndarray] = []  # torque at each probe
@@ -155,8 +158,8 @@ class Balancer:
             else:
                 self._probes.append(tau.copy())
             k = len(self._probes)
-            if k < len(self.joints):
-                j = self.joints[k]
+            if k < len(self.free):
+                j = self.free[k]
                 d = PROBE if q[j] + PROBE <= self.hi[j] else -PROBE
                 self._deltas.append(d)
                 target = self._base[0].copy()
@@ -167,14 +170,12 @@ class Balancer:
             self._base = None
             q, tau = base_q, base_tau
         self._last = float(np.max(np.abs(tau)))
-        try:
-            step = np.linalg.solve(self._J, -tau)
-        except np.linalg.LinAlgError:
+        if np.linalg.matrix_rank(self._J, tol=1e-9) < len(self.joints):
             raise RuntimeError("the joints' holding torques do not change with their position (a joint gravity "
-                               "loads whatever its angle?)") from None
-        step = np.clip(step, -MAX_STEP, MAX_STEP)
+                               "loads whatever its angle?)")
+        step = np.clip(np.linalg.pinv(self._J) @ -tau, -MAX_STEP, MAX_STEP)
         target = q.copy()
-        target[self.joints] = np.clip(q[self.joints] + step, self.lo[self.joints], self.hi[self.joints])
+        target[self.free] = np.clip(q[self.free] + step, self.lo[self.free], self.hi[self.free])
         return target
 
     def _tick_step(self, q: np.ndarray, tau: np.ndarray) -> np.ndarray:
@@ -185,11 +186,11 @@ class Balancer:
         if self._fine_sign is not None and np.all(sign * self._fine_sign < 0):
             self._fine_gain *= 0.5
         self._fine_sign = sign
-        ticks = self._fine_gain * np.linalg.solve(self._J, -tau) / self.tick
+        ticks = self._fine_gain * (np.linalg.pinv(self._J) @ -tau) / self.tick
         n = np.round(ticks)
-        k = int(np.argmax(np.abs(tau) / self.unit))
-        if n[k] == 0:
-            n[k] = math.copysign(1.0, ticks[k]) if ticks[k] else -math.copysign(1.0, tau[k] * self._J[k, k])
+        if not n.any():  # at least one tick, on the joint that moves the readings most
+            m = int(np.argmax(np.abs(ticks)))
+            n[m] = math.copysign(1.0, ticks[m])
         target = q.copy()
-        target[self.joints] = np.clip(q[self.joints] + n * self.tick, self.lo[self.joints], self.hi[self.joints])
+        target[self.free] = np.clip(q[self.free] + n * self.tick, self.lo[self.free], self.hi[self.free])
         return target
