@@ -142,7 +142,7 @@ class DxlBus:
     def answers_writes(self, dxl_id: int) -> bool:
         return self.status_level.get(dxl_id, 2) >= 2
 
-    def write(self, dxl_id: int, addr: int, size: int, value: int) -> int:
+    def write(self, dxl_id: int, addr: int, size: int, value: int, retry: bool = True) -> int:
         """Write; returns the status error byte, or 0 from a device whose Status Return Level sends none for a
         write (then only a read-back tells whether it took the value)."""
         v = int(value) & ((1 << (8 * size)) - 1)
@@ -155,7 +155,7 @@ class DxlBus:
         def call():
             res, err = fn(self.port, dxl_id, addr, v)
             return res, err
-        (err,) = self._transact(f"write id {dxl_id} address {addr}", call)
+        (err,) = self._transact(f"write id {dxl_id} address {addr}", call, retry)
         return err
 
     def reboot(self, dxl_id: int) -> int:

@@ -62,6 +62,13 @@ class ServoFrame:
         lo, hi = self.count_range()
         return hi - lo + 2 * TURN_MARGIN < T.ONE_TURN
 
+    def stays_in_one_turn(self) -> bool:
+        """Position Control Mode covers one turn of the servo (0..4095): the joint's range, in the servo's frame,
+        must not cross a turn boundary there (a goal beyond it would be out of the servo's range)."""
+        lo, hi = self.count_range()
+        a, b = sorted((self.sign * (lo - self.offset_ticks), self.sign * (hi - self.offset_ticks)))
+        return math.floor(a / T.ONE_TURN) == math.floor(b / T.ONE_TURN)
+
     def reading(self, present: int) -> int:
         """Present Position -> the joint reading ``L`` (ticks, model direction, calibration included); remembers
         the turn for the next goal."""

@@ -166,8 +166,11 @@ class DynamixelRobot(RobotBase):
         if level >= 1:
             self.bus.status_level[i] = level
             return level
-        self.bus.status_level[i] = 0
-        self.bus.write(i, T.STATUS_RETURN_LEVEL, 1, 2)  # no status comes for it: confirmed by the read below
+        # whether this write gets a status depends on which level the servo applies to it (undocumented): it is
+        # awaited once (a status either comes or the wait ends), never left to answer the next read
+        self.bus.status_level[i] = 2
+        with contextlib.suppress(ConnectionLost):
+            self.bus.write(i, T.STATUS_RETURN_LEVEL, 1, 2, retry=False)
         level, _ = self.bus.read(i, T.STATUS_RETURN_LEVEL, 1)
         self.bus.status_level[i] = level
         log.warning("dynamixel: id %d had Status Return Level 0 (answers pings only): set to %d until it is "
@@ -227,6 +230,11 @@ class DynamixelRobot(RobotBase):
                               f"ticks, more than one servo turn ({T.ONE_TURN}): after a power-on or reboot the servo "
                               "reports its position within one turn (e-Manual, Present Position) and the station "
                               "could not tell which turn the joint is in; nothing was moved")
+        if mode == T.MODE_POSITION and not f.stays_in_one_turn():
+            raise ConfigError(f"dynamixel: joint {self.model.joints[self.ids.index(i)].name} crosses the 0/4095 turn "
+                              f"boundary of {self._name(i)}, which Position Control Mode (3) cannot (it covers one "
+                              "turn): use Extended Position Control Mode (4), or a model whose encoder zero keeps the "
+                              "joint inside one turn; nothing was moved")
         if f.offset != f.stored_offset:
             log.warning("dynamixel: %s holds homing offset %d, which operating mode %s ignores (beyond +-%d): its "
                         "readings do not contain it", self._name(i), f.stored_offset, describe_mode(mode),
