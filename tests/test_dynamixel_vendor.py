@@ -11,7 +11,6 @@ from pathlib import Path
 import dynamixel_sdk as sdk
 import numpy as np
 import pytest
-from station.drivers.dynamixel.adapter import latency_timer_ms
 from station.drivers.dynamixel.bus import DxlPort
 from station.mocks.dynamixel import DynamixelEmulator
 from station.mocks.world import World
@@ -357,6 +356,8 @@ def test_firmware_without_fast_sync_read_gets_sync_read():
 def test_latency_timer_above_2_ms_is_said_in_one_line(rig, tmp_path, timer, warned):
     """FTDI adapters default to a 16 ms latency timer (sysfs latency_timer); ROBOTIS recommend 1 ms. A fake sysfs
     root stands for the adapter; a pty has none: the timer is "unknown", nothing said."""
+    from station.drivers.dynamixel.adapter import latency_timer_ms
+
     world, emu = rig
     name = Path(emu.path).name
     if timer is not None:
@@ -396,3 +397,21 @@ def test_power_cycle_keeps_eeprom_loses_ram_and_drops_an_unsupported_arm(rig):
         q1 = world.encoder_q().copy()
     emu.power_cycle()
     assert np.max(np.abs(world.encoder_q() - q1)) <= max(_tick(world, j) for j in range(4))
+
+
+def test_a_servo_not_in_a_position_mode_is_refused_before_motion(rig):
+    """e-Manual, Operating Mode (11): velocity, current and PWM modes do not hold a position. The driver reads the
+    mode at connect and refuses in one line (ConfigError) what it cannot drive: nothing moves, nothing is written.
+    A Drive Mode bit the X430 does not have (1: dual-joint slave, X540 only) is a data range error."""
+    world, emu = rig
+    wire = Wire(emu)
+    try:
+        assert wire.write(12, OPERATING_MODE, 1, 1) == (sdk.COMM_SUCCESS, 0)
+        assert wire.write(13, DRIVE_MODE, 1, 2) == (sdk.COMM_SUCCESS, 4)  # data range error
+    finally:
+        wire.close()
+    q0 = world.encoder_q().copy()
+    with pytest.raises(Exception, match=r"servo id 12 \(joint 2 shoulder\) is in operating mode 1 \(velocity") as e:
+        open_robot(f"{emu.url}&latency=50")
+    assert type(e.value).__name__ == "ConfigError" and "\n" not in str(e.value)
+    assert np.array_equal(world.encoder_q(), q0) and not any(emu.devices[i].torque for i in IDS)
