@@ -124,7 +124,7 @@ def test_world_file_bad_fault_is_one_line(tmp_path):
 
 
 def test_compliance_left_by_a_crash_is_reported_and_reset(tmp_path, emulators):
-    """Issue 9 item 8: a run killed while seating leaves the servos compliant (current-based position mode);
+    """Issue 9 item 8: a run killed while seating leaves the servos compliant (Goal PWM limited);
     the next connection reports it (status().compliant, what the pre-run check reads) and set_compliant(False)
     makes the arm stiff again. Truth: the world's compliance."""
     world = World.default(model="omx", seed=4, time_mode="realtime")
