@@ -246,7 +246,7 @@ class DynamixelRobot(RobotBase):
         if not self.fast:
             return
         try:
-            self.bus.sync_read(T.PRESENT_POSITION, 4, self.ids, fast=True, retry=False)
+            self.bus.sync_read(T.PRESENT_POSITION, 4, self.ids, fast=True)  # retried: a loaded host is no reason
         except (ConnectionLost, BusError):
             self.fast = False
             fws = sorted({str(d["firmware"]) for d in self.devices if d["joint"] is not None})
