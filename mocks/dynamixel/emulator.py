@@ -312,7 +312,7 @@ class DynamixelEmulator:
     def _world(self, fn, *args, **kw) -> None:
         """A world command now, or after the fall being settled (in order)."""
         if self._busy():
-            self._pending.append(lambda: fn(*args, **kw))
+            self._pending.append(("call", lambda: fn(*args, **kw)))
         else:
             fn(*args, **kw)
 
@@ -325,7 +325,7 @@ class DynamixelEmulator:
             self._world(fn)
             return
         if self._busy():
-            self._pending.append(fn)
+            self._pending.append(("release", fn))
             return
         self._ws_cache = self._world_state()
         self._world_idle.clear()
@@ -351,13 +351,27 @@ class DynamixelEmulator:
                         self._refresh(dev, ws)
                         dev.set("goal_position", dev.get("present_position"))
                 self._hold_after.clear()
-            syncs = [c for c in pending if isinstance(c, tuple)]
-            for call in pending:
-                if not isinstance(call, tuple):
+            syncs = [item[1:] for item in pending if item[0] == "sync"]
+            for item in pending:
+                if item[0] == "call":  # after a fall handed to a new worker below: queued again, behind it
                     with contextlib.suppress(Exception):
-                        call()
+                        self._world(item[1])
+                elif item[0] == "release":  # a fall of its own: a worker again, never under the bus's lock
+                    self._release(item[1])
             if syncs:  # one push of the registers as they are now (it may hand a new fall to a new worker)
                 self._sync_world(any(g for g, _ in syncs), any(v for _, v in syncs))
+
+    def settled(self, timeout: float = 30.0) -> bool:
+        """Wait until the world has caught up with everything the servos were told (a fall an instant world
+        settles on a worker, and what queued behind it); True when it has."""
+        end = time.monotonic() + timeout
+        while self._world_idle.wait(max(0.0, end - time.monotonic())):
+            with self._lock:  # a worker runs what queued up while it holds this lock
+                if self._world_idle.is_set():
+                    return True
+            if time.monotonic() >= end:
+                break
+        return False
 
     def _keep_warm(self) -> None:
         """Realtime world: integrate free joints as time passes (every 20 ms), so that no read pays for a long
@@ -472,7 +486,7 @@ class DynamixelEmulator:
     def _sync_world(self, goals_changed: bool = False, velocity_changed: bool = False) -> None:
         """Push servo outputs into the world after a packet changed registers."""
         if self._busy():
-            self._pending.append((goals_changed, velocity_changed))
+            self._pending.append(("sync", goals_changed, velocity_changed))
             return
         devs = self._joint_devs()
         torque = [d.torque for d in devs]
@@ -493,7 +507,7 @@ class DynamixelEmulator:
             else:
                 switch()
             if self._busy():
-                self._pending.append((goals_changed, velocity_changed))
+                self._pending.append(("sync", goals_changed, velocity_changed))
                 return
         self._sync_outputs(devs, goals_changed, velocity_changed)
 
