@@ -162,11 +162,11 @@ def test_hardware_error_sets_alert_and_torque_off_until_reboot(bus):
     assert ph.read1ByteTxRx(port, 12, 64)[0] == 0  # shutdown: torque off
     assert ph.read1ByteTxRx(port, 12, 70)[0] == 0x20  # overload
     assert ph.write1ByteTxRx(port, 12, 64, 1)[1] == 0x81  # refused until reboot (result fail + alert)
-    assert not world.enabled()[1]
+    assert emu.settled() and not world.enabled()[1]  # (its joint falls: no brake; the world takes its time)
     assert ph.reboot(port, 12)[0] == sdk.COMM_SUCCESS
     assert ph.read1ByteTxRx(port, 12, 70)[:3] == (0, sdk.COMM_SUCCESS, 0)
     assert ph.write1ByteTxRx(port, 12, 64, 1) == (sdk.COMM_SUCCESS, 0)
-    assert world.enabled()[1]
+    assert emu.settled() and world.enabled()[1]
 
 
 def test_wire_timing_delays_answers_by_the_wire_time():

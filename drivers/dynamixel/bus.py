@@ -123,21 +123,20 @@ class DxlBus:
         return self._transact(f"ping id {dxl_id}", call, retry)
 
     def read_block(self, dxl_id: int, addr: int, size: int, retry: bool = True) -> tuple[bytes, int]:
-        """``(data, error)`` of ``size`` bytes from ``addr`` (one Read instruction)."""
+        """``(data, error)`` of ``size`` bytes from ``addr`` (one Read instruction). An answer of another length
+        is a corrupt one (retried): a status that came too late for an earlier instruction of this id carries the
+        same id and would otherwise pass for this one (Protocol 2.0 has no sequence number)."""
         def call():
             data, res, err = self.ph.readTxRx(self.port, dxl_id, addr, size)
+            if res == sdk.COMM_SUCCESS and len(data or ()) != size:
+                return sdk.COMM_RX_CORRUPT, b"", err
             return res, bytes(data or b""), err
-        return self._transact(f"read id {dxl_id} address {addr}+{size}", call, retry)
+        return self._transact(f"read id {dxl_id} address {addr}" + (f"+{size}" if size > 4 else ""), call, retry)
 
-    def read(self, dxl_id: int, addr: int, size: int, signed: bool = False) -> tuple[int, int]:
+    def read(self, dxl_id: int, addr: int, size: int, signed: bool = False, retry: bool = True) -> tuple[int, int]:
         """``(value, error)`` of a 1/2/4-byte item."""
-        fn = {1: self.ph.read1ByteTxRx, 2: self.ph.read2ByteTxRx, 4: self.ph.read4ByteTxRx}[size]
-
-        def call():
-            value, res, err = fn(self.port, dxl_id, addr)
-            return res, value, err
-        value, err = self._transact(f"read id {dxl_id} address {addr}", call)
-        return (_signed(value, size) if signed else value), err
+        data, err = self.read_block(dxl_id, addr, size, retry)
+        return int.from_bytes(data, "little", signed=signed), err
 
     def answers_writes(self, dxl_id: int) -> bool:
         return self.status_level.get(dxl_id, 2) >= 2

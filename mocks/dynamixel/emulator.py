@@ -164,6 +164,7 @@ class DynamixelEmulator:
         self._warm_t = 0.0
         self._inline = False  # power_cycle: the caller's thread pays for the fall (the servos are off anyway)
         self._hold_after: set[int] = set()  # torque went on during a fall: hold where the fall left the joint
+        self._let_go: set[int] = set()  # joints whose torque went off since power-on: they may still fall
         self.stats: dict = {}
         self.reset_stats()
         ws = self._world_state()
@@ -267,10 +268,10 @@ class DynamixelEmulator:
         while not self._stop.is_set():
             try:
                 r, _, _ = select.select([self._master], [], [], 0.01)
-                with self._lock:
-                    self._check_watchdogs()
-                    self._keep_warm()
-                if not r:
+                if not r:  # the watchdogs count silence on the bus: what is waiting in the pty is not silence
+                    with self._lock:
+                        self._check_watchdogs()
+                        self._keep_warm()
                     continue
                 data = os.read(self._master, 4096)
             except OSError:
@@ -494,15 +495,18 @@ class DynamixelEmulator:
             changed = [j for j, on in enumerate(torque) if self._enabled is None or on != self._enabled[j]]
             on = [j for j in changed if torque[j]]
             off = [j for j in changed if not torque[j]]
-            free = [j for j, t in enumerate(torque) if not t]
+            first = self._enabled is None  # power-on: the arm rests where it stands
             self._enabled = torque
+            if not first:
+                self._let_go = (self._let_go | set(off)) - set(on)
+            falling = bool(off and not first) or bool(self._let_go)
 
             def switch():
                 if on:
                     self.world.set_enabled(True, on)
                 if off:  # torque off: a DYNAMIXEL has no brake, the joint runs free (falls where gravity loads it)
                     self.world.set_enabled(False, off)
-            if free:  # the world settles free joints on every switch: possibly slow
+            if falling:  # the world settles free joints on every switch: possibly slow
                 self._release(switch)
             else:
                 switch()
@@ -597,6 +601,7 @@ class DynamixelEmulator:
                     j = self.joint_ids.index(i)
                     if self._enabled is not None:
                         self._enabled[j] = False  # the world disables it itself
+                    self._let_go.add(j)
                     self._release(lambda j=j, bits=bits: self.world.fault_joint(j, bits))
                 else:
                     self._world(self.world.halt)
