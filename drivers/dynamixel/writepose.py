@@ -25,7 +25,7 @@ import math
 
 import numpy as np
 
-from station.kinematics.chain import forward_marked, fuse_marked
+from station.kinematics.chain import forward, forward_marked, fuse_marked
 
 PROBE = math.radians(4.0)  # rad: probe step of the gravity stiffness
 MAX_STEP = math.radians(25.0)  # rad: largest Newton step per joint
@@ -42,20 +42,21 @@ def _frames(model, q: np.ndarray, program=None) -> np.ndarray:
     return np.concatenate([F, T[:, None]], axis=1)[0]
 
 
+def _axes(model, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per joint: its axis direction and a point on it ``(n, 3)`` each, base frame, at ``q``."""
+    _, prefix = forward(model.chain, np.atleast_2d(np.asarray(q, float)), model.params, keep_prefix=True)
+    mv = np.flatnonzero(model.chain.joint >= 0)
+    e = mv[np.argsort(model.chain.joint[mv])]  # the chain element of each joint
+    w = np.array([prefix[0, k, :3, int(model.chain.axis[k]) % 3] for k in e])
+    return w, prefix[0, e, :3, 3]
+
+
 def loadable(model, q: np.ndarray) -> list[bool]:
     """Per joint: can gravity load it here (a revolute joint whose axis is not vertical, a prismatic one whose
     axis is not horizontal)? Gravity is -z in the model's base frame."""
-    out = []
-    from station.kinematics.chain import forward
-
-    _, prefix = forward(model.chain, np.atleast_2d(np.asarray(q, float)), model.params, keep_prefix=True)
-    mv = np.flatnonzero(model.chain.joint >= 0)
-    e = mv[np.argsort(model.chain.joint[mv])]
-    for i, k in enumerate(e):
-        w = prefix[0, k, :3, int(model.chain.axis[k]) % 3]
-        vertical = abs(float(w[2])) >= VERTICAL
-        out.append(not vertical if model.joints[i].revolute else abs(float(w[2])) > 1 - VERTICAL)
-    return out
+    w, _ = _axes(model, q)
+    return [abs(float(a[2])) < VERTICAL if j.revolute else abs(float(a[2])) > 1 - VERTICAL
+            for a, j in zip(w, model.joints, strict=True)]
 
 
 def upright_guess(model, q: np.ndarray, joints: list[int], free: list[int]) -> np.ndarray:
@@ -71,17 +72,11 @@ def upright_guess(model, q: np.ndarray, joints: list[int], free: list[int]) -> n
         qq = q.copy()
         qq[free] = x
         F = _frames(model, qq, program)
-        from station.kinematics.chain import forward
-
-        _, prefix = forward(model.chain, qq[None], model.params, keep_prefix=True)
-        mv = np.flatnonzero(model.chain.joint >= 0)
-        e = mv[np.argsort(model.chain.joint[mv])]
+        axes, points = _axes(model, qq)
         r = []
         for j in joints:
-            k = e[j]
-            w = prefix[0, k, :3, int(model.chain.axis[k]) % 3]
-            o = prefix[0, k, :3, 3]
-            h = np.cross(w, [0.0, 0.0, 1.0])  # horizontal, perpendicular to the axis
+            o = points[j]
+            h = np.cross(axes[j], [0.0, 0.0, 1.0])  # horizontal, perpendicular to the axis
             if np.linalg.norm(h) < 1e-9:
                 continue
             h /= np.linalg.norm(h)
