@@ -80,7 +80,8 @@ def test_options_refuse_with_one_line_naming_url_and_option(query, words):
 
 
 @pytest.mark.parametrize("driver,page", [("dynamixel", "hardware-dynamixel.md"),
-                                         ("canopen+virtual", "hardware-canopen.md"), ("ur", "hardware-ur.md")])
+                                         ("canopen+virtual", "hardware-canopen.md"), ("ur", "hardware-ur.md"),
+                                         ("franka", "hardware-franka.md")])
 def test_hardware_pages_show_the_drivers_option_spec(driver, page):
     """The URL option table in each hardware page is the one the driver declares (``Options.markdown()``)."""
     table = registry_module.driver_class(driver).options.markdown()
