@@ -8,10 +8,10 @@ impedance (the arm compliant, the ball driven a few millimetres past the socket 
 the arm's own control) and each sample is recorded on force contact (the robot's estimate of the external
 force). The solve identifies the link geometry, joint zeros and the ball (``full``; a script passes
 ``options={"identify": "full,compliance"}`` for more) with both socket positions unknown and the fixture's
-certified distance as a constraint (it fixes the length scale). Reported: the fit, the held-out consistency (how closely the calibrated
-model puts every held-out touch of a socket on one point, mean distance from the socket's centroid) and the
-distance error (the calibrated model's held-out socket centroids against the certified distance); the
-calibrated model is exported as a URDF (and, with ``--apply``, through the robot's own export). Limits:
+certified distance as a constraint (it fixes the length scale). Reported: the fit, the held-out consistency
+(how closely the calibrated model puts every held-out touch of a socket on one point, mean distance from the
+socket's centroid) and the distance error (the calibrated model's held-out socket centroids against the
+certified distance); the calibrated model is exported as a URDF (and, with ``--apply``, through the robot's own export). Limits:
 ``procedures/limits.yaml``, section ``two_socket``. Units: SI inside (m, rad); the cell file states its own.
 
 The protocol is the one of the best-known public ball-in-socket calibration data of Franka arms (a ball on the
