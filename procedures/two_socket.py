@@ -11,8 +11,9 @@ force). The solve identifies the link geometry, joint zeros and the ball (``full
 certified distance as a constraint (it fixes the length scale). Reported: the fit, the held-out consistency
 (how closely the calibrated model puts every held-out touch of a socket on one point, mean distance from the
 socket's centroid) and the distance error (the calibrated model's held-out socket centroids against the
-certified distance); the calibrated model is exported as a URDF (and, with ``--apply``, through the robot's own export). Limits:
-``procedures/limits.yaml``, section ``two_socket``. Units: SI inside (m, rad); the cell file states its own.
+certified distance); the calibrated model is exported as a URDF (and, with ``--apply``, through the robot's
+own export). Limits: ``procedures/limits.yaml``, section ``two_socket``. Units: SI inside (m, rad); the cell
+file states its own.
 
 The protocol is the one of the best-known public ball-in-socket calibration data of Franka arms (a ball on the
 flange, two sockets 50 mm apart, many configurations per socket)."""
