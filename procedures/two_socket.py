@@ -40,7 +40,7 @@ def checklist(s):
         s.approach(pose)                         #    above the socket, stiff
         seat_by_impedance(s, pose)               #    compliant, drive the ball past the centre: it seats
         s.record(pose)                           #    joints journaled while seated (force contact required)
-        leave(s, pose)                           #    back up compliant, stiff again, to the approach pose
+        leave(s, pose)                           #    stiff again where it rests, back up to the approach pose
     s.solve(identify=s.options.get("identify", IDENTIFY))   # 5. geometry + zeros + ball, sockets unknown,
     #                                                             the certified distance as a constraint
     s.measure_result()                           # 6. fit, identified, held-out residuals
@@ -223,15 +223,11 @@ def seat_by_impedance(s, pose):
 
 
 def leave(s, pose):
-    """Back up to the standoff while still compliant (the ball leaves the cone without a jerk), stiff again,
-    then to the approach pose."""
+    """Stiff again where the ball rests (the robot holds it there: the push is gone), then straight back up to
+    the approach pose."""
     s.doing = ("leave", pose.index)
-    robot = s.robot
-    q = robot.joint_positions().q
-    up = _along(s, s.point(pose.point), q, -float(s.options.get("standoff_mm", DEFAULTS["standoff_mm"])) * 1e-3 * 2)
-    robot.move_joints(up, speed=s.touch_speed(q, up))
-    robot.set_compliant(False)
-    robot.move_joints(pose.approach_arr)
+    s.robot.set_compliant(False)
+    s.robot.move_joints(pose.approach_arr)
 
 
 # ---- 6. what the two sockets show ----------------------------------------------------------------------------

@@ -49,7 +49,6 @@ log = logging.getLogger("station.drivers.franka")
 GOAL_TOL = 2e-4  # rad: the generator has arrived when its command is this close to the target ...
 REST_DQ = 5e-3  # rad/s: ... and the move is over when the arm is slower than this ...
 REST_TOOL = 1e-3  # m/s: a compliant arm rests when its end effector is slower than this
-DRAIN_CYCLES = 20  # states read after a motion ends, before anything else is sent
 FOLLOW_TOL = 5e-3  # rad: ... within this of the target (an impedance controller leaves a small steady error)
 SETTLE_S = 2.0  # s a move may take beyond its plan to settle before it is a fault
 COMM_VIOLATION = "communication_constraints_violation"
@@ -413,23 +412,14 @@ class FrankaRobot(RobotBase):
         self._start_loop(pf.ControllerMode.CartesianImpedance)
 
     def _end_motions(self) -> None:
-        """Finish whatever motion runs (the robot then holds where the arm is), then let a few cycles pass: libfranka
-        repeats the finishing command until a state says the motion is over, and a repeat still on its way must
-        reach the robot before the next ``Move`` (franka-sim takes one that echoes the newest state as the end of
-        the motion after it)."""
+        """Finish whatever motion runs (the robot then holds where the arm is)."""
         h, self._handler = self._handler, None
-        ended = h is not None
         if h is not None:
             with contextlib.suppress(Exception):
                 h.stop_control()
         loop, self._loop = self._loop, None
         if loop is not None:
             loop.finish()
-            ended = True
-        if ended and self._robot is not None:
-            with contextlib.suppress(Exception):
-                for _ in range(DRAIN_CYCLES):
-                    self._robot.read_once()
 
     def jog(self, mode, axis: int, step: float, speed: float | None = None) -> None:
         q0 = self.joint_positions().q

@@ -52,10 +52,11 @@ from franka_sim.sim_common import FR3_FORCE_LIMITS
 
 log = logging.getLogger("station.franka-sim")
 
-# Cartesian impedance: damping for a unit mass / a 0.01 kg m^2 rotor per axis (critically damped), and the
-# null space held to the generator's joint positions by a weak joint spring (the 7th DOF must not drift)
-CART_MASS, CART_INERTIA = 1.0, 0.01
-NULL_K, NULL_D = 30.0, 6.0
+# Cartesian impedance: damping for a 4 kg mass / a 0.05 kg m^2 rotor per axis (about what the arm moves at the
+# tool: near critical damping), and the
+# null space held to the generator's joint positions by a joint spring (the 7th DOF must not drift)
+CART_MASS, CART_INERTIA = 4.0, 0.05
+NULL_K, NULL_D = 100.0, 20.0
 ARMATURE = np.array([0.15, 0.15, 0.15, 0.15, 0.15, 0.15, 0.15])  # kg m^2 per joint: reflected motor inertia
 DAMPING = 1.0  # N m s/rad: viscous joint friction
 D_STABLE = 1.5 * ARMATURE / DEFAULT_DT  # the damping an explicit step of the joint law keeps stable
@@ -70,19 +71,6 @@ def _strip_urdf(text: str) -> str:
     compiler = ('<mujoco><compiler fusestatic="false" discardvisual="true" balanceinertia="true" '
                 'boundinertia="0.001" boundmass="0.001"/></mujoco>')
     return re.sub(r"(<robot\b[^>]*>)", r"\1" + compiler, text, count=1)
-
-
-def _link_inertias(urdf_text: str) -> dict[str, list[float]]:
-    """``{link: [ixx, iyy, izz, ixy, ixz, iyz]}`` of the links ``link1``..``link7`` of a URDF (kg m^2, about the
-    centre of mass, axes of the link frame)."""
-    import xml.etree.ElementTree as ET
-
-    out = {}
-    for link in ET.fromstring(urdf_text).iter("link"):
-        name, inertia = link.get("name", ""), link.find("inertial/inertia")
-        if inertia is not None and re.fullmatch(r"link[1-7]", name):
-            out[name] = [float(inertia.get(k, 0.0)) for k in ("ixx", "iyy", "izz", "ixy", "ixz", "iyz")]
-    return out
 
 
 def _frame(z) -> np.ndarray:
@@ -165,13 +153,7 @@ class StationArm(MujocoFrankaSim):
         spec.option.disableflags |= mujoco.mjtDisableBit.mjDSBL_ACTUATION
         for i, j in enumerate(spec.joints):
             j.armature, j.damping, j.frictionloss = float(ARMATURE[i % 7]), DAMPING, 0.0
-        # the true URDF carries each link's mass at its centre; its rotational inertia is the description's
-        # (the link frames of both have the same orientation: Craig's)
-        for name, inertia in _link_inertias(sc["served_urdf_text"]).items():
-            body = spec.find_body(name)
-            if body is not None:
-                body.fullinertia = inertia
-                body.explicitinertial = True
+        self._inertials_from_description(spec)
         elastic = []
         owner = {j.name: b for b in spec.bodies for j in b.joints}
         for i, c in enumerate(sc.get("compliance") or []):
@@ -232,6 +214,36 @@ class StationArm(MujocoFrankaSim):
             mujoco.mj_step(self.model, self.data)
         self._read_and_publish_state()
         log.info("scene compiled: %d dofs (%d elastic), %d sockets", self.model.nv, len(elastic), len(self._nests))
+
+    def _inertials_from_description(self, spec) -> None:
+        """Each link ``link1``..``link7`` gets the mass, centre and inertia of the same link of the description the
+        robot serves (franka_description), moved into the true URDF's link frame: the two frames are found at
+        q = 0 in both compiled models (they differ by where the URDF writer puts a link's frame on its joint
+        axis, and by the hidden errors)."""
+        true = spec.compile()
+        td = mujoco.MjData(true)
+        mujoco.mj_kinematics(true, td)
+        cm = self.controller_model
+        cm.flange_pose(np.zeros(7))
+        m, d = cm.model, cm.data
+        for k in range(1, 8):
+            name = f"link{k}"
+            bt = mujoco.mj_name2id(true, mujoco.mjtObj.mjOBJ_BODY, name)
+            bs = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, name)
+            body = spec.find_body(name)
+            if bt < 0 or bs < 0 or body is None:
+                continue
+            Rt, pt = td.xmat[bt].reshape(3, 3), td.xpos[bt]
+            Rs, ps = d.xmat[bs].reshape(3, 3), d.xpos[bs]
+            R_rel = Rt.T @ Rs  # served link frame in the true link frame
+            p_rel = Rt.T @ (ps - pt)
+            Ri = np.zeros(9)
+            mujoco.mju_quat2Mat(Ri, m.body_iquat[bs])
+            body.mass = float(m.body_mass[bs])
+            body.ipos = (R_rel @ m.body_ipos[bs] + p_rel).tolist()
+            body.iquat = _quat(R_rel @ Ri.reshape(3, 3))
+            body.inertia = m.body_inertia[bs].tolist()
+            body.explicitinertial = True
 
     def _jitter(self, k: int) -> None:
         """Move nest ``k`` to its socket centre plus the world's seating noise (m per axis)."""
@@ -448,6 +460,7 @@ class StationServer(FrankaSimServer):
         self._async: AsyncGenerator | None = None
         self._pending: AsyncGenerator | None = None
         self._async_lock = threading.Lock()
+        self._final_state_id = 0
         super().__init__(host=host, physics_sim=self.physics_sim, urdf_path=scene["served_urdf"],
                          enable_gripper=False, enforce_comm_constraints=bool(scene.get("enforce_comm", True)),
                          enforce_motion_limits=bool(scene.get("enforce_limits", True)))
@@ -461,6 +474,7 @@ class StationServer(FrankaSimServer):
             self._async = None
             self.physics_sim.generator = None
         self.physics_sim.controller = "joint"
+        self._final_state_id = 0  # the id of the state that ended the last finished motion
 
     # ---- Move: controller mode and the asynchronous generator ----------------------------------------------
     def handle_move_command(self, client_socket, header, payload: bytes) -> None:
@@ -516,12 +530,22 @@ class StationServer(FrankaSimServer):
         self.robot_state.state["control_command_success_rate"] = 1.0
 
     def _finish_motion(self, command) -> None:
-        # franka-sim ignores a finish datagram left over from the motion before; only a real finish ends the
-        # generator (through _engage_idle_hold)
-        if os.environ.get("FRANKA_SIM_DEBUG"):
-            log.warning("finish datagram id %s (epoch %s, has commands %s, mode %s)", command["message_id"],
-                        self._motion_epoch_id, self._motion_has_commands, self.robot_state.state["robot_mode"])
+        """libfranka sends one more finishing command after the state that says the motion is over (it receives,
+        then sends, then checks); it echoes the id of that final state. franka-sim ends whatever motion runs when
+        that late one arrives after the next ``Move`` was accepted (its stale test, ``id < epoch``, misses it:
+        the final state is sent outside the publish loop that sets the epoch), answers that ``Move`` kSuccess
+        right behind kMotionStarted, and libfranka, which keeps one response per command id, then waits for
+        ever. A real robot drops a command that echoes an old state (the 1 ms constraint). Here: a finishing
+        command that echoes the final state of the motion finished before, or an older one, is that motion's."""
+        if command["message_id"] <= self._final_state_id:
+            if os.environ.get("FRANKA_SIM_DEBUG"):
+                log.warning("late finish of the motion before (id %s <= %s) ignored", command["message_id"],
+                            self._final_state_id)
+            return
+        generation = self._motion_generation
         super()._finish_motion(command)
+        if self._motion_generation == generation and self.robot_state.state["robot_mode"] != 2:
+            self._final_state_id = int(self.robot_state.state["message_id"])
 
     def _engage_idle_hold(self, reason, motion_id=None) -> None:
         if os.environ.get("FRANKA_SIM_DEBUG"):
