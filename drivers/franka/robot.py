@@ -50,7 +50,7 @@ GOAL_TOL = 2e-4  # rad: the generator has arrived when its command is this close
 REST_DQ = 5e-3  # rad/s: ... and the move is over when the arm is slower than this ...
 REST_TOOL = 1e-3  # m/s: a compliant arm rests when its end effector is slower than this
 FOLLOW_TOL = 5e-3  # rad: ... within this of the target (an impedance controller leaves a small steady error)
-SETTLE_S = 2.0  # s a move may take beyond its plan to settle before it is a fault
+SETTLE_S = 5.0  # s a move may take beyond its plan to settle before it is a fault (a loaded host slows the sim)
 COMM_VIOLATION = "communication_constraints_violation"
 COLLISION = ("cartesian_reflex", "joint_reflex", "self_collision_avoidance_violation")
 # collision thresholds set at connect (N m per joint, N / N m per Cartesian axis; lower = contact, upper =
@@ -169,9 +169,16 @@ class FrankaRobot(RobotBase):
         log.info("%s connected; served model matches %s to %.2g", self.where, self.model.name, self._served_diff)
 
     def _drop(self) -> None:
+        """Let go of the connection: pylibfranka closes it when its ``Robot`` is destroyed (there is no close),
+        so every reference goes, and a collection runs for any cycle still holding one (the FCI serves one
+        client: a leaked ``Robot`` would keep the next one waiting)."""
+        import gc
+
         self._handler = self._loop = None
         robot, self._robot = self._robot, None
-        del robot  # pylibfranka closes the connection when the Robot goes
+        if robot is not None:
+            del robot
+            gc.collect()
 
     def reconnect(self, timeout: float = 10.0) -> None:
         """Open the FCI connection again after ``ConnectionLost`` (retries until ``timeout`` s)."""
@@ -231,11 +238,11 @@ class FrankaRobot(RobotBase):
                         url=self.url, serial_source="url" if self.serial else "derived")
 
     def _moving(self, s) -> bool:
-        """Stiff: any joint faster than 1 mrad/s. Compliant: the end effector faster than ``REST_TOOL`` (the arm's
-        null space may creep under Cartesian impedance while the tool rests)."""
+        """Stiff: any joint faster than ``REST_DQ``. Compliant: the end effector faster than ``REST_TOOL`` (the
+        arm's null space may creep under Cartesian impedance while the tool rests)."""
         dq = np.asarray(s.dq, float)
         if not self._compliant:
-            return bool(np.any(np.abs(dq) > 1e-3))
+            return bool(np.any(np.abs(dq) > REST_DQ))
         J = self.model.jacobian_q(np.asarray(s.q, float)).reshape(6, 7)
         return bool(np.linalg.norm(J[:3] @ dq) > REST_TOOL or np.max(np.abs(dq)) > 0.05)
 
@@ -245,11 +252,11 @@ class FrankaRobot(RobotBase):
         dq = np.asarray(s.dq, float)
         moving = self._moving(s)
         errors = str(s.current_errors) if s.current_errors else ""
-        faults = tuple(x.strip() for x in errors.strip("[]").split(",") if x.strip())
+        faults = tuple(x.strip().strip('"') for x in errors.strip("[]").split(",") if x.strip().strip('"'))
         if mode == pf.RobotMode.Reflex and not faults:
             faults = (f"reflex ({s.last_motion_errors})",)
         enabled = mode in (pf.RobotMode.Idle, pf.RobotMode.Move)
-        joints = tuple(JointState(j.name, enabled, bool(abs(dq[i]) > 1e-3)) for i, j in enumerate(self.model.joints))
+        joints = tuple(JointState(j.name, enabled, bool(abs(dq[i]) > REST_DQ)) for i, j in enumerate(self.model.joints))
         return RobotStatus(enabled=enabled, moving=moving, faults=faults, estop=False,
                            protective_stop=mode == pf.RobotMode.UserStopped,
                            compliant=self._compliant, joints=joints)
@@ -282,6 +289,7 @@ class FrankaRobot(RobotBase):
                 return
             except _Retry as r:
                 if attempt >= self.retries:
+                    self._await_standstill()
                     raise BusError(f"{self.where}: move aborted {attempt + 1} times by {r}; the robot holds where "
                                    "it stopped (a loaded station PC? motion=async needs no 1 kHz loop here)") from None
                 self._recover(str(r))
@@ -359,7 +367,7 @@ class FrankaRobot(RobotBase):
         path = loop.move_to(target, speed)
         if not wait and compliant:
             return
-        deadline = time.monotonic() + path.T + SETTLE_S
+        deadline = time.monotonic() + 2 * path.T + SETTLE_S
         rest_since = None
         while True:
             if loop.error is not None or loop.done.is_set():
@@ -482,13 +490,22 @@ class FrankaRobot(RobotBase):
                     self._raise_motion_error(loop.error, "set_compliant(False)")
 
     # ---- errors -------------------------------------------------------------------------------------------
+    def _await_standstill(self, timeout: float = 2.0) -> None:
+        """After a motion the robot ended: wait (bounded) until the arm has come to rest, so a raised fault leaves
+        it stopped."""
+        end = time.monotonic() + timeout
+        with contextlib.suppress(Exception):
+            while time.monotonic() < end and np.max(np.abs(np.asarray(self._robot.read_once().dq))) > REST_DQ:
+                time.sleep(0.01)
+
     def _raise_motion_error(self, err, what: str):
         text = _one_line(err) if err is not None else "motion ended"
-        errors = ""
+        errors = ""  # what the robot reports now (last_motion_errors outlives a recovery: not that one)
         with contextlib.suppress(Exception):
-            errors = str(self._robot.read_once().last_motion_errors)
+            errors = str(self._robot.read_once().current_errors)
         if COMM_VIOLATION in text or COMM_VIOLATION in errors:
             raise _Retry(COMM_VIOLATION)
+        self._await_standstill()
         if isinstance(err, BaseException):
             raise self._translate(err, what, errors)
         raise DeviceFault(f"{self.where}: {what}: {text}" + (f" ({errors})" if errors else ""))
