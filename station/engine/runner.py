@@ -198,8 +198,11 @@ def _cell_from_header(d: dict | None) -> Cell | None:
         return None
     from station.engine.cell import keep_out_from_dict
 
+    # SI; no keep-out journaled: the table; the known distances and planes as the solve was told them (a journal
+    # of an older station has none)
     return Cell(d.get("path", "journal"), {p["label"]: RefPoint.from_dict(p) for p in d["points"]}, d.get("model"),
-                d.get("tool"), keep_out_from_dict(d, "journal cell", 1.0, 1.0))  # SI; none journaled: the table
+                d.get("tool"), keep_out_from_dict(d, "journal cell", 1.0, 1.0),
+                [tuple(x) for x in d.get("distances") or []], list(d.get("planes") or []))
 
 
 def _optional_cell(cell_path) -> Cell | None:
@@ -258,6 +261,8 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
         limits={"path": lim.path, "version": lim.version, "sha256": lim.sha256},
         cell=None if the_cell is None else {"path": the_cell.path, "model": the_cell.model, "tool": the_cell.tool,
                                             "points": [p.to_dict() for p in the_cell.points.values()],
+                                            "distances": [list(d) for d in the_cell.distances],
+                                            "planes": list(the_cell.planes),
                                             **keep_out_to_doc(the_cell.keep_out)},
         options=opts, db=_db_for_journal(db), versions=_versions())
     journal = Journal.create(folder / "journal.jsonl", header)
