@@ -115,6 +115,9 @@ class FrankaRobot(RobotBase):
         self._handler_vmax: tuple | None = None
         self._loop: StreamLoop | None = None  # the running streamed motion
         self._tare: np.ndarray | None = None  # external force at rest when compliance began
+        self._compliant_target: np.ndarray | None = None  # the last target of the compliant hold, and its speed
+        self._compliant_speed = speed
+        self._revivals = 0  # holds taken up again in this compliant phase
         self._interrupt = threading.Event()
         self._lock = threading.RLock()
         if connect:
@@ -214,8 +217,12 @@ class FrankaRobot(RobotBase):
 
     # ---- state --------------------------------------------------------------------------------------------
     def _state(self, what: str = "read state"):
-        """The newest robot state: the running 1 kHz loop's, else one read."""
+        """The newest robot state: the running 1 kHz loop's, else one read. A compliant hold the robot ended is
+        taken up again first (``_revive_compliance``)."""
         loop = self._loop
+        if self._compliant and (loop is None or not loop.alive):
+            self._revive_compliance()
+            loop = self._loop
         if loop is not None and loop.alive and loop.state is not None:
             return loop.state
         robot = self._live(what)
@@ -359,8 +366,9 @@ class FrankaRobot(RobotBase):
     def _stream_move(self, target: np.ndarray, speed: float, wait: bool, compliant: bool) -> None:
         if compliant:
             if self._loop is None or not self._loop.alive:
-                self._start_compliant_loop()
+                self._start_compliant_loop(tare=False)
             loop = self._loop
+            self._compliant_target, self._compliant_speed = target.copy(), speed
         else:
             self._end_motions()
             loop = self._start_loop(pf.ControllerMode.JointImpedance)
@@ -439,6 +447,7 @@ class FrankaRobot(RobotBase):
         driver's runs)."""
         self._interrupt.set()
         had = self._handler is not None or self._loop is not None
+        self._compliant, self._tare = False, None  # a compliant hold ends too: the robot holds the arm
         self._end_motions()
         if not had and self._robot is not None:
             with contextlib.suppress(Exception):
@@ -470,13 +479,25 @@ class FrankaRobot(RobotBase):
 
     def set_compliant(self, on: bool) -> None:
         """On: Cartesian impedance (``stiffness`` N/m, ``rot_stiffness`` N m/rad at the end effector) held by the
-        driver's 1 kHz loop; moves while compliant are moves of that motion (contact stops them softly).
+        driver's 1 kHz loop; moves while compliant are moves of that motion (contact stops them softly). A hold
+        the robot aborts for a communication-constraint violation is recovered and taken up again (the last
+        compliant target, the force at rest from before), ``retries`` times per compliant phase.
         Off: the motion ends and the robot holds the arm where it rests."""
         if on:
             if self._compliant:
                 return
             self._end_motions()
-            self._start_compliant_loop()
+            self._revivals = 0
+            self._compliant_target = None
+            for attempt in range(self.retries + 1):
+                try:
+                    self._start_compliant_loop()
+                    break
+                except _Retry as r:
+                    if attempt >= self.retries:
+                        raise BusError(f"{self.where}: set_compliant: the impedance motion was aborted "
+                                       f"{attempt + 1} times by {r}") from None
+                    self._recover(str(r))
             self._compliant = True
         else:
             if not self._compliant:
@@ -487,7 +508,27 @@ class FrankaRobot(RobotBase):
             if loop is not None:
                 loop.finish()
                 if loop.error is not None and not isinstance(loop.error, TimeoutError):
-                    self._raise_motion_error(loop.error, "set_compliant(False)")
+                    try:
+                        self._raise_motion_error(loop.error, "set_compliant(False)")
+                    except _Retry as r:  # the hold was lost: clear the reflex, the arm rests where it is
+                        self._recover(str(r))
+
+    def _revive_compliance(self) -> None:
+        """The compliant hold ended without being asked to (the robot aborted it): for a communication-constraint
+        violation, recover and take the hold up again; anything else is raised."""
+        loop = self._loop
+        err = loop.error if loop is not None else None
+        self._loop = None
+        try:
+            self._raise_motion_error(err, "compliant hold")
+        except _Retry as r:
+            if self._revivals >= self.retries:
+                raise BusError(f"{self.where}: the compliant hold was aborted {self._revivals + 1} times by {r}; "
+                               "the robot holds where it stopped") from None
+            self._revivals += 1
+            self._recover(str(r))  # restarts the hold (the force at rest kept)
+            if self._compliant_target is not None and self._loop is not None:
+                self._loop.move_to(self._compliant_target, self._compliant_speed)
 
     # ---- errors -------------------------------------------------------------------------------------------
     def _await_standstill(self, timeout: float = 2.0) -> None:
@@ -551,8 +592,9 @@ class FrankaRobot(RobotBase):
         return paths
 
 
-class _Retry(Exception):
-    """A motion the robot aborted for a reason a recovery and a new attempt cure."""
+class _Retry(BusError):
+    """A motion the robot aborted for a reason a recovery and a new attempt cure (a ``BusError``: should one
+    ever get past the retries, it is still one line)."""
 
 
 def _one_line(e) -> str:
