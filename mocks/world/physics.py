@@ -9,10 +9,23 @@ from __future__ import annotations
 
 import numpy as np
 
-from station.kinematics.chain import forward
+from station.kinematics.chain import forward_marked, fuse_marked
 
 STEP = 1e-6  # rad (m for prismatic joints): central-difference step of the potential energy
 FIXED_POINT_TOL = 1e-13  # rad
+
+
+class LinkFrames:
+    """Frames ``(N, n + 1, 4, 4)`` of links 1..n and of the tool at joint values ``theta (N, n)``: link k's
+    frame is the one after element ``model.frames[k - 1]`` (it moves with joint k). The chain is fused once for
+    the model's parameter vector (a few matrix products per configuration: the dynamics call this every ms)."""
+
+    def __init__(self, model) -> None:
+        self.program = fuse_marked(model.chain, model.params, model.frames)
+
+    def __call__(self, theta: np.ndarray) -> np.ndarray:
+        T, frames = forward_marked(self.program, np.atleast_2d(theta))
+        return np.concatenate([frames, T[:, None]], axis=1)
 
 
 class Rigid:
@@ -34,27 +47,25 @@ class Gravity:
     def __init__(self, model, masses: dict, payload: tuple, gravity, compliance: np.ndarray) -> None:
         self.model = model
         self.masses, self.payload = dict(masses), payload  # as given, for reports
-        K = model.chain.n_elements
         links = [(k, m, c) for k, (m, c) in sorted(masses.items()) if m > 0]
         if payload[0] > 0:
             links.append((model.n_joints + 1, payload[0], payload[1]))
-        self.elem = np.array([model.frames[k - 1] if k <= model.n_joints else K - 1 for k, _, _ in links],
-                             dtype=int)
+        self.frames = LinkFrames(model)
+        self.link = np.array([k - 1 for k, _, _ in links], dtype=int)  # index into link_frames(): n = the tool
         self.mass = np.array([m for _, m, _ in links], dtype=float)
         self.com = np.array([np.asarray(c, dtype=float) for _, _, c in links]).reshape(-1, 3)
         self.g = np.asarray(gravity, dtype=float)
         self.compliance = np.asarray(compliance, dtype=float)
         self.active = bool(self.compliance.any() and self.mass.sum() > 0 and self.g.any())
 
+    def mass_positions(self, theta: np.ndarray) -> np.ndarray:
+        """Positions ``(N, masses, 3)`` (m, base frame) of the point masses at joint values ``theta (N, n)``."""
+        F = self.frames(theta)[:, self.link]
+        return np.einsum("nmij,mj->nmi", F[..., :3, :3], self.com) + F[..., :3, 3]
+
     def potential(self, theta: np.ndarray) -> np.ndarray:
         """Potential energy (J) at joint values ``theta (N, n)``."""
-        m = self.model
-        T, prefix = forward(m.chain, theta, m.params, keep_prefix=True)
-        K = m.chain.n_elements
-        F = np.where((self.elem + 1 < K)[None, :, None, None], prefix[:, np.minimum(self.elem + 1, K - 1)],
-                     T[:, None])
-        p = np.einsum("nmij,mj->nmi", F[..., :3, :3], self.com) + F[..., :3, 3]
-        return -np.einsum("m,nmk,k->n", self.mass, p, self.g)
+        return -np.einsum("m,nmk,k->n", self.mass, self.mass_positions(theta), self.g)
 
     def torque(self, theta: np.ndarray) -> np.ndarray:
         """``-dV/dtheta`` ``(n,)`` at one configuration: the torque (force) gravity applies to each joint."""

@@ -6,7 +6,11 @@ public methods take one re-entrant lock, so emulator threads may call them concu
 Joint state is the motor/encoder position ``q`` (SI). The true joint value seen by the kinematics is
 ``q_joint = theta`` with ``theta = q - side * backlash/2 + C * tau(theta)`` (backlash, and gravity compliance
 under the torque ``tau`` of the link masses and payload: ``physics.Gravity``; off by default), and the true
-tip is ``truth.fk(q_joint)`` (``truth`` is rigid: its compliance parameters are zero)."""
+tip is ``truth.fk(q_joint)`` (``truth`` is rigid: its compliance parameters are zero).
+
+A joint follows its motion profile (``motion.Track``) unless it is free (disabled without a brake),
+torque-commanded, or position-controlled under a torque limit gravity exceeds: those are integrated by
+``dynamics.Dynamics`` (``_integrate``) and their state overlays the profile's (``_state``)."""
 
 from __future__ import annotations
 
@@ -19,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from station.mocks.world import motion
+from station.mocks.world import dynamics, motion
 from station.mocks.world.cell import CELL_FORMAT, DEFAULTS, CellPoint, KeepOutTruth
 from station.mocks.world.faults import Faults
 from station.mocks.world.physics import Gravity, Rigid
@@ -38,6 +42,7 @@ from station.kinematics import Model, load_model
 from station.kinematics.modelfile import ModelFileError
 
 log = logging.getLogger("station.mocks.world")
+TRACK, FREE, TORQUE, SATURATED = 0, 1, 2, 3  # joint modes: on its profile, or integrated (dynamics.py)
 WATCH_PERIOD = 0.01  # s of world time between two looks of the keep-out watch while the arm moves
 
 # sigmas of the hidden errors of World.default (SI)
@@ -151,6 +156,21 @@ class World:
         self._seat_failed: np.ndarray | None = None
         self._joint_faults: dict[int, int] = {}
         self._pstop = False
+        # brakes: the world file's joints.brakes; unsaid, every joint has one until the emulator states its
+        # device's default (default_brakes: a DYNAMIXEL servo has none)
+        self._brakes_said = spec.brakes is not None
+        self._brakes = np.ones(n, dtype=bool) if spec.brakes is None else np.array(spec.brakes, dtype=bool)
+        # joints off their profile (dynamics.py): mode per joint, their state, what the motor applies
+        self._mode = np.full(n, TRACK)
+        self._dyn_x = q0.copy()
+        self._dyn_v = np.zeros(n)
+        self._dyn_side = np.ones(n)
+        self._dyn_t = 0.0
+        self._dyn_rest = True  # every dynamic joint at rest while nothing else moves: no integration needed
+        self._tau_cmd = np.zeros(n)  # torque mode set-points, N m
+        self._tau_limit = np.full(n, np.inf)  # motor torque limits, N m (inf: none)
+        self._tau_motor = np.zeros(n)  # what each free/torque/saturated joint's motor applied last, N m
+        self.__dynamics: dynamics.Dynamics | None = None
 
     # ---- construction -------------------------------------------------------------------------
     @classmethod
@@ -229,6 +249,10 @@ class World:
                     while self._t < min(end, t0 + max_time):
                         self._t = min(self._t + step, end)
                 self._update()
+                # joints off their profiles (falling, pushed, sagging) come to rest in their own time
+                while self._moving_now(self._t).any() and self._t - t0 < max_time:
+                    self._t = min(self._t + (step or 0.05), t0 + max_time)
+                    self._update()
                 return self.now() - t0
         while self.is_moving() and self.now() - t0 < max_time:
             time.sleep(0.002)
@@ -246,9 +270,26 @@ class World:
         self._version += 1
 
     def _state(self, t: float | None = None):
+        """``(q, qd, side)`` at ``t``: the profiles, overlaid by the integrated joints' state (as of the last
+        ``_integrate``, which every read runs first)."""
         t = self.now() if t is None else t
         st = np.array([tr.state(t) for tr in self._tracks])
-        return st[:, 0], st[:, 1], st[:, 2]
+        q, qd, side = st[:, 0], st[:, 1], st[:, 2]
+        dyn = self._mode != TRACK
+        if dyn.any():
+            q, qd, side = (np.where(dyn, self._dyn_x, q), np.where(dyn, self._dyn_v, qd),
+                           np.where(dyn, self._dyn_side, side))
+        return q, qd, side
+
+    def _moving_now(self, t: float) -> np.ndarray:
+        """Per joint: on a running profile, or an integrated joint not at rest."""
+        on_track = np.array([t < tr.t_end for tr in self._tracks])
+        dyn = self._mode != TRACK
+        if not dyn.any():
+            return on_track
+        loose = dyn & (np.abs(self._dyn_v) >= dynamics.REST_SPEED)
+        saturated = (self._mode == SATURATED) & on_track  # its reference still moves
+        return np.where(dyn, loose | saturated | (dyn & ~self._dyn_rest), on_track)
 
     def encoder_q(self) -> np.ndarray:
         """Motor/encoder positions (SI), as a device reads them before its own calibration offset."""
@@ -273,7 +314,7 @@ class World:
     def _joint_q_now(self) -> tuple[np.ndarray, np.ndarray]:
         """``(q_joint, tip)`` now; cached while the arm stands still (emulators poll contact() fast)."""
         t = self.now()
-        key = (self._version, t if any(t < tr.t_end for tr in self._tracks) else None)
+        key = (self._version, t if self._moving_now(t).any() else None)
         if self._cache is None or self._cache[0] != key:
             q, _, side = self._state(t)
             qj = self._deflect(q, side)
@@ -322,14 +363,12 @@ class World:
 
     def is_moving(self) -> bool:
         with self._lock:
-            t = self.now()
-            return any(t < tr.t_end for tr in self._tracks)
+            return bool(self._moving_now(self.now()).any())
 
     def joint_moving(self) -> np.ndarray:
-        """Per joint: its profile is still running."""
+        """Per joint: its profile is still running, or it moves on its own (free, torque, saturated)."""
         with self._lock:
-            t = self.now()
-            return np.array([t < tr.t_end for tr in self._tracks])
+            return self._moving_now(self.now())
 
     def snapshot(self) -> Snapshot:
         """Everything an emulator serves, evaluated at ONE instant (realtime mode moves between calls)."""
@@ -340,7 +379,7 @@ class World:
             q_read = q
             if self.spec.encoder_sigma > 0:
                 q_read = q + self._g_enc.normal(0.0, self.spec.encoder_sigma, self.n_joints)
-            moving = np.array([t < tr.t_end for tr in self._tracks])
+            moving = self._moving_now(t)
             return Snapshot(t, q_read, qd, moving, self.touching() is not None, self._enabled.copy(),
                             self._compliant, self._seated)
 
@@ -385,6 +424,7 @@ class World:
                 self._event(f"command_q clamped to joint limits: {', '.join(bad)}")
             if self._refused("command_q"):
                 return self._state()[0]
+            self._integrate()
             self._watch(force=True)  # the path so far, before the motion changes
             t = self.now()
             x, v, side = self._state(t)
@@ -408,6 +448,7 @@ class World:
                 as_ = np.where(moving, np.broadcast_to(alim, moving.shape), as_)
                 tracks = [motion.plan(t, float(x[i]), float(v[i]), float(target[i]), vs[i], as_[i],
                                       float(side[i])) for i in range(self.n_joints)]
+            self._mode[(self._mode == TORQUE) & self._enabled] = TRACK  # a position command ends torque mode
             self._set_tracks(tracks, x)
             return target
 
@@ -427,8 +468,11 @@ class World:
                 return float(self._state()[0][i])
             vl = float(self._limits(speed, self._vmax, "speed")[i])
             al = float(self._limits(accel, self._amax, "accel")[i])
+            self._integrate()
             t = self.now()
-            x, v, side = self._tracks[i].state(t)
+            x, v, side = (float(a[i]) for a in self._state(t))
+            if self._mode[i] == TORQUE:
+                self._mode[i] = TRACK
             tracks = list(self._tracks)
             if self.time_mode == "instant":
                 tracks[i] = motion.hold(t, tgt, math.copysign(1.0, tgt - x) if abs(tgt - x) > motion.EPS else side)
@@ -449,6 +493,7 @@ class World:
                 self._event("command_qd capped at the joint velocity limits")
             if self._refused("command_qd"):
                 return np.zeros(self.n_joints)
+            self._integrate()
             capped = np.where(self._enabled, capped, 0.0)
             t = self.now()
             x, v, side = self._state(t)
@@ -459,18 +504,25 @@ class World:
                 else:
                     end = self.upper[i] if capped[i] > 0 else self.lower[i]
                     tracks.append(motion.plan(t, x[i], v[i], end, abs(capped[i]), alim[i], side[i]))
+            self._mode[(self._mode == TORQUE) & self._enabled] = TRACK  # so does a velocity command
             self._set_tracks(tracks, x)
             return capped
 
     def halt(self, joints=None) -> None:
-        """Decelerate ``joints`` (index, list; None: all) to rest at the acceleration limit (controlled stop)."""
+        """Decelerate ``joints`` (index, list; None: all) to rest at the acceleration limit (controlled stop).
+        A torque-commanded joint goes back to position control; a free joint has no power to stop it."""
         with self._lock:
+            self._integrate()
             t = self.now()
+            x, v, side = self._state(t)
+            tracks = list(self._tracks)
             for i in self._joints(joints):
-                x, v, side = self._tracks[i].state(t)
-                tracks = list(self._tracks)
-                tracks[i] = motion.brake(t, x, v, float(self._amax[i]), side)
-                self._tracks = tracks
+                if self._mode[i] == FREE:
+                    continue
+                tracks[i] = motion.brake(t, float(x[i]), float(v[i]), float(self._amax[i]), float(side[i]))
+                if self._mode[i] == TORQUE:
+                    self._mode[i] = TRACK
+            self._tracks = tracks
 
     def _set_tracks(self, tracks: list[motion.Track], x_now: np.ndarray) -> None:
         moved = any(abs(tr.x_end - x_now[i]) > 1e-12 or tr.phases for i, tr in enumerate(tracks))
@@ -506,22 +558,192 @@ class World:
         return idx
 
     def set_enabled(self, on: bool, joints=None) -> None:
-        """Power/torque on or off for ``joints`` (index or list; None: all). A disabled joint is held by
-        its brake where it is (stops at once) and ignores commands."""
+        """Power/torque on or off for ``joints`` (index or list; None: all). A disabled joint ignores commands:
+        with a brake (``brakes``) it is held where it is (stops at once); without one it is free and moves under
+        gravity (and its own momentum) until friction or its end stop holds it. Enabling holds a joint where it
+        is (position control, goal = present position)."""
         with self._lock:
+            self._integrate()
             idx = self._joints(joints)
-            if not on:
-                t = self.now()
-                for i in idx:
-                    x, _, side = self._tracks[i].state(t)
-                    tracks = list(self._tracks)
-                    tracks[i] = motion.hold(t, x, side)
-                    self._tracks = tracks
+            t = self.now()
+            x, v, side = self._state(t)
+            tracks = list(self._tracks)
+            for i in idx:
+                if on and self._enabled[i]:
+                    continue
+                if on or self._brakes[i]:
+                    tracks[i] = motion.hold(t, float(x[i]), float(side[i]))
+                    self._mode[i] = TRACK
+                else:
+                    self._let_go(i, x, v, side)
+            self._tracks = tracks
             self._enabled[idx] = bool(on)
+            self._settle_instant()
 
     def enabled(self) -> np.ndarray:
         with self._lock:
             return self._enabled.copy()
+
+    # ---- brakes, torque, joints off their profiles (dynamics.py) ------------------------------
+    @property
+    def brakes(self) -> np.ndarray:
+        """Per joint: a brake holds it when it is disabled."""
+        return self._brakes.copy()
+
+    def default_brakes(self, has_brake) -> None:
+        """The device's own default (a bool or one per joint), used only where the world file says nothing
+        (``joints.brakes``): an emulator states what its hardware has. Parallel robots' screw legs self-lock."""
+        with self._lock:
+            if not self._brakes_said and not isinstance(self.gravity, Rigid):
+                self._brakes = np.broadcast_to(np.asarray(has_brake, dtype=bool), (self.n_joints,)).copy()
+
+    def command_torque(self, tau, joints=None) -> None:
+        """Torque mode for ``joints`` (None: all): each applies ``tau`` (N m, N for prismatic; a scalar or one
+        per joint named), within its torque limit; nothing holds position (CiA 402 profile torque). Disabled
+        joints ignore it; a position command, ``halt`` or disabling ends it."""
+        with self._lock:
+            self._integrate()
+            idx = self._joints(joints)
+            tau = np.broadcast_to(np.asarray(tau, dtype=float), (len(idx),))
+            if not np.all(np.isfinite(tau)):
+                raise ValueError(f"command_torque: not finite: {tau.tolist()}")
+            if self._refused("command_torque"):
+                return
+            x, v, side = self._state()
+            for k, i in enumerate(idx):
+                if not self._enabled[i]:
+                    continue
+                self._tau_cmd[i] = tau[k]
+                if self._mode[i] != TORQUE:
+                    self._let_go(i, x, v, side, TORQUE)
+            self._dyn_rest = False
+            self._settle_instant()
+
+    def set_torque_limit(self, limit, joints=None) -> None:
+        """Motor torque limit (N m, N for prismatic; None or inf: none) of ``joints`` (None: all). A position-
+        controlled joint whose load needs more than its limit sags while its motor pushes the limit."""
+        with self._lock:
+            self._integrate()
+            idx = self._joints(joints)
+            lim = np.broadcast_to(np.asarray(np.inf if limit is None else limit, dtype=float), (len(idx),))
+            if np.any(np.isnan(lim)) or np.any(lim < 0):
+                raise ValueError(f"set_torque_limit: must be >= 0, got {lim.tolist()}")
+            self._tau_limit[idx] = lim
+            self._dyn_rest = False
+            self._integrate()
+            self._settle_instant()
+
+    def torque_limit(self) -> np.ndarray:
+        with self._lock:
+            return self._tau_limit.copy()
+
+    def joint_torque(self) -> np.ndarray:
+        """The torque (N m, N for prismatic) each joint's motor applies now: holding its load on its profile,
+        what a torque-commanded or saturated motor pushes, 0 with the power off (the brake, if any, holds)."""
+        with self._lock:
+            self._update()
+            q = self._state()[0]
+            tau_g, _ = self._dynamics.forces(q)
+            held = (self._mode == TRACK) & self._enabled
+            return np.where(held, -tau_g, np.where(self._mode == FREE, 0.0, self._tau_motor))
+
+    def gravity_torque(self) -> np.ndarray:
+        """The torque (N m, N for prismatic) gravity applies to each joint now (the truth's, with estimated
+        masses where the world states none: dynamics.estimated_masses)."""
+        with self._lock:
+            self._update()
+            return self._dynamics.forces(self._state()[0])[0]
+
+    def dynamics_friction(self) -> np.ndarray:
+        """Coulomb friction (N m, N for prismatic) of each joint off its profile (joints.dynamics.friction)."""
+        with self._lock:
+            return self._dynamics.friction.copy()
+
+    @property
+    def _dynamics(self) -> dynamics.Dynamics:
+        if self.__dynamics is None:
+            g = self.gravity
+            if not isinstance(g, Gravity) or g.mass.sum() <= 0:
+                payload = g.payload if isinstance(g, Gravity) else (0.0, np.zeros(3))
+                g = Gravity(self.truth, dynamics.estimated_masses(self.truth) if isinstance(g, Gravity) else {},
+                            payload, self.spec.gravity, np.zeros(self.n_joints))
+            self.__dynamics = dynamics.Dynamics(self.truth, g, self.spec.dynamics)
+        return self.__dynamics
+
+    def _let_go(self, i: int, x, v, side, mode: int = FREE) -> None:
+        """Joint ``i`` leaves its profile (free or torque mode) from its present state."""
+        if self._mode[i] == TRACK:
+            self._dyn_x[i], self._dyn_v[i], self._dyn_side[i] = x[i], v[i], side[i]
+        self._mode[i] = mode
+        self._dyn_rest = False
+        self._version += 1
+
+    def _check_saturation(self, q: np.ndarray) -> None:
+        """Position-controlled joints whose load needs more torque than their limit leave their profile."""
+        tau_g, _ = self._dynamics.forces(q)
+        over = (self._mode == TRACK) & self._enabled & (np.abs(tau_g) > self._tau_limit * (1 + 1e-9))
+        if over.any():
+            _, v, side = self._state()
+            for i in np.flatnonzero(over):
+                self._let_go(i, q, v, side, SATURATED)
+                self._event(f"{self.truth.joints[i].name}: load {abs(tau_g[i]):.3g} N m over the motor's torque "
+                            f"limit {self._tau_limit[i]:.3g}: sags")
+
+    def _integrate(self, t1: float | None = None, t0: float | None = None) -> None:
+        """Bring the joints off their profiles from their last state to ``t1`` (default now). ``t0``: start the
+        span there instead (instant mode settles a span of its own: the profiles then stand still)."""
+        t1 = self.now() if t1 is None else t1
+        if np.isfinite(self._tau_limit).any():
+            self._check_saturation(self._state(t1)[0])
+        dyn = self._mode != TRACK
+        t0 = self._dyn_t if t0 is None else t0
+        if not dyn.any() or t1 <= t0:
+            self._dyn_t = max(self._dyn_t, t1)
+            return
+        # a moving profile changes the load on the others (and drives a saturated joint): integrate while it runs
+        profiles_move = any(t0 < tr.t_end for tr in self._tracks)
+        saturated = self._mode == SATURATED
+        if self._dyn_rest and not profiles_move:
+            self._dyn_t = t1
+            return
+        D = self._dynamics
+        steps = int(min(dynamics.MAX_STEPS, max(1, math.ceil((t1 - t0) / dynamics.STEP))))
+        h = (t1 - t0) / steps
+        x, v = self._dyn_x.copy(), self._dyn_v.copy()
+        rest = np.zeros(self.n_joints, dtype=bool)
+        for k in range(steps):
+            tm = t0 + (k + 1) * h
+            ref = np.array([tr.state(tm) for tr in self._tracks])
+            q, qd = np.where(dyn, x, ref[:, 0]), np.where(dyn, v, ref[:, 1])
+            tau_g, inertia = D.forces(q)
+            tau = np.where(self._mode == TORQUE, np.clip(self._tau_cmd, -self._tau_limit, self._tau_limit), 0.0)
+            if saturated.any():
+                pc = D.position_controller(q, qd, ref[:, 0], ref[:, 1], self._tau_limit, tau_g, inertia)
+                tau = np.where(saturated, pc, tau)
+            x_new, v_new, rest = D.step(q, qd, tau, h, dyn, self.lower, self.upper, tau_g, inertia)
+            x, v = np.where(dyn, x_new, x), np.where(dyn, v_new, v)
+            self._tau_motor = np.where(dyn, tau, self._tau_motor)
+            if saturated.any():  # back on the profile once the controller holds it within its limit again
+                back = saturated & (np.abs(tau) < self._tau_limit) & (np.abs(x - ref[:, 0]) < 1e-7) \
+                    & (np.abs(v - ref[:, 1]) < 1e-5)
+                if back.any():
+                    self._mode[back] = TRACK
+                    dyn, saturated = self._mode != TRACK, self._mode == SATURATED
+            if (rest | ~dyn).all() and tm >= max([tr.t_end for tr in self._tracks] + [t0]):
+                break
+        moved = np.abs(v) >= dynamics.REST_SPEED
+        self._dyn_side = np.where(moved, np.sign(v), self._dyn_side)
+        self._dyn_x, self._dyn_v = x, v
+        self._dyn_rest = bool((rest | ~dyn).all())
+        self._dyn_t = max(self._dyn_t, t1)
+        self._version += 1
+
+    def _settle_instant(self) -> None:
+        """Instant mode completes moves at once: a joint let go comes to rest at once too (at most
+        ``dynamics.SETTLE_TIME`` of its own motion; the profiles stand still meanwhile)."""
+        if self.time_mode == "instant" and (self._mode != TRACK).any():
+            t = self.now()
+            self._integrate(t1=t, t0=t - dynamics.SETTLE_TIME)
 
     def set_compliant(self, on: bool) -> None:
         """Compliant (torque-limited / freedrive) mode. Entering it with the true tip inside a socket's
@@ -581,6 +803,7 @@ class World:
     def _update(self, watch: bool = True) -> None:
         """Lazy world rules evaluated whenever state is read: socket seating while compliant, and (``watch``)
         the links against the floor and keep-outs."""
+        self._integrate()
         if watch:
             self._watch()
         if self._compliant and self._seated is None and not self.is_moving():

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 from station.mocks.errors import MockError
 from station.mocks.world.cell import DEFAULTS, KINDS
+from station.mocks.world.dynamics import JointDynamicsSpec
 
 from station.kinematics.collision import KeepOut, KeepOutError, keep_out_from_dict, keep_out_to_doc
 
@@ -54,6 +55,8 @@ class WorldSpec:
     payload: float | None = None  # kg at the tool (None: the model's payload), loads the compliant joints
     payload_com: list[float] | None = None  # m, in the tool frame (default: the tool centre point)
     gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)  # m/s^2 in the base frame
+    brakes: list[bool] | None = None  # per joint: a brake holds it when disabled (None: the device's default)
+    dynamics: JointDynamicsSpec | None = None  # joints off their profiles (docs/world.md, "Free joints")
     start: list[float] | None = None
     enabled: bool = True
     time_mode: str = "instant"
@@ -222,7 +225,12 @@ def _spec_from_dict(doc, where: str) -> WorldSpec:
             sl, sa = (x * L, None) if kinds == {"length"} else (None, x * A)
         s.random.append((str(sel), sl, sa))
 
-    joints = r.mapping(doc.get("joints"), "joints", {"backlash", "compliance", "payload", "gravity", "masses"})
+    joints = r.mapping(doc.get("joints"), "joints", {"backlash", "compliance", "payload", "gravity", "masses",
+                                                     "brakes", "dynamics"})
+    if "brakes" in joints:
+        s.brakes = _parse_brakes(model, joints["brakes"], r)
+    if joints.get("dynamics") is not None:
+        s.dynamics = _parse_dynamics(model, joints["dynamics"], r)
     for k, v in r.mapping(joints.get("backlash"), "joints.backlash").items():
         i = _joint_index(model, k, r, f"joints.backlash.{k}")
         s.backlash[i] = r.num(v, f"joints.backlash.{k}", nonneg=True) * (A if model.joints[i].revolute else L)
@@ -322,6 +330,39 @@ def _spec_from_dict(doc, where: str) -> WorldSpec:
     return s
 
 
+def _parse_brakes(model, v, r: _Reader) -> list[bool]:
+    """``joints.brakes``: ``all``, ``none`` or a list of the joints that have one."""
+    if v in ("all", "none"):
+        return [v == "all"] * model.n_joints
+    if not isinstance(v, list):
+        raise r.fail("joints.brakes", f"expected all, none or a list of joints (j1.. or names), got {v!r}")
+    out = [False] * model.n_joints
+    for k in v:
+        out[_joint_index(model, k, r, "joints.brakes")] = True
+    return out
+
+
+def _parse_dynamics(model, v, r: _Reader) -> JointDynamicsSpec:
+    """``joints.dynamics``: ``{inertia, damping, friction}``, each a number for every joint or ``{joint: number}``,
+    SI whatever ``units`` says (kg m^2, N m s/rad, N m; kg, N s/m, N for a prismatic joint)."""
+    v = r.mapping(v, "joints.dynamics", {"inertia", "damping", "friction"})
+    out = {}
+    for key in ("inertia", "damping", "friction"):
+        f = f"joints.dynamics.{key}"
+        item = v.get(key)
+        if item is None:
+            out[key] = {}
+        elif isinstance(item, dict):
+            out[key] = {_joint_index(model, k, r, f"{f}.{k}"): r.num(x, f"{f}.{k}", nonneg=True)
+                        for k, x in item.items()}
+        else:
+            x = r.num(item, f, nonneg=True)
+            out[key] = dict.fromkeys(range(model.n_joints), x)
+        if key == "inertia" and any(x <= 0 for x in out[key].values()):
+            raise r.fail(f, "must be > 0")
+    return JointDynamicsSpec(**out)
+
+
 def _parse_faults(r, items) -> list[dict]:
     """``faults: [{do: timeout, device: 12, count: 1, after: 0, code: 0x20, at: {packet: {addr: 20}}}]``:
     ``do`` one of the emulators' fault kinds; ``at`` (optional) arms it only once an emulator sees a matching
@@ -398,6 +439,11 @@ def spec_to_dict(s: WorldSpec, model, length: str = "m", angle: str = "rad") -> 
     if s.masses:
         doc["joints"]["masses"] = {f"j{k}": {"mass": r(m), "com": [r(x * L) for x in c]}
                                    for k, (m, c) in s.masses.items()}
+    if s.brakes is not None:
+        doc["joints"]["brakes"] = [f"j{i + 1}" for i, b in enumerate(s.brakes) if b]
+    if s.dynamics is not None:
+        doc["joints"]["dynamics"] = {k: {f"j{i + 1}": r(x) for i, x in getattr(s.dynamics, k).items()}
+                                     for k in ("inertia", "damping", "friction")}
     if s.payload is not None:
         doc["joints"]["payload"] = (r(s.payload) if s.payload_com is None else
                                     {"mass": r(s.payload), "com": [r(x * L) for x in s.payload_com]})

@@ -139,3 +139,47 @@ def forward_fused(f: Fused, q: np.ndarray, jacobian: bool = False):
         else:
             Jq[:, :3, j] += w
     return T, Jq
+
+
+@dataclass(frozen=True)
+class Marked:
+    """A fused chain that also keeps the frame after chosen elements (link frames for masses, say):
+    ``steps`` is the program ``("fixed", M) | ("joint", axis, joint, offset) | ("mark",)`` in chain order."""
+
+    steps: tuple
+
+
+def fuse_marked(chain: Chain, params: np.ndarray, marks) -> Marked:
+    """:func:`fuse` for ONE parameter vector, keeping the frame after each element of ``marks`` (in chain order;
+    an element may be marked more than once)."""
+    marks = list(marks)
+    steps: list[tuple] = []
+    T = np.eye(4)[None].copy()
+    for k in range(chain.n_elements):
+        v = chain.const[k] + (params[chain.param[k]] if chain.param[k] >= 0 else 0.0)
+        if chain.joint[k] < 0:
+            _apply(T, int(chain.axis[k]), np.array([v]))
+        else:
+            steps += [("fixed", T[0].copy()), ("joint", int(chain.axis[k]), int(chain.joint[k]), float(v))]
+            T = np.eye(4)[None].copy()
+        if k in marks:
+            steps.append(("fixed", T[0].copy()))
+            T = np.eye(4)[None].copy()
+            steps += [("mark",)] * marks.count(k)
+    steps.append(("fixed", T[0].copy()))
+    return Marked(tuple(steps))
+
+
+def forward_marked(m: Marked, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(tool transform (N,4,4), marked frames (N, marks, 4, 4))`` at joint values ``q (N, n)``."""
+    N = q.shape[0]
+    T = np.broadcast_to(np.eye(4), (N, 4, 4)).copy()
+    kept = []
+    for step in m.steps:
+        if step[0] == "fixed":
+            T = T @ step[1]
+        elif step[0] == "joint":
+            _apply(T, step[1], q[:, step[2]] + step[3])
+        else:
+            kept.append(T.copy())
+    return T, (np.stack(kept, axis=1) if kept else np.zeros((N, 0, 4, 4)))
