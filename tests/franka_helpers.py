@@ -15,7 +15,23 @@ TOOL = {"x": 0.003, "y": -0.002, "z": 0.167, "rx": 0.0, "ry": 0.0, "rz": 0.0}  #
 SOCKETS = {"A": [0.50, -0.025, 0.10], "B": [0.50, 0.025, 0.10]}
 
 
-def world_doc(seed: int = 3, errors: dict | None = None, **buses) -> dict:
+# link masses (kg) and centres (m, Craig link frames) of franka_description's fr3.urdf: the simulator's links
+FR3_MASSES = {
+    "j1": (2.9274653454, [0.0000004128, -0.0181251324, -0.0386035970]),
+    "j2": (2.9355370338, [0.0031828864, -0.0743221644, 0.0088146084]),
+    "j3": (2.2449013699, [0.0407015686, -0.0048200565, -0.0289730823]),
+    "j4": (2.6155955791, [-0.0459100965, 0.0630492960, -0.0085187868]),
+    "j5": (2.3271207594, [-0.0016039605, 0.0292536262, -0.0972965990]),
+    "j6": (1.8170376524, [0.0597131221, -0.0410294666, -0.0101692726]),
+    "j7": (0.6271432862, [0.0045225817, 0.0086261921, -0.0161633251]),
+}
+
+
+def world_doc(seed: int = 3, errors: dict | None = None, compliance: dict | None = None, **buses) -> dict:
+    joints = {}
+    if compliance:  # rad per N m; the world's gravity model then needs the links' masses
+        joints = {"compliance": dict(compliance),
+                  "masses": {j: {"mass": m, "com": list(c)} for j, (m, c) in FR3_MASSES.items()}}
     return {
         "format": "station-world/1", "description": "FR3 with a ball, two sockets 50 mm apart",
         "units": {"length": "m", "angle": "rad", "time": "s", "mass": "kg"}, "seed": seed,
@@ -27,6 +43,7 @@ def world_doc(seed: int = 3, errors: dict | None = None, **buses) -> dict:
                             for k, p in SOCKETS.items()]},
         "noise": {"seating": SEATING},
         "buses": {"franka": dict(buses)} if buses else {},
+        **({"joints": joints} if joints else {}),
     }
 
 

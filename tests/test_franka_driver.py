@@ -151,6 +151,34 @@ def test_compliance_seats_the_ball_and_contact_is_sensed_by_force(sim):
         assert not r.touch()
 
 
+@pytest.mark.slow
+def test_joint_compliance_of_the_world_bends_the_simulated_arm(tmp_path):
+    """The world's joint compliance is in the simulated arm: seated, the TRUE rigid arm at the recorded joints
+    misses the socket by the gravity deflection, and the world's own model of it (theta = q + C tau) puts the
+    ball back on the socket."""
+    path = write_world(tmp_path, errors={"explicit": {}}, compliance={"j2": 4e-5, "j4": 4e-5})
+    world = World.from_file(path)
+    socket = world.points["A"].position
+    with FrankaEmulator(path) as emu, open_robot(emu.url + "&speed=1.0") as r:
+        q0 = r.joint_positions().q
+        above = ik_down(world.nominal, socket, q0, 0.03)
+        stand = ik_down(world.nominal, socket, above, 0.004)
+        r.move_joints(above)
+        r.move_joints(stand, speed=0.2)
+        r.set_compliant(True)
+        r.move_joints(ik_down(world.nominal, socket, stand, -0.006), speed=0.1)
+        deadline = time.monotonic() + 5
+        while not (r.touch() and not r.status().moving) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        q = r.joint_positions().q
+        r.set_compliant(False)
+        r.move_joints(above)
+    rigid = np.linalg.norm(world.truth.position(q[None])[0] - socket)
+    bent = np.linalg.norm(world.truth.position(world.gravity.deflect(q)[None])[0] - socket)
+    assert rigid > 0.1e-3, rigid  # the deflection is real: ~10 N m on joints 2 and 4 at 40 urad/N m
+    assert bent < 6 * SEATING + 0.1 * rigid, (bent, rigid)
+
+
 class _Control:
     """pylibfranka's active control with a hook on each command (no closures: nothing outlives the loop that
     drops it, libfranka's control lock included)."""
