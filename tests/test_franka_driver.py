@@ -176,7 +176,9 @@ def test_joint_compliance_of_the_world_bends_the_simulated_arm(tmp_path):
     rigid = np.linalg.norm(world.truth.position(q[None])[0] - socket)
     bent = np.linalg.norm(world.truth.position(world.gravity.deflect(q)[None])[0] - socket)
     assert rigid > 0.1e-3, rigid  # the deflection is real: ~10 N m on joints 2 and 4 at 40 urad/N m
-    assert bent < 6 * SEATING + 0.1 * rigid, (bent, rigid)
+    # the world's gravity model explains most of it; the rest (~65 um here) is the seating push itself bending
+    # the same joints (~4 N at ~0.5 m), which that model does not include
+    assert bent < 0.15 * rigid, (bent, rigid)
 
 
 class _Control:
