@@ -103,6 +103,19 @@ def test_moves_on_the_robots_generator_and_on_the_driver_loop(sim):
 
 
 @pytest.mark.slow
+def test_jog_steps(sim):
+    with _open(sim) as r:
+        q0 = r.joint_positions().q
+        r.jog("joint", 0, 0.05)
+        assert abs(r.joint_positions().q[0] - q0[0] - 0.05) < 5e-3
+        p0 = r.model.position(r.joint_positions().q[None])[0]
+        r.jog("cartesian", 2, -0.01)  # 10 mm down at the flange, at most 250 mm/s
+        p = r.model.position(r.joint_positions().q[None])[0]
+        assert abs(p[2] - p0[2] + 0.01) < 1e-3 and np.linalg.norm(p[:2] - p0[:2]) < 1e-3
+        r.move_joints(q0)
+
+
+@pytest.mark.slow
 def test_limits_are_refused_before_anything_is_sent(sim):
     with _open(sim) as r:
         q0 = r.joint_positions().q
