@@ -222,7 +222,7 @@ class _Robot:
         return _Control(self._robot.start_joint_position_control(mode), self._hook)
 
 
-def _stall_once(after: int = 200, seconds: float = 0.06):
+def _stall_once(after: int = 200, seconds: float = 0.2):
     """A hook that stops answering for ``seconds`` once, at cycle ``after`` (the station PC starved)."""
     done = []
 
@@ -243,7 +243,7 @@ def test_a_communication_constraint_violation_is_recovered_and_the_move_retried(
         real = r._robot
         r._robot = _Robot(real, _stall_once())
         try:
-            r.move_joints(target)  # 60 ms without an answer: franka-sim stops the motion after 20 lost cycles
+            r.move_joints(target)  # 200 ms without an answer: the robot stops the motion after 20 lost cycles
         finally:
             r._robot = real
         # recovered (a busy host may starve the 1 kHz loop once more on its own: every recovery is of that)
