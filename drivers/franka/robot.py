@@ -338,12 +338,14 @@ class FrankaRobot(RobotBase):
         q0 = np.asarray(self._state("move_joints").q, float)
         deadline = time.monotonic() + float(np.max(np.abs(target - q0))) / speed + 3 * speed / 2.0 + SETTLE_S
         while True:
+            if self._interrupt.is_set():  # stop() from another thread ended the motion
+                raise SafetyStop(f"{self.where}: move_joints: stopped")
             fb = h.get_target_feedback()
+            if self._interrupt.is_set():
+                raise SafetyStop(f"{self.where}: move_joints: stopped")
             if fb.status == pf._pylibfranka.TargetStatus.kAborted:
                 self._handler = None
                 self._raise_motion_error(fb.error_message or "aborted", "move_joints")
-            if self._interrupt.is_set():
-                raise SafetyStop(f"{self.where}: move_joints: stopped")
             if fb.status == pf._pylibfranka.TargetStatus.kTargetReached and self._arrived(target):
                 return
             if time.monotonic() > deadline:
@@ -378,11 +380,11 @@ class FrankaRobot(RobotBase):
         deadline = time.monotonic() + 2 * path.T + SETTLE_S
         rest_since = None
         while True:
+            if self._interrupt.is_set():  # stop() from another thread ended the motion
+                raise SafetyStop(f"{self.where}: move_joints: stopped")
             if loop.error is not None or loop.done.is_set():
                 self._loop = None
                 self._raise_motion_error(loop.error, "move_joints")
-            if self._interrupt.is_set():
-                raise SafetyStop(f"{self.where}: move_joints: stopped")
             if loop.path_done():
                 s = loop.state
                 dq = float(np.max(np.abs(np.asarray(s.dq))))
