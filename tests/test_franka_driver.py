@@ -327,6 +327,26 @@ def test_stop_from_another_thread_ends_a_waited_move_with_safety_stop(sim):
 
 
 @pytest.mark.slow
+def test_a_robot_that_goes_away_mid_move_is_connection_lost_not_a_hang(tmp_path):
+    import threading
+
+    from station.robot.errors import ConnectionLost
+
+    emu = FrankaEmulator(write_world(tmp_path)).start()
+    try:
+        r = open_robot(emu.url)
+        q0 = r.joint_positions().q
+        threading.Timer(0.5, emu.close).start()
+        t0 = time.monotonic()
+        with pytest.raises(ConnectionLost, match="connection lost"):
+            r.move_joints(q0 + np.array([1.0, 0, 0, 0, 0, 0, 0]), speed=0.3)
+        assert time.monotonic() - t0 < 15
+        r.close()
+    finally:
+        emu.close()
+
+
+@pytest.mark.slow
 def test_reconnect_after_the_link_was_dropped(sim):
     with _open(sim) as r:
         assert isinstance(r, Reconnect)

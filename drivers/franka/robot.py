@@ -53,6 +53,7 @@ FOLLOW_TOL = 5e-3  # rad: ... within this of the target (an impedance controller
 SETTLE_S = 5.0  # s a move may take beyond its plan to settle before it is a fault (a loaded host slows the sim)
 COMM_VIOLATION = "communication_constraints_violation"
 COLLISION = ("cartesian_reflex", "joint_reflex", "self_collision_avoidance_violation")
+NETWORK_WORDS = ("UDP receive", "TCP receive", "server closed connection", "TCP connection got interrupted")
 # collision thresholds set at connect (N m per joint, N / N m per Cartesian axis; lower = contact, upper =
 # reflex): Franka's examples' defaults (libfranka examples/examples_common.cpp setDefaultBehavior)
 TORQUE_THRESHOLDS = [20.0, 20.0, 18.0, 18.0, 16.0, 14.0, 12.0]
@@ -551,6 +552,9 @@ class FrankaRobot(RobotBase):
         self._await_standstill()
         if isinstance(err, BaseException):
             raise self._translate(err, what, errors)
+        if any(w in text for w in NETWORK_WORDS):  # the asynchronous handler reports a lost link as text
+            self._drop()
+            raise ConnectionLost(f"{self.where}: {what}: connection lost: {text}")
         raise DeviceFault(f"{self.where}: {what}: {text}" + (f" ({errors})" if errors else ""))
 
     def _translate(self, e: BaseException, what: str, errors: str = ""):
