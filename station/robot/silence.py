@@ -21,6 +21,9 @@ class Silence:
     def __init__(self, own_gap: float = 0.05, clock: Callable[[], float] = time.monotonic) -> None:
         self.own_gap = own_gap
         self._clock = clock
+        # over the whole watch (``reset`` keeps them): the longest turn of the loop and the time not counted
+        self.max_gap = 0.0
+        self.uncounted = 0.0
         self.reset()
 
     def reset(self) -> None:
@@ -29,6 +32,15 @@ class Silence:
 
     def tick(self) -> float:
         now = self._clock()
-        self.seconds += min(now - self._last, self.own_gap)
+        gap = now - self._last
+        self.seconds += min(gap, self.own_gap)
+        self.max_gap = max(self.max_gap, gap)
+        self.uncounted += max(0.0, gap - self.own_gap)
         self._last = now
         return self.seconds
+
+    def note(self) -> str:
+        """What a fault message says about the host: its longest scheduling gap while watching, and how much
+        time was not counted as the link's silence."""
+        return (f"host scheduling gap: longest {self.max_gap * 1e3:.0f} ms, {self.uncounted * 1e3:.0f} ms not "
+                "counted as silence")
