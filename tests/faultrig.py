@@ -162,15 +162,18 @@ def assert_safe(cell: DemoCell, *, settle: float = 0.3, kill_9: bool = False, lo
 # ---- the calibration the devices hold, read on the emulator side -------------------------------------------
 def device_offsets(cell: DemoCell) -> list:
     """Per joint, the raw zero offset the emulated devices hold: Dynamixel Homing Offset (20) ticks; CANopen
-    (volatile 0x607C, value stored by 0x1010) counts, so an offset that would not survive a power cycle shows."""
+    (the zero a homing applied, 0x6064 - 0x6063, and the value stored by 0x1010) counts, so an offset that would
+    not survive a power cycle shows."""
+    from station.mocks.canopen.eds import POSITION_OFFSET
+
     if cell.bus == "dynamixel":
         emu = cell.emu.emulator
         return [int(emu.devices[i].get("homing_offset")) for i in emu.joint_ids]
     drives = getattr(cell.emu, "drives", None) or cell.emu.emulator.drives
     out = []
     for d in drives.values():
-        stored = d.stored.get((0x607C, 0))
-        out.append((d.home_offset, None if stored is None else int.from_bytes(stored[:4], "little", signed=True)))
+        stored = d.stored.get((POSITION_OFFSET, 0))
+        out.append((d.position_offset, None if stored is None else int.from_bytes(stored[:4], "little", signed=True)))
     return out
 
 

@@ -58,6 +58,8 @@ def open_can(interface: str, channel: str, *, host: str | None = None, port: int
         if isinstance(e, KeyboardInterrupt | SystemExit):
             raise
         detail = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        if isinstance(e, NameError):  # python-can's kvaser module after "Kvaser canlib is unavailable"
+            detail = "the library did not load"
         if _missing_library(e):
             raise ConfigError(f"canopen+{interface}: the {what} interface cannot load its library ({detail}); "
                               f"it needs {needs}") from None

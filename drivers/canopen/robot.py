@@ -167,6 +167,7 @@ class CanopenRobot(RobotBase):
                 self.bus.preset_target(node_id, snap[node_id][1])
                 self.bus.send_rpdo2(node_id, MODE_PP, 0, 0)
             self._wait_mode(MODE_PP)
+            self._connected = True
         except BaseException:
             self.close()
             raise
@@ -363,7 +364,12 @@ class CanopenRobot(RobotBase):
         """Halt every drive (controlword bit 8): decelerate and hold, drives stay enabled; a waited move in
         another thread ends with SafetyStop."""
         self._interrupt.set()
+        latest = self.bus.latest()
         for node_id in self.bus.drives:
+            # only to drives that are enabled: the halt controlword carries "enable operation", which would take
+            # a drive in SWITCHED ON or QUICK STOP ACTIVE (a fault's quick stop) back to OPERATION ENABLED
+            if node_id in latest and state_of(latest[node_id][1]) != ENABLED:
+                continue
             with contextlib.suppress(Exception):
                 self.bus.send_rpdo1(node_id, CW_ENABLE | CW_HALT)
 
@@ -582,6 +588,7 @@ class CanopenRobot(RobotBase):
                                   f"wrote {counts}", device=f"node {node_id}")
 
     # ---- the safe state after a fault -----------------------------------------------------------------------
+    _connected = False  # __init__ completed: the drives hold in profile position mode under this robot
     _secured = False  # every drive confirmed disabled after the latest fault (close() need not repeat it)
     _secure_tried = False  # a _disable_after_fault ran (close() repeats it only while the link can come back)
     SAFE_STATES = ("SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON", "FAULT", "NOT READY TO SWITCH ON")
@@ -638,7 +645,9 @@ class CanopenRobot(RobotBase):
         if bus is None:
             return
         bus.closing = True
-        if bus.drives and self.faults.error is None:
+        if bus.drives and self.faults.error is None and not self._connected:
+            bus.release_consumers()  # refused at connect: nothing was commanded, nothing to take back
+        elif bus.drives and self.faults.error is None:
             self.stop()
             with contextlib.suppress(Exception):
                 time.sleep(2 * bus.sync_period)
