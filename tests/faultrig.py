@@ -85,7 +85,9 @@ def demo_cell(bus: str, tmp_path: Path, seed: int, *, cross_process: bool = Fals
 
         chan = f"d-{uuid.uuid4().hex[:8]}"
         emu = CanopenEmulator(World.from_file(world_path), channel=chan).start()
-        hub = SocketcandHub(chan, port=0).start()
+        # as a socketcand daemon started with -e 0x1FFFFFFF: error frames reach the station (by default socketcand
+        # forwards none: tests/test_canopen_socketcand.py)
+        hub = SocketcandHub(chan, port=0, error_mask=0x1FFFFFFF).start()
         try:
             url = f"canopen+socketcand://127.0.0.1:{hub.port}?channel=can0&nodes=1-6&model=arm6"
             yield DemoCell(bus, url, world_path, cell_path, serial, db, home, emu, emu.world)

@@ -51,6 +51,7 @@ log = logging.getLogger("station.drivers.canopen")
 CAN_ERR_BUSOFF = 0x40
 HB_MARGIN_S = 0.5  # host scheduling margin of the heartbeat consumer time
 SDO_RETRIES_AFTER_STALL = 3  # an SDO that timed out while this process was not scheduled is asked again
+SDO_PATIENCE = 10  # answer times an SDO is asked again while its drive is visibly alive (PDOs, heartbeats)
 STRUCT = {"u8": "<B", "i8": "<b", "u16": "<H", "i16": "<h", "u32": "<I", "i32": "<i"}
 # application parameters (stored by 0x1010:03) the station sets while it runs: put back as found before a store
 RUNTIME_APPLICATION = ((0x6081, "u32"), (0x6007, "i16"))
@@ -167,6 +168,7 @@ class CanopenBus:
         self._latest: dict[int, tuple[int, int, int, int, float]] = {}
         self._last_hb: dict[int, float] = {}
         self.nmt_states: dict[int, int] = {}  # node -> NMT state of its last heartbeat (5 operational, 127 pre-op)
+        self._alive: dict[int, float] = {}  # node -> monotonic time of its last TPDO1 or heartbeat
         # per node: heartbeat silence while the watchdog watches (the station's own scheduling gaps not counted)
         self._hb_silence: dict[int, Silence] = {}
         self.sched = HostWatch(own_gap=0.1)  # the watchdog's view of this process's scheduling gaps
@@ -385,20 +387,30 @@ class CanopenBus:
 
     # ---- SDO (configuration only, never in the streaming cycle) ---------------------------------------------
     def _retrying(self, node_id: int, fn):
-        """``fn()`` (a blocking python-canopen SDO transfer); one that timed out while this process was not
-        scheduled is asked again (the answer may sit unread in the socket): only silence the station could
-        have observed counts. Raises the last SdoCommunicationError with the host's gap appended."""
-        t0 = time.monotonic()
+        """``fn()`` (a blocking python-canopen SDO transfer). The SDO timeout means the drive was silent: one that
+        ran out while this process was not scheduled (the answer may sit unread in the socket), or while the drive
+        kept sending its PDOs and heartbeats (alive, its answer lost or late), is asked again, for up to
+        ``SDO_PATIENCE`` answer times in all. Raises the last SdoCommunicationError with the host's gap appended.
+        A latched fault seen meanwhile (bus-off, error frames) is what is raised instead: it is the cause."""
+        start = t0 = time.monotonic()
         tries = 0
         while True:
             try:
                 return fn()
             except canopen.SdoCommunicationError as e:
                 t1 = time.monotonic()
-                if self.sched.stalled(t0, t1) > 0 and tries < SDO_RETRIES_AFTER_STALL:
-                    tries += 1
-                    log.info("canopen node %d: SDO timed out while the station was not scheduled (%s): asked again",
-                             node_id, self.sched.note(t0, t1))
+                self.faults.raise_if_latched()
+                stalled = self.sched.stalled(t0, t1) > 0
+                # its PDOs or heartbeat since the request, or an answer that was not this one's (a late answer to
+                # an earlier request): the drive is there
+                answered = not str(e).startswith("No SDO response")
+                alive = answered or self._alive.get(node_id, 0.0) > t0
+                if (stalled and tries < SDO_RETRIES_AFTER_STALL) or (
+                        alive and t1 - start < SDO_PATIENCE * max(self.sdo_timeout, 0.1)):
+                    tries += stalled
+                    log.info("canopen node %d: no SDO answer while %s (%s): asked again", node_id,
+                             "the station was not scheduled" if stalled else "the drive kept sending",
+                             self.sched.note(t0, t1))
                     t0 = time.monotonic()
                     continue
                 raise canopen.SdoCommunicationError(f"{e} ({self.sched.note(t0, t1)})") from None
@@ -528,6 +540,7 @@ class CanopenBus:
             return
         sw, pos, mode = struct.unpack_from("<Hib", data)
         now = time.time()
+        self._alive[node_id] = time.monotonic()
         with self._cv:
             seq = self._seq
             hist = self._history[node_id]
@@ -636,7 +649,7 @@ class CanopenBus:
 
     # ---- heartbeats ------------------------------------------------------------------------------------------
     def _on_heartbeat(self, node_id: int, state: int) -> None:
-        self._last_hb[node_id] = time.monotonic()
+        self._last_hb[node_id] = self._alive[node_id] = time.monotonic()
         self.nmt_states[node_id] = state
         if (silence := self._hb_silence.get(node_id)) is not None:
             silence.reset()

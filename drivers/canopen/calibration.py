@@ -144,6 +144,8 @@ class ZeroSetter:
                               device=f"node {faulted[0]}")
         off = [n for n in robot.nodes if state_of(snap[n][0]) != ENABLED]
         if off:
+            log.info("canopen: drive(s) %s enabled for the homing (%s), shut down again after it", off,
+                     ", ".join(sorted({state_of(snap[n][0]) for n in off})))
             for n in robot.nodes:
                 bus.preset_target(n, snap[n][1])
                 bus.send_rpdo2(n, MODE_PP, 0, 0)

@@ -15,6 +15,7 @@ raw counts, so a homing never moves the joint.
 
 from __future__ import annotations
 
+import logging
 import math
 import struct
 import threading
@@ -40,6 +41,8 @@ from station.mocks.canopen.eds import (
 if TYPE_CHECKING:
     from station.mocks.canopen.emulator import CanopenEmulator
 
+log = logging.getLogger("station.mocks.canopen")
+
 # 402 states (names as canopen.profiles.p402 spells them) and their statusword bits (incl. voltage
 # enabled, bit 4, from READY TO SWITCH ON on)
 NOT_READY, SOD, RTSO, SO, OE, QSA, FRA, FAULT = (
@@ -57,6 +60,9 @@ SUPPORTED = {0, MODE_PP, MODE_PV, MODE_PT, MODE_HM}
 HOMING_CURRENT_POSITION = (35, 37)  # CiA 402 homing on the current position (35 in older editions, then 37)
 HOMING_METHODS = {0, *HOMING_CURRENT_POSITION}  # what 0x6098 accepts here (0: no method assigned)
 ABORT_REACTIONS = {0: "none", 1: "fault", 2: "disable voltage", 3: "quick stop"}  # 0x6007
+# objects whose value the drive computes on every read (``_on_read``), not a stored parameter
+COMPUTED = frozenset({0x1001, 0x1003, 0x1010, 0x1011, 0x603F, 0x6041, 0x6061, 0x6062, 0x6063, 0x6064, 0x606C,
+                      0x6077, 0x60FD})
 EMCY_HEARTBEAT = 0x8130  # CiA 301: life guard error or heartbeat error
 
 # NMT states (CiA 301 heartbeat values)
@@ -157,12 +163,14 @@ class Drive402:
 
     # ---- object dictionary helpers -------------------------------------------------------------
     def get(self, index: int, sub: int = 0):
-        """A stored parameter (never a computed one: the read callbacks are not run; this is the hot path of
-        every SYNC, so the object and its default are looked up once)."""
+        """A parameter's value as an SDO read would give it. Stored parameters are the hot path of every SYNC:
+        their object is looked up once and the read callbacks are run only for the values the drive computes."""
         key = (index, sub)
         obj = self._objects.get(key)
         if obj is None:
             obj = self._objects[key] = self.node._find_object(index, sub)
+        if index in COMPUTED:
+            return obj.decode_raw(self.node.get_data(index, sub))
         data = self.node.data_store.get(index, {}).get(sub)
         if data is None:
             if obj.default is None:
@@ -324,6 +332,8 @@ class Drive402:
             if seen is None or producer in self.hb_lost or now - seen <= limit:
                 continue
             self.hb_lost.add(producer)
+            log.warning("canopen emulator: node %d: heartbeat of node %d not heard for %.3f s of its own time "
+                        "(consumer time %.3f s)", self.id, producer, now - seen, limit)
             self.heartbeat_event(producer)
 
     def heartbeat_event(self, producer: int) -> None:

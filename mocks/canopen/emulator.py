@@ -133,6 +133,7 @@ class _Rx(can.Listener):
             return
         if time.monotonic() < self.emu.offbus_until:
             return  # sent while the station's controller was bus-off: never on the wire
+        self.emu.rx_stamp = msg.timestamp or time.time()
         try:
             self.emu._dispatch(msg.arbitration_id, bytes(msg.data), msg.timestamp)
         except Exception:  # an emulator bug must not kill the bus thread silently
@@ -216,6 +217,7 @@ class CanopenEmulator:
         self.sync_count = 0
         self._limits_q: np.ndarray | None = None  # where the torque limits' holding direction was last judged
         self.limits_dirty = False  # a torque limit was written: applied to the world at the next SYNC
+        self.rx_stamp = 0.0  # wall-clock time of the last frame this emulator's receive thread took
 
     def _rated_torques(self, cfg: dict) -> list[float]:
         """Rated torque at each joint (N m, N): 1000 per mille of 0x6071/0x6072/0x6077. From the world file
@@ -481,8 +483,7 @@ class CanopenEmulator:
             return
         if 0x700 < cob_id < 0x780 and len(data) >= 1:  # a heartbeat (or boot-up) of some node: consumers
             # heard when it was on the wire (a drive's controller takes it at once; this thread may be late)
-            late = max(0.0, time.time() - stamp) if stamp else 0.0
-            now = self.clock.now() - min(late, self.clock.own_gap)
+            now = self.clock.at(stamp) if stamp else self.clock.now()
             for d in self.drives.values():
                 if d.id != cob_id - 0x700 and not d.silent():
                     d.on_heartbeat(cob_id - 0x700, now)
@@ -564,21 +565,33 @@ class CanopenEmulator:
     def wake(self) -> None:
         self._wake.set()
 
+    def heard_until(self) -> float:
+        """The drives' own time up to which they have heard the bus: now, unless this process's receive thread is
+        behind (frames queued, unread): then the time of the last frame it took. A real drive's controller takes
+        every frame as it passes; a heartbeat consumer must not call silent a master whose frames wait in the
+        emulator's queue (a loaded test machine), yet still see a master that sends nothing at all."""
+        queue = getattr(self.network.bus, "queue", None) if self.network is not None else None
+        if queue is not None and queue.qsize() > 0 and self.rx_stamp:
+            return self.clock.at(self.rx_stamp)
+        return self.clock.now()
+
     # ---- scheduler: boot-up, heartbeat, event-timer TPDOs, fault polling ----------------------
     def _run(self) -> None:
         next_poll = 0.0
         while not self._stop.is_set():
             now = time.monotonic()
-            own = self.clock.tick()
+            self.clock.tick()
             try:
                 if now >= next_poll:
                     self._poll_faults(now)
                     next_poll = now + self.fault_poll
                 due = next_poll
+                heard = None
                 for d in self.drives.values():
                     due = min(due, self._service(d, now))
                     if d.hb_seen:
-                        d.check_consumers(own)
+                        heard = self.heard_until() if heard is None else heard
+                        d.check_consumers(heard)
             except Exception:
                 log.exception("canopen emulator scheduler")
                 due = now + 0.05
