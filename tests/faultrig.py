@@ -174,8 +174,8 @@ def device_offsets(cell: DemoCell) -> list:
     drives = getattr(cell.emu, "drives", None) or cell.emu.emulator.drives
     out = []
     for d in drives.values():
-        stored = d.stored.get((POSITION_OFFSET, 0))
-        out.append((d.position_offset, None if stored is None else int.from_bytes(stored[:4], "little", signed=True)))
+        stored = d.stored.get((POSITION_OFFSET, 0))  # never stored: the default, 0, is what a power cycle brings
+        out.append((d.position_offset, 0 if stored is None else int.from_bytes(stored[:4], "little", signed=True)))
     return out
 
 
