@@ -31,7 +31,7 @@ def _ur_world(tmp_path, model="ur5e", **bus):
 @pytest.mark.parametrize("query, needle", [
     ("model=ur3e", "model ur3e is a UR3 e-Series but the controller reports UR5 e-Series"),
     ("model=ur10e", "model ur10e is a UR10 e-Series but the controller reports UR5"),
-    ("model=arm6", "model arm6 is not a UR arm model but the controller is a UR5e"),
+    ("model=arm6", "model arm6 does not say which UR arm it is for; the controller is a UR5e: add robot_type=UR5e"),
     ("model=ur5e&robot_type=UR10e", "robot_type=UR10e is a UR10 e-Series"),
 ])
 def test_ur_model_mismatch_refused_before_motion(tmp_path, emulators, query, needle):
@@ -46,7 +46,7 @@ def test_ur_model_mismatch_refused_before_motion(tmp_path, emulators, query, nee
 
 def test_ur_cb3_controller_refuses_e_series_model(tmp_path, emulators):
     emu = emulators("ur", _ur_world(tmp_path, polyscope="URSoftware 3.15.7.106331 (Jun 02 2021)"))
-    with pytest.raises(IdentityMismatch, match="UR5 e-Series but the controller reports UR5 CB3"):
+    with pytest.raises(IdentityMismatch, match="UR5 e-Series but the controller reports UR5 CB3.*robot_type=UR5\\)"):
         open_robot(f"ur://{emu.host}?model=ur5e")
 
 

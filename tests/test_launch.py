@@ -53,7 +53,7 @@ def test_canopen_in_process_serves_the_world_object(emulators):
 def test_ur_child_on_a_random_loopback_address(tmp_path, emulators):
     path = _world_file(tmp_path, "ur5e", {"ur": {"serial": "20235512345"}})
     a, b = emulators("ur", path), emulators("ur", path)
-    assert a.host != b.host and a.host.startswith("127.") and a.url == f"ur://{a.host}?model=ur5e"
+    assert a.host != b.host and a.host.startswith("127.") and a.url == f"ur://{a.host}?model=ur5e&power_on=yes"
     assert a.dashboard("get serial number") == "20235512345"
 
 

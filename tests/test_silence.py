@@ -37,3 +37,17 @@ def test_a_dead_link_is_still_called_dead_within_the_threshold_while_the_watcher
         clock.t += 0.004
         turns += 1
     assert abs(turns * 0.004 - 0.5) < 0.01  # 0.5 s of watching, not more
+
+
+def test_the_note_says_the_hosts_longest_gap_and_what_was_not_counted():
+    clock = Clock()
+    s = Silence(own_gap=0.05, clock=clock)
+    clock.t += 0.010
+    s.tick()
+    clock.t += 1.2  # the watcher was not scheduled for 1.2 s
+    s.tick()
+    s.reset()  # new data: the silence starts again, the host's record stays
+    clock.t += 0.010
+    s.tick()
+    assert abs(s.seconds - 0.010) < 1e-9 and abs(s.max_gap - 1.2) < 1e-9 and abs(s.uncounted - 1.15) < 1e-9
+    assert s.note() == "host scheduling gap: longest 1200 ms, 1150 ms not counted as silence"

@@ -163,7 +163,7 @@ def test_hold_to_run_on_ur_uses_the_velocity_jog(ur, tmp_path):
         start = time.monotonic()
         while time.monotonic() - start < 0.5:  # joint 0 held (+) for 0.5 s, repeats every 35 ms
             now = time.monotonic()
-            assert ctl.hold(0, +1, now), ctl.message
+            assert ctl.hold(0, +1, now), (ctl.message, ctl.fault)
             ctl.hold_tick(now)
             time.sleep(0.035)
         assert ctl.last_jog["hold"] and ctl.last_jog["velocity"] > 0

@@ -20,6 +20,7 @@ def make():
     drops: list[float] = []
     ctl.on_drop = drops.append
     ctl.drop = lambda seconds: drops.append(seconds)  # run the drop in this thread (no server here)
+    power_up(ctl)
     ctl.load_program("rtde_control", SCRIPT)
     return world, ctl, drops
 
@@ -27,6 +28,70 @@ def make():
 def ticks(ctl: URController, n: int) -> None:
     for _ in range(n):
         ctl.tick()
+
+
+def power_up(ctl: URController) -> None:
+    """Dashboard power on, IDLE, brake release, RUNNING, on the controller's own cycles."""
+    ctl.power_on()
+    ticks(ctl, round(ctl.power_on_s / 0.002) + 1)
+    assert ctl.mode == S.ROBOT_MODE_IDLE
+    ctl.brake_release()
+    ticks(ctl, round(ctl.brake_release_s / 0.002) + 1)
+    assert ctl.mode == S.ROBOT_MODE_RUNNING
+
+
+def links_truth(world):
+    """The world's truth as the factory calibration (default ``links``) knows it: joint zeros, mounting and tool
+    as the nominal model has them."""
+    return world.truth.with_params({n: world.nominal.param(n) for n in world.truth.param_names
+                                    if n.startswith(("offset.", "base.", "tcp."))})
+
+
+def test_boots_power_off_powers_on_to_idle_then_running_after_brake_release():
+    """A controller boots with the arm off; power on takes the joints through POWER_ON to IDLE in (controller)
+    seconds, brake release works only in IDLE, and only a RUNNING arm starts a program."""
+    world = World.default("ur5e", seed=5, time_mode="sim")
+    ctl = URController(world)
+    ticks(ctl, 10)
+    assert ctl.mode == S.ROBOT_MODE_POWER_OFF and ctl.value("robot_mode") == 3
+    assert not ctl.robot_status_bits() & S.RS_POWER_ON
+    assert not world.enabled().any() and world.brakes.all()  # held by its brakes
+    ctl.load_program("rtde_control", SCRIPT)
+    assert ctl.runtime_state == S.STOPPED and "not RUNNING" in ctl.messages[-1]
+    ctl.brake_release()  # in POWER_OFF: no effect
+    ctl.power_on()
+    ticks(ctl, 10)
+    assert ctl.mode == S.ROBOT_MODE_POWER_ON and ctl.value("joint_mode") == [247] * 6
+    ctl.brake_release()  # still booting: no effect either
+    ticks(ctl, round(ctl.power_on_s / 0.002))
+    assert ctl.mode == S.ROBOT_MODE_IDLE and ctl.robot_status_bits() & S.RS_POWER_ON
+    ticks(ctl, round(ctl.brake_release_s / 0.002) + 5)
+    assert ctl.mode == S.ROBOT_MODE_IDLE  # the early brake releases were not remembered
+    ctl.load_program("rtde_control", SCRIPT)
+    assert ctl.runtime_state == S.STOPPED  # brakes on: no program
+    ctl.brake_release()
+    ticks(ctl, round(ctl.brake_release_s / 0.002) + 1)
+    assert ctl.mode == S.ROBOT_MODE_RUNNING and ctl.value("joint_mode") == [253] * 6 and world.enabled().all()
+    ctl.load_program("rtde_control", SCRIPT)
+    assert ctl.runtime_state == S.PLAYING
+
+
+def test_power_cycle_keeps_the_calibration_and_installation_and_loses_the_rest():
+    world, ctl, _ = make()
+    checksum = ctl.factory.checksum
+    command(ctl, S.CMD_SET_TCP, [0, 0, 0.3, 0, 0, 0])
+    ticks(ctl, 2)
+    world.faults.inject("protective_stop", device="ur")
+    ticks(ctl, 1)
+    assert ctl.safety_mode == S.SAFETY_PROTECTIVE_STOP
+    q = world.encoder_q()
+    ctl.power_cycle()
+    ticks(ctl, 1)
+    assert ctl.mode == S.ROBOT_MODE_POWER_OFF and ctl.runtime_state == S.STOPPED and ctl.program is None
+    assert ctl.safety_mode == S.SAFETY_NORMAL and not world.protective_stopped
+    assert ctl.factory.checksum == checksum and ctl.in_int[0] == 0 and ctl.out_int[0] == 0
+    np.testing.assert_allclose(ctl.tcp, ctl.installation_tcp)  # setTcp was volatile
+    np.testing.assert_array_equal(world.encoder_q(), q)  # the arm stays where it is (brakes)
 
 
 def command(ctl: URController, cmd: int, doubles=(), ints=()) -> None:
@@ -88,11 +153,12 @@ def test_world_faults_reach_the_controller():
     assert ctl.safety_mode == S.SAFETY_PROTECTIVE_STOP
 
 
-def test_contact_bit_and_nominal_tcp_pose():
+def test_contact_bit_and_calibrated_tcp_pose():
     world, ctl, _ = make()
     ticks(ctl, 1)
-    pose = np.array(ctl.value("actual_TCP_pose"))
-    np.testing.assert_allclose(pose[:3], world.nominal.position(world.encoder_q()), atol=1e-12)
+    pose = np.array(ctl.value("actual_TCP_pose"))  # from the controller's calibrated kinematics
+    np.testing.assert_allclose(pose[:3], links_truth(world).position(world.encoder_q()), atol=1e-9)
+    assert np.linalg.norm(pose[:3] - world.nominal.position(world.encoder_q())) > 1e-5
     assert ctl.value("actual_digital_input_bits") == 0
     needle = world.points["N"].position
     ik = world.truth.ik(needle[None], world.encoder_q()[None], position_only=True, tol_pos=1e-10)
@@ -112,6 +178,7 @@ def test_a_cycle_thread_kept_waiting_slips_instead_of_firing_the_watchdog():
     stopped one period later."""
     world = World.default("ur5e", seed=5, time_mode="sim")
     ctl = URController(world)
+    power_up(ctl)
     ctl.load_program("rtde_control", SCRIPT)
     command(ctl, S.CMD_SET_WATCHDOG, [10.0])
     ctl.tick()

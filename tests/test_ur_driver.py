@@ -69,19 +69,22 @@ def test_connect_reads_hidden_truth_and_nominal_tcp(tmp_path, emulator, robots):
     # joints: the world's encoders, bit-exact through RTDE doubles
     np.testing.assert_array_equal(s1.q, world.encoder_q())
     assert s1.raw_unit == "rad" and s2.t_device > s1.t_device > 0
-    # the controller reports actual_TCP_pose from its NOMINAL model; the truth differs by the hidden errors
+    # the controller reports actual_TCP_pose from ITS model (its factory calibration): the station's nominal for
+    # the session is that model (read at connect); the truth differs by what happened since and the tool errors
     pose = robot.tcp_pose()
-    np.testing.assert_allclose(pose[:3], world.nominal.position(s1.q), atol=1e-12)
+    np.testing.assert_allclose(pose[:3], robot.model.position(s1.q), atol=1e-9)
+    assert np.linalg.norm(world.nominal.position(s1.q) - pose[:3]) > 1e-4  # not the published table
     assert np.linalg.norm(world.truth.position(s1.q) - pose[:3]) > 1e-4
-    assert robot.read_calibration() == {f"offset.j{i}": 0.0 for i in range(1, 7)}
-    st = robot.status()
-    assert st.ok and st.enabled and not st.moving and not st.compliant and len(st.joints) == 6
+    assert robot.read_calibration() == {f"offset.j{i}": robot.model.param(f"offset.j{i}") for i in range(1, 7)}
+    st = robot.status()  # a controller boots with the arm powered off: connecting does not change that
+    assert not st.enabled and not st.moving and not st.compliant and len(st.joints) == 6
+    assert emu.dashboard("robotmode") == "Robotmode: POWER_OFF"
 
 
 def test_movej_reaches_target_and_limits_refuse(tmp_path, emulator, robots):
     path, world = world_file(tmp_path)
     emu = emulator(path)
-    robot = robots(f"ur://{emu.host}")
+    robot = robots(f"ur://{emu.host}?power_on=yes")
     q0 = robot.joint_positions().q
     target = q0 + np.array([0.2, -0.1, 0.15, 0.05, -0.1, 0.3])
     t0 = time.monotonic()
@@ -105,15 +108,15 @@ def test_movej_reaches_target_and_limits_refuse(tmp_path, emulator, robots):
 def test_speed_jogs_use_speedj_and_speedl_and_cap_tool_speed(tmp_path, emulator, robots):
     path, world = world_file(tmp_path)
     emu = emulator(path)
-    robot = robots(f"ur://{emu.host}")
+    robot = robots(f"ur://{emu.host}?power_on=yes")
     q0 = robot.joint_positions().q
     robot.jog("joint", 0, 0.05, speed=0.3)
     q1 = robot.joint_positions().q
     np.testing.assert_allclose(q1, q0 + np.array([0.05, 0, 0, 0, 0, 0]), atol=1e-9)
     assert 9 in commands_seen(emu)  # SPEEDJ reached the controller's script
-    p1 = world.nominal.position(q1)
-    robot.jog("cartesian", 2, 0.004, speed=0.05)  # +4 mm along base z
-    p2 = world.nominal.position(robot.joint_positions().q)
+    p1 = robot.model.position(q1)
+    robot.jog("cartesian", 2, 0.004, speed=0.05)  # +4 mm along base z (of the station's model)
+    p2 = robot.model.position(robot.joint_positions().q)
     np.testing.assert_allclose(p2 - p1, [0, 0, 0.004], atol=1e-6)
     assert 10 in commands_seen(emu)  # SPEEDL
     q2 = robot.joint_positions().q
@@ -140,7 +143,8 @@ def test_step_jog_finishes_when_the_jog_watchdog_ends_the_script(tmp_path, emula
     10 Hz watchdog; each step's speed part lasts well over 0.1 s)."""
     path, world = world_file(tmp_path)
     emu = emulator(path)
-    robot = robots(f"ur://{emu.host}")
+    robot = robots(f"ur://{emu.host}?power_on=yes")
+    robot.enable()  # powered up first: the timed fault below must meet the motion, not the power-up
     kick = robot._kick
     for axis, step in ((0, 0.1), (3, -0.08), (0, -0.1)):
         q0 = robot.joint_positions().q
@@ -171,7 +175,7 @@ def test_step_jog_finishes_when_the_station_starves_after_its_speed_part(tmp_pat
     with "moveJ was not executed by the controller (runtime_state 1)" (seen in CI on a loaded host)."""
     path, world = world_file(tmp_path)
     emu = emulator(path)
-    robot = robots(f"ur://{emu.host}")
+    robot = robots(f"ur://{emu.host}?power_on=yes")
     bounded = robot._bounded
 
     def starved_before(what, fn, *args):
@@ -196,7 +200,8 @@ def test_a_script_stopped_by_someone_else_mid_step_is_not_resumed(tmp_path, emul
     The jog fails loudly and the arm stays short of the target."""
     path, world = world_file(tmp_path)
     emu = emulator(path)
-    robot = robots(f"ur://{emu.host}")
+    robot = robots(f"ur://{emu.host}?power_on=yes")
+    robot.enable()  # powered up first: the timed fault below must meet the motion, not the power-up
     q0 = robot.joint_positions().q
     threading.Timer(0.3, emu.dashboard, ("stop",)).start()  # the step's speed part lasts ~1 s
     with pytest.raises(DeviceFault, match="stopped during the jog"):
@@ -214,7 +219,7 @@ def test_a_paused_station_host_is_not_a_stalled_link(tmp_path, emulator, robots,
     old wall-clock rule as "RTDE data stream stalled during the move" at load 4 on 2 cores."""
     path, world = world_file(tmp_path)
     emu = emulator(path)
-    robot = robots(f"ur://{emu.host}")
+    robot = robots(f"ur://{emu.host}?power_on=yes")
     q0 = robot.joint_positions().q
     kick, paused = robot._kick, []
 
@@ -239,7 +244,7 @@ def test_a_paused_station_host_is_not_a_stalled_link(tmp_path, emulator, robots,
 def test_freedrive_seats_tip_in_socket(tmp_path, emulator, robots):
     path, world = world_file(tmp_path)
     emu = emulator(path)
-    robot = robots(f"ur://{emu.host}")
+    robot = robots(f"ur://{emu.host}?power_on=yes")
     socket_a = world.points["A"]
     q0 = robot.joint_positions().q
     # aim 2 mm above the socket with the NOMINAL model (the station does not know the truth)
@@ -268,7 +273,8 @@ def test_freedrive_seats_tip_in_socket(tmp_path, emulator, robots):
 def test_protective_stop_mid_move_then_unlock_and_continue(tmp_path, emulator, robots):
     path, world = world_file(tmp_path, unlock_delay_s=1.5)  # 5 s on the robot: the driver reads neither
     emu = emulator(path)
-    robot = robots(f"ur://{emu.host}")
+    robot = robots(f"ur://{emu.host}?power_on=yes")
+    robot.enable()  # powered up first: the timed fault below must meet the motion, not the power-up
     q0 = robot.joint_positions().q
     target = q0 + np.array([1.0, 0, 0, 0, 0, 0])
     emu.dashboard("emulator protective_stop 0.3")  # bites while the move runs
@@ -298,7 +304,7 @@ def test_protective_stop_mid_move_then_unlock_and_continue(tmp_path, emulator, r
 def test_connection_drop_then_reconnect(tmp_path, emulator, robots):
     path, world = world_file(tmp_path)
     emu = emulator(path)
-    robot = robots(f"ur://{emu.host}")
+    robot = robots(f"ur://{emu.host}?power_on=yes")
     q0 = robot.joint_positions().q
     emu.dashboard("emulator drop 1.5")
     deadline = time.monotonic() + 3.0
@@ -317,7 +323,7 @@ def test_connection_drop_then_reconnect(tmp_path, emulator, robots):
 def test_stalled_data_stream_is_a_bus_error(tmp_path, emulator, robots):
     path, world = world_file(tmp_path)
     emu = emulator(path)
-    robot = robots(f"ur://{emu.host}")
+    robot = robots(f"ur://{emu.host}?power_on=yes")
     robot.joint_positions()
     emu.dashboard("emulator stall 1.5")
     # packages sent just before the stall may still be in ur_rtde's receive path when the machine is busy
@@ -340,7 +346,7 @@ def test_two_emulators_in_parallel(tmp_path, emulator, robots):
     path_b, world_b = world_file(tmp_path, seed=2, serial="20235500022", start=start_b, name="b.yaml")
     emu_a, emu_b = emulator(path_a), emulator(path_b)
     assert emu_a.host != emu_b.host
-    ra, rb = robots(f"ur://{emu_a.host}"), robots(f"ur://{emu_b.host}")
+    ra, rb = robots(f"ur://{emu_a.host}?power_on=yes"), robots(f"ur://{emu_b.host}?power_on=yes")
     assert (ra.identity().serial, rb.identity().serial) == ("20235500011", "20235500022")
     np.testing.assert_array_equal(ra.joint_positions().q, world_a.encoder_q())
     np.testing.assert_array_equal(rb.joint_positions().q, world_b.encoder_q())
@@ -353,20 +359,24 @@ def test_write_calibration_exports_and_reads_back(tmp_path, emulator, robots):
     path, world = world_file(tmp_path)
     emu = emulator(path)
     out = tmp_path / "export"
-    robot = robots(f"ur://{emu.host}?export={out}")
+    robot = robots(f"ur://{emu.host}?export={out}&power_on=yes")
+    controller = robot.model  # the controller's factory calibration, converted
     values = {f"offset.j{i}": 1e-3 * i for i in range(1, 7)}
     robot.write_calibration(values)
     conf = out / "calibration.conf"
     assert conf.exists() and (out / "ur_calibrated.urdf").exists() and (out / "ur_kinematics.yaml").exists()
-    with pytest.raises(BusError, match="another RTDE client"):  # one controlling client at a time
-        open_robot(f"ur://{emu.host}")
+    robot.enable()  # the arm RUNNING and controlled by this station
+    with pytest.raises(BusError, match="another RTDE client"):  # noqa: PT012 - one controlling client at a time
+        other = robots(f"ur://{emu.host}?power_on=yes")  # a running arm: the control interface opens at connect
+        other.enable()
     robot.close()
     again = robots(f"ur://{emu.host}?calibration={conf}")
     assert again.read_calibration() == pytest.approx(values, abs=1e-12)
-    # the station's nominal now includes the controller's calibration; the controller itself is unchanged
+    assert again.identity().devices[0]["calibration"] == "calibration.conf"
+    # the station's nominal is now the exported calibration; the controller itself is unchanged
     q = again.joint_positions().q
-    np.testing.assert_allclose(again.model.fk(q), world.nominal.with_params(values).fk(q), atol=1e-12)
-    np.testing.assert_allclose(again.tcp_pose()[:3], world.nominal.position(q), atol=1e-12)
+    np.testing.assert_allclose(again.model.fk(q), controller.with_params(values).fk(q), atol=1e-9)
+    np.testing.assert_allclose(again.tcp_pose()[:3], controller.position(q), atol=1e-9)
 
 
 def test_local_control_is_refused_with_a_clear_message(tmp_path):
@@ -377,7 +387,7 @@ def test_local_control_is_refused_with_a_clear_message(tmp_path):
     path, _ = world_file(tmp_path)
     with launch("ur", path, extra=("--no-remote",)) as emu:
         with pytest.raises(ConfigError, match="Remote Control"):
-            open_robot(f"ur://{emu.host}")
+            open_robot(f"ur://{emu.host}?power_on=yes")
         with pytest.raises(RuntimeError, match="remote control"):  # ur_rtde's own check, same answer
             rtde_control.RTDEControlInterface(emu.host)
 
@@ -385,7 +395,7 @@ def test_local_control_is_refused_with_a_clear_message(tmp_path):
 def test_emergency_stop_then_power_on(tmp_path, emulator, robots):
     path, world = world_file(tmp_path)
     emu = emulator(path)
-    robot = robots(f"ur://{emu.host}")
+    robot = robots(f"ur://{emu.host}?power_on=yes")
     q0 = robot.joint_positions().q
     emu.dashboard("emulator estop on")
     time.sleep(0.02)
@@ -396,6 +406,6 @@ def test_emergency_stop_then_power_on(tmp_path, emulator, robots):
     emu.dashboard("emulator estop off")  # the e-stop button released; the arm stays powered off
     time.sleep(0.02)
     assert not robot.status().enabled
-    robot.enable()  # dashboard power on + brake release, then the control script again
+    robot.enable()  # power_on=yes: dashboard power on, IDLE, brake release, RUNNING, then the control script
     robot.move_joints(q0 + 0.05, speed=1.0)
     np.testing.assert_allclose(robot.joint_positions().q, q0 + 0.05, atol=1e-9)

@@ -67,14 +67,35 @@ def test_ur_rtde_streams_500hz_with_truth_and_contact_bit(emu):
         time.sleep(0.5)
         dt_ctrl, dt_wall = r.getTimestamp() - t0, time.monotonic() - w0
         assert abs(dt_ctrl - dt_wall) < 0.15  # the controller clock runs at wall speed (2 ms cycle)
-        assert r.getRobotMode() == 7 and r.getSafetyMode() == 1 and r.getRuntimeState() == 1
+        # a controller boots with the arm powered off (robot_mode 3 POWER_OFF), safety normal, no program
+        assert r.getRobotMode() == 3 and r.getSafetyMode() == 1 and r.getRuntimeState() == 1
+        assert list(r.getJointMode()) == [239] * 6  # JOINT_POWER_OFF_MODE
         assert r.getActualDigitalInputBits() == 0  # not touching: contact bit (17 here) clear
     finally:
         r.disconnect()
 
 
+def _links_truth(world):
+    """The arm as its factory calibration knows it (buses.ur.calibration default ``links``): the world's truth
+    without the joint zero errors, the mounting and the tool (flange pose)."""
+    keep = {n: world.nominal.param(n) for n in world.truth.param_names if n.startswith(("offset.", "base.", "tcp."))}
+    return world.truth.with_params({**keep, **{f"tcp.{k}": 0.0 for k in ("x", "y", "z", "rx", "ry", "rz")}})
+
+
+def power_up(host: str) -> None:
+    assert dashboard(host, "power on") == "Powering on"
+    deadline = time.monotonic() + 10
+    while dashboard(host, "robotmode") != "Robotmode: IDLE" and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert dashboard(host, "brake release") == "Brake releasing"
+    while dashboard(host, "robotmode") != "Robotmode: RUNNING" and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert dashboard(host, "robotmode") == "Robotmode: RUNNING"
+
+
 def test_control_script_handshake_protective_stop_and_unlock(emu):
     r = rtde_receive.RTDEReceiveInterface(emu.host)
+    power_up(emu.host)
     c = rtde_control.RTDEControlInterface(emu.host)  # dashboard + script upload + PLAYING within 5 s
     try:
         assert c.isProgramRunning() and r.getRuntimeState() == 2
@@ -85,8 +106,8 @@ def test_control_script_handshake_protective_stop_and_unlock(emu):
         c.setTcp([0, 0, 0.1, 0, 0, 0])
         np.testing.assert_allclose(c.getTCPOffset(), [0, 0, 0.1, 0, 0, 0], atol=1e-12)
         pose = np.array(r.getActualTCPPose())
-        T = emu.world.nominal.fk(q0 + 0.05)
-        np.testing.assert_allclose(pose[:3], T[:3, 3] + T[:3, 2] * 0.1, atol=1e-9)  # nominal FK + TCP
+        T = _links_truth(emu.world).fk(q0 + 0.05)  # the controller's own (calibrated) kinematics + TCP
+        np.testing.assert_allclose(pose[:3], T[:3, 3] + T[:3, 2] * 0.1, atol=1e-9)
         assert "protective stop" in dashboard(emu.host, "emulator protective_stop")
         time.sleep(0.05)
         assert r.isProtectiveStopped() and r.getSafetyMode() == 3 and r.getSafetyStatusBits() & (1 << 2)

@@ -10,11 +10,11 @@ import math
 import numpy as np
 import pytest
 import urdf_robots as robots
-
-from station.kinematics import load_model
 from station.mocks.world import World
 from station.mocks.world.dynamics import estimated_masses
 from station.mocks.world.worldfile import WorldFileError
+
+from station.kinematics import load_model
 
 UR5E_MASSES = {k + 1: (m, np.array(c)) for k, (m, c) in enumerate(robots.UR5E_MASS)}
 # UR5e with the upper arm horizontal: joints 2 and 3 carry the arm's weight

@@ -1,7 +1,8 @@
 """Minimal client for the UR dashboard server (TCP 29999, one text line per command and per reply).
 
 The ur-rtde Python wheel does not expose its C++ DashboardClient, so the driver speaks the line protocol
-itself: status, serial number, unlock of a protective stop, program stop."""
+itself: status, serial number, unlock of a protective stop, program stop, power (``power on`` and ``brake
+release`` are sent by the driver's ``_power_up`` one at a time, each after the robot mode it needs)."""
 
 from __future__ import annotations
 
@@ -82,11 +83,6 @@ class DashboardClient:
 
     def stop_program(self) -> str:
         return self.command("stop")
-
-    def power_on(self) -> str:
-        reply = self.command("power on")
-        self.command("brake release")
-        return reply
 
     def power_off(self) -> str:
         return self.command("power off")

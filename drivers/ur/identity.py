@@ -36,24 +36,44 @@ def series_of(polyscope: str) -> str | None:
     return "CB3" if major < 5 else "e-Series"
 
 
+def _builtin_for(arm: str) -> str | None:
+    """The built-in model of a controller's arm (``UR5e`` -> ``ur5e``), if the station ships one."""
+    from station.kinematics import builtin_names
+
+    name = arm.split()[0].lower()
+    return name if name in builtin_names() else None
+
+
 def check_arm(host: str, model_name: str, robot_type: str | None, reported_type: str, polyscope: str) -> str:
-    """The controller's arm as ``UR5e`` / ``UR5 (CB3)``; ``IdentityMismatch`` (one line) when it is not the arm
-    the model is for."""
+    """The controller's arm as ``UR5e`` / ``UR5 (CB3)``; ``IdentityMismatch`` (one line naming the fix that
+    works) when it is not the arm the model is for."""
     rep_type = reported_type.strip().upper()
     rep_series = series_of(polyscope)
     shown = f"{rep_type}{'e' if rep_series == 'e-Series' and rep_type[2:] not in E_SERIES_ONLY else ''}" + (
         " (CB3)" if rep_series == "CB3" else "")
-    want = expected_arm(model_name, robot_type)
-    source = f"robot_type={robot_type}" if robot_type else f"model {model_name}"
-    if want is None:
-        raise IdentityMismatch(f"ur://{host}: {source} is not a UR arm model but the controller is a {shown}; "
-                               f"use model={shown.split()[0].lower()} (or a model file for this arm with "
-                               f"robot_type={shown.split()[0]})")
+    arm = shown.split()[0]  # what robot_type= takes for this controller: UR5e, UR10, UR20
+    builtin = _builtin_for(arm)
     if not re.fullmatch(r"UR\d{1,2}", rep_type):
-        raise IdentityMismatch(f"ur://{host}: the controller reports robot model {reported_type!r}, not a UR arm "
-                               f"({source} expects {want[0]} {want[1]})")
+        raise IdentityMismatch(f"ur://{host}: the controller reports robot model {reported_type!r}, not a UR arm; "
+                               "nothing was moved")
+    want = expected_arm(model_name, robot_type)
+    if want is None:
+        if robot_type:
+            raise IdentityMismatch(f"ur://{host}: robot_type={robot_type} names no UR arm; the controller is a "
+                                   f"{shown}: use robot_type={arm} (if model {model_name} describes this arm)")
+        instead = f", or model={builtin} for the published {arm}" if builtin else ""
+        raise IdentityMismatch(f"ur://{host}: model {model_name} does not say which UR arm it is for; the "
+                               f"controller is a {shown}: add robot_type={arm} to the robot URL if {model_name} "
+                               f"describes this arm{instead}; nothing was moved")
     if rep_type != want[0] or (rep_series is not None and rep_series != want[1]):
+        source = f"robot_type={robot_type}" if robot_type else f"model {model_name}"
+        if robot_type:
+            fix = f"use robot_type={arm} only if model {model_name} describes this arm"
+        elif builtin:
+            fix = f"use model={builtin}"
+        else:
+            fix = f"use a model of this arm (a model file with robot_type={arm})"
         raise IdentityMismatch(f"ur://{host}: {source} is a {want[0]} {want[1]} but the controller reports "
                                f"{rep_type} {rep_series or '(series unknown)'} ({polyscope.strip()!r}); nothing "
-                               "was moved: use the model of this arm")
+                               f"was moved: {fix}")
     return shown

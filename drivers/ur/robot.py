@@ -1,6 +1,12 @@
-"""``ur://HOST[?model=ur5e&calibration=PATH&export=DIR&contact_bit=16&speed=0.5]``: a Universal Robots
-e-Series arm over RTDE (ur_rtde's RTDEReceiveInterface + RTDEControlInterface) and the dashboard server
-(options: ``URRobot.options``).
+"""``ur://HOST[?model=ur5e&power_on=yes&calibration=PATH&export=DIR&contact_bit=16&speed=0.5]``: a Universal
+Robots e-Series arm over RTDE (ur_rtde's RTDEReceiveInterface + RTDEControlInterface), the dashboard server and
+the primary client interface (its factory calibration) (options: ``URRobot.options``).
+
+Connecting needs no running arm: the dashboard, the RTDE receive stream and the controller's calibration are
+read first; the control interface (ur_rtde's control script, which a controller runs only when the arm is
+RUNNING) is opened then if the arm is RUNNING, else with the first motion. Powering on and releasing the brakes
+happen only where the URL allows it (``power_on=yes``), in the order UR's own ROS driver uses: ``power on``, wait
+for IDLE, ``brake release``, wait for RUNNING.
 
 Units: joints in rad, joint speed rad/s, tool speed m/s. Every motion command checks limits first (a refused
 command sends nothing) and is then watched: protective/emergency stop -> SafetyStop, lost link ->
@@ -17,22 +23,35 @@ from pathlib import Path
 
 import numpy as np
 from station.drivers.ur.calibration import (
-    apply_deltas,
-    deltas_from_values,
+    _values_of,
+    calibrated_table,
+    controller_model,
     export_files,
+    published_table,
     read_calibration_conf,
+    table_from_deltas,
+    table_from_rows,
 )
 from station.drivers.ur.dashboard import DashboardClient
 from station.drivers.ur.identity import check_arm
+from station.drivers.ur.primary import read_kinematics
 
 from station.kinematics import Model
 from station.robot.base import CHAIN_OPTIONS, RobotBase
-from station.robot.errors import BusError, ConfigError, ConnectionLost, DeviceFault, LimitError, SafetyStop
+from station.robot.errors import (
+    BusError,
+    ConfigError,
+    ConnectionLost,
+    DeviceFault,
+    IdentityMismatch,
+    LimitError,
+    SafetyStop,
+)
 from station.robot.motion import MANUAL_TOOL_SPEED_CAP, check_joint_limits, joint_speed_for_tool_cap
 from station.robot.protocol import Identity, JointSnapshot, JointState, RobotStatus
 from station.robot.registry import bus_library
 from station.robot.silence import Silence
-from station.robot.url import Option, Options, RobotURL, integer, number, text
+from station.robot.url import Option, Options, RobotURL, either, integer, number, text
 
 with bus_library("ur-rtde"):
     import rtde_control
@@ -46,13 +65,28 @@ RECV_VARIABLES = ["timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "actu
 
 SS_PROTECTIVE, SS_SAFEGUARD, SS_ESTOP_MASK = 1 << 2, 1 << 4, (1 << 5) | (1 << 6) | (1 << 7)
 SS_VIOLATION, SS_FAULT = 1 << 8, 1 << 9
-ROBOT_MODE_RUNNING = 7
+ROBOT_MODE_POWER_OFF, ROBOT_MODE_POWER_ON, ROBOT_MODE_IDLE, ROBOT_MODE_RUNNING = 3, 4, 5, 7
+ROBOT_MODES = {-1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
+               4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE"}
+# ur_rtde's own wait for its control script is 5 s; the driver waits itself, counting only what it observed
+CONTROL_SCRIPT_TIMEOUT_S = 5.0
+# power on -> IDLE and brake release -> RUNNING: UR's client library waits up to 300 s / 30 s (counted in polls)
+POWER_ON_TIMEOUT_S, BRAKE_RELEASE_TIMEOUT_S = 60.0, 30.0
 LOCAL_HOSTS = ("localhost", "127.0.0.1")
 # RTDE stall timeout: the controller sends a package every 2 ms; 200 ms gave spurious stalls on a loaded
 # 2-core PC (issue 15); 500 ms (250 packages) soaked with zero spurious faults under two busy loops
 # (tests/test_soak_buses.py) and still stops the arm within half a second of a dead link.
 STALL_MS = 500.0  # ur_rtde skips its remote-control check only for these
 JOG_IDLE_WATCHDOG_HZ = 1.0  # the RTDE watchdog between velocity jogs (arm standing; jog_keep_alive feeds it)
+
+
+def _rows_checksum(table) -> str:
+    """A checksum of DH rows the controller did not send one for (a calibration.conf, the published table)."""
+    import struct
+    import zlib
+
+    rows = np.column_stack([table.theta, table.a, table.d, table.alpha])
+    return "-".join(f"{zlib.crc32(struct.pack('>4d', *r)) & 0xFFFFFFFF:08x}" for r in rows)
 
 
 class URRobot(RobotBase):
@@ -64,9 +98,14 @@ class URRobot(RobotBase):
     options = Options(
         Option("model", text(), "ur5e", "kinematic model (`ur3e`, `ur5e`, `ur10e` or a model file)",
                default_doc="`ur5e`"),
-        Option("calibration", text(), None, "the controller's `calibration.conf`: its `[mounting]` deltas are added "
-               "to the model (the station then believes what the controller believes) and `read_calibration()` "
-               "returns `delta_theta`", default_doc="none: zeros"),
+        Option("power_on", either("yes", "no"), "no", "`yes`: the station may power the arm on and release its brakes "
+               "(dashboard `power on`, wait for IDLE, `brake release`, wait for RUNNING); `no`: an arm that is not "
+               "RUNNING is refused before any motion, naming this option"),
+        Option("calibration", either("controller", "none", otherwise=text()), "controller", "the station's "
+               "nominal model: `controller` reads the factory calibration the controller reports (KinematicsInfo on "
+               "the primary interface, port 30001); a path reads a copied `calibration.conf` (`[mounting]` deltas); "
+               "`none` uses the published table. The rows are converted to the model with nearly parallel axes "
+               "re-intersected; the checksum is journaled with the robot's identity", default_doc="`controller`"),
         Option("export", text(), None, "folder for `write_calibration()` exports",
                default_doc="`./ur-calibration-SERIAL/`"),
         Option("contact_bit", integer(0, 63), 16, "bit of `actual_digital_input_bits` wired to the contact sensor "
@@ -91,14 +130,19 @@ class URRobot(RobotBase):
     )
 
     def __init__(self, host: str, catalog: Model, *, deltas: dict[str, list[float]] | None = None,
+                 calibration: str | None = "controller", power_on: bool = False,
                  export_dir: str | None = None, contact_bit: int = 16, speed: float = 0.5, accel: float = 1.0,
                  jog_speed: float = 0.2, tool_speed: float = 0.05, stale_timeout: float = STALL_MS / 1000.0,
                  jog_watchdog: float = 10.0, serial: str | None = None, robot_type: str | None = None,
                  url: str = "", connect: bool = True) -> None:
         self.host = host
-        self.catalog = catalog  # published DH table
-        self.deltas = deltas  # the controller's calibration.conf, if given
-        self.model: Model = apply_deltas(catalog, deltas) if deltas else catalog
+        self.catalog = catalog  # the arm's published geometry
+        self.deltas = deltas  # a copied calibration.conf, if given (calibration=PATH)
+        # "controller" (KinematicsInfo), "file" (deltas), None (published table)
+        self.calibration_source = "file" if deltas is not None else calibration
+        self.power_on = power_on
+        self.calibration: dict = {}  # what the nominal model came from: source, checksum, status (journaled)
+        self.model: Model = catalog  # replaced by the controller's calibration at connect
         self.export_dir = export_dir
         self.contact_bit = contact_bit
         self.speed, self.accel = speed, accel
@@ -137,13 +181,15 @@ class URRobot(RobotBase):
             raise ConfigError(f"robot URL {url.raw!r}: ur:// takes no port (RTDE 30004, dashboard 29999 and "
                               "script 30003 are fixed by the controller)")
         catalog = cls.load_url_model(url, o["model"], o["tip_link"], o["base_link"])
-        deltas = read_calibration_conf(o["calibration"], catalog.n_joints) if o["calibration"] else None
+        cal = o["calibration"]
+        deltas = read_calibration_conf(cal, catalog.n_joints) if cal not in ("controller", "none") else None
         vmax = float(catalog.max_velocity.min())
         for key in ("speed", "jog_speed"):  # bounded by the model: checked once it is known
             if o[key] is not None and o[key] > vmax:
                 raise ConfigError(f"robot URL {url.raw!r}: {key}={o[key]:g} must be in (0, {vmax:g}] rad/s "
                                   f"(model {catalog.name})")
-        args = dict(deltas=deltas, export_dir=o["export"], contact_bit=o["contact_bit"],
+        args = dict(deltas=deltas, calibration={"controller": "controller", "none": None}.get(cal, "file"),
+                    power_on=o["power_on"] == "yes", export_dir=o["export"], contact_bit=o["contact_bit"],
                     speed=o["speed"] or min(0.5, vmax), jog_speed=o["jog_speed"] or min(0.2, vmax),
                     tool_speed=o["tool_speed"], jog_watchdog=o["jog_watchdog"], serial=o["serial"],
                     robot_type=o["robot_type"], stale_timeout=o["stall_ms"] / 1000.0, url=url.raw)
@@ -152,6 +198,8 @@ class URRobot(RobotBase):
 
     # ---- connection --------------------------------------------------------------------------
     def connect(self) -> None:
+        """Dashboard (identity, remote control), RTDE receive stream and the controller's calibration. Nothing
+        here needs the arm powered: the control interface opens with the first motion (``_ready_for_motion``)."""
         self._dash.connect()
         self.firmware = self._dash.polyscope_version()
         reported = self._dash.serial_number()
@@ -171,33 +219,49 @@ class URRobot(RobotBase):
         except Exception as e:
             self._dash.close()
             raise ConnectionLost(f"ur://{self.host}: RTDE (port 30004) connection failed: {e}") from None
-        deadline = time.monotonic() + 2.0
-        while True:
-            try:
-                self._c = rtde_control.RTDEControlInterface(self.host)
-                break
-            except Exception as e:  # noqa: BLE001 - ur_rtde raises RuntimeError
-                # a previous client's connection may still be closing (its registers are freed when its socket
-                # closes): give it a moment before calling the robot taken
-                if "already in use" in str(e) and time.monotonic() < deadline:
-                    time.sleep(0.2)
-                    continue
-                err = e
-                break
-        if self._c is None:
-            e = err
-            self._r.disconnect()
-            self._r = None
-            self._dash.close()
-            if "already in use" in str(e):
-                raise BusError(f"ur://{self.host}: another RTDE client already controls this robot (input "
-                               "registers in use); close it, or disable EtherNet/IP, PROFINET and MODBUS units "
-                               "on the controller") from None
-            raise ConnectionLost(f"ur://{self.host}: RTDE control (script upload on 30003) failed: {e}") from None
+        try:
+            self._load_calibration()
+        except Exception:
+            self._drop_interfaces()
+            raise
+        self._c = None
         self._last_ts = None
         self._watchdog_hz = 0.0
         self._link_lost = False
-        log.info("ur://%s connected: serial %s, %s", self.host, self.serial, self.firmware)
+        if int(self._r.getRobotMode()) == ROBOT_MODE_RUNNING and \
+                self._safety_error(int(self._r.getSafetyStatusBits())) is None:
+            # a running arm: take control now, as ur_rtde does (a stale control script of a station that died is
+            # stopped and a fresh one started; the teardown stops ours)
+            try:
+                self._open_control()
+                self._start_script()
+            except Exception:
+                self._drop_interfaces()
+                raise
+        log.info("ur://%s connected: serial %s, %s, robot mode %s", self.host, self.serial, self.firmware,
+                 self._mode_name())
+
+    def _load_calibration(self) -> None:
+        """The station's nominal model for the session: the controller's factory calibration (or the copied
+        calibration.conf, or the published table) converted to the model's convention. On a reconnect the
+        controller must report the same calibration as before: the session's samples were taken with it."""
+        pub = published_table(self.catalog)
+        if self.calibration_source == "controller":
+            info = read_kinematics(self.host)
+            table = table_from_rows(self.catalog, info.theta, info.a, info.d, info.alpha)
+            cal = {"source": "controller", "checksum": info.checksum_text, "status": info.calibration_status}
+        elif self.calibration_source == "file":
+            table = table_from_deltas(self.catalog, self.deltas)
+            cal = {"source": "calibration.conf", "checksum": _rows_checksum(table)}
+        else:
+            table = pub
+            cal = {"source": "published table", "checksum": _rows_checksum(table)}
+        if self.calibration and self.calibration.get("checksum") != cal["checksum"]:
+            raise IdentityMismatch(f"ur://{self.host}: the controller's calibration changed while the station was "
+                                   f"away (checksum {self.calibration['checksum']} -> {cal['checksum']}); the "
+                                   "session's samples belong to the old one: start a new session")
+        self.model = controller_model(self.catalog, table, source=f"ur://{self.host} ({cal['source']})")
+        self.calibration = cal
 
     def _drop_interfaces(self) -> None:
         # ur_rtde's disconnect() waits 0.5 s after closing (with the GIL released): both interfaces at once
@@ -289,11 +353,13 @@ class URRobot(RobotBase):
 
     # ---- link and safety checks --------------------------------------------------------------
     def _check_link(self) -> None:
-        if self._r is None or self._c is None:
+        # the control interface is opened with the first motion (None before); once abandoned or lost, the link
+        # is lost until a reconnect
+        if self._r is None or getattr(self, "_link_lost", False):
             self._link_lost = True
             raise ConnectionLost(f"ur://{self.host}: not connected to the controller; check the network, then "
                                  "resume the session")
-        if not self._r.isConnected() or not self._c.isConnected():
+        if not self._r.isConnected() or (self._c is not None and not self._c.isConnected()):
             self._link_lost = True
             raise ConnectionLost(f"ur://{self.host}: connection to the controller lost (RTDE port 30004 closed); "
                                  "resume the session when the network is back")
@@ -378,9 +444,9 @@ class URRobot(RobotBase):
             if silence.tick() > self.stale_timeout:
                 self._abandon_control()
                 raise ConnectionLost(f"ur://{self.host}: the controller did not acknowledge {what} within "
-                                     f"{self.stale_timeout * 1e3:.0f} ms (RTDE stall timeout): link lost, nothing "
-                                     "more was sent and a stop went out over the dashboard; reconnect the robot "
-                                     "when the network is back")
+                                     f"{self.stale_timeout * 1e3:.0f} ms (RTDE stall timeout; {silence.note()}): "
+                                     "link lost, nothing more was sent and a stop went out over the dashboard; "
+                                     "reconnect the robot when the network is back")
         if "error" in box:
             raise box["error"]
         return box["value"]
@@ -416,21 +482,107 @@ class URRobot(RobotBase):
                 self._c.stopScript()
             self._watchdog_hz = 0.0
 
+    def _mode_name(self, mode: int | None = None) -> str:
+        if mode is None:
+            mode = int(self._r.getRobotMode()) if self._r is not None else -1
+        return ROBOT_MODES.get(mode, str(mode))
+
+    def _power_up(self) -> None:
+        """Bring the arm to RUNNING the way UR's ROS driver does (robot_state_helper): ``power on``, wait for
+        IDLE (joints booted, brakes engaged), ``brake release``, wait for RUNNING. Only with ``power_on=yes``;
+        otherwise one line naming the option and the dashboard's robot mode. Waits count only observed time."""
+        mode = int(self._r.getRobotMode())
+        if mode == ROBOT_MODE_RUNNING:
+            return
+        self._check_safety()
+        if not self.power_on:
+            raise ConfigError(f"ur://{self.host}: the arm is not running (dashboard: "
+                              f"{self._dash.command('robotmode')}); power it on and release the brakes on the teach "
+                              "pendant, or let the station do it: add power_on=yes to the robot URL")
+        if mode in (ROBOT_MODE_POWER_OFF, ROBOT_MODE_POWER_ON, 2):  # 2: BOOTING
+            if mode == ROBOT_MODE_POWER_OFF:
+                log.info("ur://%s: power on (power_on=yes)", self.host)
+                self._dash.command("power on")
+            mode = self._wait_mode((ROBOT_MODE_IDLE, ROBOT_MODE_RUNNING), POWER_ON_TIMEOUT_S, "power-on",
+                                   "IDLE after 'power on'")
+        if mode == ROBOT_MODE_IDLE:
+            log.info("ur://%s: brake release (power_on=yes)", self.host)
+            self._dash.command("brake release")
+            mode = self._wait_mode((ROBOT_MODE_RUNNING,), BRAKE_RELEASE_TIMEOUT_S, "brake-release",
+                                   "RUNNING after 'brake release'")
+        if mode != ROBOT_MODE_RUNNING:
+            raise DeviceFault(f"ur://{self.host}: the arm is in robot mode {self._mode_name(mode)}, which needs the "
+                              "teach pendant (confirm safety, release the teach button); nothing was moved")
+
+    def _wait_mode(self, targets: tuple[int, ...], timeout: float, which: str, what: str) -> int:
+        silence = Silence()  # the station's own scheduling gaps are not the controller's slowness
+        while True:
+            self._check_link()
+            mode = int(self._r.getRobotMode())
+            if mode in targets:
+                return mode
+            bits = int(self._r.getSafetyStatusBits())
+            err = self._safety_error(bits)
+            if err is not None:
+                raise err
+            if silence.tick() > timeout:
+                raise DeviceFault(f"ur://{self.host}: {which} timeout: the arm did not reach {what} within "
+                                  f"{timeout:g} s (robot mode {self._mode_name(mode)}; {silence.note()})")
+            time.sleep(0.02)
+
+    def _open_control(self) -> None:
+        """ur_rtde's RTDEControlInterface, without its own wait for the control script (``FLAG_NO_WAIT``, no
+        upload by the constructor): the driver uploads the script and waits for it itself (``_start_script``),
+        counting only time it observed. Its constructor's wait counts 10 ms sleeps up to 5 s."""
+        flags = rtde_control.RTDEControlInterface.Flags.FLAG_NO_WAIT
+        deadline = time.monotonic() + 2.0
+        while True:
+            try:
+                self._c = rtde_control.RTDEControlInterface(self.host, -1.0, flags)
+                return
+            except Exception as e:  # noqa: BLE001 - ur_rtde raises RuntimeError
+                # a previous client's connection may still be closing (its registers are freed when its socket
+                # closes): give it a moment before calling the robot taken
+                if "already in use" in str(e) and time.monotonic() < deadline:
+                    time.sleep(0.2)
+                    continue
+                if "already in use" in str(e):
+                    raise BusError(f"ur://{self.host}: another RTDE client already controls this robot (input "
+                                   "registers in use); close it, or disable EtherNet/IP, PROFINET and MODBUS units "
+                                   "on the controller") from None
+                raise ConnectionLost(f"ur://{self.host}: RTDE control (script upload on 30003) failed: {e}") \
+                    from None
+
+    def _start_script(self) -> None:
+        """Upload ur_rtde's control script (a stale one is stopped first) and wait until the controller runs it:
+        CONTROL_SCRIPT_TIMEOUT_S of observed time (``Silence``: a busy station PC's own gaps do not count)."""
+        self._watchdog_hz = 0.0  # a new script has no watchdog
+        log.info("ur://%s: starting the control script", self.host)
+        self._c.reuploadScript()
+        silence = Silence()
+        while not self._c.isProgramRunning():
+            self._check_link()
+            if silence.tick() > CONTROL_SCRIPT_TIMEOUT_S:
+                raise DeviceFault(f"ur://{self.host}: control-script start timeout: the controller did not run "
+                                  f"ur_rtde's control script within {CONTROL_SCRIPT_TIMEOUT_S:g} s (runtime_state "
+                                  f"{self._r.getRuntimeState()}, robot mode {self._mode_name()}; {silence.note()}); "
+                                  "is the arm RUNNING, in remote control, and no program of the pendant running?")
+            time.sleep(0.01)
+
     def _ready_for_motion(self) -> None:
         self._check_link()
         self._check_safety()
+        if int(self._r.getRobotMode()) != ROBOT_MODE_RUNNING:
+            self._power_up()
+        if self._c is None:
+            self._open_control()
+            self._start_script()
+            return
         self._kick()
         if not self._c.isProgramRunning():
-            self._watchdog_hz = 0.0  # a new script has no watchdog
             # after an unlock, a dashboard stop or a watchdog stop, the control script must run again
             log.info("ur://%s: control script not running: re-uploading", self.host)
-            self._c.reuploadScript()
-            deadline = time.monotonic() + 5.0
-            while not self._c.isProgramRunning():
-                if time.monotonic() > deadline:
-                    raise DeviceFault(f"ur://{self.host}: the control script did not start within 5 s "
-                                      "(is the robot powered on and in remote control?)")
-                time.sleep(0.01)
+            self._start_script()
 
     def _refused(self, what: str) -> None:
         """A ur_rtde command returned False: say why, leave the robot stopped."""
@@ -481,10 +633,16 @@ class URRobot(RobotBase):
 
     # ---- Robot protocol ----------------------------------------------------------------------
     def identity(self) -> Identity:
+        """The controller, and the calibration the session's nominal model came from (its checksum: a changed
+        factory calibration is another robot as far as a session's samples are concerned)."""
+        device = {"controller": self.robot_model, "software": self.firmware, "serial": self.serial,
+                  "calibration": self.calibration.get("source", ""),
+                  "calibration_checksum": self.calibration.get("checksum", "")}
+        if "status" in self.calibration:
+            device["calibration_status"] = self.calibration["status"]
         return Identity(vendor=self.vendor, model=self.model.name, serial=self.serial, firmware=self.firmware,
                         serial_source="robot" if self.serial and self.serial != self.url_serial else "url",
-                        devices=({"controller": self.robot_model, "software": self.firmware,
-                                  "serial": self.serial},), url=self.url)
+                        devices=(device,), url=self.url)
 
     def joint_positions(self) -> JointSnapshot:
         """actual_q of one RTDE package produced after this call began, with that package's controller
@@ -501,9 +659,9 @@ class URRobot(RobotBase):
             if silence.tick() > self.stale_timeout:
                 self._check_link()
                 self._halt_quietly(dashboard=True)
-                raise BusError(f"ur://{self.host}: RTDE data stream stalled: no new package for "
-                               f"{self.stale_timeout * 1e3:.0f} ms (last controller time {ts2:.3f} s); "
-                               "robot stopped")
+                raise BusError(f"ur://{self.host}: RTDE stall timeout: no new package for "
+                               f"{self.stale_timeout * 1e3:.0f} ms (last controller time {ts2:.3f} s; "
+                               f"{silence.note()}); RTDE data stream stalled, robot stopped")
             time.sleep(0.0003)
         self._last_ts = ts1
         qa = np.asarray(q, dtype=float)
@@ -595,8 +753,9 @@ class URRobot(RobotBase):
                 silence.reset()
             elif silence.tick() > self.stale_timeout:
                 self._halt_quietly(dashboard=True)
-                raise BusError(f"ur://{self.host}: RTDE data stream stalled during the move: no new package for "
-                               f"{self.stale_timeout * 1e3:.0f} ms (last controller time {ts:.3f} s); robot stopped")
+                raise BusError(f"ur://{self.host}: RTDE stall timeout: data stream stalled during the move, no new "
+                               f"package for {self.stale_timeout * 1e3:.0f} ms (last controller time {ts:.3f} s; "
+                               f"{silence.note()}); robot stopped")
             if ts - t_start > budget:
                 self._halt_quietly()
                 raise BusError(f"ur://{self.host}: move not finished within {budget:.1f} s (controller time); "
@@ -769,7 +928,7 @@ class URRobot(RobotBase):
         try:
             if self._r.getSafetyStatusBits() & (SS_PROTECTIVE | SS_ESTOP_MASK | SS_SAFEGUARD):
                 return  # already halted by the safety system; commands would be refused
-            if self._c.isProgramRunning():
+            if self._c is not None and self._c.isProgramRunning():
                 if self._speeding:
                     if self._bounded("speedStop", self._c.speedStop, 10.0):
                         self._last_write = time.monotonic()
@@ -785,15 +944,9 @@ class URRobot(RobotBase):
             raise DeviceFault(f"ur://{self.host}: stop: {e}") from None
 
     def enable(self) -> None:
-        """Power on and release the brakes (dashboard), then make sure the control script runs."""
+        """The arm RUNNING (powered on and brakes released: only with ``power_on=yes``, see ``_power_up``) and the
+        control script running."""
         self._check_link()
-        if self._r.getRobotMode() != ROBOT_MODE_RUNNING:
-            self._dash.power_on()
-            deadline = time.monotonic() + 10.0
-            while self._r.getRobotMode() != ROBOT_MODE_RUNNING:
-                if time.monotonic() > deadline:
-                    raise DeviceFault(f"ur://{self.host}: the arm did not reach RUNNING after power on")
-                time.sleep(0.05)
         self._ready_for_motion()
 
     def disable(self) -> None:
@@ -822,6 +975,10 @@ class URRobot(RobotBase):
 
     def set_compliant(self, on: bool) -> None:
         """Freedrive (falls back to teach mode) so the tip can settle in a socket; off keeps the position."""
+        if not on and self._compliant_mode is None:  # nothing to end; a safety stop is still said (teardown)
+            self._check_link()
+            self._check_safety()
+            return
         if on:
             self._disarm_watchdog()  # the arm rests in freedrive without kicks
         self._ready_for_motion()
@@ -866,34 +1023,38 @@ class URRobot(RobotBase):
 
     # ---- calibration -------------------------------------------------------------------------
     def read_calibration(self) -> dict[str, float]:
-        """Joint zero corrections the controller applies, from its calibration.conf (URL ``calibration=``);
-        zeros when none was given (the controller's internal values cannot be read over RTDE)."""
-        n = self.model.n_joints
-        dtheta = (self.deltas or {}).get("delta_theta", [0.0] * n)
-        return {f"offset.j{i + 1}": float(dtheta[i]) for i in range(n)}
+        """The joint zero corrections of the session's nominal model (the controller's calibration converted,
+        see ``calibration=``): ``offset.jN`` (rad)."""
+        return {f"offset.j{i + 1}": self.model.param(f"offset.j{i + 1}") for i in range(self.model.n_joints)}
 
     def export_calibration(self, result_or_values, folder: str | Path | None = None) -> list[Path]:
-        """Write calibration.conf ([mounting] deltas), ur_kinematics.yaml and ur_calibrated.urdf."""
-        from station.drivers.ur.calibration import _values_of
-
+        """Write calibration.conf (the ``[mounting]`` deltas a controller would hold for the calibrated model),
+        ur_kinematics.yaml and ur_calibrated.urdf. ``result_or_values``: a CalibrationResult or absolute values
+        of this session's model parameters."""
         values = _values_of(result_or_values)
-        deltas, dropped = deltas_from_values(self.catalog, values, self.deltas)
+        known = {k: v for k, v in values.items() if k in self.model.param_names}
+        calibrated = self.model.with_params(known)
+        # what a calibration.conf cannot hold: the mounting, the tool, compliance, and a flange tilt
+        dropped = sorted(k for k in values if k not in known or (
+            k.split(".", 1)[0] in ("base", "tcp", "compliance") and abs(known[k] - self.model.param(k)) > 0))
+        flange = calibrated_table(self.catalog, calibrated).flange
+        if np.max(np.abs(flange - published_table(self.catalog).flange)) > 1e-12:
+            dropped.append("flange tilt (last link beta)")
         folder = Path(folder or self.export_dir or f"./ur-calibration-{self.serial or 'unknown'}")
-        self.last_export = export_files(self.catalog, deltas, folder, serial=self.serial or "unknown",
+        self.last_export = export_files(self.catalog, calibrated, folder, serial=self.serial or "unknown",
                                         dropped=dropped)
         return self.last_export
 
     def write_calibration(self, values: dict[str, float]) -> None:
         """UR controllers keep their calibration internally: nothing is written to the robot. The values are
         exported (see export_calibration) into URL ``export=DIR`` (default ./ur-calibration-SERIAL/) and
-        read back from the written calibration.conf."""
+        read back through the written calibration.conf, converted as at connect."""
         paths = self.export_calibration(values)
-        back = read_calibration_conf(paths[0], self.model.n_joints)["delta_theta"]
+        deltas = read_calibration_conf(paths[0], self.model.n_joints)
+        back = controller_model(self.catalog, table_from_deltas(self.catalog, deltas), source=str(paths[0]))
         for name, v in values.items():
-            if name.startswith("offset.j"):
-                i = int(name[8:]) - 1
-                if abs(back[i] - v) > 1e-9:
-                    raise DeviceFault(f"export read-back of {paths[0]}: {name} {back[i]!r} != {v!r}")
+            if name.startswith("offset.j") and name in back.param_names and abs(back.param(name) - v) > 1e-9:
+                raise DeviceFault(f"export read-back of {paths[0]}: {name} {back.param(name)!r} != {v!r}")
         log.warning("ur://%s: UR controller unchanged; calibration exported to %s (calibration.conf, URDF, YAML). "
                     "Use it as the nominal with ur://%s?calibration=%s", self.host, paths[0].parent, self.host,
                     paths[0])

@@ -14,6 +14,7 @@ from collections import deque
 
 import numpy as np
 from station.mocks.ur import state as S
+from station.mocks.ur.factory import factory
 
 from station.kinematics.se3 import invert, matrix_to_pose, pose_to_matrix
 
@@ -32,6 +33,14 @@ PERIOD = 0.002  # e-Series controller cycle (500 Hz)
 CATCH_UP_S = 0.01
 POLYSCOPE = "URSoftware 5.11.1.108318 (Mar 22 2022)"  # an e-Series controller
 UNLOCK_DELAY = 5.0  # s: a protective stop cannot be unlocked earlier (as on a real robot)
+# How long the arm takes from "power on" to IDLE (joints booted, brakes engaged) and from "brake release" to
+# RUNNING. No vendor figure; a real e-Series takes seconds. The world may set them (buses.ur.power_on_s, ...).
+POWER_ON_S, BRAKE_RELEASE_S = 1.0, 0.5
+MODE_NAMES = {-1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
+              4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE"}
+# joint_mode per robot_mode (RTDE guide: 239 power off, 247 booting, 255 idle, 253 running)
+JOINT_MODES = {S.ROBOT_MODE_POWER_OFF: 239, S.ROBOT_MODE_POWER_ON: 247, S.ROBOT_MODE_IDLE: 255,
+               S.ROBOT_MODE_RUNNING: 253}
 
 
 def _take(world, kind: str) -> bool:
@@ -56,12 +65,16 @@ def notice(world, **event) -> None:
         faults.notice(**event)
 
 
+UR_NAME = re.compile(r"^ur(\d{1,2})(e?)$", re.IGNORECASE)
+DEFAULT_ROBOT_MODEL = "UR5"  # the controller an arm of one's own is emulated on (a real one is always a UR type)
+
+
 def robot_model_of(model_name: str) -> str:
-    """``get robot model`` of a controller for a world model: ``ur5e`` -> ``UR5``; a model that is no UR arm
-    (a model file named otherwise) reports its name in capitals, which no station model matches."""
-    name = model_name.strip()
-    m = re.match(r"^ur(\d{1,2})e?$", name, re.IGNORECASE)
-    return f"UR{m.group(1)}" if m else name.upper()
+    """``get robot model`` of a controller for a world model: ``ur5e`` -> ``UR5``. A real controller always
+    reports a UR type (dashboard ``get robot model``: UR3, UR5, UR10, UR16, UR20, UR30), so an arm of one's own
+    is emulated on a UR5 controller (``buses.ur.robot_model`` chooses another)."""
+    m = UR_NAME.match(model_name.strip())
+    return f"UR{m.group(1)}" if m else DEFAULT_ROBOT_MODEL
 
 
 class URController:
@@ -71,7 +84,8 @@ class URController:
     def __init__(self, world, *, serial: str = "20235500001", model_name: str = "ur5e",
                  contact_bit: int = S.DEFAULT_CONTACT_BIT, stall_s: float = 1.0, drop_s: float = 1.0,
                  remote_control: bool = True, robot_model: str | None = None,
-                 polyscope: str | None = None, unlock_delay_s: float = UNLOCK_DELAY) -> None:
+                 polyscope: str | None = None, unlock_delay_s: float = UNLOCK_DELAY, calibration: str = "links",
+                 power_on_s: float = POWER_ON_S, brake_release_s: float = BRAKE_RELEASE_S) -> None:
         self.world = world
         self.nominal = world.nominal
         self.n = self.nominal.n_joints
@@ -105,7 +119,15 @@ class URController:
         self.safety_bits = S.SS_NORMAL
         self.pstop_at: float | None = None
         self.estop = False
-        self.powered = True
+        # robot_mode: a controller boots with the arm powered off; "power on" -> POWER_ON (joints booting) ->
+        # IDLE (brakes engaged) after power_on_s; "brake release" in IDLE -> RUNNING after brake_release_s
+        self.mode = S.ROBOT_MODE_POWER_OFF
+        self.mode_due: tuple[int, float] | None = None  # (next robot_mode, controller time it is reached)
+        self.power_on_s, self.brake_release_s = float(power_on_s), float(brake_release_s)
+        # every UR joint has a brake: off RUNNING the arm is held by them and ignores commands
+        if hasattr(world, "default_brakes"):
+            world.default_brakes(True)
+        self._arm_enabled(False)
         self.teach = False
         self.freedrive_axes = [1] * 6
         self.speed_qd: np.ndarray | None = None  # speedj target (rad/s) held until stopped
@@ -117,14 +139,24 @@ class URController:
         self.async_wr_count = 0
         self.async_op_id = 0
         self.stall_until = 0.0
+        # fault injection (emulator dashboard "hold_scripts S"): programs received before this controller time start
+        # only then, as on a controller too busy to start them (what a station sees as a silent script start)
+        self.hold_scripts_until = 0.0
+        self.pending_program: tuple[str, str] | None = None
         self.messages: list[str] = []
         self.cmd_log: deque[tuple[int, int]] = deque(maxlen=40)  # (tick, command id) written by clients
         self.q_prev = np.asarray(world.encoder_q(), dtype=float)
         self.qd = np.zeros(self.n)
+        # the controller's own kinematics: its factory calibration (kept across a power cycle, like
+        # calibration.conf); actual_TCP_pose, IK and moveL use it, KinematicsInfo reports its DH rows
+        self.factory = factory(world, calibration)
+        self.flange_model = self.factory.model
         names = [n for n in self.nominal.param_names if n.startswith("tcp.")]
-        self.flange_model = self.nominal.with_params({n: 0.0 for n in names}) if names else self.nominal
+        nominal_flange = self.nominal.with_params({n: 0.0 for n in names})
         q0 = np.zeros(self.n)
-        self.tcp = invert(self.flange_model.fk(q0)) @ self.nominal.fk(q0)  # installation TCP = nominal tool
+        # installation TCP = nominal tool (the installation is kept across a power cycle; setTcp is not)
+        self.installation_tcp = invert(nominal_flange.fk(q0)) @ self.nominal.fk(q0)
+        self.tcp = self.installation_tcp.copy()
         self.on_drop = None  # set by the server: closes every connection for ``seconds``
         # instant/sim worlds: the controller's cycle is the world's clock (2 ms of world time per tick)
         self._sim = getattr(world, "time_mode", "realtime") != "realtime"
@@ -148,6 +180,83 @@ class URController:
 
     def controller_time(self) -> float:
         return self.tick_count * PERIOD
+
+    @property
+    def powered(self) -> bool:
+        return self.mode in (S.ROBOT_MODE_POWER_ON, S.ROBOT_MODE_IDLE, S.ROBOT_MODE_RUNNING)
+
+    @property
+    def mode_name(self) -> str:
+        return MODE_NAMES.get(self.mode, str(self.mode))
+
+    # ---- power (dashboard "power on", "brake release", "power off") ------------------------------
+    def power_on(self) -> None:
+        """Dashboard ``power on``: from POWER_OFF the joints boot (POWER_ON) and reach IDLE after power_on_s.
+        In any other mode nothing changes (the reply is the same). Refused while an emergency stop is active."""
+        with self.lock:
+            if self.mode != S.ROBOT_MODE_POWER_OFF:
+                return
+            if self.estop:
+                self.messages.append("power on refused: emergency stop active")
+                return
+            self.mode = S.ROBOT_MODE_POWER_ON
+            self.mode_due = (S.ROBOT_MODE_IDLE, self.controller_time() + self.power_on_s)
+            self.messages.append("powering on")
+
+    def brake_release(self) -> None:
+        """Dashboard ``brake release``: only in IDLE (the UR ROS driver's robot_state_helper waits for IDLE before
+        it sends it); the arm is RUNNING after brake_release_s. In any other mode it has no effect (strictest
+        reading: the documented reply is the same)."""
+        with self.lock:
+            if self.mode != S.ROBOT_MODE_IDLE or self.mode_due is not None:
+                self.messages.append(f"brake release ignored in robot mode {self.mode_name}")
+                return
+            self.mode_due = (S.ROBOT_MODE_RUNNING, self.controller_time() + self.brake_release_s)
+            self.messages.append("releasing brakes")
+
+    def power_off(self) -> None:
+        with self.lock:
+            self._halt_all()
+            self._end_program()
+            self.mode, self.mode_due = S.ROBOT_MODE_POWER_OFF, None
+            self._arm_enabled(False)
+            self.messages.append("powered off")
+
+    def _power_step(self) -> None:
+        if self.mode_due is not None and self.controller_time() >= self.mode_due[1]:
+            self.mode, self.mode_due = self.mode_due[0], None
+            self.messages.append(f"robot mode {self.mode_name}")
+            self._arm_enabled(self.mode == S.ROBOT_MODE_RUNNING)
+
+    def _arm_enabled(self, on: bool) -> None:
+        """The world's joints powered (RUNNING: brakes released) or held by their brakes."""
+        if hasattr(self.world, "set_enabled"):
+            self.world.set_enabled(on)
+
+    def power_cycle(self) -> None:
+        """The controller reboots: what it keeps on disk stays (serial, factory calibration, installation and its
+        TCP, remote-control setting); everything volatile is lost: the arm boots POWER_OFF, no program runs,
+        registers, watchdog, speed targets and a protective stop are gone. An emergency stop stays while its
+        button is pressed. The arm itself (the world) holds where it stands, on its brakes."""
+        with self.lock:
+            self._halt_all()
+            self._end_program()
+            self.program = None
+            self.mode, self.mode_due = S.ROBOT_MODE_POWER_OFF, None
+            self._arm_enabled(False)
+            if self.safety_mode == S.SAFETY_PROTECTIVE_STOP:
+                self.safety_mode, self.safety_bits, self.pstop_at = S.SAFETY_NORMAL, S.SS_NORMAL, None
+                self.world.clear_protective_stop()
+            for bank in (self.in_int, self.out_int):
+                bank[:] = [0] * len(bank)
+            for bank in (self.in_double, self.out_double):
+                bank[:] = [0.0] * len(bank)
+            self.tcp = self.installation_tcp.copy()
+            self.freedrive_axes = [1] * 6
+            self.stall_until = 0.0
+            self.hold_scripts_until, self.pending_program = 0.0, None
+            self.cmd_log.clear()
+            self.messages.append("power cycle: controller rebooted")
 
     def _loop(self) -> None:
         next_t = time.monotonic()
@@ -175,6 +284,10 @@ class URController:
             if self._sim:
                 self.world.advance(PERIOD)
             self._faults()
+            if self.pending_program is not None and self.controller_time() >= self.hold_scripts_until:
+                program, self.pending_program = self.pending_program, None
+                self.load_program(*program)
+            self._power_step()
             self._watchdog()
             self._motion_step()
             if self.runtime_state == S.PLAYING and self.program == "rtde_control":
@@ -225,7 +338,8 @@ class URController:
                 self.estop = True
                 self.safety_mode = S.SAFETY_ROBOT_EMERGENCY_STOP
                 self.safety_bits = S.SS_ROBOT_EMERGENCY_STOPPED | S.SS_EMERGENCY_STOPPED | S.SS_STOPPED_DUE_TO_SAFETY
-                self.powered = False
+                self.mode, self.mode_due = S.ROBOT_MODE_POWER_OFF, None
+                self._arm_enabled(False)
                 self._end_program()
             else:
                 self.estop = False
@@ -270,14 +384,24 @@ class URController:
         """A script arrived on port 30003: it replaces whatever runs (as on the real controller)."""
         notice(self.world, script={"program": name})
         with self.lock:
+            if self.controller_time() < self.hold_scripts_until:
+                self.pending_program = (name, text)
+                self.messages.append(f"program {name!r} held until controller time {self.hold_scripts_until:.3f} s")
+                return
             self._halt_all()
             self.program = name
             if name != "rtde_control":
                 self.messages.append(f"program {name!r} is not an ur_rtde control script: not executed")
                 self.runtime_state = S.STOPPED
                 return
-            if self.stopped_by_safety or not self.powered:
+            if self.stopped_by_safety:
                 self.messages.append("program not started: robot is stopped by safety")
+                self.runtime_state = S.STOPPED
+                return
+            if self.mode != S.ROBOT_MODE_RUNNING:
+                # the arm must be powered and its brakes released before a program can run; ur_rtde then gives
+                # up with "Failed to start control script, before timeout of 5 seconds"
+                self.messages.append(f"program {name!r} not started: robot mode {self.mode_name}, not RUNNING")
                 self.runtime_state = S.STOPPED
                 return
             self.reg_offset = 24 if "reg_offset_int = 24" in text else 0
@@ -554,9 +678,9 @@ class URController:
         if name == "actual_digital_input_bits":
             return (1 << self.contact_bit) if self.world.contact() else 0
         if name == "robot_mode":
-            return S.ROBOT_MODE_RUNNING if self.powered else S.ROBOT_MODE_POWER_OFF
+            return self.mode
         if name == "joint_mode":
-            return [253 if self.powered else 236] * 6  # JOINT_RUNNING_MODE / JOINT_POWER_OFF_MODE
+            return [JOINT_MODES.get(self.mode, 239)] * 6
         if name in ("safety_mode", "safety_status"):
             return self.safety_mode
         if name == "runtime_state":

@@ -1,4 +1,5 @@
-"""The controller's TCP ports on one address: RTDE (30004), dashboard server (29999), script port (30003).
+"""The controller's TCP ports on one address: RTDE (30004), dashboard server (29999), script port (30003),
+primary and secondary client interfaces (30001, 30002: version message, 10 Hz robot state with KinematicsInfo).
 
 Port 30004 is fixed in ur_rtde, so each emulator gets its own loopback address (127.0.0.2, 127.0.0.3, ...).
 Every connection runs in its own thread; RTDE output packages are pushed from the controller's tick."""
@@ -15,12 +16,20 @@ import threading
 import time
 
 import numpy as np
+from station.mocks.ur import primary_wire as P
 from station.mocks.ur import rtde_wire as W
+from station.mocks.ur import state as S
 from station.mocks.ur.controller import PERIOD, URController, notice
 
 log = logging.getLogger("station.mocks.ur")
 
-RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
+RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT, PRIMARY_PORT, SECONDARY_PORT = 30004, 29999, 30003, 30001, 30002
+PRIMARY_PERIOD = 0.1  # s: the primary/secondary interfaces send the robot state at 10 Hz
+# dashboard "safetystatus"/"safetymode" words for the RTDE safety_mode values (RTDE guide)
+SAFETY_NAMES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 5: "SAFEGUARD_STOP",
+                6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP", 8: "VIOLATION", 9: "FAULT",
+                10: "VALIDATE_JOINT_ID", 11: "UNDEFINED_SAFETY_MODE", 12: "AUTOMATIC_MODE_SAFEGUARD_STOP",
+                13: "SYSTEM_THREE_POSITION_ENABLING_STOP"}
 CONTROLLER_VERSION = (5, 11, 1, 108318)  # PolyScope 5.11 -> ur_rtde picks 500 Hz
 TRACE = os.environ.get("STATION_UR_TRACE")  # debugging: append every RTDE input package to this file
 
@@ -209,11 +218,10 @@ class DashboardConn(_Conn):
         if cmd == "is in remote control":
             return str(ctl.remote_control).lower(), None
         if cmd == "robotmode":
-            return ("Robotmode: RUNNING" if ctl.powered else "Robotmode: POWER_OFF"), None
+            return f"Robotmode: {ctl.mode_name}", None
         if cmd == "safetymode" or cmd == "safetystatus":
-            names = {1: "NORMAL", 3: "PROTECTIVE_STOP", 7: "ROBOT_EMERGENCY_STOP"}
             label = "Safetymode" if cmd == "safetymode" else "Safetystatus"
-            return f"{label}: {names.get(ctl.safety_mode, 'FAULT')}", None
+            return f"{label}: {SAFETY_NAMES.get(ctl.safety_mode, 'FAULT')}", None
         if cmd == "unlock protective stop":
             return ctl.unlock_protective_stop(), None
         if cmd == "close safety popup":
@@ -233,13 +241,13 @@ class DashboardConn(_Conn):
         if cmd == "running":
             return f"Program running: {str(ctl.runtime_state == 2).lower()}", None
         if cmd == "power on":
-            ctl.powered = True
+            ctl.power_on()
             return "Powering on", None
         if cmd == "power off":
-            ctl.stop_program()
-            ctl.powered = False
+            ctl.power_off()
             return "Powering off", None
         if cmd == "brake release":
+            ctl.brake_release()
             return "Brake releasing", None
         if cmd.startswith("addtolog"):
             ctl.messages.append(line[9:])
@@ -252,12 +260,14 @@ class DashboardConn(_Conn):
 
     def emulator(self, args: list[str]):
         """``emulator protective_stop [AFTER]``, ``emulator stall SECONDS [AFTER]``, ``emulator drop SECONDS
-        [AFTER]``, ``emulator estop on|off``, ``emulator encoder``, ``emulator tip``, ``emulator log``.
+        [AFTER]``, ``emulator estop on|off``, ``emulator power_cycle [BOOT_S]``, ``emulator hold_scripts S``,
+        ``emulator encoder``,
+        ``emulator tip``, ``emulator log``.
         AFTER (s of controller time) delays the fault, so a client can be mid-command when it bites."""
         ctl = self.ctl
         if not args:
             return ("emulator: commands: protective_stop [after], stall S [after], drop S [after], "
-                    "estop on|off, encoder, tip, log"), None
+                    "estop on|off, power_cycle [boot_s], hold_scripts S, encoder, tip, log"), None
         what, rest = args[0], args[1:]
         try:
             nums = [float(x) for x in rest if x not in ("on", "off")]
@@ -290,6 +300,14 @@ class DashboardConn(_Conn):
             seconds = nums[0] if nums else ctl.drop_s
             return "emulator: dropping connections", lambda: later(nums[1] if len(nums) > 1 else 0.0,
                                                                   lambda: ctl.drop(seconds))
+        if what == "hold_scripts":
+            with ctl.lock:
+                ctl.hold_scripts_until = ctl.controller_time() + (nums[0] if nums else 10.0)
+            return "emulator: holding scripts", None
+        if what == "power_cycle":
+            boot = nums[0] if nums else self.server.boot_s
+            return "emulator: power cycle", lambda: threading.Thread(
+                target=self.server.power_cycle, args=(boot,), name="ur-power-cycle", daemon=True).start()
         if what == "estop":
             ctl.emergency_stop(bool(rest) and rest[0] == "on")
             return f"emulator: emergency stop {'on' if ctl.estop else 'off'}", None
@@ -321,6 +339,9 @@ class ScriptConn(_Conn):
     (The real port also streams a 500 Hz realtime state; ur_rtde does not read it, so neither is it sent.)"""
 
     def run(self) -> None:
+        self.read_programs()
+
+    def read_programs(self) -> None:
         buf = ""
         while not self.closed:
             chunk = self.sock.recv(65536)
@@ -342,16 +363,68 @@ class ScriptConn(_Conn):
                 self.ctl.load_program(m.group(1), text)
 
 
+def _version_numbers(polyscope: str) -> tuple[int, int, int, int]:
+    m = re.search(r"(\d+)\.(\d+)\.(\d+)\.(\d+)", polyscope)
+    return tuple(int(x) for x in m.groups()) if m else (5, 11, 1, 0)
+
+
+class PrimaryConn(ScriptConn):
+    """Ports 30001 (primary) and 30002 (secondary): on connect the version message, then the robot state at
+    10 Hz: robot mode data in every message, KinematicsInfo in the first one of the connection (the reader
+    must take it then). URScript sent here runs like on 30003."""
+
+    def __init__(self, server: URServer, sock: socket.socket) -> None:
+        super().__init__(server, sock)
+        self.send_lock = threading.Lock()
+        self.sent_kinematics = False
+        major, minor, bugfix, build = _version_numbers(self.ctl.polyscope)
+        date = self.ctl.polyscope.split("(", 1)[1].rstrip(")") if "(" in self.ctl.polyscope else ""
+        with contextlib.suppress(OSError):  # a client gone at once: run() ends on the closed socket
+            self._send(P.version_message(self._stamp(), major, minor, bugfix, build, date))
+
+    def _stamp(self) -> int:
+        return int(self.ctl.controller_time() * 1e6)
+
+    def _send(self, data: bytes) -> None:
+        with self.send_lock:
+            self.sock.sendall(data)
+
+    def run(self) -> None:
+        self.read_programs()
+
+    def on_tick(self, ctl: URController) -> None:
+        if ctl.tick_count % round(PRIMARY_PERIOD / PERIOD):
+            return
+        with ctl.lock:
+            subs = [P.robot_mode_data(self._stamp(), powered=ctl.powered, estop=ctl.estop,
+                                      pstop=ctl.safety_mode == S.SAFETY_PROTECTIVE_STOP,
+                                      running=ctl.runtime_state == S.PLAYING,
+                                      paused=ctl.runtime_state == S.PAUSED, robot_mode=ctl.mode)]
+            if not self.sent_kinematics:
+                f = ctl.factory
+                subs.append(P.kinematics_info(f.checksum, f.table.theta, f.table.a, f.table.d, f.table.alpha,
+                                              f.status))
+        try:
+            self._send(P.robot_state(*subs))
+            self.sent_kinematics = True
+        except OSError:
+            self.close()
+
+
 class URServer:
     """Listens on ``host`` for the three ports and owns the controller thread."""
 
     def __init__(self, controller: URController, host: str = "127.0.0.1", *, rtde_port: int = RTDE_PORT,
                  dashboard_port: int = DASHBOARD_PORT, script_port: int = SCRIPT_PORT,
-                 dump_script: str | None = None) -> None:
+                 primary_port: int = PRIMARY_PORT, secondary_port: int = SECONDARY_PORT,
+                 dump_script: str | None = None, url: str = "", boot_s: float = 1.0) -> None:
         self.controller = controller
         self.host = host
-        self.ports = {rtde_port: RTDEConn, dashboard_port: DashboardConn, script_port: ScriptConn}
+        self.ports = {rtde_port: RTDEConn, dashboard_port: DashboardConn, script_port: ScriptConn,
+                      primary_port: PrimaryConn, secondary_port: PrimaryConn}
         self.dump_script = dump_script
+        self._url = url
+        self.boot_s = boot_s  # s a power cycle keeps the ports closed (the controller rebooting)
         self.conns: set[_Conn] = set()
         self.claims: dict[str, _Conn] = {}
         self.lock = threading.Lock()
@@ -361,10 +434,44 @@ class URServer:
         controller.publishers = []
         controller.on_drop = self.drop
 
-    def start(self) -> None:
+    @property
+    def url(self) -> str:
+        """The robot URL the station opens for this controller."""
+        return self._url or f"ur://{self.host}"
+
+    def start(self) -> URServer:
         self.running = True
-        self._listen()
+        try:
+            self._listen()
+        except OSError:
+            self._close_listeners()
+            self.running = False
+            raise
         self.controller.start()
+        return self
+
+    def stop(self) -> None:
+        """Close every port and stop the controller; calling it again does nothing."""
+        if not self.running and not self.listeners:
+            return
+        self.close()
+
+    def __enter__(self) -> URServer:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def power_cycle(self, boot_s: float | None = None) -> None:
+        """Switch the controller off and on: every connection drops, the ports refuse connections while it
+        boots (``boot_s``), and it comes back as after a power-up (``URController.power_cycle``: POWER_OFF,
+        calibration and installation kept)."""
+        self._close_listeners()
+        self.close_connections()
+        self.controller.power_cycle()
+        time.sleep(self.boot_s if boot_s is None else boot_s)
+        if self.running:
+            self._listen()
 
     def _listen(self) -> None:
         for port, kind in self.ports.items():
@@ -388,7 +495,7 @@ class URServer:
             conn = kind(self, sock)
             with self.lock:
                 self.conns.add(conn)
-                if isinstance(conn, RTDEConn):
+                if isinstance(conn, RTDEConn | PrimaryConn):
                     self.controller.publishers.append(conn)
             threading.Thread(target=conn.serve, name=f"ur-{kind.__name__}", daemon=True).start()
 
@@ -437,3 +544,4 @@ class URServer:
         self._close_listeners()
         self.close_connections()
         self.controller.stop()
+        self.listeners.clear()

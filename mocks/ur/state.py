@@ -5,8 +5,8 @@ from __future__ import annotations
 # runtime_state (RTDE guide)
 STOPPING, STOPPED, PLAYING, PAUSING, PAUSED, RESUMING = range(6)
 
-# robot_mode
-ROBOT_MODE_POWER_OFF, ROBOT_MODE_IDLE, ROBOT_MODE_RUNNING = 3, 5, 7
+# robot_mode (RTDE guide; the dashboard's "robotmode" names them)
+ROBOT_MODE_POWER_OFF, ROBOT_MODE_POWER_ON, ROBOT_MODE_IDLE, ROBOT_MODE_RUNNING = 3, 4, 5, 7
 
 # safety_mode
 SAFETY_NORMAL, SAFETY_PROTECTIVE_STOP, SAFETY_ROBOT_EMERGENCY_STOP = 1, 3, 7

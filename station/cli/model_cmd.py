@@ -107,13 +107,16 @@ def import_urdf(urdf: Path = typer.Argument(..., help="URDF file"),
 
 def _calibrated(m, path: Path):
     from station.robot.errors import ConfigError
+    from station.safeio import DuplicateKeyError, loads_strict
     from station.solver import CalibrationResult
 
     try:
-        cal = CalibrationResult.from_dict(json.loads(path.read_text()))
+        cal = CalibrationResult.from_dict(loads_strict(path.read_text(), str(path)))
         return cal.calibrated(m)
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such file") from None
+    except DuplicateKeyError as e:
+        raise ConfigError(str(e)) from None
     except (json.JSONDecodeError, ValueError, KeyError, AttributeError) as e:
         raise ConfigError(f"{path}: {e}") from None
 

@@ -273,6 +273,9 @@ def resume_cmd(
     tracker: str = typer.Option(None, "--tracker", help="The session's measuring instrument at a new address "
                                 "(e.g. tcp://127.0.0.1:5301 after a restart); it must be the same instrument."),
     payload: str = PAYLOAD,
+    procedure: Path = typer.Option(None, "--procedure", help="The session's procedure file, when it is neither "
+                                   "shipped nor in a $STATION_PROCEDURES folder (its sha256 must be the "
+                                   "journaled one)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Continue an interrupted session: robot re-verified, recorded samples kept, nothing repeated."""
@@ -283,7 +286,8 @@ def resume_cmd(
     cb, bar = _progress_bar(quiet)
     with bar:
         out = resume(session, db=db, progress=cb, log=lambda s: typer.echo(s, err=True),
-                     instruments={"tracker": tracker} if tracker is not None else None, payload=given)
+                     instruments={"tracker": tracker} if tracker is not None else None, payload=given,
+                     procedure=procedure)
     _finish(out)
 
 
@@ -388,6 +392,9 @@ def run_demo(bus: str, *, time_mode: str = "instant", seed: int = 5, quiet: bool
     t0 = time.monotonic()
     with launch(bus, world_path, serial=serial, process=bus != "canopen") as emu:  # realtime: own GIL
         typer.echo(f"demo: emulator up, robot URL {emu.url}")
+        if "power_on=yes" in emu.url:
+            typer.echo("demo: the controller boots with the arm powered off, as a real one; power_on=yes in the URL "
+                       "lets the station power it on and release the brakes")
         cb, bar = _progress_bar(quiet)
         with bar:
             out = start("zero_offsets", emu.url, serial, cell=cell_path, options=dict(BUS_OPTIONS[bus]),
