@@ -16,6 +16,7 @@ the robot's ``FaultLatch``. Every timeout counts only time the station could obs
 from __future__ import annotations
 
 import collections
+import concurrent.futures
 import contextlib
 import logging
 import socket
@@ -173,6 +174,7 @@ class CanopenBus:
         self._hb_silence: dict[int, Silence] = {}
         self.sched = HostWatch(own_gap=0.1)  # the watchdog's view of this process's scheduling gaps
         self._tx_lock = threading.RLock()
+        self._pool: concurrent.futures.ThreadPoolExecutor | None = None  # per_node's SDO workers
         self._stop = threading.Event()
         self.closing = False  # set once the robot starts closing: a boot-up message then is no fault
         self._threads: list[threading.Thread] = []
@@ -218,16 +220,21 @@ class CanopenBus:
             self.found[node_id] = {key: v for key in RUNTIME_APPLICATION
                                    if (v := self.read_opt(node_id, key[0], 0, key[1])) is not None}
         self._start_master()
-        for node_id, node in self.drives.items():
+
+        def configure(node_id: int) -> None:  # every drive at once: each has its own SDO channel
+            node = self.drives[node_id]
             self._configure_pdos(node, node_id == self.contact_node)
+            self.sdo_write(node_id, 0x1017, self.heartbeat_ms)
+            self._configure_consumer(node_id)
+
+        self.per_node(self.nodes, configure)
+        for node_id, node in self.drives.items():
             node.setup_402_state_machine(read_pdos=False)
             node.tpdo[1].add_callback(lambda m, n=node_id: self._on_tpdo1(n, m))
             if node_id == self.contact_node:
                 node.tpdo[2].add_callback(self._on_tpdo2)
             node.emcy.add_callback(lambda e, n=node_id: on_emcy(n, e))
             node.nmt.add_heartbeat_callback(lambda s, n=node_id: self._on_heartbeat(n, s))
-            self.sdo_write(node_id, 0x1017, self.heartbeat_ms)
-            self._configure_consumer(node_id)
             self._last_hb[node_id] = time.monotonic()
             self._hb_silence[node_id] = Silence(own_gap=0.1)
         for node in self.drives.values():
@@ -304,6 +311,25 @@ class CanopenBus:
                 if node_id in self.consumer_subs and m is not None and m.reaction is not None:
                     with contextlib.suppress(StationError):
                         self.write_obj(node_id, 0x6007, 0, "i16", MasterLoss.REACTIONS[m.reaction])
+
+    def per_node(self, nodes: list[int], fn: Callable[[int], object]) -> dict[int, object]:
+        """``fn(node)`` for every node at once (each drive has its own SDO channel, so a configuration step costs
+        one drive's answer times, not six); the first error, in node order, is raised after all finished."""
+        if len(nodes) <= 1:
+            return {n: fn(n) for n in nodes}
+        if self._pool is None:
+            self._pool = concurrent.futures.ThreadPoolExecutor(max_workers=len(self.nodes),
+                                                               thread_name_prefix="canopen-sdo")
+        futures = {n: self._pool.submit(fn, n) for n in nodes}
+        out, first = {}, None
+        for n, f in futures.items():
+            try:
+                out[n] = f.result()
+            except BaseException as e:  # noqa: BLE001 - re-raised below, after every drive's step ended
+                first = first or e
+        if first is not None:
+            raise first
+        return out
 
     def release_consumers(self) -> None:
         """Clean close: the drives stop watching the station (else a station that closed normally leaves every
@@ -732,5 +758,7 @@ class CanopenBus:
         if self.master_node is not None:
             with contextlib.suppress(Exception):
                 self.master_node.nmt.stop_heartbeat()
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
         with contextlib.suppress(Exception):
             self.network.disconnect()

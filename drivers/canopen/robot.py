@@ -146,7 +146,8 @@ class CanopenRobot(RobotBase):
         self._identity: Identity | None = None
         self._interrupt = threading.Event()  # set by stop() from any thread: ends a waited move
         self.home_signs: dict[int, int] = {}  # node -> sign of its home offset convention, learned by a homing
-        self._limits: dict[int, dict[int, int]] = {}  # node -> torque limit objects as found before seating
+        self._found_limits: dict[int, dict[int, int]] = {}  # node -> its torque limit objects as found
+        self._limits: dict[int, dict[int, int]] = {}  # what set_compliant(False) must put back (seating on)
         self.faults = FaultLatch()
         self.faults.on_first.append(self._quick_stop_all)
         self.bus = CanopenBus(self.nodes, self.faults, interface=interface, channel=channel, host=host, port=port,
@@ -482,24 +483,28 @@ class CanopenRobot(RobotBase):
         self._require_enabled(self.bus.recent())
         if self._compliant:
             return
+        missing = [n for n in self.nodes if n not in self._found_limits]
+        # the drive's own limits, read once per connection (the station's are put back)
+        self._found_limits.update(self.bus.per_node(missing, lambda n: {
+            i: v for i in (0x6072, 0x60E0, 0x60E1) if (v := self.bus.read_opt(n, i, 0, "u16")) is not None}))
         for node_id in self.nodes:
-            if node_id in self._limits:
-                continue
-            self._limits[node_id] = {i: v for i in (0x6072, 0x60E0, 0x60E1)
-                                     if (v := self.bus.read_opt(node_id, i, 0, "u16")) is not None}
+            if not {0x6072, 0x60E0, 0x60E1} & set(self._found_limits[node_id]):
+                raise ConfigError(f"canopen node {node_id}: no torque limit (0x6072, 0x60E0/0x60E1) to seat with: "
+                                  "the arm cannot yield to a socket")
+        self._limits = {n: self._found_limits[n] for n in self.nodes}
         self._compliant = True  # from the first reduced limit on, off must restore them
-        for node_id in self.nodes:
+
+        def seat(node_id: int) -> None:
             hold = self.bus.read_obj(node_id, 0x6077, 0, "i16")
             margin = max(self.seat_margin, int(math.ceil(SEAT_RELATIVE * abs(hold))))
             have = self._limits[node_id]
             if 0x60E0 in have and 0x60E1 in have:
                 self.bus.write_obj(node_id, 0x60E0, 0, "u16", min(0xFFFF, max(hold, 0) + margin))
                 self.bus.write_obj(node_id, 0x60E1, 0, "u16", min(0xFFFF, max(-hold, 0) + margin))
-            elif 0x6072 in have:
-                self.bus.write_obj(node_id, 0x6072, 0, "u16", min(0xFFFF, abs(hold) + margin))
             else:
-                raise ConfigError(f"canopen node {node_id}: no torque limit (0x6072, 0x60E0/0x60E1) to seat with: "
-                                  "the arm cannot yield to a socket")
+                self.bus.write_obj(node_id, 0x6072, 0, "u16", min(0xFFFF, abs(hold) + margin))
+
+        self.bus.per_node(self.nodes, seat)
         self.bus.round()  # a drive applies new limits in its control cycle: the next SYNC round has them
         self.bus.mark_changed()
 
@@ -516,12 +521,15 @@ class CanopenRobot(RobotBase):
 
     def _restore_limits(self) -> None:
         """The torque limits each drive had before seating (only those the seating changed)."""
-        for node_id, found in self._limits.items():
+        def restore(node_id: int) -> None:
+            found = self._limits[node_id]
             both = 0x60E0 in found and 0x60E1 in found
             for index, value in found.items():
                 if (index == 0x6072) != (not both):
                     continue
                 self.bus.write_obj(node_id, index, 0, "u16", value)
+
+        self.bus.per_node(list(self._limits), restore)
         self._limits = {}
         self.bus.round()
 

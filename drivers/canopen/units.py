@@ -45,34 +45,35 @@ class DriveUnits:
 
 
 def read_units(bus, model, nodes: list[int]) -> dict[int, DriveUnits]:
-    """Check every drive's position scaling against the model and read its velocity unit (SDO, at connect)."""
-    out = {}
-    for i, node_id in enumerate(nodes):
-        joint = model.joints[i]
-        enc = joint.encoder
-        model_per_rev = abs(enc.counts_per_unit * enc.gear) * 2 * math.pi  # counts per joint revolution
-        pos_unit = bus.read_opt(node_id, 0x60A8, 0, "u32")
-        if pos_unit not in (None, 0) and pos_unit & UNIT_MASK != UNIT_INC:
-            raise ConfigError(f"canopen node {node_id} (joint {i + 1} {joint.name}): position unit 0x60A8 = "
-                              f"0x{pos_unit:08X} is not encoder increments; nothing was moved: set 0x60A8 to "
-                              "increments (0x00B50000) with the drive's tool, the station's model counts in them")
-        if joint.kind == "revolute":
-            _check_position_scaling(bus, model, i, node_id, model_per_rev)
-        inc, mrev = (bus.read_opt(node_id, 0x608F, s, "u32") for s in (1, 2))
-        motor_rev = (inc / mrev) if inc and mrev else abs(enc.counts_per_unit) * 2 * math.pi
-        code = bus.read_opt(node_id, 0x60A9, 0, "u32")
-        if code in (None, 0) or code & UNIT_MASK == UNIT_INC_PER_S:
-            e = exponent(code) if code else 0
-            out[node_id] = DriveUnits(node_id, 10.0 ** e, "increments/s" if not e else f"1e{e} increments/s")
-        elif code & UNIT_MASK == UNIT_RPM:
-            e = exponent(code)
-            name = "rpm" if not e else f"{10.0 ** e:g} rpm"
-            out[node_id] = DriveUnits(node_id, motor_rev / 60.0 * 10.0 ** e, name)
-        else:
-            raise ConfigError(f"canopen node {node_id} (joint {i + 1} {joint.name}): velocity unit 0x60A9 = "
-                              f"0x{code:08X} is neither increments/s nor rpm; nothing was moved: set 0x60A9 to "
-                              "rpm (0x00B44700) or increments/s (0x00B50300) with the drive's tool")
-    return out
+    """Check every drive's position scaling against the model and read its velocity unit (SDO, at connect; the
+    drives at once). The first refusal in node order is raised."""
+    return bus.per_node(nodes, lambda node_id: _units(bus, model, nodes.index(node_id), node_id))
+
+
+def _units(bus, model, i: int, node_id: int) -> DriveUnits:
+    joint = model.joints[i]
+    enc = joint.encoder
+    model_per_rev = abs(enc.counts_per_unit * enc.gear) * 2 * math.pi  # counts per joint revolution
+    pos_unit = bus.read_opt(node_id, 0x60A8, 0, "u32")
+    if pos_unit not in (None, 0) and pos_unit & UNIT_MASK != UNIT_INC:
+        raise ConfigError(f"canopen node {node_id} (joint {i + 1} {joint.name}): position unit 0x60A8 = "
+                          f"0x{pos_unit:08X} is not encoder increments; nothing was moved: set 0x60A8 to "
+                          "increments (0x00B50000) with the drive's tool, the station's model counts in them")
+    if joint.kind == "revolute":
+        _check_position_scaling(bus, model, i, node_id, model_per_rev)
+    inc, mrev = (bus.read_opt(node_id, 0x608F, s, "u32") for s in (1, 2))
+    motor_rev = (inc / mrev) if inc and mrev else abs(enc.counts_per_unit) * 2 * math.pi
+    code = bus.read_opt(node_id, 0x60A9, 0, "u32")
+    if code in (None, 0) or code & UNIT_MASK == UNIT_INC_PER_S:
+        e = exponent(code) if code else 0
+        return DriveUnits(node_id, 10.0 ** e, "increments/s" if not e else f"1e{e} increments/s")
+    if code & UNIT_MASK == UNIT_RPM:
+        e = exponent(code)
+        name = "rpm" if not e else f"{10.0 ** e:g} rpm"
+        return DriveUnits(node_id, motor_rev / 60.0 * 10.0 ** e, name)
+    raise ConfigError(f"canopen node {node_id} (joint {i + 1} {joint.name}): velocity unit 0x60A9 = "
+                      f"0x{code:08X} is neither increments/s nor rpm; nothing was moved: set 0x60A9 to "
+                      "rpm (0x00B44700) or increments/s (0x00B50300) with the drive's tool")
 
 
 def _check_position_scaling(bus, model, i: int, node_id: int, model_per_rev: float) -> None:
