@@ -218,8 +218,11 @@ class CanopenRobot(RobotBase):
         bus = self.bus
         t0 = time.monotonic()
         deadline = t0 + max(1.0, 2 * bus.hb_timeout)
-        while time.monotonic() < deadline and not bus.closing and self.faults.error is not None:
+        fault = self.faults.error  # this fault's quick stop only: an enable() that cleared it ends the re-sending
+        while time.monotonic() < deadline and not bus.closing and self.faults.error is fault is not None:
             time.sleep(max(4 * bus.sync_period, 0.02))
+            if self.faults.error is not fault:
+                return  # cleared while sleeping (the drives may be enabled again on purpose)
             latest = bus.latest()
             running = [n for n in bus.drives if n in latest and latest[n][4] > t0 and state_of(latest[n][1]) == ENABLED]
             if not running and all(n in latest and latest[n][4] > t0 for n in bus.drives):

@@ -416,7 +416,7 @@ class Drive402:
 
     def torque_actual(self) -> int:
         """0x6077 (per mille of rated, the drive's sign): what the world says the motor applies now."""
-        if self.state not in (OE, QSA):
+        if self.state not in (OE, QSA) or self.emu.parallel:
             return 0
         tau = float(self.emu.world.joint_torque()[self.joint]) * self.encoder.direction
         return max(-32768, min(32767, int(round(tau / self.rated_torque * 1000))))
@@ -689,7 +689,7 @@ class Drive402:
     def _torque_target(self) -> None:
         """Profile torque mode: the motor applies 0x6071 (per mille of rated) and nothing holds position; the
         world integrates what that torque and gravity do (CiA 402 profile torque; docs/world.md)."""
-        if self.state != OE or self.mode != MODE_PT:
+        if self.state != OE or self.mode != MODE_PT or self.emu.parallel:
             return
         tau = int(self.get(0x6071)) / 1000.0 * self.rated_torque * self.encoder.direction
         self.emu.torque_joint(self.joint, tau)

@@ -174,6 +174,8 @@ class CanopenEmulator:
         self.offbus_until = 0.0  # monotonic: the station's controller is bus-off (its frames are lost) until then
         # identity overrides for staging a wrong device (world file buses.canopen.device_type: e.g. 0x00020191)
         self.device_type = int(str(cfg["device_type"]), 0) if "device_type" in cfg else None
+        # a parallel robot (Gough-Stewart legs) has no joint dynamics in the world: torques are not modelled there
+        self.parallel = getattr(world.nominal, "kind", "serial") == "parallel"
         unknown = sorted(set(cfg) - CONFIG_KEYS)
         if unknown:
             raise ValueError(f"canopen emulator: buses.canopen: unknown key(s) {', '.join(unknown)} "
@@ -233,6 +235,8 @@ class CanopenEmulator:
                 raise ValueError(f"canopen emulator: buses.canopen.rated_torque_nm: expected a positive number or "
                                  f"{n} of them, got {v!r}")
             return [float(x) for x in vals]
+        if self.parallel:
+            return [1.0] * n  # a parallel robot's screw legs: the world models no load on them (docs/world.md)
         tau = np.abs(self.world.gravity_torque())
         floor = max(float(tau.max()) if tau.size else 0.0, 1e-3)
         return [max(3.0 * float(t), floor) for t in tau]
@@ -366,6 +370,10 @@ class CanopenEmulator:
         N m) becomes the world's limit for that joint (a joint whose load needs more sags); drives at their
         default limits (a servo's peak torque) put none. Then the compliance the limits imply."""
         limits = np.full(len(self.nodes), np.inf)
+        if self.parallel:
+            if compliance:
+                self.update_compliance()
+            return
         if any(d.reduced_limits() for d in self.drives.values()):
             self._limits_q = self.snap().q.copy()
             hold = -self.world.gravity_torque()
@@ -415,6 +423,8 @@ class CanopenEmulator:
             return True
         if not any(d.reduced_limits() for d in drives):
             return False
+        if self.parallel:  # no joint dynamics for its legs: reduced limits on every leg let it yield
+            return all(d.mode == MODE_PT or d.reduced_limits() for d in drives)
         q = self.world.joint_q()
         _, Jq = self.world.truth.fk_and_jacobian_q(q[None, :])
         lever = np.linalg.norm(Jq[0, :3, :], axis=0)  # tip displacement per unit joint motion (m/rad, m/m)
