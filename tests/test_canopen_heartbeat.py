@@ -126,6 +126,16 @@ def test_killing_the_station_mid_move_stops_the_arm_within_the_consumer_time(tmp
         # sdo_timeout_ms: connecting is not what is timed here, and this host may be loaded
         url = (f"canopen+socketcand://127.0.0.1:{hub.port}?channel=can0&nodes=1-6&model=arm6"
                "&master_timeout_ms=400&sdo_timeout_ms=2000")
+        # first a station that closes cleanly: it takes its consumer entries back, so its heartbeat stopping is no
+        # event (no EMCY 0x8130, no drive left quick-stopped)
+        from station.robot import open_robot
+
+        with open_robot(url) as robot:
+            robot.enable()
+            assert all(d.consumers() for d in emu.drives.values())
+        time.sleep(0.8)
+        assert not any(d.consumers() or d.hb_lost for d in emu.drives.values())
+        assert {d.state for d in emu.drives.values()} == {"READY TO SWITCH ON"}
         proc = subprocess.Popen([sys.executable, str(script), url], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 text=True, cwd=ROOT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
         try:

@@ -8,10 +8,13 @@ from __future__ import annotations
 import os
 import socket
 
+import can
 import pytest
+from can.interfaces.virtual import VirtualBus
 from faultrig import error_lines, station
 from station.drivers.canopen import CanopenRobot
 
+from station.kinematics import load_model
 from station.robot import ConfigError, ConnectionLost, StationError, open_robot
 from station.robot.registry import driver_class, schemes
 
@@ -72,3 +75,45 @@ def test_the_station_command_prints_one_line_and_exits_2(tmp_path):
 def test_bad_bitrate_is_refused():
     with pytest.raises(ConfigError, match="bitrate"):
         open_robot("canopen+pcan://PCAN_USBBUS1?nodes=1-6&model=arm6&bitrate=fast")
+
+
+class StateBus(VirtualBus):
+    """python-can's virtual bus with a bus state, as interfaces such as PCAN and IXXAT report one."""
+
+    bus_state = can.BusState.ACTIVE
+
+    @property
+    def state(self) -> can.BusState:
+        return StateBus.bus_state
+
+
+def test_bus_off_from_python_cans_bus_state(monkeypatch):
+    """Bus-off found through python-can's own bus state (ERROR), not only error frames: BusError, robot stopped."""
+    import time
+    import uuid
+
+    from station.drivers.canopen import interfaces
+    from station.mocks.canopen.emulator import CanopenEmulator
+    from station.mocks.world import World
+
+    from station.robot import BusError
+
+    # registered as python-can's plugin interfaces are (its backend table), for this test only
+    monkeypatch.setitem(can.interfaces.BACKENDS, "statebus", (__name__, "StateBus"))
+    monkeypatch.setattr(can.util, "VALID_INTERFACES", can.util.VALID_INTERFACES | {"statebus"})
+    monkeypatch.setitem(interfaces.INTERFACES, "statebus", ("virtual bus with a state", "nothing"))
+    monkeypatch.setattr(StateBus, "bus_state", can.BusState.ACTIVE)
+    chan = f"state-{uuid.uuid4().hex[:8]}"
+    with CanopenEmulator(World.default(model="arm6", seed=3), channel=chan):
+        robot = CanopenRobot(load_model("arm6"), list(range(1, 7)), interface="statebus", channel=chan)
+        try:
+            robot.joint_positions()
+            StateBus.bus_state = can.BusState.ERROR
+            end = time.monotonic() + 1.0
+            with pytest.raises(BusError, match="bus-off.*bus state ERROR"):
+                while time.monotonic() < end:
+                    robot.joint_positions()
+                    time.sleep(0.01)
+        finally:
+            StateBus.bus_state = can.BusState.ACTIVE
+            robot.close()
