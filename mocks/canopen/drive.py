@@ -332,8 +332,8 @@ class Drive402:
             if seen is None or producer in self.hb_lost or now - seen <= limit:
                 continue
             self.hb_lost.add(producer)
-            log.warning("canopen emulator: node %d: heartbeat of node %d not heard for %.3f s of its own time "
-                        "(consumer time %.3f s)", self.id, producer, now - seen, limit)
+            log.info("canopen emulator: node %d: heartbeat of node %d not heard for %.3f s of its own time "
+                     "(consumer time %.3f s)", self.id, producer, now - seen, limit)
             self.heartbeat_event(producer)
 
     def heartbeat_event(self, producer: int) -> None:
