@@ -38,6 +38,11 @@ COMMANDS = {
     "mock": ("station.cli.mock_cmd", "Emulated robots (wire-level) and the simulated world."),
     "records": ("station.cli.records_cmd", "Calibration records per robot serial (list, show, export)."),
     "map": ("station.cli.map_cmd", "Configuration-space correction map (seed 004): plan, build, apply, correct."),
+    "compensate": ("station.cli.compensate_cmd", "Compensated targets: joint (or corrected Cartesian) commands that "
+                                                 "a controller with its nominal model turns into the calibrated "
+                                                 "pose."),
+    "iso9283": ("station.cli.iso_cmd", "ISO 9283 pose characteristics (AP, RP, vAP, AD, RD with confidence "
+                                       "intervals) from commanded and attained poses."),
 }
 
 

@@ -10,7 +10,7 @@ import typer
 mock_app = typer.Typer(no_args_is_help=True, help="Emulated robots (wire-level) and the simulated world.")
 
 PROVIDERS = ("station.mocks.world.cli", "station.mocks.dynamixel.cli", "station.mocks.canopen.cli",
-             "station.mocks.ur.cli", "station.mocks.tracker.cli")
+             "station.mocks.ur.cli", "station.mocks.tracker.cli", "station.mocks.franka.cli")
 
 
 def register(app: typer.Typer) -> None:

@@ -5,6 +5,7 @@ after the session record is stored in the records database."""
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -79,10 +80,10 @@ def preflight(robot: str, poses, holdout, cone, seed, touch, reference, limits, 
 
 
 def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None, span_deg=None,
-             calibration=None, payload=None) -> dict:
+             calibration=None, payload=None, cycles=None, cube=None, plane=None) -> dict:
     from station.robot.errors import ConfigError
 
-    opts = {}
+    opts = iso_options(cycles, cube, plane)
     if payload is not None:  # the procedure's model carries it (compliance terms); journaled with the options
         opts["payload"] = payload_option(payload)
     if calibration is not None:  # correction_map: the map on top of this parametric calibration
@@ -107,6 +108,41 @@ def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None, spa
         opts["reference"] = reference
     if seed is not None:
         opts["seed"] = seed
+    return opts
+
+
+def iso_options(cycles: int | None, cube: str | None, plane: str | None) -> dict:
+    """iso9283's ``--cycles N``, ``--cube X,Y,Z,EDGE`` (m, or one unit suffix for all: ``400,0,500,300mm``) and
+    ``--plane`` as procedure options (SI); one line, exit 2, on a bad value."""
+    from station.robot.errors import ConfigError
+
+    opts: dict = {}
+    if cycles is not None:
+        if not 4 <= cycles <= 1000:
+            raise ConfigError(f"--cycles {cycles}: expected 4..1000 cycles per pose (the standard: 30)")
+        opts["cycles"] = int(cycles)
+    if cube is not None:
+        import re
+
+        from station.units import LENGTH_UNITS
+
+        m = re.match(r"^\s*([^,]+),([^,]+),([^,]+),([^,]+?)\s*([a-z]*)\s*$", cube)
+        try:
+            if not m or (m.group(5) or "m") not in LENGTH_UNITS:
+                raise ValueError
+            v = [float(m.group(k)) * LENGTH_UNITS[m.group(5) or "m"] for k in range(1, 5)]
+            if not all(math.isfinite(x) for x in v) or v[3] <= 0:
+                raise ValueError
+        except ValueError:
+            raise ConfigError(f"--cube {cube!r}: expected the centre and edge X,Y,Z,EDGE in the base frame (metres, "
+                              "or one unit for all: 400,0,500,300mm), edge > 0") from None
+        opts["cube"] = v
+    if plane is not None:
+        from station.performance.cube import PLANES
+
+        if plane not in PLANES:
+            raise ConfigError(f"--plane {plane!r}: expected one of {', '.join(PLANES)}")
+        opts["plane"] = plane
     return opts
 
 
@@ -229,7 +265,7 @@ def _finish(out) -> None:
 
 def run(
     procedure: str = typer.Argument(..., help="Shipped procedure name (zero_offsets, tcp_4point, tcp_circle, "
-                                    "dh_full, verify) or a procedure .py file."),
+                                    "dh_full, verify, correction_map, iso9283) or a procedure .py file."),
     robot: str = typer.Option(..., "--robot", help="Robot URL, e.g. ur://127.0.0.2?model=ur5e"),
     serial: str = typer.Option(..., "--serial", help="Serial number of the robot under calibration."),
     limits: Path = LIMITS,
@@ -244,21 +280,28 @@ def run(
     holdout: int = HOLDOUT,
     cone: float = CONE,
     seed: int = typer.Option(None, "--seed", help="Seed of the pose plan."),
-    tracker: str = typer.Option(None, "--tracker", help="Measuring instrument URL (correction_map), e.g. "
+    tracker: str = typer.Option(None, "--tracker", help="Measuring instrument URL (correction_map, iso9283), e.g. "
                                 "tcp://127.0.0.1:5300 (station mock tracker)."),
     grid: int = typer.Option(None, "--grid", help="correction_map: Q sub-intervals per actuator (Q+1 levels)."),
     span_deg: float = typer.Option(None, "--span-deg", help="correction_map on a serial arm: the work box is +- "
                                    "this many degrees per joint around the start pose (default 20)."),
     calibration: Path = typer.Option(None, "--calibration", help="correction_map: build the map on top of this "
-                                     "parametric calibration (result JSON of station solve for the robot's model)."),
+                                     "parametric calibration (result JSON of station solve for the robot's model); "
+                                     "iso9283: evaluate it beside the nominal model."),
     payload: str = PAYLOAD,
+    cycles: int = typer.Option(None, "--cycles", help="iso9283: cycles per pose (default 30, as the standard)."),
+    cube: str = typer.Option(None, "--cube", help="iso9283: the test cube's centre and edge X,Y,Z,EDGE in the base "
+                             "frame (e.g. 400,0,500,300mm; default: the largest cube around the tool)."),
+    plane: str = typer.Option(None, "--plane", help="iso9283: the cube's diagonal plane of the test poses: x+, x-, "
+                              "y+, y-, z+ or z- (default x+)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Run a procedure end of line: unattended, PASS/FAIL, exit 0 pass / 1 fail / 2 error."""
     from station.api import run as start
 
     preflight(robot, poses, holdout, cone, seed, touch, reference, limits, cell)
-    options = _options(poses, holdout, cone, reference, seed, tracker, grid, span_deg, calibration, payload)
+    options = _options(poses, holdout, cone, reference, seed, tracker, grid, span_deg, calibration, payload, cycles,
+                       cube, plane)
     cb, bar = _progress_bar(quiet)
     with bar:
         out = start(procedure, robot, serial, limits=limits, db=db, apply=apply, cell=cell, operator=operator,

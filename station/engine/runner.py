@@ -208,8 +208,14 @@ def _cell_from_header(d: dict | None, where: str = "journal") -> Cell | None:
     if isinstance(points, list):
         points = [{k: v for k, v in p.items() if k != "image"} if isinstance(p, dict) else p for p in points]
     doc = {"format": "station-cell/1", "units": {"length": "m", "angle": "rad"}, "points": points,
-           **{k: d[k] for k in ("model", "tool", "mounting", "keep_out") if d.get(k) is not None}}
-    unknown = set(d) - {"path", "model", "tool", "points", "mounting", "keep_out"}
+           **{k: d[k] for k in ("model", "tool", "mounting", "keep_out", "planes") if d.get(k) is not None}}
+    # the known distances as the solve was told them ([a, b, metres, std metres or None]; a journal of an older
+    # station has none): a resumed session solves the same problem
+    dist = d.get("distances")
+    if isinstance(dist, list) and dist:
+        doc["distances"] = [{"between": [x[0], x[1]], "distance": x[2], **({} if x[3] is None else {"std": x[3]})}
+                            if isinstance(x, list) and len(x) == 4 else x for x in dist]
+    unknown = set(d) - {"path", "model", "tool", "points", "mounting", "keep_out", "distances", "planes"}
     try:
         if unknown:
             raise CellError(f"{where}: field cell.{sorted(unknown)[0]}: unknown field of a journaled cell")
@@ -316,6 +322,8 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
         limits={"path": lim.path, "version": lim.version, "sha256": lim.sha256},
         cell=None if the_cell is None else {"path": the_cell.path, "model": the_cell.model, "tool": the_cell.tool,
                                             "points": [p.to_dict() for p in the_cell.points.values()],
+                                            "distances": [list(d) for d in the_cell.distances],
+                                            "planes": list(the_cell.planes),
                                             **keep_out_to_doc(the_cell.keep_out)},
         options=opts, db=_db_for_journal(db), versions=_versions())
     journal = Journal.create(folder / "journal.jsonl", header)
@@ -586,13 +594,18 @@ def _execute(s: Session, body: Callable[[Session], None], control: RunControl | 
 
 
 def finish(s: Session, status: str, err: BaseException | None) -> Outcome:
-    """Teardown (stop, compliance off) whatever happened, journal the fault and the end, close, write
-    ``samples.csv``. Used by the runner and by scripted sessions; the caller stores and reports the outcome.
+    """Teardown (stop, compliance off) whatever happened, journal the fault and the end, close the session's
+    measuring instruments and the robot, write ``samples.csv``. Used by the runner and by scripted sessions;
+    the caller stores and reports the outcome.
     An incomplete end is never PASS: a teardown that could not bring the robot to its safe state after a
     completed checklist, or a journal that lost an event, turns the outcome into an error (exit 2) whose one-line
     reason says so (docs/reliability.md)."""
     try:
         problems = s.safe_state()  # first: the robot stops, whatever the journal can still do
+        released = s.close_instruments()  # the session's measuring instruments: plugs the teardown releases
+        if released:  # an instrument is no safety matter: said, not turned into a fault
+            with contextlib.suppress(JournalWriteError):
+                s.event(ev.Warn(step="teardown", message="; ".join(released)))
         if err is None and problems:
             # a fault after the last sample (during solve/export, or the teardown itself): never PASS
             status, err = "error", DeviceFault("teardown could not leave the robot safe: " + "; ".join(problems))
@@ -611,6 +624,7 @@ def finish(s: Session, status: str, err: BaseException | None) -> Outcome:
             status, err = "error", JournalWriteError(f"journal {s.journal.path}: the end of the session could "
                                                      "not be written; the session cannot PASS")
     finally:
+        s.close_instruments()  # again: a teardown interrupted above must not leave an instrument open
         with contextlib.suppress(Exception):  # closing a dead connection must not hide the original outcome
             s.robot.close()
         s.journal.close()
