@@ -164,7 +164,10 @@ def summary(out, echo=typer.echo) -> None:
                 sd = "-" if p.get("std") is None else f"{p['std'] * k:.4f}"  # no ± is never printed as ± 0
                 echo(f"  {name:14s} {(p['value'] - p['nominal']) * k:+10.4f} {u} ± {sd}")
             else:
-                echo(f"  {name:14s} {'not identifiable':>14s}  ({p.get('reason') or ''})"[:118])
+                import textwrap  # the whole reason, wrapped at word boundaries, never cut mid-word
+
+                line = f"  {name:14s} {'not identifiable':>14s}  ({p.get('reason') or ''})"
+                echo("\n".join(textwrap.wrap(line, 118, subsequent_indent=" " * 34, break_long_words=False)))
         r = res["residuals"]
         echo(f"residuals: RMS {r['rms_before_m'] * 1e3:.3f} mm before -> {r['rms_after_m'] * 1e3:.3f} mm after"
              + (f"; held-out RMS {res['holdout']['rms_m'] * 1e3:.3f} mm" if res.get("holdout") else ""))
@@ -184,11 +187,14 @@ def summary(out, echo=typer.echo) -> None:
     if wb:
         echo(f"write-back: applied={wb.get('applied')} verified={wb.get('verified')} {wb.get('note') or ''}")
     echo(f"session:  {out.session}  ({out.folder / 'journal.jsonl'})")
+    if res and (out.folder / "result.json").is_file():
+        echo(f"result:   {out.folder / 'result.json'}  (station model export --calibration {out.session} "
+             "--format urdf writes the calibrated robot)")
     if out.report:
         echo(f"report:   {out.report}")
 
 
-def _finish(out) -> None:
+def _finish(out, next_step=None) -> None:
     """The last lines of a run: the summary, then PASS/FAIL (exit 0/1) only for a completed, stored session;
     otherwise one ``station: error:`` line, what to do next (only a command that will work), and the exit code
     (2 error or NOT STORED, 130 interrupted)."""
@@ -200,6 +206,9 @@ def _finish(out) -> None:
         _exit(2)
     if out.status == "completed" and out.passed is not None and out.stored:
         summary(out)
+        if out.passed is False and next_step is not None:
+            for line in next_step(out):
+                typer.echo(line)
         typer.echo(out.verdict)
         _exit(out.exit_code)
     summary(out, echo=lambda s: typer.echo(s, err=True))
@@ -252,19 +261,28 @@ def run(
     calibration: Path = typer.Option(None, "--calibration", help="correction_map: build the map on top of this "
                                      "parametric calibration (result JSON of station solve for the robot's model)."),
     payload: str = PAYLOAD,
+    identify: str = typer.Option(None, "--identify", help="Parameter groups to solve for instead of the "
+                                 "procedure's own (zero_offsets: offsets, dh_full: offsets,dh,tcp), e.g. "
+                                 "offsets,tcp; as station solve --identify."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Run a procedure end of line: unattended, PASS/FAIL, exit 0 pass / 1 fail / 2 error."""
     from station.api import run as start
+    from station.cli.nextstep import suggest
 
     preflight(robot, poses, holdout, cone, seed, touch, reference, limits, cell)
     options = _options(poses, holdout, cone, reference, seed, tracker, grid, span_deg, calibration, payload)
+    if identify is not None:
+        from station.cli.solve_cmd import check_identify
+
+        options["identify"] = check_identify(identify)
     cb, bar = _progress_bar(quiet)
     with bar:
         out = start(procedure, robot, serial, limits=limits, db=db, apply=apply, cell=cell, operator=operator,
                     options=options, touch=touch, progress=cb,
                     log=lambda s: typer.echo(s, err=True))
-    _finish(out)
+    cell_text = None if cell is None else str(cell)
+    _finish(out, lambda o: suggest(o, robot=robot, serial=serial, cell=cell_text, identify=identify))
 
 
 def resume_cmd(
