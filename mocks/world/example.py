@@ -17,12 +17,24 @@ def example_text(model: str = "ur5e", seed: int = 0) -> str:
 
     m = load_model(model)
     ref = m.name if model in builtin_names() else str(model)  # a model file: keep its path
-    d = DEFAULTS.get(m.name, {"start": list(getattr(m, "home_q", [0.0] * m.n_joints)), "points": []})  # parallel: home
+    d = DEFAULTS.get(m.name) if model in builtin_names() else None
+    note = ""
+    if d is None and getattr(m, "kind", "serial") == "parallel":  # the home configuration; measured by a tracker
+        d = {"start": list(m.home_q), "points": []}
+    elif d is None:  # an arm of one's own: a cell computed from its workspace (mocks/world/reach.py)
+        from station.mocks.world.reach import place_points
+
+        placed = place_points(m, seed=seed)
+        d = {"start": [round(x, 3) if not j.revolute else math.radians(round(math.degrees(x), 1))
+                       for x, j in zip(placed.start, m.joints, strict=True)], "points": placed.points}
+        note = (f"  # computed for {m.name} (reach {placed.reach * 1e3:.0f} mm): reached from a 35 deg cone of "
+                "tool directions, links clear of the floor" + (f"; {placed.note}" if placed.note else ""))
     start = ", ".join(f"{math.degrees(x):g}" if j.revolute else _mm(x) for x, j in zip(d["start"], m.joints,
                                                                                        strict=True))
     pts = "\n".join(
         f"    - {{label: {p['label']}, kind: {p['kind']}, position: [{', '.join(_mm(x) for x in p['position'])}], "
         f"approach: [{', '.join(f'{a:g}' for a in p['approach'])}]}}" for p in d["points"]) or "    []"
+    note = f"{note}\n" if note else ""
     sj = m.joints[1].name
     o, dh, tcp = DEFAULT_SIGMAS["offsets"], DEFAULT_SIGMAS["dh"], DEFAULT_SIGMAS["tcp"]
     link = next((n for n in m.param_names if n.endswith(".a") and abs(m.param(n)) > 0),
@@ -74,7 +86,7 @@ cell:                          # reference points in the robot base frame (true 
   contact_radius: 0.05         # mm: needle contact input closes within this distance of the needle tip
   capture_radius: 8            # mm: a socket seats the compliant tip from within this distance
   points:                      # kind socket (ball-in-cone) or needle; approach: unit vector towards the tool
-{pts}
+{note}{pts}
     # per point, radius: overrides the contact (needle) or capture (socket) radius, mm
 
 noise:
