@@ -48,7 +48,17 @@ CAN_ERR_PROT = 0x08  # SocketCAN error class: protocol violation (what a corrupt
 CAN_ERR_BUSOFF = 0x40  # SocketCAN error class: bus off
 ERROR_CLASSES = {"protocol": CAN_ERR_PROT, "busoff": CAN_ERR_BUSOFF}
 STORE_FORMAT = "station-canopen-store/1"
-DEFAULT_SERIAL_BASE = 0x5A100000
+DEFAULT_SERIAL_BASE = 0x5A100000  # of a world without a digest (no cell, no model parameters)
+
+
+def world_serial_base(world) -> int:
+    """The drives' 0x1018 serial base, derived from the world: two worlds are two robots (never one serial)."""
+    from station.mocks.world.identity import default_serial
+
+    try:
+        return int(default_serial(world, "canopen"))
+    except (AttributeError, TypeError, ValueError):
+        return DEFAULT_SERIAL_BASE
 
 
 @dataclass
@@ -120,7 +130,7 @@ class CanopenEmulator:
         self.timeout_silence = float(cfg.get("timeout_silence", timeout_silence))
         self.boot_delay = boot_delay
         self.fault_poll = fault_poll
-        serial_base = int(cfg.get("serial_base", DEFAULT_SERIAL_BASE))
+        serial_base = int(cfg["serial_base"]) if "serial_base" in cfg else world_serial_base(world)
         self.busoff_recovery = float(cfg.get("busoff_recovery_s", 0.2))
         # how long a drive takes to write its flash on "store parameters" (0x1010) before it answers
         self.store_s = float(cfg.get("store_s", 0.0))

@@ -97,5 +97,5 @@ noise:
 buses:                         # passed through to the bus emulators (world.bus_config(name))
   dynamixel: {{baud: 1000000, ids: [{ids}]}}   # one servo per joint
   canopen: {{nodes: [{nodes}]}}           # one CiA 402 drive per joint
-  ur: {{serial: "20235500000"}}
+  ur: {{}}                       # serial: derived from this world (its arm and cell) unless given here
 """
