@@ -65,7 +65,7 @@ def started_after(summary: dict, since: datetime | None) -> bool:
     return (t if t.tzinfo else t.replace(tzinfo=UTC)) >= since
 
 
-EXPORT_COLUMNS = ("session", "serial", "procedure", "started", "finished", "station", "operator", "status",
+EXPORT_COLUMNS = ("session", "serial", "model", "procedure", "started", "finished", "station", "operator", "status",
                   "verdict", "n_samples", "rms_before_m", "rms_after_m", "parameter", "value", "std", "unit",
                   "identifiable")
 
@@ -77,7 +77,8 @@ def export_rows(records, serial: str | None = None, since: datetime | None = Non
         if not started_after(summ, since):
             continue
         doc = records.session(summ["session"])
-        base = {"session": summ["session"], "serial": summ["serial"], "procedure": summ["procedure"],
+        base = {"session": summ["session"], "serial": summ["serial"], "model": summ.get("model") or doc.get("model"),
+                "procedure": summ["procedure"],
                 "started": summ["started"], "finished": summ["finished"], "station": summ["station"],
                 "operator": summ["operator"], "status": summ["status"],
                 "verdict": None if summ["passed"] is None else ("PASS" if summ["passed"] else "FAIL"),
