@@ -50,6 +50,8 @@ def register(mock_app: typer.Typer) -> None:
                                                                  "'none': no contact input)"),
         store: Path = typer.Option(None, "--store", help="JSON file keeping parameters saved with 0x1010 "
                                                          "across emulator restarts"),
+        exit_with_parent: bool = typer.Option(False, "--exit-with-parent", help="Stop when the process that "
+                                              "started this one ends (tests: no orphan after a crash)."),
     ) -> None:
         """Emulated CiA 402 servo drives behind a socketcand hub; prints host:port, channel and robot URL."""
         from station.mocks.canopen.hub import SocketcandHub
@@ -72,8 +74,10 @@ def register(mock_app: typer.Typer) -> None:
                    f"&model={emu.world.nominal.name}")
             sys.stdout.write(f"socketcand {host}:{hub.port} channel {bus} url {url}\n")
             sys.stdout.flush()
+            parent = os.getppid()
             while not done.wait(0.5):
-                pass
+                if exit_with_parent and os.getppid() != parent:
+                    break
         finally:
             hub.stop()
             emu.stop()

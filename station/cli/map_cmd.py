@@ -17,6 +17,8 @@ from pathlib import Path
 
 import typer
 
+from station.cli import COMMANDS
+from station.cli.helpgroup import HelpGroup
 from station.cli.model_options import PAYLOAD
 from station.lazy import lazy_module
 from station.robot.errors import ConfigError
@@ -24,8 +26,7 @@ from station.samplesfile import ANGLE_UNITS, LENGTH_UNITS, SamplesFileError, Tab
 
 np = lazy_module("numpy")  # imported on first use (station.lazy: start-up of every command)
 
-map_app = typer.Typer(no_args_is_help=True,
-                      help="Configuration-space correction map (seed 004): plan, build, apply, correct.")
+map_app = typer.Typer(cls=HelpGroup, no_args_is_help=True, help=COMMANDS["map"][1])
 
 POSE_NAMES = ("x", "y", "z", "rx", "ry", "rz")
 _ACT = re.compile(r"^x(\d+)$")
@@ -235,12 +236,13 @@ def _q_values(grid: str, m, exclude_ends: bool) -> list[int]:
 # ---- commands ------------------------------------------------------------------------------------
 @map_app.command("plan")
 def plan_command(
-    model: str = typer.Option(..., "--model", help="built-in model name or model file"),
+    model: str = typer.Option(..., "--model", help="Built-in model name or model file"),
     grid: str = typer.Option(..., "--grid", help="Q: sub-intervals per actuator (Q+1 levels), or Q1,Q2,...,QN"),
-    exclude_ends: bool = typer.Option(False, "--exclude-ends", help="leave out the interval ends (Q-1 levels)"),
-    mesh: str = typer.Option("grid", "--mesh", help="grid (multilinear) or simplex (Kuhn simplices, barycentric)"),
+    exclude_ends: bool = typer.Option(False, "--exclude-ends", help="Leave out the interval ends (Q-1 levels)"),
+    mesh: str = typer.Option("grid", "--mesh", help="Mesh: grid (multilinear) or simplex (Kuhn simplices, "
+                                                        "barycentric)"),
     out: Path = typer.Option(..., "--out", help="CSV of configurations x1..xN to visit"),
-    units: str = typer.Option(None, "--units", help="output units LENGTH,ANGLE (default SI, plain headers)"),
+    units: str = typer.Option(None, "--units", help="Output units LENGTH,ANGLE (default SI, plain headers)"),
 ) -> None:
     """Sample set PM: the grid over the actuator intervals (configurations the model cannot assemble are
     left out and reported)."""
@@ -274,20 +276,20 @@ def plan_command(
 
 @map_app.command("build")
 def build_command(
-    model: str = typer.Option(..., "--model", help="built-in model name or model file"),
+    model: str = typer.Option(..., "--model", help="Built-in model name or model file"),
     payload: str = PAYLOAD,
     samples: Path = typer.Option(..., "--samples", help="CSV: x1..xN and the measured pose (base frame)"),
-    calibration: Path = typer.Option(None, "--calibration", help="result JSON of station solve: map on top of it"),
-    mesh: str = typer.Option("grid", "--mesh", help="grid (multilinear) or simplex (barycentric): as planned"),
-    grid: str = typer.Option(None, "--grid", help="the plan's Q (checks every sample is on its grid); "
+    calibration: Path = typer.Option(None, "--calibration", help="Result JSON of station solve: map on top of it"),
+    mesh: str = typer.Option("grid", "--mesh", help="Mesh: grid (multilinear) or simplex (barycentric), as planned"),
+    grid: str = typer.Option(None, "--grid", help="The plan's Q (checks every sample is on its grid); "
                                                   "default: the grid is read off the samples"),
-    exclude_ends: bool = typer.Option(False, "--exclude-ends", help="with --grid: the plan left out the ends"),
-    measurements: Path = typer.Option(None, "--measurements", help="an instrument's CSV export (x,y,z[,rx,ry,rz] "
+    exclude_ends: bool = typer.Option(False, "--exclude-ends", help="With --grid: the plan left out the ends"),
+    measurements: Path = typer.Option(None, "--measurements", help="An instrument's CSV export (x,y,z[,rx,ry,rz] "
                                       "in ITS frame, one row per samples row, same order); --samples then needs "
                                       "only x1..xN"),
-    frame: str = typer.Option("fit", "--frame", help="with --measurements: fit (register the instrument frame to "
+    frame: str = typer.Option("fit", "--frame", help="With --measurements: fit (register the instrument frame to "
                               "the base frame by best fit) or base (already in the base frame)"),
-    out: Path = typer.Option(..., "--out", help="the map (station-map/1 JSON)"),
+    out: Path = typer.Option(..., "--out", help="The map (station-map/1 JSON)"),
 ) -> None:
     """Correction summands KSF_PM(x) = x - IK(GDK(x)) at the samples, extended to the configuration space."""
     from station.solver import CalibrationResult
@@ -350,13 +352,13 @@ def build_command(
 
 @map_app.command("apply")
 def apply_command(
-    model: str = typer.Option(..., "--model", help="built-in model name or model file"),
+    model: str = typer.Option(..., "--model", help="Built-in model name or model file"),
     payload: str = PAYLOAD,
-    map_file: Path = typer.Option(..., "--map", help="the map (station-map/1 JSON)"),
+    map_file: Path = typer.Option(..., "--map", help="The map (station-map/1 JSON)"),
     poses: Path = typer.Option(..., "--poses", help="CSV of target poses (base frame)"),
     out: Path = typer.Option(..., "--out", help="CSV of actuator commands x1..xN, a status per row, and every "
                                                 "column of --poses"),
-    units: str = typer.Option(None, "--units", help="output units LENGTH,ANGLE (default SI, plain headers)"),
+    units: str = typer.Option(None, "--units", help="Output units LENGTH,ANGLE (default SI, plain headers)"),
 ) -> None:
     """Calibrated control: the actuator commands that reach the target poses. Every row gets a command or a
     status naming why not; exit 1 when any row has none."""
@@ -383,13 +385,13 @@ def apply_command(
 
 @map_app.command("correct")
 def correct_command(
-    model: str = typer.Option(..., "--model", help="built-in model name or model file"),
+    model: str = typer.Option(..., "--model", help="Built-in model name or model file"),
     payload: str = PAYLOAD,
-    map_file: Path = typer.Option(..., "--map", help="the map (station-map/1 JSON)"),
+    map_file: Path = typer.Option(..., "--map", help="The map (station-map/1 JSON)"),
     joints: Path = typer.Option(..., "--joints", help="CSV of actuator readings x1..xN"),
     out: Path = typer.Option(..., "--out", help="CSV of corrected poses, a status per row, and every column of "
                                                 "--joints"),
-    units: str = typer.Option(None, "--units", help="output units LENGTH,ANGLE (default SI, plain headers)"),
+    units: str = typer.Option(None, "--units", help="Output units LENGTH,ANGLE (default SI, plain headers)"),
 ) -> None:
     """Measuring kinematics: the corrected pose DK(x - KSF(x)) of each actuator reading. Every row gets a pose
     or a status naming why not; exit 1 when any row has none."""

@@ -7,15 +7,16 @@ from pathlib import Path
 
 import typer
 
+from station.cli import COMMANDS
+from station.cli.helpgroup import HelpGroup
 from station.cli.model_options import BASE_LINK, PAYLOAD, TIP_LINK, load_cli_model
 from station.lazy import lazy_module
 
 np = lazy_module("numpy")  # imported on first use (station.lazy: start-up of every command)
 
-model_app = typer.Typer(no_args_is_help=True, help="Kinematic models: built-in, model files, URDF (show, export, "
-                                                   "import).")
-NAME = typer.Argument(..., help="built-in model name, model file or URDF")
-UNITS = typer.Option("mm,deg", help="length,angle units: m|mm, rad|deg")
+model_app = typer.Typer(cls=HelpGroup, no_args_is_help=True, help=COMMANDS["model"][1])
+NAME = typer.Argument(..., help="Built-in model name, model file or URDF")
+UNITS = typer.Option("mm,deg", help="Length and angle units: m or mm, rad or deg")
 
 
 @model_app.command("list")
@@ -54,12 +55,12 @@ def show(name: str = NAME, units: str = UNITS, tip_link: str = TIP_LINK, base_li
 
 
 @model_app.command("export")
-def export(name: str = typer.Argument(None, help="built-in model name, model file or URDF (default: the model of "
+def export(name: str = typer.Argument(None, help="Built-in model name, model file or URDF (default: the model of "
                                                  "the --calibration session or result)"),
-           out: Path = typer.Option(None, "--out", "-o", help="file to write (default NAME.yaml / NAME.urdf)"),
-           fmt: str = typer.Option(None, "--format", help="yaml (station-model/1) or urdf (default: from the "
+           out: Path = typer.Option(None, "--out", "-o", help="File to write (default NAME.yaml / NAME.urdf)"),
+           fmt: str = typer.Option(None, "--format", help="Format: yaml (station-model/1) or urdf (default: from the "
                                                           "--out suffix, else yaml)"),
-           calibration: str = typer.Option(None, "--calibration", help="write the calibrated robot: a session id, "
+           calibration: str = typer.Option(None, "--calibration", help="Write the calibrated robot: a session id, "
                                            "a session folder, a result JSON (station solve --out, a session's "
                                            "result.json) or a session's report.json"),
            units: str = UNITS, tip_link: str = TIP_LINK, base_link: str = BASE_LINK, payload: str = PAYLOAD) -> None:
@@ -99,7 +100,7 @@ def export(name: str = typer.Argument(None, help="built-in model name, model fil
 
 @model_app.command("import")
 def import_urdf(urdf: Path = typer.Argument(..., help="URDF file"),
-                out: Path = typer.Option(None, "--out", "-o", help="model file to write (default ROBOT.yaml)"),
+                out: Path = typer.Option(None, "--out", "-o", help="Model file to write (default ROBOT.yaml)"),
                 units: str = UNITS, tip_link: str = TIP_LINK, base_link: str = BASE_LINK) -> None:
     """Convert the chain of a URDF into a station-model/1 file (modified DH, masses from <inertial>)."""
     from station.kinematics import dump_model

@@ -25,7 +25,7 @@ def panel(
     reference: str = typer.Option(None, "--reference", help="unknown (solve the point) or cell (surveyed)."),
     poses: int = POSES,
     holdout: int = HOLDOUT,
-    cone: float = CONE,
+    cone: str = CONE,
     confirm: bool = typer.Option(True, "--confirm/--no-confirm", help="Ask the operator to confirm the unit is "
                                  "clamped before the robot moves."),
     opcua: str = typer.Option(None, "--opcua", help="Also serve OPC UA at this endpoint, e.g. "

@@ -11,12 +11,14 @@ import typer
 from rich import box
 from rich.console import Console
 
+from station.cli import COMMANDS
+from station.cli.helpgroup import HelpGroup
 from station.cli.tables import Col, print_table, wrap_lines
 from station.units import human_of
 
-records_app = typer.Typer(no_args_is_help=True, help="Calibration records per robot serial (list, show, export).")
+records_app = typer.Typer(cls=HelpGroup, no_args_is_help=True, help=COMMANDS["records"][1])
 
-DB_HELP = "records database URL (default $STATION_DB, else sqlite:///$STATION_HOME/station.db)"
+DB_HELP = "Records database URL (default $STATION_DB, else sqlite:///$STATION_HOME/station.db)"
 
 
 def _open(db: str | None):
@@ -115,7 +117,7 @@ def _box(con: Console):
 
 @records_app.command("list")
 def list_records(db: str = typer.Option(None, "--db", help=DB_HELP),
-                 serial: str = typer.Option(None, "--serial", help="only the sessions of this robot")) -> None:
+                 serial: str = typer.Option(None, "--serial", help="Only the sessions of this robot")) -> None:
     """List robots, or the sessions of one robot with --serial (readable at 80 columns: serials, session ids
     and verdicts are never cut)."""
     from station.cli import fail
@@ -144,10 +146,10 @@ def list_records(db: str = typer.Option(None, "--db", help=DB_HELP),
 
 
 @records_app.command("show")
-def show(serial: str = typer.Argument(..., help="robot serial number"),
+def show(serial: str = typer.Argument(..., help="Robot serial number"),
          db: str = typer.Option(None, "--db", help=DB_HELP),
-         session: str = typer.Option(None, "--session", help="this session instead of the latest one"),
-         trend: bool = typer.Option(False, "--trend", help="each parameter across the robot's runs with its "
+         session: str = typer.Option(None, "--session", help="This session instead of the latest one"),
+         trend: bool = typer.Option(False, "--trend", help="Each parameter across the robot's runs with its "
                                     "uncertainty, drift beyond 3 sigma flagged")) -> None:
     """One robot: identity, its sessions, and the latest (or --session) result, verdict and write-back;
     with --trend each parameter across runs."""
@@ -180,7 +182,7 @@ def show(serial: str = typer.Argument(..., help="robot serial number"),
 
 
 @records_app.command("sync")
-def sync(sessions: list[str] = typer.Argument(None, help="session ids or folders (default: every ended "
+def sync(sessions: list[str] = typer.Argument(None, help="Session ids or folders (default: every ended "
                                                           "session in $STATION_HOME/sessions not stored yet)"),
          db: str = typer.Option(None, "--db", help=DB_HELP + "; default: the URL each session's journal names")
          ) -> None:
@@ -230,11 +232,11 @@ def _show_trend(con: Console, docs: list[dict]) -> None:
 
 
 @records_app.command("export")
-def export(fmt: str = typer.Option("csv", "--format", help="csv (one row per session and parameter) or json"),
-           since: str = typer.Option(None, "--since", help="only sessions started at/after this ISO date or time "
+def export(fmt: str = typer.Option("csv", "--format", help="Format: csv (one row per session and parameter) or json"),
+           since: str = typer.Option(None, "--since", help="Only sessions started at/after this ISO date or time "
                                      "(UTC unless a zone is given)"),
-           serial: str = typer.Option(None, "--serial", help="only this robot"),
-           out: Path = typer.Option(None, "--out", help="write to this file instead of stdout"),
+           serial: str = typer.Option(None, "--serial", help="Only this robot"),
+           out: Path = typer.Option(None, "--out", help="Write to this file instead of stdout"),
            db: str = typer.Option(None, "--db", help=DB_HELP)) -> None:
     """Export sessions for analysis (SI units: m, rad; the unit of each value in its own column/field)."""
     import csv
@@ -335,9 +337,9 @@ def _show_session(con: Console, s: dict) -> None:
                     [Col("value"), Col("before", "right"), Col("after", "right"), Col("unit")], rows, style=_box(con))
 
 
-def report(source: str = typer.Argument(..., help="session id (in $STATION_HOME/sessions, as station resume "
+def report(source: str = typer.Argument(..., help="Session id (in $STATION_HOME/sessions, as station resume "
                                           "takes it), session folder (holding journal.jsonl) or a journal file"),
-           out: Path = typer.Option(None, "--out", help="folder for report.html/report.json "
+           out: Path = typer.Option(None, "--out", help="Folder for report.html/report.json "
                                                         "(default: the session folder)")) -> None:
     """Rebuild the HTML and JSON report of a session from its journal."""
     from station.cli import fail

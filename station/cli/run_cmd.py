@@ -50,7 +50,6 @@ def _progress_bar(quiet: bool):
 
 def preflight(robot: str, poses, holdout, cone, seed, touch, reference, limits, cell) -> None:
     """Every option and input file checked before any robot is opened or moved (issue 14): one line, exit 2."""
-    import math
 
     from station.robot.errors import ConfigError
 
@@ -58,8 +57,8 @@ def preflight(robot: str, poses, holdout, cone, seed, touch, reference, limits, 
         raise ConfigError(f"--poses {poses}: expected a pose count of at least 1 (and at least the unknowns)")
     if holdout is not None and not 0 <= holdout <= 100_000:
         raise ConfigError(f"--holdout {holdout}: expected a pose count of 0 or more")
-    if cone is not None and not (math.isfinite(cone) and 0 < cone <= 90):
-        raise ConfigError(f"--cone {cone!r}: expected a half-angle in degrees in (0, 90]")
+    if cone is not None and not 0 < cone_degrees(cone) <= 90:
+        raise ConfigError(f"--cone {cone!r}: expected a half-angle in (0, 90] deg, e.g. 50deg")
     if seed is not None and not 0 <= seed < 2**63:
         raise ConfigError(f"--seed {seed}: expected a non-negative integer")
     if touch is not None and touch not in ("seat", "guarded", "manual"):
@@ -88,9 +87,12 @@ def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None, spa
     if calibration is not None:  # correction_map: the map on top of this parametric calibration
         opts["calibration"] = str(check_calibration_file(calibration, opts.get("payload")))
     if span_deg is not None:
-        if not 0 < span_deg <= 90:  # also refuses nan
-            raise ConfigError(f"--span-deg {span_deg!r}: expected a half-width in degrees in (0, 90]")
-        opts["span_deg"] = float(span_deg)  # correction_map (serial arms): +- this around the start pose
+        from station.cli.quantity import parse_option
+
+        span = parse_option(span_deg, "--span-deg", "angle", "deg", "20deg")
+        if not 0 < span <= 90:
+            raise ConfigError(f"--span-deg {span_deg!r}: expected a half-width in (0, 90] deg, e.g. 20deg")
+        opts["span_deg"] = span  # correction_map (serial arms): +- this around the start pose
     if tracker is not None:
         opts["tracker"] = tracker  # correction_map: the measuring instrument's URL
     if grid is not None:
@@ -100,7 +102,7 @@ def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None, spa
     if holdout is not None:
         opts["n_holdout"] = holdout
     if cone is not None:
-        opts["cone_deg"] = cone
+        opts["cone_deg"] = cone_degrees(cone)
     if reference is not None:
         if reference not in ("unknown", "cell"):
             raise ConfigError(f"--reference must be 'unknown' or 'cell', got {reference!r}")
@@ -108,6 +110,13 @@ def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None, spa
     if seed is not None:
         opts["seed"] = seed
     return opts
+
+
+def cone_degrees(cone) -> float:
+    """``--cone 50deg`` (or ``0.87rad``; a bare number is degrees, as before units were written) in degrees."""
+    from station.cli.quantity import parse_option
+
+    return parse_option(cone, "--cone", "angle", "deg", "50deg")
 
 
 def payload_option(text: str) -> dict:
@@ -246,17 +255,18 @@ def run(
     apply: bool = typer.Option(False, "--apply", help="Write identified joint offsets back (two-phase)."),
     cell: Path = typer.Option(None, "--cell", help="Cell file (default $STATION_CELL, then ./cell.yaml)."),
     operator: str = typer.Option(None, "--operator", help="Who runs it (default: login name)."),
-    touch: str = typer.Option(None, "--touch", help="seat (socket), guarded (contact input) or manual."),
-    reference: str = typer.Option(None, "--reference", help="unknown (solve the point) or cell (use the cell "
-                                  "file's surveyed positions)."),
+    touch: str = typer.Option(None, "--touch", help="How the tool meets a point: seat (socket), guarded "
+                                "(contact input) or manual."),
+    reference: str = typer.Option(None, "--reference", help="Reference: unknown (solve the point) or cell (use "
+                                  "the cell file's surveyed positions)."),
     poses: int = POSES,
     holdout: int = HOLDOUT,
-    cone: float = CONE,
+    cone: str = CONE,
     seed: int = typer.Option(None, "--seed", help="Seed of the pose plan."),
     tracker: str = typer.Option(None, "--tracker", help="Measuring instrument URL (correction_map), e.g. "
                                 "tcp://127.0.0.1:5300 (station mock tracker)."),
     grid: int = typer.Option(None, "--grid", help="correction_map: Q sub-intervals per actuator (Q+1 levels)."),
-    span_deg: float = typer.Option(None, "--span-deg", help="correction_map on a serial arm: the work box is +- "
+    span_deg: str = typer.Option(None, "--span-deg", help="correction_map on a serial arm: the work box is +- "
                                    "this many degrees per joint around the start pose (default 20)."),
     calibration: Path = typer.Option(None, "--calibration", help="correction_map: build the map on top of this "
                                      "parametric calibration (result JSON of station solve for the robot's model)."),

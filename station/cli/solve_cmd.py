@@ -81,11 +81,16 @@ def _references(specs: list[str], labels: list[str], samples: str):
     return ref
 
 
-def check_max_std(max_std: float) -> float:
-    """``--max-std`` (m at the tool): 0, negative or non-finite would switch identifiability off."""
-    if not (math.isfinite(max_std) and 0 < max_std <= 1.0):
-        raise _fail(f"--max-std {max_std!r}: expected a positive finite length in m (at most 1 m), e.g. 0.001")
-    return max_std
+def check_max_std(max_std) -> float:
+    """``--max-std 1mm`` (a length at the tool; a bare number is metres): 0, negative or non-finite would switch
+    identifiability off. Returns metres."""
+    from station.cli.quantity import parse_option
+
+    value = parse_option(max_std, "--max-std", "length", "m", "1mm")
+    if not 0 < value <= 1.0:
+        raise _fail(f"--max-std {max_std!r}: expected a positive length of at most 1 m, e.g. 1mm (a bare number is "
+                    "metres: 0.001)")
+    return value
 
 
 def check_identify(identify: str) -> str:
@@ -141,19 +146,22 @@ def summary(res) -> str:
 SOLVE_OPTIONS = [
     *MODEL_OPTIONS,
     Opt("samples", "--samples", "CSV: q1..qN [point] [x,y,z]; units in headers", REQUIRED, Path),
-    Opt("identify", "--identify", "groups/names/globs, e.g. offsets,tcp,dh", "offsets,tcp"),
-    Opt("reference", "--reference", "unknown | x,y,z (m, or suffix mm) | LABEL=x,y,z (repeatable)", multiple=True),
-    Opt("tool", "--tool", "nominal TCP x,y,z in the flange frame (m, or suffix mm)"),
+    Opt("identify", "--identify", "Groups/names/globs, e.g. offsets,tcp,dh", "offsets,tcp"),
+    Opt("reference", "--reference", "Reference points: unknown (solved, the default), x,y,z of the one point (m, "
+        "or a unit suffix: 412,-120,35mm) or LABEL=x,y,z (repeatable)", multiple=True),
+    Opt("tool", "--tool", "Nominal TCP x,y,z in the flange frame (m, or suffix mm)"),
     Opt("holdout", "--holdout", "CSV of validation samples (same columns)", kind=Path),
-    Opt("out", "--out", "write the result JSON here", kind=Path),
-    Opt("instrument_frame", "--instrument-frame", "x,y,z columns: unknown (solve the instrument frame) | base",
+    Opt("out", "--out", "Write the result JSON here", kind=Path),
+    Opt("instrument_frame", "--instrument-frame", "With x,y,z columns: unknown (the instrument frame is solved) "
+        "or base",
         "unknown"),
-    Opt("max_std", "--max-std", "m at the tool: weaker directions are not estimated", 1e-3, float),
+    Opt("max_std", "--max-std", "Largest std, as motion at the tool, of an identified direction: a length (1mm; a "
+        "bare number is metres); weaker directions are named unidentifiable", "1mm"),
     Opt("prior", "--prior", "SELECTOR=STD with a unit, e.g. offsets=0.5deg, dh=0.3mm, dh.j2.a=0.1mm, "
         "compliance=1e-4rad/Nm (repeatable; overrides the model file's tolerances)", multiple=True),
-    Opt("noise", "--noise", "declared touch noise per axis with a unit, e.g. 20um (default: fitted from the "
+    Opt("noise", "--noise", "Declared touch noise per axis with a unit, e.g. 20um (default: fitted from the "
         "residual of the fitted model)"),
-    Opt("loss", "--loss", "linear (outliers > 4 sigma excluded) | huber | soft_l1", "linear"),
+    Opt("loss", "--loss", "Loss: linear (outliers beyond 4 sigma excluded), huber or soft_l1", "linear"),
     Opt("distance", "--distance", "A,B=50mm[±0.01mm]: the measured distance between points A and B (repeatable; "
         "default uncertainty 0.01 mm)", multiple=True),
     Opt("plane", "--plane", "LABEL: the touches labelled LABEL lie on one unknown plane (touch-probing a flat "
@@ -163,14 +171,14 @@ SOLVE_OPTIONS = [
 
 def solve_command(model: str, tip_link: str | None, base_link: str | None, payload: str | None, samples: Path,
                   identify: str, reference: tuple[str, ...], tool: str | None, holdout: Path | None,
-                  out: Path | None, instrument_frame: str, max_std: float, prior: tuple[str, ...],
+                  out: Path | None, instrument_frame: str, max_std: str, prior: tuple[str, ...],
                   noise: str | None, loss: str, distance: tuple[str, ...], plane: tuple[str, ...]) -> None:
     """Identify joint offsets, TCP, link geometry from touch samples. Exit 0: trusted result; 1: the solve
     failed or its result cannot be trusted (one line says why; the JSON is still written); 2: bad input."""
     from station.safeio import dumps_json, write_atomic
     from station.solver import Observations, SolverInputError, solve
 
-    check_max_std(max_std)
+    max_std = check_max_std(max_std)
     check_identify(identify)
     if out is not None:  # refuse a bad destination before the work, not after
         write_atomic_check(out, {"--samples": samples, "--holdout": holdout})
@@ -360,9 +368,9 @@ def _noise(text: str | None) -> float | None:
 FK_OPTIONS = [
     *MODEL_OPTIONS,
     Opt("joints", "--joints", "CSV with q1..qN (units in headers: q1[deg], q3[mm])", REQUIRED, Path),
-    Opt("calibration", "--calibration", "result JSON of station solve", kind=Path),
-    Opt("tool", "--tool", "nominal TCP x,y,z (m, or suffix mm), before the calibration"),
-    Opt("out", "--out", "write CSV here (default: stdout)", kind=Path),
+    Opt("calibration", "--calibration", "Result JSON of station solve", kind=Path),
+    Opt("tool", "--tool", "Nominal TCP x,y,z (m, or suffix mm), before the calibration"),
+    Opt("out", "--out", "Write CSV here (default: stdout)", kind=Path),
 ]
 
 
