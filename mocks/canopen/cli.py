@@ -39,14 +39,14 @@ def build(world_file: Path | None, model: str, seed: int, nodes: str | None, con
 def register(mock_app: typer.Typer) -> None:
     @mock_app.command("canopen")
     def canopen(
-        nodes: str = typer.Option(None, "--nodes", help="node ids in joint order, e.g. 1-6 (default 1..n)"),
+        nodes: str = typer.Option(None, "--nodes", help="Node ids in joint order, e.g. 1-6 (default 1..n)"),
         world: Path = WORLD,
-        model: str = typer.Option("arm6", "--model", help="model of the default world"),
+        model: str = typer.Option("arm6", "--model", help="Model of the default world"),
         seed: int = SEED,
-        host: str = typer.Option("127.0.0.1", "--host", help="address the socketcand hub listens on"),
+        host: str = typer.Option("127.0.0.1", "--host", help="Address the socketcand hub listens on"),
         port: int = typer.Option(29536, "--port", help="TCP port of the socketcand hub (0: any free port)"),
-        bus: str = typer.Option("can0", "--channel", help="bus name clients open (python-can channel)"),
-        contact: str = typer.Option(None, "--contact-node", help="node with the contact input (default: last; "
+        bus: str = typer.Option("can0", "--channel", help="Bus name clients open (python-can channel)"),
+        contact: str = typer.Option(None, "--contact-node", help="Node with the contact input (default: last; "
                                                                  "'none': no contact input)"),
         store: Path = typer.Option(None, "--store", help="JSON file keeping parameters saved with 0x1010 "
                                                          "across emulator restarts"),

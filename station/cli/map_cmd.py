@@ -244,8 +244,8 @@ def plan_command(
     out: Path = typer.Option(..., "--out", help="CSV of configurations x1..xN to visit"),
     units: str = typer.Option(None, "--units", help="Output units LENGTH,ANGLE (default SI, plain headers)"),
 ) -> None:
-    """Sample set PM: the grid over the actuator intervals (configurations the model cannot assemble are
-    left out and reported)."""
+    """Plan the configurations to measure: a grid over each actuator's range (those the model cannot reach or
+    assemble are left out, each with the reason)."""
     from station.solver.map import MESHES, plan
 
     m = _model(model)
@@ -291,7 +291,8 @@ def build_command(
                               "the base frame by best fit) or base (already in the base frame)"),
     out: Path = typer.Option(..., "--out", help="The map (station-map/1 JSON)"),
 ) -> None:
-    """Correction summands KSF_PM(x) = x - IK(GDK(x)) at the samples, extended to the configuration space."""
+    """Build the correction map from measured samples: at each, the actuator change the nominal model needs to
+    explain the measured pose, interpolated between them (docs/map.md has the method and its notation)."""
     from station.solver import CalibrationResult
     from station.solver.map import MESHES, MapError, build_map, grid_levels
 
@@ -360,8 +361,8 @@ def apply_command(
                                                 "column of --poses"),
     units: str = typer.Option(None, "--units", help="Output units LENGTH,ANGLE (default SI, plain headers)"),
 ) -> None:
-    """Calibrated control: the actuator commands that reach the target poses. Every row gets a command or a
-    status naming why not; exit 1 when any row has none."""
+    """Actuator commands that reach target poses, corrected by the map. Every row gets a command or a status
+    naming why not; exit 1 when any row has none."""
     m = _model(model, payload)
     cmap = _load_map(map_file)
     t = _read(poses)
@@ -393,8 +394,8 @@ def correct_command(
                                                 "--joints"),
     units: str = typer.Option(None, "--units", help="Output units LENGTH,ANGLE (default SI, plain headers)"),
 ) -> None:
-    """Measuring kinematics: the corrected pose DK(x - KSF(x)) of each actuator reading. Every row gets a pose
-    or a status naming why not; exit 1 when any row has none."""
+    """Where the robot really is at actuator readings: the pose corrected by the map. Every row gets a pose or a
+    status naming why not; exit 1 when any row has none."""
     from station.solver.map import output_columns
 
     m = _model(model, payload)

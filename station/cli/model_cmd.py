@@ -21,12 +21,17 @@ UNITS = typer.Option("mm,deg", help="Length and angle units: m or mm, rad or deg
 
 @model_app.command("list")
 def list_models() -> None:
-    """List built-in models."""
+    """List the built-in models (name, joints, kind, description): what --model takes besides a file."""
     from station.kinematics import builtin_names, load_model
 
+    rows = []
     for name in builtin_names():
         m = load_model(name)
-        typer.echo(f"{name:8s} {m.n_joints} joints  {m.convention.upper():4s} {m.description}")
+        kind = "parallel" if getattr(m, "kind", "serial") == "parallel" else m.convention.upper()
+        rows.append((name, f"{m.n_joints} joints", kind, m.description))
+    w = [max(len(r[k]) for r in rows) for k in range(3)]
+    for r in rows:
+        typer.echo(f"{r[0]:{w[0]}s}  {r[1]:{w[1]}s}  {r[2]:{w[2]}s}  {r[3]}")
 
 
 @model_app.command("show")

@@ -17,7 +17,7 @@ def opcua(
     procedure: str = typer.Option("zero_offsets", "--procedure", help="Default procedure of Start."),
     limits: Path = typer.Option(None, "--limits", help="Limits file (default: procedures/limits.yaml)."),
     db: str = typer.Option(None, "--db", help="Records database URL."),
-    reference: str = typer.Option(None, "--reference", help="unknown (solve the point) or cell (surveyed)."),
+    reference: str = typer.Option(None, "--reference", help="Reference: unknown (solve the point) or cell (surveyed)."),
     poses: int = typer.Option(None, "--poses", help="Number of fit poses."),
     holdout: int = typer.Option(None, "--holdout", help="Number of held-out poses."),
     cone: str = CONE,

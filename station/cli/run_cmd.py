@@ -245,9 +245,16 @@ def _finish(out, next_step=None) -> None:
     _exit(2)
 
 
+def _shipped() -> list[str]:
+    """The shipped procedures, from the procedures folder: the help lists every one, never a copy that ages."""
+    from station.engine.procedure import shipped_names
+
+    return shipped_names()
+
+
 def run(
-    procedure: str = typer.Argument(..., help="Shipped procedure name (zero_offsets, tcp_4point, tcp_circle, "
-                                    "dh_full, verify) or a procedure .py file."),
+    procedure: str = typer.Argument(..., help="Shipped procedure (" + ", ".join(_shipped()) + ") or a procedure "
+                                    ".py file."),
     robot: str = typer.Option(..., "--robot", help="Robot URL, e.g. ur://127.0.0.2?model=ur5e"),
     serial: str = typer.Option(..., "--serial", help="Serial number of the robot under calibration."),
     limits: Path = LIMITS,
@@ -266,8 +273,9 @@ def run(
     tracker: str = typer.Option(None, "--tracker", help="Measuring instrument URL (correction_map), e.g. "
                                 "tcp://127.0.0.1:5300 (station mock tracker)."),
     grid: int = typer.Option(None, "--grid", help="correction_map: Q sub-intervals per actuator (Q+1 levels)."),
-    span_deg: str = typer.Option(None, "--span-deg", help="correction_map on a serial arm: the work box is +- "
-                                   "this many degrees per joint around the start pose (default 20)."),
+    span_deg: str = typer.Option(None, "--span-deg", help="With correction_map on a serial arm: the work box is +- "
+                                   "this angle per joint around the start pose: 20deg (a bare number is degrees; "
+                                   "default 20deg)."),
     calibration: Path = typer.Option(None, "--calibration", help="correction_map: build the map on top of this "
                                      "parametric calibration (result JSON of station solve for the robot's model)."),
     payload: str = PAYLOAD,
