@@ -26,15 +26,20 @@ def _load(path: Path):
 
 
 @world_app.command("example")
-def example(model: str = typer.Option("ur5e", "--model", help="Built-in model name or model file."),
-            seed: int = typer.Option(0, "--seed", help="Seed written into the file.")) -> None:
+def example(model: str = typer.Option("ur5e", "--model", help="Built-in model name, model file or URDF (an arm of "
+                                                              "one's own gets a cell computed for it)."),
+            seed: int = typer.Option(0, "--seed", help="Seed written into the file."),
+            tip_link: str = typer.Option(None, "--tip-link", help="URDF: the link at the end of the chain (default: "
+                                         "the end of the only longest chain)."),
+            base_link: str = typer.Option(None, "--base-link", help="URDF: the link the chain starts from (default: "
+                                          "the root).")) -> None:
     """Print a complete, commented world file (mm, deg): station mock world example > world.yaml"""
     from station.mocks.world.example import example_text
 
     from station.kinematics import ModelFileError
 
     try:
-        typer.echo(example_text(model, seed), nl=False)
+        typer.echo(example_text(model, seed, tip_link, base_link), nl=False)
     except ModelFileError as e:
         raise _fail(str(e)) from None
 

@@ -12,10 +12,11 @@ def _mm(x: float) -> str:
     return f"{x * 1e3:g}"
 
 
-def example_text(model: str = "ur5e", seed: int = 0) -> str:
+def example_text(model: str = "ur5e", seed: int = 0, tip_link: str | None = None,
+                 base_link: str | None = None) -> str:
     from station.kinematics import builtin_names, load_model
 
-    m = load_model(model)
+    m = load_model(model, tip_link=tip_link, base_link=base_link)
     ref = m.name if model in builtin_names() else str(model)  # a model file: keep its path
     d = DEFAULTS.get(m.name) if model in builtin_names() else None
     note = ""
@@ -35,6 +36,7 @@ def example_text(model: str = "ur5e", seed: int = 0) -> str:
         f"    - {{label: {p['label']}, kind: {p['kind']}, position: [{', '.join(_mm(x) for x in p['position'])}], "
         f"approach: [{', '.join(f'{a:g}' for a in p['approach'])}]}}" for p in d["points"]) or "    []"
     note = f"{note}\n" if note else ""
+    links = "".join(f"  {k}: {v}\n" for k, v in (("tip_link", tip_link), ("base_link", base_link)) if v)
     sj = m.joints[1].name
     o, dh, tcp = DEFAULT_SIGMAS["offsets"], DEFAULT_SIGMAS["dh"], DEFAULT_SIGMAS["tcp"]
     link = next((n for n in m.param_names if n.endswith(".a") and abs(m.param(n)) > 0),
@@ -56,7 +58,7 @@ seed: {seed}                     # seeds every random draw (hidden errors, seati
 
 robot:
   model: {ref}                 # built-in name ({m.name}, ...) or a station-model/1 file (relative to this file)
-  # tool: {{x: 0, y: 0, z: 0, rx: 0, ry: 0, rz: 0}}   # nominal tool (TCP) frame on the flange; default: the model's
+{links}  # tool: {{x: 0, y: 0, z: 0, rx: 0, ry: 0, rz: 0}}   # nominal tool (TCP) frame on the flange (default: model's)
 
 errors:                        # hidden: truth = nominal + error (the station does not know them)
   explicit:                    # by parameter name (station model show {m.name} lists them); mm or deg by kind
