@@ -105,3 +105,16 @@ def test_csv_export_names_the_model(stored):
     rows = list(csv.DictReader(io.StringIO(out)))
     assert rows and "model" in rows[0]
     assert {r["model"] for r in rows if r["session"] == session["session"]} == {session["model"]}
+
+
+def test_trend_does_not_call_a_model_change_drift(tmp_path, session_factory):
+    """Two arms filed under one serial (what a fixed emulator serial did): the second arm's values are no drift."""
+    url = f"sqlite:///{tmp_path / 'station.db'}"
+    first = session_factory(seed=3, serial=LONG)[0]
+    other = _shifted(first, "offset.j2", 20.0, seed=5)
+    other["model"] = "ur5e-other"
+    with open_records(url) as rec:
+        rec.store_session(first)
+        rec.store_session(other)
+    out = _run("records", "show", LONG, "--db", url, "--trend", columns=160)
+    assert "DRIFT" not in out and "model ur5e-other" in out, out

@@ -225,7 +225,8 @@ def _show_trend(con: Console, docs: list[dict]) -> None:
                          "value": _human(r["value"], unit) if r["identifiable"] else "not identifiable",
                          "±σ": _human(r["std"], unit) if r["identifiable"] else "", "unit": _hunit(unit),
                          "Δ/σ": "" if r["drift_sigma"] is None else f"{r['drift_sigma']:.1f}",
-                         "drift": "[red]DRIFT[/]" if r["drift"] else ""})
+                         "drift": "[red]DRIFT[/]" if r["drift"] else (
+                             f"model {r.get('model')}" if r.get("model_changed") else "")})
     print_table(con, f"Trend (drift: a change beyond {DRIFT_SIGMA:g} combined sigma from the previous run)", cols,
                 rows, style=box.SIMPLE_HEAD)
     con.print(f"{n_drift} drift(s) beyond {DRIFT_SIGMA:g} σ" if n_drift else "no drift beyond 3 σ")
