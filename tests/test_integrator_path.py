@@ -11,6 +11,7 @@ calibration from sockets at unknown positions cannot see the base frame nor join
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shlex
@@ -97,6 +98,11 @@ def test_own_arm_from_example_world_to_calibrated_urdf(tmp_path):
     # the example placed sockets the arm reaches: the run touched each of them from the plan's spread
     folder = tmp_path / "home" / "sessions" / found["SESSION"]
     assert (folder / "result.json").is_file() and (folder / "samples.csv").is_file()
+    result = json.loads((folder / "result.json").read_text())
+    assert result["format"] == "station-calibration/1" and result["trusted"]
+    # the example world hides a tool error (0.5 mm sigma): the data need the tool, dh_full solved it
+    assert any(n.startswith("tcp.") for n in world.errors())
+    assert result["settings"]["identify"] == "offsets,dh,tcp" and result["parameters"]["tcp.y"]["identifiable"]
     # the calibrated URDF: FK closer to the world's truth than the nominal URDF's
     calibrated = load_model(str(tmp_path / "myarm-calibrated.urdf"))
     nominal = load_model(str(tmp_path / "myarm.urdf"))
