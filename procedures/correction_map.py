@@ -28,6 +28,7 @@ from station.engine.plan import PlannedPose, PosePlan
 from station.kinematics import se3
 from station.robot.errors import ConfigError, DeviceFault
 from station.robot.registry import open_instrument
+from station.safeio import DuplicateKeyError, loads_strict
 from station.solver.map import FULL, POSITION, MapError, build_map, plan, to_vectors, working_model
 from station.solver.map.plan import predicted_residual
 from station.solver.map.register import register
@@ -106,7 +107,9 @@ def calibration(s) -> dict | None:
         from station.solver import CalibrationResult
 
         try:
-            doc = json.loads(data)
+            doc = loads_strict(data, f"calibration {path}")
+        except DuplicateKeyError as e:
+            raise ConfigError(str(e)) from None
         except ValueError:
             doc = None  # load_calibration says what is wrong with the file, in one line
         given = doc.get("parameters") if isinstance(doc, dict) else None

@@ -89,12 +89,21 @@ def publish(out, *, db: str | None = None, store: bool = True, report: bool = Tr
     return out
 
 
+def _plain(record: dict):
+    """A record as JSON sees it (what the database gives back), to compare a stored record with a journal's."""
+    import json
+
+    return json.loads(json.dumps(record, default=str))
+
+
 def sync_sessions(refs: list[str] | None, db: str | None, *, home: Path | None = None,
                   log: Callable[[str], None] | None = None) -> list[tuple[str, str]]:
     """``station records sync``: store sessions from their journals (store-and-forward; storing again is
     idempotent). ``refs``: session ids, folders or journals; none: every session under ``home/sessions``
     that has ended and is not in the database yet. ``db`` None: the URL each journal's header names (else the
-    default). Returns ``[(session, "stored" | "already stored" | "error: ...")]``."""
+    default). A session whose record in the database already equals its journal's is "already stored" (nothing
+    written), named or not; one whose record differs (resumed since) is stored again ("updated"). Returns
+    ``[(session, "stored" | "updated" | "already stored" | "error: ...")]``."""
     from station.engine.journal import JournalError, read_journal, torn_tail
     from station.engine.runner import find_session, station_home
     from station.engine.session_record import session_from_events
@@ -123,15 +132,17 @@ def sync_sessions(refs: list[str] | None, db: str | None, *, home: Path | None =
         url = db if db is not None else header.db
         try:
             with open_records(url) as rec:
-                if not explicit:
-                    try:
-                        rec.session(header.session)
-                        out.append((header.session, "already stored"))
-                        continue
-                    except RecordNotFound:
-                        pass
-                rec.store_session(session_from_events(header, events))
-            out.append((header.session, "stored" if ended else "stored (journal has no end: session open)"))
+                record = session_from_events(header, events)
+                try:
+                    held = rec.session(header.session)
+                except RecordNotFound:
+                    held = None
+                if held is not None and _plain(held) == _plain(record):
+                    out.append((header.session, "already stored"))
+                    continue
+                rec.store_session(record)
+            what = "stored" if held is None else "updated"
+            out.append((header.session, what if ended else f"{what} (journal has no end: session open)"))
         except Exception as e:  # one line per session; the others are still tried
             out.append((header.session, f"error: {e}"))
     return out

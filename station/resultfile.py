@@ -25,6 +25,7 @@ class _Parameter(Strict):
     unit: Literal["m", "rad", "rad/(N m)", "m/N", "1"] = "m"
     prior_std: NonNeg | None = None  # the prior the MAP estimate used (None: none)
     shrinkage: Num | None = None  # how far the prior pulled the estimate (0: the data alone)
+    prior_share: Num | None = None  # the prior's share of the estimate's information (0: the data alone)
     fix: str | None = None  # for a parameter not identified: what would identify it
     cause: str | None = None  # structural cause of a non-identifiable parameter
 
@@ -54,9 +55,27 @@ def load_calibration(path: str | Path, model):
             raise ConfigError(f"{name}: parameters.{n}: identifiable but its value is null")
         if p.kind == "model" and p.identifiable and n not in model.param_names:
             raise ConfigError(f"{name}: parameters.{n}: model {model.name!r} has no such parameter")
+        if p.kind == "model" and p.identifiable and p.value is not None:
+            _check_physical(name, n, p.value, float(model.params[model.index(n)]), p.unit)
     if cal.model != model.name:
         raise ConfigError(f"{name}: model: the calibration is for {cal.model!r}, not {model.name!r}")
     try:
         return CalibrationResult.from_dict(doc).calibrated(model)
     except (ValueError, KeyError, TypeError) as e:
         raise ConfigError(f"{name}: {e}") from None
+
+
+MAX_ANGLE_CHANGE = 3.141592653589793  # rad: a zero offset or twist correction beyond half a turn is no calibration
+MAX_LENGTH_CHANGE = 1.0  # m: a link length, TCP or base correction beyond a metre is a unit slip or another robot
+
+
+def _check_physical(name: str, n: str, value: float, nominal: float, unit: str) -> None:
+    """A calibration value beyond physical bounds (|offset| > pi, a length changed by more than 1 m) is refused
+    in one line: applied, it would silently turn the model into another robot."""
+    change = value - nominal
+    if unit == "rad" and abs(change) > MAX_ANGLE_CHANGE:
+        raise ConfigError(f"{name}: parameters.{n}: value {value:.6g} rad is {change:+.6g} rad from nominal: beyond "
+                          f"half a turn, no calibration (a unit slip, degrees as radians?)")
+    if unit == "m" and abs(change) > MAX_LENGTH_CHANGE:
+        raise ConfigError(f"{name}: parameters.{n}: value {value:.6g} m is {change:+.6g} m from nominal: a length "
+                          f"changed by more than 1 m is no calibration (a unit slip, millimetres as metres?)")

@@ -93,6 +93,65 @@ def _no_constant(name: str):
     raise ValueError(f"{name} is not JSON (a value the data do not determine is written as null)")
 
 
+class DuplicateKeyError(ValueError):
+    """A JSON object names one key twice (``json`` keeps the last silently); the message names key and line."""
+
+
+class _Dup(Exception):
+    def __init__(self, key: str) -> None:
+        self.key = key
+
+
+def _no_duplicates(pairs: list) -> dict:
+    out = {}
+    for k, v in pairs:
+        if k in out:
+            raise _Dup(k)
+        out[k] = v
+    return out
+
+
+def _duplicate_line(text: str, key: str) -> int:
+    """Line of the second ``key`` in one object of ``text`` (valid JSON): a scan that tracks the open objects and
+    skips strings with the decoder's own string reader."""
+    from json.decoder import scanstring
+
+    stack: list[set | None] = []
+    i, n = 0, len(text)
+    while i < n:
+        c = text[i]
+        if c == '"':
+            value, end = scanstring(text, i + 1)
+            j = end
+            while j < n and text[j] in " \t\r\n":
+                j += 1
+            if j < n and text[j] == ":" and stack and stack[-1] is not None:
+                if value == key and value in stack[-1]:
+                    return text.count("\n", 0, i) + 1
+                stack[-1].add(value)
+            i = end
+            continue
+        if c == "{":
+            stack.append(set())
+        elif c == "[":
+            stack.append(None)
+        elif c in "}]":
+            stack.pop()
+        i += 1
+    return 1
+
+
+def loads_strict(text: str, name: str = "JSON"):
+    """``json.loads`` for the station's inputs: NaN/Infinity refused, and a key given twice in one object refused
+    with its line (``DuplicateKeyError``: ``NAME:LINE: key 'x' is given twice in one object``); JSON itself keeps
+    the last value silently, and a calibration or map read that way is not the one its author checked."""
+    try:
+        return json.loads(text, parse_constant=_no_constant, object_pairs_hook=_no_duplicates)
+    except _Dup as e:
+        raise DuplicateKeyError(f"{name}:{_duplicate_line(text, e.key)}: key {e.key!r} is given twice in one object "
+                                f"(JSON would keep the last one silently); give it once") from None
+
+
 def read_json(path: str | Path, what: str = "JSON file"):
     """Parsed JSON of regular file ``path``; ``ConfigError`` in one line for anything else."""
     from station.robot.errors import ConfigError
@@ -101,7 +160,7 @@ def read_json(path: str | Path, what: str = "JSON file"):
     name = f"{what} {path}"
     text = decode(read_capped(path, ConfigError, name, MAX_JSON_BYTES), ConfigError, name)
     try:
-        return json.loads(text, parse_constant=_no_constant)
+        return loads_strict(text, name)
     except json.JSONDecodeError as e:
         raise ConfigError(f"{name}:{e.lineno}: not valid JSON ({e.msg})") from None
     except ValueError as e:

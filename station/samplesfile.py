@@ -16,7 +16,7 @@ import io
 import math
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from station.lazy import lazy_module
@@ -50,6 +50,7 @@ class Table:
     rows: list[list[str]]
     lines: list[int]  # file line number of each row
     header_line: int = 1
+    warnings: list[str] = field(default_factory=list)  # accepted, but worth one line each (readings beyond limits)
 
     def where(self, i: int) -> str:
         return f"{self.path}:{self.lines[i]}"
@@ -64,6 +65,7 @@ class Samples:
     path: str
     weight: np.ndarray | None = None  # (N,) per-touch weights (1/variance scale), None: all 1
     fixture: np.ndarray | None = None  # (N,) fixture position labels, None: one position
+    warnings: list[str] = field(default_factory=list)  # one line each: readings beyond the joint limits
 
 
 def _row(path: str, line: int, text: str) -> list[str]:
@@ -168,8 +170,11 @@ def joint_matrix(t: Table, joints) -> np.ndarray:
 
 
 def _check_limits(t: Table, joints, q: np.ndarray) -> None:
-    """A reading outside the joint's limits (beyond a margin for encoder slack and a slightly wide model) is a
-    unit slip or a wrong column, not a pose the robot took: name the row."""
+    """Readings are data: a reading beyond the model's joint limits is what the robot reported (a URDF's limits
+    are often tighter than the joint's travel, encoders overshoot), so it is used, with one warning line per
+    joint naming how many readings and how far (``t.warnings``); limits bind motion only. Only a column that
+    looks like a unit slip is refused: readings that cannot be radians (beyond a full turn and the limits) but fit
+    the limits as degrees, or metres that fit as millimetres (ten times beyond the travel)."""
     js = getattr(joints, "joints", joints)
     if not all(hasattr(j, "lower") and hasattr(j, "upper") for j in js):
         return
@@ -177,20 +182,31 @@ def _check_limits(t: Table, joints, q: np.ndarray) -> None:
         lo, hi = float(jt.lower), float(jt.upper)
         rev = jt.kind == "revolute"
         margin = max(0.05 * (hi - lo), math.radians(5) if rev else 0.005)
-        bad = np.flatnonzero((q[:, j] < lo - margin) | (q[:, j] > hi + margin))
+        col = q[:, j]
+        bad = np.flatnonzero((col < lo - margin) | (col > hi + margin))
         if bad.size == 0:
             continue
-        i = int(bad[0])
         unit = "rad" if rev else "m"
+        peak = float(np.max(np.abs(col)))
+        if rev:
+            slip = peak > max(2 * math.pi, abs(lo), abs(hi)) + margin and bool(
+                np.all((np.radians(col) >= lo - margin) & (np.radians(col) <= hi + margin)))
+            hint = "degrees in a radian column?"
+        else:
+            slip = peak > 10 * max(abs(lo), abs(hi), 0.01) and bool(
+                np.all((col * 1e-3 >= lo - margin) & (col * 1e-3 <= hi + margin)))
+            hint = "mm in a metre column?"
+        i = int(bad[np.argmax(np.abs(col[bad]))])
         v = q[i, j]
-        hint = ""
-        if rev and lo - margin <= math.radians(v) <= hi + margin:
-            hint = " — degrees in a radian column?"
-        elif not rev and lo - margin <= v * 1e-3 <= hi + margin:
-            hint = " — mm in a metre column?"
-        more = f" ({bad.size} rows like it)" if bad.size > 1 else ""
-        raise SamplesFileError(f"{t.where(i)}: row {i + 1}: q{j + 1} = {v:.6g} {unit} is outside the joint limits "
-                               f"[{lo:.4g}, {hi:.4g}] {unit}{hint}{more}")
+        if slip:
+            more = f" ({bad.size} rows like it)" if bad.size > 1 else ""
+            raise SamplesFileError(f"{t.where(i)}: row {i + 1}: q{j + 1} = {v:.6g} {unit} is outside the joint limits "
+                                   f"[{lo:.4g}, {hi:.4g}] {unit} — {hint}{more}")
+        beyond = float(max(lo - v, v - hi))
+        deg = f" ({math.degrees(beyond):.3g} deg)" if rev else ""
+        t.warnings.append(f"{t.path}: q{j + 1} ({jt.name}): {bad.size} of {len(col)} readings beyond the joint limits "
+                          f"[{lo:.4g}, {hi:.4g}] {unit}, by up to {beyond:.4g} {unit}{deg} (line {t.lines[i]}); "
+                          f"used as recorded: limits bind motion, not readings")
 
 
 def read_joints(path: str | Path, joints) -> tuple[np.ndarray, Table]:
@@ -249,7 +265,7 @@ def read_samples(path: str | Path, joints) -> Samples:
                 raise SamplesFileError(f"{t.where(i)}: column 'fixture': label {s!r} (use letters, digits, _ or -)")
             labels.append(s)
         fixture = np.array(labels, dtype=object)
-    return Samples(q, point, measured, list(t.lines), t.path, weight, fixture)
+    return Samples(q, point, measured, list(t.lines), t.path, weight, fixture, list(t.warnings))
 
 
 # ---- writing a session's samples.csv ----------------------------------------------------------------------

@@ -125,8 +125,8 @@ def test_fk_rejects_calibration_of_another_model(data):
 
 
 def test_solve_exit_codes_prior_noise_loss(data):
-    """0 trusted; 1 untrusted (the data need offsets 4-5 mrad that a 0.01 deg prior forbids: > 5 prior std,
-    a runaway/conflict, never a silent success); 2 bad --prior/--noise/--loss, one line."""
+    """0 trusted (also where the data overrule a too-tight prior, reported); 2 bad --prior/--noise/--loss, one
+    line."""
     d, _ = data
     base = ("solve", "--model", "ur5e", "--samples", "s_deg.csv", "--identify", "offsets,tcp", "--tool", "0,0,100mm")
     code, out, err = run(*base, "--noise", "20um", "--prior", "offsets=0.5deg", "--prior", "tcp=5mm",
@@ -137,10 +137,13 @@ def test_solve_exit_codes_prior_noise_loss(data):
     assert doc["parameters"]["offset.j2"]["prior_std"] == pytest.approx(0.5 * np.pi / 180)
     assert doc["parameters"]["tcp.z"]["prior_std"] == pytest.approx(5e-3)
     assert "result: trusted" in out
-    code, out, err = run(*base, "--prior", "offsets=0.01deg", "--out", "bad.json", cwd=d)
-    assert code == 1, (out, err)
-    assert err.startswith("station: solve failed: ") and len(err.strip().splitlines()) == 1
-    assert json.loads((d / "bad.json").read_text())["trusted"] is False
+    # the data need offsets of 4-5 mrad that a 0.01 deg prior forbids: a prior-data conflict the data settle,
+    # named with the data's estimate and std, estimated from the data alone (reported), exit 0
+    code, out, err = run(*base, "--prior", "offsets=0.01deg", "--out", "conflict.json", cwd=d)
+    assert code == 0, (out, err)
+    doc = json.loads((d / "conflict.json").read_text())
+    assert doc["trusted"] is True and doc["conflicts"] and all(c["freed"] for c in doc["conflicts"])
+    assert "note: prior-data conflict: offset.j" in out and "estimated from the data alone" in out
     for opt, val in (("--prior", "offsets"), ("--prior", "offsets=abc"), ("--prior", "offsets=-1deg"),
                      ("--prior", "nosuch=1mm"), ("--noise", "5deg"), ("--noise", "0um"), ("--loss", "cauchy")):
         code, out, err = run(*base, opt, val, cwd=d)

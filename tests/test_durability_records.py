@@ -83,13 +83,13 @@ def test_database_lost_at_the_end_is_not_stored_then_synced(tmp_path, monkeypatc
     assert r.returncode == 0 and f"{out.session}: stored" in r.stdout, r.stderr
     r = _station(["records", "sync"], env)
     assert r.returncode == 0 and f"{out.session}: already stored" in r.stdout, r.stderr
-    r = _station(["records", "sync", out.session], env)  # explicit: stored again, idempotent
-    assert r.returncode == 0, r.stderr
+    r = _station(["records", "sync", out.session], env)  # named: the same record is there, nothing is written
+    assert r.returncode == 0 and f"{out.session}: already stored" in r.stdout, r.stdout + r.stderr
     with open_records(db) as rec:
         stored = rec.session(out.session)
         (summary,) = rec.sessions(serial)
     assert len(stored["samples"]) == n and summary["passed"] == out.passed is not None
-    assert summary["status"] == "completed" and summary["store_count"] >= 2
+    assert summary["status"] == "completed" and summary["store_count"] == 1
     con = sqlite3.connect(dbfile)
     assert con.execute("select count(*) from samples").fetchone()[0] == n  # no duplicates after 3 syncs
     con.close()

@@ -27,8 +27,8 @@ def _journal(home, proc_path, sha, **over):
     return folder
 
 
-def _resume(home):
-    env = {**os.environ, "STATION_HOME": str(home)}
+def _resume(home, **env_extra):
+    env = {**os.environ, "STATION_HOME": str(home), **env_extra}
     return subprocess.run([sys.executable, "-c", "from station.cli import main; main()", "resume", "S-1"],
                           capture_output=True, text=True, timeout=60, env=env)
 
@@ -39,7 +39,7 @@ def test_a_planted_procedure_is_never_imported(tmp_path):
     planted.write_text(f'"""Planted."""\nopen({str(marker)!r}, "w").write("imported")\n'
                        "def checklist(s):\n    pass\n")
     _journal(tmp_path / "home", planted, hashlib.sha256(b"the file the session started with").hexdigest())
-    r = _resume(tmp_path / "home")
+    r = _resume(tmp_path / "home", STATION_PROCEDURES=str(tmp_path))  # found by name in a configured folder
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "sha256 differs" in r.stderr, r.stderr
     assert not marker.exists()  # refused before import: its code never ran
 

@@ -5,10 +5,13 @@ a traceback, never another exception, never a hang (pytest-timeout bounds each t
 
 The fast subset runs ``FAST`` examples per property; ``-m slow`` runs ``SLOW`` (set HYPOTHESIS_SLOW_EXAMPLES)."""
 
+import contextlib
 import copy
+import functools
 import json
 import math
 import os
+import re
 import tempfile
 from pathlib import Path
 
@@ -371,3 +374,343 @@ def test_parallel_model_reader_fuzz(doc):
         _one_line(e)
         return
     assert m is not None
+
+
+# ---- every reader through the command line: exit 0/1/2, one line, no internal error, no warning -----------------
+# (docs/reliability.md, "No internal error from a file"). In-process CLI (station.cli.main); Python and numpy
+# warnings are recorded ("always") and must not occur; every stderr line is the station's own ("station: ...").
+def _clean_cli(argv, env: dict | None = None) -> tuple[int, str, str]:
+    import warnings
+    from unittest import mock
+
+    with warnings.catch_warnings(record=True) as caught, mock.patch.dict(os.environ, env or {}):
+        warnings.simplefilter("always")
+        with np.errstate(all="warn", under="ignore"):
+            code, out, err = _cli(argv)
+    assert code in (0, 1, 2), (argv, code, err)
+    assert "Traceback" not in err and "internal error" not in err, (argv, err)
+    assert not caught, (argv, [f"{w.category.__name__}: {w.message}" for w in caught])
+    # a Python/numpy warning prints "FILE:LINE: RuntimeWarning: ..."; the station's own lines say "station: ..."
+    assert not re.search(r"[A-Za-z]*Warning\b", err), (argv, err)
+    assert all(ln.startswith("station: warning: ") for ln in err.splitlines() if "warning" in ln.lower()), (argv, err)
+    if code == 2:
+        lines = err.strip().splitlines()
+        assert lines and lines[-1].startswith("station: error: ") and len(lines[-1]) < 2000, (argv, err)
+        assert sum(ln.startswith("station: error: ") for ln in lines) == 1, (argv, err)
+    return code, out, err
+
+
+# a command line costs 0.1-0.4 s in process: the fast subset runs a dozen per reader, -m slow runs SLOW
+fast_cli = settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+long_cli = settings(max_examples=max(SLOW // 3, 12), deadline=None, suppress_health_check=[HealthCheck.too_slow])
+FUZZ_SIZES = [pytest.param(fast_cli, id="fast"), pytest.param(long_cli, id="long", marks=pytest.mark.slow)]
+JOINTS_UR = "q1[rad],q2[rad],q3[rad],q4[rad],q5[rad],q6[rad]\n0.1,-1.2,1.4,-1.7,-1.5,0.3\n"
+
+
+@pytest.mark.parametrize("runs", FUZZ_SIZES)
+def test_cli_model_file_fuzz(runs, tmp_path):
+    joints = tmp_path / "j.csv"
+    joints.write_text(JOINTS_UR)
+
+    def prop(doc):
+        f = tmp_path / "m.yaml"
+        f.write_text(_yaml(doc))
+        _clean_cli(["model", "show", f])
+        _clean_cli(["fk", "--model", f, "--joints", joints])
+
+    runs(given(mutated(MODEL_DOC))(prop))()
+
+
+# a small URDF: every number and word a file author (or a broken exporter) can get wrong is drawn
+URDF = """<?xml version="1.0"?>
+<robot name="arm2">
+  <link name="base"/><link name="l1"/><link name="l2"/><link name="tool"/>
+  <joint name="j1" type="{type1}"><parent link="base"/><child link="l1"/>
+    <origin xyz="{xyz1}" rpy="{rpy1}"/><axis xyz="{axis1}"/>
+    <limit lower="{lo1}" upper="{hi1}" effort="10" velocity="{v1}"/>
+  </joint>
+  <joint name="j2" type="{type2}"><parent link="l1"/><child link="l2"/>
+    <origin xyz="{xyz2}" rpy="{rpy2}"/><axis xyz="{axis2}"/>
+    <limit lower="{lo2}" upper="{hi2}" effort="10" velocity="{v2}"/>
+  </joint>
+  <joint name="t" type="fixed"><parent link="l2"/><child link="tool"/><origin xyz="{xyz3}" rpy="0 0 0"/></joint>
+</robot>
+"""
+URDF_GOOD = {"type1": "revolute", "type2": "revolute", "xyz1": "0 0 0.1", "rpy1": "0 0 0", "axis1": "0 0 1",
+             "lo1": "-3", "hi1": "3", "v1": "2", "xyz2": "0.2 0 0", "rpy2": "0 0 0", "axis2": "0 1 0", "lo2": "-2",
+             "hi2": "2", "v2": "2", "xyz3": "0.1 0 0"}
+urdf_number = st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(repr),
+                        st.sampled_from(["1e308", "-1e308", "1e-320", "0", "-0", "1e400", "nan", "inf", "abc", "",
+                                         "0x10", "1_0", "\u0661", "3", "-3", "1e9", "1e-9"]))
+urdf_triple = st.one_of(st.lists(urdf_number, min_size=3, max_size=3).map(" ".join),
+                        st.lists(urdf_number, min_size=0, max_size=5).map(" ".join),
+                        st.sampled_from(["0 0 -1e308", "1e308 0 0", "0 0 0", "nan nan nan", "1 1 1"]))
+
+
+@st.composite
+def urdf_text(draw):
+    values = dict(URDF_GOOD)
+    for key in draw(st.lists(st.sampled_from(sorted(URDF_GOOD)), min_size=1, max_size=3, unique=True)):
+        if key.startswith("type"):
+            values[key] = draw(st.sampled_from(["revolute", "prismatic", "continuous", "fixed", "floating", "planar",
+                                                "screw", ""]))
+        elif key[:-1] in ("xyz", "rpy", "axis"):
+            values[key] = draw(urdf_triple)
+        else:
+            values[key] = draw(urdf_number)
+    return URDF.format(**values)
+
+
+@pytest.mark.parametrize("runs", FUZZ_SIZES)
+def test_cli_urdf_fuzz(runs, tmp_path):
+    joints = tmp_path / "j.csv"
+    joints.write_text("q1[rad],q2[rad]\n0.1,-0.2\n")
+
+    def prop(text):
+        f = tmp_path / "arm.urdf"
+        f.write_text(text)
+        _clean_cli(["model", "show", f])
+        _clean_cli(["fk", "--model", f, "--joints", joints])
+
+    runs(given(urdf_text())(prop))()
+
+
+@pytest.mark.parametrize("text", [URDF.format(**{**URDF_GOOD, "xyz2": "1e308 0 0"}),
+                                  URDF.format(**{**URDF_GOOD, "axis2": "0 0 -1e308"}),
+                                  URDF.format(**{**URDF_GOOD, "rpy1": "1e308 0 0"})],
+                         ids=["origin-1e308", "axis-minus-1e308", "rpy-1e308"])
+def test_cli_urdf_issue_cases(tmp_path, text):
+    f = tmp_path / "arm.urdf"
+    f.write_text(text)
+    code, _, err = _clean_cli(["model", "show", f])
+    assert code == 2 and str(f) in err, err
+
+
+@pytest.mark.parametrize("runs", FUZZ_SIZES)
+def test_cli_cell_file_fuzz(runs, tmp_path):
+    """A cell file is read before the robot is opened (the robot here is a serial port that does not exist)."""
+    env = {"STATION_HOME": str(tmp_path / "home")}
+
+    def prop(doc):
+        f = tmp_path / "cell.yaml"
+        f.write_text(_yaml(doc))
+        _clean_cli(["run", "zero_offsets", "--robot", "dynamixel:///nonexistent/tty?model=omx", "--serial", "S",
+                    "--cell", f], env)
+
+    runs(given(mutated(CELL_DOC))(prop))()
+
+
+@pytest.mark.parametrize("runs", FUZZ_SIZES)
+def test_cli_world_file_fuzz(runs, tmp_path):
+    """``station mock world cell``: the world file read, its models built with the hidden errors, a cell
+    written."""
+    def prop(doc):
+        f = tmp_path / "w.yaml"
+        f.write_text(_yaml(doc))
+        _clean_cli(["mock", "world", "cell", f, "--out", tmp_path / "cell-out.yaml"])
+
+    runs(given(mutated(_world_doc()))(prop))()
+
+
+CALIBRATION_DOC = {"format": "station-calibration/1", "units": "SI (m, rad)", "model": "ur5e",
+                   "parameters": {"offset.j2": {"value": 0.003, "std": 1e-5, "identifiable": True, "reason": None,
+                                                "nominal": 0.0, "kind": "model", "unit": "rad"},
+                                  "tcp.z": {"value": 0.1, "std": None, "identifiable": False, "reason": "weak",
+                                            "nominal": 0.1, "kind": "model", "unit": "m"}},
+                   "residuals": {}, "rank": 1, "n_parameters": 2, "converged": True, "iterations": 3}
+
+
+@pytest.mark.parametrize("runs", FUZZ_SIZES)
+def test_cli_calibration_file_fuzz(runs, tmp_path):
+    joints = tmp_path / "j.csv"
+    joints.write_text(JOINTS_UR)
+
+    def prop(doc):
+        f = tmp_path / "c.json"
+        f.write_text(json.dumps(doc))
+        _clean_cli(["fk", "--model", "ur5e", "--joints", joints, "--calibration", f])
+
+    runs(given(mutated(CALIBRATION_DOC))(prop))()
+
+
+# ---- journals: a real session's journal (zero_offsets on the emulated OMX), one event edited -------------------
+JOURNAL = Path(__file__).parent / "data" / "journal_zero_offsets_omx.jsonl"
+
+
+def _journal_lines() -> list[dict]:
+    """The recorded journal, made resumable here: its header names the shipped procedure and limits as they are
+    now and a robot port that does not exist (resume stops at opening it, after every journal check)."""
+    from station.engine.limits import load_limits
+    from station.engine.procedure import load_procedure
+
+    lines = [json.loads(x) for x in JOURNAL.read_text().splitlines()]
+    lines[0].update(procedure_sha256=load_procedure("zero_offsets").sha256, procedure_path="zero_offsets.py",
+                    limits={**lines[0]["limits"], "path": None, "sha256": load_limits(None).sha256},
+                    url="dynamixel:///nonexistent/tty?model=omx&ids=11,12,13,14&contact=200")
+    return lines
+
+
+JOURNAL_LINES = _journal_lines()
+EVENT_TYPES = sorted({d["type"] for d in JOURNAL_LINES})
+
+
+@st.composite
+def edited_journal(draw) -> list[dict]:
+    lines = copy.deepcopy(JOURNAL_LINES)
+    kind = draw(st.sampled_from(EVENT_TYPES))
+    i = draw(st.sampled_from([k for k, d in enumerate(lines) if d["type"] == kind]))
+    lines[i] = draw(mutated(lines[i]))
+    return lines
+
+
+def _write_journal(folder: Path, lines: list[dict], end: bool) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "journal.jsonl"
+    path.write_text("".join(json.dumps(d) + "\n" for d in lines if end or d.get("type") != "end"))
+    return path
+
+
+@pytest.mark.parametrize("runs", FUZZ_SIZES)
+def test_cli_journal_fuzz(runs, tmp_path):
+    """``records sync`` (read, project, store) and ``resume`` (header, procedure by name, limits, plan, cell,
+    options: all checked before the robot is opened) of a journal with one event edited; the long run also
+    rebuilds the report."""
+    env = {"STATION_HOME": str(tmp_path / "home")}
+    db = f"sqlite:///{tmp_path / 'r.db'}"
+    report = runs is long_cli
+
+    def prop(lines):
+        done = _write_journal(tmp_path / "done", lines, end=True)
+        _clean_cli(["records", "sync", done, "--db", db], env)
+        if report:
+            _clean_cli(["report", done, "--out", tmp_path / "report"], env)
+        folder = tmp_path / "home" / "sessions" / "S-fuzz"
+        _write_journal(folder, lines, end=False)
+        code, _, err = _clean_cli(["resume", folder, "--db", db], env)
+        assert code == 2, err  # the robot is never reached; every journal problem is one line before it
+
+    runs(given(edited_journal())(prop))()
+
+
+@pytest.mark.parametrize("where, value, says", [
+    (("plan", "plan", "poses", 2, "approach_q", 1), "abc", "field plan.poses[2].approach_q"),
+    (("plan", "plan", "poses", 1, "q"), [0.1, 0.2], "field plan.poses[1].q: expected 4 joint values, got 2"),
+    (("plan", "plan", "poses", 1, "set"), "fit ", "field plan.poses[1].set"),
+    (("plan", "plan", "poses", 3, "approach_q", 0), 1e308, "field plan.poses[3].approach_q"),
+    (("sample", "measured"), [0.1, 0.2], "field measured: expected [x, y, z]"),
+    (("header", "options", "n_holdout"), "4", "field options.n_holdout"),
+    (("header", "options", "cone_deg"), 1e308, "field options.cone_deg"),
+    (("header", "cell", "points", 0, "position", 2), "abc", "field cell: points[0].position"),
+    (("header", "cell", "points", 0, "approach"), [0, 0, 0], "field cell: points[0].approach"),
+    (("header", "cell", "points", 0, "radius"), -1, "field cell: points[0].radius"),
+])
+def test_journal_issue_cases(tmp_path, where, value, says):
+    """The issue's journal: ``approach_q`` holding a string (was "ValueError: setting an array element with a
+    sequence" after the robot had been opened) and its relatives: one line naming the journal, its line and the
+    field, from every command that reads it."""
+    lines = copy.deepcopy(JOURNAL_LINES)
+    i = next(k for k, d in enumerate(lines) if d["type"] == where[0])
+    node = lines[i]
+    for k in where[1:-1]:
+        node = node[k]
+    node[where[-1]] = value
+    env = {"STATION_HOME": str(tmp_path / "home")}
+    folder = tmp_path / "home" / "sessions" / "S-1"
+    path = _write_journal(folder, lines, end=False)
+    # what resume alone acts on (the header's cell and options) is checked by resume; the rest by every reader
+    readers = [["resume", "S-1"]] + ([] if where[0] == "header" else
+                                     [["records", "sync", "S-1", "--db", f"sqlite:///{tmp_path / 'r.db'}"]])
+    for argv in readers:
+        code, _, err = _clean_cli(argv, env)
+        assert code == 2 and f"{path}:{i + 1}: {says}" in err, (argv, err)
+
+
+# ---- correction maps (station-map/1) ---------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def map_files(tmp_path_factory):
+    """A real map of the planar two-strut robot with hidden errors (plan, 'measure' with the true model, build),
+    and a readings and a targets file for ``map correct`` / ``map apply``."""
+    d = tmp_path_factory.mktemp("map")
+    truth = load_model("struts2").with_params({"strut.1.offset": 2.5e-4, "pivot.2.y": -6e-4})
+    assert _cli(["map", "plan", "--model", "struts2", "--grid", "2", "--out", d / "plan.csv"])[0] == 0
+    rows = [r.split(",") for r in (d / "plan.csv").read_text().splitlines() if r and not r.startswith("#")]
+    x = np.array([[float(v) for v in r] for r in rows[1:]])
+    xy = truth.fk(x)[:, :2, 3]
+    (d / "m.csv").write_text("x1,x2,x,y\n" + "".join(",".join(repr(float(v)) for v in (*a, *b)) + "\n"
+                                                     for a, b in zip(x, xy, strict=True)))
+    code, _, err = _cli(["map", "build", "--model", "struts2", "--samples", d / "m.csv", "--out", d / "map.json"])
+    assert code == 0, err
+    (d / "readings.csv").write_text("x1,x2\n" + "".join(f"{a!r},{b!r}\n" for a, b in x[:3]))
+    (d / "targets.csv").write_text("x,y\n" + "".join(f"{a!r},{b!r}\n" for a, b in xy[:3]))
+    return d, json.loads((d / "map.json").read_text())
+
+
+@pytest.mark.parametrize("runs", FUZZ_SIZES)
+def test_cli_map_file_fuzz(runs, map_files, tmp_path):
+    d, base = map_files
+
+    def prop(doc):
+        f = tmp_path / "map.json"
+        f.write_text(json.dumps(doc))
+        _clean_cli(["map", "correct", "--model", "struts2", "--map", f, "--joints", d / "readings.csv",
+                    "--out", tmp_path / "o.csv"])
+        _clean_cli(["map", "apply", "--model", "struts2", "--map", f, "--poses", d / "targets.csv",
+                    "--out", tmp_path / "o.csv"])
+
+    runs(given(mutated(base))(prop))()
+
+
+# ---- robot URLs ---------------------------------------------------------------------------------------------------
+URL_SCHEMES = ("ur", "dynamixel", "canopen+virtual", "canopen+socketcand")
+
+
+@functools.cache
+def _url_options() -> dict[str, list[str]]:
+    """Each driver's URL option names (imports the drivers: only when a URL is drawn)."""
+    from station.robot.registry import driver_class
+
+    return {s: [o.name for o in driver_class(s).options] for s in URL_SCHEMES}
+url_value = st.one_of(st.sampled_from(["", "0", "1", "-1", "nan", "inf", "-inf", "1e308", "1e-320", "99999999999",
+                                       "1-6", "11,12,14", "6-1", "0-255", "0-300", "omx", "ur5e", "ur10e", "arm6",
+                                       "scara", "hexapod", "/etc/passwd", "../x", "%00", "yes", "any", "XM430-W350"]),
+                      st.floats(allow_nan=True, allow_infinity=True).map(repr), st.integers(-10**20, 10**20).map(str),
+                      st.text(max_size=12))
+
+
+@st.composite
+def robot_urls(draw) -> str:
+    from urllib.parse import quote
+
+    scheme = draw(st.sampled_from([*URL_SCHEMES, "UR", "ftp", "canopen", "", "ur+x"]))
+    names = _url_options().get(scheme.lower(), ["model"]) + ["bogus"]
+    query = [(draw(st.sampled_from(names)), draw(url_value)) for _ in range(draw(st.integers(0, 5)))]
+    host = draw(st.sampled_from(["", "127.0.0.1", "[::1]", "[::1", "host:99999", "h:0", "a@b", "ur5", "chan0",
+                                 "192.0.2.7:29536", "%41", "\u00e9t\u00e9"]))
+    path = draw(st.sampled_from(["", "/", "/dev/nonexistent-tty", "/x/../y", "/" + "a" * 300]))
+    q = "&".join(f"{quote(k)}={quote(v, safe='')}" for k, v in query)
+    return f"{scheme}://{host}{path}" + (f"?{q}" if q or draw(st.booleans()) else "")
+
+
+@pytest.mark.parametrize("runs", FUZZ_SIZES)
+def test_cli_robot_url_fuzz(runs, tmp_path):
+    """``station run --robot URL``: every option parsed, the model loaded and checked against the URL, the
+    calibration file a URL may name read, before anything is opened. The drivers' constructors (which open the
+    bus) are replaced by one that refuses: no connection is ever attempted, whatever the URL says."""
+    from unittest import mock
+
+    from station.robot.errors import DeviceFault
+    from station.robot.registry import driver_class
+
+    def refuse(self, *a, **kw):
+        raise DeviceFault("the fuzzed URL was accepted up to opening the bus (not opened)")
+
+    env = {"STATION_HOME": str(tmp_path / "home")}
+
+    def prop(url):
+        with contextlib.ExitStack() as stack:
+            for scheme in URL_SCHEMES:
+                stack.enter_context(mock.patch.object(driver_class(scheme), "__init__", refuse))
+            code, _, err = _clean_cli(["run", "zero_offsets", "--robot", url, "--serial", "S"], env)
+        assert code == 2, err
+
+    runs(given(robot_urls())(prop))()

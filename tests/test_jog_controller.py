@@ -169,7 +169,10 @@ def test_guidance_and_verdict_against_jog_limits(rig):
     rec = session_from_journal(folder)
     assert rec["verdict"]["passed"] is True and rec["verdict"].get("status") is None
     assert [m["name"] for m in rec["verdict"]["measurements"] if m.get("low") is not None or m.get("high")
-            is not None] == ["samples", "identified", "fit_rms", "offset_std_max"]
+            is not None] == ["samples", "forced_samples", "identified", "fit_rms", "offset_std_max"]
+    # no sample was forced: the built-in rule (a forced sample is no touch) passes with 0
+    forced = {m["name"]: m for m in rec["verdict"]["measurements"]}["forced_samples"]
+    assert forced["value"] == 0 and forced["high"] == 0 and forced["passed"]
 
 
 def test_a_jog_session_without_limits_ends_no_limits(rig):

@@ -95,7 +95,9 @@ def test_hold_to_run_on_a_ur_in_a_real_terminal(tmp_path, emulators):
             time.sleep(0.3)
         term.keys("!")  # record here, without contact (the emulated cell's contact input is off)
         term.wait_for("recorded #1")
-        term.keys("C-q")
+        term.keys("C-q")  # a sample kept: quitting asks first
+        term.wait_for("Quit station jog?")
+        term.keys("y")
         out = term.wait_for("EXIT=", timeout=60)
     finally:
         recv.disconnect()

@@ -5,6 +5,7 @@ arrives and check it against the records database and the hidden truth; Abort; r
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import signal
@@ -16,6 +17,7 @@ import time
 import numpy as np
 import pytest
 from station.mocks.world import World
+from test_hostile_fuzz import _cli
 from test_panel_browser import _files, _url
 
 from station.records import open_records
@@ -35,14 +37,14 @@ def _server(tmp_path, url, cell, db, endpoint, *extra):
                             stderr=subprocess.PIPE, text=True)
 
 
-def _unit_server(tmp_path, emulators, seed: int, serial: str, **files):
+def _unit_server(tmp_path, emulators, seed: int, serial: str, *extra: str, **files):
     """An emulated Dynamixel arm (its own process) with hidden offsets and ``station opcua`` for it:
     ``(world_path, db, endpoint, proc)``."""
     world_path, cell_path = _files(tmp_path, seed=seed, **files)
     db = f"sqlite:///{tmp_path / 'r.db'}"
     endpoint = f"opc.tcp://127.0.0.1:{_free_port()}"
     emu = emulators("dynamixel", world_path, serial=serial, process=True)
-    return world_path, db, endpoint, _server(tmp_path, _url(emu), cell_path, db, endpoint)
+    return world_path, db, endpoint, _server(tmp_path, _url(emu), cell_path, db, endpoint, *extra)
 
 
 async def _connect(endpoint: str, proc):
@@ -89,12 +91,13 @@ async def _wait(pred, timeout: float) -> None:
 @pytest.mark.slow
 def test_start_subscribe_verdict_read_result(tmp_path, emulators):
     serial = "DXL-OPC-51"
-    world_path, db, endpoint, proc = _unit_server(tmp_path, emulators, 51, serial)
+    world_path, db, endpoint, proc = _unit_server(tmp_path, emulators, 51, serial, "--users",
+                                                  str(_users_file(tmp_path)))
 
     async def scenario():
         from asyncua import ua
 
-        client = await _connect(endpoint, proc)
+        client = await _signed_in(endpoint, proc, "mes", "mes-pass-1")  # rights read and operate
         try:
             idx, station, n = await _station_nodes(client)
             assert await n["State"].read_value() == "idle" and await n["Verdict"].read_value() == ""
@@ -128,7 +131,7 @@ def test_start_subscribe_verdict_read_result(tmp_path, emulators):
     assert result["session"] == session and result["verdict"] == "PASS" and result["stored"] is True
     with open_records(db) as rec:  # PASS on the line means the record is in the database
         stored = rec.session(session)
-    assert stored["verdict"]["passed"] is True and stored["operator"] == "line"
+    assert stored["verdict"]["passed"] is True and stored["operator"] == "mes"  # who started it, by name
     for name, p in result["parameters"].items():
         if name.startswith("offset.") and p["identifiable"]:
             assert p["value"] == pytest.approx(stored["result"]["parameters"][name]["value"], abs=1e-12)
@@ -199,7 +202,7 @@ def test_basic256sha256_endpoint_refuses_unencrypted_clients(tmp_path):
     ccert, ckey = _cert(tmp_path, "client")
     endpoint = f"opc.tcp://127.0.0.1:{_free_port()}"
     proc = _server(tmp_path, "dynamixel:///dev/null?model=omx", cell_path, f"sqlite:///{tmp_path / 'r.db'}",
-                   endpoint, "--cert", str(cert), "--key", str(key))
+                   endpoint, "--cert", str(cert), "--key", str(key), "--users", str(_users_file(tmp_path)))
 
     async def scenario():
         end = time.monotonic() + 60
@@ -218,6 +221,8 @@ def test_basic256sha256_endpoint_refuses_unencrypted_clients(tmp_path):
         secure = Client(endpoint, timeout=30)  # RSA handshakes on a loaded 2-core host
         secure.application_uri = "urn:client"
         await secure.set_security_string(f"Basic256Sha256,SignAndEncrypt,{ccert},{ckey}")
+        secure.set_user("scada")  # the password travels encrypted under the endpoint's policy
+        secure.set_password("scada-pass-1")
         await secure.connect()
         try:
             _, _, n = await _station_nodes(secure)
@@ -230,3 +235,151 @@ def test_basic256sha256_endpoint_refuses_unencrypted_clients(tmp_path):
     finally:
         proc.send_signal(signal.SIGINT)
         proc.communicate(timeout=30)
+
+
+# ---- users and rights ----------------------------------------------------------------------------------------
+def _users_file(tmp_path):
+    from station.opcua.users import hash_password
+
+    f = tmp_path / "users.yaml"
+    f.write_text("format: station-opcua-users/1\nusers:\n"
+                 f"  - name: mes\n    password: {hash_password('mes-pass-1')}\n    rights: [read, operate]\n"
+                 f"  - name: scada\n    password: {hash_password('scada-pass-1')}\n    rights: [read]\n")
+    return f
+
+
+async def _signed_in(endpoint: str, proc, user: str | None, password: str | None):
+    from asyncua import Client
+
+    end = time.monotonic() + 60
+    while True:
+        client = Client(endpoint, timeout=10, watchdog_intervall=10.0)
+        if user is not None:
+            client.set_user(user)
+            client.set_password(password)
+        try:
+            await client.connect()
+            return client
+        except (OSError, TimeoutError):
+            if proc.poll() is not None or time.monotonic() > end:
+                raise AssertionError(proc.communicate()) from None
+            await asyncio.sleep(0.3)
+
+
+@pytest.mark.slow
+def test_users_and_rights_read_and_operate(tmp_path):
+    """With a users file: no anonymous session, no wrong password, five wrong ones lock the name; ``read`` may
+    browse, read and subscribe but not call Start/Abort nor write; ``operate`` may call them (and is still
+    refused a procedure given as a path). Nothing starts for a refused call."""
+    from asyncua import ua
+
+    _, cell_path = _files(tmp_path, seed=55)
+    marker = tmp_path / "attacker-code-ran"
+    (tmp_path / "evil.py").write_text(f'"""Evil."""\nopen({str(marker)!r}, "w")\ndef checklist(s):\n    pass\n')
+    endpoint = f"opc.tcp://127.0.0.1:{_free_port()}"
+    proc = _server(tmp_path, "dynamixel:///dev/null?model=omx", cell_path, f"sqlite:///{tmp_path / 'r.db'}", endpoint,
+                   "--users", str(_users_file(tmp_path)))
+
+    async def refused(user, password) -> str:
+        from asyncua import Client
+
+        c = Client(endpoint, timeout=10)
+        if user is not None:
+            c.set_user(user)
+            c.set_password(password)
+        with pytest.raises(ua.UaStatusCodeError) as e:
+            await c.connect()
+        with contextlib.suppress(Exception):
+            await c.disconnect()
+        return type(e.value).__name__
+
+    async def scenario():
+        reader = await _signed_in(endpoint, proc, "scada", "scada-pass-1")
+        try:
+            _, station, n = await _station_nodes(reader)
+            assert await n["State"].read_value() == "idle"
+            sub = await reader.create_subscription(50, _Verdicts())  # subscribing is reading
+            await sub.subscribe_data_change(n["Verdict"])
+            for call in (lambda: station.call_method(n["Start"], ua.Variant("SN-R", ua.VariantType.String),
+                                                     ua.Variant("", ua.VariantType.String)),
+                         lambda: station.call_method(n["Abort"]),
+                         lambda: n["State"].write_value("done")):
+                with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                    await call()
+            assert await n["State"].read_value() == "idle" and await n["Serial"].read_value() == ""
+        finally:
+            await reader.disconnect()
+        assert await refused(None, None) == "BadIdentityTokenRejected"  # anonymous
+        assert await refused("scada", "wrong") == "BadUserAccessDenied"
+        assert await refused("nobody", "scada-pass-1") == "BadUserAccessDenied"
+        operator = await _signed_in(endpoint, proc, "mes", "mes-pass-1")
+        try:
+            _, station, n = await _station_nodes(operator)
+            for serial, procedure, code in (("BAD SERIAL", "", "BadInvalidArgument"),
+                                            ("SN-O", str(tmp_path / "evil.py"), "BadInvalidArgument"),
+                                            ("SN-O", "evil", "BadInvalidArgument")):
+                with pytest.raises(ua.UaStatusCodeError) as e:
+                    await station.call_method(n["Start"], ua.Variant(serial, ua.VariantType.String),
+                                              ua.Variant(procedure, ua.VariantType.String))
+                assert type(e.value).__name__ == code, (serial, procedure, e.value)
+            with pytest.raises(ua.uaerrors.BadInvalidState):  # the call is allowed; nothing is running
+                await station.call_method(n["Abort"])
+            with pytest.raises(ua.uaerrors.BadUserAccessDenied):  # operate is not write
+                await n["Verdict"].write_value("PASS")
+            assert await n["State"].read_value() == "idle"
+        finally:
+            await operator.disconnect()
+        for _ in range(5):
+            await refused("mes", "guess")
+        assert await refused("mes", "mes-pass-1") == "BadUserAccessDenied"  # locked for a minute
+
+    try:
+        asyncio.run(scenario())
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=30)
+    assert not marker.exists() and not (tmp_path / "home" / "sessions").exists()
+
+
+@pytest.mark.parametrize("text, says", [
+    ("format: station-opcua-users/1\nusers:\n  - name: a\n    password: hunter2\n    rights: [read]\n",
+     ":4: users[0].password: expected a scrypt hash"),
+    ("format: station-opcua-users/1\nusers:\n  - name: a\n    password: HASH\n    rights: [admin]\n",
+     ":5: users[0].rights: expected a list of read and operate"),
+    ("format: station-opcua-users/1\nusers:\n  - name: a\n    password: HASH\n    rights: [read]\n"
+     "  - name: a\n    password: HASH\n    rights: [read]\n", ":6: users[1].name: user 'a' appears twice"),
+    ("format: station-opcua-users/2\nusers: []\n", ":1: format"),
+])
+def test_bad_users_file_is_one_line(tmp_path, text, says):
+    world_path, cell_path = _files(tmp_path, seed=56)
+    from station.opcua.users import hash_password
+
+    f = tmp_path / "users.yaml"
+    f.write_text(text.replace("HASH", hash_password("x" * 8)))
+    code, _, err = _cli(["opcua", "--robot", "dynamixel:///dev/null?model=omx", "--cell", cell_path,
+                         "--endpoint", "opc.tcp://127.0.0.1:4899", "--users", f])  # refused before it listens
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("station: error: users file"), err
+    assert says in lines[0], lines[0]
+
+
+def test_off_loopback_without_users_is_refused(tmp_path):
+    _, cell_path = _files(tmp_path, seed=57)
+    cert, key = _cert(tmp_path, "station")
+    proc = _server(tmp_path, "dynamixel:///dev/null?model=omx", cell_path, "sqlite:///x.db",
+                   "opc.tcp://0.0.0.0:4898", "--cert", str(cert), "--key", str(key))
+    out, err = proc.communicate(timeout=60)
+    lines = err.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "users file" in lines[0] and "anonymous" in lines[0], err
+
+
+def test_users_entry_helper(monkeypatch, capsys):
+    from station.opcua import users
+
+    answers = iter(["line-pass-77", "line-pass-77"])
+    monkeypatch.setattr("getpass.getpass", lambda prompt="": next(answers))
+    assert users.main(["mes", "operate"]) == 0
+    entry = capsys.readouterr().out
+    stored = entry.split("password: ")[1].split()[0]
+    assert "line-pass-77" not in entry and "rights: [read, operate]" in entry
+    assert users.verify_password("line-pass-77", stored) and not users.verify_password("line-pass-78", stored)

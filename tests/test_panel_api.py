@@ -18,9 +18,14 @@ from station.engine import read_journal
 
 
 def _call(base: str, method: str, path: str, body=None, headers=None) -> tuple[int, dict]:
+    """A script's request: a state change carries a CSRF token from ``GET /api/csrf`` (docs/panel.md)."""
     data = None if body is None else json.dumps(body).encode()
-    req = urllib.request.Request(base + path, data=data, method=method,
-                                 headers={"Content-Type": "application/json", **(headers or {})})
+    headers = {"Content-Type": "application/json", **(headers or {})}
+    if method != "GET":
+        code, got = _call(base, "GET", "/api/csrf", headers=headers)
+        if code == 200:
+            headers["X-CSRF-Token"] = got["csrf"]
+    req = urllib.request.Request(base + path, data=data, method=method, headers=headers)
     try:
         with urllib.request.urlopen(req, timeout=30) as r:
             return r.status, json.loads(r.read() or b"{}")

@@ -45,8 +45,10 @@ LIMITS = ('format: station-limits/1\nversion: "t-live"\nmodels:\n  omx:\n    ask
 
 
 def _post(base: str, path: str, body: dict) -> tuple[int, dict]:
+    with urllib.request.urlopen(base + "/api/csrf", timeout=10) as r:  # a script's state change: its CSRF token
+        csrf = json.loads(r.read())["csrf"]
     req = urllib.request.Request(base + path, data=json.dumps(body).encode(), method="POST",
-                                 headers={"Content-Type": "application/json"})
+                                 headers={"Content-Type": "application/json", "X-CSRF-Token": csrf})
     try:
         with urllib.request.urlopen(req, timeout=10) as r:
             return r.status, json.loads(r.read())

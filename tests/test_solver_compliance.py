@@ -148,8 +148,8 @@ def test_cli_solve_identifies_compliance(world, tmp_path):
 
 
 def test_cli_compliance_prior_with_its_unit(world, tmp_path):
-    """``--prior compliance=1e-7rad/Nm`` (far below the hidden values) holds the estimates near nominal;
-    a bad unit is a one-line error, exit 2."""
+    """``--prior compliance=1e-7rad/Nm`` (far below the hidden values) is read with its unit (and contradicted by
+    the data); a bad unit is a one-line error, exit 2."""
     obs = touches(world, 12, np.random.default_rng(9))
     f = tmp_path / "s.csv"
     f.write_text(",".join(f"q{j + 1}[rad]" for j in range(6)) + ",point\n"
@@ -162,6 +162,9 @@ def test_cli_compliance_prior_with_its_unit(world, tmp_path):
                    timeout=120)
     doc = json.loads(out.read_text())
     assert doc["settings"]["priors"]["compliance.j3"] == pytest.approx(1e-7)
-    assert abs(doc["parameters"]["compliance.j3"]["value"]) < 5e-7  # held by its prior, not the data
+    # the data contradict so tight a prior and determine the compliance: the conflict is named, the prior freed
+    c = {c["parameter"]: c for c in doc["conflicts"]}
+    assert c["compliance.j3"]["freed"] and c["compliance.j3"]["prior_std"] == pytest.approx(1e-7)
+    assert doc["parameters"]["compliance.j3"]["prior_share"] == 0.0 and doc["trusted"]
     p = subprocess.run([*base, "--prior", "compliance=xrad/Nm"], capture_output=True, text=True, timeout=120)
     assert p.returncode == 2 and p.stderr.startswith("station: error: --prior") and len(p.stderr.splitlines()) == 1

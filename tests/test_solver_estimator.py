@@ -166,10 +166,18 @@ def test_converges_from_5mm_2deg_errors():
     assert res.converged and res.trusted and res.iterations < 30
     assert res.residuals["rms_before_m"] > 5e-3
     assert_within(res, {**d, **lengths, "tcp.z": 0.125})
-    # with the default tolerances the data contradict the prior: refused, naming the parameters
+    # with the default tolerances the data contradict the prior: the data determine the lengths, so each
+    # conflict is named with the data's estimate and std, its prior freed, the result the same and trusted
     res = solve(nominal, obs, spec, {k: v for k, v in pts.items()})
-    assert not res.trusted and res.failure.startswith("prior-data conflict")
-    assert all(n in res.failure for n in lengths)
+    assert res.trusted, res.failure
+    got = {c["parameter"]: c for c in res.conflicts}
+    assert set(lengths) <= set(got) and all(got[n]["freed"] for n in lengths)
+    for n, v in lengths.items():
+        c = got[n]
+        assert abs(c["data_offset"] - (v - nominal.params[nominal.index(n)])) < 5 * c["data_std"]
+        assert res.parameters[n].prior_share == 0.0 and res.parameters[n].prior_std == 5e-4
+    assert any(s.startswith("prior-data conflict: ") and "estimated from the data alone" in s for s in res.notes)
+    assert_within(res, {**d, **lengths, "tcp.z": 0.125})
 
 
 def test_scara_and_omx_offsets():

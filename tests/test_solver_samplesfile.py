@@ -93,3 +93,32 @@ def test_prismatic_joint_rejects_angle_unit(tmp_path):
     p.write_text("q1[deg],q2[deg],q3[mm],q4[deg]\n90,0,100,0\n")
     q, _ = read_joints(p, load_model("scara"))
     np.testing.assert_allclose(q, [[np.pi / 2, 0, 0.1, 0]])
+
+
+def test_readings_beyond_the_limits_are_data_with_one_warning_per_joint(tmp_path):
+    """A real recording (MUKCa, Kinova Gen3 lite: joint 6 read 2.43 rad with the URDF's limits +-2.09) is used as
+    recorded; the warning names the joint, how many readings and how far. Degrees stay refused where they fit."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    data = Path(__file__).parent / "data" / "mukca"
+    m = load_model(data / "gen3lite.urdf", tip_link="ball_link")
+    rows = []
+    for h, lab in ((0, "A"), (1, "B")):
+        rows += [ln.strip() + f",{lab}" for ln in (data / "dinova_2" / "front" / f"hole_{h}.csv").read_text().split()]
+    f = tmp_path / "s.csv"
+    f.write_text("q1,q2,q3,q4,q5,q6,point\n" + "\n".join(rows) + "\n")
+    s = read_samples(f, m)
+    assert len(s.q) == len(rows) and np.abs(s.q[:, 5]).max() > 2.09 + np.radians(5)
+    (w,) = s.warnings
+    assert w.startswith(f"{f}: q6 (joint_6): ") and "beyond the joint limits [-2.09, 2.09] rad, by up to" in w
+    station = str(Path(sys.executable).with_name("station"))
+    r = subprocess.run([station, "fk", "--model", str(data / "gen3lite.urdf"), "--tip-link", "ball_link",
+                        "--joints", str(f)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stderr.startswith("station: warning: ") and len(r.stderr.splitlines()) == 1
+    q = s.q.copy()
+    q[:, 2] = np.degrees(q[:, 2])  # a column in degrees under a radian header: still a unit slip, refused
+    f.write_text("q1,q2,q3,q4,q5,q6\n" + "\n".join(",".join(f"{v:.9g}" for v in r_) for r_ in q) + "\n")
+    with pytest.raises(SamplesFileError, match="degrees in a radian column"):
+        read_joints(f, m)

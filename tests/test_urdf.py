@@ -103,16 +103,27 @@ def _fails(tmp_path, text, match, **kw):
 
 def test_ambiguous_or_unknown_links_are_one_line_errors_listing_candidates(tmp_path):
     msg = _fails(tmp_path, robots.arm7_urdf(), "several chain ends")
-    assert "finger_left" in msg and "finger_right" in msg and "ball" not in msg  # ball: one joint fewer
+    # every chain end is named with its number of joints, the longest first
+    assert "finger_left (8 joints), finger_right (8 joints), ball (7 joints)" in msg
     _fails(tmp_path, robots.arm7_urdf(), r"no link 'palm' for the tip link \(links: arm_link0", tip_link="palm")
     _fails(tmp_path, robots.arm7_urdf(), "base link 'hand' is not on the path to tip link 'arm_link3'",
            tip_link="arm_link3", base_link="hand")
 
 
-def test_mimic_on_the_chain_is_refused_off_the_chain_ignored(tmp_path):
-    msg = _fails(tmp_path, robots.arm7_urdf(mimic_on_chain=True), r"arm_joint4.*mimic", tip_link="ball")
-    assert msg.startswith(str(tmp_path / "bad.urdf") + ":")  # file:line
-    load_model(robots.write(tmp_path, "arm7"), tip_link="ball")  # the fingers' mimic is off the chain
+def test_mimic_on_the_chain_is_a_joint_of_its_own_off_the_chain_ignored(tmp_path):
+    p = tmp_path / "mimic.urdf"
+    p.write_text(robots.arm7_urdf(mimic_on_chain=True))
+    m = load_model(p, tip_link="ball")  # the joint state lists a mimic joint's reading: it is a column
+    assert [j.name for j in m.joints][3] == "arm_joint4" and m.n_joints == 7
+    (w,) = m.source["warnings"]
+    assert w.startswith(f"{p}:") and "'arm_joint4' mimics 'arm_joint1'" in w and "\n" not in w
+    u = _evaluator(p)  # the same transforms, the mimic joint at the value it mimics (multiplier 1)
+    for q in _q(m, 10, np.random.default_rng(1)):
+        q[3] = q[0]
+        u.update_cfg(dict.fromkeys(u.actuated_joint_names, 0.0) | {j.name: v for j, v in zip(m.joints, q, strict=True)
+                                                                    if j.name in u.actuated_joint_names})
+        np.testing.assert_allclose(m.fk(q), u.get_transform("ball", u.base_link), atol=TOL)
+    assert load_model(robots.write(tmp_path, "arm7"), tip_link="ball").source["warnings"] == []  # fingers: off
 
 
 def test_closed_loops_and_bad_joints_are_refused_with_file_and_line(tmp_path):
@@ -126,8 +137,12 @@ def test_closed_loops_and_bad_joints_are_refused_with_file_and_line(tmp_path):
              '<joint name="ba" type="fixed"><parent link="b"/><child link="a"/></joint></robot>')
     _fails(tmp_path, cycle, "closed loop")
     _fails(tmp_path, ur.replace('type="revolute"', 'type="floating"', 1), "floating joint cannot be part")
-    _fails(tmp_path, ur.replace('lower="-6.283185307179586" upper="6.283185307179586"', "", 1),
-           "lower < upper")
+    # a moving joint without a range is accepted (urdfdom does), with a warning naming the element
+    p = tmp_path / "norange.urdf"
+    p.write_text(ur.replace('lower="-6.283185307179586" upper="6.283185307179586"', "", 1))
+    m = load_model(p)
+    assert (m.joints[0].lower, m.joints[0].upper) == (-2 * math.pi, 2 * math.pi)
+    assert any("gives the joint no range" in w and w.startswith(f"{p}:") for w in m.source["warnings"])
     _fails(tmp_path, ur.replace('<axis xyz="0 0 1"/>', '<axis xyz="0 0 0"/>', 1), "zero axis")
     _fails(tmp_path, ur.replace('rpy="0 0 3.141592653589793"', 'rpy="0 0 pi"', 1), r":\d+: <origin rpy='0 0 pi'>")
     _fails(tmp_path, ur.replace('<child link="link3"/>', '<child link="link33"/>'),

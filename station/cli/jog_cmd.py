@@ -158,11 +158,19 @@ def register(app: typer.Typer) -> None:
         finally:
             ctl.close()
             rob.close()
-        store_in_records(ctl.session.folder, db)
-        typer.echo(f"session saved: {ctl.session.folder}\n"
-                   f"  verdict: {ctl.verdict_text or 'none'} (limits: {ctl.judged_as} for {rob.model.name}"
-                   f"{'' if ctl.limits else ', none defined'})\n"
-                   f"  solve it: {ctl.solve_command()}")
+        kept = ctl.session.samples
+        if not kept:  # nothing to judge, store or solve: say only that (the journal stays in the folder)
+            typer.echo(f"no samples kept: the session is not stored in the records database; its journal stays in "
+                       f"{ctl.session.folder}")
+        else:
+            store_in_records(ctl.session.folder, db)
+            forced = ctl.solve_state.forced
+            typer.echo(f"session saved: {ctl.session.folder}\n"
+                       f"  verdict: {ctl.verdict_text or 'none'} (limits: {ctl.judged_as} for {rob.model.name}"
+                       f"{'' if ctl.limits else ', none defined'})\n"
+                       + (f"  {forced} of {len(kept)} samples forced (recorded without contact): no calibration "
+                          "from them\n" if forced else "")
+                       + f"  solve it: {ctl.solve_command()}")
         if app.interrupted is not None:  # SIGTERM/SIGINT: quit cleanly as ctrl+q does, exit status 130
             typer.echo(f"station: interrupted ({signal.Signals(app.interrupted).name}); robot stopped, session "
                        "saved", err=True)

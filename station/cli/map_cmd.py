@@ -22,6 +22,7 @@ from station.cli.helpgroup import HelpGroup
 from station.cli.model_options import PAYLOAD
 from station.lazy import lazy_module
 from station.robot.errors import ConfigError
+from station.safeio import DuplicateKeyError, loads_strict
 from station.samplesfile import ANGLE_UNITS, LENGTH_UNITS, SamplesFileError, Table, read_table
 
 np = lazy_module("numpy")  # imported on first use (station.lazy: start-up of every command)
@@ -184,9 +185,11 @@ def _load_map(path: Path):
     from station.solver.map import CorrectionMap, MapError
 
     try:
-        doc = json.loads(Path(path).read_text())
+        doc = loads_strict(Path(path).read_text(), str(path))
     except FileNotFoundError:
         raise _fail(f"{path}: no such file") from None
+    except DuplicateKeyError as e:
+        raise _fail(str(e)) from None
     except (OSError, UnicodeDecodeError) as e:
         raise _fail(f"{path}: cannot read ({e})") from None
     except json.JSONDecodeError as e:
@@ -308,10 +311,12 @@ def build_command(
     cal, source = None, None
     if calibration is not None:
         try:
-            res = CalibrationResult.from_dict(json.loads(Path(calibration).read_text()))
+            res = CalibrationResult.from_dict(loads_strict(Path(calibration).read_text(), str(calibration)))
             res.calibrated(m)
         except FileNotFoundError:
             raise _fail(f"{calibration}: no such file") from None
+        except DuplicateKeyError as e:
+            raise _fail(str(e)) from None
         except json.JSONDecodeError as e:
             raise _fail(f"{calibration}: line {e.lineno}: not valid JSON") from None
         except (OSError, ValueError, KeyError) as e:

@@ -67,7 +67,17 @@ def load_cli_model(model: str, tip_link: str | None = None, base_link: str | Non
     from station.kinematics import load_model
 
     m = load_model(model, tip_link=tip_link, base_link=base_link)  # ModelFileError: one line, exit 2
+    warn_lines((getattr(m, "source", None) or {}).get("warnings") or [])
     if payload:
         mass, com = parse_payload(payload)
         m = m.with_payload(mass, com)
     return m
+
+
+def warn_lines(lines) -> None:
+    """What the station accepted but the user should know (a URDF limit it ignores, readings beyond a joint's
+    limits): one ``station: warning: ...`` line each on stderr; stdout stays the command's data."""
+    import sys
+
+    for line in lines:
+        print(f"station: warning: {line}", file=sys.stderr, flush=True)

@@ -13,7 +13,7 @@ def opcua(
     robot: str = typer.Option(..., "--robot", help="Robot URL."),
     cell: Path = typer.Option(..., "--cell", help="Cell file (reference points)."),
     endpoint: str = typer.Option("opc.tcp://127.0.0.1:4840", "--endpoint", help="OPC UA endpoint (loopback "
-                                 "unless configured; off loopback Basic256Sha256 with --cert/--key)."),
+                                 "unless configured; off loopback Basic256Sha256 with --cert/--key and --users)."),
     procedure: str = typer.Option("zero_offsets", "--procedure", help="Default procedure of Start."),
     limits: Path = typer.Option(None, "--limits", help="Limits file (default: procedures/limits.yaml)."),
     db: str = typer.Option(None, "--db", help="Records database URL."),
@@ -24,6 +24,8 @@ def opcua(
     cert: Path = typer.Option(None, "--cert", help="Server certificate for Basic256Sha256."),
     key: Path = typer.Option(None, "--key", help="Server private key (PEM) for Basic256Sha256."),
     trust: Path = typer.Option(None, "--trust", help="Folder of trusted client certificates."),
+    users: Path = typer.Option(None, "--users", help="Users file: names, password hashes, rights read/operate "
+                               "(required off loopback; docs/opcua.md)."),
 ) -> None:
     """OPC UA server: object Station (State, Serial, Procedure, Step, Progress, Verdict, LastResult;
     Start(serial, procedure) -> session, Abort())."""
@@ -34,7 +36,7 @@ def opcua(
     from station.opcua.server import OpcuaOptions, check_security, serve_forever
     from station.panel import Controller, PanelConfig
 
-    opts = OpcuaOptions(endpoint, cert, key, trust)
+    opts = OpcuaOptions(endpoint, cert, key, trust, users=users)
     check_security(opts)
     cfg = PanelConfig(robot=robot, cell=str(cell), procedure=procedure, limits=str(limits) if limits else None,
                       db=db, options=_options(poses, holdout, cone, reference, None), confirm=False)

@@ -33,28 +33,44 @@ def panel(
     opcua_cert: Path = typer.Option(None, "--opcua-cert", help="Server certificate (DER/PEM) for Basic256Sha256."),
     opcua_key: Path = typer.Option(None, "--opcua-key", help="Server private key (PEM) for Basic256Sha256."),
     opcua_trust: Path = typer.Option(None, "--opcua-trust", help="Folder of trusted client certificates."),
+    opcua_users: Path = typer.Option(None, "--opcua-users", help="OPC UA users file (names, password hashes, "
+                                     "rights read/operate); required off loopback."),
+    tls_cert: Path = typer.Option(None, "--tls-cert", help="HTTPS: the panel's certificate (PEM)."),
+    tls_key: Path = typer.Option(None, "--tls-key", help="HTTPS: the panel's private key (PEM)."),
+    tls_client_ca: Path = typer.Option(None, "--tls-client-ca", help="HTTPS with client certificates: the CA "
+                                       "(PEM) that signed them; every client must show one."),
+    allow_host: list[str] = typer.Option(None, "--allow-host", help="Another name clients reach the panel by "
+                                         "(e.g. a TLS reverse proxy's), NAME[:PORT]; repeatable."),
 ) -> None:
     """Operator panel: sign in, scan the serial, START, live progress, full-screen PASS/FAIL, history."""
     from station.cli.run_cmd import _options
     from station.panel import Controller, PanelConfig
     from station.panel.app import create_app
-    from station.panel.serve import check_listen, serve
+    from station.panel.serve import TLS, check_listen, is_loopback, serve
+    from station.robot.errors import ConfigError
 
     token = token or os.environ.get("STATION_PANEL_TOKEN") or None
-    check_listen(host, token)
+    if (tls_cert is None) != (tls_key is None) or (tls_client_ca is not None and tls_cert is None):
+        raise ConfigError("HTTPS needs --tls-cert and --tls-key (and --tls-client-ca only with them)")
+    tls = TLS(tls_cert, tls_key, tls_client_ca) if tls_cert is not None else None
+    check_listen(host, token, tls)
     cfg = PanelConfig(robot=robot, cell=str(cell), procedure=procedure, limits=str(limits) if limits else None,
                       db=db, options=_options(poses, holdout, cone, reference, None), touch=touch, confirm=confirm)
     _check_files(cfg)
     ctl = Controller(cfg)
+    app = create_app(ctl, token, host=host, port=port, loopback=is_loopback(host), tls=tls is not None,
+                     allow_hosts=tuple(allow_host or ()))  # a bad --allow-host: refused before anything starts
     bridge = None
     if opcua:
         from station.opcua.server import OpcuaOptions, start_in_thread
 
-        bridge = start_in_thread(ctl, OpcuaOptions(opcua, opcua_cert, opcua_key, opcua_trust))
+        bridge = start_in_thread(ctl, OpcuaOptions(opcua, opcua_cert, opcua_key, opcua_trust, users=opcua_users))
         typer.echo(f"station: OPC UA at {opcua} (namespace urn:station)", err=True)
-    typer.echo(f"station: panel at http://{host}:{port}/" + ("  (token required)" if token else ""), err=True)
+    scheme = "https" if tls is not None else "http"
+    typer.echo(f"station: panel at {scheme}://{host}:{port}/" + ("  (token required)" if token else "")
+               + ("  (client certificates required)" if tls is not None and tls.client_ca else ""), err=True)
     try:
-        serve(create_app(ctl, token), host, port)
+        serve(app, host, port, tls)
     finally:
         if ctl.busy:
             ctl.abort()

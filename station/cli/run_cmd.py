@@ -309,6 +309,9 @@ def resume_cmd(
     tracker: str = typer.Option(None, "--tracker", help="The session's measuring instrument at a new address "
                                 "(e.g. tcp://127.0.0.1:5301 after a restart); it must be the same instrument."),
     payload: str = PAYLOAD,
+    procedure: Path = typer.Option(None, "--procedure", help="The session's procedure file, when it is neither "
+                                   "shipped nor in a $STATION_PROCEDURES folder (its sha256 must be the "
+                                   "journaled one)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Continue an interrupted session: robot re-verified, recorded samples kept, nothing repeated."""
@@ -319,7 +322,8 @@ def resume_cmd(
     cb, bar = _progress_bar(quiet)
     with bar:
         out = resume(session, db=db, progress=cb, log=lambda s: typer.echo(s, err=True),
-                     instruments={"tracker": tracker} if tracker is not None else None, payload=given)
+                     instruments={"tracker": tracker} if tracker is not None else None, payload=given,
+                     procedure=procedure)
     _finish(out)
 
 

@@ -81,9 +81,12 @@ def _references(specs: list[str], labels: list[str], samples: str):
     return ref
 
 
-def check_max_std(max_std) -> float:
+def check_max_std(max_std) -> float | None:
     """``--max-std 1mm`` (a length at the tool; a bare number is metres): 0, negative or non-finite would switch
-    identifiability off. Returns metres."""
+    identifiability off. None (not given): the priors decide what the data determine (docs/solver.md, section 3).
+    Returns metres."""
+    if max_std is None:
+        return None
     from station.cli.quantity import parse_option
 
     value = parse_option(max_std, "--max-std", "length", "m", "1mm")
@@ -122,11 +125,16 @@ def summary(res) -> str:
         h = res.holdout
         lines.append(f"holdout ({h['n_samples']} samples): RMS {h['rms_m'] * 1e3:.4f} mm, max {h['max_m'] * 1e3:.4f} "
                      f"mm (nominal model {h['rms_nominal_m'] * 1e3:.4f} mm)")
-    lines.append(f"{'parameter':<16} {'value':>12} {'std':>10}  unit")
+    lines.append(f"{'parameter':<16} {'value':>12} {'std':>10}  {'unit':<10} prior")
     for n, p in res.parameters.items():
         if p.identifiable:
             val, std, unit = _fmt(p)
-            lines.append(f"{n:<16} {val:>12} {std:>10}  {unit}")
+            # the prior's share of what is known of the parameter: 0 % the data alone, "freed" a prior the data
+            # contradicted (estimated from the data alone), "-" no prior (points, instrument frame)
+            share = "-" if p.prior_share is None else f"{100 * p.prior_share:.0f} %"
+            if any(c.get("parameter") == n and c.get("freed") for c in res.conflicts):
+                share = "freed"
+            lines.append(f"{n:<16} {val:>12} {std:>10}  {unit:<10} {share}")
     if res.constraints:
         lines.append("constraints:")
         lines += constraint_lines(res)
@@ -150,13 +158,14 @@ SOLVE_OPTIONS = [
     Opt("reference", "--reference", "Reference points: unknown (solved, the default), x,y,z of the one point (m, "
         "or a unit suffix: 412,-120,35mm) or LABEL=x,y,z (repeatable)", multiple=True),
     Opt("tool", "--tool", "Nominal TCP x,y,z in the flange frame (m, or suffix mm)"),
-    Opt("holdout", "--holdout", "CSV of validation samples (same columns)", kind=Path),
+    Opt("holdout", "--holdout", "CSV of validation samples (same columns), or fixture=F1[,F2] / point=A[,B]: hold "
+        "out the samples' rows of those fixture positions (or points) and score the fit on them", kind=Path),
     Opt("out", "--out", "Write the result JSON here", kind=Path),
     Opt("instrument_frame", "--instrument-frame", "With x,y,z columns: unknown (the instrument frame is solved) "
-        "or base",
-        "unknown"),
-    Opt("max_std", "--max-std", "Largest std, as motion at the tool, of an identified direction: a length (1mm; a "
-        "bare number is metres); weaker directions are named unidentifiable", "1mm"),
+        "or base", "unknown"),
+    Opt("max_std", "--max-std", "A length at the tool (1mm; a bare number is metres): also leave at nominal what the "
+        "data leave a larger std than this (default: none, a parameter the data determine to within its prior is "
+        "estimated)"),
     Opt("prior", "--prior", "SELECTOR=STD with a unit, e.g. offsets=0.5deg, dh=0.3mm, dh.j2.a=0.1mm, "
         "compliance=1e-4rad/Nm (repeatable; overrides the model file's tolerances)", multiple=True),
     Opt("noise", "--noise", "Declared touch noise per axis with a unit, e.g. 20um (default: fitted from the "
@@ -166,13 +175,16 @@ SOLVE_OPTIONS = [
         "default uncertainty 0.01 mm)", multiple=True),
     Opt("plane", "--plane", "LABEL: the touches labelled LABEL lie on one unknown plane (touch-probing a flat "
         "surface; repeatable)", multiple=True),
+    Opt("touch", "--touch", "How the tip meets the points: socket (a seated ball) | needle (aligned by eye); a fit "
+        "far above what that gives is not trusted and says why", "socket"),
 ]
 
 
 def solve_command(model: str, tip_link: str | None, base_link: str | None, payload: str | None, samples: Path,
                   identify: str, reference: tuple[str, ...], tool: str | None, holdout: Path | None,
-                  out: Path | None, instrument_frame: str, max_std: str, prior: tuple[str, ...],
-                  noise: str | None, loss: str, distance: tuple[str, ...], plane: tuple[str, ...]) -> None:
+                  out: Path | None, instrument_frame: str, max_std: str | None, prior: tuple[str, ...],
+                  noise: str | None, loss: str, distance: tuple[str, ...], plane: tuple[str, ...],
+                  touch: str = "socket") -> None:
     """Identify joint offsets, TCP, link geometry from touch samples. Exit 0: trusted result; 1: the solve
     failed or its result cannot be trusted (one line says why; the JSON is still written); 2: bad input."""
     from station.safeio import dumps_json, write_atomic
@@ -187,17 +199,26 @@ def solve_command(model: str, tip_link: str | None, base_link: str | None, paylo
     planes = [_plane_label(p) for p in plane or []]
     if loss not in ("linear", "huber", "soft_l1"):
         raise _fail(f"--loss {loss!r}: expected linear, huber or soft_l1")
+    if touch not in ("socket", "needle"):
+        raise _fail(f"--touch {touch!r}: expected socket or needle (instrument samples are judged as a tracker's)")
 
     m = _load_model(model, tool, tip_link, base_link, payload)
+    from station.cli.model_options import warn_lines
+
+    group = _holdout_group(holdout)
     try:
         s = read_samples(samples, m)
         obs = Observations(s.q, s.point, s.measured, s.weight, s.fixture)
         ho = None
-        if holdout is not None:
+        if holdout is not None and group is None:
             h = read_samples(holdout, m)
             ho = Observations(h.q, h.point, h.measured, h.weight, h.fixture)
+            s.warnings += h.warnings
     except SamplesFileError as e:
         raise _fail(str(e)) from None
+    warn_lines(s.warnings)
+    if group is not None:
+        obs, ho = split_holdout(obs, group, str(samples))
     if instrument_frame not in ("unknown", "base"):
         raise _fail(f"--instrument-frame {instrument_frame!r}: expected unknown or base")
     ref = _references(list(reference or []), obs.labels, str(samples))
@@ -205,7 +226,8 @@ def solve_command(model: str, tip_link: str | None, base_link: str | None, paylo
         raise _fail(f"--reference: {samples} has instrument columns x,y,z; known points are not used with them")
     try:
         res = solve(m, obs, identify, ref, ho, instrument_frame=instrument_frame, max_std=max_std,
-                    noise=noise_m, priors=priors, loss=loss, distances=distances or None, planes=planes or None)
+                    noise=noise_m, priors=priors, loss=loss, distances=distances or None, planes=planes or None,
+                    touch=touch)
     except SolverInputError as e:
         msg = str(e)
         if msg.startswith("distance "):
@@ -220,7 +242,7 @@ def solve_command(model: str, tip_link: str | None, base_link: str | None, paylo
     _diagnose(res, m, obs, s, str(samples), noise_m,
               lambda o: solve(m, o, identify, ref, None, instrument_frame=instrument_frame, max_std=max_std,
                               noise=noise_m, priors=priors, loss=loss, distances=distances or None,
-                              planes=planes or None))
+                              planes=planes or None, touch=touch))
     res.settings.update(samples=str(samples), holdout=None if holdout is None else str(holdout), tool=tool,
                         payload=_payload_setting(payload))
     print(summary(res), flush=True)
@@ -230,6 +252,44 @@ def solve_command(model: str, tip_link: str | None, base_link: str | None, paylo
     if not res.trusted:
         print(f"station: solve failed: {res.failure or 'result not trusted'}", file=sys.stderr, flush=True)
         sys.exit(1)
+
+
+_GROUP = re.compile(r"^(fixture|point)=([A-Za-z0-9_-]+(?:,[A-Za-z0-9_-]+)*)$")
+
+
+def _holdout_group(holdout: Path | None) -> tuple[str, list[str]] | None:
+    """``--holdout fixture=2,3`` / ``point=C``: (column, labels); None for a file (an existing file wins)."""
+    if holdout is None or holdout.exists():
+        return None
+    m = _GROUP.match(str(holdout))
+    return None if m is None else (m.group(1), m.group(2).split(","))
+
+
+def split_holdout(obs, group: tuple[str, list[str]], samples: str):
+    """(fit, held out) by a label group of the samples: the rows of fixture positions (or points) ``labels`` are
+    left out of the fit and scored on it. Held-out fixture positions are new places: their points are scored by
+    consistency (their touches must meet), each position on its own."""
+    import numpy as np
+
+    from station.solver import Observations
+
+    col, labels = group
+    have = obs.fixture if col == "fixture" else obs.point
+    if have is None:
+        raise _fail(f"--holdout {col}=...: {samples} has no '{col}' column")
+    known = sorted(set(have.astype(str).tolist()))
+    missing = [lb for lb in labels if lb not in known]
+    if missing:
+        raise _fail(f"--holdout {col}={','.join(labels)}: no {col} {missing[0]!r} in {samples} ({col}s: "
+                    f"{', '.join(known)})")
+    out = np.isin(have.astype(str), labels)
+    if out.all():
+        raise _fail(f"--holdout {col}={','.join(labels)}: that is every row of {samples}; nothing left to fit")
+    fit, ho = obs.subset(~out), obs.subset(out)
+    if ho.fixture is not None:  # each held-out position's points are its own: LABEL@FIXTURE
+        ho = Observations(ho.q, np.array([f"{p}@{f}" for p, f in zip(ho.point, ho.fixture, strict=True)],
+                                         dtype=object), ho.measured, ho.weight, None)
+    return fit, ho
 
 
 def _payload_setting(payload: str | None) -> dict | None:
@@ -389,9 +449,12 @@ def fk_command(model: str, tip_link: str | None, base_link: str | None, payload:
 
         m = load_calibration(calibration, m)
     try:
-        q, _ = read_joints(joints, m)
+        q, table = read_joints(joints, m)
     except SamplesFileError as e:
         raise _fail(str(e)) from None
+    from station.cli.model_options import warn_lines
+
+    warn_lines(table.warnings)
     pose = se3.matrix_to_pose(m.fk(q).reshape(-1, 4, 4), "rotvec")
     header = ["x[m]", "y[m]", "z[m]", "rx[rad]", "ry[rad]", "rz[rad]"]
     buf = io.StringIO()

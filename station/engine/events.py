@@ -75,8 +75,9 @@ class Header(Event):
     t: float | None = None  # when the session was created
     session: str
     procedure: str  # procedure name ("jog" for a technician session, the script's name for a script)
-    procedure_path: str | None = None  # the file resume loads again (None: nothing to resume)
-    procedure_sha256: str | None = None
+    procedure_path: str | None = None  # where the file was (informative; None: nothing to resume)
+    procedure_sha256: str | None = None  # resume finds the procedure by name and runs it only with this sha256
+    procedure_version: str | None = None  # the file's VERSION (a shipped one: the station's version)
     procedure_title: str = ""
     mode: Literal["procedure", "script", "technician"] = "procedure"
     serial: str  # serial of the robot under calibration
@@ -305,7 +306,74 @@ def from_dict(d: dict, *, strict: bool = True) -> Event:
             kw[name] = check(d[name], name)
         elif required or (strict and name in ("seq", "t") and cls is not Header):
             raise SchemaError(name, f"missing from a {kind} event")
-    return cls(**kw)
+    event = cls(**kw)
+    deep = _DEEP_CHECKS.get(cls)
+    if deep is not None:
+        deep(event)
+    return event
+
+
+# ---- what a field's annotation cannot say: the shapes inside a plan, bounds of joint values -------------------
+MAX_JOINTS = 64
+MAX_JOINT_VALUE = 1000.0  # rad or m: no joint turns 160 times or travels a kilometre; larger is a damaged file
+_POSE_FIELDS = {"index": int, "point": str, "q": list[float], "approach_q": list[float],
+                "set": Literal["fit", "holdout"], "via": list[list[float]]}
+_POSE_REQUIRED = ("index", "point", "q", "approach_q")
+
+
+def _joint_values(v: list[float], where: str, n: int | None = None) -> int:
+    """``v`` (already a list of finite floats) is a joint vector: 1..MAX_JOINTS values within bounds, ``n`` long."""
+    if not 1 <= len(v) <= MAX_JOINTS or (n is not None and len(v) != n):
+        want = f"{n}" if n is not None else f"1 to {MAX_JOINTS}"
+        raise SchemaError(where, f"expected {want} joint values, got {len(v)}")
+    for i, x in enumerate(v):
+        if abs(x) > MAX_JOINT_VALUE:
+            raise SchemaError(f"{where}[{i}]", f"{x:g} is beyond any joint (|value| <= {MAX_JOINT_VALUE:g} rad or m)")
+    return len(v)
+
+
+def _check_plan(e: Plan) -> None:
+    plan = e.plan
+    if not isinstance(plan.get("poses"), list) or not plan["poses"]:
+        raise SchemaError("plan.poses", "expected a list of planned poses")
+    if not isinstance(plan.get("settings", {}), dict):
+        raise SchemaError("plan.settings", "expected an object")
+    unknown = set(plan) - {"poses", "settings"}
+    if unknown:
+        raise SchemaError(f"plan.{sorted(unknown)[0]}", "unknown field of a plan")
+    n = None
+    for i, pose in enumerate(plan["poses"]):
+        w = f"plan.poses[{i}]"
+        if type(pose) is not dict:
+            _fail(w, "an object", pose)
+        for k in pose:
+            if k not in _POSE_FIELDS:
+                raise SchemaError(f"{w}.{k}", "unknown field of a planned pose")
+        for k in _POSE_REQUIRED:
+            if k not in pose:
+                raise SchemaError(f"{w}.{k}", "missing from a planned pose")
+        checked = {k: _checker(tp)(pose[k], f"{w}.{k}") for k, tp in _POSE_FIELDS.items() if k in pose}
+        if checked["index"] < 0 or not checked["point"]:
+            raise SchemaError(f"{w}.{'index' if checked['index'] < 0 else 'point'}", "expected a pose index >= 0 "
+                              "and a point label")
+        n = _joint_values(checked["q"], f"{w}.q", n)
+        _joint_values(checked["approach_q"], f"{w}.approach_q", n)
+        for j, via in enumerate(checked.get("via", [])):
+            _joint_values(via, f"{w}.via[{j}]", n)
+        pose.update(checked)
+
+
+def _check_sample(e: Sample) -> None:
+    _joint_values(e.q, "q")
+    for name in ("measured", "measured_rotation"):
+        v = getattr(e, name)
+        if v is not None and len(v) != 3:
+            raise SchemaError(name, f"expected [x, y, z], got {len(v)} values")
+        if v is not None and any(abs(x) > 1e6 for x in v):
+            raise SchemaError(name, "beyond any instrument's range (|value| <= 1e6 m or rad)")
+
+
+_DEEP_CHECKS = {Plan: _check_plan, Sample: _check_sample}
 
 
 def make(event: "Event | dict") -> Event:

@@ -16,14 +16,13 @@ remembers it (``lost``), and a session with a lost event can never end in PASS. 
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import time
 from pathlib import Path
 
 from station.engine import events as ev
 from station.engine.events import FORMAT, FORMAT_V1, Event, Header, SchemaError
-from station.safeio import dumps_json
+from station.safeio import dumps_json, loads_strict
 
 MIN_FREE_DEFAULT = 16 * 1024 * 1024  # bytes kept free for the journal: ~10^4 events of a busy session
 
@@ -257,7 +256,7 @@ def _read(path: Path) -> tuple[Header, list[Event], int]:
             continue
         torn = last  # the final piece has no newline: it was cut mid-write
         try:
-            obj = json.loads(raw)
+            obj = loads_strict(raw, "line")
             if not isinstance(obj, dict):
                 raise ValueError("not a JSON object")
         except ValueError as e:

@@ -9,8 +9,12 @@ A procedure file defines::
         ...
 
 Shipped procedures live in ``procedures/`` (import name ``station.procedures``, package data of the wheel,
-found through ``importlib.resources``) and are found by name; any other file is given by path. The file's
-SHA-256 goes into the journal header; a resume refuses a changed file.
+found through ``importlib.resources``); a site's own procedures live in the folders ``$STATION_PROCEDURES``
+lists (the station's configuration). Both are found by name (:func:`resolve_procedure`); a file given by path
+on the station's own command line (``station run my.py``) is used as given. The journal records the name,
+version and SHA-256 of the procedure; a resume finds it again *by name* in those places (never by a path a
+journal, a cell file or a request names) and refuses, before any import, one that is not there or whose SHA-256
+differs (:func:`procedure_for_resume`).
 
 A checklist asks the operator through ``s.ask(Question(...))`` (confirm, a number with unit and range, a text
 matching a pattern, a choice): the one prompt API of the engine. The front end (the terminal's
@@ -19,8 +23,10 @@ again with :meth:`Question.check` whatever front end gave it."""
 
 from __future__ import annotations
 
+import ast
 import hashlib
 import math
+import os
 import re
 import sys
 import types
@@ -29,6 +35,10 @@ from importlib import resources
 from pathlib import Path
 
 from station.robot.errors import ConfigError
+
+PROCEDURES_ENV = "STATION_PROCEDURES"
+# a procedure's name: a Python-like file stem, never a path (no separator, no dot, no leading underscore)
+NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")
 
 
 def shipped_folder() -> Path:
@@ -196,6 +206,7 @@ class Procedure:
     sha256: str
     title: str
     module: types.ModuleType
+    version: str | None = None  # the file's ``VERSION = "..."``; a shipped one without it: the station's version
 
     def checklist(self, s) -> None:
         self.module.checklist(s)
@@ -213,29 +224,129 @@ class Procedure:
 
 
 def shipped_names() -> list[str]:
-    return sorted(p.stem for p in shipped_folder().glob("*.py") if not p.name.startswith("_"))
+    return sorted(p.stem for p in shipped_folder().glob("*.py") if NAME.fullmatch(p.stem))
+
+
+def procedure_folders() -> list[Path]:
+    """The site's procedure folders, as the station's configuration lists them (``$STATION_PROCEDURES``,
+    separated by ``os.pathsep``), in order. Only absolute folders count: a relative one would depend on where a
+    command happens to be started."""
+    out = []
+    for part in os.environ.get(PROCEDURES_ENV, "").split(os.pathsep):
+        p = Path(part.strip()).expanduser() if part.strip() else None
+        if p is not None and p.is_absolute() and p not in out:
+            out.append(p)
+    return out
+
+
+def is_name(text: str) -> bool:
+    """A procedure name (looked up in the shipped package and the configured folders), not a file path."""
+    return bool(NAME.fullmatch(str(text)))
+
+
+def resolve_procedure(name: str) -> Path:
+    """The procedure file of ``name``: the shipped package's (a site folder cannot shadow a shipped procedure),
+    else the first of the configured folders (:func:`procedure_folders`) that has ``NAME.py``. Raises
+    :class:`ProcedureError` for a name that is not a procedure name or is found nowhere."""
+    if not is_name(name):
+        raise ProcedureError(f"procedure {str(name)[:80]!r} is not a procedure name (letters, digits, _ and -; "
+                             "procedures are found by name, never by a path a file or a request gives)")
+    for folder in (shipped_folder(), *procedure_folders()):
+        cand = folder / f"{name}.py"
+        if cand.is_file():
+            return cand
+    folders = procedure_folders()
+    where = f"${PROCEDURES_ENV}: {os.pathsep.join(map(str, folders))}" if folders else f"${PROCEDURES_ENV} is not set"
+    raise ProcedureError(f"unknown procedure {name!r}; shipped: {', '.join(shipped_names())}; site folders "
+                         f"({where})")
 
 
 def find_procedure(name_or_path: str) -> Path:
+    """A procedure name (:func:`resolve_procedure`) or, on the station's own command line, a ``.py`` file."""
+    if is_name(name_or_path):
+        return resolve_procedure(name_or_path)
     p = Path(name_or_path)
-    if p.suffix == ".py" or p.exists():
-        if not p.is_file():
-            raise ProcedureError(f"procedure file {p} does not exist")
-        return p
-    cand = shipped_folder() / f"{name_or_path}.py"
-    if not cand.is_file() or name_or_path.startswith("_"):
+    if p.suffix != ".py":
         raise ProcedureError(f"unknown procedure {name_or_path!r}; shipped: {', '.join(shipped_names())} "
                              "(or give a .py file)")
-    return cand
+    if not p.is_file():
+        raise ProcedureError(f"procedure file {p} does not exist")
+    return p
 
 
 def load_procedure(name_or_path: str | Path) -> Procedure:
     path = find_procedure(str(name_or_path))
-    data = path.read_bytes()
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise ProcedureError(f"procedure {path}: {e.strerror or e}") from None
+    return _load(path, data)
+
+
+def locate_for_resume(name: str, sha256: str, *, file: str | Path | None = None,
+                      where: str = "the session") -> tuple[Path, bytes]:
+    """Where the procedure a session ran is now, and its bytes, checked against the journaled SHA-256; nothing
+    is compiled or run. ``file``: the procedure file the station's own command line names (``station resume
+    --procedure FILE``, the panel's ``--procedure FILE``; its stem must be ``name``); else ``name`` is looked up
+    in the shipped package and the configured folders (:func:`resolve_procedure`). Never a path from a journal."""
+    if not is_name(name):
+        raise ProcedureError(f"{where}: procedure {str(name)[:80]!r} is not a procedure name; not resumed "
+                             "(nothing was loaded)")
+    if file is not None:
+        path = Path(file)
+        if path.suffix != ".py" or path.stem != name:
+            raise ProcedureError(f"--procedure {path}: {where} ran procedure {name!r}; give its file {name}.py")
+    else:
+        path = resolve_procedure(name)
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise ProcedureError(f"procedure {path}: {e.strerror or e}") from None
+    if hashlib.sha256(data).hexdigest() != sha256:
+        raise ProcedureError(f"procedure {name} ({path}) is not the one {where} started with (sha256 differs); "
+                             "resuming would mix two procedures (nothing was loaded)")
+    return path, data
+
+
+def procedure_for_resume(name: str, sha256: str, *, file: str | Path | None = None,
+                         where: str = "the session") -> Procedure:
+    """The procedure a session ran, found again to resume it (:func:`locate_for_resume`). Exactly the bytes
+    that were hashed are compiled and run: a procedure that is not found, or whose SHA-256 is not the journaled
+    one, never runs."""
+    path, data = locate_for_resume(name, sha256, file=file, where=where)
+    return _load(path, data)
+
+
+def declared_version(data: bytes) -> str | None:
+    """The ``VERSION = "..."`` string a procedure file declares at module level, read without running it."""
+    try:
+        tree = ast.parse(data)
+    except (SyntaxError, ValueError):
+        return None
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "VERSION" for t in node.targets) \
+                and isinstance(node.value, ast.Constant) and isinstance(node.value.value, str):
+            return node.value.value[:64]
+    return None
+
+
+def _station_version() -> str | None:
+    from importlib import metadata
+
+    try:
+        return metadata.version("station")
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def _load(path: Path, data: bytes) -> Procedure:
+    """Compile and run exactly ``data`` (the bytes that were hashed) as the procedure module of ``path``."""
     try:
         code = compile(data, str(path), "exec")
-    except SyntaxError as e:
-        raise ProcedureError(f"procedure {path} line {e.lineno}: {e.msg}") from None
+    except (SyntaxError, ValueError) as e:
+        line = getattr(e, "lineno", None)
+        raise ProcedureError(f"procedure {path}" + (f" line {line}" if line else "") + f": {getattr(e, 'msg', e)}") \
+            from None
     name = path.stem
     module = types.ModuleType(f"station.procedures._loaded.{name}")
     module.__file__ = str(path)
@@ -256,5 +367,8 @@ def load_procedure(name_or_path: str | Path) -> Procedure:
     doc = (module.__doc__ or "").strip()
     if not doc:
         raise ProcedureError(f"procedure {path}: needs a docstring saying what it calibrates")
-    return Procedure(str(getattr(module, "NAME", name)), path, hashlib.sha256(data).hexdigest(),
-                     doc.splitlines()[0], module)
+    version = declared_version(data)
+    if version is None and path.parent.resolve() == shipped_folder().resolve():
+        version = _station_version()
+    # the name is the file's stem: resume finds the procedure again by it, before anything is imported
+    return Procedure(name, path, hashlib.sha256(data).hexdigest(), doc.splitlines()[0], module, version)

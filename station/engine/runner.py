@@ -12,6 +12,7 @@ import contextlib
 import functools
 import getpass
 import hashlib
+import math
 import os
 import platform
 import signal
@@ -23,10 +24,10 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from station.engine import events as ev
-from station.engine.cell import Cell, RefPoint, load_cell
+from station.engine.cell import Cell, load_cell
 from station.engine.journal import Journal, JournalError, JournalWriteError, check_space, check_writable, read_journal
 from station.engine.limits import load_limits
-from station.engine.procedure import Procedure, ProcedureError, load_procedure, shipped_names
+from station.engine.procedure import Procedure, is_name, load_procedure, procedure_for_resume, shipped_names
 from station.engine.session import Session
 from station.kinematics.collision import keep_out_to_doc
 from station.robot.errors import ConfigError, DeviceFault, StationError
@@ -194,13 +195,69 @@ def _db_for_journal(db: str | None) -> str | None:
         return None
 
 
-def _cell_from_header(d: dict | None) -> Cell | None:
+def _cell_from_header(d: dict | None, where: str = "journal") -> Cell | None:
+    """The session's cell as journaled (SI), checked as a cell file is (types, finite, within bounds): one line
+    naming the journal and the field. Pictures are not taken from a journal (the panel shows its own cell's)."""
     if not d:
         return None
-    from station.engine.cell import keep_out_from_dict
+    import dataclasses
 
-    return Cell(d.get("path", "journal"), {p["label"]: RefPoint.from_dict(p) for p in d["points"]}, d.get("model"),
-                d.get("tool"), keep_out_from_dict(d, "journal cell", 1.0, 1.0))  # SI; none journaled: the table
+    from station.engine.cell import CellError, cell_from_dict
+    from station.textfile import YamlDoc
+
+    points = d.get("points")
+    if isinstance(points, list):
+        points = [{k: v for k, v in p.items() if k != "image"} if isinstance(p, dict) else p for p in points]
+    doc = {"format": "station-cell/1", "units": {"length": "m", "angle": "rad"}, "points": points,
+           **{k: d[k] for k in ("model", "tool", "mounting", "keep_out") if d.get(k) is not None}}
+    unknown = set(d) - {"path", "model", "tool", "points", "mounting", "keep_out"}
+    try:
+        if unknown:
+            raise CellError(f"{where}: field cell.{sorted(unknown)[0]}: unknown field of a journaled cell")
+        cell = cell_from_dict(YamlDoc(f"{where}: field cell", doc), f"{where}: field cell")
+    except CellError as e:
+        raise ConfigError(" ".join(str(e).split())) from None
+    return dataclasses.replace(cell, path=str(d.get("path") or "journal"))
+
+
+# the procedure options a resume acts on, as the command line accepts them (a journal is data: it may be damaged)
+def _int_in(lo: int, hi: int):
+    return lambda v: type(v) is int and lo <= v <= hi
+
+
+def _num_in(lo: float, hi: float, open_low: bool = False):
+    return lambda v: type(v) in (int, float) and math.isfinite(v) and (lo < v if open_low else lo <= v) and v <= hi
+
+
+OPTION_CHECKS = {
+    "n_fit": (_int_in(1, 100_000), "a pose count 1..100000"),
+    "n_holdout": (_int_in(0, 100_000), "a pose count 0..100000"),
+    "seed": (_int_in(0, 2**63 - 1), "a non-negative integer"),
+    "cone_deg": (_num_in(0, 90, True), "degrees in (0, 90]"),
+    "span_deg": (_num_in(0, 90, True), "degrees in (0, 90]"),
+    "roll_deg": (_num_in(0, 360), "degrees in [0, 360]"),
+    "margin_deg": (_num_in(0, 90), "degrees in [0, 90]"),
+    "clearance": (_num_in(0, 1), "metres in [0, 1]"),
+    "plan_noise_m": (_num_in(0, 0.01, True), "metres in (0, 0.01]"),
+    "grid": (lambda v: _int_in(1, 100)(v) or (type(v) is list and 0 < len(v) <= 64 and all(map(_int_in(1, 100), v))),
+             "sub-intervals 1..100 (or one per actuator)"),
+    "mesh": (lambda v: v in ("grid", "simplex"), "grid or simplex"),
+    "reference": (lambda v: v in ("unknown", "cell"), "unknown or cell"),
+    "touch": (lambda v: v in ("seat", "guarded", "manual"), "seat, guarded or manual"),
+    "apply": (lambda v: type(v) is bool, "true or false"),
+    "tracker": (lambda v: type(v) is str and "://" in v and len(v) < 1000, "an instrument URL"),
+    "calibration": (lambda v: type(v) is str and 0 < len(v) < 4096, "a file name"),
+    "payload": (lambda v: type(v) is dict and set(v) == {"mass", "com"} and _num_in(0, 10_000)(v["mass"])
+                and type(v["com"]) is list and len(v["com"]) == 3 and all(map(_num_in(-10, 10), v["com"])),
+                "{mass: kg 0..10000, com: [x, y, z] m}"),
+}
+
+
+def _check_options(options: dict, where: str) -> None:
+    for name, value in options.items():
+        check = OPTION_CHECKS.get(name)
+        if check is not None and not check[0](value):
+            raise ConfigError(f"{where}: field options.{name}: {str(value)[:60]!r} is not {check[1]}")
 
 
 def _optional_cell(cell_path) -> Cell | None:
@@ -253,6 +310,7 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
     header = ev.Header(
         session=sid, procedure=name, procedure_path=str(procedure.path.resolve()) if procedure else path,
         procedure_sha256=procedure.sha256 if procedure else sha256,
+        procedure_version=procedure.version if procedure else None,
         procedure_title=procedure.title if procedure else title, mode="procedure" if procedure else "script",
         serial=str(serial), operator=operator or getpass.getuser(), station=socket.gethostname(),
         url=robot_url or getattr(robot, "url", "") or ident.url, model=robot.model.name, robot=_identity_dict(ident),
@@ -307,13 +365,17 @@ def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, lim
 def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int, str], None] | None = None,
            log: Callable[[str], None] | None = None, robot=None, prompt=None,
            control: RunControl | None = None, instruments: dict[str, str] | None = None,
-           payload: dict | None = None) -> Outcome:
-    """Continue an interrupted session: same procedure file (hash checked), same plan, recorded samples kept.
-    The outcome's ``db`` is the records URL the journal names. ``instruments`` (``{"tracker": URL}``) gives an
-    instrument option of the session a new address (the instrument came back on another port): journaled as an
-    ``instrument_url`` event and used by every later resume too; the procedure checks the instrument there is
-    the one the session started with. ``payload`` (``{"mass": kg, "com": [x, y, z] m}``) is only checked: the
-    session's journaled payload is used, and a resume given another one is refused before the robot opens."""
+           payload: dict | None = None, procedure: str | Path | None = None) -> Outcome:
+    """Continue an interrupted session: the same procedure, same plan, recorded samples kept. The procedure is
+    found again by the journaled name in the shipped package and the configured folders
+    (``station.engine.procedure.procedure_for_resume``), or is the ``procedure`` file the caller's own command
+    line names; it runs only if its SHA-256 is the journaled one (checked before it is compiled): a journal
+    never names the code that runs. The outcome's ``db`` is the records URL the journal names. ``instruments``
+    (``{"tracker": URL}``) gives an instrument option of the session a new address (the instrument came back on
+    another port): journaled as an ``instrument_url`` event and used by every later resume too; the procedure
+    checks the instrument there is the one the session started with. ``payload`` (``{"mass": kg, "com": [x, y, z]
+    m}``) is only checked: the session's journaled payload is used, and a resume given another one is refused
+    before the robot opens."""
     from station.robot import open_robot
 
     path = find_session(session_ref)
@@ -326,25 +388,26 @@ def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int,
     if any(isinstance(e, ev.Writeback) and e.kind == "restore" and e.phase == "written" for e in events):
         raise ConfigError(f"session {header.session}: its write-back was rolled back with station restore; "
                           "start a new session with station run")
-    if not header.procedure_path:
+    if not header.procedure_path or header.mode != "procedure":
         kind = header.procedure or "this kind of session"
-        raise ConfigError(f"session {header.session} ({kind}) has no procedure file to resume; its samples "
-                          f"are kept in {path} (use station solve on its samples.csv, or start a new session)")
+        what = "is a script's session (run the script again)" if header.mode == "script" else \
+            "has no procedure file to resume"
+        raise ConfigError(f"session {header.session} ({kind}) {what}; its samples are kept in {path} (use station "
+                          "solve on its samples.csv, or start a new session)")
     _check_header(path, header)
-    # the file the journal names is hashed BEFORE it is imported: a damaged or planted journal cannot make the
-    # station run code the session did not start with
-    proc_path = Path(header.procedure_path)
-    try:
-        data = proc_path.read_bytes()
-    except OSError as e:
-        raise ProcedureError(f"procedure {proc_path} of session {header.session}: {e.strerror or e}") from None
-    if hashlib.sha256(data).hexdigest() != header.procedure_sha256:
-        raise ProcedureError(f"procedure {proc_path} changed since session {header.session} started "
-                             "(sha256 differs); resuming would mix two procedures (not loaded)")
-    proc = load_procedure(proc_path)
-    if proc.sha256 != header.procedure_sha256:  # changed between the check and the import
-        raise ProcedureError(f"procedure {proc.path} changed while session {header.session} was being resumed")
+    cell = _cell_from_header(header.cell, f"journal {path}:1")
+    # found by NAME where the station's configuration says procedures live, and hashed BEFORE it is compiled:
+    # the path the journal names is never read, so a damaged or planted journal cannot run code
+    proc = procedure_for_resume(header.procedure, header.procedure_sha256, file=procedure,
+                                where=f"session {header.session}")
     lim_info = header.limits or {}
+    if lim_info.get("path") is not None:  # hashed before it is parsed: a journal may name any file
+        from station.textfile import read_capped
+
+        data = read_capped(lim_info["path"], ConfigError, f"limits file {lim_info['path']}")
+        if hashlib.sha256(data).hexdigest() != lim_info.get("sha256"):
+            raise ConfigError(f"limits file {lim_info['path']} changed since session {header.session} started "
+                              "(sha256 differs)")
     lim = load_limits(lim_info.get("path"))
     if lim.sha256 != lim_info.get("sha256"):
         raise ConfigError(f"limits file {lim.path} changed since session {header.session} started")
@@ -359,7 +422,7 @@ def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int,
     except BaseException:
         robot.close()
         raise
-    s = Session(journal, robot, limits=table, limits_version=lim.version, cell=_cell_from_header(header.cell),
+    s = Session(journal, robot, limits=table, limits_version=lim.version, cell=cell,
                 options=options, replay=events, progress=progress, touch=touch, log=log, prompt=prompt)
     if control is not None:
         control.attach(s)
@@ -478,6 +541,8 @@ def _check_header(path: Path, header: ev.Header) -> None:
     """The header fields resume acts on, beyond their types (the schema checked those): one line naming the
     journal and the field."""
     where = f"journal {path}:1"
+    if not is_name(header.procedure):
+        raise ConfigError(f"{where}: field procedure: {header.procedure[:80]!r} is not a procedure name")
     sha = header.procedure_sha256 or ""
     if len(sha) != 64 or any(c not in "0123456789abcdef" for c in sha):
         raise ConfigError(f"{where}: field procedure_sha256: {sha!r} is not a sha256 hex digest")
@@ -490,8 +555,7 @@ def _check_header(path: Path, header: ev.Header) -> None:
     lim = header.limits
     if not isinstance(lim, dict) or not isinstance(lim.get("sha256"), str):
         raise ConfigError(f"{where}: field limits: needs path, version and sha256 of the limits file")
-    if header.options.get("apply") not in (None, True, False):
-        raise ConfigError(f"{where}: field options.apply: {header.options.get('apply')!r} is not true/false")
+    _check_options(header.options, where)
 
 
 def _install_sigterm():

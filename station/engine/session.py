@@ -242,7 +242,14 @@ class Session:
         session reuses exactly the same poses."""
         old = self.events("plan")
         if old:
-            self.current_plan = PosePlan.from_dict(old[-1].plan)
+            plan = PosePlan.from_dict(old[-1].plan)  # its shapes and bounds were checked when it was read
+            n = self.model.n_joints
+            bad = next((p for p in plan.poses if len(p.q) != n), None)
+            if bad is not None:
+                raise ConfigError(f"journal {self.journal.path}: plan event {old[-1].seq}: pose {bad.index} has "
+                                  f"{len(bad.q)} joint values, the robot's model {self.model.name} has {n}; the "
+                                  "journaled plan is not for this robot")
+            self.current_plan = plan
             return self.current_plan
         identify = self.identify(identify)
         with self.step("plan"):

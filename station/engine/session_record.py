@@ -75,6 +75,7 @@ def session_from_events(header: ev.Header, events: list[ev.Event]) -> dict:
         "serial": header.serial,
         "procedure": header.procedure,
         "procedure_sha256": header.procedure_sha256,
+        "procedure_version": header.procedure_version,
         "station": header.station,
         "operator": header.operator,
         "started": iso(header.t),

@@ -33,6 +33,7 @@ import numpy as np
 from station.engine.events import Writeback
 from station.robot.capabilities import CalibrationExport, CalibrationStore
 from station.robot.errors import DeviceFault, StationError
+from station.safeio import loads_strict
 
 BACKUP = "calibration-backup.json"
 BACKUP_FORMAT = "station-calibration-backup/1"
@@ -202,7 +203,7 @@ def load_backup(folder: Path) -> dict:
     """The session's ``calibration-backup.json`` (its first pre-image, SI); one line when missing/damaged."""
     path = Path(folder) / BACKUP
     try:
-        doc = json.loads(path.read_text())
+        doc = loads_strict(path.read_text(), str(path))
     except FileNotFoundError:
         raise StationError(f"{path}: no backup (this session never started a write-back)") from None
     except (OSError, ValueError) as e:

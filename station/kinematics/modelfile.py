@@ -153,6 +153,7 @@ def model_from_dict(doc: dict | YamlDoc, where: str = "<model>", *, shipped: boo
               description=str(doc.get("description", "")), compliance=compliance, masses=masses,
               payload=payload, gravity_vector=grav)
     name = str(doc.get("name", Path(where).stem))
+    _check_bounds(where, conv, links, kw, joints, offsets, lu)
     if conv == "dh":
         model = from_dh(name, joints, links, **kw)
     elif conv == "mdh":
@@ -164,6 +165,58 @@ def model_from_dict(doc: dict | YamlDoc, where: str = "<model>", *, shipped: boo
         model = from_poe(name, joints, links, _pose(h), **kw)
     model = _with_collision(model, doc.get("collision"), f"{where}: collision", L)
     return _with_tolerances(model, doc, where, L, A)
+
+
+MAX_LENGTH = 1000.0  # m: any one length of a robot (a kilometre is no robot: a typo or a unit slip)
+MAX_ANGLE = 1000.0  # rad: any one angle (~160 turns)
+MAX_REACH = 20.0  # m: all lengths of the chain added up; beyond it the numbers are not metres
+MIN_REACH = 5e-3  # m: below it (with lengths at all) the numbers of a "mm" file are not millimetres
+
+
+def _check_bounds(where: str, conv: str, links: list, kw: dict, joints: list, offsets: list, unit: str) -> None:
+    """Every length and angle within physical bounds (one line naming the field), and the chain's reach plausible
+    for the unit the file states: a UR5e written in millimetres under ``length: m`` reaches 1.3 km, the same
+    numbers in metres under ``length: mm`` 1.3 mm; either is refused naming the likely unit."""
+
+    def check(key: str, value: float, angle: bool) -> None:
+        bound, u = (MAX_ANGLE, "rad") if angle else (MAX_LENGTH, "m")
+        if abs(value) > bound:
+            raise ModelFileError(f"{where}: {key}: {value:.6g} {u} is beyond the physical bound of {bound:g} {u}")
+
+    reach = 0.0
+    for i, link in enumerate(links):
+        for k, v in link.items():
+            if k in ("axis",):
+                continue
+            if k == "point":
+                for x in v:
+                    check(f"joints[{i}].screw.point", float(x), False)
+                continue
+            check(f"joints[{i}].{conv}.{k}", v, k in ANGLE_KEYS)
+            if k not in ANGLE_KEYS:
+                reach += abs(v)
+        if "point" in link and i:
+            reach += float(np.linalg.norm(np.asarray(link["point"]) - np.asarray(links[i - 1].get("point", 0.0))))
+    for key in ("base", "tool"):
+        for k, v in (kw.get(key) or {}).items():
+            check(f"{key}.{k}", v, k in ANGLE_KEYS)
+    reach += float(np.linalg.norm([(kw.get("tool") or {}).get(a, 0.0) for a in "xyz"]))
+    for i, (j, off) in enumerate(zip(joints, offsets, strict=True)):
+        rev = j.kind == "revolute"
+        for key, v in ((f"joints[{i}].limits", j.lower), (f"joints[{i}].limits", j.upper),
+                       (f"joints[{i}].offset", off)):
+            check(key, v, rev)
+    if reach > MAX_REACH:
+        likely = "millimetres (write length: mm)" if unit == "m" else "not millimetres"
+        raise ModelFileError(f"{where}: the chain reaches {_human_length(reach)} with these lengths (units: length: "
+                             f"{unit}): no arm is that long; the numbers look like {likely}")
+    if 0 < reach < MIN_REACH and unit == "mm":
+        raise ModelFileError(f"{where}: the chain reaches {_human_length(reach)} with these lengths (units: length: "
+                             f"mm): no arm is that small; the numbers look like metres (write length: m)")
+
+
+def _human_length(v: float) -> str:
+    return f"{v / 1000:.4g} km" if v >= 1000 else f"{v:.4g} m" if v >= 1 else f"{v * 1000:.4g} mm"
 
 
 def _with_collision(model: Model, c, where: str, L: float) -> Model:

@@ -37,11 +37,17 @@ def matrix_to_rpy(R: np.ndarray) -> np.ndarray:
     +-90 deg (gimbal lock) roll and yaw are not unique: roll is set to zero, still an exact decomposition."""
     R = np.asarray(R, dtype=float)
     cy = np.hypot(R[..., 0, 0], R[..., 1, 0])
-    ry = np.arctan2(-R[..., 2, 0], cy)
-    lock = cy < 1e-9
-    rx = np.where(lock, 0.0, np.arctan2(R[..., 2, 1], R[..., 2, 2]))
+    lock = cy == 0.0  # exactly at +-90 deg pitch: roll 0 (any other cy is decomposed exactly below)
     # locked: R = Rz(rz) Ry(+-90): R01 = -sin(rz), R11 = cos(rz) with roll 0
     rz = np.where(lock, np.arctan2(-R[..., 0, 1], R[..., 1, 1]), np.arctan2(R[..., 1, 0], R[..., 0, 0]))
+    # roll and pitch from Rz(-rz) R = Ry(ry) Rx(rx), whose second row is (0, cos rx, -sin rx) at every pitch:
+    # atan2(R21, R22) would divide two numbers of size cos(ry) and lose all digits near gimbal lock
+    c, s = np.cos(rz), np.sin(rz)
+    r00 = c * R[..., 0, 0] + s * R[..., 1, 0]
+    r11 = -s * R[..., 0, 1] + c * R[..., 1, 1]
+    r12 = -s * R[..., 0, 2] + c * R[..., 1, 2]
+    ry = np.arctan2(-R[..., 2, 0], r00)
+    rx = np.where(lock, 0.0, np.arctan2(-r12, r11))
     return np.stack([rx, ry, rz], axis=-1)
 
 

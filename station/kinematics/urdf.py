@@ -29,9 +29,18 @@ from station.kinematics.urdfxml import Node, XMLFileError, read
 MOVABLE = ("revolute", "continuous", "prismatic")
 KNOWN_TYPES = MOVABLE + ("fixed", "floating", "planar")
 CONTINUOUS_LIMIT = 2 * math.pi  # a continuous joint gets +-360 deg: every angle, twice
+NO_RANGE_SLIDE = 10.0  # m: the range of a prismatic joint whose <limit> gives none (motion limits come from the cell)
 DEFAULT_VELOCITY = 1.0  # rad/s or m/s when <limit velocity> is missing
 DEFAULT_ACCELERATION = 10.0  # URDF has no acceleration limit
 CHECK_TOL = 1e-9  # m / rad: conversion check against the URDF's own transforms
+# Physical bounds of the numbers a URDF may hold. Beyond them a value is a typo or a unit slip, and letting it
+# through ends in overflow or an internal error far from the file: the element is named instead.
+MAX_LENGTH = 1000.0  # m: an <origin xyz> or limit of a robot (a kilometre is no robot)
+MAX_ANGLE = 1000.0  # rad: an <origin rpy> angle or a revolute limit (~160 turns)
+MAX_AXIS = 1e6  # an <axis xyz> component (a direction; it is normalised)
+MIN_AXIS = 1e-9  # below this norm the axis has no direction
+MAX_MASS = 1e6  # kg of one link
+MAX_REACH = 20.0  # m: a chain longer than this is not an arm in metres (millimetres in a metre file?)
 
 
 @dataclass
@@ -70,6 +79,11 @@ class UrdfRobot:
     links: dict[str, UrdfLink]
     joints: dict[str, UrdfJoint]
     parent_of: dict[str, str] = field(default_factory=dict)  # child link -> joint name
+    # accepted as urdfdom does, but worth a word: (joint name, one line); a chain reports those of its joints
+    warnings: list[tuple[str, str]] = field(default_factory=list)
+
+    def warn(self, joint: str, node: Node | None, msg: str) -> None:
+        self.warnings.append((joint, f"{self.path}:{node.line}: {msg}" if node is not None else f"{self.path}: {msg}"))
 
     def fail(self, node: Node | None, msg: str) -> ModelFileError:
         return ModelFileError(f"{self.path}:{node.line}: {msg}" if node is not None else f"{self.path}: {msg}")
@@ -92,7 +106,9 @@ class UrdfRobot:
 
 
 # ---- reading ------------------------------------------------------------------------------------
-def _floats(robot_path: str, node: Node, attr: str, n: int, default: list[float]) -> list[float]:
+def _floats(robot_path: str, node: Node, attr: str, n: int, default: list[float], bound: float | None = None,
+            what: str = "") -> list[float]:
+    """``n`` finite numbers of ``node``'s attribute ``attr`` (``default`` when absent), each within ``bound``."""
     text = node.attrib.get(attr)
     if text is None:
         return list(default)
@@ -102,6 +118,9 @@ def _floats(robot_path: str, node: Node, attr: str, n: int, default: list[float]
         vals = []
     if len(vals) != n or not all(math.isfinite(v) for v in vals):
         raise ModelFileError(f"{robot_path}:{node.line}: <{node.tag} {attr}={text!r}>: expected {n} finite numbers")
+    if bound is not None and any(abs(v) > bound for v in vals):
+        raise ModelFileError(f"{robot_path}:{node.line}: <{node.tag} {attr}={text!r}>: {max(vals, key=abs):g} is "
+                             f"beyond the physical bound of {bound:g}{what}")
     return vals
 
 
@@ -109,15 +128,75 @@ def _origin(path: str, parent: Node) -> np.ndarray:
     o = parent.first("origin")
     if o is None:
         return np.eye(4)
-    xyz = _floats(path, o, "xyz", 3, [0, 0, 0])
-    rpy = _floats(path, o, "rpy", 3, [0, 0, 0])
+    xyz = _floats(path, o, "xyz", 3, [0, 0, 0], MAX_LENGTH, " m")
+    rpy = _floats(path, o, "rpy", 3, [0, 0, 0], MAX_ANGLE, " rad")
     return se3.pose_to_matrix(np.array(xyz + rpy), "rpy")
 
 
-def _attr_float(path: str, node: Node, attr: str, default: float | None) -> float | None:
+def _attr_float(path: str, node: Node, attr: str, default: float | None, bound: float | None = None,
+                what: str = "") -> float | None:
     if attr not in node.attrib:
         return default
-    return _floats(path, node, attr, 1, [])[0]
+    return _floats(path, node, attr, 1, [], bound, what)[0]
+
+
+def _limits(robot: UrdfRobot, jn: Node, name: str, jtype: str) -> tuple[float, float, float]:
+    """(lower, upper, velocity) of a joint, as urdfdom reads them: a ``<limit>`` counts only on a revolute or
+    prismatic joint (continuous, fixed, floating and planar joints ignore it, whatever it says). A moving joint
+    without a usable range or speed is accepted with a warning: the station's own motion limits come from the
+    cell and limits files, and a URDF's limits bind motion only, never the readings."""
+    path = robot.path
+    lim = jn.first("limit")
+    velocity = DEFAULT_VELOCITY
+    if jtype == "continuous" or jtype not in MOVABLE:
+        if jtype == "continuous" and lim is not None and "velocity" in lim.attrib:
+            v = _attr_float(path, lim, "velocity", DEFAULT_VELOCITY)
+            velocity = v if v > 0 else DEFAULT_VELOCITY
+        return -CONTINUOUS_LIMIT, CONTINUOUS_LIMIT, velocity
+    rev = jtype == "revolute"
+    bound, unit = (MAX_ANGLE, " rad") if rev else (MAX_LENGTH, " m")
+    wide = CONTINUOUS_LIMIT if rev else NO_RANGE_SLIDE
+    if lim is None:
+        robot.warn(name, jn, f"joint {name!r}: a {jtype} joint without <limit>: taken as unlimited "
+                       f"(+-{wide:g} {unit.strip()}); motion limits come from the station's limits")
+        return -wide, wide, velocity
+    lower = _attr_float(path, lim, "lower", 0.0)
+    upper = _attr_float(path, lim, "upper", 0.0)
+    velocity = _attr_float(path, lim, "velocity", DEFAULT_VELOCITY)
+    if max(abs(lower), abs(upper)) > bound:  # simulators write +-1e16 for "no limit"
+        robot.warn(name, lim, f"joint {name!r}: <limit lower={lower:g} upper={upper:g}> is beyond any physical range: "
+                              f"taken as unlimited (+-{wide:g} {unit.strip()}); motion limits come from the station's "
+                              f"limits")
+        lower, upper = -wide, wide
+    sc = jn.first("safety_controller")
+    if sc is not None:  # the controller's soft limits are tighter, where they leave a range
+        slo = max(lower, _attr_float(path, sc, "soft_lower_limit", lower))
+        shi = min(upper, _attr_float(path, sc, "soft_upper_limit", upper))
+        if slo < shi:
+            lower, upper = slo, shi
+    if not lower < upper:
+        robot.warn(name, lim, f"joint {name!r}: <limit lower={lower:g} upper={upper:g}> gives the joint no range: "
+                              f"taken as unlimited (+-{wide:g} {unit.strip()}); motion limits come from the station's "
+                              f"limits")
+        lower, upper = -wide, wide
+    if not velocity > 0:
+        robot.warn(name, lim, f"joint {name!r}: <limit velocity={velocity:g}> on a joint that moves: taken as "
+                        f"{DEFAULT_VELOCITY:g}{unit}/s; motion speeds come from the station's limits")
+        velocity = DEFAULT_VELOCITY
+    return lower, upper, velocity
+
+
+def _axis(robot: UrdfRobot, jn: Node, name: str, jtype: str) -> np.ndarray:
+    an = jn.first("axis")
+    if an is None:
+        return np.array([1.0, 0.0, 0.0])  # urdfdom's default
+    axis = np.array(_floats(robot.path, an, "xyz", 3, [1, 0, 0], MAX_AXIS, " (a direction)"))
+    norm = float(np.linalg.norm(axis))
+    if jtype in MOVABLE:
+        if norm < MIN_AXIS:
+            raise robot.fail(an, f"joint {name!r}: zero axis")
+        return axis / norm
+    return axis / norm if norm >= MIN_AXIS else np.array([1.0, 0.0, 0.0])  # unused: the joint does not move
 
 
 def parse_urdf(root: Node, path: str) -> UrdfRobot:
@@ -135,7 +214,7 @@ def parse_urdf(root: Node, path: str) -> UrdfRobot:
         if inertial is not None:
             mn = inertial.first("mass")
             if mn is not None:
-                mass = _attr_float(path, mn, "value", 0.0)
+                mass = _attr_float(path, mn, "value", 0.0, MAX_MASS, " kg")
                 if mass < 0:
                     raise robot.fail(mn, f"link {name!r}: negative mass {mass}")
             com = _origin(path, inertial)[:3, 3]  # the inertia tensor's orientation does not matter here
@@ -158,35 +237,13 @@ def parse_urdf(root: Node, path: str) -> UrdfRobot:
             if link not in robot.links:
                 raise robot.fail(e, f"joint {name!r}: {end} link {link!r} is not defined")
             ends[end] = link
-        axis = np.array(_floats(path, jn.first("axis"), "xyz", 3, [1, 0, 0]) if jn.first("axis") is not None
-                        else [1.0, 0.0, 0.0])
-        if jtype in MOVABLE:
-            if np.linalg.norm(axis) < 1e-9:
-                raise robot.fail(jn.first("axis"), f"joint {name!r}: zero axis")
-            axis = axis / np.linalg.norm(axis)
-        lower = upper = 0.0
-        velocity = DEFAULT_VELOCITY
-        lim = jn.first("limit")
-        if lim is not None:
-            lower = _attr_float(path, lim, "lower", 0.0)
-            upper = _attr_float(path, lim, "upper", 0.0)
-            velocity = _attr_float(path, lim, "velocity", DEFAULT_VELOCITY)
-        if jtype == "continuous":
-            lower, upper = -CONTINUOUS_LIMIT, CONTINUOUS_LIMIT
-        sc = jn.first("safety_controller")
-        if sc is not None and jtype in ("revolute", "prismatic"):  # the controller's soft limits are tighter
-            lower = max(lower, _attr_float(path, sc, "soft_lower_limit", lower))
-            upper = min(upper, _attr_float(path, sc, "soft_upper_limit", upper))
-        if jtype in ("revolute", "prismatic") and not lower < upper:
-            raise robot.fail(lim if lim is not None else jn,
-                             f"joint {name!r}: <limit lower upper> must give lower < upper (got {lower}, {upper})")
-        if velocity <= 0:
-            raise robot.fail(lim, f"joint {name!r}: <limit velocity> must be positive")
+        axis = _axis(robot, jn, name, jtype)
+        lower, upper, velocity = _limits(robot, jn, name, jtype)
         cal = jn.first("calibration")
         calibration = {}
         if cal is not None:
             for key in ("rising", "falling", "reference_position"):
-                v = _attr_float(path, cal, key, None)
+                v = _attr_float(path, cal, key, None, MAX_ANGLE if jtype != "prismatic" else MAX_LENGTH)
                 if v is not None:
                     calibration[key] = v
         mimic = jn.first("mimic")
@@ -199,7 +256,11 @@ def parse_urdf(root: Node, path: str) -> UrdfRobot:
                                  f"(line {other.node.line}) and {name!r}; a URDF must be a tree")
         robot.parent_of[ends["child"]] = name
     if not robot.joints:
-        raise robot.fail(root, "no joints")
+        names = list(robot.links)
+        shown = ", ".join(names[:6]) + (", ..." if len(names) > 6 else "")
+        raise robot.fail(root, f"robot {robot.name!r} has {len(names)} link(s) ({shown}) and no joint: nothing "
+                               f"moves, so there is no chain to calibrate (a chain needs a revolute, continuous or "
+                               f"prismatic joint)" if names else f"robot {robot.name!r} has no link and no joint")
     if not any(ln not in robot.parent_of for ln in robot.links):
         j = next(iter(robot.joints.values()))
         raise robot.fail(j.node, "closed loop: every link has a parent joint, so there is no root link")
@@ -223,6 +284,7 @@ class UrdfChain:
     base: str
     tip: str
     path: list[UrdfJoint]  # every joint from base to tip, fixed ones included
+    warnings: list[str] = field(default_factory=list)  # one line each, about the chain's joints
 
     @property
     def movable(self) -> list[UrdfJoint]:
@@ -253,26 +315,39 @@ def _n_movable(robot: UrdfRobot, link: str) -> int:
     return sum(j.movable for j in robot.path_to(link))
 
 
+def chain_ends(robot: UrdfRobot) -> list[tuple[str, int]]:
+    """Every leaf link with a movable joint on its path from the root, with that number, most joints first."""
+    leaves = [ln for ln in robot.links if not robot.children_of(ln)]
+    depth = [(ln, _n_movable(robot, ln)) for ln in leaves]
+    return sorted(((ln, d) for ln, d in depth if d > 0), key=lambda t: (-t[1], t[0]))
+
+
+def _ends_text(ends: list[tuple[str, int]], limit: int = 12) -> str:
+    shown = ", ".join(f"{ln} ({d} joint{'s' if d != 1 else ''})" for ln, d in ends[:limit])
+    return shown + (f" and {len(ends) - limit} more" if len(ends) > limit else "")
+
+
 def chain(robot: UrdfRobot, tip_link: str | None = None, base_link: str | None = None) -> UrdfChain:
     """The chain to ``tip_link`` (default: the end of the only longest chain) from ``base_link`` (default:
-    the root of the tip's tree). Refuses what a calibrated serial chain cannot be: a mimic joint, a
-    floating or planar joint on the chain, a chain without a movable joint."""
+    the root of the tip's tree). Refuses what a calibrated serial chain cannot be: a floating or planar joint on
+    the chain (several unmeasured degrees of freedom), a chain without a movable joint. A mimic joint on the
+    chain is taken as a joint of its own (its reading is a column of the samples, as a joint state lists it)."""
     for given, what in ((tip_link, "tip"), (base_link, "base")):
         if given is not None and given not in robot.links:
             near = ", ".join(sorted(robot.links)[:12])
             raise robot.fail(None, f"no link {given!r} for the {what} link (links: {near}"
                                    f"{', ...' if len(robot.links) > 12 else ''})")
     if tip_link is None:
-        leaves = [ln for ln in robot.links if not robot.children_of(ln)]
-        depth = {ln: _n_movable(robot, ln) for ln in leaves}
-        best = max(depth.values(), default=0)
-        if best == 0:
-            raise robot.fail(None, "no movable joint (revolute, continuous, prismatic) in the robot")
-        cands = sorted(ln for ln, d in depth.items() if d == best)
-        if len(cands) > 1:
-            raise robot.fail(None, f"several chain ends ({', '.join(cands)}): choose one with --tip-link "
+        ends = chain_ends(robot)
+        if not ends:
+            kinds = ", ".join(sorted({j.type for j in robot.joints.values()}))
+            raise robot.fail(None, f"no movable joint (revolute, continuous, prismatic) in the robot "
+                                   f"({len(robot.joints)} joints: {kinds})")
+        best = [e for e in ends if e[1] == ends[0][1]]
+        if len(best) > 1:
+            raise robot.fail(None, f"several chain ends: {_ends_text(ends)}; choose one with --tip-link "
                                    f"(tip_link=) NAME")
-        tip_link = cands[0]
+        tip_link = best[0][0]
     full = robot.path_to(tip_link)
     if base_link is not None and base_link != tip_link:
         names = [j.parent for j in full]
@@ -283,13 +358,18 @@ def chain(robot: UrdfRobot, tip_link: str | None = None, base_link: str | None =
     base = full[0].parent if full else tip_link
     for j in full:
         if j.type in ("floating", "planar"):
-            raise robot.fail(j.node, f"joint {j.name!r}: a {j.type} joint cannot be part of a calibrated chain")
-        if j.mimic is not None and j.movable:
-            raise robot.fail(j.node, f"joint {j.name!r}: <mimic joint={j.mimic!r}> (a joint driven by another) "
-                                     f"is not supported on the chain")
+            raise robot.fail(j.node, f"joint {j.name!r}: a {j.type} joint cannot be part of a calibrated chain "
+                                     f"(its {6 if j.type == 'floating' else 3} degrees of freedom have no reading); "
+                                     f"start the chain after it with --base-link {j.child}")
     ch = UrdfChain(robot, base, tip_link, full)
     if not ch.movable:
         raise robot.fail(None, f"no movable joint between {base!r} and {tip_link!r}")
+    on = {j.name for j in full}
+    ch.warnings = [w for jn, w in robot.warnings if jn in on]
+    for j in ch.movable:
+        if j.mimic is not None:
+            ch.warnings.append(f"{robot.path}:{j.node.line}: joint {j.name!r} mimics {j.mimic!r}: on the chain it is a "
+                               f"joint of its own (its reading is a column of the samples)")
     return ch
 
 
@@ -344,13 +424,14 @@ def mdh_table(lines: list[tuple[np.ndarray, np.ndarray]], tip: np.ndarray) -> tu
             w0 = O - pn
             b, d_, e_ = float(z @ zn), float(z @ w0), float(zn @ w0)
             d = (b * e_ - d_) / (1 - b * b)
-            nv = pn + (e_ + d * b) * zn - (O + d * z)
-            a = float(np.linalg.norm(nv))
-            if a > 1e-12:
-                x = nv / a
+            # its direction is z x zn (well conditioned: the axes are not parallel), its length the offset of the
+            # two lines along it; the difference of the two feet would lose every digit of a tiny offset
+            ch = c / np.linalg.norm(c)
+            a = float((pn - O) @ ch)
+            if abs(a) > 1e-12:
+                x, a = (ch, a) if a > 0 else (-ch, -a)
             else:  # intersecting axes: either normal direction; keep the one closer to the previous x
-                x = c / np.linalg.norm(c)
-                x, a = (x if x @ xr >= 0 else -x), 0.0
+                x, a = (ch if ch @ xr >= 0 else -ch), 0.0
         else:  # (near) parallel: Hayati
             d = 0.0
             v = pn - float((pn - O) @ z) / float(zn @ z) * zn - O
@@ -405,6 +486,7 @@ def model_from_chain(ch: UrdfChain) -> Model:
             lines.append((T[:3, 3].copy(), T[:3, :3] @ j.axis))
             k += 1
         body_of[j.child] = k
+    _check_reach(ch)
     links, base, tool = mdh_table(lines, T)
     joints = []
     for j in mov:
@@ -444,12 +526,26 @@ def model_from_chain(ch: UrdfChain) -> Model:
     link_in_frame = [se3.invert(prefix[0, e + 1]) @ Wk for e, Wk in zip(m.frames, poses_k, strict=True)]
     src = {**m.source, "urdf": {"path": robot.path, "base_link": ch.base, "tip_link": ch.tip, "chain": ch,
                                 "link_in_frame": link_in_frame,
-                                "calibration": {j.name: j.calibration for j in mov if j.calibration}}}
+                                "calibration": {j.name: j.calibration for j in mov if j.calibration}},
+           "warnings": list(ch.warnings)}
     from dataclasses import replace
 
     m = replace(m, source=src)
     _check(ch, m)
     return m
+
+
+def _check_reach(ch: UrdfChain) -> None:
+    """A chain whose links add up to more than ``MAX_REACH`` is not an arm in metres: every URDF length is in
+    metres, so such a file was most likely written in millimetres (or scaled by 1000 on the way)."""
+    first = next(i for i, j in enumerate(ch.path) if j.movable)
+    reach = sum(float(np.linalg.norm(j.origin[:3, 3])) for j in ch.path[first + 1:])
+    if reach > MAX_REACH:
+        longest = max(ch.path[first + 1:], key=lambda j: float(np.linalg.norm(j.origin[:3, 3])))
+        alone = float(np.linalg.norm(longest.origin[:3, 3]))
+        raise ch.robot.fail(longest.node, f"the chain {ch.base} -> {ch.tip} reaches {reach:.4g} m (joint "
+                                          f"{longest.name!r} alone {alone:.4g} m): no arm is that long; URDF lengths "
+                                          f"are metres - were these millimetres?")
 
 
 def _check(ch: UrdfChain, m: Model) -> None:

@@ -6,8 +6,10 @@ Variables (read-only for clients): ``State`` (idle|running|prompt|done), ``Seria
 parameters in SI). Methods: ``Start(serial: String, procedure: String) -> session: String`` and ``Abort()``.
 
 Security: an endpoint on loopback may be anonymous without encryption; any other address is served only with
-``Basic256Sha256`` (sign & encrypt) and the server's certificate and key, and with a folder of trusted client
-certificates when given. An anonymous, unencrypted endpoint off loopback is refused."""
+``Basic256Sha256`` (sign & encrypt), the server's certificate and key, and a users file (``station.opcua.users``:
+user names and passwords, rights ``read`` and ``operate``), and with a folder of trusted client certificates
+when given. An anonymous or unencrypted endpoint off loopback is refused. Nobody writes variables or changes the
+address space; ``Start``/``Abort`` need ``operate``."""
 
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import urlsplit
 
-from station.panel.controller import Controller, PanelError
+from station.panel.controller import Controller, PanelError, WrongState
 from station.panel.serve import is_loopback
 from station.robot.errors import ConfigError
 
@@ -34,7 +36,8 @@ class OpcuaOptions:
     cert: Path | None = None
     key: Path | None = None
     trust: Path | None = None  # folder of trusted client certificates (DER/PEM)
-    operator: str = "line"  # who started a unit through OPC UA (the record's operator)
+    operator: str = "line"  # who started a unit through OPC UA without a users file (the record's operator)
+    users: Path | None = None  # users file: names, password hashes, rights (required off loopback)
 
 
 def _host(endpoint: str) -> str:
@@ -49,7 +52,11 @@ def _host(endpoint: str) -> str:
 
 def check_security(opts: OpcuaOptions) -> bool:
     """True when the endpoint must be secured (off loopback); refuses an off-loopback endpoint without a
-    certificate and key."""
+    certificate and key, or without a users file, and a users file the station cannot read."""
+    if opts.users is not None:
+        from station.opcua.users import load_users
+
+        load_users(opts.users)  # one line naming file, line and field
     if is_loopback(_host(opts.endpoint)):
         return bool(opts.cert and opts.key)
     if not (opts.cert and opts.key):
@@ -58,6 +65,9 @@ def check_security(opts: OpcuaOptions) -> bool:
     for p in (opts.cert, opts.key):
         if not Path(p).is_file():
             raise ConfigError(f"{p}: no such certificate/key file")
+    if opts.users is None:
+        raise ConfigError(f"OPC UA endpoint {opts.endpoint} is not loopback: clients must sign in; give a users "
+                          "file (--opcua-users / --users; see docs/opcua.md), never anonymous")
     return True
 
 
@@ -81,13 +91,20 @@ class StationServer:
     async def start(self) -> None:
         from asyncua import Server, ua
 
-        logging.getLogger("asyncua").setLevel(logging.ERROR)
-        server = Server()
+        from station.opcua.users import Rights, UserManager, load_users
+
+        logging.getLogger("asyncua").setLevel(logging.CRITICAL)  # refused logins are answered, not narrated
+        accounts = load_users(self.opts.users) if self.opts.users is not None else None
+        server = Server(user_manager=UserManager(accounts))
         await server.init()
         server.set_endpoint(self.opts.endpoint)
         server.set_server_name("station")
+        server.allow_remote_admin(False)  # asyncua's built-in "admin" user: never from the network
+        server.set_identity_tokens([ua.UserNameIdentityToken] if accounts is not None else
+                                   [ua.AnonymousIdentityToken])
+        rules = Rights()  # read: browse/read/subscribe; operate: Start/Abort; nobody writes or edits nodes
         if self.secure:
-            server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
+            server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt], permission_ruleset=rules)
             await server.load_certificate(str(self.opts.cert))
             await server.load_private_key(str(self.opts.key))
             if self.opts.trust:
@@ -98,7 +115,7 @@ class StationServer:
                 await store.load()
                 server.set_certificate_validator(CertificateValidator(trust_store=store))
         else:
-            server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+            server.set_security_policy([ua.SecurityPolicyType.NoSecurity], permission_ruleset=rules)
         idx = await server.register_namespace(NAMESPACE)
         obj = await server.nodes.objects.add_object(idx, "Station")
         for name, value in _snapshot_values(self.ctl).items():
@@ -113,13 +130,19 @@ class StationServer:
     async def _start(self, parent, serial, procedure):
         from asyncua import ua
 
+        from station.opcua.users import current_user
+
         s, p = (v.Value if isinstance(v, ua.Variant) else v for v in (serial, procedure))
+        user = current_user.get()
+        # the record names who started the unit: the signed-in user, else the line (anonymous on loopback)
+        operator = user.name if self.opts.users is not None and user is not None and user.name else self.opts.operator
         try:
-            sid = await asyncio.to_thread(self.ctl.start, str(s or ""), self.opts.operator, (p or None),
+            sid = await asyncio.to_thread(self.ctl.start, str(s or ""), operator, (p or None),
                                           confirm=False, wait_session=30.0)
         except PanelError as e:
-            code = ua.StatusCodes.BadInvalidState if "running" in str(e) else ua.StatusCodes.BadInvalidArgument
-            raise ua.UaStatusCodeError(code) from e
+            # returned, not raised: asyncua answers any exception of a method with BadUnexpectedError
+            return ua.StatusCode(ua.StatusCodes.BadInvalidState if isinstance(e, WrongState)
+                                 else ua.StatusCodes.BadInvalidArgument)
         await self.publish()
         return [ua.Variant(sid or "", ua.VariantType.String)]
 
@@ -128,8 +151,8 @@ class StationServer:
 
         try:
             self.ctl.abort()
-        except PanelError as e:
-            raise ua.UaStatusCodeError(ua.StatusCodes.BadInvalidState) from e
+        except PanelError:
+            return ua.StatusCode(ua.StatusCodes.BadInvalidState)
         return []
 
     async def publish(self) -> None:

@@ -14,7 +14,11 @@
     GET  /api/points/{label}/sketch.svg  where the point is in the cell, seen from above (generated)
     GET  /report/{session}     the session's HTML report
 
-With a token, every request needs ``Authorization: Bearer TOKEN`` or the ``station_token`` cookie (opening
+    GET  /api/csrf             {"csrf": token} for a script's state changes (the page carries its own)
+
+Every request passes ``station.panel.webguard`` first (its own Host names; for a state change: Origin/Referer of
+the panel itself, ``Content-Type: application/json`` and an ``X-CSRF-Token`` the panel issued). With a token,
+every request also needs ``Authorization: Bearer TOKEN`` or the ``station_token`` cookie (opening
 ``/?token=TOKEN`` once sets it)."""
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from __future__ import annotations
 import asyncio
 import hmac
 import json
+import secrets
 from importlib import resources
 from pathlib import Path
 
@@ -30,8 +35,9 @@ from starlette.requests import Request
 from starlette.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse, Response, StreamingResponse
 from starlette.routing import Route
 
-from station.panel.controller import Controller, PanelError, PromptRefused, report_path
+from station.panel.controller import Controller, PanelError, WrongState, report_path
 from station.panel.history import unit_history
+from station.panel.webguard import Guard
 
 COOKIE = "station_token"
 
@@ -40,15 +46,12 @@ def _page() -> str:
     return resources.files("station.panel").joinpath("page.html").read_text(encoding="utf-8")
 
 
-def create_app(controller: Controller, token: str | None = None) -> Starlette:
+def create_app(controller: Controller, token: str | None = None, *, host: str = "127.0.0.1", port: int = 8470,
+               loopback: bool = True, tls: bool = False, allow_hosts: tuple[str, ...] = ()) -> Guard:
+    """The panel's ASGI app for a server listening on ``host:port``: the Starlette routes inside the
+    :class:`~station.panel.webguard.Guard` of that address."""
     page = _page()
-
-    def authorized(request: Request) -> bool:
-        if not token:
-            return True
-        given = request.headers.get("authorization", "")
-        given = given[7:] if given.lower().startswith("bearer ") else request.cookies.get(COOKIE, "")
-        return hmac.compare_digest(given.encode(), token.encode())
+    app_guard: Guard | None = None  # set below; the page and /api/csrf issue its tokens
 
     async def body(request: Request) -> dict:
         try:
@@ -60,17 +63,24 @@ def create_app(controller: Controller, token: str | None = None) -> Starlette:
         return data
 
     def refused(e: PanelError) -> JSONResponse:
-        conflict = not isinstance(e, PromptRefused) and ("running" in str(e) or "nothing" in str(e)
-                                                          or "no question" in str(e))
-        return JSONResponse({"error": str(e)}, status_code=409 if conflict else 400)
+        return JSONResponse({"error": str(e)}, status_code=409 if isinstance(e, WrongState) else 400)
 
     async def index(request: Request):
         q = request.query_params.get("token")
         if token and q and hmac.compare_digest(q.encode(), token.encode()):
             r = RedirectResponse("/", status_code=303)
-            r.set_cookie(COOKIE, token, httponly=True, samesite="strict")
+            r.set_cookie(COOKIE, token, httponly=True, samesite="strict", secure=tls)
             return r
-        return HTMLResponse(page)
+        nonce = secrets.token_urlsafe(16)
+        html = page.replace("__STATION_CSRF__", app_guard.new_token()).replace("__STATION_NONCE__", nonce)
+        return HTMLResponse(html, headers={
+            "Cache-Control": "no-store",  # the page carries its CSRF token
+            "Content-Security-Policy": f"default-src 'self'; script-src 'nonce-{nonce}'; style-src 'self' "
+                                       "'unsafe-inline'; img-src 'self' data:; connect-src 'self'; "
+                                       "frame-ancestors 'none'; base-uri 'none'; form-action 'none'"})
+
+    async def csrf(request: Request):
+        return JSONResponse({"csrf": app_guard.new_token()}, headers={"Cache-Control": "no-store"})
 
     async def state(request: Request):
         return JSONResponse(controller.snapshot())
@@ -144,7 +154,10 @@ def create_app(controller: Controller, token: str | None = None) -> Starlette:
         p = report_path(request.path_params["session"])
         if p is None:
             return JSONResponse({"error": "no report for this session"}, status_code=404)
-        return FileResponse(p, media_type="text/html")
+        # the report is the station's own HTML (escaped, pictures inline): nothing in it may run or load
+        return FileResponse(p, media_type="text/html", headers={
+            "Content-Security-Policy": "default-src 'none'; img-src data:; style-src 'unsafe-inline'; "
+                                       "frame-ancestors 'none'"})
 
     def _point(request: Request):
         cell = controller.cell()
@@ -170,24 +183,15 @@ def create_app(controller: Controller, token: str | None = None) -> Starlette:
         return Response(sketch(controller.cell(), p.label), media_type="image/svg+xml",
                         headers={"Content-Security-Policy": "default-src 'none'; style-src 'unsafe-inline'"})
 
-    def guarded(handler):
-        async def endpoint(request: Request):
-            if handler is index and request.query_params.get("token"):
-                return await handler(request)
-            if not authorized(request):
-                return JSONResponse({"error": "token required (Authorization: Bearer or open /?token=...)"},
-                                    status_code=401)
-            return await handler(request)
-
-        return endpoint
-
     post = {"methods": ["POST"]}
-    routes = [Route("/", guarded(index)), Route("/api/state", guarded(state)),
-              Route("/api/start", guarded(start), **post), Route("/api/abort", guarded(abort), **post),
-              Route("/api/prompt", guarded(prompt), **post), Route("/api/clear", guarded(clear), **post),
-              Route("/api/resume", guarded(resume), **post), Route("/api/resumable", guarded(resumable)),
-              Route("/api/history/{serial:path}", guarded(history)), Route("/api/events", guarded(events)),
-              Route("/api/points/{label}/image", guarded(point_image)),
-              Route("/api/points/{label}/sketch.svg", guarded(point_sketch)),
-              Route("/report/{session}", guarded(report))]
-    return Starlette(routes=routes)
+    routes = [Route("/", index), Route("/api/state", state),
+              Route("/api/start", start, **post), Route("/api/abort", abort, **post),
+              Route("/api/prompt", prompt, **post), Route("/api/clear", clear, **post),
+              Route("/api/resume", resume, **post), Route("/api/resumable", resumable),
+              Route("/api/history/{serial:path}", history), Route("/api/events", events),
+              Route("/api/points/{label}/image", point_image),
+              Route("/api/points/{label}/sketch.svg", point_sketch),
+              Route("/report/{session}", report), Route("/api/csrf", csrf)]
+    app_guard = Guard(Starlette(routes=routes), bind=host, port=port, loopback=loopback, tls=tls,
+                      allow_hosts=allow_hosts, token=token, cookie=COOKIE)
+    return app_guard

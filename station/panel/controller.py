@@ -23,6 +23,10 @@ class PanelError(ValueError):
     """A request the station refuses (wrong state, bad input); the API answers 409/400 with its text."""
 
 
+class WrongState(PanelError):
+    """A request the station's present state refuses (a unit running, nothing running, no question open): 409."""
+
+
 class PromptRefused(PanelError):
     """An answer the open question refuses (400, one line); the question stays open."""
 
@@ -111,7 +115,7 @@ class Controller:
         """The next serial was scanned: the verdict screen goes away."""
         with self._lock:
             if self.busy:
-                raise PanelError("a unit is running; abort it first")
+                raise WrongState("a unit is running; abort it first")
             self._s = self._blank()
             self.version += 1
             self._changed.notify_all()
@@ -126,10 +130,10 @@ class Controller:
             raise PanelError("operator is required (sign in first)")
         if any(c.isspace() for c in serial) or len(serial) > 64:
             raise PanelError(f"serial {serial!r} is not a serial number (no spaces, at most 64 characters)")
-        proc = procedure or self.config.procedure
+        proc = self._requested_procedure(procedure)
         with self._lock:
             if self.busy:
-                raise PanelError(f"unit {self._s['serial']} is still running")
+                raise WrongState(f"unit {self._s['serial']} is still running")
             self._s = {**self._blank(), "state": "running", "serial": serial, "operator": operator,
                        "procedure": proc, "step": "starting", "started": time.time()}
             self.version += 1
@@ -141,18 +145,65 @@ class Controller:
             self._thread.start()
         return self._wait_session(wait_session)
 
+    def _requested_procedure(self, procedure: str | None) -> str:
+        """The procedure a start request (page, line) names: the configured one, or another one *by name* from
+        the shipped package or a configured folder; never a path (a request does not name code)."""
+        from station.engine.procedure import ProcedureError, is_name, resolve_procedure
+
+        configured = self.config.procedure
+        if procedure is None or not str(procedure).strip() or procedure == configured:
+            return configured
+        procedure = str(procedure).strip()
+        if Path(configured).suffix == ".py" and procedure == Path(configured).stem:
+            return configured
+        if not is_name(procedure):
+            raise PanelError(f"procedure {procedure[:80]!r} is not a procedure name (a request names a shipped "
+                             "or configured procedure, never a file)")
+        try:
+            resolve_procedure(procedure)
+        except ProcedureError as e:
+            raise PanelError(str(e)) from None
+        return procedure
+
+    def _procedure_file(self, name: str) -> str | None:
+        """The configured procedure file (``--procedure FILE``) when a session ran it by that name."""
+        configured = Path(self.config.procedure)
+        return str(configured) if configured.suffix == ".py" and configured.stem == name else None
+
+    def check_resumable(self, session: str):
+        """The header of a session this panel may resume, else :class:`PanelError` (nothing is loaded): a session
+        id in ``$STATION_HOME/sessions`` (never a path), run on this panel's robot, whose procedure is found by
+        name where the station's configuration says procedures live, with the journaled sha256."""
+        from station.engine.journal import read_journal
+        from station.engine.procedure import locate_for_resume
+        from station.engine.runner import station_home
+
+        if not session_id_ok(session):
+            raise PanelError(f"session {str(session)[:80]!r} is not a session id")
+        journal = station_home() / "sessions" / session / "journal.jsonl"
+        if not journal.is_file():
+            raise PanelError(f"no session {session} on this station")
+        try:
+            header, _ = read_journal(journal)
+            if header.mode != "procedure" or not header.procedure_sha256:
+                raise PanelError(f"session {session} has no procedure to resume")
+            if header.url != self.config.robot:
+                raise PanelError(f"session {session} ran on {header.url}, not on this panel's robot "
+                                 f"{self.config.robot}; resume it with station resume")
+            locate_for_resume(header.procedure, header.procedure_sha256, file=self._procedure_file(header.procedure),
+                              where=f"session {session}")
+        except PanelError:
+            raise
+        except Exception as e:
+            raise PanelError(" ".join(str(e).split()) or type(e).__name__) from None
+        return header
+
     def resume(self, session: str, operator: str | None = None, wait_session: float = 0.0) -> str | None:
         """Continue an interrupted session (a panel crash, an abort) where it stopped."""
-        from station.engine.journal import read_journal
-        from station.engine.runner import find_session
-
-        try:
-            header, _ = read_journal(find_session(session))
-        except Exception as e:
-            raise PanelError(str(e)) from None
+        header = self.check_resumable(session)
         with self._lock:
             if self.busy:
-                raise PanelError(f"unit {self._s['serial']} is still running")
+                raise WrongState(f"unit {self._s['serial']} is still running")
             self._s = {**self._blank(), "state": "running", "serial": header.serial,
                        "operator": operator or header.operator, "procedure": header.procedure,
                        "session": header.session, "step": "resuming", "started": time.time()}
@@ -200,7 +251,7 @@ class Controller:
         moves after it; the session ends ABORTED, journaled, resumable."""
         with self._lock:
             if not self.busy:
-                raise PanelError("nothing is running")
+                raise WrongState("nothing is running")
             self._abort.set()
             self._s["step"] = "aborting"
             self.version += 1
@@ -217,7 +268,7 @@ class Controller:
         with self._lock:
             p, q = self._s["prompt"], self._question
             if self._s["state"] != "prompt" or p is None or q is None:
-                raise PanelError("no question is open")
+                raise WrongState("no question is open")
             a = str(answer if answer is not None else "").strip()
             if a.lower() == "abort":
                 self._answer = "abort"
@@ -328,8 +379,13 @@ class Controller:
                               operator=operator, options=dict(cfg.options), touch=self._touch(),
                               progress=self._progress, log=self._log, prompt=self.ask, control=self._control)
             else:
-                out = api.resume(resume_of, db=cfg.db, touch=None if cfg.touch != "manual" else self._touch(),
-                                 progress=self._progress, log=self._log, prompt=self.ask, control=self._control)
+                from station.records.store import default_url
+
+                # the panel's own database, never the one a journal names (a journal is data; it may be planted)
+                out = api.resume(resume_of, db=cfg.db or default_url(),
+                                 touch=None if cfg.touch != "manual" else self._touch(),
+                                 progress=self._progress, log=self._log, prompt=self.ask, control=self._control,
+                                 procedure=self._procedure_file(proc))
         except Exception as e:  # bad cell/limits file, wrong robot, unreachable bus: said in one line
             self._set(state="done", verdict="ERROR", message=f"{type(e).__name__}: {e}" if not str(e) else str(e),
                       step="stopped", finished=time.time())
@@ -391,8 +447,9 @@ class Controller:
                         reverse=True)[:50]:
             with contextlib.suppress(Exception):
                 header, events = read_journal(j)
-                if header.session == running or not header.procedure_path:
+                if header.session == running or header.session != j.parent.name:
                     continue
+                self.check_resumable(header.session)  # only what this panel would resume is offered
                 if any(isinstance(e, ev.End) and e.status == "completed" for e in events):
                     continue
                 out.append({"session": header.session, "serial": header.serial, "procedure": header.procedure,
@@ -401,11 +458,17 @@ class Controller:
         return out
 
 
+def session_id_ok(session) -> bool:
+    """A session id (a folder name in ``$STATION_HOME/sessions``), not a path."""
+    return isinstance(session, str) and 0 < len(session) <= 200 and not session.startswith(".") and \
+        all(c.isalnum() or c in "-_." for c in session)
+
+
 def report_path(session: str) -> Path | None:
     """The HTML report of a session in ``$STATION_HOME/sessions`` (None: no such file)."""
     from station.engine.runner import station_home
 
-    if not session or "/" in session or session.startswith("."):
+    if not session_id_ok(session):
         return None
     p = station_home() / "sessions" / session / "report.html"
     return p if p.is_file() else None

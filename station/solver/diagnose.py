@@ -102,6 +102,29 @@ def _row_residuals(model, obs: Observations, res: CalibrationResult) -> np.ndarr
     return np.where(np.isfinite(d), d, 0.0)
 
 
+SCREEN = 0.8  # a hypothesis must pull the nominal model's touches of each point this much closer to be refitted
+
+
+def _spread(model, obs: Observations, q: np.ndarray) -> float | None:
+    """RMS distance of the nominal model's tips from the centroid of their point's touches (touch mode): a unit
+    slip scatters the poses by radians or metres, and its fix brings them back to the model's error, so a
+    hypothesis that leaves this spread where it was is not worth a refit (each costs a whole solve)."""
+    if obs.measured is not None:
+        return None
+    try:
+        P = model.position(q)
+    except Exception:  # noqa: BLE001 - a reading the model cannot take: no screen
+        return None
+    keys = [str(p) for p in obs.point] if obs.fixture is None else [f"{p}@{f}" for p, f in
+                                                                   zip(obs.point, obs.fixture, strict=True)]
+    arr = np.array(keys, dtype=object)
+    d = []
+    for k in dict.fromkeys(keys):  # np.unique of objects would import numpy.ma on the solve path
+        p = P[arr == k]
+        d.append(np.sum((p - p.mean(axis=0)) ** 2))
+    return float(np.sqrt(np.sum(d) / len(P)))
+
+
 def _gross_outliers(res: CalibrationResult) -> list[tuple[int, float]]:
     """(row, residual m) of the touches the fit excluded that are too far off for a bad touch."""
     out = []
@@ -131,10 +154,16 @@ def unit_slip(model, obs: Observations, res: CalibrationResult,
     rms0 = float(res.residuals.get("rms_after_m", math.inf))
     best: Slip | None = None
 
+    spread0: list[float | None] = []  # computed on the first hypothesis that needs it
+
     def attempt(qn: np.ndarray, where: str, factor: float, unit: str, before: float, fits) -> None:
         nonlocal best
         if np.any(qn < lo) or np.any(qn > hi):
             return  # the rescaled readings are impossible: not this hypothesis
+        if not spread0:
+            spread0.append(_spread(model, obs, q))
+        if spread0[0] is not None and not _spread(model, obs, qn) < SCREEN * spread0[0]:
+            return  # the nominal model's touches do not come together: no refit can explain the misfit with it
         try:
             r = refit(dataclasses.replace(obs, q=qn))
         except Exception:  # a hypothesis the solver refuses is simply not the explanation

@@ -36,6 +36,8 @@ SIGMA_TOL = 0.05  # relative change of sigma between fits below which the prior 
 MAX_ROUNDS = 12  # decide / refit rounds before "the identified set did not settle"
 POSE_TOL = 1e-3  # rad or m: joint readings closer than this are the same pose
 RUNAWAY = 5.0  # prior standard deviations from nominal: beyond this a result is not trusted
+CONFLICT_Z = 5.0  # |data estimate - nominal| / sqrt(data var + prior var) beyond this: the prior contradicts the data
+DETERMINED_M = 1e-3  # m at the tool: a parameter whose data std is within this (or max_std) is determined by the data
 OUTLIER_THRESHOLD = 4.0  # standardised residual (any axis) above which a touch is excluded
 MAX_OUTLIER_FRACTION = 0.2  # more outliers than this: the model does not fit the data
 LOSSES = ("linear", "huber", "soft_l1")
@@ -57,7 +59,8 @@ def select_names(model, identify) -> list[str]:
 def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown", holdout: Observations | None = None,
           *, instrument_frame: str = "unknown", noise: float | None = None, priors=None,
           max_std: float | None = None, loss: str = "linear", outlier_threshold: float | None = OUTLIER_THRESHOLD,
-          distances=None, planes=None, joint_noise=None, max_iter: int = 100) -> CalibrationResult:
+          distances=None, planes=None, joint_noise=None, max_iter: int = 100,
+          touch: str = "socket") -> CalibrationResult:
     """Identify ``identify`` of ``model`` from touch observations (MAP estimate with priors).
 
     ``reference``: ``"unknown"`` (every touched point is a nuisance unknown ``point.LABEL.{x,y,z}``) or
@@ -78,6 +81,9 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
     uncertainty, default ``DISTANCE_STD``; with several fixture positions, one per position), reported in
     ``result.constraints``, and scores the holdout. ``planes``: labels whose touches lie on one unknown
     plane each (per fixture position). Per-touch weights and fixture positions come with ``obs``.
+    ``touch``: how the tip meets the points (``socket``, ``needle``; instrument samples are ``tracker``): a fit far
+    above what that method gives, or one that leaves the residual where it started, is not trusted and says the
+    likely cause with its evidence (``result.diagnosis``; ``station.solver.misfit``).
     ``joint_noise`` (rad or m, one number or one per joint): std of the joint readings; default:
     the quantisation of the model's encoders (``station.solver.noise``); 0: none. A result carries
     ``trusted``; an untrusted one says why in ``failure``."""
@@ -91,6 +97,8 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
         raise SolverInputError(f"model {model.name} has {model.n_joints} joints, observations have {obs.q.shape[1]}")
     if instrument_frame not in ("unknown", "base"):
         raise SolverInputError(f"instrument_frame must be 'unknown' or 'base', got {instrument_frame!r}")
+    if touch not in ("socket", "needle", "tracker"):
+        raise SolverInputError(f"touch must be socket, needle or tracker, got {touch!r}")
     if loss not in LOSSES:
         raise SolverInputError(f"loss must be one of {', '.join(LOSSES)}, got {loss!r}")
     if noise is not None and not (math.isfinite(noise) and noise > 0):
@@ -117,6 +125,7 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
         est = _Estimation(prob, prior, noise, max_std, loss, outlier_threshold, max_iter, joint_noise)
     except ValueError as e:
         raise SolverInputError(str(e)) from None
+    est.method = "tracker" if obs.measured is not None else touch
     est.run()
     res = est.result()
     if holdout is not None:
@@ -130,6 +139,7 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
                         priors={n: float(prior[i]) for i, n in enumerate(prob.names) if math.isfinite(prior[i])},
                         distances=[{"between": [a, b], "distance_m": v, "std_m": sd} for a, b, v, sd in dist],
                         planes=list(planes or []), weighted=obs.weight is not None, fixtures=obs.fixtures,
+                        touch=est.method,
                         estimator="maximum a posteriori, Levenberg-Marquardt on the analytic Jacobian")
     res.solve_time_s = time.perf_counter() - t0
     return res
@@ -167,7 +177,9 @@ class _Estimation:
     """The state of one solve: decide, fit, re-decide; outliers; final statistics."""
 
     def __init__(self, prob: Problem, prior, noise, max_std, loss, threshold, max_iter, joint_noise=None) -> None:
-        self.prob, self.prior, self.noise, self.max_std = prob, prior, noise, max_std
+        self.prob, self.prior, self.noise, self.max_std = prob, prior.copy(), noise, max_std
+        self.prior0 = prior.copy()  # as given: a prior freed by a prior-data conflict is reported with it
+        self.conflicts: list[dict] = []  # prior-data conflicts: each names the data's estimate, std and what was done
         self.loss, self.threshold, self.max_iter = loss, threshold, max_iter
         self.x0 = prob.x_nominal
         self.tool = prob.tool_per_unit()  # m of tool motion per unit
@@ -191,6 +203,46 @@ class _Estimation:
 
     # ---- the loop ---------------------------------------------------------------------------------
     def run(self) -> None:
+        """Fit, decide, refit until the identified set settles; a parameter the fit then puts far beyond its
+        tolerance (``RUNAWAY`` prior std) although the first fit did not flag it is a prior-data conflict found
+        late: freed where the data determine it, and the whole solve run again (at most twice)."""
+        self._run_once()
+        for _ in range(2):
+            if not self._late_conflicts():
+                break
+            self._run_once()
+
+    def _late_conflicts(self) -> bool:
+        """Free the priors of identified parameters beyond ``RUNAWAY`` prior std that the data determine; True
+        when any was freed (the caller solves again)."""
+        A = self.accepted
+        late = [j for j in A if math.isfinite(self.prior[j]) and abs(self.x[j] - self.x0[j]) > RUNAWAY * self.prior[j]]
+        if not late:
+            return False
+        sigma, tfac, _ = self._sigma(self.r, len(A))
+        BtB = self._btb(self.J, self.x, sigma)
+        lim = self.max_std if self.max_std is not None else DETERMINED_M
+        freed = []
+        for j in late:
+            own = self.prior.copy()
+            own[j] = np.inf  # the data's std of it: its own prior out, the others' in
+            post = posterior(BtB, A, [], sigma, own, tfac)
+            sd = float(post.std[post.cols.index(j)])
+            if sd * self.tool[j] > lim:
+                continue  # the data cannot settle it: the runaway stays a failure (_trust)
+            dev, pr, unit = float(self.x[j] - self.x0[j]), float(self.prior[j]), self.prob.units[j]
+            self.conflicts.append({"parameter": self.prob.names[j], "data_offset": dev, "data_std": sd,
+                                   "prior_std": pr, "z": abs(dev) / math.hypot(sd, pr), "freed": True, "unit": unit})
+            self.conflict.add(j)
+            self.prior[j] = np.inf
+            freed.append(f"{self.prob.names[j]}: the data put it at {_q(dev, unit, True)} ± {_q(sd, unit)} from "
+                         f"nominal ({abs(dev) / pr:.1f}x its tolerance {_q(pr, unit)})")
+        if freed:
+            self.notes.append(f"prior-data conflict: {'; '.join(freed)}: estimated from the data alone (prior "
+                              f"freed); check the model, or state the tolerance with --prior NAME=STD")
+        return bool(freed)
+
+    def _run_once(self) -> None:
         prob = self.prob
         x, r, J = prob.initial_with_jacobian()
         self.r_before = r
@@ -203,6 +255,8 @@ class _Estimation:
         sigma_w = self.noise if self.noise is not None else SIGMA_FIRST
         restructured = 0
         first = True
+        seen: list[list[int]] = []  # identified sets decided so far
+        frozen = False  # the decision went round in a circle: the union of the circle is kept (see below)
         for _ in range(MAX_ROUNDS):
             self.noise_model.set(sigma=sigma_w, w=self.w)
             x, r, J, it, conv = _fit(prob, x, A, self.noise_model, sigma_w, self.prior, self.x0, self.max_iter)
@@ -217,7 +271,15 @@ class _Estimation:
                 self.first = (r.copy(), len(A))  # residual and size of the (nearly) unconstrained fit
                 first = False
             dec = decide(BtB, S, self.order, [], sigma, self.prior, self.tool, self.max_std, tfac)
-            stable = dec.accepted == A and abs(sigma / sigma_w - 1.0) < SIGMA_TOL
+            accepted = dec.accepted
+            if frozen:
+                accepted = A
+            elif accepted != A and accepted in seen:
+                # a parameter at the line is in, then out, then in again as sigma moves with it: estimate it (the
+                # data carry about half its information either way; a circle must not become a failure)
+                accepted, frozen = sorted(set(A) | set(accepted)), True
+            seen.append(list(accepted))
+            stable = accepted == A and abs(sigma / sigma_w - 1.0) < SIGMA_TOL
             if stable and self.loss != "linear":
                 stable = not self._reweight(r, J, A, sigma)
             if stable:
@@ -236,29 +298,46 @@ class _Estimation:
                 self.settled = True
                 break
             for j in A:
-                if j not in dec.accepted:
+                if j not in accepted:
                     x[j] = self.x0[j]  # back to nominal: never keep numbers for a direction the data do not see
-            A, sigma_w = dec.accepted, sigma
+            A, sigma_w = accepted, sigma
         self.x, self.r, self.J, self.accepted, self.S = x, r, J, A, S
 
     def _conflicts(self, x, BtB, A, sigma) -> None:
-        """Prior-data conflict: the (nearly) unconstrained fit puts a parameter more than RUNAWAY prior
-        std from nominal, and the data are sure of it (also RUNAWAY of its own std). The MAP estimate
-        would then be dragged back by the prior with an inflated sigma: the result is not trusted."""
+        """Prior-data conflict, judged on the (nearly) unconstrained first fit: the data put a parameter further
+        from nominal than data and prior together allow (``CONFLICT_Z`` std of their difference). The MAP
+        estimate would be dragged back by the prior and the fit left with the difference. Where the data
+        determine the parameter (its std at the tool within ``max_std``, default 1 mm), its prior is freed and it
+        is estimated from the data alone, reported as such; where they cannot, the result is not trusted."""
         post = posterior(BtB, A, [], sigma, np.full(len(self.prior), np.inf))
-        hits = []
+        lim = self.max_std if self.max_std is not None else DETERMINED_M
+        freed, undetermined = [], []
         for i, j in enumerate(post.cols):
             pr = self.prior[j]
-            dev = abs(x[j] - self.x0[j])
-            if math.isfinite(pr) and dev > RUNAWAY * pr and dev > RUNAWAY * post.std[i]:
-                hits.append(f"{self.prob.names[j]} {_q(x[j] - self.x0[j], self.prob.units[j], True)} "
-                            f"({dev / pr:.1f}x its tolerance {_q(pr, self.prob.units[j])})")
-                self.conflict.add(j)
-        if hits:
-            more = f" and {len(hits) - 3} more" if len(hits) > 3 else ""
-            self.failure.append(f"prior-data conflict: the data put {', '.join(hits[:3])}{more} from nominal; if "
-                                "that is real, widen the prior (--prior NAME=VALUE), else the model or the data are "
-                                "wrong")
+            if not math.isfinite(pr):
+                continue
+            dev, sd = float(x[j] - self.x0[j]), float(post.std[i])
+            z = abs(dev) / math.hypot(sd, pr)
+            if not z > CONFLICT_Z:
+                continue
+            unit = self.prob.units[j]
+            determined = sd * self.tool[j] <= lim
+            text = (f"{self.prob.names[j]}: the data put it at {_q(dev, unit, True)} ± {_q(sd, unit)} from nominal "
+                    f"({abs(dev) / pr:.1f}x its tolerance {_q(pr, unit)})")
+            self.conflicts.append({"parameter": self.prob.names[j], "data_offset": dev, "data_std": sd,
+                                   "prior_std": float(pr), "z": z, "freed": bool(determined), "unit": unit})
+            self.conflict.add(j)
+            (freed if determined else undetermined).append(text)
+            if determined:
+                self.prior[j] = np.inf  # estimated from the data alone
+        if freed:
+            self.notes.append(f"prior-data conflict: {'; '.join(freed)}: estimated from the data alone (prior freed); "
+                              f"check the model, or state the tolerance with --prior NAME=STD")
+        if undetermined:
+            self.failure.append(f"prior-data conflict the data cannot settle: {'; '.join(undetermined[:3])}"
+                                f"{f' and {len(undetermined) - 3} more' if len(undetermined) > 3 else ''}: its "
+                                f"std at the tool exceeds {lim * 1e3:g} mm; take more varied poses (or the model or "
+                                f"the data are wrong)")
 
     def _btb(self, J: np.ndarray, x: np.ndarray, sigma: float) -> np.ndarray:
         """``B^T W B`` of the touches plus the known distances' information ``sigma^2 G^T G / s^2`` (so that
@@ -367,31 +446,41 @@ class _Estimation:
             cov = post.cov
             std[post.cols] = np.sqrt(np.maximum(np.diag(cov), 0.0))
         params: dict[str, ParameterEstimate] = {}
+        info = np.full(prob.n_unknowns, np.nan)  # H_A^-1: the noise part of the variance, prior included
+        if post is not None:
+            info[post.cols] = np.diag(post.info_inv)
         for i, n in enumerate(prob.names):
             kind, unit = prob.kinds[i], prob.units[i]
-            pr = float(self.prior[i]) if math.isfinite(self.prior[i]) else None
+            pr = float(self.prior0[i]) if math.isfinite(self.prior0[i]) else None
             nominal = float(self.x0[i]) if kind != "point" else math.nan
             if i in A:
                 shr = None if pr is None else max(0.0, 1.0 - (std[i] / pr) ** 2)
-                params[n] = ParameterEstimate(n, float(x[i]), nominal, float(std[i]), True, "", kind, unit, pr, shr)
+                # the prior's share of the estimate's information (0: the data alone; freed priors count 0)
+                share = None if pr is None else (0.0 if not math.isfinite(self.prior[i]) else
+                                                 float(min(1.0, info[i] / self.prior[i] ** 2)))
+                params[n] = ParameterEstimate(n, float(x[i]), nominal, float(std[i]), True, "", kind, unit, pr, shr,
+                                              prior_share=share)
                 continue
             value = nominal if kind == "model" else math.nan
             if i in self.struct.nulls:
                 nl: Null = self.struct.nulls[i]
                 params[n] = ParameterEstimate(n, value, nominal, None, False, nl.reason, kind, unit, pr, 0.0,
-                                              nl.fix, nl.cause)
+                                              nl.fix, nl.cause, prior_share=None if pr is None else 1.0)
             else:
                 would, _ = dec.weak.get(i, (math.nan, pr))
                 reason, fix = self._weak_reason(i, would, BtB, sigma, tfac)
                 shr = None if pr is None or not math.isfinite(would) else max(0.0, 1.0 - (would / pr) ** 2)
                 params[n] = ParameterEstimate(n, value, nominal, None, False, reason, kind, unit, pr, shr, fix,
-                                              "weak")
+                                              "weak", prior_share=None if pr is None else 1.0)
         rms0, max0 = _stats(self.r_before)
         act = self.w > 0
         rr = r.reshape(-1, 3)[act].ravel()
         rms1, max1 = _stats(rr)
         notes = list(self.notes)
         self._trust(params, dof)
+        diagnosis = self._misfit(x, r, sigma, rms0, rms1)
+        if diagnosis is not None:  # the cause first: conflicts and runaways are its symptoms
+            self.failure.insert(0, diagnosis.pop("line"))
         if isinstance(prob.known, dict) and prob.known and prob.unknown_points:
             notes.append(f"reference point(s) {', '.join(prob.unknown_points)} not given: solved as unknown")
         if self.noise is not None and getattr(self, "noise_contradicted", False):
@@ -408,7 +497,8 @@ class _Estimation:
             rank=len(A), n_parameters=prob.n_unknowns, converged=self.converged, iterations=self.iterations,
             condition_number=cond, observability_index=o1, sigma_m=self.sigma_fit, covariance=cov,
             n_samples=len(prob.obs), n_residuals=r.size, notes=notes,
-            trusted=not self.failure, failure="; ".join(self.failure) or None,
+            trusted=not self.failure, failure="; ".join(self.failure) or None, conflicts=list(self.conflicts),
+            diagnosis=diagnosis,
             outliers=self._outlier_list(sigma), constraints=self._constraints(x, r, post, A),
             noise={"sigma_m": sigma, "source": "declared" if self.noise is not None and not getattr(
                 self, "noise_contradicted", False) else "fitted", "declared_m": self.noise,
@@ -416,6 +506,31 @@ class _Estimation:
                 "joint": [float(v) for v in self.joint_noise],
                 "resolution": [float(v) for v in self.resolution]})
         return res
+
+    def _misfit(self, x, r, sigma, rms0, rms1) -> dict | None:
+        """Why nothing improved (``station.solver.misfit``), or None when the fit is as good as the method allows."""
+        if not (math.isfinite(sigma) and math.isfinite(rms0) and math.isfinite(rms1)):
+            return None
+        from station.solver.misfit import explain, nothing_improved
+
+        if not nothing_improved(rms0, rms1, sigma, self.method):
+            return None  # the common case costs no Jacobian
+        prob = self.prob
+        obs = prob.obs
+        keys = obs.point.astype(str)
+        if obs.fixture is not None:
+            keys = np.array([f"{p}@{f}" for p, f in zip(keys, obs.fixture.astype(str), strict=True)], dtype=object)
+        Jtcp = None
+        tcp = [f"tcp.{a}" for a in "xyz"]
+        if not any(n in prob.names and prob.names.index(n) in self.accepted for n in tcp):
+            try:
+                _, _, Jp = prob.model.jacobians(obs.q, prob.full_params(x))
+                Jtcp = Jp[:, :3, [prob.model.index(n) for n in tcp]]
+            except (KeyError, ValueError):
+                Jtcp = None
+        return explain(obs.q, keys, r.reshape(-1, 3), self.w > 0, prob.joint_jacobian(x), Jtcp, rms0, rms1,
+                       sigma, self.method, [j.name for j in prob.model.joints],
+                       [j.revolute for j in prob.model.joints])
 
     def _constraints(self, x, r, post, A) -> list[dict]:
         """The known distances and planes of the fit, each with its stated and fitted value and residual."""
@@ -494,23 +609,6 @@ class _Estimation:
         if run:
             more = f" and {len(run) - 3} more" if len(run) > 3 else ""
             self.failure.append(f"collapse or runaway: {', '.join(run[:3])}{more} from nominal")
-        # the parameters left at nominal as weak must not be what the data need: were they within their
-        # tolerances, fixing them would raise the cost per dropped parameter by at most (delta/std)^2 sigma^2
-        # <= (RUNAWAY / MAX_RATIO)^2 sigma^2 for delta up to RUNAWAY prior std (F statistic against the fit of
-        # everything the structure allows)
-        r1, n1 = getattr(self, "first", (None, 0))
-        k = n1 - len(self.accepted)
-        m = self._rows()
-        c1 = float(np.sum(self.noise_model.residual(r1) ** 2)) if r1 is not None else 0.0  # same whitening
-        if r1 is not None and k > 0 and m > n1 and not self.outliers and c1 > 0:
-            rw = self.noise_model.residual(self.r)
-            F = ((float(rw @ rw) - c1) / k) / (c1 / (m - n1))
-            if F > (RUNAWAY / MAX_RATIO) ** 2 and not self.conflict:
-                self.failure.append(
-                    f"prior-data conflict: the {k} parameter(s) left at nominal as poorly observed are what the data "
-                    f"need (fit residual {math.sqrt(c1 / (m - n1)) * 1e3:.4f} mm per axis with them, "
-                    f"{math.sqrt(float(rw @ rw) / max(m - len(self.accepted), 1)) * 1e3:.4f} mm without): the model "
-                    "is wrong or its tolerances too tight; widen the prior or take more varied poses")
         if dof <= 0:
             self.failure.append("no degrees of freedom left to judge the fit")
 

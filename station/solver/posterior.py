@@ -10,10 +10,13 @@ and the set K kept at nominal:
     Cov_A = H_A^-1 + G diag(sigma_p,K^2) G^T               (everything the data leave uncertain)
 
 ``Cov_A`` is the "consider" covariance: a parameter kept at nominal contributes its prior variance to
-the others'. A model parameter is *identified* when, with everything not identified at nominal, its
-posterior std (``H_A^-1``) is at most ``MAX_RATIO`` of its prior std (the data remove at least 91 % of
-the prior variance) and, if asked, within ``max_std`` of tool motion. Weak parameters are dropped one at
-a time (the worst first): dropping one changes the others. The reported std is from ``Cov_A``, and
+the others'. A model parameter is *identified* (estimated) when the data determine it to within its prior:
+with everything not identified at nominal, its posterior std (``H_A^-1``) is at most ``MAX_RATIO`` = 1/sqrt(2)
+of its prior std (the data carry at least half its information: their own std is at most the prior's) and,
+if asked, within ``max_std`` of tool motion (by Sherman-Morrison, posterior var <= prior var / 2 is exactly
+"the data, with the other priors, leave it a std of at most its own prior's"). At that line keeping or dropping
+a parameter moves the fit by about its own noise: a touch more or less is no cliff. Weak parameters are
+dropped one at a time (the worst first): dropping one changes the others. The reported std is from ``Cov_A``, and
 ``shrinkage = 1 - std^2 / sigma_p^2`` from it."""
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ from functools import lru_cache
 
 import numpy as np
 
-MAX_RATIO = 0.3  # identified: posterior std <= 0.3 prior std (the data decide >= 91 % of the variance)
+MAX_RATIO = math.sqrt(0.5)  # identified: posterior std <= prior std / sqrt(2): the data's own std <= the prior's
 NUISANCE_STD = 1e3  # (m or rad) stand-in prior of a nuisance unknown that is kept (structurally free)
 COVER = 3.0  # std multiple whose Gaussian coverage (99.73 %) the Student-t correction preserves
 

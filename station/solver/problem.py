@@ -424,7 +424,9 @@ class Problem:
             # minimum-norm dq = Jq^T (Jq Jq^T)^-1 r (damped by 1e-12 of the trace: a robot whose tip cannot
             # move in some direction keeps that part of the residual)
             A = Jq @ Jq.transpose(0, 2, 1)
-            A += (1e-12 * np.trace(A, axis1=1, axis2=2))[:, None, None] * np.eye(3)
+            tr = np.trace(A, axis1=1, axis2=2)
+            # a tip on every joint's axis (a rotor's own link) cannot move at all: nothing to move there
+            A += np.where(tr > 0, 1e-12 * tr, 1.0)[:, None, None] * np.eye(3)
             r3 = P - tgt
             if self.plane_keys:
                 self._apply_planes(x, P, r3)

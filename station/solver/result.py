@@ -25,12 +25,15 @@ class ParameterEstimate:
     shrinkage: float | None = None  # 1 - std^2 / prior_std^2: how much of the prior variance the data removed
     fix: str = ""  # for a parameter not identified: what would make it identifiable
     cause: str = ""  # for a parameter not identified: a structural cause (e.g. point_rotation, scale) or "weak"
+    # how much the prior contributed: its share of the estimate's information (0: the data alone, 1: the prior
+    # alone, as for a parameter kept at nominal); None without a prior
+    prior_share: float | None = None
 
     def to_dict(self) -> dict:
         return {"value": _num(self.value), "std": self.std, "identifiable": self.identifiable,
                 "reason": self.reason or None, "nominal": _num(self.nominal), "kind": self.kind, "unit": self.unit,
-                "prior_std": self.prior_std, "shrinkage": self.shrinkage, "fix": self.fix or None,
-                "cause": self.cause or None}
+                "prior_std": self.prior_std, "shrinkage": self.shrinkage, "prior_share": self.prior_share,
+                "fix": self.fix or None, "cause": self.cause or None}
 
     @classmethod
     def from_dict(cls, name: str, d: dict) -> ParameterEstimate:
@@ -39,7 +42,7 @@ class ParameterEstimate:
                    d.get("reason") or "", d.get("kind", "model"), d.get("unit", "m"),
                    None if d.get("prior_std") is None else float(d["prior_std"]),
                    None if d.get("shrinkage") is None else float(d["shrinkage"]), d.get("fix") or "",
-                   d.get("cause") or "")
+                   d.get("cause") or "", None if d.get("prior_share") is None else float(d["prior_share"]))
 
 
 def _num(v: float) -> float | None:
@@ -80,6 +83,12 @@ class CalibrationResult:
     # "residual_m", ...} (docs/formats.md)
     constraints: list[dict] = field(default_factory=list)
     solve_time_s: float | None = None
+    # prior-data conflicts: {"parameter", "data_offset" (data estimate - nominal, SI), "data_std", "prior_std", "z",
+    # "freed" (estimated from the data alone) , "unit"}; a conflict the data cannot settle makes the result untrusted
+    conflicts: list[dict] = field(default_factory=list)
+    # why a fit that is not trusted failed, when the data show a cause (backlash, unseated touches, wrong tip link):
+    # {"cause", "evidence", "action"}; see station.solver.diagnose
+    diagnosis: dict | None = None
 
     # ---- convenience -----------------------------------------------------------------------------
     @property
@@ -141,6 +150,8 @@ class CalibrationResult:
             "outliers": [dict(o) for o in self.outliers],
             "noise": dict(self.noise),
             "constraints": [dict(c) for c in self.constraints],
+            "conflicts": [dict(c) for c in self.conflicts],
+            "diagnosis": None if self.diagnosis is None else dict(self.diagnosis),
             "solve_time_s": self.solve_time_s,
         }
 
@@ -160,6 +171,7 @@ class CalibrationResult:
                 trusted=bool(d.get("trusted", d["converged"])), failure=d.get("failure"),
                 outliers=list(d.get("outliers") or []), noise=dict(d.get("noise") or {}),
                 constraints=list(d.get("constraints") or []),
-                solve_time_s=d.get("solve_time_s"))
+                solve_time_s=d.get("solve_time_s"), conflicts=list(d.get("conflicts") or []),
+                diagnosis=None if not d.get("diagnosis") else dict(d["diagnosis"]))
         except (KeyError, TypeError, ValueError) as e:
             raise ValueError(f"not a calibration result: {type(e).__name__}: {e}") from None

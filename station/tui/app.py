@@ -1,5 +1,11 @@
-"""``station jog``: the technician's terminal UI (textual). Widgets render a ``JogController``. Moves are started
-without waiting, so the UI thread is never blocked by motion and the stop key is always served at once."""
+"""``station jog``: the technician's terminal UI (textual). Widgets render a ``JogController`` (panel texts:
+``station.tui.panels``; dialogs: ``station.tui.dialogs``). Moves are started without waiting, so the UI thread
+is never blocked by motion, and the STOP keys (space, x, ctrl+c) act on the terminal's input thread as soon as
+they are typed, ahead of everything queued for the UI.
+
+Layout: two columns. Below ``WIDE_MIN`` columns (or too few rows for the keys panel) the panels switch to
+their compact forms, which fit an 80x24 terminal whole; below 80x24 a notice says the terminal is too small
+(the keys still work). The bottom line is the station's own key help, not textual's footer."""
 
 from __future__ import annotations
 
@@ -8,26 +14,32 @@ import contextlib
 import signal
 import threading
 
-import numpy as np
 from rich.text import Text
+from textual import events
 from textual.app import App, ComposeResult
 from textual.binding import Binding
-from textual.containers import Horizontal, Vertical
+from textual.containers import Horizontal, Vertical, VerticalScroll
 from textual.css.query import NoMatches
-from textual.screen import ModalScreen
-from textual.widgets import Button, DataTable, Footer, Header, Static
+from textual.widgets import DataTable, Static
 
-from station.tui.controller import HOLD_CHECK_S, STEP_PRESETS, ExportPlan, JogController, WritebackPlan
-from station.units import human, human_of, joint_quantity
+from station.tui import panels
+from station.tui.controller import HOLD_CHECK_S, ExportPlan, JogController
+from station.tui.dialogs import (  # noqa: F401  (importable from here as before)
+    ConfirmScreen,
+    HelpScreen,
+    NearScreen,
+    QuitScreen,
+    WritebackScreen,
+    export_question,
+    near_question,
+    quit_question,
+)
+from station.tui.panels import JOG_KEYS, NEAR_KEY, SEAT_KEY
 
-# (plus key, minus key) per axis: J1..J6 in joint mode, X Y Z Rx Ry Rz in Cartesian mode
-JOG_KEYS = (("q", "a"), ("w", "s"), ("e", "d"), ("r", "f"), ("t", "g"), ("y", "h"), ("u", "j"))
 POLL_S = 0.2
-
-
-def _fmt_value(v: float, rotational: bool) -> str:
-    unit, k = human(joint_quantity(rotational))
-    return f"{v * k:+10.3f} {unit:<3}"
+MIN_SIZE = (80, 24)  # the smallest terminal every panel fits into (compact forms)
+WIDE_MIN = 120  # columns for the wide forms and the keys panel
+STOP_KEYS = ("space", "x", "ctrl+c")
 
 
 class SamplesTable(DataTable):
@@ -37,131 +49,68 @@ class SamplesTable(DataTable):
     can_focus = False
 
 
-class ConfirmScreen(ModalScreen[bool]):
-    """A yes/no question (discard a sample); enter does not confirm (it is the record key)."""
+class SolveScroll(VerticalScroll):
+    """The live solve scrolls (PgUp/PgDn) without taking focus."""
 
-    BINDINGS = [Binding("y", "confirm", "yes"), Binding("n,escape", "cancel", "no")]
-    AUTO_FOCUS = "#cf-no"
-    DEFAULT_CSS = """
-    ConfirmScreen { align: center middle; }
-    #cf-box { width: 70; height: auto; border: thick $warning; background: $surface; padding: 1 2; }
-    #cf-buttons { height: auto; margin-top: 1; }
-    #cf-buttons Button { margin-right: 2; }
-    """
-
-    def __init__(self, question: str, yes: str = "Yes (y)") -> None:
-        super().__init__()
-        self.question, self.yes = question, yes
-
-    def compose(self) -> ComposeResult:
-        with Vertical(id="cf-box"):
-            yield Static(Text(self.question, style="bold"), id="cf-question")
-            with Horizontal(id="cf-buttons"):
-                yield Button(self.yes, variant="error", id="cf-yes")
-                yield Button("No (n)", variant="primary", id="cf-no")
-
-    def on_button_pressed(self, event: Button.Pressed) -> None:
-        self.dismiss(event.button.id == "cf-yes")
-
-    def action_confirm(self) -> None:
-        self.dismiss(True)
-
-    def action_cancel(self) -> None:
-        self.dismiss(False)
-
-
-def export_question(plan: ExportPlan) -> str:
-    return (f"Export the calibration for the controller?\n\nThe controller keeps its own calibration: nothing is "
-            f"written to the robot, it stays unchanged. Files (calibration.conf, URDF, YAML) go to\n  {plan.folder}\n"
-            "for the integrator to install.")
-
-
-class WritebackScreen(ModalScreen[bool]):
-    """Explicit confirmation with the before/after of every value the write would change."""
-
-    BINDINGS = [Binding("y", "confirm", "write to robot"), Binding("n,escape", "cancel", "cancel")]
-    AUTO_FOCUS = "#wb-no"  # enter (the record key) must never confirm a write by accident
-    DEFAULT_CSS = """
-    WritebackScreen { align: center middle; }
-    #wb-box { width: 90; height: auto; border: thick $warning; background: $surface; padding: 1 2; }
-    #wb-buttons { height: auto; margin-top: 1; }
-    #wb-buttons Button { margin-right: 2; }
-    """
-
-    def __init__(self, plan: WritebackPlan) -> None:
-        super().__init__()
-        self.plan = plan
-
-    def compose(self) -> ComposeResult:
-        t = Text()
-        if self.plan.kind == "restore":
-            t.append("Restore the calibration the robot had before this session's write-back?\n\n", style="bold")
-        else:
-            t.append("Write joint zero offsets to the robot?\n\n", style="bold")
-        t.append(f"{'parameter':<12}{'before [deg]':>16}{'correction':>14}{'after [deg]':>16}\n", style="bold")
-        for name in sorted(self.plan.after, key=lambda n: (len(n), n)):
-            b = self.plan.before.get(name, 0.0)
-            a = self.plan.after[name]
-            c = self.plan.corrections.get(name)
-            mark = "" if c is None else f"{np.rad2deg(c):+14.4f}"
-            t.append(f"{name:<12}{np.rad2deg(b):+16.4f}{mark:>14}{np.rad2deg(a):+16.4f}\n",
-                     style="bold yellow" if c is not None or a != b else "")
-        if self.plan.kind == "restore":
-            t.append("\nThe values come from this session's pre-image (calibration-backup.json).\n")
-        else:
-            t.append("\nThe pre-image is journaled and saved as calibration-backup.json before writing.\n")
-        with Vertical(id="wb-box"):
-            yield Static(t, id="wb-table")
-            with Horizontal(id="wb-buttons"):
-                yield Button("Write (y)", variant="error", id="wb-yes")
-                yield Button("Cancel (n)", variant="primary", id="wb-no")
-
-    def on_button_pressed(self, event: Button.Pressed) -> None:
-        self.dismiss(event.button.id == "wb-yes")
-
-    def action_confirm(self) -> None:
-        self.dismiss(True)
-
-    def action_cancel(self) -> None:
-        self.dismiss(False)
+    can_focus = False
 
 
 class JogApp(App):
     TITLE = "station jog"
     AUTO_FOCUS = None  # nothing takes focus: every key reaches the app's bindings
+    ENABLE_COMMAND_PALETTE = False  # no framework chrome: the keys are the station's
     CSS = """
+    #title { height: 1; padding: 0 0; }
     #banner { display: none; background: $error; color: $text; text-style: bold; padding: 0 1; height: auto; }
     #banner.on { display: block; }
+    #toosmall { display: none; background: $warning; color: $text; text-style: bold; padding: 0 1; height: auto; }
+    #toosmall.on { display: block; }
+    #main { height: 1fr; }
     #left { width: 60; }
     #right { width: 1fr; }
     .panel { border: round $primary; padding: 0 1; height: auto; }
-    #samples { height: 1fr; min-height: 6; border: round $primary; }
-    #solve { height: auto; max-height: 24; }
-    #message { height: 1; padding: 0 1; background: $boost; }
+    #keys { height: auto; }
+    #samples { height: 1fr; min-height: 5; border: round $primary; }
+    #solve-box { height: auto; max-height: 60%; border: round $primary; padding: 0 1; }
+    #solve { height: auto; }
+    #message { height: auto; max-height: 2; padding: 0 1; background: $boost; }
+    #help { height: 1; padding: 0 0; }
+    #main.-compact #left { width: 1fr; }
+    #main.-small #left { overflow-y: auto; }
+    #main.-small #right { overflow-y: auto; }
+    #main.-compact #keys { height: 1fr; min-height: 3; }
+    #main.-compact #samples { min-height: 4; }
+    #main.-compact #solve-box { height: 1fr; max-height: 100%; min-height: 4; }
     """
     BINDINGS = [
         Binding("space", "stop", "STOP", priority=True),
         Binding("x", "stop", "STOP", show=False, priority=True),
+        Binding("ctrl+c", "stop('ctrl+c')", "STOP", show=False, priority=True),
         Binding("m", "toggle_mode", "joint/cart"),
         Binding("o", "toggle_frame", "base/tool", show=False),
-        Binding("1", "step(0)", f"{STEP_PRESETS[0]:g}", show=False),
-        Binding("2", "step(1)", f"{STEP_PRESETS[1]:g}", show=False),
-        Binding("3", "step(2)", f"{STEP_PRESETS[2]:g}", show=False),
-        Binding("4", "step(3)", f"{STEP_PRESETS[3]:g}", show=False),
+        Binding("1", "step(0)", show=False),
+        Binding("2", "step(1)", show=False),
+        Binding("3", "step(2)", show=False),
+        Binding("4", "step(3)", show=False),
         Binding("0", "hold_mode", "hold-to-run", show=False),
         Binding("minus", "speed(-1)", "slower", show=False),
         Binding("plus,equals_sign", "speed(1)", "faster", show=False),
         Binding("p", "point(1)", "point"),
         Binding("P", "point(-1)", "previous point", show=False),
+        Binding(NEAR_KEY, "near", "go near"),
+        Binding(SEAT_KEY, "seat", "seat"),
         Binding("enter", "record", "record"),
         Binding("exclamation_mark", "record_forced", "record w/o contact", show=False),
         Binding("k", "retake", "retake"),
         Binding("delete,backspace", "discard", "discard"),
         Binding("up", "select(-1)", "select", show=False),
         Binding("down", "select(1)", "select", show=False),
+        Binding("pageup", "scroll_solve(-1)", show=False),
+        Binding("pagedown", "scroll_solve(1)", show=False),
+        Binding("question_mark", "help", "keys", show=False),
         Binding("c", "enable", "clear fault", show=False),
         Binding("W", "writeback", "write back"),
-        Binding("ctrl+q", "quit", "quit"),
+        Binding("ctrl+q", "quit", "quit", priority=True),
     ]
 
     def __init__(self, controller: JogController, *, poll_s: float = POLL_S) -> None:
@@ -175,6 +124,9 @@ class JogApp(App):
         self.key_arrivals = KeyArrivals()  # fed by the terminal input thread (JogDriver), read by hold-to-run
         self.interrupted: int | None = None  # the signal that ended the app (SIGTERM/SIGINT), if any
         self._old_handlers: dict = {}
+        self._key_time = 0.0  # when the key being handled arrived (textual's monotonic clock)
+        self.compact = False
+        self.too_small = False
         n = controller.model.n_joints
         for i, (plus, minus) in enumerate(JOG_KEYS[:max(n, 6)]):
             self._bindings.bind(plus, f"jog({i},1)", show=False)
@@ -182,9 +134,10 @@ class JogApp(App):
 
     # ---- layout ----------------------------------------------------------------------------------------
     def compose(self) -> ComposeResult:
-        yield Header()
+        yield Static("", id="title")
         yield Static("", id="banner")
-        with Horizontal():
+        yield Static("", id="toosmall")
+        with Horizontal(id="main"):
             with Vertical(id="left"):
                 yield Static(id="joints", classes="panel")
                 yield Static(id="tcp", classes="panel")
@@ -193,26 +146,16 @@ class JogApp(App):
             with Vertical(id="right"):
                 yield Static(id="guide", classes="panel")
                 yield SamplesTable(id="samples", cursor_type="row", zebra_stripes=True)
-                yield Static(id="solve", classes="panel")
+                with SolveScroll(id="solve-box"):
+                    yield Static(id="solve")
         yield Static("", id="message")
-        yield Footer()
+        yield Static("", id="help")
 
     def on_mount(self) -> None:
-        ident = self.ctl.session.session_id
-        self.sub_title = f"{self.ctl.model.name} · session {ident}"
-        self.query_one("#joints").border_title = "joints (as the device reports them)"
-        self.query_one("#tcp").border_title = "TCP (nominal model FK, base frame)"
-        self.query_one("#jog").border_title = "jog"
         self.query_one("#keys").border_title = "keys"
-        self.query_one("#solve").border_title = f"live solve: {self.ctl.identify}"
+        self.query_one("#solve-box").border_title = f"live solve: {self.ctl.identify}"
         self.query_one("#guide").border_title = "guidance"
-        self.query_one("#tcp").border_title = ("TCP (nominal model FK, base frame; rotation vector as on the "
-                                               "UR pendant)" if self.ctl.ur_rotvec else
-                                               "TCP (nominal model FK, base frame; roll-pitch-yaw)")
-        table = self.query_one("#samples", DataTable)
-        table.border_title = f"samples → {self.ctl.session.samples_csv}"
-        table.add_columns("#", "point", "touch", *[f"J{i + 1}" for i in range(self.ctl.model.n_joints)])
-        self.query_one("#keys", Static).update(self._keys_text())
+        self._apply_layout(self.size.width, self.size.height)
         r = self.ctl.poll(block=True)
         if r is not None and not r.enabled and not self.ctl.fault:
             self.ctl.message = "robot disabled (torque off): press c to enable"
@@ -222,20 +165,39 @@ class JogApp(App):
         self._timer = self.set_interval(self.poll_s, self._tick)
         self._hold_timer = self.set_interval(HOLD_CHECK_S, self._hold_tick)
 
-    def _keys_text(self) -> Text:
-        n = max(self.ctl.model.n_joints, 6)
-        pairs = " ".join(f"{p}/{m}" for p, m in JOG_KEYS[:n])
-        return Text.from_markup(
-            f"[b]{pairs}[/b] axis 1..{n} +/-\n[b]m[/b] joint|Cart  [b]o[/b] base|tool frame  [b]- +[/b] speed %\n"
-            f"[b]1 2 3 4[/b] step {' / '.join(f'{s:g}' for s in STEP_PRESETS)} mm|deg  [b]0[/b] hold-to-run\n"
-            "[b]p[/b] point  [b]enter[/b] record  [b]![/b] record w/o contact\n"
-            "[b]↑ ↓[/b] select  [b]k[/b] retake  [b]del[/b] discard  [b]W[/b] write\n"
-            "[b][reverse] space [/reverse][/b] STOP (x)  [b]c[/b] clear fault  [b]ctrl+q[/b] quit")
+    def on_resize(self, event: events.Resize) -> None:
+        self._apply_layout(event.size.width, event.size.height)
+        with contextlib.suppress(NoMatches):
+            self.refresh_view()
+
+    def _apply_layout(self, width: int, height: int) -> None:
+        """Wide or compact panels by the terminal's size; a notice below MIN_SIZE."""
+        n = self.ctl.model.n_joints
+        compact = width < WIDE_MIN or height < 27 + n  # the wide left column needs 27 + n rows
+        small = width < MIN_SIZE[0] or height < MIN_SIZE[1]
+        with contextlib.suppress(NoMatches):
+            self.query_one("#main").set_class(compact, "-compact")
+            notice = self.query_one("#toosmall", Static)
+            notice.set_class(small, "on")
+            self.query_one("#main").set_class(small, "-small")
+            notice.update(f"terminal {width}x{height} is too small (needs {MIN_SIZE[0]}x{MIN_SIZE[1]}): panels are "
+                          "cut; STOP and quit still work" if small else "")
+            self.query_one("#tcp").border_title = panels.tcp_title(self.ctl, compact)
+            self.query_one("#joints").border_title = "joints" if compact else "joints (as the device reports them)"
+            self.query_one("#jog").border_title = "jog" if compact else "jog · distances in the nominal model"
+            samples = self.query_one("#samples", DataTable)
+            samples.border_title = ("samples" if compact else f"samples → {self.ctl.session.samples_csv}")
+            if compact != self.compact or not samples.columns:
+                samples.clear(columns=True)
+                samples.add_columns(*panels.sample_columns(self.ctl, compact))
+                self._shown.pop("#samples", None)
+        self.compact, self.too_small = compact, small
 
     def _catch_signals(self) -> None:
-        """SIGTERM and SIGINT quit like ctrl+q (stop, journal the end, store): the handler only schedules the
-        quit on the event loop. Inside a write-back the engine holds both (station.engine.writeback
-        .signals_held) and delivers them here once the device is written and read back."""
+        """SIGTERM and SIGINT quit like a confirmed ctrl+q (stop, journal the end, store): the handler only
+        schedules the quit on the event loop. Inside a write-back the engine holds both (station.engine.writeback
+        .signals_held) and delivers them here once the device is written and read back. (Ctrl+C typed in the
+        terminal is a key, not a signal: it stops the robot and the UI stays.)"""
         if threading.current_thread() is not threading.main_thread():
             return
         loop = asyncio.get_running_loop()
@@ -258,6 +220,22 @@ class JogApp(App):
         except ImportError:  # no termios (Windows): repeats only
             return cls
         return JogDriver if cls is LinuxDriver else cls
+
+    # ---- keys as they arrive ------------------------------------------------------------------------------
+    async def on_event(self, event: events.Event) -> None:
+        if isinstance(event, events.Key):
+            self._key_time = event.time  # set where the terminal's bytes were parsed
+        await super().on_event(event)
+
+    def key_pressed(self, key: str) -> None:
+        """On the terminal's input thread (station.tui.keys), for every key as soon as it is parsed: a STOP key
+        stops the robot here, not after the key events queued before it."""
+        if key in STOP_KEYS and not self.ctl.closed:
+            self.ctl.stop_now()
+
+    def _stale_key(self) -> bool:
+        """The key being handled arrived before the last STOP: it must not start motion after it."""
+        return self._key_time < self.ctl.stop_mark
 
     def on_key(self, event) -> None:
         """A key release (kitty keyboard protocol, station.tui.keys): a released jog key ends its hold."""
@@ -308,63 +286,23 @@ class JogApp(App):
             self.refresh_view()
 
     def refresh_view(self) -> None:
-        ctl = self.ctl
+        ctl, compact = self.ctl, self.compact
         banner = self.query_one("#banner", Static)
         if ctl.fault:
             banner.update(f"⚠ FAULT — motion stopped: {ctl.fault}   (c: clear fault and re-enable)")
             banner.add_class("on")
         else:
             banner.remove_class("on")
-        r = ctl.readout
-        joints = Text()
-        if r is not None:
-            for i, j in enumerate(ctl.model.joints):
-                style = "bold" if ctl.mode == "joint" and i == ctl.axis else ""
-                joints.append(f"J{i + 1} {j.name[:8]:<8}{_fmt_value(r.q[i], j.revolute)}", style=style)
-                lo, hi = (np.rad2deg([j.lower, j.upper]) if j.revolute else np.array([j.lower, j.upper]) * 1e3)
-                joints.append(f"  [{lo:.0f}, {hi:.0f}]\n", style="dim")
-        self._show("#joints", joints)
-        tcp = Text()
-        if r is not None:
-            x, y, z = r.tcp[:3] * 1e3
-            if ctl.ur_rotvec:  # as the UR pendant shows it: rotation vector in rad
-                rx, ry, rz = r.tcp[3:]
-                u = "rad"
-            else:
-                rx, ry, rz = np.rad2deg(r.tcp[3:])
-                u = "deg"
-            tcp.append(f"X {x:+10.3f} mm   Rx {rx:+9.4f} {u}\nY {y:+10.3f} mm   Ry {ry:+9.4f} {u}\n"
-                       f"Z {z:+10.3f} mm   Rz {rz:+9.4f} {u}")
-        self._show("#tcp", tcp)
-        jog = Text()
-        jog.append("mode  ")
-        jog.append(f"{ctl.mode:<10}", style="bold cyan")
-        if ctl.mode == "cartesian":
-            jog.append(f"{ctl.frame} frame  ", style="bold cyan")
-        jog.append("step  " if not ctl.continuous else "")
-        jog.append("hold-to-run\n" if ctl.continuous else f"{ctl.step:g} mm | deg\n", style="bold cyan")
-        jog.append("speed ")
-        jog.append(f"{ctl.speed_percent} % = {ctl.speed_mm_s:g} mm/s", style="bold cyan")
-        jog.append(" (max 250)  point ")
-        jog.append(f"{ctl.point}\n", style="bold magenta")
-        jog.append("touch ")
-        if ctl.stale:
-            jog.append(" ? no reading ", style="reverse red")
-        elif r is None or r.touch is None:
-            jog.append(" no contact input ", style="reverse dim")
-        elif r.touch:
-            jog.append(" ● CONTACT ", style="bold black on green")
-        else:
-            jog.append(" ○ no contact ", style="dim")
-        state = "no reading" if ctl.stale else ("moving" if r and r.moving else "still")
-        jog.append(f"   {state}", style="green" if state == "still" else "yellow")
-        if r is not None and not r.enabled:
-            jog.append("  disabled", style="red")
-        self._show("#jog", jog)
+        self._show("#title", panels.title_text(ctl, compact))
+        self._show("#joints", panels.joints_text(ctl, compact))
+        self._show("#tcp", panels.tcp_text(ctl, compact))
+        self._show("#jog", panels.jog_text(ctl, compact))
+        self._show("#keys", panels.keys_text(ctl, compact))
         self._refresh_samples()
-        self._show("#guide", self._guide_text())
-        self._show("#solve", self._solve_text())
+        self._show("#guide", panels.guide_text(ctl, compact))
+        self._show("#solve", panels.solve_text(ctl, compact))
         self._show("#message", ctl.message)
+        self._show("#help", panels.help_line(compact))
 
     def _show(self, selector: str, content) -> None:
         """Update a panel only when its content changed: every update re-lays out the screen, and doing it for
@@ -376,94 +314,65 @@ class JogApp(App):
 
     def _refresh_samples(self) -> None:
         table = self.query_one("#samples", DataTable)
-        samples = self.ctl.session.samples
-        key = (tuple((s.seq, s.point, s.status.get("touch"), self.ctl.number(s)) for s in samples), self.ctl.selected)
+        ctl = self.ctl
+        samples = ctl.session.samples
+        key = (tuple((s.seq, s.point, s.status.get("touch"), ctl.number(s), ctl.solve_state.sample_residuals.get(
+            s.seq)) for s in samples), ctl.selected, self.compact)
         if key == self._shown.get("#samples"):
             return
         self._shown["#samples"] = key
         table.clear()
         for s in samples:
-            touch = s.status.get("touch")
-            touch = "–" if touch is None else ("●" if touch else "○")
-            vals = [f"{v * human(joint_quantity(j.revolute))[1]:.3f}"
-                    for v, j in zip(s.q, self.ctl.model.joints, strict=True)]
-            table.add_row(str(self.ctl.number(s)), s.point, touch, *vals)
+            table.add_row(*panels.sample_cells(ctl, s, self.compact))
         if samples:
-            sel = len(samples) - 1 if self.ctl.selected is None else self.ctl.selected
+            sel = len(samples) - 1 if ctl.selected is None else ctl.selected
             table.move_cursor(row=sel, animate=False)
-
-    def _guide_text(self) -> Text:
-        ctl, g = self.ctl, self.ctl.guide
-        t = Text()
-        pts = ctl.cell.points if ctl.cell is not None else {}
-        for label in ctl.labels:
-            mark = "▶ " if label == g.next_point else "  "
-            style = "bold magenta" if label == ctl.point else ""
-            t.append(f"{mark}{label}", style=style)
-            p = pts.get(label)
-            if p is not None:
-                x, y, z = p.position * 1e3
-                t.append(f" {p.kind:<6} [{x:.0f}, {y:.0f}, {z:.0f}] mm", style="dim")
-            elif isinstance(ctl.reference, dict) and label in ctl.reference:
-                x, y, z = ctl.reference[label] * 1e3
-                t.append(f" ref    [{x:.0f}, {y:.0f}, {z:.0f}] mm", style="dim")
-            t.append(f"  {g.per_point.get(label, 0)} samples\n")
-        if g.next_point is not None:
-            t.append(f"next: touch {g.next_point}", style="bold")
-            t.append(" (fewest samples; vary the orientation)\n", style="dim")
-        t.append(f"samples {g.taken} / {g.needed if g.needed is not None else '?'} needed   ")
-        colour = {"good enough": "bold black on green", "not yet": "bold yellow", "NO LIMITS": "bold white on magenta"}
-        t.append(f" {g.status.upper() if g.status != 'waiting' else 'waiting'} ", style=colour.get(g.status, "dim"))
-        if g.status == "NO LIMITS":
-            t.append(f"\nno limits for {ctl.model.name}/{ctl.judged_as}: the session cannot PASS "
-                     "(--judge PROCEDURE to use a procedure's limits)", style="dim")
-        for c in g.checks:
-            sym = "·" if c.ok is None else ("✓" if c.ok else "✗")
-            t.append(f"\n {sym} {c.name}: {c.text}", style="" if c.ok is None else ("green" if c.ok else "yellow"))
-        return t
-
-    def _solve_text(self) -> Text:
-        st = self.ctl.solve_state
-        t = Text()
-        if st.status == "waiting":
-            t.append("record samples to start the solve", style="dim")
-            return t
-        t.append(f"{st.n_samples} samples · ")
-        if st.status == "error":
-            t.append(st.message, style="bold yellow")
-            return t
-        res = st.residuals
-        before, after, mx = (res.get(k) for k in ("rms_before_m", "rms_after_m", "max_after_m"))
-
-        def um(v):
-            return "–" if v is None else f"{v * 1e6:.1f}"
-
-        t.append(f"{st.message} · residual RMS {um(before)} → {um(after)} µm, max {um(mx)} µm\n")
-        t.append("identified", style="bold green")
-        t.append(" (correction ± std):\n")
-        for name, value, std, unit in st.identified:
-            u, k = human_of(unit)
-            sd = "" if std is None else f" ± {std * k:.4f}"
-            t.append(f"  {name:<14}{value * k:+10.4f}{sd} {u}\n")
-        if st.unidentifiable:
-            t.append("not identifiable — add poses that change these:\n", style="bold yellow")
-            for name, reason in st.unidentifiable.items():
-                t.append(f"  {name}: ", style="yellow")
-                t.append(f"{reason}\n")
-        else:
-            t.append("every requested parameter is identifiable\n", style="green")
-        return t
 
     # ---- actions ---------------------------------------------------------------------------------------
     def check_action(self, action: str, parameters: tuple) -> bool | None:
         """While a dialog is open only STOP and quit reach the app (no jog or record behind the dialog)."""
         return len(self.screen_stack) <= 1 or action in ("stop", "quit")
 
-    def action_stop(self) -> None:
+    def action_stop(self, key: str = "") -> None:
+        # the input thread stopped the robot already when the key came from a terminal (stop_mark after the
+        # key's time): stop again (cheap, idempotent) but keep what that stop said; a key that did not pass the
+        # input thread (a test's pilot) is stopped here
+        first = self.ctl.stop_mark >= self._key_time and self.ctl.message.startswith("STOPPED")
+        said = self.ctl.message
+        self.ctl.stop_mark = max(self.ctl.stop_mark, self._key_time)
         self.ctl.stop()
+        if first:
+            self.ctl.message = said
+        if key == "ctrl+c" and "quits" not in self.ctl.message:
+            self.ctl.message += " (ctrl+c stops; ctrl+q quits)"
         self.refresh_view()
 
+    def action_help_quit(self) -> None:
+        """textual binds ctrl+c to a "press ctrl+q to quit" notice; here ctrl+c is STOP."""
+        self.action_stop()
+
+    async def action_quit(self) -> None:
+        """ctrl+q: quit at once when nothing is at stake, else ask (ctrl+q again or y quits)."""
+        if isinstance(self.screen, QuitScreen):
+            self.exit()
+            return
+        concerns = self.ctl.quit_concerns()
+        if not concerns:
+            self.exit()
+            return
+
+        def done(confirmed: bool | None) -> None:
+            if confirmed:
+                self.exit()
+            else:
+                self.ctl.message = "not quitting"
+                self.refresh_view()
+
+        self.push_screen(QuitScreen(quit_question(concerns), yes="Quit (y)"), done)
+
     def action_jog(self, axis: int, direction: int) -> None:
+        if self._stale_key():
+            return  # typed before the STOP, handled after it: no motion
         if self.ctl.continuous:
             # hold-to-run: a repeat only keeps the hold alive; the UI's time belongs to the re-commands and
             # the release check (the 200 ms poll refreshes the view)
@@ -500,6 +409,29 @@ class JogApp(App):
         self.ctl.next_point(delta)
         self.refresh_view()
 
+    def action_seat(self) -> None:
+        self.ctl.toggle_compliant()
+        self.ctl.poll(block=True)
+        self.refresh_view()
+
+    def action_near(self) -> None:
+        if self._stale_key():
+            return
+        plan = self.ctl.plan_near()
+        self.refresh_view()
+        if plan is None:
+            return
+        target = self.ctl.targets[plan.label]
+
+        def done(confirmed: bool | None) -> None:
+            if confirmed:
+                self.ctl.start_near(plan)
+            else:
+                self.ctl.message = f"go near {plan.label} cancelled: nothing moved"
+            self.refresh_view()
+
+        self.push_screen(NearScreen(plan, near_question(plan, target.kind)), done)
+
     def action_record(self) -> None:
         self.ctl.record()
         self.refresh_view()
@@ -533,6 +465,16 @@ class JogApp(App):
     def action_select(self, delta: int) -> None:
         self.ctl.select(delta)
         self.refresh_view()
+
+    def action_scroll_solve(self, direction: int) -> None:
+        box = self.query_one("#solve-box", SolveScroll)
+        if direction > 0:
+            box.scroll_page_down(animate=False)
+        else:
+            box.scroll_page_up(animate=False)
+
+    def action_help(self) -> None:
+        self.push_screen(HelpScreen(panels.keys_text(self.ctl, False)))
 
     def action_enable(self) -> None:
         self.ctl.enable()

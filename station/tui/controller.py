@@ -1,15 +1,17 @@
 """The jog UI's logic, apart from any widget: step presets, speed override, jogging through the shared
-motion helpers, the touch indicator, record/retake/discard into the session, the live solve, faults and
-write-back. Textual widgets only render this state and call these methods (and tests can too)."""
+motion helpers, the touch indicator, seating (compliance), record/retake/discard into the session, faults
+and write-back. Textual widgets only render this state and call these methods (and tests can too).
+
+Parts live in their own modules and are reached through the controller: hold-to-run (``station.tui.hold``),
+the proximity cue and "go near" (``station.tui.approach``), the live solve (``station.tui.livesolve``) and the
+progress guidance (``station.tui.guidance``)."""
 
 from __future__ import annotations
 
 import re
-import statistics
 import threading
 import time
-from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -30,35 +32,41 @@ from station.kinematics.collision import Checker, KeepOut
 from station.robot.capabilities import CalibrationExport, CalibrationStore, ContactSensor, VelocityJog
 from station.robot.errors import LimitError, StationError
 from station.robot.motion import MANUAL_TOOL_SPEED_CAP, jog_target, joint_speed_for_tool_cap
+from station.tui import approach as ap
 from station.tui import guidance as gd
+from station.tui.aids import ApproachAids
+from station.tui.hold import (  # noqa: F401  (the hold-to-run constants, importable from here as before)
+    HOLD_CHECK_S,
+    HOLD_DELAY_MIN_S,
+    HOLD_FIRST_S,
+    HOLD_GAP_MIN_S,
+    HOLD_GAP_REPEATS,
+    HOLD_RELEASE_S,
+    HOLD_TICK_S,
+    HOLD_WATCHDOG_S,
+    RELEASE_LOCK_S,
+    HoldToRun,
+)
+from station.tui.livesolve import SolveState, is_forced, live_solve
 from station.tui.session import JogSession
 
 STEP_PRESETS = (0.01, 0.1, 1.0, 10.0)  # mm for translations / prismatic joints, deg for rotations
 SPEED_PERCENT = (1, 2, 5, 10, 25, 50, 100)  # speed override, % of the manual tool-speed cap (250 mm/s)
 POINT_LABELS = tuple("ABCDEFGH")
 CART_AXES = ("X", "Y", "Z", "Rx", "Ry", "Rz")
-JOG_MAX_JOINT_SPEED = np.deg2rad(30.0)  # rad/s (m/s prismatic): manual jog never faster than this per joint
-# hold-to-run (docs/jog.md "Hold-to-run"). A terminal with the kitty keyboard protocol reports the key release
-# (station.tui.keys): the release stops at once. Elsewhere only the autorepeat shows a held key: the press, a
-# repeat delay (250-600 ms), then a repeat every 30-40 ms. The release is then inferred from a gap of
-# HOLD_GAP_REPEATS measured repeat intervals, never shorter than HOLD_GAP_MIN_S (terminal input jitter) and
-# never longer than HOLD_RELEASE_S (the UR's RTDE watchdog period). Before the first repeat of a hold the
-# window is the terminal's repeat delay as measured on earlier holds (HOLD_FIRST_S until one was measured), so
-# the first press never stop-starts the arm (a "delay" under HOLD_DELAY_MIN_S is a hold resumed mid-repeat,
-# never learned). Key times are when the terminal input thread parsed the key (``key_arrivals``,
-# station.tui.keys.KeyArrivals), not when the busy UI got round to it. The UI checks for a release every
-# HOLD_CHECK_S and re-commands the motion every HOLD_TICK_S; every position target ends where the arm would be
-# shortly after the deadline, so a stalled UI stops it there too (HOLD_WATCHDOG_S: standstill after the last
-# key event).
-HOLD_RELEASE_S = 0.1
-HOLD_GAP_REPEATS = 2.5
-HOLD_GAP_MIN_S = 0.05
-HOLD_TICK_S = 0.05
-HOLD_CHECK_S = 0.01
-HOLD_WATCHDOG_S = 0.3
-HOLD_FIRST_S = 0.6
-RELEASE_LOCK_S = 0.2  # s: a release waits at most this for a re-command in flight, then stops regardless
-HOLD_DELAY_MIN_S = 0.15  # s: no terminal's repeat delay is shorter
+JOG_MAX_JOINT_SPEED = ap.NEAR_JOINT_SPEED  # rad/s (m/s prismatic): manual jog never faster than this per joint
+STOP_LOCK_S = 0.2  # s: a STOP key on the terminal's input thread waits at most this for a robot call in flight
+
+
+def _part_attr(part: str, name: str) -> property:
+    """An attribute of one of the controller's parts, reachable on the controller itself."""
+    return property(lambda self: getattr(getattr(self, part), name),
+                    lambda self, v: setattr(getattr(self, part), name, v))
+
+
+def _hold_attr(name: str) -> property:
+    """An attribute of the hold-to-run part, reachable on the controller as before the split."""
+    return _part_attr("holding", name)
 
 
 @dataclass
@@ -69,18 +77,8 @@ class Readout:
     moving: bool
     enabled: bool
     t: float
-
-
-@dataclass
-class SolveState:
-    status: str = "waiting"  # waiting | ok | error
-    message: str = "no samples yet"
-    n_samples: int = 0
-    residuals: dict = field(default_factory=dict)
-    identified: list[tuple[str, float, float | None, str]] = field(default_factory=list)  # name, value, std, unit
-    unidentifiable: dict[str, str] = field(default_factory=dict)
-    result: object | None = None  # CalibrationResult
-    seconds: float = 0.0
+    compliant: bool = False  # the robot reports a yielding mode (freedrive / low torque)
+    T: np.ndarray | None = None  # 4x4 tool pose of the nominal model
 
 
 @dataclass
@@ -151,17 +149,12 @@ class JogController:
         self.guided = cell is not None or isinstance(reference, dict)
         self.point_index = 0
         self.numbers: dict[int, int] = {}  # journal seq -> sample number 1..n in this session
-        self.hold_state: dict | None = None
-        self.repeat_intervals: deque[float] = deque(maxlen=16)  # the terminal's autorepeat, measured (s)
-        self.repeat_delay: float | None = None  # the terminal's delay before the first repeat, measured (s)
-        self.release_events = False  # the terminal reported a key release (kitty keyboard protocol)
-        # (axis, direction, count) -> (arrivals so far, times of those after count) of that jog key as the
-        # terminal's input thread saw them (set by the app; None: key times are the calls' ``now``)
-        self.key_arrivals = None
-        self._arrival_mark: dict[tuple[int, int], int] = {}  # arrivals already taken by an ended hold
-        self._idle_kick = 0.0
+        self.holding = HoldToRun(self)
         self.predicted: dict[str, float | None] = {}
-        self.guide: gd.Guidance = gd.guidance(self.model, self._guide_labels(), [], None, self.limits, None)
+        self.aids = ApproachAids(self)  # proximity cue, go near, seat key (station.tui.aids)
+        self.stop_mark = 0.0  # monotonic time of the last STOP: key events that arrived before it are dropped
+        self.guide: gd.Guidance = gd.guidance(self.model, self._guide_labels(), [], None, self.limits, None,
+                                              self.aids.blocked)
         self.verdict: dict | None = None
         self.ur_rotvec = isinstance(robot, CalibrationExport)  # UR pendant shows the rotation vector
         # hold-to-run re-targets position moves, except on a robot with a velocity jog (UR: speedJ/speedL
@@ -234,10 +227,17 @@ class JogController:
         self.stop_hold()
         self.frame = "tool" if self.frame == "base" else "base"
         self.message = f"Cartesian jogs in the {self.frame} frame"
+        self._update_proximity()
 
     def next_point(self, delta: int = 1) -> None:
         self.point_index = (self.point_index + delta) % len(self.labels)
-        self.message = f"reference point {self.point}"
+        target = self.targets.get(self.point)
+        self.message = f"reference point {self.point}" + (f" ({target.kind})" if target is not None else "")
+        if self.point in self.blocked:
+            self.message += f": {self.blocked[self.point]}"
+        elif target is not None:
+            self.message += ": n goes near it"
+        self._update_proximity()
 
     def number(self, sample: ev.Sample) -> int:
         """The sample's number in this session, 1..n in recording order (not the journal's sequence)."""
@@ -294,19 +294,46 @@ class JogController:
             self.fault += f" (journal: {e})"
 
     def stop(self, quiet: bool = False) -> None:
-        """Always available: no lock, no precondition."""
-        self._end_hold()
+        """Always available: no lock, no precondition. Ends a hold and a "go near"; a compliant arm is held
+        stiff again (STOP means: hold where you are)."""
+        self.holding._end_hold()
+        near, self.near = self.near, None
         try:
             self.robot.stop()
-            if not quiet:
-                self.message = "STOPPED"
         except StationError as e:
             if not quiet:
                 self._on_error(e, "stop")
+            return
+        held = self.aids._stiffen(quiet)
+        if not quiet:
+            self.message = "STOPPED" + (f": go near {near.plan.label} cancelled" if near else "") + (
+                "; arm held stiff again" if held else "")
+
+    def stop_now(self) -> None:
+        """A STOP key (space, x, ctrl+c). The app calls it on the terminal's input thread as soon as the key is
+        parsed, ahead of the key events queued for the UI (a UI busy in a solve or a redraw would serve it
+        late), and again on the UI thread. A robot call in flight is waited for (``io_lock``, at most
+        STOP_LOCK_S); if it does not finish, a velocity-jog robot is stopped anyway (as a key release is), a
+        position-controlled one (bus not thread-safe) by the UI thread. Key events that arrived before the STOP
+        start no motion afterwards (``stop_mark``)."""
+        self.stop_mark = time.monotonic()
+        locked = self.io_lock.acquire(timeout=STOP_LOCK_S)
+        try:
+            if locked or self.velocity_jog:
+                self.stop()
+        finally:
+            if locked:
+                self.io_lock.release()
+
+    def _journal_step(self, name: str, info: dict) -> None:
+        try:
+            self.session.event(ev.Step(name=name, status="done", info=info))
+        except Exception as e:  # the journal is gone (disk full): the banner says so, the robot still obeys
+            self.message = f"{name} (not journaled: {e})"
 
     def poll(self, block: bool = False) -> Readout | None:
-        """Refresh joints, TCP, touch and status. Skips (returns None) while another thread talks to the robot
-        unless ``block``."""
+        """Refresh joints, TCP, touch and status (and the proximity cue; a running "go near" starts its next
+        segment here). Skips (returns None) while another thread talks to the robot unless ``block``."""
         if not self.io_lock.acquire(blocking=block):
             return None
         try:
@@ -330,15 +357,51 @@ class JogController:
             self.message = "FAULT: motion stopped"
             self.stop(quiet=True)
             self.session.event(ev.Fault(step="status", error="status", message=self.fault))
-        T = self.model.fk(snap.q)
+        q = np.asarray(snap.q, float)
+        T = self.model.fk(q)
         rot = se3.matrix_to_rotvec(T[:3, :3]) if self.ur_rotvec else se3.matrix_to_rpy(T[:3, :3])
         tcp = np.concatenate([T[:3, 3], rot])
-        self.readout = Readout(np.asarray(snap.q, float), tcp, touch, status.moving, status.enabled, snap.t)
+        self.readout = Readout(q, tcp, touch, status.moving, status.enabled, snap.t,
+                               bool(getattr(status, "compliant", False)), T)
+        self.aids.reading(status, q)
         return self.readout
+
+    def _get_checker(self) -> Checker | None:
+        if self._checker is None:  # built once: the envelope compile is the expensive part
+            if getattr(self.model, "kind", "serial") == "parallel":
+                return None  # a parallel model has no link capsules (as in the planner): joint limits only
+            self._checker = Checker(self.model, self.keep_out)
+        return self._checker
+
+    def quit_concerns(self) -> list[str]:
+        """What quitting now would do beyond closing an idle session (the app asks before it does)."""
+        out = []
+        r = self.readout
+        if self.near is not None or self.holding.hold_state is not None or (r is not None and r.moving):
+            out.append("the robot is moving: it stops")
+        if self.compliant:
+            out.append(f"the arm is {self.compliant_name}: it is held stiff")
+        n = len(self.session.samples)
+        if n:
+            verdict = {"good enough": "PASS expected", "NO LIMITS": "verdict NO LIMITS"}.get(
+                self.guide.status, "FAIL expected: not good enough yet")
+            out.append(f"the session ends with {n} sample{'s' if n != 1 else ''} ({verdict}); no more can be added")
+        forced = self.solve_state.forced
+        if forced:
+            out.append(f"{forced} forced sample{'s' if forced != 1 else ''} (no contact) "
+                       f"{'are' if forced != 1 else 'is'} still in it: the session cannot pass")
+        if (self.solve_state.result is not None and self.writeback_done is None and not self.exported
+                and self.solve_state.identified_ok and corrections_of(self.solve_state.result)):
+            out.append("the identified offsets are not written back (W)")
+        return out
 
     def _refuse_axis(self, axis: int) -> str | None:
         if self.fault:
             return "clear the fault first (c)"
+        if self.compliant:
+            return f"the arm is {self.compliant_name}: v holds it stiff before jogging"
+        if self.near is not None:
+            return f"going near {self.near.plan.label}: wait, or STOP (space)"
         if self.mode == "joint" and axis >= self.model.n_joints:
             return f"this robot has {self.model.n_joints} joints"
         if self.mode == "cartesian" and axis >= 3 and self.model.n_joints < 6:
@@ -358,11 +421,10 @@ class JogController:
             target = jog_target(self.model, q0, self.mode, axis, step)
         else:
             target = self._tool_frame_target(q0, axis, step)
-        if self._checker is None:  # built once: the envelope compile is the expensive part
-            if getattr(self.model, "kind", "serial") == "parallel":
-                return target  # a parallel model has no link capsules (as in the planner): joint limits only
-            self._checker = Checker(self.model, self.keep_out)
-        hit = self._checker.path_hit(q0, target)
+        checker = self._get_checker()
+        if checker is None:
+            return target
+        hit = checker.path_hit(q0, target)
         if hit is not None:  # the same words as station.engine.cell.check_path_clear
             raise LimitError(f"jog: {hit.describe()} on the way; refused")
         return target
@@ -451,223 +513,62 @@ class JogController:
                         + (f" ({self.frame} frame)" if self.mode == "cartesian" else ""))
         return True
 
-    # ---- hold-to-run -------------------------------------------------------------------------------
+    # ---- hold-to-run (station.tui.hold) --------------------------------------------------------------
+    hold_state = _hold_attr("hold_state")
+    repeat_intervals = _hold_attr("repeat_intervals")
+    repeat_delay = _hold_attr("repeat_delay")
+    release_events = _hold_attr("release_events")
+    key_arrivals = _hold_attr("key_arrivals")
+
     def hold(self, axis: int, direction: int, now: float | None = None) -> bool:
-        """A jog key event in hold-to-run mode (the press or one of the terminal's repeats): keep moving
-        ``axis`` while events keep coming; :meth:`hold_tick` stops the robot once they stop."""
-        refusal = self._refuse_axis(axis)
-        if refusal:
-            self.message = refusal
-            return False
-        now = time.monotonic() if now is None else now
-        d = 1 if direction > 0 else -1
-        h = self.hold_state
-        if h is not None and h["axis"] == axis and h["dir"] == d and h["mode"] == self.mode:
-            if not self._arrivals_seen(h):
-                self._repeat_seen(h, now)
-            return True
-        seen, times = self._arrivals(axis, d, self._arrival_mark.get((axis, d), 0))
-        # the press as the terminal delivered it: the first arrival of this key after the last hold, unless
-        # older than a repeat delay (step presses before hold-to-run was chosen, or a UI stalled that long)
-        times = [t for t in times if t >= now - HOLD_FIRST_S]
-        if seen and not times:
-            # a repeat that arrived before the held key's release (or the inferred one) and waited in the UI's
-            # queue: the key is no longer held, so it must not start the arm again
-            return False
-        if h is not None:
-            self.stop_hold(quiet=True)
-        self.axis = axis
-        t0 = times[0] if times else now
-        self.hold_state = h = {"axis": axis, "dir": d, "mode": self.mode, "frame": self.frame, "events": 1,
-                               "deadline": t0 + self.first_window(), "started": t0, "last": t0, "sent": None,
-                               "seen": seen - len(times) + 1 if times else seen}
-        self._arrivals_seen(h)  # repeats that arrived while the press waited in the UI's queue
-        return self._hold_command(now)
-
-    def _end_hold(self) -> None:
-        h, self.hold_state = self.hold_state, None
-        if h is not None:  # the key's arrivals so far belong to the ended hold; the next press comes after them
-            self._arrival_mark[(h["axis"], h["dir"])] = self._arrivals(h["axis"], h["dir"], 0)[0]
-
-    def _arrivals(self, axis: int, d: int, count: int) -> tuple[int, list[float]]:
-        if self.key_arrivals is None:
-            return 0, []
-        return self.key_arrivals(axis, d, count)
-
-    def _arrivals_seen(self, h: dict) -> bool:
-        """Take the held key's repeats the input thread saw since the last look (their own times). False when
-        there are no arrival times (no terminal input thread: the caller's ``now`` counts)."""
-        seen, times = self._arrivals(h["axis"], h["dir"], h["seen"])
-        if not seen:
-            return False
-        h["seen"] = seen
-        for t in times:
-            self._repeat_seen(h, max(t, h["last"]))
-        return True
-
-    def _repeat_seen(self, h: dict, now: float) -> None:
-        """A repeat of the held key: measure the terminal's cadence and move the release deadline."""
-        dt = now - h["last"]
-        if h["events"] == 1:
-            h["delay"] = dt  # the repeat delay (or a second press: confirmed by the cadence that follows)
-        else:
-            self.repeat_intervals.append(dt)
-            if h["events"] == 2 and dt < 0.6 * h["delay"] and h["delay"] >= HOLD_DELAY_MIN_S:
-                self.repeat_delay = h["delay"]
-        h["events"] += 1
-        h["last"] = now
-        h["deadline"] = now + self.release_gap()
-
-    def release_gap(self) -> float:
-        """Key-event gap taken as a release: HOLD_GAP_REPEATS measured repeat intervals (mean of the last
-        16), within [HOLD_GAP_MIN_S, HOLD_RELEASE_S]; HOLD_RELEASE_S until the cadence was measured, and in a
-        terminal that reports releases (a lost release still stops within the watchdog period)."""
-        if not self.repeat_intervals or self.release_events:
-            return HOLD_RELEASE_S  # (the terminal reports releases: the gap is only the backup)
-        # the mean, not the median: a busy UI receives repeats in bunches (intervals near 0 then one long),
-        # whose median would shrink the gap below the real cadence
-        est = statistics.fmean(self.repeat_intervals)
-        return float(min(HOLD_RELEASE_S, max(HOLD_GAP_MIN_S, HOLD_GAP_REPEATS * est)))
-
-    def first_window(self) -> float:
-        """How long a press keeps the arm moving before its first repeat: the measured repeat delay plus a
-        quarter (input jitter), at most HOLD_FIRST_S; HOLD_FIRST_S until a delay was measured."""
-        if self.repeat_delay is None:
-            return HOLD_FIRST_S
-        return float(min(HOLD_FIRST_S, self.repeat_delay + max(HOLD_GAP_MIN_S, 0.25 * self.repeat_delay)))
+        return self.holding.hold(axis, direction, now)
 
     def release(self, axis: int, direction: int) -> None:
-        """The terminal reported the release of a jog key (kitty keyboard protocol): stop now if it is the
-        held one. Safe from the terminal's input thread (the app calls it there, ahead of the UI's queue): a
-        re-command in flight is waited for (``io_lock``, at most RELEASE_LOCK_S) and none starts after the hold
-        ended (``_hold_command`` re-checks under the lock). If the lock does not come free, a velocity jog is
-        stopped anyway (``stop()`` bypasses the lock, as the STOP key does); a position-controlled robot (bus
-        not thread-safe) is left to the same release on the UI thread, its targets end near the deadline."""
-        self.release_events = True
-        d = 1 if direction > 0 else -1
-        locked = self.io_lock.acquire(timeout=RELEASE_LOCK_S)
-        try:
-            # every press/repeat of this key so far belongs to before the release: one still queued for the UI
-            # (this runs ahead of the queue) is stale and must not start the arm after the key came up
-            self._arrival_mark[(axis, d)] = self._arrivals(axis, d, 0)[0]
-            h = self.hold_state
-            if h is None or h["axis"] != axis or h["dir"] != d or not (locked or self.velocity_jog):
-                return
-            self._end_hold()
-            self.stop(quiet=True)
-            self.message = "key released: stopped"
-        finally:
-            if locked:
-                self.io_lock.release()
+        self.holding.release(axis, direction)
 
     def hold_check(self, now: float | None = None) -> bool:
-        """Stop once the release deadline passed (cheap: the UI calls it every HOLD_CHECK_S). True if it stopped."""
-        h = self.hold_state
-        if h is None:
-            return False
-        now = time.monotonic() if now is None else now
-        if now >= h["deadline"]:
-            self._arrivals_seen(h)  # a repeat may wait in the UI's queue: the key is still held
-            if now < h["deadline"]:
-                return False
-            self.stop_hold()
-            return True
-        return False
+        return self.holding.hold_check(now)
 
     def hold_tick(self, now: float | None = None) -> None:
-        """Called by the UI every HOLD_CHECK_S: stop once the key events stopped, else re-command the held
-        motion every HOLD_TICK_S."""
-        now = time.monotonic() if now is None else now
-        if self.hold_check(now):
-            return
-        h = self.hold_state
-        if h is None or (h["sent"] is not None and now - h["sent"] < HOLD_TICK_S * 0.9):
-            return
-        self._hold_command(now)
+        self.holding.hold_tick(now)
 
     def hold_idle(self, now: float | None = None) -> None:
-        """Called by the UI between holds: a velocity-jog robot's watchdog stays armed after a release (UR:
-        the RTDE watchdog lives as long as the control script), so keep feeding it every HOLD_TICK_S; else the
-        controller ends the program a watchdog period after each release and the next press waits for the
-        script to be uploaded again. If the UI stalls anyway, the next press restarts it (slower, still safe)."""
-        keep = getattr(self.robot, "jog_keep_alive", None) if self.velocity_jog and not self.fault else None
-        now = time.monotonic() if now is None else now
-        if keep is None or now - self._idle_kick < HOLD_TICK_S or not self.io_lock.acquire(blocking=False):
-            return
-        try:
-            self._idle_kick = now
-            keep()
-        except StationError as e:
-            self._on_error(e, "jog watchdog")
-        finally:
-            self.io_lock.release()
+        if not self.compliant:  # no keep-alive for a jog watchdog while the arm is in freedrive
+            self.holding.hold_idle(now)
 
     def stop_hold(self, quiet: bool = False) -> None:
-        if self.hold_state is None:
-            return
-        self.stop(quiet=True)
-        if not quiet:
-            self.message = "key released: stopped"
+        self.holding.stop_hold(quiet)
 
-    def _hold_command(self, now: float) -> bool:
-        """Command a target no farther than the robot travels at the override until the deadline: if the UI
-        stalls, the robot still stops there by itself."""
-        h = self.hold_state
-        if h is None:
-            return False
-        h["sent"] = now
-        # the target is where the arm would be two ticks after the deadline (a target much closer makes the
-        # drives' profiles brake between commands): a stalled UI still stops the arm there
-        horizon = max(h["deadline"] - now, 0.0) + 2 * HOLD_TICK_S
-        axis, d = h["axis"], h["dir"]
-        cap = self.speed_mm_s * 1e-3
-        rotational = self.axis_unit(axis) == "deg"
-        rate = self.joint_rate(axis)
-        with self.io_lock:
-            if self.hold_state is not h:  # released (from the input thread) while this waited for the lock
-                return False
-            try:
-                q0 = np.asarray(self.robot.joint_positions().q, dtype=float)
-                if self.velocity_jog:
-                    sent = self._hold_velocity(axis, d, q0, cap, rate)
-                else:
-                    step = d * (rate if rotational or self.mode == "joint" else cap) * horizon
-                    target = self.target(q0, axis, step)
-                    speed = joint_speed_for_tool_cap(self.model, q0, target, self.lead_rate(axis, q0, target, step),
-                                                     cap=cap)
-                    lead = float(np.max(np.abs(target - q0)))
-                    if lead > speed * horizon > 0:  # slower than asked (tool cap): shorten to the reachable part
-                        step *= speed * horizon / lead
-                        target = self.target(q0, axis, step)
-                    self.robot.move_joints(target, speed=speed, wait=False)
-                    sent = {"step": step, "speed": speed, "target": target}
-            except LimitError as e:
-                self.stop(quiet=True)
-                self.message = f"refused: {e}"
-                return False
-            except StationError as e:
-                self._end_hold()
-                self._on_error(e, f"jog {self.axis_names()[axis]}")
-                return False
-        self.last_jog = {"mode": self.mode, "frame": self.frame, "axis": axis, "q0": q0, "cap_m_s": cap,
-                         "hold": True, **sent}
-        self.message = (f"hold-to-run {self.axis_names()[axis]} {'+' if d > 0 else '-'} at {self.speed_percent} % "
-                        f"({self.speed_mm_s:g} mm/s)")
-        return True
+    def release_gap(self) -> float:
+        return self.holding.release_gap()
 
-    def _hold_velocity(self, axis: int, d: int, q0: np.ndarray, cap: float, rate: float) -> dict:
-        """Velocity hold (caller holds io_lock and handles errors): re-send the speed each tick; the driver's
-        watchdog stops the arm if the ticks stop. Joint speed is limited so the tool stays within the override."""
-        if self.mode == "joint":
-            probe = self.target(q0, axis, d * 1e-3)  # direction of motion, for the tool-speed bound
-            speed = joint_speed_for_tool_cap(self.model, q0, probe, rate, cap=cap)
-        elif self.axis_unit(axis) == "deg":
-            self.target(q0, axis, d * 1e-3)  # reachable and clear of the keep-out (LimitError otherwise)
-            speed = rate  # rad/s about the TCP: the override's share of 30 deg/s
-        else:
-            speed = cap
-        self.robot.jog_velocity(self.mode, axis, d * speed, self.frame)
-        return {"velocity": d * speed}
+    def first_window(self) -> float:
+        return self.holding.first_window()
+
+    # ---- proximity, go near, seat (station.tui.aids) -------------------------------------------------------
+    targets = _part_attr("aids", "targets")
+    blocked = _part_attr("aids", "blocked")
+    can_seat = _part_attr("aids", "can_seat")
+    compliant = _part_attr("aids", "compliant")
+    near = _part_attr("aids", "near")
+    near_plan = _part_attr("aids", "near_plan")
+    proximity = _part_attr("aids", "proximity")
+
+    @property
+    def compliant_name(self) -> str:
+        return self.aids.compliant_name
+
+    def toggle_compliant(self) -> bool:
+        return self.aids.toggle_compliant()
+
+    def plan_near(self) -> ap.NearPlan | None:
+        return self.aids.plan_near()
+
+    def start_near(self, plan: ap.NearPlan) -> bool:
+        return self.aids.start_near(plan)
+
+    def _update_proximity(self) -> None:
+        self.aids._update_proximity()
 
     def enable(self) -> None:
         """Reset a fault: re-enable the robot and clear the banner only if the robot then reports OK."""
@@ -729,13 +630,20 @@ class JogController:
             return None
         sample = self.session.add_sample(
             snap.q, point or self.point, raw=snap.raw, raw_unit=snap.raw_unit, t=snap.t, t_device=snap.t_device,
-            touch=touch, status={"enabled": status.enabled, "forced": bool(force and touch is False)})
+            touch=touch, status={"enabled": status.enabled, "forced": bool(force and touch is False),
+                                 "compliant": self.compliant})
         self.numbers[sample.seq] = len(self.numbers) + 1
         self.selected = None
-        self.message = f"recorded #{self.number(sample)} on {sample.point} ({len(self.session.samples)} samples)"
+        n = len(self.session.samples)
+        self.message = f"recorded #{self.number(sample)} on {sample.point} ({n} sample{'s' if n != 1 else ''})"
+        if is_forced(sample):
+            self.message += ": FORCED without contact, a pose and not a touch (retake it on contact)"
+        elif self.compliant:
+            self.message += f": v holds the arm, then jog clear of {sample.point}"
         self.solve()
         if self.guided and self.guide.next_point in self.labels and point is None:
             self.point_index = self.labels.index(self.guide.next_point)  # suggest the next point to touch
+            self._update_proximity()
         return sample
 
     def retake(self, force: bool = False) -> ev.Sample | None:
@@ -770,29 +678,13 @@ class JogController:
 
     # ---- live solve ------------------------------------------------------------------------------------
     def solve(self) -> SolveState:
+        """The live solve of the kept samples (``station.tui.livesolve``), then the guidance's prediction."""
         samples = self.session.samples
         self.predicted = {}
-        if not samples:
-            self.solve_state = SolveState()
-            self._update_guidance()
-            return self.solve_state
-        from station.solver import Observations, solve
-
-        q = np.array([s.q for s in samples])
-        labels = np.array([s.point for s in samples], dtype=object)
-        t0 = time.perf_counter()
-        try:
-            result = solve(self.model, Observations(q, labels), identify=self.identify, reference=self.reference)
-        except (ValueError, KeyError, StationError, np.linalg.LinAlgError) as e:
-            self.solve_state = SolveState("error", str(e), len(samples), seconds=time.perf_counter() - t0)
-            self._update_guidance()
-            return self.solve_state
-        dt = time.perf_counter() - t0
-        identified = [(n, p.value - p.nominal if p.kind == "model" else p.value, p.std, p.unit)
-                      for n, p in result.parameters.items() if p.identifiable]
-        self.solve_state = SolveState("ok", "converged" if result.converged else "did not converge", len(samples),
-                                      dict(result.residuals), identified, dict(result.unidentifiable), result, dt)
-        if self.limits:
+        self.solve_state = live_solve(self.model, samples, self.identify, self.reference)
+        if self.limits and self.solve_state.status == "ok":
+            q = np.array([s.q for s in samples])
+            labels = np.array([s.point for s in samples], dtype=object)
             try:
                 self.predicted = gd.predicted_std(self.model, q, labels, self.identify, self.reference)
             except (ValueError, KeyError, np.linalg.LinAlgError):
@@ -802,7 +694,7 @@ class JogController:
 
     def _update_guidance(self) -> None:
         self.guide = gd.guidance(self.model, self._guide_labels(), self.session.samples, self.solve_state.result,
-                                 self.limits, self.predicted)
+                                 self.limits, self.predicted, self.blocked)
 
     def _guide_labels(self) -> list[str]:
         return list(self.labels) if getattr(self, "guided", False) else []
@@ -939,7 +831,8 @@ class JogController:
             if result is not None and self.writeback_done is None:
                 self.session.event(ev.Result(result=result.to_dict()))
             # the verdict against the limits that judge this session; none: NO LIMITS, never a PASS
-            measured = gd.measurements(self.model, result, len(self.session.samples), self.predicted)
+            measured = gd.measurements(self.model, result, len(self.session.samples), self.predicted,
+                                       sum(is_forced(s) for s in self.session.samples))
             self.verdict = gd.judge(self.limits, measured, self.limits_version)
             self.session.event(ev.Verdict(**self.verdict))
             passed = self.verdict["passed"]

@@ -32,14 +32,17 @@ class Guidance:
     per_point: dict[str, int] = field(default_factory=dict)
     checks: list[Check] = field(default_factory=list)
     status: str = "waiting"  # waiting | not yet | good enough | NO LIMITS
+    blocked: dict[str, str] = field(default_factory=dict)  # label -> why the technician is not sent there
 
     @property
     def good_enough(self) -> bool:
         return self.status == "good enough"
 
 
-def next_point(labels: list[str], per_point: dict[str, int]) -> str | None:
-    """The point with the fewest samples (first in cell order on a tie): spread the touches over every point."""
+def next_point(labels: list[str], per_point: dict[str, int], blocked: dict[str, str] | None = None) -> str | None:
+    """The point with the fewest samples (first in cell order on a tie): spread the touches over every point.
+    Never one in ``blocked`` (a socket this arm cannot seat in, a point out of its reach)."""
+    labels = [lb for lb in labels if lb not in (blocked or {})]
     if not labels:
         return None
     return min(labels, key=lambda lb: (per_point.get(lb, 0), labels.index(lb)))
@@ -56,11 +59,16 @@ def predicted_std(model, q: np.ndarray, labels: np.ndarray, identify: str, refer
     return {n: (p.std if p.identifiable else None) for n, p in pred.parameters.items()}
 
 
-def measurements(model, result, n_samples: int, predicted: dict[str, float | None] | None = None) -> dict:
+FORCED = "forced_samples"  # samples recorded without contact: a jog session with any of them cannot pass
+
+
+def measurements(model, result, n_samples: int, predicted: dict[str, float | None] | None = None,
+                 forced: int = 0) -> dict:
     """The jog session's measurements in SI, by the limit names the procedures use: ``samples``,
     ``identified``, ``fit_rms``, ``fit_max``, ``offset_abs_max``, ``offset_std_max`` (the larger of the fitted
-    and the predicted std: an optimistic fit with few samples must not pass)."""
-    out: dict[str, tuple[float | None, str]] = {"samples": (float(n_samples), "number")}
+    and the predicted std: an optimistic fit with few samples must not pass), and ``forced_samples``."""
+    out: dict[str, tuple[float | None, str]] = {"samples": (float(n_samples), "number"),
+                                                FORCED: (float(forced), "number")}
     if result is None:
         return out
     params = result.parameters
@@ -80,7 +88,13 @@ def judge(limits: dict[str, Limit], measured: dict, limits_version: str | None) 
     ms = []
     for name, (value, quantity) in measured.items():
         lim = limits.get(name)
-        if lim is None:
+        if lim is None and name == FORCED:
+            # a forced sample is a pose recorded while the contact input said "no contact", not a touch: the
+            # solve built on it is no calibration, whatever the limits file says about the rest
+            ms.append({"name": name, "value": value, "unit": "count", "low": None, "high": 0.0, "marginal": False,
+                       "passed": not value, "quantity": quantity,
+                       "note": "samples recorded without contact (!) are no touches: retake or discard them"})
+        elif lim is None:
             ms.append({"name": name, "value": value, "unit": "m" if quantity == "length" else
                        ("rad" if quantity == "angle" else "1"), "low": None, "high": None, "marginal": False,
                        "passed": True, "note": "no limit (informational)", "quantity": quantity})
@@ -95,21 +109,25 @@ def judge(limits: dict[str, Limit], measured: dict, limits_version: str | None) 
 
 
 def guidance(model, labels: list[str], samples: list, result, limits: dict[str, Limit],
-             predicted: dict[str, float | None] | None) -> Guidance:
+             predicted: dict[str, float | None] | None, blocked: dict[str, str] | None = None) -> Guidance:
     per_point = {lb: 0 for lb in labels}
     for s in samples:
         per_point[s.point] = per_point.get(s.point, 0) + 1
     lim_n = limits.get("samples")
     needed = int(np.ceil(lim_n.low)) if lim_n is not None and lim_n.low is not None else None
-    g = Guidance(len(samples), needed, next_point(labels, per_point), per_point)
+    blocked = {lb: why for lb, why in (blocked or {}).items() if lb in labels}
+    g = Guidance(len(samples), needed, next_point(labels, per_point, blocked), per_point, blocked=blocked)
     if not limits:
         g.status = NO_LIMITS
         return g
-    measured = measurements(model, result, len(samples), predicted)
+    forced = sum(bool((s.status or {}).get("forced")) for s in samples)
+    measured = measurements(model, result, len(samples), predicted, forced)
     verdict = judge(limits, measured, None)
     for m in verdict["measurements"]:
         if m.get("low") is None and m.get("high") is None:
             continue  # informational
+        if m["name"] == FORCED and not m.get("value"):
+            continue  # shown only when there are some
         v = m.get("value")
         bound = " ".join(x for x in (f">= {m['low']:g}" if m.get("low") is not None else "",
                                       f"<= {m['high']:g}" if m.get("high") is not None else "") if x)

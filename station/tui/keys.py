@@ -68,10 +68,12 @@ class KeyArrivals:
 class ReleaseParser(XTermParser):
     """Textual's parser, plus the kitty event types (above); notes every press/repeat in ``arrivals``."""
 
-    def __init__(self, *args, arrivals: KeyArrivals | None = None, on_release=None, **kwargs) -> None:
+    def __init__(self, *args, arrivals: KeyArrivals | None = None, on_release=None, on_press=None,
+                 **kwargs) -> None:
         super().__init__(*args, **kwargs)
         self.arrivals = arrivals
         self.on_release = on_release  # called with the key name on the input thread, before the event is queued
+        self.on_press = on_press  # the same for every press and repeat (STOP acts here, ahead of the queue)
 
     def _sequence_to_key_events(self, sequence: str, alt: bool = False) -> Iterable[events.Key]:
         plain, kind = split_event_type(sequence)
@@ -79,6 +81,8 @@ class ReleaseParser(XTermParser):
             for key in super()._sequence_to_key_events(plain, alt):
                 if self.arrivals is not None:
                     self.arrivals.note(key.key)
+                if self.on_press is not None:
+                    self.on_press(key.key)
                 yield key
             return
         for key in super()._sequence_to_key_events(plain, alt):
@@ -100,8 +104,10 @@ class JogDriver(linux_driver.LinuxDriver):
         # LinuxDriver.run_input_thread builds its parser by this module-level name (textual 8 offers no
         # other hook); ReleaseParser parses everything else exactly as XTermParser does. The app's
         # ``key_arrivals`` (a KeyArrivals) gets the time of every press/repeat, ``key_released(key)`` every
-        # release at once (a release must not wait behind the UI's queue: the arm stops on it)
+        # release and ``key_pressed(key)`` every press at once (a release or a STOP must not wait behind the
+        # UI's queue: the arm stops on it)
         linux_driver.XTermParser = functools.partial(ReleaseParser,
                                                      arrivals=getattr(self._app, "key_arrivals", None),
-                                                     on_release=getattr(self._app, "key_released", None))
+                                                     on_release=getattr(self._app, "key_released", None),
+                                                     on_press=getattr(self._app, "key_pressed", None))
         super().run_input_thread()

@@ -36,6 +36,7 @@ from station.solver.map.poses import (
 )
 
 FORMAT = "station-map/1"
+ABSURD = 1e6  # m or rad: a map value beyond this is a damaged file, not a robot
 UNITS = ("SI: actuator values and summands in m (prismatic) or rad (revolute); positions in m; rotations as "
          "rotation vectors in rad; robot base frame")
 SNAP_TOL = 0.05  # a sample may lie this fraction of the level spacing off its grid node (servo following error)
@@ -297,10 +298,12 @@ class CorrectionMap:
         def arr(v, f, shape=None):
             try:
                 a = np.asarray(v, dtype=float)
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, OverflowError):
                 raise fail(f, "expected numbers") from None
             if not np.all(np.isfinite(a)):
                 raise fail(f, "not finite")
+            if np.any(np.abs(a) > ABSURD):  # no actuator value, position or correction of a robot is this large
+                raise fail(f, f"beyond any robot's range (|value| <= {ABSURD:g} m or rad)")
             if shape is not None and (a.ndim != len(shape) or any(s is not None and s != t
                                                                   for s, t in zip(shape, a.shape, strict=True))):
                 raise fail(f, f"expected shape {tuple('N' if s is None else s for s in shape)}, got {a.shape}")
@@ -329,9 +332,11 @@ class CorrectionMap:
                 raise fail("mesh.levels", str(e)) from None
             nodes = d["nodes"]
             values = arr(nodes["summand"], "nodes.summand", (grid.size, n))
-            counts = np.asarray(nodes["samples"], dtype=int)
-            if counts.shape != (grid.size,):
-                raise fail("nodes.samples", f"expected {grid.size} counts")
+            raw = nodes["samples"]
+            if not isinstance(raw, list) or len(raw) != grid.size or \
+                    any(type(c) is not int or not 0 <= c <= 10**9 for c in raw):
+                raise fail("nodes.samples", f"expected {grid.size} sample counts (integers >= 0)")
+            counts = np.asarray(raw, dtype=int)
             pose = tuple(str(c) for c in d["pose"])
             s = d["samples"]
             sx = arr(s["x"], "samples.x", (None, n))
@@ -356,8 +361,8 @@ class CorrectionMap:
                        payload)
         except KeyError as e:
             raise MapError(f"{where}: missing field {e.args[0]!r}") from None
-        except (TypeError, AttributeError) as e:
-            raise MapError(f"{where}: malformed map ({e})") from None
+        except (TypeError, AttributeError, ValueError, IndexError, OverflowError) as e:
+            raise MapError(f"{where}: malformed map ({type(e).__name__}: {' '.join(str(e).split())[:200]})") from None
 
 
 def build_map(nominal, x, measured, pose, *, mesh: str = "grid", levels=None, calibration: dict | None = None,
