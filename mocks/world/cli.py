@@ -78,8 +78,9 @@ def cell_warnings(world, file: Path) -> list[str]:
     if getattr(world.nominal, "kind", "serial") == "parallel":
         return []  # measured by a tracker: no touch points needed
     if not world.points:
-        return [f"station: warning: {file}: cell.points is empty: no procedure can touch anything; write reachable "
-                f"points with: station mock world example --model {_model_ref(world)} > {file}"]
+        return [f"station: warning: {file}: cell.points is empty: no procedure can touch anything; reachable "
+                f"points for this arm are in the cell.points of: station mock world example --model "
+                f"{_model_ref(world)}"]
     import numpy as np
     from station.mocks.world.reach import MIN_SCORE, cone_scores
 
