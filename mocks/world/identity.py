@@ -2,8 +2,8 @@
 
 Two worlds are two robots. A fixed default (every emulated UR was ``20235500001``) filed the sessions of two
 different arms under one serial, so the records merged them and ``records show --trend`` called the difference
-DRIFT. The serial is a digest of what makes the robot that robot: the nominal model's parameters and joints, the
-true (hidden) parameters and the cell; not the time mode, the bus settings or the faults, so the same arm served
+DRIFT. The serial is a digest of what makes the robot that robot as its world file states it: the model, the hidden
+errors, the joint mechanics and the cell; not the time mode, the bus settings or the faults, so the same arm served
 faster or on another bus keeps its serial, and restarting an emulator on the same file gives the same one (a
 resume finds its robot)."""
 
@@ -11,18 +11,20 @@ from __future__ import annotations
 
 import hashlib
 
-import numpy as np
-
 
 def world_digest(world) -> str:
-    h = hashlib.sha256()
-    for model in (world.nominal, world.truth):
-        h.update(str(getattr(model, "name", "")).encode())
-        h.update(np.round(np.asarray(model.params, float), 12).tobytes())
-        h.update(np.round(np.concatenate([model.lower, model.upper]), 12).tobytes())
-    for label, p in sorted(world.points.items()):
-        h.update(label.encode() + p.kind.encode() + np.round(p.position, 9).tobytes())
-    return h.hexdigest()
+    """A digest of the world file's robot, hidden errors (as the file states them: explicit values and random
+    sigmas with the seed), joint mechanics and cell; a model file by its absolute path. Not the drawn values nor
+    the catalogue's parameters, so a station update that redraws or retunes a model keeps an emulator's serial."""
+    import json
+
+    doc = world.to_dict("m", "rad")
+    keep = {k: doc.get(k) for k in ("seed", "robot", "errors", "joints", "cell")}
+    source = (getattr(world.nominal, "source", None) or {}).get("urdf") or {}
+    keep["model_path"] = str(source.get("path") or getattr(world.nominal, "path", "") or "")
+    keep["model"] = str(getattr(world.nominal, "name", ""))
+    text = json.dumps(keep, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def default_serial(world, kind: str = "ur") -> str:
