@@ -48,15 +48,19 @@ def checklist(s):
 def tool_needed(without, with_tool, alpha: float = 1e-3) -> bool:
     """Does solving the tool explain significantly more of the touches than its extra unknowns would by chance?
     F-test of the nested least-squares fits: F = ((RSS0 - RSS1) / dp) / (RSS1 / dof1), against F(dp, dof1) at
-    ``alpha``. RSS from each fit's residual sigma and degrees of freedom."""
+    ``alpha``; RSS from each fit's residual sigma and degrees of freedom. When the fit with the tool has no more
+    unknowns (the solver named link lengths the tool cannot be told from unidentifiable), the smaller residual
+    decides."""
     from scipy.stats import f
 
     n0, n1 = without.noise.get("dof"), with_tool.noise.get("dof")
-    if not (n0 and n1) or not with_tool.trusted or n1 >= n0:
+    if not (n0 and n1) or not with_tool.trusted:
         return False
     rss0 = without.noise["fitted_m"] ** 2 * n0
     rss1 = with_tool.noise["fitted_m"] ** 2 * n1
-    dp = n0 - n1
+    if n1 >= n0:  # the tool took the place of link lengths it cannot be told from: no more unknowns than before
+        return rss1 < rss0
     if rss1 <= 0:
         return rss0 > 0
+    dp = n0 - n1
     return (rss0 - rss1) / dp / (rss1 / n1) > f.ppf(1 - alpha, dp, n1)

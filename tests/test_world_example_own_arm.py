@@ -94,3 +94,18 @@ def test_example_of_a_seven_axis_arm_has_points(tmp_path):
     (tmp_path / "w.yaml").write_text(example_text(str(f), tip_link="ball"))  # ... which example takes
     w = World.from_file(tmp_path / "w.yaml")
     assert sum(p.kind == "socket" for p in w.points.values()) >= 1
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["ur3e", "ur5e", "ur10e", "arm6"])
+def test_example_of_a_builtin_six_axis_arm_has_three_reachable_sockets(name):
+    """The example world of a built-in 6-axis arm carries three sockets (its default cell plus the example's), each
+    reachable from the plan's cone by the engine's planner from the world's start pose: dh_full runs on it."""
+    world = World.from_dict(yaml.safe_load(example_text(name)))
+    sockets = [p for p in world.points.values() if p.kind == "socket"]
+    assert len(sockets) >= 3
+    for p in sockets:
+        plan = generate_plan(world.nominal, [RefPoint(p.label, p.kind, p.position, p.approach, p.radius)],
+                             world.encoder_q(), identify="offsets", n_fit=10, n_holdout=2, cone_deg=35.0,
+                             keep_out=KeepOut.default(), seed=1)
+        assert len(plan.poses) == 12, (name, p.label)

@@ -7,6 +7,17 @@ import math
 from station.mocks.world.cell import DEFAULTS
 from station.mocks.world.world import DEFAULT_SIGMAS
 
+# Sockets the example adds to a built-in 6-axis arm's default cell so that it has three (dh_full needs three spread
+# over the workspace): placed by mocks/world/reach.py (35 deg cone, limits, links clear of the floor, on the side
+# of socket A, as far from the cell's points as reach allows); tests/test_world_example_own_arm.py checks them with
+# the engine's planner. Built-in worlds (World.default) keep their cells.
+EXTRA_SOCKETS = {
+    "ur3e": [("B", [0.0, -0.363, 0.337]), ("C", [0.0, 0.363, 0.337])],
+    "ur5e": [("C", [0.0, 0.599, 0.556])],
+    "ur10e": [("B", [0.0, -0.848, 0.788]), ("C", [0.0, 0.848, 0.788])],
+    "arm6": [("B", [0.0, -0.621, 0.399]), ("C", [0.0, 0.621, 0.399])],
+}
+
 
 def _mm(x: float) -> str:
     return f"{x * 1e3:g}"
@@ -19,6 +30,9 @@ def example_text(model: str = "ur5e", seed: int = 0, tip_link: str | None = None
     m = load_model(model, tip_link=tip_link, base_link=base_link)
     ref = m.name if model in builtin_names() else str(model)  # a model file: keep its path
     d = DEFAULTS.get(m.name) if model in builtin_names() else None
+    if d is not None and m.name in EXTRA_SOCKETS:
+        d = {**d, "points": [*d["points"], *({"label": lb, "kind": "socket", "position": p, "approach": [0, 0, 1]}
+                                            for lb, p in EXTRA_SOCKETS[m.name])]}
     note = ""
     if d is None and getattr(m, "kind", "serial") == "parallel":  # the home configuration; measured by a tracker
         d = {"start": list(m.home_q), "points": []}

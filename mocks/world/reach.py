@@ -146,7 +146,8 @@ def place_points(model, keep_out=None, *, seed: int = 0, sockets: int = 3, needl
     order = np.lexsort((azimuth, cand[:, 2], -np.round(score, 2)))
     good = [int(i) for i in order if score[i] >= max(MIN_SCORE, 0.9 * score[order[0]])]
     if good:  # one side of the arm, as a cell on a table in front of it: turning joint 1 half a turn between
-        front = np.arctan2(cand[good[0], 1], cand[good[0], 0])  # two sockets is travel, not information
+        ref = np.asarray(fixed[0], float) if len(fixed) else cand[good[0]]  # two sockets is travel, not information
+        front = np.arctan2(ref[1], ref[0])
         good = [i for i in good if abs(np.angle(np.exp(1j * (np.arctan2(cand[i, 1], cand[i, 0]) - front))))
                 <= np.deg2rad(100)]
     taken = [np.asarray(f, float) for f in fixed]

@@ -240,6 +240,8 @@ def _finish(out, next_step=None) -> None:
         typer.echo(f"station: the record is stored; rebuild the report with: station report {out.folder}", err=True)
     elif "station restore" in msg:  # the message already names the one command that helps (resume would refuse)
         pass
+    elif "nothing moved" in msg:  # refused before any motion: a resume would meet the same refusal
+        typer.echo("station: nothing moved; start a new run with the change named above", err=True)
     else:
         typer.echo(f"station: the journal is kept; continue with: station resume {out.session}", err=True)
     _exit(2)
