@@ -59,8 +59,8 @@ def tool_needed(without, with_tool, alpha: float = 1e-3) -> bool:
     rss0 = without.noise["fitted_m"] ** 2 * n0
     rss1 = with_tool.noise["fitted_m"] ** 2 * n1
     if n1 >= n0:  # the tool took the place of link lengths it cannot be told from: no more unknowns than before
-        return rss1 < rss0
+        return bool(rss1 < rss0)
     if rss1 <= 0:
         return rss0 > 0
     dp = n0 - n1
-    return (rss0 - rss1) / dp / (rss1 / n1) > f.ppf(1 - alpha, dp, n1)
+    return bool((rss0 - rss1) / dp / (rss1 / n1) > f.ppf(1 - alpha, dp, n1))
