@@ -45,12 +45,12 @@ def checklist(s):
     s.write_back()                               # 7. only the joint offsets can be written to the drives
 
 
-def tool_needed(without, with_tool, alpha: float = 1e-3) -> bool:
-    """Does solving the tool explain significantly more of the touches than its extra unknowns would by chance?
-    F-test of the nested least-squares fits: F = ((RSS0 - RSS1) / dp) / (RSS1 / dof1), against F(dp, dof1) at
-    ``alpha``; RSS from each fit's residual sigma and degrees of freedom. When the fit with the tool has no more
-    unknowns (the solver named link lengths the tool cannot be told from unidentifiable), the smaller residual
-    decides."""
+def tool_needed(without, with_tool, alpha: float = 1e-3, tool_unknowns: int = 3) -> bool:
+    """Does solving the tool explain significantly more of the touches than its unknowns would by chance?
+    F-test: F = ((RSS0 - RSS1) / k) / (RSS1 / dof1) against F(k, dof1) at ``alpha``, k the tool's three position
+    unknowns; RSS from each fit's residual sigma and degrees of freedom. k stays 3 when the solver traded link
+    lengths the tool cannot be told from for tool coordinates (the fits are then not nested, and a smaller
+    residual by the noise's chance must not win)."""
     from scipy.stats import f
 
     n0, n1 = without.noise.get("dof"), with_tool.noise.get("dof")
@@ -58,9 +58,6 @@ def tool_needed(without, with_tool, alpha: float = 1e-3) -> bool:
         return False
     rss0 = without.noise["fitted_m"] ** 2 * n0
     rss1 = with_tool.noise["fitted_m"] ** 2 * n1
-    if n1 >= n0:  # the tool took the place of link lengths it cannot be told from: no more unknowns than before
-        return bool(rss1 < rss0)
     if rss1 <= 0:
-        return rss0 > 0
-    dp = n0 - n1
-    return bool((rss0 - rss1) / dp / (rss1 / n1) > f.ppf(1 - alpha, dp, n1))
+        return bool(rss0 > 0)
+    return bool((rss0 - rss1) / tool_unknowns / (rss1 / n1) > f.ppf(1 - alpha, tool_unknowns, n1))

@@ -26,9 +26,11 @@ def test_nested_fits_keep_the_tool_when_the_f_test_says_so(sigma1):
     assert dh_full.tool_needed(fit(10e-6, n0), fit(sigma1, n1)) is want
 
 
-def test_a_tool_that_displaced_link_lengths_is_kept_when_it_fits_better():
-    # the solver named lengths the tool cannot be told from unidentifiable: fewer unknowns with the tool than without
+def test_a_tool_that_displaced_link_lengths_is_kept_only_when_it_fits_significantly_better():
+    # the solver named lengths the tool cannot be told from unidentifiable: no more unknowns with the tool than
+    # without (measured on the arm6 example world: 0.618 mm per axis without the tool, 0.010 mm with it)
     assert dh_full.tool_needed(fit(618e-6, 191), fit(10e-6, 193)) is True
+    assert dh_full.tool_needed(fit(10e-6, 191), fit(9.95e-6, 193)) is False  # smaller by chance: not kept
     assert dh_full.tool_needed(fit(10e-6, 191), fit(10.5e-6, 193)) is False
 
 
