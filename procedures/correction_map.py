@@ -17,19 +17,17 @@ held-out configurations compare the calibrated model alone with the calibrated m
 with compliance terms (``station solve --payload 15kg --identify ...,compliance``) needs the same payload here
 (``--payload 15kg``): the model then carries it and the calibration is applied with the joints' deflection."""
 
-import hashlib
 import json
 from pathlib import Path
 
 import numpy as np
+from station.procedures._calibration import calibration, journaled_calibration, payload, working
 
 from station.engine import events as ev
 from station.engine.plan import PlannedPose, PosePlan
 from station.kinematics import se3
 from station.robot.errors import ConfigError, DeviceFault
-from station.robot.registry import open_instrument
-from station.safeio import DuplicateKeyError, loads_strict
-from station.solver.map import FULL, POSITION, MapError, build_map, plan, to_vectors, working_model
+from station.solver.map import FULL, POSITION, MapError, build_map, plan, to_vectors
 from station.solver.map.plan import predicted_residual
 from station.solver.map.register import register
 
@@ -45,14 +43,11 @@ def checklist(s):
     s.check_state()                              # 2. no fault or stop, powered
     payload(s)                                   # 3. the payload on the tool, if any: the compliance terms
     calibration(s)                               #    the parametric calibration the map sits on, if any
-    tracker = connect_tracker(s)                 #    connect and identify the tracker (journaled; same one)
-    try:
-        todo = map_plan(s)                       # 4. grid of actuator levels + held-out configurations
-        for pose in s.todo(todo):                # 5. every configuration not yet measured:
-            move(s, pose)                        #    drive the actuators there (keep-outs checked)
-            measure(s, tracker, pose)            #    read actuators and tracker at rest, journal the sample
-    finally:
-        tracker.close()
+    tracker = s.instrument("tracker")            #    connect and identify the tracker (journaled; same one)
+    todo = map_plan(s)                           # 4. grid of actuator levels + held-out configurations
+    for pose in s.todo(todo):                    # 5. every configuration not yet measured:
+        move(s, pose)                            #    drive the actuators there (keep-outs checked)
+        s.measure_pose(pose, tracker)            #    read actuators and tracker at rest, journal the sample
     reg = register_tracker(s)                    # 6. tracker frame -> base frame (best fit, grid samples only)
     cmap = build(s, reg)                         # 7. correction summands KSF_PM, the map KSF_KR
     verify(s, cmap, reg)                         # 8. held-out: nominal vs. mapped pose against the tracker
@@ -61,122 +56,6 @@ def checklist(s):
 
 
 # ---- the steps ---------------------------------------------------------------------------------------------
-def payload(s) -> tuple[float, list] | None:
-    """``--payload MASS[@x,y,z]`` (``{"mass": kg, "com": [x, y, z] m in the tool frame}``, journaled with the
-    session's options: a resume uses the same one): the model carries it, so it has the compliance parameters
-    ``compliance.jN`` of a ``station solve --payload`` calibration and deflects its joints under that load the way
-    the calibration was solved. Nominal compliance is zero: without a calibration the payload changes nothing."""
-    p = s.options.get("payload")
-    if p is None:
-        return None
-    if not hasattr(s.model, "with_payload"):  # a parallel robot's model has no joint compliance
-        raise ConfigError(f"correction_map: --payload: model {s.model.name} ({getattr(s.model, 'kind', '?')}) has "
-                          "no compliance terms for a payload to load; leave --payload out")
-    try:
-        mass, com = float(p["mass"]), [float(c) for c in p["com"]]
-        if len(com) != 3 or not all(np.isfinite([mass, *com])):
-            raise ValueError
-        s.model = s.model.with_payload(mass, com)
-    except (KeyError, TypeError, ValueError):
-        raise ConfigError(f"correction_map: payload {p!r}: expected {{mass: kg >= 0, com: [x, y, z] m}}") from None
-    return mass, com
-
-
-def calibration(s) -> dict | None:
-    """``--calibration result.json``: the identified model parameters of a ``station solve`` result for this
-    robot's model, checked (readable, trusted, model name and parameters) before anything moves and journaled
-    as a ``calibration`` event with the file's sha256. A resumed session uses the journaled values and refuses
-    the file if it changed since (the summands measured so far belong to the journaled calibration)."""
-    path = s.options.get("calibration")
-    if not path:
-        return None
-    old = s.events("calibration")
-    with s.step("calibration", path=str(path)):
-        try:
-            data = Path(path).read_bytes()
-        except OSError as e:
-            raise ConfigError(f"calibration {path}: cannot read ({e.strerror or e})") from None
-        sha = hashlib.sha256(data).hexdigest()
-        if old:
-            if sha != old[-1].data.get("sha256"):
-                raise ConfigError(f"calibration {path} changed since session {s.id} started (sha256 differs): the "
-                                  "samples so far belong to the journaled calibration; restore the file or start a "
-                                  "new session")
-            return dict(old[-1].data["parameters"])
-        from station.resultfile import load_calibration
-        from station.solver import CalibrationResult
-
-        try:
-            doc = loads_strict(data, f"calibration {path}")
-        except DuplicateKeyError as e:
-            raise ConfigError(str(e)) from None
-        except ValueError:
-            doc = None  # load_calibration says what is wrong with the file, in one line
-        given = doc.get("parameters") if isinstance(doc, dict) else None
-        compliance = sorted(n for n, p in (given if isinstance(given, dict) else {}).items()
-                            if str(n).startswith("compliance.") and isinstance(p, dict) and p.get("identifiable")
-                            and n not in s.model.param_names)
-        if compliance:  # solved under a payload the session was not given: its deflection would be left out
-            raise ConfigError(
-                f"calibration {path}: parameters.{compliance[0]}: a compliance term (solved under a payload, station "
-                f"solve --payload); give the same payload: --payload MASS (e.g. 15kg)"
-                + ("" if s.options.get("payload") is None else ", not 0"))
-        solved_under = (doc.get("settings") or {}).get("payload") if isinstance(doc, dict) else None
-        if solved_under is not None and any(str(n).startswith("compliance.") for n in given or {}):
-            from station.kinematics.gravity import same_payload, show_payload
-
-            if not same_payload(solved_under, s.options.get("payload")):  # its compliance holds under that load only
-                raise ConfigError(f"calibration {path}: settings.payload: solved under "
-                                  f"{show_payload(solved_under)}, this session has "
-                                  f"{show_payload(s.options.get('payload'))}; give the same --payload")
-        load_calibration(path, s.model)  # one line naming file and field: format, model name, parameter names
-        res = CalibrationResult.from_dict(json.loads(data))
-        if not res.trusted:
-            raise ConfigError(f"calibration {path}: the result is not trusted ({res.failure or 'see the solve'}); "
-                              "a map on top of it would hide that")
-        params = {k: float(v) for k, v in res.values("model").items()}
-        s.event({"type": "calibration", "path": str(path), "sha256": sha, "model": res.model,
-                 "parameters": params, "identified": len(params), "payload": s.options.get("payload")})
-    return params
-
-
-def _calibration(s) -> dict | None:
-    """The journaled calibration's parameters (None: the map sits on the nominal model)."""
-    old = s.events("calibration")
-    return dict(old[-1].data["parameters"]) if old else None
-
-
-def _working(s):
-    """The model the map sits on: nominal, or the journaled parametric calibration of it."""
-    return working_model(s.model, _calibration(s))
-
-
-def connect_tracker(s):
-    """Open the instrument at ``--tracker URL`` (``station resume --tracker URL``: the address it came back on)
-    and check it is the one the session started with: its protocol, serial and model as journaled; another
-    tracker mid-calibration measures in another frame (refused in one line)."""
-    url = s.options.get("tracker")
-    if not url:
-        raise ConfigError("correction_map needs a measuring instrument: --tracker tcp://HOST:PORT")
-    first = (s.events("instrument") or [None])[0]
-    with s.step("connect_tracker", url=url):
-        tracker = open_instrument(url)
-        ident = {"serial": tracker.serial, "model": getattr(tracker, "spec", {}).get("model")}
-        if first is not None:
-            was = {"serial": first.data.get("serial"), "model": (first.data.get("spec") or {}).get("model")}
-            if was != ident:
-                tracker.close()
-                raise ConfigError(
-                    f"instrument at {url} is {_who(ident)}, the session started with {_who(was)}: another "
-                    "tracker measures in another frame; reconnect that one, or start a new session")
-        s.event({"type": "instrument", "url": url, "serial": tracker.serial, "spec": tracker.spec})
-    return tracker
-
-
-def _who(ident: dict) -> str:
-    return f"serial {ident['serial']!r}" + (f" model {ident['model']!r}" if ident.get("model") else "")
-
-
 def map_plan(s) -> PosePlan:
     """The sample grid of the nominal model (``station.solver.map.plan``) in grid order, then the held-out
     configurations; journaled once (a resumed session reuses it)."""
@@ -295,22 +174,6 @@ def move(s, pose: PlannedPose) -> None:
         s.move_to(target)
 
 
-def measure(s, tracker, pose: PlannedPose) -> ev.Sample:
-    """Read all actuators, then the tracker (it answers only once the probe stands still), then the actuators
-    again: a reading that moved in between is a fault, not a sample. Journaled (fsynced) before the next move."""
-    snap = s.robot.joint_positions()
-    m = tracker.measure()
-    again = s.robot.joint_positions()
-    q, q2 = np.asarray(snap.q, float), np.asarray(again.q, float)
-    if not np.all(np.isfinite(q)) or np.max(np.abs(q2 - q)) > 1e-6:
-        raise DeviceFault(f"measure: the robot moved while the tracker measured configuration {pose.index} "
-                          f"(actuators changed by {np.max(np.abs(q2 - q)):.3g})")
-    return s.event(ev.Sample(
-        point=pose.point, q=q.tolist(), raw=list(snap.raw), raw_unit=snap.raw_unit, t_read=snap.t,
-        t_device=snap.t_device, measured=list(m.xyz), measured_rotation=list(m.rv), pose=pose.index, set=pose.set,
-        status={"instrument": tracker.serial, "t_instrument": m.t}))
-
-
 def _arrays(s, which: str):
     smp = s.samples(which)
     if not smp:
@@ -329,8 +192,8 @@ def register_tracker(s):
     it would tilt the frame (measured: held-out 0.149 mm calibrated-only with, 0.057 mm without; docs/map.md)."""
     with s.step("register_tracker"):
         x, meas = _arrays(s, "fit")
-        model = _working(s)
-        if _calibration(s) is None:
+        model = working(s)
+        if journaled_calibration(s) is None:
             reg = register(to_vectors(model.fk(x), FULL), meas, FULL)
         else:
             reg = register(model.fk(x)[:, :3, 3], meas[:, :3], POSITION)
@@ -344,7 +207,7 @@ def build(s, reg):
         cfg = (s.current_plan.settings or {}).get("map", {})
         levels = [np.asarray(lv, float) for lv in cfg["levels"]]
         try:
-            cal = _calibration(s)
+            cal = journaled_calibration(s)
             source = (s.events("calibration") or [None])[-1]
             cmap = build_map(s.model, x, reg.to_base(meas, FULL), FULL, mesh=cfg.get("mesh", "simplex"),
                              levels=levels, calibration=cal,
@@ -372,7 +235,7 @@ def verify(s, cmap, reg):
         x, meas = _arrays(s, "holdout")
         truth = reg.to_base(meas, FULL)
         nominal = to_vectors(s.model.fk(x), FULL)
-        if _calibration(s) is not None:  # the nominal model's own registration, for a fair "before"
+        if journaled_calibration(s) is not None:  # the nominal model's own registration, for a fair "before"
             xf, mf = _arrays(s, "fit")
             nominal_truth = register(to_vectors(s.model.fk(xf), FULL), mf, FULL).to_base(meas, FULL)
         else:
@@ -387,9 +250,9 @@ def verify(s, cmap, reg):
                                                      se3.rotvec_to_matrix(mapped[:, 3:])), axis=1)
         s.measure("holdout", float(len(x)), "number")
         s.measure("holdout_nominal_rms", float(np.sqrt(np.mean(e_nom ** 2))))
-        if _calibration(s) is not None:  # what the parametric calibration alone gives: the map's baseline
-            s.measure("calibration_parameters", float(len(_calibration(s))), "number")
-            cal_T = _working(s).fk(x)
+        if journaled_calibration(s) is not None:  # what the parametric calibration alone gives: the map's baseline
+            s.measure("calibration_parameters", float(len(journaled_calibration(s))), "number")
+            cal_T = working(s).fk(x)
             e_cal = np.linalg.norm(cal_T[:, :3, 3] - truth[:, :3], axis=1)
             r_cal = np.linalg.norm(se3.orientation_error(se3.rotvec_to_matrix(truth[:, 3:]), cal_T[:, :3, :3]), axis=1)
             s.measure("holdout_calibrated_rms", float(np.sqrt(np.mean(e_cal ** 2))))

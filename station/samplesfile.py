@@ -145,6 +145,23 @@ def _number(t: Table, i: int, col: Column, k: int) -> float:
     return v
 
 
+def column_si(t: Table, name: str, quantity: str) -> np.ndarray:
+    """Column ``name`` of every row in SI: ``quantity`` "length" (m unless the header says ``x[mm]``) or
+    "angle" (rad unless ``rx[deg]``); a unit of the other quantity, an unknown unit or a cell that is not a
+    finite number is one line naming file, line and column."""
+    k, col = t.columns[name]
+    table, other = (ANGLE_UNITS, LENGTH_UNITS) if quantity == "angle" else (LENGTH_UNITS, ANGLE_UNITS)
+    f = 1.0
+    if col.unit is not None:
+        if col.unit not in table:
+            expect = "an angle (rad, deg, mrad)" if quantity == "angle" else "a length (m, mm, cm, um)"
+            why = f"it is {quantity == 'angle' and 'an angle' or 'a length'}, its unit must be {expect}" \
+                if col.unit in other else f"unknown unit {col.unit!r}"
+            raise SamplesFileError(f"{t.path}:{t.header_line}: column {col.header!r}: {why}")
+        f = table[col.unit]
+    return np.array([_number(t, i, col, k) for i in range(len(t.rows))]) * f
+
+
 def joint_matrix(t: Table, joints) -> np.ndarray:
     """``(N, n)`` joint readings in SI from columns ``q1..qn``; the joint count must match exactly."""
     kinds = _kinds(joints)

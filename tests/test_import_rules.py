@@ -17,15 +17,21 @@ FOLDERS = {"station": "station", "drivers": "station.drivers", "mocks": "station
 # part -> parts it must never import (docs/architecture.md, "Never:" and the table's "may import" column)
 NEVER = {
     "station.kinematics": {"station.solver", "station.engine", "station.drivers", "station.mocks", "station.records",
-                           "station.report", "station.robot", "station.cli", "station.tui", "station.procedures"},
+                           "station.report", "station.robot", "station.cli", "station.tui", "station.procedures",
+                           "station.instruments"},
     "station.solver": {"station.engine", "station.drivers", "station.mocks", "station.records", "station.report",
-                       "station.robot", "station.cli", "station.tui", "station.procedures"},
+                       "station.robot", "station.cli", "station.tui", "station.procedures", "station.instruments"},
+    # measuring instruments: like station.robot (its errors and URL options are theirs too), nothing heavier
+    "station.instruments": {"station.drivers", "station.mocks", "station.engine", "station.solver",
+                            "station.kinematics", "station.records", "station.report", "station.cli", "station.tui",
+                            "station.procedures"},
     "station.robot": {"station.drivers", "station.mocks", "station.engine", "station.solver", "station.records",
                       "station.report", "station.cli", "station.tui", "station.procedures"},
     "station.drivers": {"station.engine", "station.cli", "station.tui", "station.records", "station.report",
                         "station.mocks", "station.solver", "station.procedures", "station.api"},
     "station.mocks": {"station.drivers", "station.engine", "station.robot", "station.cli", "station.tui",
-                      "station.records", "station.report", "station.solver", "station.procedures", "station.api"},
+                      "station.records", "station.report", "station.solver", "station.procedures", "station.api",
+                      "station.instruments"},
     "station.engine": {"station.drivers", "station.mocks", "station.cli", "station.tui"},
     "station.procedures": {"station.drivers", "station.mocks", "station.cli", "station.tui"},
     "station.records": {"station.engine", "station.drivers", "station.mocks", "station.cli", "station.tui"},
@@ -156,6 +162,13 @@ def test_import_station_robot_loads_no_numpy_kinematics_or_bus_library():
     loaded = _loaded_after("import station.robot.errors\nimport station.robot\n"
                            "from station.robot import ConfigError, Robot, CalibrationStore, FaultRecovery, open_robot\n"
                            "import station.robot.base, station.robot.registry, station.robot.url")
+    heavy = [m for m in loaded if not m.startswith("station.robot")]
+    assert heavy == [], heavy
+
+
+def test_import_station_instruments_loads_no_numpy_or_driver():
+    loaded = _loaded_after("import station.instruments\nfrom station.instruments import InstrumentBase, PoseReading, "
+                           "open_instrument, schemes\nimport station.instruments.base, station.instruments.registry")
     heavy = [m for m in loaded if not m.startswith("station.robot")]
     assert heavy == [], heavy
 

@@ -157,3 +157,25 @@ def test_dynamics_constants_from_the_world_file():
         _world(dynamics={"inertia": 0})
     with pytest.raises(WorldFileError, match="joints.dynamics"):
         _world(dynamics={"stiffness": 1})
+
+
+def test_positioning_noise_scatters_the_link_not_the_encoder():
+    """noise.positioning: each move ends the link a little off where the encoder says; the same command repeated
+    lands the true tip with a scatter whose joint-space sigma is the one stated."""
+    sigma = 2e-4
+    w = World.default("ur5e", seed=3, time_mode="instant", noise={"positioning": sigma})
+    a, b = Q_LOADED, Q_LOADED + 0.2
+    errs = []
+    for _ in range(400):
+        w.command_q(b)
+        w.command_q(a)
+        np.testing.assert_array_equal(w.encoder_q(), a)  # the encoder reads the commanded position
+        errs.append(w.joint_q() - a)
+    errs = np.array(errs)
+    # 400 draws: the sample sigma is within 4 standard errors (sigma / sqrt(2 * 400)) of the stated one
+    assert np.abs(errs.std(axis=0) - sigma).max() < 4 * sigma / math.sqrt(800)
+    assert np.abs(errs.mean(axis=0)).max() < 4 * sigma / math.sqrt(400)
+    quiet = World.default("ur5e", seed=3, time_mode="instant")
+    quiet.command_q(b)
+    quiet.command_q(a)
+    np.testing.assert_allclose(quiet.joint_q(), a, atol=1e-12)

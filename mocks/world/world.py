@@ -86,8 +86,8 @@ class World:
             nominal = nominal.with_params({f"tcp.{k}": v for k, v in spec.tool.items()})
         self.nominal: Model = nominal
         # independent streams, so that e.g. more seatings never change the hidden errors
-        g_err, self._g_seat, g_survey, self._g_enc = (np.random.default_rng(s) for s in
-                                                      np.random.SeedSequence(spec.seed).spawn(4))
+        g_err, self._g_seat, g_survey, self._g_enc, self._g_pos = (
+            np.random.default_rng(s) for s in np.random.SeedSequence(spec.seed).spawn(5))
         # one standard normal per model parameter, scaled by the sigma of the most specific selector
         # that names it: neither the order of selectors nor adding one elsewhere changes a draw
         z = g_err.standard_normal(len(nominal.param_names))
@@ -118,6 +118,7 @@ class World:
         self._amax = np.array([j.max_acceleration for j in self.truth.joints])
         self.lower, self.upper = self.truth.lower, self.truth.upper
         self._backlash = np.zeros(n)
+        self._pos_err = np.zeros(n)  # link vs encoder after the last move of each joint (noise.positioning)
         for i, b in spec.backlash.items():
             self._backlash[i] = b
         self.gravity = self._gravity_truth(spec, nominal)
@@ -337,11 +338,11 @@ class World:
         return Gravity(self.truth, masses, payload, spec.gravity, self._compliance)
 
     def _deflect(self, q: np.ndarray, side: np.ndarray) -> np.ndarray:
-        return self.gravity.deflect(q - side * self._backlash / 2)
+        return self.gravity.deflect(q - side * self._backlash / 2 + self._pos_err)
 
     def _undeflect(self, qj: np.ndarray, side: np.ndarray) -> np.ndarray:
         """Encoder positions that put the joints at ``qj`` (fixed point; the deflection is small)."""
-        q = qj + side * self._backlash / 2
+        q = qj + side * self._backlash / 2 - self._pos_err
         for _ in range(5):
             q = q + (qj - self._deflect(q, side))
         return q
@@ -525,7 +526,10 @@ class World:
             self._tracks = tracks
 
     def _set_tracks(self, tracks: list[motion.Track], x_now: np.ndarray) -> None:
-        moved = any(abs(tr.x_end - x_now[i]) > 1e-12 or tr.phases for i, tr in enumerate(tracks))
+        each = np.array([abs(tr.x_end - x_now[i]) > 1e-12 or bool(tr.phases) for i, tr in enumerate(tracks)])
+        moved = bool(each.any())
+        if moved and self.spec.positioning_sigma > 0:  # a joint that moves ends a little elsewhere each time
+            self._pos_err[each] = self._g_pos.normal(0.0, self.spec.positioning_sigma, int(each.sum()))
         self._tracks = tracks
         if moved and self._seated:
             self._event(f"left socket {self._seated}")

@@ -67,6 +67,7 @@ class WorldSpec:
     seating_sigma: float = SEATING_SIGMA
     survey_sigma: float = 0.0
     encoder_sigma: float = 0.0
+    positioning_sigma: float = 0.0  # per joint, per move: where the link ends vs where the encoder says (SI)
     buses: dict = field(default_factory=dict)
     faults: list[dict] = field(default_factory=list)  # armed at start: {do, device, count, after, code, at}
     keep_out: KeepOut = field(default_factory=lambda: KeepOut.default(0.0))  # truth: contact is a collision
@@ -318,10 +319,11 @@ def _spec_from_dict(doc, where: str) -> WorldSpec:
         s.points.append({"label": label, "kind": kind, "position": r.vec3(p["position"], f + ".position", L),
                          "approach": (ap / np.linalg.norm(ap)).tolist(), "radius": rad})
 
-    noise = r.mapping(doc.get("noise"), "noise", {"seating", "survey", "encoder"})
+    noise = r.mapping(doc.get("noise"), "noise", {"seating", "survey", "encoder", "positioning"})
     s.seating_sigma = r.num(noise.get("seating", SEATING_SIGMA / L), "noise.seating", nonneg=True) * L
     s.survey_sigma = r.num(noise.get("survey", 0.0), "noise.survey", nonneg=True) * L
     s.encoder_sigma = r.num(noise.get("encoder", 0.0), "noise.encoder", nonneg=True) * A
+    s.positioning_sigma = r.num(noise.get("positioning", 0.0), "noise.positioning", nonneg=True) * A
     buses = doc.get("buses") or {}
     if not isinstance(buses, dict) or any(not isinstance(v, dict | type(None)) for v in buses.values()):
         raise r.fail("buses", "expected a mapping of bus name -> settings mapping")
@@ -462,7 +464,7 @@ def spec_to_dict(s: WorldSpec, model, length: str = "m", angle: str = "rad") -> 
                    "points": pts, **keep_out_to_doc(s.keep_out, 1 / L, 1 / A),
                    "collision": s.collision}
     doc["noise"] = {"seating": r(s.seating_sigma * L), "survey": r(s.survey_sigma * L),
-                    "encoder": r(s.encoder_sigma * A)}
+                    "encoder": r(s.encoder_sigma * A), "positioning": r(s.positioning_sigma * A)}
     doc["buses"] = s.buses
     if s.faults:
         doc["faults"] = s.faults

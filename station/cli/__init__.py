@@ -39,6 +39,11 @@ COMMANDS = {
     "records": ("station.cli.records_cmd", "Calibration records per robot serial (list, show, export)."),
     "map": ("station.cli.map_cmd", "Correction map: measure the robot over a grid of actuator positions with a "
                                    "tracker, then command it and read it corrected (plan, build, apply, correct)."),
+    "compensate": ("station.cli.compensate_cmd", "Compensated targets: joint (or corrected Cartesian) commands that "
+                                                 "a controller with its nominal model turns into the calibrated "
+                                                 "pose."),
+    "iso9283": ("station.cli.iso_cmd", "ISO 9283 pose characteristics (AP, RP, vAP, AD, RD with confidence "
+                                       "intervals) from commanded and attained poses."),
 }
 
 

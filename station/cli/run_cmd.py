@@ -5,6 +5,7 @@ after the session record is stored in the records database."""
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -78,10 +79,10 @@ def preflight(robot: str, poses, holdout, cone, seed, touch, reference, limits, 
 
 
 def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None, span_deg=None,
-             calibration=None, payload=None) -> dict:
+             calibration=None, payload=None, cycles=None, cube=None, plane=None) -> dict:
     from station.robot.errors import ConfigError
 
-    opts = {}
+    opts = iso_options(cycles, cube, plane)
     if payload is not None:  # the procedure's model carries it (compliance terms); journaled with the options
         opts["payload"] = payload_option(payload)
     if calibration is not None:  # correction_map: the map on top of this parametric calibration
@@ -117,6 +118,41 @@ def cone_degrees(cone) -> float:
     from station.cli.quantity import parse_option
 
     return parse_option(cone, "--cone", "angle", "deg", "50deg")
+
+
+def iso_options(cycles: int | None, cube: str | None, plane: str | None) -> dict:
+    """iso9283's ``--cycles N``, ``--cube X,Y,Z,EDGE`` (m, or one unit suffix for all: ``400,0,500,300mm``) and
+    ``--plane`` as procedure options (SI); one line, exit 2, on a bad value."""
+    from station.robot.errors import ConfigError
+
+    opts: dict = {}
+    if cycles is not None:
+        if not 4 <= cycles <= 1000:
+            raise ConfigError(f"--cycles {cycles}: expected 4..1000 cycles per pose (the standard: 30)")
+        opts["cycles"] = int(cycles)
+    if cube is not None:
+        import re
+
+        from station.units import LENGTH_UNITS
+
+        m = re.match(r"^\s*([^,]+),([^,]+),([^,]+),([^,]+?)\s*([a-z]*)\s*$", cube)
+        try:
+            if not m or (m.group(5) or "m") not in LENGTH_UNITS:
+                raise ValueError
+            v = [float(m.group(k)) * LENGTH_UNITS[m.group(5) or "m"] for k in range(1, 5)]
+            if not all(math.isfinite(x) for x in v) or v[3] <= 0:
+                raise ValueError
+        except ValueError:
+            raise ConfigError(f"--cube {cube!r}: expected the centre and edge X,Y,Z,EDGE in the base frame (metres, "
+                              "or one unit for all: 400,0,500,300mm), edge > 0") from None
+        opts["cube"] = v
+    if plane is not None:
+        from station.performance.cube import PLANES
+
+        if plane not in PLANES:
+            raise ConfigError(f"--plane {plane!r}: expected one of {', '.join(PLANES)}")
+        opts["plane"] = plane
+    return opts
 
 
 def payload_option(text: str) -> dict:
@@ -272,18 +308,24 @@ def run(
     holdout: int = HOLDOUT,
     cone: str = CONE,
     seed: int = typer.Option(None, "--seed", help="Seed of the pose plan."),
-    tracker: str = typer.Option(None, "--tracker", help="Measuring instrument URL (correction_map), e.g. "
+    tracker: str = typer.Option(None, "--tracker", help="Measuring instrument URL (correction_map, iso9283), e.g. "
                                 "tcp://127.0.0.1:5300 (station mock tracker)."),
     grid: int = typer.Option(None, "--grid", help="correction_map: Q sub-intervals per actuator (Q+1 levels)."),
     span_deg: str = typer.Option(None, "--span-deg", help="With correction_map on a serial arm: the work box is +- "
                                    "this angle per joint around the start pose: 20deg (a bare number is degrees; "
                                    "default 20deg)."),
     calibration: Path = typer.Option(None, "--calibration", help="correction_map: build the map on top of this "
-                                     "parametric calibration (result JSON of station solve for the robot's model)."),
+                                     "parametric calibration (result JSON of station solve for the robot's model); "
+                                     "iso9283: evaluate it beside the nominal model."),
     payload: str = PAYLOAD,
     identify: str = typer.Option(None, "--identify", help="Parameter groups to solve for instead of the "
                                  "procedure's own (zero_offsets: offsets, dh_full: offsets,dh,tcp), e.g. "
                                  "offsets,tcp; as station solve --identify."),
+    cycles: int = typer.Option(None, "--cycles", help="iso9283: cycles per pose (default 30, as the standard)."),
+    cube: str = typer.Option(None, "--cube", help="iso9283: the test cube's centre and edge X,Y,Z,EDGE in the base "
+                             "frame (e.g. 400,0,500,300mm; default: the largest cube around the tool)."),
+    plane: str = typer.Option(None, "--plane", help="iso9283: the cube's diagonal plane of the test poses: x+, x-, "
+                              "y+, y-, z+ or z- (default x+)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Run a procedure end of line: unattended, PASS/FAIL, exit 0 pass / 1 fail / 2 error."""
@@ -291,7 +333,8 @@ def run(
     from station.cli.nextstep import suggest
 
     preflight(robot, poses, holdout, cone, seed, touch, reference, limits, cell)
-    options = _options(poses, holdout, cone, reference, seed, tracker, grid, span_deg, calibration, payload)
+    options = _options(poses, holdout, cone, reference, seed, tracker, grid, span_deg, calibration, payload, cycles,
+                       cube, plane)
     if identify is not None:
         from station.cli.solve_cmd import check_identify
 

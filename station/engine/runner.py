@@ -600,13 +600,18 @@ def _execute(s: Session, body: Callable[[Session], None], control: RunControl | 
 
 
 def finish(s: Session, status: str, err: BaseException | None) -> Outcome:
-    """Teardown (stop, compliance off) whatever happened, journal the fault and the end, close, write
-    ``samples.csv``. Used by the runner and by scripted sessions; the caller stores and reports the outcome.
+    """Teardown (stop, compliance off) whatever happened, journal the fault and the end, close the session's
+    measuring instruments and the robot, write ``samples.csv``. Used by the runner and by scripted sessions;
+    the caller stores and reports the outcome.
     An incomplete end is never PASS: a teardown that could not bring the robot to its safe state after a
     completed checklist, or a journal that lost an event, turns the outcome into an error (exit 2) whose one-line
     reason says so (docs/reliability.md)."""
     try:
         problems = s.safe_state()  # first: the robot stops, whatever the journal can still do
+        released = s.close_instruments()  # the session's measuring instruments: plugs the teardown releases
+        if released:  # an instrument is no safety matter: said, not turned into a fault
+            with contextlib.suppress(JournalWriteError):
+                s.event(ev.Warn(step="teardown", message="; ".join(released)))
         if err is None and problems:
             # a fault after the last sample (during solve/export, or the teardown itself): never PASS
             status, err = "error", DeviceFault("teardown could not leave the robot safe: " + "; ".join(problems))
@@ -625,6 +630,7 @@ def finish(s: Session, status: str, err: BaseException | None) -> Outcome:
             status, err = "error", JournalWriteError(f"journal {s.journal.path}: the end of the session could "
                                                      "not be written; the session cannot PASS")
     finally:
+        s.close_instruments()  # again: a teardown interrupted above must not leave an instrument open
         with contextlib.suppress(Exception):  # closing a dead connection must not hide the original outcome
             s.robot.close()
         s.journal.close()

@@ -69,6 +69,7 @@ class Session:
         self.verdict: dict | None = None
         self._events: list[ev.Event] = list(self.replay)
         self._aim: dict[str, list[np.ndarray]] = {}
+        self.instruments: dict[str, object] = {}  # session option -> open instrument (closed by the teardown)
         self.doing: tuple[str, int | None] | None = None  # (action, pose) in the pose loop: names a fault's step
 
     # ---- journal ---------------------------------------------------------------------------------
@@ -219,6 +220,75 @@ class Session:
         from station.engine.writeback import count_tolerance
 
         return count_tolerance(self.model, name, 1.0)
+
+    # ---- measuring instruments (plugs the runner closes) ------------------------------------------
+    def instrument(self, option: str = "tracker"):
+        """The measuring instrument at the URL of the session option ``option`` (``--tracker URL``; a resume
+        may give it a new address), opened through the ``station.instruments`` entry points and identified.
+        Its identity is journaled (``instrument`` event); a resumed session refuses another instrument (it
+        measures in another frame). Opened once per session; the runner closes it in its teardown."""
+        from station.instruments.registry import open_instrument, url_examples
+
+        inst = self.instruments.get(option)
+        if inst is not None and not inst.closed:
+            return inst
+        url = self.options.get(option)
+        if not url:
+            raise ConfigError(f"{self.journal.header.get('procedure') or 'this procedure'} needs a measuring "
+                              f"instrument: --{option} {url_examples()}")
+        first = next((e for e in self.events("instrument") if e.data.get("option", "tracker") == option), None)
+        with self.step(f"connect_{option}", url=url):
+            inst = open_instrument(url)
+            self.instruments[option] = inst  # from here on the teardown closes it, whatever fails next
+            ident = inst.identity()
+            if first is not None and not ident.same_as(first.data):
+                was = first.data.get("model") or (first.data.get("spec") or {}).get("model")
+                was = f"serial {first.data.get('serial')!r}" + (f" model {was!r}" if was else "")
+                raise ConfigError(f"instrument at {url} is {ident.describe()}, the session started with {was}: "
+                                  "another instrument measures in another frame; reconnect that one, or start a "
+                                  "new session")
+            self.event({"type": "instrument", "option": option, "url": url, **ident.to_dict()})
+        return inst
+
+    def measure_pose(self, pose: PlannedPose, instrument=None, **status) -> ev.Sample:
+        """Read all joints, then the instrument (it answers once the probe stands still), then the joints
+        again: a robot that moved in between is a fault, not a sample. The 6-DoF reading (instrument frame) is
+        journaled with the joints (fsynced) before the next move. ``instrument``: an open instrument or the
+        option it was opened for (default: the only one open)."""
+        self.doing = ("measure", pose.index)
+        inst = self._instrument_for(instrument)
+        snap = self.robot.joint_positions()
+        reading = inst.measure()
+        again = self.robot.joint_positions()
+        q, q2 = np.asarray(snap.q, float), np.asarray(again.q, float)
+        if not np.all(np.isfinite(q)) or np.max(np.abs(q2 - q)) > 1e-6:
+            raise DeviceFault(f"measure: the robot moved while the instrument measured pose {pose.index} "
+                              f"(joints changed by {np.max(np.abs(q2 - q)):.3g})")
+        ident = inst.identity()
+        return self.event(ev.Sample(
+            point=pose.point, q=q.tolist(), raw=list(snap.raw), raw_unit=snap.raw_unit, t_read=snap.t,
+            t_device=snap.t_device, measured=list(reading.xyz), measured_rotation=list(reading.rv),
+            pose=pose.index, set=pose.set, status={"instrument": ident.serial, "t_instrument": reading.t, **status}))
+
+    def _instrument_for(self, which):
+        if which is not None and not isinstance(which, str):
+            return which
+        if isinstance(which, str):
+            return self.instrument(which)
+        open_ = [i for i in self.instruments.values() if not i.closed]
+        if len(open_) != 1:
+            raise ConfigError(f"measure_pose: {len(open_)} instruments are open; say which one")
+        return open_[0]
+
+    def close_instruments(self) -> list[str]:
+        """Close every instrument this session opened (teardown: each is tried; failures are returned)."""
+        problems = []
+        for option, inst in list(self.instruments.items()):
+            try:
+                inst.close()
+            except Exception as e:  # teardown must try everything; the caller journals what failed
+                problems.append(f"{option} instrument close: {type(e).__name__}: {e}")
+        return problems
 
     # ---- reference points and plans -------------------------------------------------------------
     def point(self, label: str) -> RefPoint:

@@ -56,9 +56,12 @@ def session_from_events(header: ev.Header, events: list[ev.Event]) -> dict:
     end_status = None
     faults = []
     cmap = None  # the correction_map procedure's map (station-map/1) and instrument registration, if any
+    iso9283 = None  # the iso9283 procedure's figures per model (station-iso9283/1), cube and registration
     for e in events:
         if isinstance(e, ev.Custom) and e.type == "correction_map":
             cmap = dict(e.data)
+        elif isinstance(e, ev.Custom) and e.type == "iso9283":
+            iso9283 = dict(e.data)
         elif isinstance(e, ev.Result):
             result = e.result
         elif isinstance(e, ev.Verdict):
@@ -92,6 +95,8 @@ def session_from_events(header: ev.Header, events: list[ev.Event]) -> dict:
     }
     if cmap is not None:
         record["correction_map"] = cmap
+    if iso9283 is not None:
+        record["iso9283"] = iso9283
     return record
 
 

@@ -8,6 +8,7 @@ from datetime import datetime
 from station import units
 from station.records.verdict import finite_or_none, measurement_status, overall_status
 from station.report.analysis import coverage, load_session_model, per_pose_residuals, sample_arrays
+from station.report.isosection import iso9283_section
 from station.report.mapsection import correction_map_section
 
 FORMAT = "station-report/1"
@@ -127,4 +128,5 @@ def build_report(session: dict) -> dict:
         "coverage": {**coverage(model, arrays), "model_note": model_note},
         "writeback": wb,
         "correction_map": correction_map_section(session),
+        "iso9283": iso9283_section(session),
     })

@@ -82,20 +82,3 @@ def open_robot(url: str, **overrides):
     except ConfigError as e:
         raise ConfigError(f"robot URL {url!r}: {e}") from None
     return cls.from_url(parsed, **overrides)
-
-
-INSTRUMENT_GROUP = "station.instruments"
-
-
-def open_instrument(url: str, **kw):
-    """A connected measuring instrument for ``url`` (e.g. a laser tracker ``tcp://HOST:PORT``): the
-    ``station.instruments`` entry point of the URL's scheme (``scheme = "module:Class"``, the class has
-    ``from_url(url, **kw)``, ``measure()`` and ``close()``), imported only now."""
-    from importlib import metadata
-
-    scheme = str(url).split("://", 1)[0].lower() if "://" in str(url) else ""
-    eps = {ep.name.lower(): ep for ep in metadata.entry_points(group=INSTRUMENT_GROUP)}
-    if scheme not in eps:
-        known = ", ".join(sorted(eps)) or "none"
-        raise ConfigError(f"instrument URL {url!r}: unknown scheme {scheme!r}; known: {known}")
-    return eps[scheme].load().from_url(str(url), **kw)

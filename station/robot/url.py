@@ -201,24 +201,25 @@ class Options:
     def names(self) -> list[str]:
         return list(self.options)
 
-    def parse(self, url: RobotURL) -> dict[str, Any]:
-        """``{name: value}`` for every declared option (defaults filled in); one-line ``ConfigError`` else."""
+    def parse(self, url: RobotURL, what: str = "robot URL") -> dict[str, Any]:
+        """``{name: value}`` for every declared option (defaults filled in); one-line ``ConfigError`` else,
+        naming the URL as ``what`` (a measuring instrument's options say "instrument URL")."""
         unknown = sorted(set(url.query) - set(self.options))
         if unknown:
-            raise ConfigError(f"robot URL {url.raw!r}: unknown option(s) {', '.join(unknown)}; "
+            raise ConfigError(f"{what} {url.raw!r}: unknown option(s) {', '.join(unknown)}; "
                               f"known: {', '.join(sorted(self.options))}")
         out: dict[str, Any] = {}
         for name, opt in self.options.items():
             raw = url.query.get(name)
             if raw is None:
                 if opt.default is REQUIRED:
-                    raise ConfigError(f"robot URL {url.raw!r}: add {name}=... ({opt.doc})")
+                    raise ConfigError(f"{what} {url.raw!r}: add {name}=... ({opt.doc})")
                 out[name] = opt.default
                 continue
             try:
                 out[name] = opt.kind.parse(raw)
             except (ValueError, TypeError):
-                raise ConfigError(f"robot URL {url.raw!r}: {name}={raw!r} is not a valid value "
+                raise ConfigError(f"{what} {url.raw!r}: {name}={raw!r} is not a valid value "
                                   f"(expected {opt.kind.form})") from None
         return out
 

@@ -1,0 +1,300 @@
+"""``station compensate --model M --calibration R --poses TARGETS.csv --out COMMANDS.csv``: the commands that
+bring a calibrated robot onto its targets through a controller that keeps its own nominal model
+(docs/iso9283.md, "Compensated targets"; the correction map's analogue is ``station map apply``).
+
+``--calibration``: a ``station solve`` result JSON, a session (id, folder or journal: its solve result) or a
+session's ``report.json`` (with its journal beside it: the session; alone: the parameters' standard deviations,
+no correlations). ``--poses``: ``x,y,z`` and optionally ``rx,ry,rz`` (rotation vector) per row, base frame, units
+in the headers (``x[mm]``, ``rx[deg]``); other columns ignored (a ``name`` column is carried over). Out: per row
+``status``, the joint commands ``q1..qN`` (default) or, with ``--cartesian``, the corrected targets, then the
+predicted residual and its uncertainty (1 sigma, from the calibration's covariance) and the correction. Exit 1
+(naming them) when targets are unreachable: their rows say why, every other row is written."""
+
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+
+import typer
+
+from station.cli.model_options import BASE_LINK, MODEL, PAYLOAD, TIP_LINK
+from station.lazy import lazy_module
+from station.robot.errors import ConfigError
+
+np = lazy_module("numpy")
+
+
+def _units(text: str | None) -> tuple[float, str, float, str]:
+    from station.units import ANGLE_UNITS, LENGTH_UNITS
+
+    if text is None or text.strip().lower() in ("si", "m,rad"):
+        return 1.0, "m", 1.0, "rad"
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) != 2 or parts[0] not in LENGTH_UNITS or parts[1] not in ANGLE_UNITS:
+        raise ConfigError(f"--units {text!r}: expected LENGTH,ANGLE (m|mm|cm|um, rad|deg|mrad) or SI")
+    return LENGTH_UNITS[parts[0]], parts[0], ANGLE_UNITS[parts[1]], parts[1]
+
+
+def load_result(ref: str, model):
+    """The calibration a result JSON, a session or a report holds, as a ``CalibrationResult`` checked against
+    ``model`` (name and parameters); one line naming the file and the field otherwise."""
+    from station.solver import CalibrationResult
+
+    p = Path(ref)
+    doc = None
+    if p.is_file() and p.suffix.lower() == ".json":
+        from station.safeio import read_json
+
+        doc = read_json(p, "calibration")
+        fmt = doc.get("format") if isinstance(doc, dict) else None
+        if fmt == "station-calibration/1":
+            from station.resultfile import load_calibration
+
+            load_calibration(p, model)  # schema, model name, parameter names: one line each
+            res = CalibrationResult.from_dict(doc)
+            return res, str(p), _design_from_file(res, model, p)
+        if fmt == "station-report/1":
+            if (p.parent / "journal.jsonl").is_file():
+                return _from_session(str(p.parent), model)
+            return _from_report(doc, p, model), str(p), None
+        raise ConfigError(f"calibration {p}: format: {fmt!r} is neither a station solve result "
+                          "(station-calibration/1) nor a session report (station-report/1)")
+    return _from_session(ref, model)
+
+
+def _from_session(ref: str, model):
+    from station.engine.runner import find_session
+    from station.engine.session_record import session_from_journal
+    from station.solver import CalibrationResult
+
+    path = find_session(ref)
+    try:
+        rec = session_from_journal(path)
+    except (ValueError, OSError) as e:
+        raise ConfigError(f"calibration {ref}: {e}") from None
+    if not rec.get("result"):
+        raise ConfigError(f"calibration {ref}: session {rec.get('session')} ({rec.get('procedure')}) holds no "
+                          "calibration result (a solve); give a station solve result or a calibration session")
+    res = CalibrationResult.from_dict(rec["result"])
+    _check_model(res, model, str(path))
+    smp = [x for x in rec.get("samples") or [] if x.get("set", "fit") == "fit"]
+    design = None
+    if smp:
+        measured = all(x.get("measured") is not None for x in smp)
+        design = _design(res, np.array([x["q"] for x in smp], float),
+                         np.array([x.get("point", "A") for x in smp], dtype=object), measured)
+    return res, str(path), design
+
+
+def _design(res, q, labels, measured: bool):
+    """What the calibration was solved from (``station.performance.compensate.Design``), or None when its noise
+    or priors are not in the result."""
+    from station.performance.compensate import Design
+
+    sigma = (res.noise or {}).get("sigma_m") or res.sigma_m
+    priors = {n: p.prior_std for n, p in res.parameters.items() if p.kind == "model" and p.prior_std}
+    if not sigma or not priors:
+        return None
+    ref = (res.settings or {}).get("reference")
+    known = tuple(ref) if isinstance(ref, dict) else ()
+    frame_known = (res.settings or {}).get("instrument_frame") == "base"
+    return Design(q, labels, measured, frame_known, float(sigma), priors, known)
+
+
+def _design_from_file(res, model, path: Path):
+    """The samples a ``station solve`` result names (``settings.samples``), if that file is still there."""
+    from station.samplesfile import SamplesFileError, read_samples
+
+    name = (res.settings or {}).get("samples")
+    if not name:
+        return None
+    p = Path(name) if Path(name).is_absolute() else (path.parent / name if not Path(name).exists() else Path(name))
+    try:
+        smp = read_samples(p, model)
+    except (SamplesFileError, OSError):
+        return None
+    return _design(res, smp.q, smp.point, smp.measured is not None)
+
+
+def _from_report(doc: dict, p: Path, model):
+    """A report without its journal: the parameters and their standard deviations (no correlations)."""
+    from station.solver.result import CalibrationResult, ParameterEstimate
+
+    params = {}
+    for row in doc.get("parameters") or []:
+        try:
+            name = str(row["name"])
+            params[name] = ParameterEstimate(name, float(row["value"]), float(row["nominal"]),
+                                             None if row.get("std") is None else float(row["std"]),
+                                             bool(row["identifiable"]), row.get("reason") or "",
+                                             row.get("kind", "model"), row.get("unit", "m"))
+        except (KeyError, TypeError, ValueError):
+            raise ConfigError(f"calibration {p}: parameters: {row!r} is not a parameter row") from None
+    if not params:
+        raise ConfigError(f"calibration {p}: the report holds no calibration parameters")
+    res = CalibrationResult(str((doc.get("header") or {}).get("model")), params, {}, 0, len(params), True, 0)
+    ids = res.identified
+    std = [params[n].std for n in ids]
+    if all(s is not None for s in std):
+        res.covariance = np.diag(np.square(std))
+    res.notes.append("from a report: standard deviations only, correlations unknown")
+    _check_model(res, model, str(p))
+    return res
+
+
+def _check_model(res, model, where: str) -> None:
+    if res.model != model.name:
+        raise ConfigError(f"calibration {where}: model: the calibration is for {res.model!r}, not {model.name!r}")
+    unknown = [n for n, p in res.parameters.items() if p.kind == "model" and p.identifiable
+               and n not in model.param_names]
+    if unknown:
+        raise ConfigError(f"calibration {where}: parameters.{unknown[0]}: model {model.name!r} has no such parameter")
+
+
+def read_targets(path: Path) -> tuple[np.ndarray, list[str] | None, object]:
+    """Targets ``(N, 3)`` or ``(N, 6)`` (SI) and the ``name`` column if any."""
+    from station.samplesfile import SamplesFileError, column_si, read_table
+
+    try:
+        t = read_table(path)
+        for c in ("x", "y", "z"):
+            if c not in t.columns:
+                raise ConfigError(f"{t.path}:{t.header_line}: missing column {c!r} (targets: x, y, z and optionally "
+                                  "rx, ry, rz)")
+        rot = [c for c in ("rx", "ry", "rz") if c in t.columns]
+        if rot and len(rot) != 3:
+            miss = next(c for c in ("rx", "ry", "rz") if c not in t.columns)
+            raise ConfigError(f"{t.path}:{t.header_line}: missing column {miss!r} (a rotation vector needs rx, ry, rz)")
+        if not t.rows:
+            raise ConfigError(f"{t.path}: no data rows")
+        cols = [column_si(t, c, "length") for c in ("x", "y", "z")] + [column_si(t, c, "angle") for c in rot]
+    except SamplesFileError as e:
+        raise ConfigError(str(e)) from None
+    names = [row[t.columns["name"][0]] for row in t.rows] if "name" in t.columns else None
+    return np.column_stack(cols), names, t
+
+
+def _start(text: str | None, model):
+    if text is None:
+        return None
+    from station.units import ANGLE_UNITS, LENGTH_UNITS
+
+    body, unit = text.strip(), ""
+    while body and body[-1].isalpha():
+        body, unit = body[:-1], body[-1] + unit
+    try:
+        v = [float(x) for x in body.split(",")]
+    except ValueError:
+        v = []
+    if len(v) != model.n_joints or (unit and unit not in ANGLE_UNITS):
+        raise ConfigError(f"--start {text!r}: expected {model.n_joints} joint values (rad, or one angle unit for all: "
+                          "0,-90,90,-90,-90,0deg; prismatic joints in m, or mm with deg)")
+    f = ANGLE_UNITS.get(unit or "rad", 1.0)
+    lf = LENGTH_UNITS["mm"] if unit == "deg" else 1.0
+    return np.array([x * (f if j.revolute else lf) for x, j in zip(v, model.joints, strict=True)])
+
+
+def compensate_command(
+    model: str = MODEL,
+    tip_link: str = TIP_LINK,
+    base_link: str = BASE_LINK,
+    payload: str = PAYLOAD,
+    tool: str = typer.Option(None, "--tool", help="Nominal TCP x,y,z in the flange frame (m, or suffix mm), before "
+                             "the calibration (as for station solve)"),
+    calibration: str = typer.Option(..., "--calibration", help="Result JSON of station solve, a session (id, folder "
+                                    "or journal) or its report.json"),
+    poses: Path = typer.Option(..., "--poses", help="CSV of targets x,y,z[,rx,ry,rz] in the base frame (units in "
+                               "headers)"),
+    out: Path = typer.Option(..., "--out", help="CSV of commands, one row per target, with status, residual, "
+                             "uncertainty"),
+    cartesian: bool = typer.Option(False, "--cartesian", help="Corrected Cartesian targets (x,y,z,rx,ry,rz) for a "
+                                   "controller that takes Cartesian moves, instead of joint commands"),
+    start: str = typer.Option(None, "--start", help="Joint values the first target is solved from (the robot's "
+                              "configuration), e.g. 0,-90,90,-90,-90,0deg; default: near the middle of the ranges"),
+    units: str = typer.Option(None, "--units", help="Output units LENGTH,ANGLE, e.g. mm,deg (default SI)"),
+    urscript: Path = typer.Option(None, "--urscript", help="Also write a URScript program: one movej per reached "
+                                  "target (6-axis models)"),
+) -> None:
+    """Compensated targets: joint (or corrected Cartesian) commands that a controller with its nominal model turns
+    into the calibrated pose.
+
+    Per row: the status, the predicted residual, its uncertainty and the correction."""
+    from station.cli.solve_cmd import _load_model
+    from station.performance.compensate import compensate
+    from station.performance.compensate import urscript as ur_program
+    from station.safeio import check_destination, write_atomic
+
+    inputs = {"--poses": poses, "--calibration": Path(calibration)}
+    check_destination(out, inputs)
+    if urscript is not None:
+        check_destination(urscript, inputs, "--urscript")
+    m = _load_model(model, tool, tip_link, base_link, payload)
+    if urscript is not None and m.n_joints != 6:
+        raise ConfigError(f"--urscript: model {m.name} has {m.n_joints} joints; a UR program moves 6")
+    res, source, design = load_result(calibration, m)
+    if not res.trusted:
+        raise ConfigError(f"calibration {source}: the result is not trusted ({res.failure or 'see the solve'})")
+    try:
+        cal = res.calibrated(m)
+    except ValueError as e:
+        raise ConfigError(f"calibration {source}: {e}") from None
+    target, names, table = read_targets(poses)
+    u = _units(units)
+    q0 = _start(start, m)
+    if design is not None:  # the calibration's own samples: the parameters weighed again, aliasing included
+        from station.performance.compensate import predictive_covariance
+
+        cov, names_, kept = *predictive_covariance(cal, design), None
+        how = f"posterior of its {len(design.q)} samples"
+    else:  # the parameters' reported (consider) covariance: conservative
+        cov, names_ = res.covariance, res.identified
+        kept = {n: (p.prior_std, p.cause or "weak") for n, p in res.parameters.items()
+                if p.kind == "model" and not p.identifiable and p.prior_std}
+        how = "reported parameter covariance (its samples not found: conservative)"
+    comp = compensate(m, cal, target, covariance=cov, names=names_, kept=kept, start=q0)
+    header = ["row", *(["name"] if names else []), "status"]
+    if cartesian:
+        header += [f"{c}[{u[3] if c.startswith('r') else u[1]}]" for c in ("x", "y", "z", "rx", "ry", "rz")]
+        scale = [u[0]] * 3 + [u[2]] * 3
+        values = comp.cartesian
+    else:
+        header += [f"q{k + 1}[{u[3] if j.revolute else u[1]}]" for k, j in enumerate(m.joints)]
+        scale = [u[2] if j.revolute else u[0] for j in m.joints]
+        values = comp.q
+    header += [f"residual[{u[1]}]", f"residual_rotation[{u[3]}]", f"sigma[{u[1]}]", f"sigma_rotation[{u[3]}]",
+               f"correction[{u[1]}]"]
+    buf = io.StringIO()
+    buf.write(f"# station compensate: model {m.name}, calibration {source}; "
+              f"{'corrected Cartesian targets (rotation vector)' if cartesian else 'joint commands'} for the "
+              f"controller's nominal model; residual and sigma (1 sigma, 3-D RMS) as the calibration predicts them, "
+              f"sigma from the calibration's {how}\n")
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    for i in range(len(target)):
+        row = [i + 1, *([names[i]] if names else []), comp.status[i]]
+        ok = comp.status[i] == "ok"
+        row += [f"{v / s:.12g}" if ok else "" for v, s in zip(values[i], scale, strict=True)]
+        extra = (comp.residual[i] / u[0], comp.residual_rotation[i] / u[2], comp.sigma[i] / u[0],
+                 comp.sigma_rotation[i] / u[2], comp.correction[i] / u[0])
+        row += ["" if not np.isfinite(v) else f"{v:.6g}" for v in extra]
+        w.writerow(row)
+    write_atomic(out, buf.getvalue(), inputs)
+    if urscript is not None:
+        write_atomic(urscript, ur_program(comp.q, comp.status, header=f"station compensate: model {m.name}, "
+                                          f"calibration {Path(source).name}; joint targets in rad"), inputs)
+    good = int(comp.ok.sum())
+    typer.echo(f"compensate: {good} of {len(target)} targets -> {out}"
+               + (f" (+ URScript {urscript})" if urscript is not None else "")
+               + (f"; largest correction {np.nanmax(comp.correction) * 1e3:.4f} mm, predicted uncertainty up to "
+                  f"{np.nanmax(comp.sigma) * 1e3:.4f} mm (1 sigma, from the calibration's {how})" if good else ""))
+    bad = [i for i, s in enumerate(comp.status) if s != "ok"]
+    if bad:
+        listed = "; ".join(f"row {i + 1} ({table.where(i)}): {comp.status[i]}" for i in bad[:5])
+        more = f"; and {len(bad) - 5} more" if len(bad) > 5 else ""
+        typer.echo(f"station: {len(bad)} of {len(target)} targets unreachable: {listed}{more}", err=True)
+        raise typer.Exit(1)
+
+
+def register(app: typer.Typer) -> None:
+    app.command("compensate")(compensate_command)
