@@ -104,15 +104,18 @@ def test_start_subscribe_verdict_read_result(tmp_path, emulators):
             handler = _Verdicts()
             sub = await client.create_subscription(50, handler)
             await sub.subscribe_data_change(n["Verdict"])
-            with pytest.raises(ua.UaStatusCodeError):  # a serial with a space is refused, nothing starts
+            with pytest.raises(ua.uaerrors.BadInvalidArgument):  # a serial with a space: refused, nothing starts
                 await station.call_method(n["Start"], ua.Variant("BAD SERIAL", ua.VariantType.String),
                                           ua.Variant("", ua.VariantType.String))
+            assert json.loads(await n["LastResult"].read_value())["verdict"] == "ERROR"  # ... and says why
             session = await station.call_method(n["Start"], ua.Variant(serial, ua.VariantType.String),
                                                 ua.Variant("zero_offsets", ua.VariantType.String))
             assert session.startswith(f"zero_offsets-{serial}-")
-            assert await n["Serial"].read_value() == serial
-            await _wait(lambda: any(v for v in handler.values), 180)
-            verdict = next(v for v in handler.values if v)
+            assert await n["Serial"].read_value() == serial and await n["Verdict"].read_value() == ""
+            end = time.monotonic() + 180
+            while not (verdict := await n["Verdict"].read_value()) and time.monotonic() < end:
+                await asyncio.sleep(0.1)
+            await _wait(lambda: verdict in handler.values, 10)  # the subscriber was told too
             result = json.loads(await n["LastResult"].read_value())
             progress = await n["Progress"].read_value()
             state = await n["State"].read_value()
@@ -322,11 +325,14 @@ def test_users_and_rights_read_and_operate(tmp_path):
                     await station.call_method(n["Start"], ua.Variant(serial, ua.VariantType.String),
                                               ua.Variant(procedure, ua.VariantType.String))
                 assert type(e.value).__name__ == code, (serial, procedure, e.value)
-            with pytest.raises(ua.uaerrors.BadInvalidState):  # the call is allowed; nothing is running
+                refusal = json.loads(await n["LastResult"].read_value())  # the reason for the line, in words
+                assert refusal["verdict"] == "ERROR" and refusal["session"] is None and refusal["reason"]
+            await station.call_method(n["Abort"])  # the call is allowed: it gives the refused unit up (ABORTED)
+            with pytest.raises(ua.uaerrors.BadInvalidState):  # then nothing is running, nothing to give up
                 await station.call_method(n["Abort"])
             with pytest.raises(ua.uaerrors.BadUserAccessDenied):  # operate is not write
                 await n["Verdict"].write_value("PASS")
-            assert await n["State"].read_value() == "idle"
+            assert await n["State"].read_value() == "done" and await n["Verdict"].read_value() == "ABORTED"
         finally:
             await operator.disconnect()
         for _ in range(5):

@@ -2,7 +2,8 @@
 (Protocol 2.0 on a pty, real dynamixel_sdk) with hidden offsets, Playwright driving Debian's chromium
 (``executable_path``; no browser is downloaded). Sign in, scan, START, answer the prompt, see PASS only once
 the record is in the database; a unit failing a limit shows FAIL naming it; a panel killed mid-run resumes from
-the page; the verdict fills the screen at 1280x800 and 1920x1080."""
+the page; the verdict fills the screen at 1280x800, 1920x1080 and on a 390 px phone; a wrong label scanned is an
+ERROR naming both serials, given up with ABORT on the ERROR screen."""
 
 from __future__ import annotations
 
@@ -160,7 +161,28 @@ def test_pass_through_the_page_then_history(tmp_path, emulators, browser, panels
     panel = panels(tmp_path, _url(emu), cell_path, db)
     page = browser.new_page(viewport={"width": 1280, "height": 800})
     page.goto(panel.base + "/")
-    _sign_in_and_scan(page, serial)
+    # the wrong label scanned: the robot in the cell reports another serial; ERROR (not FAIL) in plain words,
+    # nothing to resume, nothing moved, nothing journaled; ABORT gives it up
+    _sign_in_and_scan(page, "WRONG-SN")
+    page.keyboard.press("Enter")  # START
+    page.wait_for_selector("#prompt-text", state="visible", timeout=20_000)
+    page.click("#prompt-ok")
+    st = _verdict(page, panel, "error", 60_000)
+    assert st["session"] is None and st["resumable"] is False and st["cause"] == "serial"
+    assert page.inner_text("#verdict-reason") == f"The unit in the cell is not WRONG-SN: the robot reports serial " \
+                                                 f"{serial}."
+    assert "Scan the label" in page.inner_text("#verdict-action")
+    assert page.is_visible("#verdict-abort") and not page.is_visible("#verdict-resume")
+    assert not page.is_visible("#verdict-retry")  # the same serial again would fail the same way
+    assert not (tmp_path / "home" / "sessions").exists() or not list((tmp_path / "home" / "sessions").iterdir())
+    page.click("#verdict-abort")
+    page.wait_for_selector("#verdict.aborted")
+    assert page.inner_text("#verdict-word") == "ABORTED" and "Given up" in page.inner_text("#verdict-reason")
+    # the right label, scanned into the verdict screen's own field: armed, START has the focus
+    page.keyboard.type(serial)
+    page.keyboard.press("Enter")
+    page.wait_for_selector("#verdict.aborted", state="hidden")
+    assert page.evaluate("document.activeElement.id") == "start" and page.input_value("#serial") == serial
     page.keyboard.press("Enter")  # START
     page.wait_for_selector("#prompt-text", state="visible", timeout=20_000)
     assert serial in page.inner_text("#prompt-text")
@@ -176,11 +198,14 @@ def test_pass_through_the_page_then_history(tmp_path, emulators, browser, panels
     for name, p in stored["result"]["parameters"].items():  # the same engine as station run: truth recovered
         if name.startswith("offset.") and p["identifiable"]:
             assert abs(p["value"] - hidden[name]) <= 4 * p["std"] + np.pi / 4096, name
-    # the verdict fills the screen at both sizes and stays there
-    for w, h in ((1280, 800), (1920, 1080)):
+    # the verdict fills the screen at each size (a phone too) and stays there
+    for w, h in ((1280, 800), (1920, 1080), (390, 844)):
         page.set_viewport_size({"width": w, "height": h})
         box = page.locator("#verdict").bounding_box()
         assert box["width"] == w and box["height"] == h
+        word = page.locator("#verdict-word").bounding_box()
+        assert word["x"] >= 0 and word["x"] + word["width"] <= w, (w, word)  # PASS is never clipped
+        assert page.evaluate("document.documentElement.scrollWidth") <= w
         shot = page.screenshot(path=str(tmp_path / f"pass-{w}x{h}.png"))
         r, g, b = _green_red(shot)
         assert g > 100 and g > 1.5 * r and g > 1.5 * b, (w, h, r, g, b)
@@ -193,7 +218,12 @@ def test_pass_through_the_page_then_history(tmp_path, emulators, browser, panels
     # history one click away
     page.click("#verdict-history")
     page.wait_for_selector("#history-runs tr:nth-child(2)")
-    assert "PASS" in page.inner_text("#history-runs") and "offset.j2" in page.inner_text("#history-trend")
+    assert "PASS" in page.inner_text("#history-runs")
+    # operator units: degrees with fixed decimals (the API stays SI: radians)
+    trend = page.inner_text("#history-trend")
+    j2 = stored["result"]["parameters"]["offset.j2"]
+    assert f"joint 2 zero offset\tdeg\t{np.degrees(j2['value']):.4f} ± {np.degrees(j2['std']):.4f}" in trend, trend
+    assert "e-" not in trend and "rad" not in trend
     # the next scan clears the verdict
     page.focus("#serial")
     page.fill("#serial", "")
@@ -223,7 +253,7 @@ def test_failing_unit_names_the_limit(tmp_path, emulators, browser, panels):
     with open_records(db) as rec:
         stored = rec.session(st["session"])
     (m,) = [m for m in stored["verdict"]["measurements"] if not m["passed"]]
-    assert m["name"] == "fit_rms" and "fit rms" in failing and "above the limit of 0.001 mm" in failing
+    assert m["name"] == "fit_rms" and "Fit error (rms): " in failing and "above the limit of 0.001 mm" in failing
     assert f"{m['value']:.4g}" in failing
     r, g, b = _green_red(page.screenshot(path=str(tmp_path / "fail-1920x1080.png")))
     assert r > 100 and r > 1.5 * g, (r, g, b)

@@ -329,7 +329,15 @@ def test_real_browser_page_works_with_its_tokens_and_other_sites_cannot_drive_it
             assert "Confirm to start the robot" in page.inner_text("#prompt-text")
             page.click("#prompt-ok")
             page.wait_for_selector("#verdict.error", timeout=60_000)  # the robot at /dev/null: ERROR in words
-            assert "/dev/null" in page.inner_text("#verdict-message") or panel_msg(panel)
+            assert "/dev/null" in page.text_content("#verdict-message") or panel_msg(panel)
+            # nothing was journaled, so no RESUME: TRY AGAIN starts the same unit again (a POST with the page's
+            # token, through the confirm prompt once more)
+            assert page.is_visible("#verdict-retry") and not page.is_visible("#verdict-resume")
+            page.click("#verdict-retry")
+            page.wait_for_selector("#prompt-text", state="visible", timeout=20_000)
+            assert "SN-PAGE-73" in page.inner_text("#prompt-text")
+            page.click("#prompt-ok")
+            page.wait_for_selector("#verdict.error", timeout=60_000)
             page.focus("#next-serial")
             page.keyboard.type("SN-NEXT")
             page.keyboard.press("Enter")

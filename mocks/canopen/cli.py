@@ -52,17 +52,23 @@ def register(mock_app: typer.Typer) -> None:
                                                          "across emulator restarts"),
         exit_with_parent: bool = typer.Option(False, "--exit-with-parent", help="Stop when the process that "
                                               "started this one ends (tests: no orphan after a crash)."),
+        error_mask: str = typer.Option("0", "--error-mask", help="CAN error classes the hub forwards (hex, as "
+                                       "socketcand -e; default 0: none, as socketcand)"),
     ) -> None:
         """Emulated CiA 402 servo drives behind a socketcand hub; prints host:port, channel and robot URL."""
         from station.mocks.canopen.hub import SocketcandHub
 
+        try:
+            mask = int(error_mask, 16)
+        except ValueError:
+            raise MockError(f"--error-mask {error_mask!r}: expected a hexadecimal mask such as 0x1FFFFFFF") from None
         internal = f"station-canopen-{os.getpid()}"
         emu = build(world, model, seed, nodes, contact, store, internal)
         done = threading.Event()
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: done.set())
         emu.start()
-        hub = SocketcandHub(internal, host=host, port=port, name=bus)
+        hub = SocketcandHub(internal, host=host, port=port, name=bus, error_mask=mask)
         try:
             hub.start()
         except OSError as e:

@@ -13,7 +13,7 @@ from station.cli.helpgroup import HelpGroup
 mock_app = typer.Typer(cls=HelpGroup, no_args_is_help=True, help=COMMANDS["mock"][1])
 
 PROVIDERS = ("station.mocks.world.cli", "station.mocks.dynamixel.cli", "station.mocks.canopen.cli",
-             "station.mocks.ur.cli", "station.mocks.tracker.cli")
+             "station.mocks.ur.cli", "station.mocks.tracker.cli", "station.mocks.franka.cli")
 
 
 def register(app: typer.Typer) -> None:

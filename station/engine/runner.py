@@ -209,8 +209,14 @@ def _cell_from_header(d: dict | None, where: str = "journal") -> Cell | None:
     if isinstance(points, list):
         points = [{k: v for k, v in p.items() if k != "image"} if isinstance(p, dict) else p for p in points]
     doc = {"format": "station-cell/1", "units": {"length": "m", "angle": "rad"}, "points": points,
-           **{k: d[k] for k in ("model", "tool", "mounting", "keep_out") if d.get(k) is not None}}
-    unknown = set(d) - {"path", "model", "tool", "points", "mounting", "keep_out"}
+           **{k: d[k] for k in ("model", "tool", "mounting", "keep_out", "planes") if d.get(k) is not None}}
+    # the known distances as the solve was told them ([a, b, metres, std metres or None]; a journal of an older
+    # station has none): a resumed session solves the same problem
+    dist = d.get("distances")
+    if isinstance(dist, list) and dist:
+        doc["distances"] = [{"between": [x[0], x[1]], "distance": x[2], **({} if x[3] is None else {"std": x[3]})}
+                            if isinstance(x, list) and len(x) == 4 else x for x in dist]
+    unknown = set(d) - {"path", "model", "tool", "points", "mounting", "keep_out", "distances", "planes"}
     try:
         if unknown:
             raise CellError(f"{where}: field cell.{sorted(unknown)[0]}: unknown field of a journaled cell")
@@ -317,6 +323,8 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
         limits={"path": lim.path, "version": lim.version, "sha256": lim.sha256},
         cell=None if the_cell is None else {"path": the_cell.path, "model": the_cell.model, "tool": the_cell.tool,
                                             "points": [p.to_dict() for p in the_cell.points.values()],
+                                            "distances": [list(d) for d in the_cell.distances],
+                                            "planes": list(the_cell.planes),
                                             **keep_out_to_doc(the_cell.keep_out)},
         options=opts, db=_db_for_journal(db), versions=_versions())
     journal = Journal.create(folder / "journal.jsonl", header)

@@ -22,11 +22,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import urlsplit
 
-from station.panel.controller import Controller, PanelError, WrongState
+from station.panel.controller import BadProcedure, Controller, PanelError, WrongState
 from station.panel.serve import is_loopback
 from station.robot.errors import ConfigError
 
 NAMESPACE = "urn:station"
+START_WAIT_S = 30.0  # Start answers once the robot confirmed the serial and the journal exists, at most this long
+# Start refused once the robot was reached, by the reason's kind (station.panel.reasons); the codes of
+# docs/opcua.md, OPC 10000-4 7.39 / asyncua.ua.StatusCodes names
+REFUSED = {"serial": 0x80AB0000,  # BadInvalidArgument: not this robot's serial
+           "setup": 0x80890000,  # BadConfigurationError: the station's setup (wrong robot type, files, database)
+           "robot": 0x808B0000,  # BadDeviceFailure: the robot or its bus (unreachable, fault, safety stop)
+           "station": 0x80020000}  # BadInternalError
 VARIABLES = ("State", "Serial", "Procedure", "Step", "Progress", "Verdict", "LastResult")
 
 
@@ -71,11 +78,22 @@ def check_security(opts: OpcuaOptions) -> bool:
     return True
 
 
+def _result(code: int, *outputs: str, argument: int | None = None, n_inputs: int = 2):
+    """A method's answer: its status code, the status of each input argument (the bad one named), outputs."""
+    from asyncua import ua
+
+    res = ua.CallMethodResult()
+    res.StatusCode = ua.StatusCode(code)
+    res.InputArgumentResults = [ua.StatusCode(code if i == argument else ua.StatusCodes.Good)
+                                for i in range(n_inputs)]
+    res.OutputArguments = [ua.Variant(o, ua.VariantType.String) for o in outputs]
+    return res
+
+
 def _snapshot_values(ctl: Controller) -> dict:
     s = ctl.snapshot()
-    last = ctl.last_result()
     # written in this order: a client that sees Verdict (or State "done") change reads the new LastResult
-    return {"LastResult": json.dumps(last, default=str) if last else "", "Serial": s["serial"] or "",
+    return {"LastResult": json.dumps(ctl.last_result(), default=str), "Serial": s["serial"] or "",
             "Procedure": s["procedure"] or "", "Step": s["step"] or "", "Progress": float(s["progress"]),
             "Verdict": s["verdict"] or "", "State": s["state"]}
 
@@ -133,18 +151,33 @@ class StationServer:
         from station.opcua.users import current_user
 
         s, p = (v.Value if isinstance(v, ua.Variant) else v for v in (serial, procedure))
+        s, p = str(s or ""), str(p or "")
         user = current_user.get()
         # the record names who started the unit: the signed-in user, else the line (anonymous on loopback)
         operator = user.name if self.opts.users is not None and user is not None and user.name else self.opts.operator
+        # Results are returned, not raised: asyncua answers any exception of a method with BadUnexpectedError.
+        # A refusal says which argument was wrong (InputArgumentResults, OPC 10000-4 5.11.2) and, but for a unit
+        # running, publishes Verdict ERROR with the reason in LastResult.
         try:
-            sid = await asyncio.to_thread(self.ctl.start, str(s or ""), operator, (p or None),
-                                          confirm=False, wait_session=30.0)
+            sid = await asyncio.to_thread(self.ctl.start, s, operator, p or None, confirm=False,
+                                          wait_session=START_WAIT_S)
+        except WrongState:
+            return _result(ua.StatusCodes.BadInvalidState)
         except PanelError as e:
-            # returned, not raised: asyncua answers any exception of a method with BadUnexpectedError
-            return ua.StatusCode(ua.StatusCodes.BadInvalidState if isinstance(e, WrongState)
-                                 else ua.StatusCodes.BadInvalidArgument)
+            bad_procedure = isinstance(e, BadProcedure)
+            self.ctl.refuse(s, operator, str(e), procedure=None if bad_procedure else p or None,
+                            bad_procedure=bad_procedure)
+            await self.publish()
+            return _result(ua.StatusCodes.BadInvalidArgument, argument=1 if bad_procedure else 0)
+        snap = self.ctl.snapshot()
+        if not sid and snap["state"] == "done":  # ended before its journal existed: refused by the robot
+            await self.publish()
+            kind = snap.get("cause")
+            return _result(REFUSED.get(kind, ua.StatusCodes.BadInternalError), argument=0 if kind == "serial"
+                           else None)
         await self.publish()
-        return [ua.Variant(sid or "", ua.VariantType.String)]
+        # still connecting after START_WAIT_S: running, the session id follows in LastResult
+        return _result(ua.StatusCodes.Good if sid else ua.StatusCodes.GoodCompletesAsynchronously, sid or "")
 
     async def _abort(self, parent):
         from asyncua import ua
@@ -152,7 +185,8 @@ class StationServer:
         try:
             self.ctl.abort()
         except PanelError:
-            return ua.StatusCode(ua.StatusCodes.BadInvalidState)
+            return _result(ua.StatusCodes.BadInvalidState, n_inputs=0)
+        await self.publish()
         return []
 
     async def publish(self) -> None:

@@ -8,6 +8,7 @@ ends as ``NOT STORED``; the journal keeps everything and can be stored later).""
 from __future__ import annotations
 
 import contextlib
+import re
 import threading
 import time
 from dataclasses import dataclass, field
@@ -15,8 +16,10 @@ from pathlib import Path
 
 from station.engine.procedure import BadAnswer, Question
 from station.engine.runner import Aborted, RunControl
+from station.panel.reasons import Reason, explain, plain_failure, refused, where
 
 STATES = ("idle", "running", "prompt", "done")
+NO_RESULT = "no unit has finished since the station started"
 
 
 class PanelError(ValueError):
@@ -25,6 +28,10 @@ class PanelError(ValueError):
 
 class WrongState(PanelError):
     """A request the station's present state refuses (a unit running, nothing running, no question open): 409."""
+
+
+class BadProcedure(PanelError):
+    """A start request naming a procedure the station does not run (a path, an unknown name): 400."""
 
 
 class PromptRefused(PanelError):
@@ -43,19 +50,22 @@ class PanelConfig:
     confirm: bool = True  # ask the operator to confirm the unit is clamped before anything moves
 
 
-def plain_failure(m: dict) -> str:
-    """A failing verdict measurement in words an operator can act on."""
-    name = str(m.get("name") or "?").replace("_", " ")
-    value, unit = m.get("value"), m.get("unit") or ""
-    lo, hi = m.get("low"), m.get("high")
-    if value is None:
-        return f"{name}: no value could be measured"
-    v = f"{float(value):.4g} {unit}".strip()
-    if hi is not None and float(value) > float(hi):
-        return f"{name} is {v}, above the limit of {float(hi):.4g} {unit}".strip()
-    if lo is not None and float(value) < float(lo):
-        return f"{name} is {v}, below the limit of {float(lo):.4g} {unit}".strip()
-    return f"{name} is {v}, outside its limits"
+_STEPS = {"starting": "Starting", "resuming": "Resuming", "connecting": "Connecting to the robot",
+          "all poses recorded": "Calculating the calibration", "aborting": "Stopping the robot"}
+
+
+def activity(state: str, step: str | None) -> str | None:
+    """What the station is doing, in the operator's words (the engine's ``step`` is for the journal):
+    ``pose 3/14 (A, fit)`` -> ``Measuring point A (pose 3 of 14)``."""
+    if state == "prompt":
+        return "Waiting for you"
+    if state not in ("running",) or not step:
+        return None
+    m = re.fullmatch(r"pose (\d+)/(\d+) \((.*), (\w+)\)", step)
+    if m:
+        what = "Checking" if m.group(4) == "holdout" else "Measuring"
+        return f"{what} point {m.group(3)} (pose {m.group(1)} of {m.group(2)})"
+    return _STEPS.get(step, step[:1].upper() + step[1:])
 
 
 class Controller:
@@ -74,14 +84,17 @@ class Controller:
         self._control: RunControl | None = None
         self._cell = None
         self._s = self._blank()
+        self._last = self._result_doc(verdict="", reason=NO_RESULT)
 
     # ---- state ---------------------------------------------------------------------------------------
     @staticmethod
     def _blank() -> dict:
         return {"state": "idle", "serial": None, "operator": None, "procedure": None, "step": None,
                 "samples": 0, "samples_planned": 0, "verdict": None, "session": None, "failing": [],
-                "message": None, "prompt": None, "report": None, "stored": None, "result": None,
-                "started": None, "finished": None, "residuals": [], "residuals_model": None}
+                "message": None, "prompt": None, "report": None, "stored": None,
+                "started": None, "finished": None, "residuals": [], "residuals_model": None,
+                "reason": None, "action": None, "detail": None, "where": None, "resumable": False,
+                "cause": None}
 
     def _set(self, **kw) -> None:
         with self._lock:
@@ -91,15 +104,48 @@ class Controller:
 
     def snapshot(self) -> dict:
         with self._lock:
-            out = {k: v for k, v in self._s.items() if k != "result"}
+            out = dict(self._s)
             out["progress"] = (out["samples"] / out["samples_planned"]) if out["samples_planned"] else 0.0
+            out["activity"] = activity(out["state"], out["step"])
             out["version"] = self.version
             return out
 
-    def last_result(self) -> dict | None:
-        """The finished unit's summary (verdict, measurements, parameters) for the line (OPC UA LastResult)."""
+    def last_result(self) -> dict:
+        """The last finished (or refused) unit for the line (OPC UA ``LastResult``): always a document with the
+        verdict and the reason in words; before the first unit ``verdict`` is ``""``. A new start keeps it
+        until the new unit ends."""
         with self._lock:
-            return self._s["result"]
+            return self._last
+
+    def _result_doc(self, **kw) -> dict:
+        doc = {"session": None, "serial": None, "procedure": None, "operator": None, "verdict": None,
+               "reason": None, "action": None, "detail": None, "where": None, "cause": None, "resumable": False,
+               "stored": None,
+               "failing": [], "report": None, "finished": None, "measurements": [], "parameters": {}}
+        doc.update(kw)
+        return doc
+
+    def _end(self, *, measurements: list | None = None, parameters: dict | None = None, **kw) -> None:
+        """The unit ended (or was refused): the verdict screen and the line's ``LastResult``, in one change."""
+        with self._lock:
+            self._s.update(state="done", finished=time.time(), **kw)
+            s = self._s
+            self._last = self._result_doc(
+                **{k: s[k] for k in ("session", "serial", "procedure", "operator", "verdict", "reason", "action",
+                                     "detail", "where", "cause", "resumable", "stored", "failing", "report")},
+                finished=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(s["finished"])),
+                measurements=measurements or [], parameters=parameters or {})
+            self.version += 1
+            self._changed.notify_all()
+
+    def _ended_by(self, reason, verdict: str, message: str | None = None, **kw) -> None:
+        """End with ``verdict`` for ``reason`` (a :class:`~station.panel.reasons.Reason`)."""
+        with self._lock:
+            where_ = where(self._s["samples"], self._s["samples_planned"]) if verdict in ("ERROR", "ABORTED") \
+                else None
+        self._end(verdict=verdict, reason=reason.text, action=reason.action, detail=reason.detail,
+                  cause=reason.kind, where=where_, message=message if message is not None else reason.detail,
+                  step="stopped", **kw)
 
     def wait_change(self, version: int, timeout: float) -> int:
         with self._lock:
@@ -157,12 +203,12 @@ class Controller:
         if Path(configured).suffix == ".py" and procedure == Path(configured).stem:
             return configured
         if not is_name(procedure):
-            raise PanelError(f"procedure {procedure[:80]!r} is not a procedure name (a request names a shipped "
+            raise BadProcedure(f"procedure {procedure[:80]!r} is not a procedure name (a request names a shipped "
                              "or configured procedure, never a file)")
         try:
             resolve_procedure(procedure)
         except ProcedureError as e:
-            raise PanelError(str(e)) from None
+            raise BadProcedure(str(e)) from None
         return procedure
 
     def _procedure_file(self, name: str) -> str | None:
@@ -198,20 +244,37 @@ class Controller:
             raise PanelError(" ".join(str(e).split()) or type(e).__name__) from None
         return header
 
-    def resume(self, session: str, operator: str | None = None, wait_session: float = 0.0) -> str | None:
-        """Continue an interrupted session (a panel crash, an abort) where it stopped."""
+    def refuse(self, serial: str, operator: str, text: str, procedure: str | None = None, *,
+               bad_procedure: bool = False) -> None:
+        """A start the line asked for and the station refused before anything ran (a malformed serial, an
+        unknown procedure): the verdict ``ERROR`` with the reason, so ``LastResult`` says why. Never while a
+        unit runs (that unit's state stays)."""
+        with self._lock:
+            if self.busy:
+                return
+            self._s = {**self._blank(), "serial": str(serial or "")[:80] or None, "operator": operator,
+                       "procedure": procedure or self.config.procedure, "started": time.time()}
+        self._ended_by(refused(text, procedure=bad_procedure), "ERROR", message=text)
+
+    def resume(self, session: str, operator: str | None = None, wait_session: float = 0.0, *,
+               confirm: bool | None = None) -> str | None:
+        """Continue an interrupted session (a panel crash, an abort, an error) where it stopped; with the
+        confirm prompt (unless ``--no-confirm``) before the robot moves again: someone may be in the cell."""
         header = self.check_resumable(session)
+        kept = self._kept_samples(header.session)
         with self._lock:
             if self.busy:
                 raise WrongState(f"unit {self._s['serial']} is still running")
             self._s = {**self._blank(), "state": "running", "serial": header.serial,
                        "operator": operator or header.operator, "procedure": header.procedure,
-                       "session": header.session, "step": "resuming", "started": time.time()}
+                       "session": header.session, "step": "resuming", "started": time.time(),
+                       "samples": kept}
             self.version += 1
             self._abort.clear()
             self._control = RunControl()
+            ask = self.config.confirm if confirm is None else confirm
             self._thread = threading.Thread(target=self._work, args=(header.serial, operator, header.procedure,
-                                                                     False, header.session),
+                                                                     ask, header.session),
                                             name=f"panel-resume-{header.serial}", daemon=True)
             self._thread.start()
         return self._wait_session(wait_session)
@@ -248,8 +311,18 @@ class Controller:
 
     def abort(self) -> None:
         """ABORT: a move under way stops now (the engine's guarded motion, the driver's stop path), nothing
-        moves after it; the session ends ABORTED, journaled, resumable."""
+        moves after it; the session ends ABORTED, journaled, resumable. On the ERROR screen: the operator gives
+        the unit up (``ABORTED``; its session stays resumable from the list of interrupted units)."""
         with self._lock:
+            if not self.busy and self._s["state"] == "done" and self._s["verdict"] == "ERROR":
+                was = self._s["reason"] or "an error"
+                rest = (" Its measurements are kept: it can be finished later from the list of interrupted "
+                        "units." if self._s["resumable"] else "")
+                self._ended_by(Reason(f"Given up by the operator after: {was[:1].lower() + was[1:]}",
+                                      "Set the unit aside and scan the next one." + rest,
+                                      self._s["detail"] or "", "operator"), "ABORTED",
+                               message=self._s["message"], resumable=self._s["resumable"])
+                return
             if not self.busy:
                 raise WrongState("nothing is running")
             self._abort.set()
@@ -368,10 +441,12 @@ class Controller:
             if confirm:
                 try:
                     self.ask(f"Unit {serial}: robot clamped, calibration tool mounted, cell clear? "
-                             "Confirm to start the robot.")
+                             + ("Confirm to move the robot again and finish the unit." if resume_of else
+                                "Confirm to start the robot."))
                 except Aborted:  # nothing moved, nothing journaled: no empty session is stored
-                    self._set(state="idle", step=None, verdict=None, message="start cancelled; nothing recorded",
-                              finished=time.time())
+                    self._set(state="idle", step=None, verdict=None, finished=time.time(),
+                              message="resume cancelled; the unit can still be resumed" if resume_of else
+                              "start cancelled; nothing recorded")
                     return
             self._set(step="connecting")
             if resume_of is None:
@@ -386,40 +461,89 @@ class Controller:
                                  touch=None if cfg.touch != "manual" else self._touch(),
                                  progress=self._progress, log=self._log, prompt=self.ask, control=self._control,
                                  procedure=self._procedure_file(proc))
-        except Exception as e:  # bad cell/limits file, wrong robot, unreachable bus: said in one line
-            self._set(state="done", verdict="ERROR", message=f"{type(e).__name__}: {e}" if not str(e) else str(e),
-                      step="stopped", finished=time.time())
+        except Exception as e:  # bad cell/limits file, wrong robot, unreachable bus: before the run's journal
+            session = self._s["session"] or resume_of
+            can = self._can_resume(session)
+            # raised before the run's body: the robot was not (yet) reached in this run
+            self._ended_by(explain(e, serial=serial, resumable=can, reached=False), "ERROR",
+                           session=session, resumable=can,
+                           message=str(e) or type(e).__name__)
             return
         self._conclude(out)
 
+    @staticmethod
+    def _kept_samples(session: str) -> int:
+        """Samples the session's journal holds (the resumed run's own progress follows)."""
+        from station.engine.journal import read_journal
+        from station.engine.runner import station_home
+        from station.engine.session_record import live_samples
+
+        try:
+            _, events = read_journal(station_home() / "sessions" / session / "journal.jsonl")
+        except Exception:
+            return 0
+        return len(live_samples(events))
+
+    def _can_resume(self, session: str | None) -> bool:
+        """The unit's session can be continued from this panel (a journal without a completed end)."""
+        if not session:
+            return False
+        try:
+            from station.engine import events as ev
+            from station.engine.journal import read_journal
+            from station.engine.runner import station_home
+
+            self.check_resumable(session)
+            _, events = read_journal(station_home() / "sessions" / session / "journal.jsonl")
+        except Exception:
+            return False
+        return not any(isinstance(e, ev.End) and e.status == "completed" for e in events)
+
     def _conclude(self, out) -> None:
         stored = self._stored(out)
-        verdict_doc = (out.record or {}).get("verdict") or {}
-        failing = [plain_failure(m) for m in verdict_doc.get("measurements") or [] if m.get("passed") is False]
-        report = str(out.report) if out.report else None
-        if out.status == "interrupted":
-            verdict, msg = "ABORTED", f"{out.error or 'stopped'}; resumable: session {out.session}"
-        elif out.passed is not None and not stored:
-            verdict = "NOT STORED"
-            msg = ("the record is NOT in the database" + (f": {out.error}" if out.error else "")
-                   + f"; the journal keeps everything (session {out.session}); store it later with "
-                     "station records sync")
-        elif out.status == "completed" and out.passed is not None:
-            verdict, msg = ("PASS" if out.passed else "FAIL"), None
-        else:
-            err = out.error
-            verdict = "ERROR"
-            msg = (f"{err}" if err is not None and str(err) else type(err).__name__) + \
-                f"; the journal is kept, resumable: session {out.session}"
-        result = {"session": out.session, "serial": self._s["serial"], "procedure": self._s["procedure"],
-                  "verdict": verdict, "stored": stored, "failing": failing, "report": report,
-                  "measurements": verdict_doc.get("measurements") or [],
+        record = out.record or {}
+        verdict_doc = record.get("verdict") or {}
+        measurements = verdict_doc.get("measurements") or []
+        failing = [plain_failure(m) for m in measurements if m.get("passed") is False]
+        if isinstance(record.get("samples"), list):  # the journal's count: a sample recorded after the last
+            self._set(samples=len(record["samples"]))  # progress call (the fault came in the next move) counts
+        common = {"session": out.session, "failing": failing, "report": str(out.report) if out.report else None,
+                  "stored": stored, "measurements": measurements,
                   "parameters": {k: {kk: p.get(kk) for kk in ("value", "std", "unit", "identifiable")}
-                                 for k, p in (((out.record or {}).get("result") or {}).get("parameters") or {})
-                                 .items()}}
-        self._set(state="done", verdict=verdict, session=out.session, failing=failing, report=report,
-                  stored=stored, message=msg, result=result, step="finished", finished=time.time(),
-                  **self._residuals())
+                                 for k, p in ((record.get("result") or {}).get("parameters") or {}).items()},
+                  **self._residuals()}
+        if out.status == "interrupted":
+            can = self._can_resume(out.session)
+            self._ended_by(explain(out.error or Aborted("stopped"), resumable=can), "ABORTED",
+                           message=f"{out.error or 'stopped'}; resumable: session {out.session}", resumable=can,
+                           **common)
+        elif out.passed is not None and not stored:
+            why = out.store_error or (str(out.error) if out.error else "the record could not be read back")
+            self._ended_by(Reason("The unit finished, but its result could not be saved in the records database.",
+                                  "The measurements are kept on this PC. Set the unit aside and call the technician "
+                                  "to store the result (station records sync).", why, "setup"), "NOT STORED",
+                           message=f"the record is NOT in the database: {why}; the journal keeps everything "
+                                   f"(session {out.session}); store it later with station records sync", **common)
+        elif out.status == "completed" and out.passed is not None:
+            if out.passed:
+                self._end(verdict="PASS", reason="Every limit is met; the result is stored.",
+                          action="Scan the next unit.", step="finished", **common)
+            else:
+                n = len(failing)
+                self._end(verdict="FAIL", reason=f"{n} limit{'s are' if n != 1 else ' is'} not met — "
+                          + "; ".join(failing) + ".", action="Set the unit aside as failed and scan the next unit.",
+                          step="finished", **common)
+        elif out.status == "completed":  # nothing to judge against: never a PASS
+            self._ended_by(Reason("The station has no limits for this robot and procedure, so it cannot decide "
+                                  "PASS or FAIL.", "Call the technician (limits file).",
+                                  "NO LIMITS: no limit applies to this model and procedure", "setup"), "ERROR",
+                           **common)
+        else:
+            can = self._can_resume(out.session)
+            err = out.error
+            text = (str(err) if err is not None and str(err) else type(err).__name__)
+            self._ended_by(explain(err, serial=self._s["serial"], resumable=can), "ERROR", resumable=can,
+                           message=f"{text}; the journal is kept, resumable: session {out.session}", **common)
 
     def _stored(self, out) -> bool:
         """Read the record back: PASS is shown only for a session the database really holds."""

@@ -36,6 +36,16 @@ class LimitError(StationError):
     """A command would leave joint limits or exceed a speed cap; nothing was sent."""
 
 
+class SerialMismatch(ConfigError):
+    """The robot reports (or its URL configures) another serial than the one given for the unit: the wrong unit
+    is in the cell, or the wrong label was scanned. Raised at connect, before anything is journaled."""
+
+    def __init__(self, message: str, *, given: str | None = None, reported: str | None = None) -> None:
+        super().__init__(message)
+        self.given = given
+        self.reported = reported
+
+
 class IdentityMismatch(ConfigError):
     """The robot/devices on the bus are not what the URL's model (or its default) says: wrong UR type or
     series, wrong Dynamixel servo model, not a CiA 402 drive or a different product. Raised at connect,

@@ -68,15 +68,16 @@ def adopt_serial(ident: Identity, serial: str | None) -> Identity:
     operator's replaces it (the device ids stay in ``devices``)."""
     from dataclasses import replace
 
-    from station.robot.errors import ConfigError
+    from station.robot.errors import SerialMismatch
 
     if not serial:
         return ident
     if ident.serial_source == "derived" or not ident.serial:
         return replace(ident, serial=str(serial), serial_source="operator")
     if ident.serial != str(serial):
-        raise ConfigError(f"the robot reports serial {ident.serial!r}, not {serial!r} (wrong robot? "
-                          f"serial from the {'URL' if ident.serial_source == 'url' else 'controller'})")
+        raise SerialMismatch(f"the robot reports serial {ident.serial!r}, not {serial!r} (wrong robot? "
+                             f"serial from the {'URL' if ident.serial_source == 'url' else 'controller'})",
+                             given=str(serial), reported=ident.serial)
     return ident
 
 
