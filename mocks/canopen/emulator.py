@@ -61,7 +61,8 @@ CAN_ERR_PROT = 0x08  # SocketCAN error class: protocol violation (what a corrupt
 CAN_ERR_BUSOFF = 0x40  # SocketCAN error class: bus off
 ERROR_CLASSES = {"protocol": CAN_ERR_PROT, "busoff": CAN_ERR_BUSOFF}
 STORE_FORMAT = "station-canopen-store/1"
-DEFAULT_SERIAL_BASE = 0x5A100000
+DEFAULT_SERIAL_BASE = 0x5A100000  # of a world without a digest (no cell, no model parameters)
+
 VELOCITY_UNITS = {"inc/s": UNIT_INC_PER_S, "rpm": UNIT_RPM, "0.1rpm": UNIT_RPM | 0xFF << 24,
                   "0.01rpm": UNIT_RPM | 0xFE << 24, "0.001rpm": UNIT_RPM | 0xFD << 24}
 SEAT_FORCE_N = 20.0  # what a ball-in-cone socket pushes the tip with as the arm settles into it
@@ -69,6 +70,16 @@ MIN_LEVER_M = 1e-3  # a joint whose axis passes closer than this to the tip cann
 CONFIG_KEYS = {"nodes", "contact_node", "serial_base", "timeout_silence", "busoff_recovery_s", "store_s",
                "device_type", "incremental", "position_resolution", "velocity_unit", "home_offset",
                "rated_torque_nm", "seat_force_n"}
+
+
+def world_serial_base(world) -> int:
+    """The drives' 0x1018 serial base, derived from the world: two worlds are two robots (never one serial)."""
+    from station.mocks.world.identity import default_serial
+
+    try:
+        return int(default_serial(world, "canopen"))
+    except (AttributeError, TypeError, ValueError):
+        return DEFAULT_SERIAL_BASE
 
 
 def _per_node(cfg: dict, key: str, nodes: list[int], kind, default):
@@ -167,7 +178,7 @@ class CanopenEmulator:
         self.timeout_silence = float(cfg.get("timeout_silence", timeout_silence))
         self.boot_delay = boot_delay
         self.fault_poll = fault_poll
-        serial_base = int(cfg.get("serial_base", DEFAULT_SERIAL_BASE))
+        serial_base = int(cfg["serial_base"]) if "serial_base" in cfg else world_serial_base(world)
         self.busoff_recovery = float(cfg.get("busoff_recovery_s", 0.2))
         # how long a drive takes to write its flash on "store parameters" (0x1010) before it answers
         self.store_s = float(cfg.get("store_s", 0.0))

@@ -82,14 +82,14 @@ def register(mock_app: typer.Typer) -> None:
     @mock_app.command("dynamixel")
     def dynamixel(
         world: Path = WORLD,
-        model: str = typer.Option("omx", "--model", help="model of the default world"),
+        model: str = typer.Option("omx", "--model", help="Model of the default world"),
         seed: int = SEED,
-        ids: str = typer.Option(None, "--ids", help="servo ids in joint order, e.g. 11-14 (default 1..n)"),
-        baud: int = typer.Option(None, "--baud", help="baud rate (default 1000000)"),
-        wire_timing: bool = typer.Option(False, "--wire-timing", help="answer after real wire time"),
-        return_delay: int = typer.Option(None, "--return-delay", help="return delay time, units of 2 us"),
-        contact: str = typer.Option(None, "--contact-id", help="contact sensor id (default 200, 'none': off)"),
-        servo: str = typer.Option(None, "--servo", help="xm430 (default) or xl430"),
+        ids: str = typer.Option(None, "--ids", help="Servo ids in joint order, e.g. 11-14 (default 1..n)"),
+        baud: int = typer.Option(None, "--baud", help="Baud rate (default 1000000)"),
+        wire_timing: bool = typer.Option(False, "--wire-timing", help="Answer after real wire time"),
+        return_delay: int = typer.Option(None, "--return-delay", help="Return delay time, units of 2 us"),
+        contact: str = typer.Option(None, "--contact-id", help="Contact sensor id (default 200, 'none': off)"),
+        servo: str = typer.Option(None, "--servo", help="Servo model: xm430 (default) or xl430"),
         eeprom: Path = typer.Option(None, "--eeprom", help="EEPROM file: loaded at start, saved at exit"),
         exit_with_parent: bool = typer.Option(False, "--exit-with-parent", help="Stop when the process that "
                                               "started this one ends (tests: no orphan after a crash)."),

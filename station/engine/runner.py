@@ -27,7 +27,7 @@ from station.engine import events as ev
 from station.engine.cell import Cell, load_cell
 from station.engine.journal import Journal, JournalError, JournalWriteError, check_space, check_writable, read_journal
 from station.engine.limits import load_limits
-from station.engine.procedure import Procedure, is_name, load_procedure, procedure_for_resume
+from station.engine.procedure import Procedure, is_name, load_procedure, procedure_for_resume, shipped_names
 from station.engine.session import Session
 from station.kinematics.collision import keep_out_to_doc
 from station.robot.errors import ConfigError, DeviceFault, StationError
@@ -132,6 +132,7 @@ class Outcome:
     stored: bool = False
     db: str | None = None  # the records URL the session names (None: the default database)
     store_error: str | None = None  # why the record is NOT STORED (``station records sync`` stores it later)
+    model: object = field(repr=False, default=None)  # the kinematic model the session solved with (read-only)
 
     @property
     def verdict(self) -> str:
@@ -346,6 +347,9 @@ def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, lim
     from station.robot import open_robot
 
     proc = procedure if isinstance(procedure, Procedure) else load_procedure(procedure)
+    if (options or {}).get("identify") and proc.identify is None:
+        raise ConfigError(f"--identify: procedure {proc.name} solves nothing (it has no IDENTIFY group); it "
+                          "applies to procedures that solve: " + ", ".join(solving_procedures()))
     load_limits(limits)  # a bad limits or cell file fails before the robot is opened
     if cell is not None:
         load_cell(cell)
@@ -575,6 +579,16 @@ def _install_sigterm():
         return None
 
 
+def solving_procedures() -> list[str]:
+    """The shipped procedures that solve for a parameter group (those ``--identify`` applies to)."""
+    out = []
+    for name in shipped_names():
+        with contextlib.suppress(ConfigError):
+            if load_procedure(name).identify:
+                out.append(name)
+    return out
+
+
 def _execute(s: Session, body: Callable[[Session], None], control: RunControl | None = None) -> Outcome:
     status, err = "completed", None
     old = _install_sigterm()
@@ -634,8 +648,24 @@ def finish(s: Session, status: str, err: BaseException | None) -> Outcome:
                           comment=f"session {s.id}, model {s.model.name}")
     except OSError as e:  # the journal holds every sample; samples.csv is a convenience copy
         s.log(f"samples.csv not written: {e.strerror or e}")
+    write_result_json(s.folder, record.get("result"), s.log)
     return Outcome(s.id, s.folder, status, _passed(s.verdict) if status == "completed" else None, record,
-                   error=err, db=s.journal.header.db)
+                   error=err, db=s.journal.header.db, model=s.model)
+
+
+def write_result_json(folder: Path, result: dict | None, log: Callable[[str], None]) -> None:
+    """``result.json``: the session's solve result in the format of ``station solve --out``
+    (``station-calibration/1``), what ``station fk --calibration``, ``station model export --calibration`` and
+    ``station run correction_map --calibration`` read. Written atomically after every run that solved; a copy
+    of the journal's last result event, so a failure to write it is a note, never a lost session."""
+    if not result:
+        return
+    from station.safeio import dumps_json, write_atomic
+
+    try:
+        write_atomic(folder / "result.json", dumps_json(result) + "\n")
+    except OSError as e:
+        log(f"result.json not written: {e.strerror or e}")
 
 
 def _failed_step(s: Session) -> tuple[str | None, int | None]:
