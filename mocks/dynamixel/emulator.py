@@ -291,6 +291,8 @@ class DynamixelEmulator:
                 if out:
                     with contextlib.suppress(OSError):
                         os.write(self._master, out)
+            with self._lock:  # a busy bus keeps select() from timing out: the silent servos are counted here too
+                self._check_watchdogs()
 
     def _wait_wire(self, t_rx: float, packet: pk.Packet, replies: list[tuple[Device, bytes]]) -> None:
         per_byte = 10.0 / self.baud()
@@ -352,15 +354,14 @@ class DynamixelEmulator:
                         self._refresh(dev, ws)
                         dev.set("goal_position", dev.get("present_position"))
                 self._hold_after.clear()
-            syncs = [item[1:] for item in pending if item[0] == "sync"]
-            for item in pending:
-                if item[0] == "call":  # after a fall handed to a new worker below: queued again, behind it
+            for item in pending:  # in order; what comes after a fall handed to a new worker queues again behind it
+                if item[0] == "call":
                     with contextlib.suppress(Exception):
                         self._world(item[1])
                 elif item[0] == "release":  # a fall of its own: a worker again, never under the bus's lock
                     self._release(item[1])
-            if syncs:  # one push of the registers as they are now (it may hand a new fall to a new worker)
-                self._sync_world(any(g for g, _ in syncs), any(v for _, v in syncs))
+                else:
+                    self._sync_world(item[1], item[2], torque=item[3])
 
     def settled(self, timeout: float = 30.0) -> bool:
         """Wait until the world has caught up with everything the servos were told (a fall an instant world
@@ -484,13 +485,17 @@ class DynamixelEmulator:
             lim = 1000
         return int(max(-lim, min(lim, round(value))))
 
-    def _sync_world(self, goals_changed: bool = False, velocity_changed: bool = False) -> None:
-        """Push servo outputs into the world after a packet changed registers."""
-        if self._busy():
-            self._pending.append(("sync", goals_changed, velocity_changed))
-            return
+    def _sync_world(self, goals_changed: bool = False, velocity_changed: bool = False,
+                    torque: tuple[bool, ...] | None = None) -> None:
+        """Push servo outputs into the world after a packet changed registers. While a fall is being settled the
+        servos' torque states are queued as they were, each replayed in order: a servo released and taken back
+        meanwhile still lets its joint go in the world (as briefly as the world's time allows)."""
         devs = self._joint_devs()
-        torque = [d.torque for d in devs]
+        if self._busy():
+            state = tuple(d.torque for d in devs) if torque is None else tuple(torque)
+            self._pending.append(("sync", goals_changed, velocity_changed, state))
+            return
+        torque = [d.torque for d in devs] if torque is None else list(torque)
         if torque != self._enabled:
             changed = [j for j, on in enumerate(torque) if self._enabled is None or on != self._enabled[j]]
             on = [j for j in changed if torque[j]]
@@ -511,7 +516,7 @@ class DynamixelEmulator:
             else:
                 switch()
             if self._busy():
-                self._pending.append(("sync", goals_changed, velocity_changed))
+                self._pending.append(("sync", goals_changed, velocity_changed, tuple(torque)))
                 return
         self._sync_outputs(devs, goals_changed, velocity_changed)
 
