@@ -3,8 +3,12 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+# the Franka emulator's simulator (franka-sim pins numpy 1.26 and MuJoCo < 3.3): an environment of its own
+SIM_VENV := .venv-franka-sim
+SIM_STAMP := $(SIM_VENV)/.installed
+SIM_REQ := mocks/franka/requirements-sim.txt
 
-.PHONY: venv demo test lint bench clean
+.PHONY: venv franka-sim demo test lint bench clean
 
 $(STAMP): pyproject.toml setup.py
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -14,6 +18,14 @@ $(STAMP): pyproject.toml setup.py
 
 venv: $(STAMP)
 
+$(SIM_STAMP): $(SIM_REQ)
+	test -x $(SIM_VENV)/bin/python || $(PY) -m venv $(SIM_VENV)
+	$(SIM_VENV)/bin/python -m pip install -q --upgrade pip
+	$(SIM_VENV)/bin/python -m pip install -q -r $(SIM_REQ)
+	touch $(SIM_STAMP)
+
+franka-sim: $(SIM_STAMP)
+
 demo: $(STAMP)
 	$(BIN)/station demo
 
@@ -22,7 +34,7 @@ demo: $(STAMP)
 # bytecode caches on for the test run (a host may set PYTHONDONTWRITEBYTECODE): else every pytest process
 # rewrites and compiles all test modules again (~10 s of CPU each) and every station subprocess its modules
 test test-matrix: export PYTHONDONTWRITEBYTECODE :=
-test: $(STAMP)
+test: $(STAMP) $(SIM_STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not exclusive and not fullmatrix"
 	$(BIN)/python -m pytest -q -m exclusive
@@ -38,4 +50,4 @@ bench: $(STAMP)
 	$(BIN)/python bench/solver.py
 
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) $(SIM_VENV) build *.egg-info

@@ -77,7 +77,7 @@ def measure(model: str, n: int, method: str, seconds: float, return_delay: int =
     # bytes and transactions, counted by an in-process emulator
     emu = DynamixelEmulator(World.default(model=model), ids=ids, baud=BAUD, return_delay=return_delay,
                             contact_id=None)
-    port = sdk.PortHandler(emu.start())
+    port = sdk.PortHandler(emu.start().path)
     try:
         port.openPort()
         port.setBaudRate(BAUD)

@@ -8,8 +8,8 @@ from pathlib import Path
 import typer
 from station.mocks.errors import MockError
 
-WORLD = typer.Option(None, "--world", help="world file (docs/world.md); default: built-in world")
-SEED = typer.Option(0, "--seed", help="seed of the default world's hidden errors")
+WORLD = typer.Option(None, "--world", help="World file (docs/world.md); default: built-in world")
+SEED = typer.Option(0, "--seed", help="Seed of the default world's hidden errors")
 
 
 def world_for(world_file: Path | None, model: str, seed: int):

@@ -139,8 +139,8 @@ class Emulator:
         from station.mocks.dynamixel.cli import emulator_for
 
         self.emulator = emulator_for(self._load_world())  # the world's buses.dynamixel settings, as the CLI
-        self.port = self.emulator.start()
-        self.url = self._with_serial(self.emulator.url(self.port))
+        self.port = self.emulator.start().path
+        self.url = self._with_serial(self.emulator.url)
 
     def _start_canopen(self) -> None:
         from station.mocks.canopen.emulator import CanopenEmulator

@@ -85,7 +85,9 @@ def demo_cell(bus: str, tmp_path: Path, seed: int, *, cross_process: bool = Fals
 
         chan = f"d-{uuid.uuid4().hex[:8]}"
         emu = CanopenEmulator(World.from_file(world_path), channel=chan).start()
-        hub = SocketcandHub(chan, port=0).start()
+        # as a socketcand daemon started with -e 0x1FFFFFFF: error frames reach the station (by default socketcand
+        # forwards none: tests/test_canopen_socketcand.py)
+        hub = SocketcandHub(chan, port=0, error_mask=0x1FFFFFFF).start()
         try:
             url = f"canopen+socketcand://127.0.0.1:{hub.port}?channel=can0&nodes=1-6&model=arm6"
             yield DemoCell(bus, url, world_path, cell_path, serial, db, home, emu, emu.world)
@@ -162,15 +164,18 @@ def assert_safe(cell: DemoCell, *, settle: float = 0.3, kill_9: bool = False, lo
 # ---- the calibration the devices hold, read on the emulator side -------------------------------------------
 def device_offsets(cell: DemoCell) -> list:
     """Per joint, the raw zero offset the emulated devices hold: Dynamixel Homing Offset (20) ticks; CANopen
-    (volatile 0x607C, value stored by 0x1010) counts, so an offset that would not survive a power cycle shows."""
+    (the zero a homing applied, 0x6064 - 0x6063, and the value stored by 0x1010) counts, so an offset that would
+    not survive a power cycle shows."""
+    from station.mocks.canopen.eds import POSITION_OFFSET
+
     if cell.bus == "dynamixel":
         emu = cell.emu.emulator
         return [int(emu.devices[i].get("homing_offset")) for i in emu.joint_ids]
     drives = getattr(cell.emu, "drives", None) or cell.emu.emulator.drives
     out = []
     for d in drives.values():
-        stored = d.stored.get((0x607C, 0))
-        out.append((d.home_offset, None if stored is None else int.from_bytes(stored[:4], "little", signed=True)))
+        stored = d.stored.get((POSITION_OFFSET, 0))  # never stored: the default, 0, is what a power cycle brings
+        out.append((d.position_offset, 0 if stored is None else int.from_bytes(stored[:4], "little", signed=True)))
     return out
 
 

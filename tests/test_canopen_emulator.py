@@ -101,15 +101,19 @@ def test_402_state_machine_by_controlword(rig):
     assert sw() & 0x4F == 0x40 and not world.enabled()[2]
 
 
-def test_profile_position_move_with_home_offset_sign_convention(rig):
+def test_profile_position_move_in_the_homed_frame(rig):
+    """Targets are in the 0x6064 frame: a drive whose homing added Z moves its joint to target - Z raw counts."""
     world, emu, net, nodes, _ = rig
     n = nodes[2]  # joint a2: gear 121, direction -1
     enc = world.nominal.joints[1].encoder
-    n.sdo[0x607C].raw = 123456
+    _enable(n)
+    n.sdo[0x607C].raw = n.sdo[0x6063].raw + 123456  # position reads this after homing: zero Z = 123456
+    n.sdo[0x6098].raw = 37
+    n.sdo[0x6060].raw = 6
+    n.sdo[0x6040].raw = 0x1F  # homing start
     raw = enc.to_counts(world.encoder_q()[1])
-    assert n.sdo[0x6064].raw == round(float(raw)) + 123456  # reported = raw + home offset
-    for cw in (0x06, 0x07, 0x0F):
-        n.sdo[0x6040].raw = cw
+    assert n.sdo[0x6064].raw == round(float(raw)) + 123456  # reported = raw + homing result
+    n.sdo[0x6040].raw = 0x0F
     n.sdo[0x6060].raw = 1
     assert n.sdo[0x6061].raw == 1
     n.sdo[0x6081].raw = 500000

@@ -96,21 +96,39 @@ def test_robot_over_python_can_socketcand_streams_without_sdo(hub_rig):
         robot.close()
 
 
-@pytest.mark.parametrize("source", ["hub", "drive side of the wire"])
-def test_error_frame_through_hub_is_bus_error(hub_rig, source):
+def test_hub_forwards_no_error_frame_by_default(hub_rig):
+    """socketcand's raw mode opens its CAN socket without CAN_RAW_ERR_FILTER unless started with -e (linux-can/
+    socketcand src/state_raw.c): a bus-off on the daemon's side reaches no client. The station keeps streaming
+    (no BusError out of nowhere); the hub counts what it dropped."""
     world, emu, hub = hub_rig
     robot = open_robot(url_of(hub))
     try:
-        if source == "hub":
-            hub.inject_error(0x40)
-        else:
-            emu.inject_error_frame("busoff")  # crosses the virtual bus, then the hub as "< error 040 ... >"
+        emu.inject_error_frame("busoff")  # crosses the virtual bus to the hub, which drops it
+        hub.inject_error(0x40)  # the daemon's own controller reports bus-off: dropped too
+        end = time.monotonic() + 0.5
+        while time.monotonic() < end:
+            robot.joint_positions()
+        assert robot.faults.error is None and robot.bus._watch.error_frames == 0
+        assert hub.errors_dropped == 2
+    finally:
+        robot.close()
+
+
+def test_hub_with_an_error_mask_forwards_bus_off_like_socketcand_e(hub_rig):
+    """``socketcand -e 0x1FFFFFFF`` (the hub's ``error_mask``): error frames of those classes are forwarded as
+    ``< error CLASS ... >``, and the driver's bus-off watch latches BusError."""
+    world, emu, _ = hub_rig
+    hub = SocketcandHub(emu.channel, port=0, error_mask=0x1FFFFFFF).start()
+    robot = open_robot(url_of(hub))
+    try:
+        emu.inject_error_frame("busoff")
         end = time.monotonic() + 1.0
         with pytest.raises(BusError, match="bus-off"):
             while time.monotonic() < end:
                 robot.joint_positions()
     finally:
         robot.close()
+        hub.stop()
 
 
 def test_hub_gone_is_connection_lost(hub_rig):

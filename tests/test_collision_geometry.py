@@ -78,7 +78,9 @@ def test_the_base_link_is_not_checked_against_the_plane_it_stands_on(name):
     ch = Checker(m, None)
     checked = {int(k) for k in ch.env.link[ch.mask[:, 0]]}
     assert 1 not in checked  # the base column stands on the table by design
-    expect = {"scara": {3, 5}, "omx": {2, 3, 4}, "arm6": {2, 3, 4, 6}}.get(name, {2, 3, 4, 5, 6})
+    # fr3 (Craig frames): link 2 carries no translation (the upper arm is joint 3's d), 8 is the tool
+    expect = {"scara": {3, 5}, "omx": {2, 3, 4}, "arm6": {2, 3, 4, 6},
+              "fr3": {3, 4, 5, 6, 8}}.get(name, {2, 3, 4, 5, 6})
     assert checked == expect
     # every built-in arm's default start pose is clear (the planner refuses to start from a violation)
     from station.mocks.world.cell import DEFAULTS

@@ -19,7 +19,7 @@ IDS = [11, 12, 13, 14]
 def bus():
     world = World.default(model="omx", seed=3, start=[0.1, -0.2, 0.3, -0.4])
     emu = DynamixelEmulator(world, ids=IDS)
-    path = emu.start()
+    path = emu.start().path
     port = DxlPort(path, latency_ms=50)  # the SDK's PortHandler, timeout margin for a loaded host
     assert port.openPort() and port.setBaudRate(1_000_000)
     ph = sdk.PacketHandler(2.0)
@@ -162,17 +162,17 @@ def test_hardware_error_sets_alert_and_torque_off_until_reboot(bus):
     assert ph.read1ByteTxRx(port, 12, 64)[0] == 0  # shutdown: torque off
     assert ph.read1ByteTxRx(port, 12, 70)[0] == 0x20  # overload
     assert ph.write1ByteTxRx(port, 12, 64, 1)[1] == 0x81  # refused until reboot (result fail + alert)
-    assert not world.enabled()[1]
+    assert emu.settled() and not world.enabled()[1]  # (its joint falls: no brake; the world takes its time)
     assert ph.reboot(port, 12)[0] == sdk.COMM_SUCCESS
     assert ph.read1ByteTxRx(port, 12, 70)[:3] == (0, sdk.COMM_SUCCESS, 0)
     assert ph.write1ByteTxRx(port, 12, 64, 1) == (sdk.COMM_SUCCESS, 0)
-    assert world.enabled()[1]
+    assert emu.settled() and world.enabled()[1]
 
 
 def test_wire_timing_delays_answers_by_the_wire_time():
     world = World.default(model="omx")
     emu = DynamixelEmulator(world, ids=IDS, baud=57600, wire_timing=True, return_delay=250)
-    port = DxlPort(emu.start(), latency_ms=50)
+    port = DxlPort(emu.start().path, latency_ms=50)
     try:
         assert port.openPort() and port.setBaudRate(57600)
         ph = sdk.PacketHandler(2.0)

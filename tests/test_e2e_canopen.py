@@ -1,7 +1,9 @@
 """End to end on CANopen (CiA 402 drives on a python-can virtual channel, real canopen library): zero offsets
-recovered within their uncertainty, write-back verified by a held-out check, a drive fault mid-procedure stops
-the robot and keeps the journal."""
+recovered within their uncertainty, write-back (homing on the current position, stored) verified by a held-out
+check and, after a power cycle of the drives, by a verify run whose identified offsets are within 3 sigma of
+zero; a drive fault mid-procedure stops the robot and keeps the journal."""
 
+import time
 
 import pytest
 from station.mocks.launch import launch
@@ -22,7 +24,9 @@ def cell(tmp_path, monkeypatch):
         # waits for the GIL/CPU behind the solver and the station's threads (2009 ms gaps measured); the consumer
         # time is the documented URL option heartbeat_timeout_ms (production default 800 ms is unchanged;
         # tests/test_canopen_faults.py covers heartbeat loss)
-        emu.url += "&heartbeat_timeout_ms=5000&sdo_timeout_ms=2000"  # SDO answers too (sdo_timeout_ms)
+        # SDO answers too (sdo_timeout_ms), and the drives' consumer of the station's heartbeat, a thread of this
+        # process (master_timeout_ms; tests/test_canopen_heartbeat.py covers a lost station)
+        emu.url += "&heartbeat_timeout_ms=5000&sdo_timeout_ms=2000&master_timeout_ms=5000"
         yield emu, cell_path, serial, f"sqlite:///{tmp_path / 'records.db'}"
 
 
@@ -50,8 +54,28 @@ def test_zero_offsets_apply_then_verify(cell):
     assert wb["applied"] and wb["verified"]
     assert all(abs(wb["after"][n] - wb["before"][n] - (p["value"] - p["nominal"])) < 1e-6
                for n, p in out.record["result"]["parameters"].items() if n.startswith("offset.") and p["identifiable"])
+    # the drives' power cycle: what was stored (the zero each homing set) is kept, the rest is lost (the
+    # station's PDO layout, heartbeat settings): the calibration must hold across it
+    emu.emulator.power_cycle()
+    time.sleep(0.05)
+    assert all(d.get(0x1017) == 0 for d in emu.emulator.drives.values())  # volatile settings are gone
     after = start("verify", emu.url, serial, cell=cell_path, db=db)
     assert after.passed, (after.status, after.error, after.record.get("verdict"))
+    # the offsets the verify run's own touches identify (the station's solver on its samples): zero within 3 sigma
+    import numpy as np
+
+    from station.kinematics import load_model
+    from station.solver import Observations, solve
+
+    samples = after.record["samples"]
+    obs = Observations(np.array([x["q"] for x in samples]), np.array([x["point"] for x in samples]), None)
+    res = solve(load_model("arm6"), obs, identify="offsets", reference="unknown")
+    got = 0
+    for name, p in res.parameters.items():
+        if name.startswith("offset.") and p.identifiable:
+            assert abs(p.value - p.nominal) <= 3 * p.std, (name, p.value, p.nominal, p.std)
+            got += 1
+    assert got >= 3
     with open_records(db) as rec:
         ids = {s["session"] for s in rec.sessions(serial)}
     assert {before.session, out.session, after.session} <= ids

@@ -176,3 +176,60 @@ def test_sigterm_stops_the_robot_and_journals_the_interruption(home):
     _, events = read_journal(journal)
     assert events[-1]["type"] == "end" and events[-1]["status"] == "interrupted"
     assert any(e["type"] == "fault" and e["error"] == "Terminated" for e in events)
+
+
+@pytest.mark.slow
+def test_apply_power_cycle_verify(home, monkeypatch):
+    """``zero_offsets --apply``, a power cycle of the servos (EEPROM kept, RAM lost: torque off), ``zero_offsets``
+    again: every offset it identifies is within 3 sigma of zero. A DYNAMIXEL has no brake and its homing offset is
+    EEPROM (written with the torque off): the write-back releases each servo alone, only where gravity's torque on
+    its joint is below what the joint's friction holds (no collision, no joint moved); before the power is cut
+    the arm is parked where no joint carries load (the servos' own Present Current says where), as a technician
+    parks an arm without brakes."""
+    world_path, cell_path, serial = _files(home, seed=35)
+    db = f"sqlite:///{home / 'r.db'}"
+    with launch("dynamixel", world_path, serial=serial) as emu:
+        world = emu.world
+        released: list[tuple[int, float, float]] = []
+        moved: list[float] = []
+        orig = type(world).set_enabled
+
+        def set_enabled(w, on, joints=None):
+            idx = list(range(w.n_joints)) if joints is None else [int(j) for j in np.atleast_1d(joints)]
+            if not on:
+                tau, fr = w.gravity_torque(), w.dynamics_friction()
+                released.extend((j, float(tau[j]), float(fr[j])) for j in idx if w.enabled()[j])
+                set_enabled.q = w.encoder_q().copy()
+            elif getattr(set_enabled, "q", None) is not None:
+                moved.append(float(np.max(np.abs(w.encoder_q() - set_enabled.q))))
+                set_enabled.q = None
+            return orig(w, on, joints)
+        monkeypatch.setattr(type(world), "set_enabled", set_enabled)
+        out = start("zero_offsets", emu.url, serial, cell=cell_path, options=dict(BUS_OPTIONS["dynamixel"]), db=db,
+                    apply=True)
+        assert out.status == "completed" and out.passed, (out.error, out.record["verdict"])
+        wb = out.record["writeback"]
+        assert wb["applied"] and wb["verified"]
+        assert released and all(abs(tau) < fr for _, tau, fr in released), released
+        assert moved and max(moved) <= TICK, moved  # no joint moved while a servo was released
+        assert world.collisions == []
+        monkeypatch.setattr(type(world), "set_enabled", orig)
+        from station.robot import open_robot
+
+        with open_robot(emu.url) as robot:  # the technician parks the arm, then switches the servos off and on
+            while (q := robot.write_pose()) is not None:
+                robot.move_joints(q)
+            parked = world.encoder_q().copy()
+        stored = [emu.emulator.devices[i].get("homing_offset") for i in emu.emulator.joint_ids]
+        emu.emulator.power_cycle()
+        assert np.max(np.abs(world.encoder_q() - parked)) <= TICK
+        assert [emu.emulator.devices[i].get("homing_offset") for i in emu.emulator.joint_ids] == stored
+        again = start("zero_offsets", emu.url, serial, cell=cell_path, options=dict(BUS_OPTIONS["dynamixel"]), db=db)
+    assert again.status == "completed" and again.passed, (again.error, again.record["verdict"])
+    n = 0
+    for name, p in again.record["result"]["parameters"].items():
+        if name.startswith("offset.") and p["identifiable"]:
+            # the servo stores whole ticks: what is left after the write-back is up to half a tick
+            assert abs(p["value"] - p["nominal"]) <= 3 * p["std"] + TICK / 2, (name, p["value"], p["std"])
+            n += 1
+    assert n == 4

@@ -19,7 +19,9 @@ def cell(tmp_path, monkeypatch):
         # waits for the GIL/CPU behind the solver and the station's threads (2009 ms gaps measured); the consumer
         # time is the documented URL option heartbeat_timeout_ms (production default 800 ms is unchanged;
         # tests/test_canopen_faults.py covers heartbeat loss)
-        emu.url += "&heartbeat_timeout_ms=5000&sdo_timeout_ms=2000"  # SDO answers too (sdo_timeout_ms)
+        # SDO answers too (sdo_timeout_ms), and the drives' consumer of the station's heartbeat, a thread of this
+        # process (master_timeout_ms; tests/test_canopen_heartbeat.py covers a lost station)
+        emu.url += "&heartbeat_timeout_ms=5000&sdo_timeout_ms=2000&master_timeout_ms=5000"
         yield emu, cell_path, serial, f"sqlite:///{tmp_path / 'records.db'}"
 
 

@@ -193,7 +193,7 @@ def test_a_jog_session_without_limits_ends_no_limits(rig):
 def test_a_step_below_one_encoder_count_is_refused(tmp_path):
     world = World.default(model="omx", seed=2, start=[0.2, -0.3, 0.4, 0.1])
     emu = DynamixelEmulator(world, ids=[11, 12, 13, 14])
-    path = emu.start()
+    path = emu.start().path
     robot = open_robot(f"dynamixel://{path}?baud=1000000&ids=11-14&model=omx")
     try:
         robot.enable()

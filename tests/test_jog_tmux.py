@@ -102,7 +102,7 @@ def _settle(world, quiet: float = 0.15, timeout: float = 10.0) -> float:
 def rig(tmp_path):
     world = World.default(model="omx", seed=2, start=START, time_mode="realtime")
     emu = DynamixelEmulator(world, ids=[11, 12, 13, 14])
-    path = emu.start()
+    path = emu.start().path
     cell = tmp_path / "cell.yaml"
     cell.write_text(yaml.safe_dump(world.station_cell()))
     home = tmp_path / "home"

@@ -1,6 +1,7 @@
 """``station map plan|build|apply|correct`` end to end: files written the way an instrument or a user writes them,
 the true robot from the simulated world, mm/deg headers giving the SI answer, one-line errors with exit 2."""
 
+import csv
 import json
 import subprocess
 import sys
@@ -18,8 +19,13 @@ FULL = ("x", "y", "z", "rx", "ry", "rz")
 
 
 def read_csv(path):
+    """Header and values of the result columns (apply/correct: those before ``status``, every row ok)."""
     lines = [ln for ln in Path(path).read_text().splitlines() if ln and not ln.startswith("#")]
-    return lines[0].split(","), np.array([[float(v) for v in ln.split(",")] for ln in lines[1:]])
+    head = lines[0].split(",")
+    k = head.index("status") if "status" in head else len(head)
+    rows = [ln.split(",") for ln in lines[1:]]
+    assert all(r[k] == "ok" for r in rows) if k < len(head) else True, lines
+    return head[:k], np.array([[float(v) for v in r[:k]] for r in rows])
 
 
 def write_csv(path, header, rows):
@@ -113,16 +119,11 @@ def test_struts_round_trip_and_units(struts):
 
 
 @pytest.mark.parametrize("content,command,contains", [
-    ("x1,x2\n400,400\n", "correct", ["r.csv:2", "outside the map"]),  # millimetres in an SI column
     ("x1[deg],x2\n0.4,0.4\n", "correct", ["'x1[deg]'", "must be a length"]),
     ("q1,q2\n0.4,0.4\n", "correct", ["missing column 'x1'"]),
     ("x1,x2,x3\n0.4,0.4,0.1\n", "correct", ["wrong columns: x3", "2 actuators"]),
     ("x1,x2\n0.4,abc\n", "correct", ["r.csv:2", "not a number"]),
-    ("x,y\n0.2,0.35\n5,5\n", "apply", ["r.csv:3", "unreachable"]),
-    ("x,y\n0.2,-0.3\n", "apply", ["r.csv:2", "other side of the pivot line"]),
     ("x,y,z\n0.2,0.3,0\n", "apply", ["needs pose columns x,y"]),
-    ("x,y\n0.0,0.5\n", "apply", ["r.csv:2", "unreachable: its inverse kinematics gives x2"]),
-    ("x,y\n0.31875,0.391693\n", "apply", ["r.csv:2", "outside the actuator limits"]),  # strut 1 at 505 mm
 ])
 def test_bad_input_is_one_line_exit_2(struts, content, command, contains):
     d, _ = struts
@@ -133,6 +134,51 @@ def test_bad_input_is_one_line_exit_2(struts, content, command, contains):
     flag = "--joints" if command == "correct" else "--poses"
     one_line_error("map", command, "--model", "struts2", "--map", d / "si.json", flag, f, "--out", d / "o.csv",
                    contains=contains)
+
+
+def test_apply_and_correct_answer_every_row(struts):
+    """A target or reading the map cannot serve gets a status naming why, every other row its command or pose
+    (the same as alone), the input's columns and comments are kept, and the command exits 1 naming how many."""
+    d, w = struts
+    if not (d / "si.json").exists():
+        ok("map", "build", "--model", "struts2", "--samples", d / "m_si.csv", "--out", d / "si.json")
+    good = [[0.2, 0.35], [0.25, 0.4]]
+    bad = {"5,5": "unreachable", "0.2,-0.3": "other side of the pivot line",
+           "0.0,0.5": "unreachable: its inverse kinematics gives x2",
+           "0.31875,0.391693": "unreachable: x1 0.5045 m above 0.5 m"}  # strut 1 at 505 mm
+    f = d / "mixed.csv"
+    rows = [("A", *good[0]), ("B", "5", "5"), ("C", "0.2", "-0.3"), ("D", *good[1]), ("E", "0.0", "0.5"),
+            ("F", "0.31875", "0.391693")]
+    f.write_text("# targets of line 3\nlabel,x,y\n" + "".join(f"{a},{b},{c}\n" for a, b, c in rows))
+    rc, out, err = station("map", "apply", "--model", "struts2", "--map", d / "si.json", "--poses", f, "--out",
+                           d / "mixed_out.csv")
+    assert rc == 1, err
+    assert err[0].startswith("station: 4 of 6 targets have no command"), err
+    text = (d / "mixed_out.csv").read_text().splitlines()
+    assert text[0] == "# targets of line 3" and text[1] == "x1,x2,status,label,x,y"
+    cells = list(csv.reader(text[2:]))
+    assert [c[3] for c in cells] == list("ABCDEF") and [c[4:] for c in cells] == [[str(a), str(b)] for _, a, b in rows]
+    for c in cells:
+        key = f"{c[4]},{c[5]}"
+        if key in bad:
+            assert c[0] == c[1] == "" and bad[key] in c[2], c
+        else:
+            assert c[2] == "ok" and c[0] and c[1], c
+    # the served rows are what they are alone
+    alone = d / "good.csv"
+    write_csv(alone, ["x", "y"], good)
+    ok("map", "apply", "--model", "struts2", "--map", d / "si.json", "--poses", alone, "--out", d / "good_out.csv")
+    _, c_alone = read_csv(d / "good_out.csv")
+    served = np.array([[float(v) for v in c[:2]] for c in cells if c[2] == "ok"])
+    np.testing.assert_allclose(served, c_alone, atol=1e-12)
+    # correct: a reading outside the map gets its status; exit 1
+    (d / "readings.csv").write_text("x1,x2\n0.4,0.4\n400,400\n")
+    rc, _, err = station("map", "correct", "--model", "struts2", "--map", d / "si.json", "--joints",
+                         d / "readings.csv", "--out", d / "poses_out.csv")
+    assert rc == 1 and "1 of 2 readings have no pose" in err[0], err
+    lines = list(csv.reader((d / "poses_out.csv").read_text().splitlines()))
+    assert lines[0] == ["x", "y", "status", "x1", "x2"] and lines[1][2] == "ok"
+    assert lines[2][:2] == ["", ""] and "outside the map" in lines[2][2] and lines[2][3:] == ["400", "400"], lines
 
 
 def test_bad_maps_samples_and_options_are_one_line(struts, tmp_path):

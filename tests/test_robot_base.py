@@ -80,7 +80,8 @@ def test_options_refuse_with_one_line_naming_url_and_option(query, words):
 
 
 @pytest.mark.parametrize("driver,page", [("dynamixel", "hardware-dynamixel.md"),
-                                         ("canopen+virtual", "hardware-canopen.md"), ("ur", "hardware-ur.md")])
+                                         ("canopen+virtual", "hardware-canopen.md"), ("ur", "hardware-ur.md"),
+                                         ("franka", "hardware-franka.md")])
 def test_hardware_pages_show_the_drivers_option_spec(driver, page):
     """The URL option table in each hardware page is the one the driver declares (``Options.markdown()``)."""
     table = registry_module.driver_class(driver).options.markdown()
@@ -204,7 +205,8 @@ def test_a_live_robot_is_a_robot_and_reports_its_capabilities(emulators):
 # ---- registry ----------------------------------------------------------------------------------------------
 def test_builtin_drivers_come_from_entry_points():
     assert {"dynamixel", "canopen+virtual", "canopen+socketcand", "ur"} <= set(schemes())
-    with pytest.raises(ConfigError, match=r"ttyS0'?: unknown scheme 'serial'; known: canopen\+socketcand"):
+    known = r"known: canopen\+ixxat.*canopen\+socketcand"
+    with pytest.raises(ConfigError, match=r"ttyS0'?: unknown scheme 'serial'; " + known):
         open_robot("serial:///dev/ttyS0")
 
 

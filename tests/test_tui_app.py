@@ -259,7 +259,9 @@ def test_failed_writeback_is_journaled_and_restored(rig):
             original = robot.read_calibration()
             await pilot.press("W")
             assert app.screen.__class__.__name__ == "WritebackScreen"
-            world.faults.inject("timeout", device=4)  # drive 4 goes silent for 2 s: its SDO write fails
+            # drive 4 goes silent for 2 s as its store command (0x1010) reaches it: every drive has taken its new zero
+            # (homing on the current position), drives 1-3 have stored it, drive 4's store fails
+            world.faults.inject("timeout", device=4, trigger={"sdo": {"node": 4, "index": 0x1010, "op": "write"}})
             await pilot.pause(0.05)
             await pilot.press("y")
             await settle(pilot, app)
@@ -281,7 +283,7 @@ def test_failed_writeback_is_journaled_and_restored(rig):
             await settle(pilot, app)
             assert app.screen.__class__.__name__ == "WritebackScreen" and app.screen.plan.kind == "restore"
             assert app.screen.plan.after == original
-            assert app.screen.plan.before != original  # drives 2 and 3 took new offsets before drive 4 failed
+            assert app.screen.plan.before != original  # the drives took new zeros before drive 4's store failed
             await pilot.press("y")
             await settle(pilot, app)
             assert not ctl.writeback_failed and "restored" in ctl.message

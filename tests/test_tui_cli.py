@@ -39,7 +39,7 @@ def test_serial_and_identify_checked_before_any_session(tmp_path):
     from station.mocks.world import World
 
     emu = DynamixelEmulator(World.default(model="omx", seed=1), ids=[11, 12, 13, 14])
-    path = emu.start()
+    path = emu.start().path
     try:
         # a serial the URL configures must match (a serial derived from servo ids is no robot serial)
         p = _station("jog", "--robot", f"dynamixel://{path}?ids=11-14&model=omx&serial=OMX-7", "--serial",
@@ -62,7 +62,7 @@ def test_jog_without_serial_and_without_a_terminal_is_refused(tmp_path):
     from station.mocks.world import World
 
     emu = DynamixelEmulator(World.default(model="omx", seed=2), ids=[11, 12, 13, 14])
-    path = emu.start()
+    path = emu.start().path
     try:
         p = _station("jog", "--robot", f"dynamixel://{path}?ids=11-14&model=omx", cwd=tmp_path)
     finally:

@@ -30,7 +30,7 @@ def rig(tmp_path, monkeypatch):
     world = World.default(model="omx", seed=4, start=START, cell=cell,
                           errors={"explicit": {"offset.j2": 0.01, "offset.j3": -0.008}})
     emu = DynamixelEmulator(world, ids=[11, 12, 13, 14])
-    path = emu.start()
+    path = emu.start().path
     robot, ctl = open_jog(f"dynamixel://{path}?baud=1000000&ids=11-14&contact=200", model="omx",
                           identify="offsets", serial="OMX-7")
     yield world, robot, ctl

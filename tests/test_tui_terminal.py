@@ -50,7 +50,7 @@ def _drain(fd: int, seconds: float) -> None:
 def test_station_jog_in_a_terminal(tmp_path):
     world = World.default(model="omx", seed=2, start=START)
     emu = DynamixelEmulator(world, ids=[11, 12, 13, 14])
-    path = emu.start()
+    path = emu.start().path
     master, slave = os.openpty()
     env = {**os.environ, "STATION_HOME": str(tmp_path / "home"), "TERM": "xterm-256color", "COLUMNS": "140",
            "LINES": "45"}

@@ -8,7 +8,7 @@ import sys
 # a slower SYNC and a longer heartbeat consumer time (driver URL options): the CI machine is shared; no contact
 # input (the map cell measures with the tracker): subscribed, the emulator works out the world's true, gravity-
 # deflected tip for that input's TPDO every 10 ms (~3/4 of the emulator's CPU with a compliant arm)
-ROBOT_OPTIONS = "&sync_ms=20&heartbeat_timeout_ms=5000&sdo_timeout_ms=2000&contact=none"
+ROBOT_OPTIONS = "&sync_ms=20&heartbeat_timeout_ms=5000&sdo_timeout_ms=2000&master_timeout_ms=5000&contact=none"
 
 
 class TrackerProcess:

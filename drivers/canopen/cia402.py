@@ -5,10 +5,14 @@ from __future__ import annotations
 
 CW_SHUTDOWN, CW_SWITCH_ON, CW_ENABLE, CW_QUICK_STOP, CW_FAULT_RESET = 0x06, 0x07, 0x0F, 0x02, 0x80
 CW_NEW_SETPOINT, CW_IMMEDIATE, CW_HALT = 0x10, 0x20, 0x100
+CW_HOMING_START = 0x10  # bit 4 in homing mode: its rising edge starts the homing
 SW_TARGET_REACHED, SW_SETPOINT_ACK = 1 << 10, 1 << 12
-MODE_PP, MODE_PT = 1, 4  # profile position, profile torque
-COMPLIANT_TORQUE = 50  # per mille of rated torque while seating in a socket
+SW_HOMING_ATTAINED, SW_HOMING_ERROR = 1 << 12, 1 << 13  # bits 12/13 in homing mode (bit 10: not running)
+MODE_PP, MODE_PT, MODE_HM = 1, 4, 6  # profile position, profile torque, homing
+HOMING_CURRENT_POSITION = (37, 35)  # CiA 402 "homing on the current position": 37, and 35 in older editions
+SUPPORTS_HOMING = 1 << 5  # 0x6502 supported drive modes: bit 5 homing mode
 SAVE = 0x65766173  # "save" written to 0x1010 stores the parameters
+STORE_APPLICATION = 3  # 0x1010:03 saves the application parameters (CiA 301: 0x6000-0x9FFF)
 CONTACT_BIT = 16  # bit of 0x60FD digital inputs wired to the cell's contact input
 
 STATES = (("NOT READY TO SWITCH ON", 0x4F, 0x00), ("SWITCH ON DISABLED", 0x4F, 0x40),

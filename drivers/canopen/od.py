@@ -70,3 +70,20 @@ def standard_od(node_id: int) -> od.ObjectDictionary:
                                  [(0, "Number of mapped objects", U8, "rw")]
                                  + [(k, f"Mapped object {k}", U32, "rw") for k in range(1, 9)], array=True))
     return d
+
+
+def master_od(node_id: int) -> od.ObjectDictionary:
+    """The station's own node on the bus (a ``canopen.LocalNode``): a CiA 301 heartbeat producer, so each drive's
+    heartbeat consumer (0x1016) can watch the station and stop its joint when the station is gone."""
+    d = od.ObjectDictionary()
+    d.node_id = node_id
+    for obj in (
+        _var("Device type", 0x1000, 0, dt.UNSIGNED32, "ro"),
+        _var("Error register", 0x1001, 0, dt.UNSIGNED8, "ro"),
+        _var("Producer heartbeat time", 0x1017, 0, dt.UNSIGNED16),
+    ):
+        d.add_object(obj)
+    d[0x1000].default = 0  # a master, no device profile
+    d[0x1001].default = 0
+    d[0x1017].default = 0
+    return d

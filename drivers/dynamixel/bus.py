@@ -2,7 +2,11 @@
 
 Every transaction goes through :meth:`DxlBus._transact`: COMM_RX_TIMEOUT / COMM_RX_CORRUPT (and a busy
 port left behind by a failed call) are retried ``retries`` times, then raised as ``ConnectionLost``
-(nothing answered) or ``BusError`` (answers were damaged)."""
+(nothing answered) or ``BusError`` (answers were damaged).
+
+Status Return Level (68): a device below 2 answers no write and no reboot (e-Manual, Status Return Level;
+Protocol 2.0): :attr:`DxlBus.status_level` per id makes :meth:`write` and :meth:`reboot` send without waiting
+for a status that will not come (the caller reads back what it wrote)."""
 
 from __future__ import annotations
 
@@ -64,6 +68,7 @@ class DxlBus:
         self.ph = sdk.PacketHandler(2.0)
         self.transactions = 0  # instruction packets sent (retries included)
         self.retried = 0
+        self.status_level: dict[int, int] = {}  # Status Return Level (68) per id, as read at connect (default 2)
         self._lock = threading.RLock()  # one transaction at a time (a UI may poll status while jogging)
         try:
             ok = self.port.openPort() and self.port.setBaudRate(int(baud))
@@ -117,28 +122,56 @@ class DxlBus:
             return res, model, err
         return self._transact(f"ping id {dxl_id}", call, retry)
 
-    def read(self, dxl_id: int, addr: int, size: int, signed: bool = False) -> tuple[int, int]:
-        """``(value, error)`` of a 1/2/4-byte item."""
-        fn = {1: self.ph.read1ByteTxRx, 2: self.ph.read2ByteTxRx, 4: self.ph.read4ByteTxRx}[size]
-
+    def read_block(self, dxl_id: int, addr: int, size: int, retry: bool = True) -> tuple[bytes, int]:
+        """``(data, error)`` of ``size`` bytes from ``addr`` (one Read instruction). An answer of another length
+        is a corrupt one (retried): a status that came too late for an earlier instruction of this id carries the
+        same id and would otherwise pass for this one (Protocol 2.0 has no sequence number)."""
         def call():
-            value, res, err = fn(self.port, dxl_id, addr)
-            return res, value, err
-        value, err = self._transact(f"read id {dxl_id} address {addr}", call)
-        return (_signed(value, size) if signed else value), err
+            data, res, err = self.ph.readTxRx(self.port, dxl_id, addr, size)
+            if res == sdk.COMM_SUCCESS and len(data or ()) != size:
+                return sdk.COMM_RX_CORRUPT, b"", err
+            return res, bytes(data or b""), err
+        return self._transact(f"read id {dxl_id} address {addr}" + (f"+{size}" if size > 4 else ""), call, retry)
 
-    def write(self, dxl_id: int, addr: int, size: int, value: int) -> int:
-        """Write with status; returns the status error byte."""
-        fn = {1: self.ph.write1ByteTxRx, 2: self.ph.write2ByteTxRx, 4: self.ph.write4ByteTxRx}[size]
+    def read(self, dxl_id: int, addr: int, size: int, signed: bool = False, retry: bool = True) -> tuple[int, int]:
+        """``(value, error)`` of a 1/2/4-byte item."""
+        data, err = self.read_block(dxl_id, addr, size, retry)
+        return int.from_bytes(data, "little", signed=signed), err
+
+    def answers_writes(self, dxl_id: int) -> bool:
+        return self.status_level.get(dxl_id, 2) >= 2
+
+    def write(self, dxl_id: int, addr: int, size: int, value: int, retry: bool = True) -> int:
+        """Write; returns the status error byte, or 0 from a device whose Status Return Level sends none for a
+        write (then only a read-back tells whether it took the value)."""
         v = int(value) & ((1 << (8 * size)) - 1)
+        if not self.answers_writes(dxl_id):
+            tx = {1: self.ph.write1ByteTxOnly, 2: self.ph.write2ByteTxOnly, 4: self.ph.write4ByteTxOnly}[size]
+            self._transact(f"write id {dxl_id} address {addr}", lambda: (tx(self.port, dxl_id, addr, v),))
+            return 0
+        fn = {1: self.ph.write1ByteTxRx, 2: self.ph.write2ByteTxRx, 4: self.ph.write4ByteTxRx}[size]
 
         def call():
             res, err = fn(self.port, dxl_id, addr, v)
             return res, err
-        (err,) = self._transact(f"write id {dxl_id} address {addr}", call)
+        (err,) = self._transact(f"write id {dxl_id} address {addr}", call, retry)
         return err
 
     def reboot(self, dxl_id: int) -> int:
+        """Reboot instruction; its status only from a device at Status Return Level 2 (else 0, nothing awaited)."""
+        if not self.answers_writes(dxl_id):
+            packet = [0] * 10  # the SDK's own packet layout: header, id, length 3, instruction, CRC (txPacket)
+            packet[sdk.protocol2_packet_handler.PKT_ID] = dxl_id
+            packet[sdk.protocol2_packet_handler.PKT_LENGTH_L] = 3
+            packet[sdk.protocol2_packet_handler.PKT_INSTRUCTION] = sdk.INST_REBOOT
+
+            def send():
+                res = self.ph.txPacket(self.port, packet)
+                self.port.is_using = False
+                return (res,)
+            self._transact(f"reboot id {dxl_id}", send)
+            return 0
+
         def call():
             res, err = self.ph.reboot(self.port, dxl_id)
             return res, err

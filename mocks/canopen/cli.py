@@ -39,28 +39,36 @@ def build(world_file: Path | None, model: str, seed: int, nodes: str | None, con
 def register(mock_app: typer.Typer) -> None:
     @mock_app.command("canopen")
     def canopen(
-        nodes: str = typer.Option(None, "--nodes", help="node ids in joint order, e.g. 1-6 (default 1..n)"),
+        nodes: str = typer.Option(None, "--nodes", help="Node ids in joint order, e.g. 1-6 (default 1..n)"),
         world: Path = WORLD,
-        model: str = typer.Option("arm6", "--model", help="model of the default world"),
+        model: str = typer.Option("arm6", "--model", help="Model of the default world"),
         seed: int = SEED,
-        host: str = typer.Option("127.0.0.1", "--host", help="address the socketcand hub listens on"),
+        host: str = typer.Option("127.0.0.1", "--host", help="Address the socketcand hub listens on"),
         port: int = typer.Option(29536, "--port", help="TCP port of the socketcand hub (0: any free port)"),
-        bus: str = typer.Option("can0", "--channel", help="bus name clients open (python-can channel)"),
-        contact: str = typer.Option(None, "--contact-node", help="node with the contact input (default: last; "
+        bus: str = typer.Option("can0", "--channel", help="Bus name clients open (python-can channel)"),
+        contact: str = typer.Option(None, "--contact-node", help="Node with the contact input (default: last; "
                                                                  "'none': no contact input)"),
         store: Path = typer.Option(None, "--store", help="JSON file keeping parameters saved with 0x1010 "
                                                          "across emulator restarts"),
+        exit_with_parent: bool = typer.Option(False, "--exit-with-parent", help="Stop when the process that "
+                                              "started this one ends (tests: no orphan after a crash)."),
+        error_mask: str = typer.Option("0", "--error-mask", help="CAN error classes the hub forwards (hex, as "
+                                       "socketcand -e; default 0: none, as socketcand)"),
     ) -> None:
         """Emulated CiA 402 servo drives behind a socketcand hub; prints host:port, channel and robot URL."""
         from station.mocks.canopen.hub import SocketcandHub
 
+        try:
+            mask = int(error_mask, 16)
+        except ValueError:
+            raise MockError(f"--error-mask {error_mask!r}: expected a hexadecimal mask such as 0x1FFFFFFF") from None
         internal = f"station-canopen-{os.getpid()}"
         emu = build(world, model, seed, nodes, contact, store, internal)
         done = threading.Event()
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: done.set())
         emu.start()
-        hub = SocketcandHub(internal, host=host, port=port, name=bus)
+        hub = SocketcandHub(internal, host=host, port=port, name=bus, error_mask=mask)
         try:
             hub.start()
         except OSError as e:
@@ -72,8 +80,10 @@ def register(mock_app: typer.Typer) -> None:
                    f"&model={emu.world.nominal.name}")
             sys.stdout.write(f"socketcand {host}:{hub.port} channel {bus} url {url}\n")
             sys.stdout.flush()
+            parent = os.getppid()
             while not done.wait(0.5):
-                pass
+                if exit_with_parent and os.getppid() != parent:
+                    break
         finally:
             hub.stop()
             emu.stop()

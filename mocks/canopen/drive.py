@@ -1,17 +1,21 @@
 """One emulated CiA 402 servo drive: a ``canopen.LocalNode`` loaded from the shipped EDS, plus the glue
-LocalNode lacks (402 state machine, profile position/velocity/torque, PDO engine, NMT with boot-up,
-EMCY, store/restore parameters).
+LocalNode lacks (402 state machine, profile position/velocity/torque, homing, PDO engine, NMT with boot-up,
+heartbeat consumer, EMCY, store/restore parameters).
 
-Position convention (documented in docs/hardware-canopen.md): the drive reports
-``0x6064 = round(encoder.to_counts(q_raw)) + 0x607C`` where ``q_raw`` is the world's encoder position
-of this joint; so with the station's ``q = encoder.to_si(0x6064)`` the reported joint value is
-``q_raw + direction * home_offset / (counts_per_unit * gear)``, which is the write-back contract of
-docs/architecture.md (``offset.jN`` = that SI value). Targets (0x607A) are in the same offset frame.
-The drive keeps its internal target in raw counts, so changing the home offset never moves the joint.
+Position frame (docs/hardware-canopen.md, "Position, homing and the write-back contract"): the encoder gives
+``0x6063 = E`` (position actual internal value, increments; Nanotec: "not set to 0 following a Homing
+operation"), ``E = round(counts(q_raw)) - origin`` where ``q_raw`` is the world's encoder position, ``counts``
+the drive's own resolution (0x608F, 0x6091) and ``origin`` the count at power-up of an incremental encoder (0
+for an absolute one). The drive reports ``0x6064 = E + Z`` where ``Z`` (0x2001, the homing result) is set only
+when a homing completes: homing method 35/37 ("current position") makes ``0x6064`` equal to the home offset
+0x607C at the present position (or to minus it: the world's ``home_offset: zero`` convention). Writing 0x607C
+changes nothing until then. Targets (0x607A) are in the 0x6064 frame; the drive keeps its internal target in
+raw counts, so a homing never moves the joint.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import struct
 import threading
@@ -24,13 +28,20 @@ import canopen
 from canopen.sdo import SdoAbortedError
 from station.mocks.canopen.eds import (
     CONTACT_INPUT_BIT,
+    DEFAULT_TORQUE_LIMIT,
     EDS_PATH,
     LOAD_SIGNATURE,
+    POSITION_OFFSET,
     SAVE_SIGNATURE,
+    UNIT_INC,
+    UNIT_INC_PER_S,
+    UNIT_RPM,
 )
 
 if TYPE_CHECKING:
     from station.mocks.canopen.emulator import CanopenEmulator
+
+log = logging.getLogger("station.mocks.canopen")
 
 # 402 states (names as canopen.profiles.p402 spells them) and their statusword bits (incl. voltage
 # enabled, bit 4, from READY TO SWITCH ON on)
@@ -40,11 +51,19 @@ NOT_READY, SOD, RTSO, SO, OE, QSA, FRA, FAULT = (
 STATE_BITS = {NOT_READY: 0x0000, SOD: 0x0040, RTSO: 0x0031, SO: 0x0033, OE: 0x0037, QSA: 0x0017,
               FRA: 0x001F, FAULT: 0x0018}
 SW_REMOTE, SW_TARGET_REACHED, SW_LIMIT, SW_SETPOINT_ACK = 1 << 9, 1 << 10, 1 << 11, 1 << 12
+SW_HOMING_ATTAINED, SW_HOMING_ERROR = 1 << 12, 1 << 13  # the same bits in homing mode (CiA 402 homing)
 CW_NEW_SETPOINT, CW_IMMEDIATE, CW_RELATIVE, CW_FAULT_RESET, CW_HALT = 0x10, 0x20, 0x40, 0x80, 0x100
+CW_HOMING_START = 0x10  # bit 4 in homing mode: a rising edge starts the homing
 
-MODE_PP, MODE_PV, MODE_PT = 1, 3, 4
-SUPPORTED = {0, MODE_PP, MODE_PV, MODE_PT}
-COMPLIANT_TORQUE = 300  # per mille: |0x6071| at or below this in profile torque mode = compliant seating
+MODE_PP, MODE_PV, MODE_PT, MODE_HM = 1, 3, 4, 6
+SUPPORTED = {0, MODE_PP, MODE_PV, MODE_PT, MODE_HM}
+HOMING_CURRENT_POSITION = (35, 37)  # CiA 402 homing on the current position (35 in older editions, then 37)
+HOMING_METHODS = {0, *HOMING_CURRENT_POSITION}  # what 0x6098 accepts here (0: no method assigned)
+ABORT_REACTIONS = {0: "none", 1: "fault", 2: "disable voltage", 3: "quick stop"}  # 0x6007
+# objects whose value the drive computes on every read (``_on_read``), not a stored parameter
+COMPUTED = frozenset({0x1001, 0x1003, 0x1010, 0x1011, 0x603F, 0x6041, 0x6061, 0x6062, 0x6063, 0x6064, 0x606C,
+                      0x6077, 0x60FD})
+EMCY_HEARTBEAT = 0x8130  # CiA 301: life guard error or heartbeat error
 
 # NMT states (CiA 301 heartbeat values)
 INITIALISING, STOPPED, OPERATIONAL, PRE_OPERATIONAL = 0, 4, 5, 127
@@ -57,6 +76,7 @@ ABORT_RANGE = 0x06090030  # value range of parameter exceeded
 ABORT_NOT_MAPPABLE = 0x06040041
 ABORT_PDO_LENGTH = 0x06040042
 ABORT_STATE = 0x08000022  # not in the present device state
+ABORT_INCOMPATIBLE = 0x06040043  # general parameter incompatibility (two 0x1016 entries for one node)
 
 
 @dataclass
@@ -93,14 +113,24 @@ class Drive402:
     the emulator (``emu``), which owns the bus and the scheduler thread."""
 
     def __init__(self, emu: CanopenEmulator, node_id: int, joint: int, encoder, serial: int,
-                 contact_wired: bool = False) -> None:
+                 contact_wired: bool = False, *, incremental: bool = False, resolution: float | None = None,
+                 velocity_unit: int = UNIT_INC_PER_S, rated_torque: float = 1.0) -> None:
         self.emu = emu
         self.id = node_id
         self.joint = joint
         self.encoder = encoder
         self.serial = serial
         self.contact_wired = contact_wired
+        self.incremental = incremental  # counts from where it powered up (no battery, no absolute encoder)
+        revolute = emu.world.nominal.joints[joint].kind == "revolute"
+        model_res = abs(encoder.counts_per_unit) * 2 * math.pi if revolute else None  # counts per motor rev
+        # drive increments per model count: the drive's own resolution (0x608F) against the model's encoder
+        self.resolution = float(resolution) if resolution and revolute else model_res
+        self.scale = self.resolution / model_res if revolute else 1.0
+        self.velocity_unit0 = velocity_unit
+        self.rated_torque = float(rated_torque)  # N m (N) at the joint = 1000 per mille
         self.lock = threading.RLock()
+        self._objects: dict[tuple[int, int], object] = {}
         self.node = DriveNode(node_id, self)
         # NMT and heartbeat are ours (boot-up on reset, first heartbeat one period after boot-up)
         self.node._write_callbacks.remove(self.node.nmt.on_write)
@@ -114,19 +144,39 @@ class Drive402:
         self.sp_ack = False
         self.limit_active = False
         self.halted = False
-        self.target_raw: float | None = None  # internal target, raw counts (before home offset)
+        self.target_raw: float | None = None  # internal target, raw drive counts (before origin and homing)
+        self.origin = 0  # raw count at power-up of an incremental encoder (0x6063 starts at 0 there)
+        self.referenced = True  # the position means the same as before power-off (absolute) or was homed
+        self.homing_error = False
+        self.last_mode = 0  # 0x6060 as the drive last switched to it
         self.fault_code = 0
         self.errors: list[int] = []  # 0x1003, newest first
         self.tpdos: list[PdoConfig] = []
         self.rpdos: list[PdoConfig] = []
         self.hb_next = math.inf
         self.bootup_due = math.inf
+        # heartbeat consumer (0x1016): producer node -> own-clock time of its last heartbeat (None: not yet seen,
+        # monitoring starts with the first one); producers whose consumer time ran out (until the next one)
+        self.hb_seen: dict[int, float | None] = {}
+        self.hb_lost: set[int] = set()
         self._batch: list[int] | None = None
 
     # ---- object dictionary helpers -------------------------------------------------------------
     def get(self, index: int, sub: int = 0):
-        obj = self.node._find_object(index, sub)
-        return obj.decode_raw(self.node.get_data(index, sub))
+        """A parameter's value as an SDO read would give it. Stored parameters are the hot path of every SYNC:
+        their object is looked up once and the read callbacks are run only for the values the drive computes."""
+        key = (index, sub)
+        obj = self._objects.get(key)
+        if obj is None:
+            obj = self._objects[key] = self.node._find_object(index, sub)
+        if index in COMPUTED:
+            return obj.decode_raw(self.node.get_data(index, sub))
+        data = self.node.data_store.get(index, {}).get(sub)
+        if data is None:
+            if obj.default is None:
+                return obj.decode_raw(self.node.get_data(index, sub))
+            return obj.default
+        return obj.decode_raw(data)
 
     def put(self, index: int, value, sub: int = 0) -> None:
         """Set a value without running the write effects (the drive's own bookkeeping)."""
@@ -138,6 +188,16 @@ class Drive402:
         return int(self.get(0x607C))
 
     @property
+    def position_offset(self) -> int:
+        """Z: what the last completed homing added to the encoder count (0x2001)."""
+        return int(self.get(POSITION_OFFSET))
+
+    @property
+    def frame(self) -> int:
+        """0x6064 = raw count + frame."""
+        return self.position_offset - self.origin
+
+    @property
     def mode(self) -> int:
         return int(self.get(0x6060))
 
@@ -146,13 +206,23 @@ class Drive402:
 
     # ---- power and NMT ------------------------------------------------------------------------
     def power_on(self) -> None:
-        """Power-up / NMT reset node: volatile values back to stored-or-default, boot-up after a short delay."""
+        """Power-up / NMT reset node: volatile values back to stored-or-default, boot-up after a short delay.
+        An absolute encoder keeps its count (and the stored homing result applies); an incremental one starts
+        counting at 0 where the joint stands, unreferenced until homed."""
         with self.lock:
             self.node.data_store = {}
             for (index, sub), data in self.stored.items():
                 self.node.data_store.setdefault(index, {})[sub] = data
             self._identity_values()
             self.silent_until = 0.0
+            if self.incremental:
+                self.origin = int(round(self.counts_of(self.emu.snap(max_age=0.0).q[self.joint])))
+                self.put(POSITION_OFFSET, 0)
+                self.referenced = False
+            else:
+                self.origin = 0
+                self.referenced = True
+            self.homing_error = False
             self._reset_402()
             self._begin_boot()
 
@@ -169,18 +239,22 @@ class Drive402:
     def _identity_values(self) -> None:
         self.put(0x1018, self.serial, 4)
         self.put(0x2000, int(self.contact_wired))
+        self.put(0x6076, max(1, int(round(self.rated_torque / abs(float(self.encoder.gear)) * 1000))))
         if getattr(self.emu, "device_type", None) is not None:
             self.put(0x1000, self.emu.device_type)
+        if (0x60A9, 0) not in self.stored:
+            self.put(0x60A9, self.velocity_unit0)
         if self.emu.world.nominal.joints[self.joint].kind == "revolute" and (0x608F, 1) not in self.stored:
-            # the drive's own scaling is the motor the world's joint is built with
+            # the drive's own scaling: its encoder's increments per motor revolution and the world joint's gear
             gear = Fraction(float(self.encoder.gear)).limit_denominator(1000)
-            self.put(0x608F, round(abs(self.encoder.counts_per_unit) * 2 * math.pi), 1)
+            self.put(0x608F, round(self.resolution), 1)
             self.put(0x608F, 1, 2)
             self.put(0x6091, abs(gear.numerator), 1)
             self.put(0x6091, gear.denominator, 2)
 
     def _reset_402(self) -> None:
         self.last_cw = 0
+        self.last_mode = int(self.get(0x6060))
         self.sp_ack = self.limit_active = self.halted = False
         self.target_raw = None
         self.fault_code = 0
@@ -192,6 +266,7 @@ class Drive402:
     def _begin_boot(self) -> None:
         self.nmt = INITIALISING
         self.hb_next = math.inf
+        self._consumer_changed()
         self.rebuild_pdos()
         self.bootup_due = time.monotonic() + self.emu.boot_delay
         self.emu.wake()
@@ -225,24 +300,109 @@ class Drive402:
             elif command == 130:
                 self.reset_communication()
 
+    # ---- heartbeat consumer (0x1016) ------------------------------------------------------------
+    def _consumer_changed(self) -> None:
+        """Monitoring of a producer starts with its first heartbeat after it was configured (CiA 301; Lenze
+        8400: "the boot-up telegram counts as the first heartbeat telegram")."""
+        entries = self.consumers()
+        self.hb_seen = {n: self.hb_seen.get(n) for n in entries}
+        self.hb_lost &= set(entries)
+
+    def consumers(self) -> dict[int, float]:
+        """Producer node id -> consumer time (s) of every active 0x1016 entry."""
+        out = {}
+        for k in range(1, int(self.get(0x1016, 0)) + 1):
+            v = int(self.get(0x1016, k))
+            node, ms = (v >> 16) & 0x7F, v & 0xFFFF
+            if node and ms:
+                out[node] = ms / 1000.0
+        return out
+
+    def on_heartbeat(self, producer: int, now: float) -> None:
+        if producer in self.hb_seen:
+            self.hb_seen[producer] = now
+            self.hb_lost.discard(producer)
+
+    def check_consumers(self, now: float) -> None:
+        """A producer silent longer than its consumer time: heartbeat event (once until it is heard again):
+        EMCY 0x8130, 0x1029 communication error behaviour, then the CiA 402 abort connection reaction 0x6007.
+        Without a 0x1016 entry nothing happens: the drive keeps going (Lenze: response "No response")."""
+        for producer, limit in self.consumers().items():
+            seen = self.hb_seen.get(producer)
+            if seen is None or producer in self.hb_lost or now - seen <= limit:
+                continue
+            self.hb_lost.add(producer)
+            log.info("canopen emulator: node %d: heartbeat of node %d not heard for %.3f s of its own time "
+                     "(consumer time %.3f s)", self.id, producer, now - seen, limit)
+            self.heartbeat_event(producer)
+
+    def heartbeat_event(self, producer: int) -> None:
+        with self.lock:
+            self.send_emcy(EMCY_HEARTBEAT, 0x11)  # generic + communication error
+            behaviour = int(self.get(0x1029, 1))
+            if behaviour == 0 and self.nmt == OPERATIONAL:
+                self.nmt = PRE_OPERATIONAL
+            elif behaviour == 2:
+                self.nmt = STOPPED
+            reaction = int(self.get(0x6007))
+            if reaction == 1:
+                self.fault(EMCY_HEARTBEAT)
+            elif reaction == 2 and self.state in (RTSO, SO, OE, QSA):
+                self._enter(SOD)
+            elif reaction == 3 and self.state == OE:
+                self._enter(QSA)
+            elif reaction == 3 and self.state in (RTSO, SO):
+                self._enter(SOD)
+
+    # ---- the position frame -------------------------------------------------------------------
+    def counts_of(self, q: float) -> float:
+        """Raw drive increments of world encoder position ``q`` (absolute, before origin and homing)."""
+        return float(self.encoder.to_counts(q)) * self.scale
+
+    def q_of(self, counts: float) -> float:
+        return float(self.encoder.to_si(counts / self.scale))
+
+    def raw_counts(self) -> float:
+        return self.counts_of(self.emu.snap().q[self.joint])
+
+    def internal_value(self) -> int:
+        """0x6063: the encoder count, incremental ones from where they powered up; homing does not change it."""
+        return int(round(self.raw_counts())) - self.origin
+
+    def position_actual(self) -> int:
+        value = int(round(self.raw_counts())) + self.frame
+        return max(-(1 << 31), min((1 << 31) - 1, value))
+
+    def velocity_factor(self) -> float:
+        """Drive increments per second in one unit of 0x60A9 (0x6081, 0x607F, 0x60FF, 0x606C)."""
+        unit = int(self.get(0x60A9))
+        exponent = struct.unpack("b", bytes([unit >> 24 & 0xFF]))[0]
+        if unit & 0x00FFFFFF == UNIT_RPM:
+            return self.resolution / 60.0 * 10.0 ** exponent if self.resolution else 10.0 ** exponent / 60.0
+        return 10.0 ** exponent
+
     # ---- reads --------------------------------------------------------------------------------
     def _on_read(self, index: int, subindex: int, od) -> int | None:
         if index == 0x6041:
             return self.statusword()
         if index == 0x6064:
             return self.position_actual()
+        if index == 0x6063:
+            return self.internal_value()
         if index == 0x6061:
             return self.mode
         if index == 0x6062:
-            return int(round(self.target_raw)) + self.home_offset if self.target_raw is not None \
+            return int(round(self.target_raw)) + self.frame if self.target_raw is not None \
                 else self.position_actual()
         if index == 0x606C:
-            return int(round(self.encoder.to_counts(self.emu.snap().qd[self.joint]) - self.encoder.zero))
+            qd = self.emu.snap().qd[self.joint]
+            return int(round(float(self.encoder.to_counts(qd) - self.encoder.zero) * self.scale
+                             / self.velocity_factor()))
         if index == 0x60FD:
             contact = self.contact_wired and self.emu.snap().contact
             return (1 << CONTACT_INPUT_BIT) if contact else 0
         if index == 0x6077:
-            return int(self.get(0x6071)) if self.state == OE and self.mode == MODE_PT else 0
+            return self.torque_actual()
         if index == 0x603F:
             return self.fault_code
         if index == 0x1001:
@@ -254,15 +414,24 @@ class Drive402:
             return 1  # the device saves/restores on command
         return None
 
-    def raw_counts(self) -> float:
-        return float(self.encoder.to_counts(self.emu.snap().q[self.joint]))
-
-    def position_actual(self) -> int:
-        value = int(round(self.raw_counts())) + self.home_offset
-        return max(-(1 << 31), min((1 << 31) - 1, value))
+    def torque_actual(self) -> int:
+        """0x6077 (per mille of rated, the drive's sign): what the world says the motor applies now."""
+        if self.state not in (OE, QSA) or self.emu.parallel:
+            return 0
+        tau = float(self.emu.world.joint_torque()[self.joint]) * self.encoder.direction
+        return max(-32768, min(32767, int(round(tau / self.rated_torque * 1000))))
 
     def statusword(self) -> int:
         sw = STATE_BITS[self.state] | SW_REMOTE
+        if self.mode == MODE_HM:
+            # CiA 402 homing status (bits 13/12/10): error; attained; and 10 = not running (a homing on the
+            # current position completes at once, so it never reads "in progress" on the wire)
+            sw |= SW_TARGET_REACHED
+            if self.homing_error:
+                sw |= SW_HOMING_ERROR
+            elif self.referenced:
+                sw |= SW_HOMING_ATTAINED
+            return sw
         if self.state == OE:
             if self.sp_ack:
                 sw |= SW_SETPOINT_ACK
@@ -288,12 +457,30 @@ class Drive402:
         value = od.decode_raw(data) if od.data_type in canopen.objectdictionary.NUMBER_TYPES else None
         if index == 0x1010 and subindex >= 1 and value != SAVE_SIGNATURE:
             raise SdoAbortedError(ABORT_STORE)
+        if index == 0x1010 and subindex in (1, 4) and self.state not in (SOD, NOT_READY, FAULT):
+            # Yaskawa Sigma-7 (SGD7S manual 15.2, 1010h): "Subindex 1 and subindex 4 can be written only in the
+            # Switch ON Disabled state"; the application parameters (sub 3) at any time
+            raise SdoAbortedError(ABORT_STATE)
         if index == 0x1011 and subindex >= 1 and value != LOAD_SIGNATURE:
             raise SdoAbortedError(ABORT_STORE)
         if index == 0x1003 and subindex == 0 and value != 0:
             raise SdoAbortedError(ABORT_RANGE)
         if index == 0x6060 and value not in SUPPORTED:
             raise SdoAbortedError(ABORT_RANGE)
+        if index == 0x6098 and value not in HOMING_METHODS:
+            raise SdoAbortedError(ABORT_RANGE)
+        if index == 0x6007 and value not in ABORT_REACTIONS:
+            raise SdoAbortedError(ABORT_RANGE)
+        if index == 0x60A8 and value != UNIT_INC:
+            raise SdoAbortedError(ABORT_RANGE)  # positions in increments only
+        if index == 0x60A9 and value not in (UNIT_INC_PER_S, *(UNIT_RPM | (e & 0xFF) << 24 for e in (0, -1, -2, -3))):
+            raise SdoAbortedError(ABORT_RANGE)
+        if index == 0x1016 and subindex >= 1 and value:
+            node = (value >> 16) & 0x7F
+            for k in range(1, int(self.get(0x1016, 0)) + 1):
+                other = int(self.get(0x1016, k))
+                if k != subindex and (other >> 16) & 0x7F == node and other & 0xFFFF:
+                    raise SdoAbortedError(ABORT_INCOMPATIBLE)  # CiA 301: one consumer entry per producer
         if (0x1600 <= index < 0x1604 or 0x1A00 <= index < 0x1A04) and subindex >= 1 and value:
             self._check_mapping_entry(value, tx=index >= 0x1A00)
         if (0x1600 <= index < 0x1604 or 0x1A00 <= index < 0x1A04) and subindex == 0:
@@ -327,7 +514,9 @@ class Drive402:
         elif index == 0x6060:
             self._mode_changed()
         elif index == 0x6071:
-            self.emu.update_compliance()
+            self._torque_target()
+        elif index in (0x6072, 0x60E0, 0x60E1):
+            self._limits_changed()
         elif index == 0x60FF:
             self._velocity_target()
         elif index == 0x1010:
@@ -335,6 +524,9 @@ class Drive402:
         elif index == 0x1011:
             self.stored = {}  # defaults take effect at the next reset (CiA 301)
             self.emu.persist()
+        elif index == 0x1016:
+            self._consumer_changed()
+            self.emu.wake()
         elif index == 0x1017:
             period = self.heartbeat_period()
             self.hb_next = time.monotonic() + period if period and self.nmt != INITIALISING else math.inf
@@ -406,6 +598,23 @@ class Drive402:
                 self._new_setpoint(relative=bool(cw & CW_RELATIVE))
             elif not cw & CW_NEW_SETPOINT:
                 self.sp_ack = False
+        elif self.mode == MODE_HM and cw & CW_HOMING_START and not prev & CW_HOMING_START and not halt:
+            self._home()
+
+    def _home(self) -> None:
+        """Homing (mode 6, started by controlword bit 4 in OPERATION ENABLED). Methods 35/37 take the present
+        position as the home position and complete at once: only now does the home offset 0x607C take effect
+        (CiA 402 0x607C; Elmo MAN-CAN402IG 9.2: "The zero position is determined after a successful homing
+        sequence"). Any other method (0: none assigned) ends in homing error (statusword bit 13)."""
+        method = int(self.get(0x6098))
+        if method not in HOMING_CURRENT_POSITION:
+            self.homing_error = True
+            return
+        home = self.home_offset if self.emu.home_offset_convention == "position" else -self.home_offset
+        self.put(POSITION_OFFSET, home - self.internal_value())
+        self.homing_error = False
+        self.referenced = True
+        self.target_raw = self.raw_counts()  # holds where it is: the homing moved nothing
 
     def _enter(self, new: str) -> None:
         old, self.state = self.state, new
@@ -413,12 +622,14 @@ class Drive402:
             self.emu.world_set_enabled(self.joint, True)
             self.target_raw = self.raw_counts()  # hold where it is; PP moves only on a new set-point
             self.halted = False
+            if self.mode == MODE_PT:
+                self._torque_target()
         elif new == QSA:
             self.emu.stop_joint(self.joint)
         elif old in (OE, QSA):
             self.emu.world_set_enabled(self.joint, False)  # brake holds the joint where it stopped
         self.sp_ack = False
-        self.emu.update_compliance()
+        self.emu.update_torque_limits()
 
     def fault(self, code: int = DEFAULT_FAULT_CODE) -> None:
         """Device fault: EMCY, FAULT state (no torque, world halts), until controlword fault reset."""
@@ -430,15 +641,8 @@ class Drive402:
             self.errors = ([self.fault_code] + self.errors)[:8]
             self.sp_ack = False
             self.emu.world_fault(self.joint, self.fault_code)
-            self.emu.update_compliance()
+            self.emu.update_torque_limits()
             self.send_emcy(self.fault_code, 0x03)
-
-    def connection_lost(self) -> None:
-        """Cut off from the bus: abort-connection reaction (CiA 402 0x6007 = quick stop) so the joint
-        does not run on without its master."""
-        with self.lock:
-            if self.state == OE:
-                self._enter(QSA)
 
     def _fault_reset(self) -> None:
         self.fault_code = 0
@@ -454,44 +658,75 @@ class Drive402:
 
     # ---- modes --------------------------------------------------------------------------------
     def _mode_changed(self) -> None:
+        if self.mode == self.last_mode:
+            return  # the same mode written again (every RPDO2 carries it): no switch
+        self.last_mode = self.mode
         if self.state == OE:
             self.target_raw = self.raw_counts()  # a mode switch holds the present position
-            if self.mode != MODE_PV:
-                self.emu.stop_joint(self.joint)
-        self.emu.update_compliance()
+            if self.mode == MODE_PT:
+                self._torque_target()
+            elif self.mode != MODE_PV:
+                self.emu.hold_joint(self.joint)  # also ends a torque-commanded motion
+        self.emu.update_torque_limits()
 
-    def compliant(self) -> bool:
-        return self.state == OE and self.mode == MODE_PT and abs(int(self.get(0x6071))) <= COMPLIANT_TORQUE
+    def torque_limit(self, sign: float) -> int:
+        """Per mille limit for a motor torque of ``sign`` (drive frame): 0x6072 and 0x60E0 (+) / 0x60E1 (-)."""
+        return min(int(self.get(0x6072)), int(self.get(0x60E0 if sign >= 0 else 0x60E1)))
+
+    def _limits_changed(self) -> None:
+        """New torque limits act from the drive's next control cycle (the next SYNC here). Raised back to its
+        default (peak) torque while a following error is left (a socket pushed the joint off its target), the
+        position controller pulls the joint back to its target."""
+        if not self.reduced_limits() and self.state == OE and self.mode == MODE_PP and self.target_raw is not None:
+            window = max(int(self.get(0x6067)), 1)
+            if abs(self.raw_counts() - self.target_raw) > window and not self.halted:
+                self.emu.move_joint(self.joint, self.q_of(self.target_raw), None)
+        self.emu.limits_dirty = True
+
+    def reduced_limits(self) -> bool:
+        return min(int(self.get(i)) for i in (0x6072, 0x60E0, 0x60E1)) < DEFAULT_TORQUE_LIMIT
+
+    def _torque_target(self) -> None:
+        """Profile torque mode: the motor applies 0x6071 (per mille of rated) and nothing holds position; the
+        world integrates what that torque and gravity do (CiA 402 profile torque; docs/world.md)."""
+        if self.state != OE or self.mode != MODE_PT or self.emu.parallel:
+            return
+        tau = int(self.get(0x6071)) / 1000.0 * self.rated_torque * self.encoder.direction
+        self.emu.torque_joint(self.joint, tau)
 
     def _new_setpoint(self, relative: bool) -> None:
         target = int(self.get(0x607A))
-        offset = self.home_offset
+        frame = self.frame
         if relative:
             base = self.target_raw if self.target_raw is not None else self.raw_counts()
-            target = int(round(base)) + offset + target
+            target = int(round(base)) + frame + target
         lo, hi = int(self.get(0x607D, 1)), int(self.get(0x607D, 2))
         self.limit_active = False
         if lo < hi and not lo <= target <= hi:
             target = min(max(target, lo), hi)
             self.limit_active = True
-        self.target_raw = float(target - offset)
+        self.target_raw = float(target - frame)
         self.sp_ack = True
         if self.halted:
             return
+        if abs(self.raw_counts() - self.target_raw) <= 0.5 and abs(self.emu.snap().qd[self.joint]) < 1e-9:
+            return  # the target is where the joint stands (to the count): nothing to move
         velocity = int(self.get(0x6081))
         vmax = int(self.get(0x607F))
         if vmax:
             velocity = min(velocity, vmax)
-        per_unit = self.encoder.counts_per_unit * self.encoder.gear
-        speed = velocity / per_unit if velocity > 0 else None
-        self.emu.move_joint(self.joint, float(self.encoder.to_si(self.target_raw)), speed)
+        per_unit = self.encoder.counts_per_unit * self.encoder.gear * self.scale
+        # the profile velocity in the drive's unit (0x60A9): a value meant as counts/s sent to a drive in rpm
+        # asks for a speed thousands of times too high (the world caps it at the joint's maximum)
+        speed = abs(velocity * self.velocity_factor() / per_unit) if velocity > 0 else None
+        self.emu.move_joint(self.joint, self.q_of(self.target_raw), speed)
 
     def _velocity_target(self) -> None:
         if self.state != OE or self.mode != MODE_PV or self.halted:
             return
-        counts = int(self.get(0x60FF))
-        per_unit = self.encoder.counts_per_unit * self.encoder.gear
-        self.emu.velocity_joint(self.joint, self.encoder.direction * counts / per_unit)
+        value = int(self.get(0x60FF))
+        per_unit = self.encoder.counts_per_unit * self.encoder.gear * self.scale
+        self.emu.velocity_joint(self.joint, self.encoder.direction * value * self.velocity_factor() / abs(per_unit))
 
     # ---- PDOs ---------------------------------------------------------------------------------
     def rebuild_pdos(self) -> None:

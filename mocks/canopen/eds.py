@@ -30,9 +30,16 @@ DEVICE_NAME = "STN-402 emulated servo drive"
 HW_VERSION = "EMU-1"
 SW_VERSION = "1.2.0"
 CONTACT_INPUT_BIT = 16  # manufacturer-specific bit of 0x60FD wired to the cell's contact input
-SUPPORTED_MODES = 0x0000000D  # profile position (bit 0), profile velocity (bit 2), profile torque (bit 3)
+SUPPORTED_MODES = 0x0000002D  # profile position (bit 0), profile velocity (bit 2), profile torque (bit 3), homing (5)
 SAVE_SIGNATURE = 0x65766173  # "save" as little-endian UNSIGNED32 (CiA 301 0x1010)
 LOAD_SIGNATURE = 0x64616F6C  # "load" (CiA 301 0x1011)
+POSITION_OFFSET = 0x2001  # manufacturer object: the homing result (0x6064 - 0x6063), stored with the application
+# SI unit codes (0x60A8/0x60A9): exponent (bits 24-31), unit (16-23), time unit (8-15). rpm: Synapticon 0x60A9,
+# Nanotec PD6-C 60A9h preset; increments and increments/s: the station's emulated drive's own coding
+UNIT_INC = 0x00B50000
+UNIT_INC_PER_S = 0x00B50300
+UNIT_RPM = 0x00B44700
+DEFAULT_TORQUE_LIMIT = 3000  # per mille of rated torque: a servo's peak torque (0x6072, 0x60E0, 0x60E1)
 
 
 @dataclass(frozen=True)
@@ -137,6 +144,10 @@ def objects() -> list[Obj]:
             Var(1, "Restore all default parameters", U32, "rw", 1),
         )),
         var(0x1014, "COB-ID EMCY", U32, "rw", "$NODEID+0x80", storage=C),
+        Obj(0x1016, "Consumer heartbeat time", 8, (
+            Var(0, "Highest sub-index supported", U8, "const", 4),
+            *(Var(k, f"Consumer heartbeat time {k}", U32, "rw", 0, storage=C) for k in range(1, 5)),
+        )),
         var(0x1017, "Producer heartbeat time", U16, "rw", 0, storage=C),
         Obj(0x1018, "Identity object", 9, (
             Var(0, "Highest sub-index supported", U8, "const", 4),
@@ -145,22 +156,32 @@ def objects() -> list[Obj]:
             Var(3, "Revision number", U32, "ro", REVISION),
             Var(4, "Serial number", U32, "ro", 0),
         )),
+        Obj(0x1029, "Error behaviour", 8, (
+            Var(0, "Highest sub-index supported", U8, "const", 1),
+            Var(1, "Communication error", U8, "rw", 0, storage=C),  # 0: OPERATIONAL -> PRE-OPERATIONAL
+        )),
         *_pdo_objects(),
         var(0x2000, "Contact input wired", U8, "ro", 0),  # 1: bit 16 of 0x60FD follows the cell contact
+        # the homing result (position actual - position actual internal value); stored with the application
+        # parameters (0x1010:03) so that an absolute encoder keeps its zero across power cycles
+        var(POSITION_OFFSET, "Position offset", I32, "ro", 0, storage=A),
         var(0x603F, "Error code", U16, "ro", 0, pdo=True),
+        var(0x6007, "Abort connection option code", I16, "rw", 0, storage=A),
         var(0x6040, "Controlword", U16, "rw", 0, pdo=True),
         var(0x6041, "Statusword", U16, "ro", 0, pdo=True),
         var(0x605A, "Quick stop option code", I16, "rw", 2, storage=A),
         var(0x6060, "Modes of operation", I8, "rw", 0, pdo=True),
         var(0x6061, "Modes of operation display", I8, "ro", 0, pdo=True),
         var(0x6062, "Position demand value", I32, "ro", 0, pdo=True),
+        var(0x6063, "Position actual internal value", I32, "ro", 0, pdo=True),
         var(0x6064, "Position actual value", I32, "ro", 0, pdo=True),
         var(0x6065, "Following error window", U32, "rw", 100000, storage=A),
         var(0x6067, "Position window", U32, "rw", 50, storage=A),
         var(0x6068, "Position window time", U16, "rw", 0, storage=A),
         var(0x606C, "Velocity actual value", I32, "ro", 0, pdo=True),
         var(0x6071, "Target torque", I16, "rw", 0, pdo=True),
-        var(0x6072, "Max torque", U16, "rw", 1000, storage=A),
+        var(0x6072, "Max torque", U16, "rw", DEFAULT_TORQUE_LIMIT, storage=A),
+        var(0x6076, "Motor rated torque", U32, "ro", 1000),  # mN m, set per drive from the world's joint
         var(0x6077, "Torque actual value", I16, "ro", 0, pdo=True),
         var(0x607A, "Target position", I32, "rw", 0, pdo=True),
         var(0x607C, "Home offset", I32, "rw", 0, storage=A),
@@ -175,6 +196,11 @@ def objects() -> list[Obj]:
         # set per drive from the world's joint (rotary joints); the driver checks them against its model
         _pair(0x608F, "Position encoder resolution", U32, ("Encoder increments", 0), ("Motor revolutions", 1)),
         _pair(0x6091, "Gear ratio", U32, ("Motor revolutions", 1), ("Shaft revolutions", 1)),
+        var(0x6098, "Homing method", I8, "rw", 0, storage=A),  # 0: none assigned; 35/37: current position
+        var(0x60A8, "SI unit position", U32, "rw", UNIT_INC, storage=A),
+        var(0x60A9, "SI unit velocity", U32, "rw", UNIT_INC_PER_S, storage=A),
+        var(0x60E0, "Positive torque limit value", U16, "rw", DEFAULT_TORQUE_LIMIT, pdo=True, storage=A),
+        var(0x60E1, "Negative torque limit value", U16, "rw", DEFAULT_TORQUE_LIMIT, pdo=True, storage=A),
         var(0x60FD, "Digital inputs", U32, "ro", 0, pdo=True),
         var(0x60FF, "Target velocity", I32, "rw", 0, pdo=True),
         var(0x6502, "Supported drive modes", U32, "ro", SUPPORTED_MODES),

@@ -18,6 +18,13 @@ before the drive answers it (a write to 0x607C that is never confirmed).
 the bus for ``busoff_recovery`` s (world file ``buses.canopen.busoff_recovery_s``, default 0.2 s, SocketCAN's
 ``restart-ms``): frames it sends in that window never reach the drives, which keep their state (a seated,
 compliant arm stays compliant and enabled) until the station acts after the recovery.
+
+A drive that loses its master (a cut-off drive, a killed station) reacts only through its heartbeat consumer
+(0x1016, abort connection option code 0x6007); without one it keeps going. Vendor choices the world file makes
+under ``buses.canopen`` (docs/hardware-canopen.md): ``incremental`` (encoders that count from 0 at power-up),
+``position_resolution`` (increments per motor revolution), ``velocity_unit`` (``inc/s`` or ``rpm``),
+``home_offset`` (``position``: 0x6064 = 0x607C at the home position, or ``zero``: CiA 402's "zero position =
+home position + home offset"), ``rated_torque_nm``, ``seat_force_n``.
 """
 
 from __future__ import annotations
@@ -35,12 +42,18 @@ import canopen
 import numpy as np
 from station.mocks.canopen.drive import (
     INITIALISING,
+    MODE_PP,
+    MODE_PT,
+    MODE_PV,
+    OE,
     OPERATIONAL,
     PRE_OPERATIONAL,
     STOPPED,
     Drive402,
     PdoConfig,
 )
+from station.mocks.canopen.eds import UNIT_INC_PER_S, UNIT_RPM
+from station.mocks.canopen.timing import OwnClock
 
 log = logging.getLogger("station.mocks.canopen")
 
@@ -48,7 +61,51 @@ CAN_ERR_PROT = 0x08  # SocketCAN error class: protocol violation (what a corrupt
 CAN_ERR_BUSOFF = 0x40  # SocketCAN error class: bus off
 ERROR_CLASSES = {"protocol": CAN_ERR_PROT, "busoff": CAN_ERR_BUSOFF}
 STORE_FORMAT = "station-canopen-store/1"
-DEFAULT_SERIAL_BASE = 0x5A100000
+DEFAULT_SERIAL_BASE = 0x5A100000  # of a world without a digest (no cell, no model parameters)
+
+VELOCITY_UNITS = {"inc/s": UNIT_INC_PER_S, "rpm": UNIT_RPM, "0.1rpm": UNIT_RPM | 0xFF << 24,
+                  "0.01rpm": UNIT_RPM | 0xFE << 24, "0.001rpm": UNIT_RPM | 0xFD << 24}
+SEAT_FORCE_N = 20.0  # what a ball-in-cone socket pushes the tip with as the arm settles into it
+MIN_LEVER_M = 1e-3  # a joint whose axis passes closer than this to the tip cannot be turned by the socket
+CONFIG_KEYS = {"nodes", "contact_node", "serial_base", "timeout_silence", "busoff_recovery_s", "store_s",
+               "device_type", "incremental", "position_resolution", "velocity_unit", "home_offset",
+               "rated_torque_nm", "seat_force_n"}
+
+
+def world_serial_base(world) -> int:
+    """The drives' 0x1018 serial base, derived from the world: two worlds are two robots (never one serial)."""
+    from station.mocks.world.identity import default_serial
+
+    try:
+        return int(default_serial(world, "canopen"))
+    except (AttributeError, TypeError, ValueError):
+        return DEFAULT_SERIAL_BASE
+
+
+def _per_node(cfg: dict, key: str, nodes: list[int], kind, default):
+    """``buses.canopen.KEY``: one value for every drive, or ``{node id: value}``; one-line ValueError."""
+    where = f"buses.canopen.{key}"
+    v = cfg.get(key, default)
+    try:
+        if isinstance(v, dict):
+            unknown = [k for k in v if int(k) not in nodes]
+            if unknown:
+                raise ValueError(f"node(s) {unknown} are not on this bus ({nodes})")
+            return {n: kind(v[n] if n in v else v.get(str(n), default)) for n in nodes}
+        return {n: kind(v) for n in nodes}
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"canopen emulator: {where}: {e}") from None
+
+
+def _incremental(cfg: dict, nodes: list[int]) -> set[int]:
+    """``incremental: true`` (every drive), ``false``, or a list of node ids whose encoders are incremental."""
+    v = cfg.get("incremental", False)
+    if isinstance(v, bool):
+        return set(nodes) if v else set()
+    if isinstance(v, list) and all(isinstance(i, int) and i in nodes for i in v):
+        return set(v)
+    raise ValueError(f"canopen emulator: buses.canopen.incremental: expected true, false or a list of node ids "
+                     f"among {nodes}, got {v!r}")
 
 
 @dataclass
@@ -87,8 +144,9 @@ class _Rx(can.Listener):
             return
         if time.monotonic() < self.emu.offbus_until:
             return  # sent while the station's controller was bus-off: never on the wire
+        self.emu.rx_stamp = msg.timestamp or time.time()
         try:
-            self.emu._dispatch(msg.arbitration_id, bytes(msg.data))
+            self.emu._dispatch(msg.arbitration_id, bytes(msg.data), msg.timestamp)
         except Exception:  # an emulator bug must not kill the bus thread silently
             log.exception("canopen emulator: handling frame 0x%03X failed", msg.arbitration_id)
 
@@ -120,20 +178,44 @@ class CanopenEmulator:
         self.timeout_silence = float(cfg.get("timeout_silence", timeout_silence))
         self.boot_delay = boot_delay
         self.fault_poll = fault_poll
-        serial_base = int(cfg.get("serial_base", DEFAULT_SERIAL_BASE))
+        serial_base = int(cfg["serial_base"]) if "serial_base" in cfg else world_serial_base(world)
         self.busoff_recovery = float(cfg.get("busoff_recovery_s", 0.2))
         # how long a drive takes to write its flash on "store parameters" (0x1010) before it answers
         self.store_s = float(cfg.get("store_s", 0.0))
         self.offbus_until = 0.0  # monotonic: the station's controller is bus-off (its frames are lost) until then
         # identity overrides for staging a wrong device (world file buses.canopen.device_type: e.g. 0x00020191)
         self.device_type = int(str(cfg["device_type"]), 0) if "device_type" in cfg else None
+        # a parallel robot (Gough-Stewart legs) has no joint dynamics in the world: torques are not modelled there
+        self.parallel = getattr(world.nominal, "kind", "serial") == "parallel"
+        unknown = sorted(set(cfg) - CONFIG_KEYS)
+        if unknown:
+            raise ValueError(f"canopen emulator: buses.canopen: unknown key(s) {', '.join(unknown)} "
+                             f"(known: {', '.join(sorted(CONFIG_KEYS))})")
+        self.home_offset_convention = str(cfg.get("home_offset", "position"))
+        if self.home_offset_convention not in ("position", "zero"):
+            raise ValueError("canopen emulator: buses.canopen.home_offset: expected position or zero, got "
+                             f"{self.home_offset_convention!r}")
+        self.seat_force = float(cfg.get("seat_force_n", SEAT_FORCE_N))
+        units = _per_node(cfg, "velocity_unit", self.nodes, str, "inc/s")
+        bad = {n: u for n, u in units.items() if u not in VELOCITY_UNITS}
+        if bad:
+            raise ValueError(f"canopen emulator: buses.canopen.velocity_unit: {sorted(set(bad.values()))} not one "
+                             f"of {', '.join(VELOCITY_UNITS)}")
+        resolution = _per_node(cfg, "position_resolution", self.nodes, lambda v: None if v is None else int(v),
+                               None)
+        incremental = _incremental(cfg, self.nodes)
+        rated = self._rated_torques(cfg)
         self.drives: dict[int, Drive402] = {}
         for j, node_id in enumerate(self.nodes):
             enc = world.nominal.joints[j].encoder
             if enc is None:
                 raise ValueError(f"canopen emulator: joint {j + 1} of model {world.nominal.name} has no encoder "
                                  "scaling (counts_per_rev, gear, direction) in its model file")
-            self.drives[node_id] = Drive402(self, node_id, j, enc, serial_base + node_id, node_id == contact_node)
+            self.drives[node_id] = Drive402(
+                self, node_id, j, enc, serial_base + node_id, node_id == contact_node,
+                incremental=node_id in incremental, resolution=resolution[node_id],
+                velocity_unit=VELOCITY_UNITS[units[node_id]], rated_torque=rated[j])
+        self.clock = OwnClock()  # the drives' heartbeat consumers watch this process's own observed time
         self._load_store()
         self.network: canopen.Network | None = None
         self._rx_map: dict[int, list[tuple[Drive402, PdoConfig]]] = {}
@@ -146,6 +228,35 @@ class CanopenEmulator:
         self._thread: threading.Thread | None = None
         self.frames_sent = 0
         self.sync_count = 0
+        self._limits_q: np.ndarray | None = None  # where the torque limits' holding direction was last judged
+        self.limits_dirty = False  # a torque limit was written: applied to the world at the next SYNC
+        self.rx_stamp = 0.0  # wall-clock time of the last frame this emulator's receive thread took
+
+    def _rated_torques(self, cfg: dict) -> list[float]:
+        """Rated torque at each joint (N m, N): 1000 per mille of 0x6071/0x6072/0x6077. From the world file
+        (``rated_torque_nm``: a number or one per joint), else three times what gravity loads the joint with at
+        the start pose and at least the arm's largest load there (a servo sized for its arm: the peak torque,
+        3000 per mille, then holds any pose)."""
+        n = self.world.nominal.n_joints
+        if "rated_torque_nm" in cfg:
+            v = cfg["rated_torque_nm"]
+            vals = [v] * n if isinstance(v, int | float) else v
+            if not isinstance(vals, list) or len(vals) != n or not all(
+                    isinstance(x, int | float) and math.isfinite(x) and x > 0 for x in vals):
+                raise ValueError(f"canopen emulator: buses.canopen.rated_torque_nm: expected a positive number or "
+                                 f"{n} of them, got {v!r}")
+            return [float(x) for x in vals]
+        if self.parallel:
+            return [1.0] * n  # a parallel robot's screw legs: the world models no load on them (docs/world.md)
+        tau = np.abs(self.world.gravity_torque())
+        floor = max(float(tau.max()) if tau.size else 0.0, 1e-3)
+        return [max(3.0 * float(t), floor) for t in tau]
+
+    @property
+    def url(self) -> str:
+        """The robot URL of these drives (python-can interface and channel of this emulator)."""
+        ids = ",".join(str(n) for n in self.nodes)
+        return f"canopen+{self.interface}://{self.channel}?nodes={ids}&model={self.world.nominal.name}"
 
     # ---- lifecycle ----------------------------------------------------------------------------
     def start(self) -> CanopenEmulator:
@@ -187,8 +298,9 @@ class CanopenEmulator:
         self.stop()
 
     def power_cycle(self, nodes=None) -> None:
-        """Emulated power off/on: volatile values are lost, parameters stored with 0x1010 survive,
-        every drive boots (boot-up message, PRE-OPERATIONAL, SWITCH ON DISABLED)."""
+        """Emulated power off/on: volatile values are lost (PDO mapping, heartbeat settings, unsaved home offset
+        and homing result), parameters stored with 0x1010 survive, every drive boots (boot-up message,
+        PRE-OPERATIONAL, SWITCH ON DISABLED); an incremental encoder counts from 0 again, unreferenced."""
         for node_id in nodes or self.nodes:
             self.drives[node_id].power_on()
 
@@ -254,6 +366,38 @@ class CanopenEmulator:
         self.world.command_joint(joint, q, speed=speed)
         self._invalidate()
 
+    def hold_joint(self, joint: int) -> None:
+        """Position control holding where the joint is (ends a torque-commanded motion)."""
+        q = self.world.encoder_q()[joint]
+        self.world.command_joint(joint, float(q))
+        self._invalidate()
+
+    def torque_joint(self, joint: int, tau: float) -> None:
+        self.world.command_torque(tau, joint)
+        self._invalidate()
+
+    def update_torque_limits(self, compliance: bool = True) -> None:
+        """Each enabled drive's torque limit in the direction holding its joint takes (0x6072, 0x60E0/0x60E1, in
+        N m) becomes the world's limit for that joint (a joint whose load needs more sags); drives at their
+        default limits (a servo's peak torque) put none. Then the compliance the limits imply."""
+        limits = np.full(len(self.nodes), np.inf)
+        if self.parallel:
+            if compliance:
+                self.update_compliance()
+            return
+        if any(d.reduced_limits() for d in self.drives.values()):
+            self._limits_q = self.snap().q.copy()
+            hold = -self.world.gravity_torque()
+            for d in self.drives.values():
+                if d.reduced_limits():
+                    need = hold[d.joint] * d.encoder.direction  # the motor torque holding takes, drive frame
+                    limits[d.joint] = d.torque_limit(need) / 1000.0 * d.rated_torque
+        if not np.array_equal(limits, self.world.torque_limit()):
+            self.world.set_torque_limit(limits)
+            self._invalidate()
+        if compliance:
+            self.update_compliance()
+
     def stop_joint(self, joint: int) -> None:
         """Decelerate one joint to rest at its acceleration limit (no motion if it is at rest)."""
         q, qd = self.world.encoder_q()[joint], self.world.encoder_qd()[joint]
@@ -272,10 +416,41 @@ class CanopenEmulator:
         self._invalidate()
 
     def update_compliance(self) -> None:
-        on = all(d.compliant() for d in self.drives.values())
+        on = self._yields()
         if on != self.world.compliant:
             self.world.set_compliant(on)
             self._invalidate()
+
+    def _yields(self) -> bool:
+        """Whether a socket can seat the tip: every joint the socket can turn yields to it. A joint in profile
+        torque mode holds no position; a position-controlled one yields when the torque its limit leaves beyond
+        holding its load (0x6072, 0x60E0/0x60E1 in the direction it would be pushed) is less than what the socket's
+        seating force (``seat_force_n``) makes at that joint (force x the tip's distance from its axis). A stiff
+        drive (its default, peak-torque limits) never yields; nor does any joint that is not enabled."""
+        drives = list(self.drives.values())
+        if not all(d.state == OE for d in drives):
+            return False
+        if all(d.mode == MODE_PT for d in drives):
+            return True
+        if not any(d.reduced_limits() for d in drives):
+            return False
+        if self.parallel:  # no joint dynamics for its legs: reduced limits on every leg let it yield
+            return all(d.mode == MODE_PT or d.reduced_limits() for d in drives)
+        q = self.world.joint_q()
+        _, Jq = self.world.truth.fk_and_jacobian_q(q[None, :])
+        lever = np.linalg.norm(Jq[0, :3, :], axis=0)  # tip displacement per unit joint motion (m/rad, m/m)
+        hold = -self.world.gravity_torque()
+        for d in drives:
+            i = d.joint
+            if d.mode == MODE_PT or lever[i] < MIN_LEVER_M:
+                continue
+            if d.mode not in (MODE_PP, MODE_PV):
+                return False
+            need = float(hold[i]) * d.encoder.direction
+            headroom = min(d.torque_limit(1.0), d.torque_limit(-1.0)) / 1000.0 * d.rated_torque - abs(need)
+            if headroom > self.seat_force * lever[i]:
+                return False
+        return True
 
     # ---- wire ---------------------------------------------------------------------------------
     def send(self, cob_id: int, data: bytes) -> None:
@@ -318,7 +493,7 @@ class CanopenEmulator:
                     rx.setdefault(p.cob_id, []).append((d, p))
         self._rx_map = rx
 
-    def _dispatch(self, cob_id: int, data: bytes) -> None:
+    def _dispatch(self, cob_id: int, data: bytes, stamp: float | None = None) -> None:
         if cob_id == 0 and len(data) >= 2:
             for d in self.drives.values():
                 if data[1] in (0, d.id) and not d.silent():
@@ -326,6 +501,13 @@ class CanopenEmulator:
             return
         if cob_id == 0x80:
             self._on_sync()
+            return
+        if 0x700 < cob_id < 0x780 and len(data) >= 1:  # a heartbeat (or boot-up) of some node: consumers
+            # heard when it was on the wire (a drive's controller takes it at once; this thread may be late)
+            now = self.clock.at(stamp) if stamp else self.clock.now()
+            for d in self.drives.values():
+                if d.id != cob_id - 0x700 and not d.silent():
+                    d.on_heartbeat(cob_id - 0x700, now)
             return
         d = self.drives.get(cob_id - 0x600) if 0x600 < cob_id < 0x680 else None
         if d is not None:
@@ -372,11 +554,19 @@ class CanopenEmulator:
                 if p.valid and p.pending is not None:
                     data, p.pending = p.pending, None
                     d.apply_rpdo(p, data)
+        if self.limits_dirty:  # torque limits written since the last cycle act now, with what they imply
+            self.limits_dirty = False
+            self.update_torque_limits()
         self._pin(self.snap(max_age=0.0))
         try:
             self._sync_tpdos(live)
         finally:
             self._pin(None)
+        if any(d.reduced_limits() and d.state == OE for d in self.drives.values()):
+            q = self.snap().q
+            if self._limits_q is None or np.max(np.abs(q - self._limits_q)) > 1e-3:
+                # the load moves with the arm: which limit (+/-) holds a joint can change too
+                self.update_torque_limits(compliance=False)
 
     def _sync_tpdos(self, live: list[Drive402]) -> None:
         for d in live:
@@ -396,18 +586,33 @@ class CanopenEmulator:
     def wake(self) -> None:
         self._wake.set()
 
+    def heard_until(self) -> float:
+        """The drives' own time up to which they have heard the bus: now, unless this process's receive thread is
+        behind (frames queued, unread): then the time of the last frame it took. A real drive's controller takes
+        every frame as it passes; a heartbeat consumer must not call silent a master whose frames wait in the
+        emulator's queue (a loaded test machine), yet still see a master that sends nothing at all."""
+        queue = getattr(self.network.bus, "queue", None) if self.network is not None else None
+        if queue is not None and queue.qsize() > 0 and self.rx_stamp:
+            return self.clock.at(self.rx_stamp)
+        return self.clock.now()
+
     # ---- scheduler: boot-up, heartbeat, event-timer TPDOs, fault polling ----------------------
     def _run(self) -> None:
         next_poll = 0.0
         while not self._stop.is_set():
             now = time.monotonic()
+            self.clock.tick()
             try:
                 if now >= next_poll:
                     self._poll_faults(now)
                     next_poll = now + self.fault_poll
                 due = next_poll
+                heard = None
                 for d in self.drives.values():
                     due = min(due, self._service(d, now))
+                    if d.hb_seen:
+                        heard = self.heard_until() if heard is None else heard
+                        d.check_consumers(heard)
             except Exception:
                 log.exception("canopen emulator scheduler")
                 due = now + 0.05
@@ -449,9 +654,8 @@ class CanopenEmulator:
         if f is not None:
             log.info("canopen emulator: device fault on node %d", d.id)
             d.fault(f.code or 0x2310)
+        # a silent drive hears nothing either: only its heartbeat consumer (if configured) can stop its joint
         if faults.take("timeout", d.id):
             d.silent_until = max(d.silent_until, now + self.timeout_silence)
-            d.connection_lost()
         if faults.take("disconnect", d.id):
             d.silent_until = math.inf
-            d.connection_lost()

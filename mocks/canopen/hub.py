@@ -6,10 +6,16 @@ speaks the socketcand ASCII protocol (rawmode only) and bridges every client to 
 
 Protocol as python-can's client (can/interfaces/socketcand) expects it:
 ``< hi >`` on connect; ``< open NAME >`` -> ``< ok >``; ``< rawmode >`` -> ``< ok >``; then
-``< send ID LEN B0 B1 .. >`` from the client and ``< frame ID SECS.USECS DATA >`` / ``< error ID SECS.USECS >``
-to it. The client reads each handshake reply with a single ``recv`` and compares it exactly, so the hub
-sends nothing after the rawmode ``< ok >`` until the client has sent a frame or ``rawmode_delay`` passed
-(bus frames meanwhile are queued, not lost)."""
+``< send ID LEN B0 B1 .. >`` from the client and ``< frame ID SECS.USECS DATA >`` to it. The client reads each
+handshake reply with a single ``recv`` and compares it exactly, so the hub sends nothing after the rawmode
+``< ok >`` until the client has sent a frame or ``rawmode_delay`` passed (bus frames meanwhile are queued, not
+lost).
+
+CAN error frames: socketcand's raw mode opens its CAN_RAW socket without CAN_RAW_ERR_FILTER unless the daemon
+was started with ``-e ERROR_MASK`` (linux-can/socketcand ``src/state_raw.c``; the option since 2025-05, commit
+d9880ef "Enable error frame reception in raw mode"), so by default a client never sees one: bus-off shows only
+as silence (heartbeats). The hub does the same: ``error_mask`` 0 (default) forwards no error frame; otherwise
+``< error CLASS SECS.USECS >`` for the error classes in the mask, as ``socketcand -e`` does."""
 
 from __future__ import annotations
 
@@ -105,8 +111,10 @@ class SocketcandHub:
     """Serve the python-can bus ``interface``/``channel`` as socketcand bus ``name`` on ``host:port``."""
 
     def __init__(self, channel: str, host: str = "127.0.0.1", port: int = DEFAULT_PORT, name: str = "can0",
-                 interface: str = "virtual", rawmode_delay: float = 0.05) -> None:
+                 interface: str = "virtual", rawmode_delay: float = 0.05, error_mask: int = 0) -> None:
         self.channel, self.interface = channel, interface
+        self.error_mask = error_mask & 0x1FFFFFFF  # socketcand -e: error classes forwarded (0: none, its default)
+        self.errors_dropped = 0
         self.host, self.port, self.name = host, port, name
         self.rawmode_delay = rawmode_delay
         self._clients: list[_Client] = []
@@ -170,8 +178,14 @@ class SocketcandHub:
             c.close()
 
     def inject_error(self, error_class: int = CAN_ERR_BUSOFF) -> None:
-        """Send an error frame (SocketCAN error class bits, e.g. 0x40 bus-off) to every client."""
-        msg = can.Message(arbitration_id=error_class, is_error_frame=True, timestamp=time.time())
+        """The hub's CAN controller reports an error (SocketCAN error class bits, e.g. 0x40 bus-off): forwarded
+        to the clients only if ``error_mask`` has that class (socketcand -e), else dropped as socketcand does."""
+        self._offer_frame(can.Message(arbitration_id=error_class, is_error_frame=True, timestamp=time.time()))
+
+    def _offer_frame(self, msg: can.Message) -> None:
+        if msg.is_error_frame and not msg.arbitration_id & self.error_mask:
+            self.errors_dropped += 1
+            return
         self._to_clients(frame_text(msg), None)
 
     # ---- threads ------------------------------------------------------------------------------
@@ -198,7 +212,7 @@ class SocketcandHub:
             except (can.CanError, AttributeError):
                 return
             if msg is not None:
-                self._to_clients(frame_text(msg), None)
+                self._offer_frame(msg)
 
     def _to_clients(self, text: str, source: _Client | None) -> None:
         with self._lock:

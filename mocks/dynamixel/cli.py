@@ -46,7 +46,8 @@ def emulator_for(world, ids: str | None = None, baud: int | None = None, wire_ti
                  return_delay: int | None = None, contact_id: str | None = None, servo: str | None = None,
                  eeprom: dict[int, bytes] | None = None):
     """The emulator for ``world``: options given here win over the world file's ``buses.dynamixel`` section,
-    which wins over the defaults (ids 1..n, contact sensor id 200, XM430, 1 Mbaud)."""
+    which wins over the defaults (ids 1..n, contact sensor id 200, XM430, 1 Mbaud, firmware 46 with Fast Sync
+    Read, Status Return Level 2)."""
     from station.mocks import cliopts
     from station.mocks.dynamixel.emulator import DEFAULT_CONTACT_ID, DynamixelEmulator
     from station.mocks.ids import parse_id_list
@@ -57,13 +58,22 @@ def emulator_for(world, ids: str | None = None, baud: int | None = None, wire_ti
     except (ValueError, TypeError):
         raise MockError(f"bad servo id list {ids or cfg.get('ids')!r}: expected e.g. 11-14 or 11,12,13,14") from None
     c = cliopts.contact_id(contact_id, cfg.get("contact_id", DEFAULT_CONTACT_ID))
+    fast = cfg.get("fast_sync_read", True)
+    if not isinstance(fast, bool):
+        raise MockError(f"buses.dynamixel.fast_sync_read: {fast!r} is not true or false")
+    for key in ("firmware", "status_return_level"):
+        if cfg.get(key) is not None and (isinstance(cfg[key], bool) or not isinstance(cfg[key], int)):
+            raise MockError(f"buses.dynamixel.{key}: {cfg[key]!r} is not an integer")
     try:
         return DynamixelEmulator(world, id_list, servo=servo or cfg.get("servo", "xm430"),
                                  baud=int(baud or cfg.get("baud", 1_000_000)),
                                  return_delay=int(return_delay if return_delay is not None
                                                   else cfg.get("return_delay", 0)),
                                  wire_timing=wire_timing or bool(cfg.get("wire_timing", False)),
-                                 contact_id=c, eeprom=eeprom or {})
+                                 contact_id=c, eeprom=eeprom or {}, fast_sync_read=fast,
+                                 firmware=None if cfg.get("firmware") is None else int(cfg["firmware"]),
+                                 status_return_level=None if cfg.get("status_return_level") is None
+                                 else int(cfg["status_return_level"]))
     except ValueError as e:
         raise MockError(str(e)) from None
 
@@ -72,14 +82,14 @@ def register(mock_app: typer.Typer) -> None:
     @mock_app.command("dynamixel")
     def dynamixel(
         world: Path = WORLD,
-        model: str = typer.Option("omx", "--model", help="model of the default world"),
+        model: str = typer.Option("omx", "--model", help="Model of the default world"),
         seed: int = SEED,
-        ids: str = typer.Option(None, "--ids", help="servo ids in joint order, e.g. 11-14 (default 1..n)"),
-        baud: int = typer.Option(None, "--baud", help="baud rate (default 1000000)"),
-        wire_timing: bool = typer.Option(False, "--wire-timing", help="answer after real wire time"),
-        return_delay: int = typer.Option(None, "--return-delay", help="return delay time, units of 2 us"),
-        contact: str = typer.Option(None, "--contact-id", help="contact sensor id (default 200, 'none': off)"),
-        servo: str = typer.Option(None, "--servo", help="xm430 (default) or xl430"),
+        ids: str = typer.Option(None, "--ids", help="Servo ids in joint order, e.g. 11-14 (default 1..n)"),
+        baud: int = typer.Option(None, "--baud", help="Baud rate (default 1000000)"),
+        wire_timing: bool = typer.Option(False, "--wire-timing", help="Answer after real wire time"),
+        return_delay: int = typer.Option(None, "--return-delay", help="Return delay time, units of 2 us"),
+        contact: str = typer.Option(None, "--contact-id", help="Contact sensor id (default 200, 'none': off)"),
+        servo: str = typer.Option(None, "--servo", help="Servo model: xm430 (default) or xl430"),
         eeprom: Path = typer.Option(None, "--eeprom", help="EEPROM file: loaded at start, saved at exit"),
         exit_with_parent: bool = typer.Option(False, "--exit-with-parent", help="Stop when the process that "
                                               "started this one ends (tests: no orphan after a crash)."),
@@ -89,10 +99,10 @@ def register(mock_app: typer.Typer) -> None:
         done = threading.Event()
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: done.set())
-        path = emu.start()
+        emu.start()
         parent = os.getppid()
         try:
-            sys.stdout.write(f"{path}\nrobot URL {emu.url(path)}\n")
+            sys.stdout.write(f"{emu.path}\nrobot URL {emu.url}\n")
             sys.stdout.flush()
             while not done.wait(0.5):
                 if exit_with_parent and os.getppid() != parent:

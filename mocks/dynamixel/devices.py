@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from station.mocks.dynamixel.tables import (
     ALERT,
+    DRIVE_TIME_PROFILE,
     EEPROM,
     ERR_ACCESS,
     ERR_DATA_LENGTH,
@@ -115,13 +116,20 @@ class Device:
                 raise WriteRefused(ERR_DATA_RANGE, f"{f.name}={value} outside [{f.lo}, {f.hi}]")
             if f.name == "operating_mode" and self.type.modes and value not in self.type.modes:
                 raise WriteRefused(ERR_DATA_RANGE, f"operating mode {value} not supported by {self.type.name}")
+            unused = value & ~self.type.drive_mode_bits if f.name == "drive_mode" else 0
+            if unused:
+                raise WriteRefused(ERR_DATA_RANGE, f"drive mode 0x{value:02X}: bits 0x{unused:02X} are unused on "
+                                   f"{self.type.name} (always 0)")
+            time_based = self.has("drive_mode") and self.get("drive_mode") & DRIVE_TIME_PROFILE
+            if f.name in ("profile_velocity", "profile_acceleration") and time_based and value > 32737:
+                raise WriteRefused(ERR_DATA_RANGE, f"{f.name}={value} ms outside the time-based range [0, 32737]")
             if f.name == "goal_position" and self.get("operating_mode") == 3:
                 lo, hi = self.get("min_position_limit"), self.get("max_position_limit")
                 if not lo <= value <= hi:
                     raise WriteRefused(ERR_DATA_LIMIT, f"goal {value} outside position limits [{lo}, {hi}]")
             if f.name == "goal_current" and abs(value) > self.get("current_limit"):
                 raise WriteRefused(ERR_DATA_LIMIT, f"goal current {value} above current limit")
-            if f.name == "profile_velocity" and value > self.get("velocity_limit") > 0:
+            if f.name == "profile_velocity" and not time_based and value > self.get("velocity_limit") > 0:
                 value = self.get("velocity_limit")  # the profile is clamped to the velocity limit
             if f.name == "goal_position" and self.has("bus_watchdog") and self.get("bus_watchdog") == 255:
                 raise WriteRefused(ERR_RESULT_FAIL, "bus watchdog tripped: write 0 to bus watchdog (98) first")

@@ -39,6 +39,9 @@ class DeviceType:
     fields: tuple[Field, ...]
     size: int  # bytes of address space
     modes: tuple[int, ...] = ()  # supported operating modes
+    drive_mode_bits: int = 0  # Drive Mode (10) bits this model has (the others are "unused, always 0")
+    stall_torque: float = 0.0  # N m at 12 V (e-Manual specifications)
+    stall_current: float = 0.0  # A at 12 V; 0: no current sensing (Present Load in 0.1 % of stall torque instead)
 
     def field(self, name: str) -> Field:
         for f in self.fields:
@@ -62,9 +65,9 @@ def _common_eeprom(model: int, fw: int) -> list[Field]:
 
 
 def _x_series(name: str, model: int, fw: int, *, current: bool, velocity_limit: int,
-              modes: tuple[int, ...]) -> DeviceType:
+              modes: tuple[int, ...], stall: tuple[float, float]) -> DeviceType:
     f = _common_eeprom(model, fw) + [
-        Field("drive_mode", 10, 1, RW, EEPROM, 0, 0, 13),
+        Field("drive_mode", 10, 1, RW, EEPROM, 0, 0, 255),  # the model's bits only: Device.check_write
         Field("operating_mode", 11, 1, RW, EEPROM, 3, 0, 16),
         Field("secondary_id", 12, 1, RW, EEPROM, 255, 0, 255),
         Field("protocol_type", 13, 1, RW, EEPROM, 2, 1, 2),
@@ -111,11 +114,18 @@ def _x_series(name: str, model: int, fw: int, *, current: bool, velocity_limit: 
     if current:
         f += [Field("current_limit", 38, 2, RW, EEPROM, 1193, 0, 1193),
               Field("goal_current", 102, 2, RW, RAM, 1193, -1193, 1193)]
-    return DeviceType(name, model, fw, tuple(sorted(f, key=lambda x: x.addr)), 147, modes)
+    # Drive Mode bits of the X430 series: 0 reverse, 2 time-based profile (firmware 42+), 3 torque on by goal
+    # update (firmware 45+); bit 1 (dual joint master/slave) exists on X540 only
+    return DeviceType(name, model, fw, tuple(sorted(f, key=lambda x: x.addr)), 147, modes, 0x0D,
+                      stall[0], stall[1] if current else 0.0)
 
 
-XM430_W350 = _x_series("XM430-W350", 1020, 46, current=True, velocity_limit=200, modes=(0, 1, 3, 4, 5, 16))
-XL430_W250 = _x_series("XL430-W250", 1060, 46, current=False, velocity_limit=265, modes=(1, 3, 4, 16))
+# stall torque / current at 12 V from the e-Manual specifications (XM430-W350: 4.1 N m at 2.3 A; XL430-W250:
+# 1.5 N m at 1.4 A, no current sensing: Present Load in 0.1 % instead)
+XM430_W350 = _x_series("XM430-W350", 1020, 46, current=True, velocity_limit=200, modes=(0, 1, 3, 4, 5, 16),
+                       stall=(4.1, 2.3))
+XL430_W250 = _x_series("XL430-W250", 1060, 46, current=False, velocity_limit=265, modes=(1, 3, 4, 16),
+                       stall=(1.5, 1.4))
 
 CONTACT_SENSOR = DeviceType(
     "STATION-CONTACT", 0x5A01, 1,
@@ -147,3 +157,9 @@ VELOCITY_UNIT = 0.229 * 2 * 3.141592653589793 / 60  # rad/s per profile-velocity
 ACCEL_UNIT = 214.577 * 2 * 3.141592653589793 / 3600  # rad/s^2 per profile-acceleration unit (214.577 rev/min^2)
 CURRENT_UNIT = 2.69e-3  # A per goal/present current unit (XM430)
 COMPLIANT_CURRENT = 100  # goal current (units) at or below which mode 5 counts as compliant (~0.27 A)
+COMPLIANT_PWM = 110  # goal PWM (units of 0.113 %) at or below which a position mode counts as compliant (~12 %)
+LOAD_UNIT = 1e-3  # Present Load (XL430, no current sensing): 0.1 % of the stall torque per unit
+ONE_TURN = 4096  # Present Position ticks per turn (12-bit absolute encoder)
+HOMING_OFFSET_POSITION_MODE = 1024  # Position Control Mode ignores homing offsets beyond this (e-Manual)
+DRIVE_REVERSE, DRIVE_SLAVE, DRIVE_TIME_PROFILE, DRIVE_TORQUE_ON_GOAL = 0x01, 0x02, 0x04, 0x08
+MODE_POSITION = 3

@@ -33,15 +33,15 @@ def _world(world_file: Path | None, model: str, seed: int):
 def register(mock_app: typer.Typer) -> None:
     @mock_app.command("tracker")
     def tracker(
-        world: Path = typer.Option(None, "--world", help="world file (docs/world.md; buses.tracker places the "
+        world: Path = typer.Option(None, "--world", help="World file (docs/world.md; buses.tracker places the "
                                                          "instrument, docs/map.md); default: built-in world"),
-        model: str = typer.Option("hexapod", "--model", help="model of the default world"),
-        seed: int = typer.Option(0, "--seed", help="seed of the default world's hidden errors and of the noise"),
-        host: str = typer.Option("127.0.0.1", "--host", help="loopback address the tracker listens on"),
+        model: str = typer.Option("hexapod", "--model", help="Model of the default world"),
+        seed: int = typer.Option(0, "--seed", help="Seed of the default world's hidden errors and of the noise"),
+        host: str = typer.Option("127.0.0.1", "--host", help="Loopback address the tracker listens on"),
         port: int = typer.Option(0, "--port", help="TCP port of the tracker (0: any free port)"),
-        canopen: bool = typer.Option(False, "--canopen", help="also serve the world's CiA 402 drives (socketcand)"),
-        can_port: int = typer.Option(0, "--can-port", help="with --canopen: TCP port of the socketcand hub"),
-        channel: str = typer.Option("can0", "--channel", help="with --canopen: bus name clients open"),
+        canopen: bool = typer.Option(False, "--canopen", help="Also serve the world's CiA 402 drives (socketcand)"),
+        can_port: int = typer.Option(0, "--can-port", help="With --canopen: TCP port of the socketcand hub"),
+        channel: str = typer.Option("can0", "--channel", help="With --canopen: bus name clients open"),
     ) -> None:
         """Emulated laser tracker (6-DoF probe on the tool, 15 um + 6 um/m); prints its tcp:// URL."""
         import ipaddress

@@ -75,7 +75,8 @@ def ur(host: str = typer.Option("127.0.0.1", "--host", help="Address to listen o
        model: str = typer.Option("ur5e", "--model", help="ur3e, ur5e or ur10e (when no --world)."),
        seed: int = typer.Option(0, "--seed", help="Seed of the default world (when no --world)."),
        serial: str | None = typer.Option(None, "--serial", help="Controller serial number (default: the world "
-                                         "file's buses.ur.serial, else 20235500001)."),
+                                         "file's buses.ur.serial, else derived from the world: two worlds never "
+                                         "share one)."),
        no_remote: bool = typer.Option(False, "--no-remote", help="Answer 'is in remote control' with false."),
        dump_script: Path | None = typer.Option(None, "--dump-script", help="Write the last URScript program "
                                                "received on port 30003 to this file (for inspection)."),
@@ -161,7 +162,10 @@ def controller_for(w, *, serial: str | None = None, no_remote: bool = False):
     calibration = str(cfg.get("calibration", "links"))
     if calibration not in CALIBRATION_CHOICES:
         raise ValueError(f"buses.ur.calibration: {calibration!r} is not one of {', '.join(CALIBRATION_CHOICES)}")
-    return URController(w, serial=str(serial or cfg.get("serial", "20235500001")), model_name=w.nominal.name,
+    from station.mocks.world.identity import default_serial
+
+    serial = str(serial or cfg.get("serial") or default_serial(w, "ur"))
+    return URController(w, serial=serial, model_name=w.nominal.name,
                         robot_model=robot_model, polyscope=cfg.get("polyscope"), calibration=calibration,
                         remote_control=not (no_remote or cfg.get("remote_control") is False), **numbers)
 

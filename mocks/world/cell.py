@@ -69,6 +69,13 @@ DEFAULTS: dict[str, dict] = {
             {"label": "N", "kind": "needle", "position": [0.30, 0.30, 0.70], "approach": [0, 0, 1]},
         ],
     },
+    "fr3": {  # Franka's "ready" pose; a two-socket fixture 50 mm apart on a table in front (ball tool)
+        "start": [0.0, -0.7853981633974483, 0.0, -2.356194490192345, 0.0, 1.5707963267948966, 0.7853981633974483],
+        "points": [
+            {"label": "A", "kind": "socket", "position": [0.50, -0.025, 0.10], "approach": [0, 0, 1]},
+            {"label": "B", "kind": "socket", "position": [0.50, 0.025, 0.10], "approach": [0, 0, 1]},
+        ],
+    },
     "scara": {
         "start": [0.3, 0.8, 0.05, 0.0],
         "points": [

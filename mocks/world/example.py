@@ -7,22 +7,50 @@ import math
 from station.mocks.world.cell import DEFAULTS
 from station.mocks.world.world import DEFAULT_SIGMAS
 
+# Sockets the example adds to a built-in 6-axis arm's default cell so that it has three (dh_full needs three spread
+# over the workspace): placed by mocks/world/reach.py (35 deg cone, limits, links clear of the floor, on the side
+# of socket A, as far from the cell's points as reach allows); tests/test_world_example_own_arm.py checks them with
+# the engine's planner. Built-in worlds (World.default) keep their cells.
+EXTRA_SOCKETS = {
+    "ur3e": [("B", [0.0, -0.363, 0.337]), ("C", [0.0, 0.363, 0.337])],
+    "ur5e": [("C", [0.0, 0.599, 0.556])],
+    "ur10e": [("B", [0.0, -0.848, 0.788]), ("C", [0.0, 0.848, 0.788])],
+    "arm6": [("B", [0.0, -0.621, 0.399]), ("C", [0.0, 0.621, 0.399])],
+}
+
 
 def _mm(x: float) -> str:
     return f"{x * 1e3:g}"
 
 
-def example_text(model: str = "ur5e", seed: int = 0) -> str:
+def example_text(model: str = "ur5e", seed: int = 0, tip_link: str | None = None,
+                 base_link: str | None = None) -> str:
     from station.kinematics import builtin_names, load_model
 
-    m = load_model(model)
+    m = load_model(model, tip_link=tip_link, base_link=base_link)
     ref = m.name if model in builtin_names() else str(model)  # a model file: keep its path
-    d = DEFAULTS.get(m.name, {"start": list(getattr(m, "home_q", [0.0] * m.n_joints)), "points": []})  # parallel: home
+    d = DEFAULTS.get(m.name) if model in builtin_names() else None
+    if d is not None and m.name in EXTRA_SOCKETS:
+        d = {**d, "points": [*d["points"], *({"label": lb, "kind": "socket", "position": p, "approach": [0, 0, 1]}
+                                            for lb, p in EXTRA_SOCKETS[m.name])]}
+    note = ""
+    if d is None and getattr(m, "kind", "serial") == "parallel":  # the home configuration; measured by a tracker
+        d = {"start": list(m.home_q), "points": []}
+    elif d is None:  # an arm of one's own: a cell computed from its workspace (mocks/world/reach.py)
+        from station.mocks.world.reach import place_points
+
+        placed = place_points(m, seed=seed)
+        d = {"start": [round(x, 3) if not j.revolute else math.radians(round(math.degrees(x), 1))
+                       for x, j in zip(placed.start, m.joints, strict=True)], "points": placed.points}
+        note = (f"  # computed for {m.name} (reach {placed.reach * 1e3:.0f} mm): reached from a 35 deg cone of "
+                "tool directions, links clear of the floor" + (f"; {placed.note}" if placed.note else ""))
     start = ", ".join(f"{math.degrees(x):g}" if j.revolute else _mm(x) for x, j in zip(d["start"], m.joints,
                                                                                        strict=True))
     pts = "\n".join(
         f"    - {{label: {p['label']}, kind: {p['kind']}, position: [{', '.join(_mm(x) for x in p['position'])}], "
         f"approach: [{', '.join(f'{a:g}' for a in p['approach'])}]}}" for p in d["points"]) or "    []"
+    note = f"{note}\n" if note else ""
+    links = "".join(f"  {k}: {v}\n" for k, v in (("tip_link", tip_link), ("base_link", base_link)) if v)
     sj = m.joints[1].name
     o, dh, tcp = DEFAULT_SIGMAS["offsets"], DEFAULT_SIGMAS["dh"], DEFAULT_SIGMAS["tcp"]
     link = next((n for n in m.param_names if n.endswith(".a") and abs(m.param(n)) > 0),
@@ -44,7 +72,7 @@ seed: {seed}                     # seeds every random draw (hidden errors, seati
 
 robot:
   model: {ref}                 # built-in name ({m.name}, ...) or a station-model/1 file (relative to this file)
-  # tool: {{x: 0, y: 0, z: 0, rx: 0, ry: 0, rz: 0}}   # nominal tool (TCP) frame on the flange; default: the model's
+{links}  # tool: {{x: 0, y: 0, z: 0, rx: 0, ry: 0, rz: 0}}   # nominal tool (TCP) frame on the flange (default: model's)
 
 errors:                        # hidden: truth = nominal + error (the station does not know them)
   explicit:                    # by parameter name (station model show {m.name} lists them); mm or deg by kind
@@ -74,7 +102,7 @@ cell:                          # reference points in the robot base frame (true 
   contact_radius: 0.05         # mm: needle contact input closes within this distance of the needle tip
   capture_radius: 8            # mm: a socket seats the compliant tip from within this distance
   points:                      # kind socket (ball-in-cone) or needle; approach: unit vector towards the tool
-{pts}
+{note}{pts}
     # per point, radius: overrides the contact (needle) or capture (socket) radius, mm
 
 noise:
@@ -85,5 +113,5 @@ noise:
 buses:                         # passed through to the bus emulators (world.bus_config(name))
   dynamixel: {{baud: 1000000, ids: [{ids}]}}   # one servo per joint
   canopen: {{nodes: [{nodes}]}}           # one CiA 402 drive per joint
-  ur: {{serial: "20235500000"}}
+  ur: {{}}                       # serial: derived from this world (its arm and cell) unless given here
 """

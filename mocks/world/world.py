@@ -700,6 +700,7 @@ class World:
         if np.isfinite(self._tau_limit).any():
             self._check_saturation(self._state(t1)[0])
         dyn = self._mode != TRACK
+        settling = t0 is not None  # instant mode's own span: the profiles stand still, done once the joints rest
         t0 = self._dyn_t if t0 is None else t0
         if not dyn.any() or t1 <= t0:
             self._dyn_t = max(self._dyn_t, t1)
@@ -733,7 +734,7 @@ class World:
                 if back.any():
                     self._mode[back] = TRACK
                     dyn, saturated = self._mode != TRACK, self._mode == SATURATED
-            if (rest | ~dyn).all() and tm >= max([tr.t_end for tr in self._tracks] + [t0]):
+            if (rest | ~dyn).all() and (settling or tm >= max([tr.t_end for tr in self._tracks] + [t0])):
                 break
         moved = np.abs(v) >= dynamics.REST_SPEED
         self._dyn_side = np.where(moved, np.sign(v), self._dyn_side)

@@ -37,7 +37,8 @@ COMMANDS = {
     "model": ("station.cli.model_cmd", "Kinematic models: built-in, model files, URDF (show, export, import)."),
     "mock": ("station.cli.mock_cmd", "Emulated robots (wire-level) and the simulated world."),
     "records": ("station.cli.records_cmd", "Calibration records per robot serial (list, show, export)."),
-    "map": ("station.cli.map_cmd", "Configuration-space correction map (seed 004): plan, build, apply, correct."),
+    "map": ("station.cli.map_cmd", "Correction map: measure the robot over a grid of actuator positions with a "
+                                   "tracker, then command it and read it corrected (plan, build, apply, correct)."),
     "compensate": ("station.cli.compensate_cmd", "Compensated targets: joint (or corrected Cartesian) commands that "
                                                  "a controller with its nominal model turns into the calibrated "
                                                  "pose."),

@@ -200,20 +200,20 @@ def compensate_command(
     tip_link: str = TIP_LINK,
     base_link: str = BASE_LINK,
     payload: str = PAYLOAD,
-    tool: str = typer.Option(None, "--tool", help="nominal TCP x,y,z in the flange frame (m, or suffix mm), before "
+    tool: str = typer.Option(None, "--tool", help="Nominal TCP x,y,z in the flange frame (m, or suffix mm), before "
                              "the calibration (as for station solve)"),
-    calibration: str = typer.Option(..., "--calibration", help="result JSON of station solve, a session (id, folder "
+    calibration: str = typer.Option(..., "--calibration", help="Result JSON of station solve, a session (id, folder "
                                     "or journal) or its report.json"),
     poses: Path = typer.Option(..., "--poses", help="CSV of targets x,y,z[,rx,ry,rz] in the base frame (units in "
                                "headers)"),
     out: Path = typer.Option(..., "--out", help="CSV of commands, one row per target, with status, residual, "
                              "uncertainty"),
-    cartesian: bool = typer.Option(False, "--cartesian", help="corrected Cartesian targets (x,y,z,rx,ry,rz) for a "
+    cartesian: bool = typer.Option(False, "--cartesian", help="Corrected Cartesian targets (x,y,z,rx,ry,rz) for a "
                                    "controller that takes Cartesian moves, instead of joint commands"),
-    start: str = typer.Option(None, "--start", help="joint values the first target is solved from (the robot's "
+    start: str = typer.Option(None, "--start", help="Joint values the first target is solved from (the robot's "
                               "configuration), e.g. 0,-90,90,-90,-90,0deg; default: near the middle of the ranges"),
-    units: str = typer.Option(None, "--units", help="output units LENGTH,ANGLE, e.g. mm,deg (default SI)"),
-    urscript: Path = typer.Option(None, "--urscript", help="also write a URScript program: one movej per reached "
+    units: str = typer.Option(None, "--units", help="Output units LENGTH,ANGLE, e.g. mm,deg (default SI)"),
+    urscript: Path = typer.Option(None, "--urscript", help="Also write a URScript program: one movej per reached "
                                   "target (6-axis models)"),
 ) -> None:
     """Compensated targets: joint (or corrected Cartesian) commands that a controller with its nominal model turns

@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import typer
 from typer import _click
-from typer.core import TyperCommand, TyperGroup
+from typer.core import TyperCommand
 
 from station.cli import COMMANDS, load_commands
+from station.cli.helpgroup import HelpGroup
 
 
-class LazyGroup(TyperGroup):
+class LazyGroup(HelpGroup):
     """The ``station`` group: lists COMMANDS from the table, imports a command's module when it is invoked."""
 
     def list_commands(self, ctx) -> list[str]:
@@ -23,11 +24,9 @@ class LazyGroup(TyperGroup):
         return self.commands.get(cmd_name)
 
     def format_commands(self, ctx, formatter) -> None:
-        from typer._click.utils import make_default_short_help
-
-        limit = formatter.width - 6 - max(len(n) for n in COMMANDS)
+        # from the table: listing the commands imports none of their modules; whole first lines, wrapped
         with formatter.section("Commands"):
-            formatter.write_dl([(n, make_default_short_help(h, limit)) for n, (_, h) in COMMANDS.items()])
+            formatter.write_dl([(n, h) for n, (_, h) in COMMANDS.items()])
 
     def resolve_command(self, ctx, args):
         try:

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import typer
 
+from station.cli import COMMANDS
+from station.cli.helpgroup import HelpGroup
 from station.cli.model_options import PAYLOAD
 from station.lazy import lazy_module
 from station.robot.errors import ConfigError
@@ -25,8 +27,7 @@ from station.samplesfile import ANGLE_UNITS, LENGTH_UNITS, SamplesFileError, Tab
 
 np = lazy_module("numpy")  # imported on first use (station.lazy: start-up of every command)
 
-map_app = typer.Typer(no_args_is_help=True,
-                      help="Configuration-space correction map (seed 004): plan, build, apply, correct.")
+map_app = typer.Typer(cls=HelpGroup, no_args_is_help=True, help=COMMANDS["map"][1])
 
 POSE_NAMES = ("x", "y", "z", "rx", "ry", "rz")
 _ACT = re.compile(r"^x(\d+)$")
@@ -59,10 +60,14 @@ def _write_csv(path: Path, header: list[str], rows: np.ndarray, scale: np.ndarra
     w.writerow(header)
     for r in np.atleast_2d(rows):
         w.writerow([f"{v / s:.15g}" for v, s in zip(r, scale, strict=True)])
+    _write_text(path, buf.getvalue())
+
+
+def _write_text(path: Path, text: str) -> None:
     tmp = path.with_name(path.name + ".tmp")
     try:
         with open(tmp, "w") as f:
-            f.write(buf.getvalue())
+            f.write(text)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -234,15 +239,16 @@ def _q_values(grid: str, m, exclude_ends: bool) -> list[int]:
 # ---- commands ------------------------------------------------------------------------------------
 @map_app.command("plan")
 def plan_command(
-    model: str = typer.Option(..., "--model", help="built-in model name or model file"),
+    model: str = typer.Option(..., "--model", help="Built-in model name or model file"),
     grid: str = typer.Option(..., "--grid", help="Q: sub-intervals per actuator (Q+1 levels), or Q1,Q2,...,QN"),
-    exclude_ends: bool = typer.Option(False, "--exclude-ends", help="leave out the interval ends (Q-1 levels)"),
-    mesh: str = typer.Option("grid", "--mesh", help="grid (multilinear) or simplex (Kuhn simplices, barycentric)"),
+    exclude_ends: bool = typer.Option(False, "--exclude-ends", help="Leave out the interval ends (Q-1 levels)"),
+    mesh: str = typer.Option("grid", "--mesh", help="Mesh: grid (multilinear) or simplex (Kuhn simplices, "
+                                                        "barycentric)"),
     out: Path = typer.Option(..., "--out", help="CSV of configurations x1..xN to visit"),
-    units: str = typer.Option(None, "--units", help="output units LENGTH,ANGLE (default SI, plain headers)"),
+    units: str = typer.Option(None, "--units", help="Output units LENGTH,ANGLE (default SI, plain headers)"),
 ) -> None:
-    """Sample set PM: the grid over the actuator intervals (configurations the model cannot assemble are
-    left out and reported)."""
+    """Plan the configurations to measure: a grid over each actuator's range (those the model cannot reach or
+    assemble are left out, each with the reason)."""
     from station.solver.map import MESHES, plan
 
     m = _model(model)
@@ -273,22 +279,23 @@ def plan_command(
 
 @map_app.command("build")
 def build_command(
-    model: str = typer.Option(..., "--model", help="built-in model name or model file"),
+    model: str = typer.Option(..., "--model", help="Built-in model name or model file"),
     payload: str = PAYLOAD,
     samples: Path = typer.Option(..., "--samples", help="CSV: x1..xN and the measured pose (base frame)"),
-    calibration: Path = typer.Option(None, "--calibration", help="result JSON of station solve: map on top of it"),
-    mesh: str = typer.Option("grid", "--mesh", help="grid (multilinear) or simplex (barycentric): as planned"),
-    grid: str = typer.Option(None, "--grid", help="the plan's Q (checks every sample is on its grid); "
+    calibration: Path = typer.Option(None, "--calibration", help="Result JSON of station solve: map on top of it"),
+    mesh: str = typer.Option("grid", "--mesh", help="Mesh: grid (multilinear) or simplex (barycentric), as planned"),
+    grid: str = typer.Option(None, "--grid", help="The plan's Q (checks every sample is on its grid); "
                                                   "default: the grid is read off the samples"),
-    exclude_ends: bool = typer.Option(False, "--exclude-ends", help="with --grid: the plan left out the ends"),
-    measurements: Path = typer.Option(None, "--measurements", help="an instrument's CSV export (x,y,z[,rx,ry,rz] "
+    exclude_ends: bool = typer.Option(False, "--exclude-ends", help="With --grid: the plan left out the ends"),
+    measurements: Path = typer.Option(None, "--measurements", help="An instrument's CSV export (x,y,z[,rx,ry,rz] "
                                       "in ITS frame, one row per samples row, same order); --samples then needs "
                                       "only x1..xN"),
-    frame: str = typer.Option("fit", "--frame", help="with --measurements: fit (register the instrument frame to "
+    frame: str = typer.Option("fit", "--frame", help="With --measurements: fit (register the instrument frame to "
                               "the base frame by best fit) or base (already in the base frame)"),
-    out: Path = typer.Option(..., "--out", help="the map (station-map/1 JSON)"),
+    out: Path = typer.Option(..., "--out", help="The map (station-map/1 JSON)"),
 ) -> None:
-    """Correction summands KSF_PM(x) = x - IK(GDK(x)) at the samples, extended to the configuration space."""
+    """Build the correction map from measured samples: at each, the actuator change the nominal model needs to
+    explain the measured pose, interpolated between them (docs/map.md has the method and its notation)."""
     from station.solver import CalibrationResult
     from station.solver.map import MESHES, MapError, build_map, grid_levels
 
@@ -351,61 +358,146 @@ def build_command(
 
 @map_app.command("apply")
 def apply_command(
-    model: str = typer.Option(..., "--model", help="built-in model name or model file"),
+    model: str = typer.Option(..., "--model", help="Built-in model name or model file"),
     payload: str = PAYLOAD,
-    map_file: Path = typer.Option(..., "--map", help="the map (station-map/1 JSON)"),
+    map_file: Path = typer.Option(..., "--map", help="The map (station-map/1 JSON)"),
     poses: Path = typer.Option(..., "--poses", help="CSV of target poses (base frame)"),
-    out: Path = typer.Option(..., "--out", help="CSV of actuator commands x1..xN"),
-    units: str = typer.Option(None, "--units", help="output units LENGTH,ANGLE (default SI, plain headers)"),
+    out: Path = typer.Option(..., "--out", help="CSV of actuator commands x1..xN, a status per row, and every "
+                                                "column of --poses"),
+    units: str = typer.Option(None, "--units", help="Output units LENGTH,ANGLE (default SI, plain headers)"),
 ) -> None:
-    """Calibrated control: the actuator commands that reach the target poses."""
-    from station.solver.map import MapError
-
+    """Actuator commands that reach target poses, corrected by the map. Every row gets a command or a status
+    naming why not; exit 1 when any row has none."""
     m = _model(model, payload)
     cmap = _load_map(map_file)
     t = _read(poses)
     target, cols = _pose(t, m, "targets")
     t0 = time.perf_counter()
-    try:
-        c, x_p = cmap.command(m, target, cols)
-    except MapError as e:
-        raise _row_error(e, t) from None
+    results, status = per_row(lambda rows: cmap.command(m, target[rows], cols), len(t.rows), t)
     dt = time.perf_counter() - t0
     u = _units(units)
     kinds = [j.revolute for j in m.joints]
-    _write_csv(out, [_header(f"x{k + 1}", kinds[k], u) for k in range(m.n_joints)], c,
-               np.array([u[2] if r else u[0] for r in kinds]))
-    corr = np.max(np.abs(c - x_p), axis=0)
-    typer.echo(f"apply: {len(c)} targets, {dt / len(c) * 1e6:.1f} us per target (IK + map); largest correction "
-               + ", ".join(f"x{k + 1} {_human(v, kinds[k])}" for k, v in enumerate(corr)) + f" -> {out}")
+    c = _stack(results, 0, m.n_joints)
+    _write_rows(out, t, [_header(f"x{k + 1}", kinds[k], u) for k in range(m.n_joints)], c,
+                np.array([u[2] if r else u[0] for r in kinds]), status)
+    good = ~np.isnan(c[:, 0])
+    line = f"apply: {int(good.sum())} of {len(c)} targets, {dt / len(c) * 1e6:.1f} us per target (IK + map)"
+    if good.any():
+        corr = np.max(np.abs(c[good] - _stack(results, 1, m.n_joints)[good]), axis=0)
+        line += "; largest correction " + ", ".join(f"x{k + 1} {_human(v, kinds[k])}" for k, v in enumerate(corr))
+    typer.echo(f"{line} -> {out}")
+    _exit_failed(status, t, "target", "command", out)
 
 
 @map_app.command("correct")
 def correct_command(
-    model: str = typer.Option(..., "--model", help="built-in model name or model file"),
+    model: str = typer.Option(..., "--model", help="Built-in model name or model file"),
     payload: str = PAYLOAD,
-    map_file: Path = typer.Option(..., "--map", help="the map (station-map/1 JSON)"),
+    map_file: Path = typer.Option(..., "--map", help="The map (station-map/1 JSON)"),
     joints: Path = typer.Option(..., "--joints", help="CSV of actuator readings x1..xN"),
-    out: Path = typer.Option(..., "--out", help="CSV of corrected poses"),
-    units: str = typer.Option(None, "--units", help="output units LENGTH,ANGLE (default SI, plain headers)"),
+    out: Path = typer.Option(..., "--out", help="CSV of corrected poses, a status per row, and every column of "
+                                                "--joints"),
+    units: str = typer.Option(None, "--units", help="Output units LENGTH,ANGLE (default SI, plain headers)"),
 ) -> None:
-    """Measuring kinematics: the corrected pose DK(x - KSF(x)) of each actuator reading."""
-    from station.solver.map import MapError
+    """Where the robot really is at actuator readings: the pose corrected by the map. Every row gets a pose or a
+    status naming why not; exit 1 when any row has none."""
+    from station.solver.map import output_columns
 
     m = _model(model, payload)
     cmap = _load_map(map_file)
     t = _read(joints)
     x = _actuators(t, m)
-    t0 = time.perf_counter()
+    from station.solver.map import MapError
+
     try:
-        pose, cols = cmap.measure(m, x)
-    except MapError as e:
-        raise _row_error(e, t) from None
+        cols = output_columns(cmap.model_for(m))
+    except MapError as e:  # a map of another model: nothing to do per row
+        raise _fail(f"{map_file}: {e}") from None
+    t0 = time.perf_counter()
+    results, status = per_row(lambda rows: cmap.measure(m, x[rows]), len(t.rows), t)
     dt = time.perf_counter() - t0
     u = _units(units)
-    _write_csv(out, [_header(c, c.startswith("r"), u) for c in cols], pose,
-               np.array([u[2] if c.startswith("r") else u[0] for c in cols]))
-    typer.echo(f"correct: {len(pose)} readings, {dt / len(pose) * 1e6:.1f} us per reading (map + DK) -> {out}")
+    pose = _stack(results, 0, len(cols))
+    _write_rows(out, t, [_header(c, c.startswith("r"), u) for c in cols], pose,
+                np.array([u[2] if c.startswith("r") else u[0] for c in cols]), status)
+    typer.echo(f"correct: {int((~np.isnan(pose[:, 0])).sum())} of {len(pose)} readings, "
+               f"{dt / len(pose) * 1e6:.1f} us per reading (map + DK) -> {out}")
+    _exit_failed(status, t, "reading", "pose", out)
+
+
+def per_row(fn, n: int, t: Table) -> tuple[list, list[str]]:
+    """``fn(rows)`` on every row; a row it refuses (a ``MapError`` naming it) gets that reason as its status
+    and the others are computed again without it. Returns, per row, the tuple of ``fn``'s arrays for that row
+    (None where refused) and the statuses (``ok`` or why not). An error about no row (a map of another model)
+    stays one line, exit 2."""
+    from station.solver.map import MapError
+
+    status = ["ok"] * n
+    results: list = [None] * n
+    rows = list(range(n))
+    while rows:
+        try:
+            out = fn(np.array(rows))
+        except MapError as e:
+            i = getattr(e, "row", None)
+            if i is None or not 0 <= i < len(rows):
+                raise _row_error(e, t) from None
+            status[rows[i]] = _reason(str(e))
+            del rows[i]
+            continue
+        for k, r in enumerate(rows):
+            results[r] = tuple(np.atleast_2d(a)[k] if isinstance(a, np.ndarray) else a for a in out)
+        break
+    return results, status
+
+
+def _reason(message: str) -> str:
+    """A MapError's message without its "target 3: " (the row is the row of the output file)."""
+    return re.sub(r"^(target|reading|configuration|sample) \d+: ", "", " ".join(message.split()))
+
+
+def _stack(results: list, k: int, width: int) -> np.ndarray:
+    return np.array([r[k] if r is not None else np.full(width, np.nan) for r in results], float).reshape(-1, width)
+
+
+def _write_rows(path: Path, t: Table, header: list[str], values: np.ndarray, scale: np.ndarray,
+                status: list[str]) -> None:
+    """The results, a ``status`` column, then every column of the input as it was written (a column whose
+    name the output uses is kept as ``input_NAME``), and the input's comment lines: nothing of it is lost."""
+    names = {h.split("[")[0].lower() for h in header} | {"status"}
+    extra = sorted(t.columns.values(), key=lambda kc: kc[0])
+    heads = [(f"input_{c.header}" if c.name in names else c.header) for _, c in extra]
+    buf = io.StringIO()
+    for line in _comments(Path(t.path)):
+        buf.write(line + "\n")
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow([*header, "status", *heads])
+    for i, r in enumerate(np.atleast_2d(values)):
+        cells = ["" if not np.isfinite(v) else f"{v / s:.15g}" for v, s in zip(r, scale, strict=True)]
+        w.writerow([*cells, status[i], *(t.rows[i][k] for k, _ in extra)])
+    _write_text(path, buf.getvalue())
+
+
+def _comments(path: Path) -> list[str]:
+    try:
+        return [ln.rstrip("\r") for ln in path.read_text(errors="replace").splitlines() if ln.lstrip().startswith("#")]
+    except OSError:
+        return []
+
+
+def _exit_failed(status: list[str], t: Table, what: str, result: str, out: Path) -> None:
+    """Exit 1 naming how many rows got no result and why (the first few, with their input lines)."""
+    import sys
+
+    bad = [i for i, s in enumerate(status) if s != "ok"]
+    if not bad:
+        return
+    typer.echo(f"station: {len(bad)} of {len(status)} {what}s have no {result} (status column of {out}):", err=True)
+    for i in bad[:5]:
+        typer.echo(f"  {t.where(i)}: {status[i]}", err=True)
+    if len(bad) > 5:
+        typer.echo(f"  ... and {len(bad) - 5} more", err=True)
+    sys.exit(1)
 
 
 def register(app: typer.Typer) -> None:

@@ -2,31 +2,36 @@
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
 import typer
 
+from station.cli import COMMANDS
+from station.cli.helpgroup import HelpGroup
 from station.cli.model_options import BASE_LINK, PAYLOAD, TIP_LINK, load_cli_model
 from station.lazy import lazy_module
 
 np = lazy_module("numpy")  # imported on first use (station.lazy: start-up of every command)
 
-model_app = typer.Typer(no_args_is_help=True, help="Kinematic models: built-in, model files, URDF (show, export, "
-                                                   "import).")
-NAME = typer.Argument(..., help="built-in model name, model file or URDF")
-UNITS = typer.Option("mm,deg", help="length,angle units: m|mm, rad|deg")
+model_app = typer.Typer(cls=HelpGroup, no_args_is_help=True, help=COMMANDS["model"][1])
+NAME = typer.Argument(..., help="Built-in model name, model file or URDF")
+UNITS = typer.Option("mm,deg", help="Length and angle units: m or mm, rad or deg")
 
 
 @model_app.command("list")
 def list_models() -> None:
-    """List built-in models."""
+    """List the built-in models (name, joints, kind, description): what --model takes besides a file."""
     from station.kinematics import builtin_names, load_model
 
+    rows = []
     for name in builtin_names():
         m = load_model(name)
-        typer.echo(f"{name:8s} {m.n_joints} joints  {m.convention.upper():4s} {m.description}")
+        kind = "parallel" if getattr(m, "kind", "serial") == "parallel" else m.convention.upper()
+        rows.append((name, f"{m.n_joints} joints", kind, m.description))
+    w = [max(len(r[k]) for r in rows) for k in range(3)]
+    for r in rows:
+        typer.echo(f"{r[0]:{w[0]}s}  {r[1]:{w[1]}s}  {r[2]:{w[2]}s}  {r[3]}")
 
 
 @model_app.command("show")
@@ -55,26 +60,38 @@ def show(name: str = NAME, units: str = UNITS, tip_link: str = TIP_LINK, base_li
 
 
 @model_app.command("export")
-def export(name: str = NAME,
-           out: Path = typer.Option(None, "--out", "-o", help="file to write (default NAME.yaml / NAME.urdf)"),
-           fmt: str = typer.Option("yaml", "--format", help="yaml (station-model/1) or urdf"),
-           calibration: Path = typer.Option(None, "--calibration", help="result JSON of station solve: write the "
-                                                                        "calibrated robot"),
+def export(name: str = typer.Argument(None, help="Built-in model name, model file or URDF (default: the model of "
+                                                 "the --calibration session or result)"),
+           out: Path = typer.Option(None, "--out", "-o", help="File to write (default NAME.yaml / NAME.urdf)"),
+           fmt: str = typer.Option(None, "--format", help="Format: yaml (station-model/1) or urdf (default: from the "
+                                                          "--out suffix, else yaml)"),
+           calibration: str = typer.Option(None, "--calibration", help="Write the calibrated robot: a session id, "
+                                           "a session folder, a result JSON (station solve --out, a session's "
+                                           "result.json) or a session's report.json"),
            units: str = UNITS, tip_link: str = TIP_LINK, base_link: str = BASE_LINK, payload: str = PAYLOAD) -> None:
     """Write a model file (or a URDF) of the nominal or calibrated robot; a model file can be edited and
     passed back as --model FILE."""
     from station.cli import fail
+    from station.cli.calibration_source import calibration_source
     from station.kinematics import dump_model
 
+    fmt = fmt or ("urdf" if out is not None and out.suffix.lower() == ".urdf" else "yaml")
     if fmt not in ("yaml", "urdf"):
         raise fail(f"--format {fmt!r}: expected yaml or urdf")
     length, angle = _units(units)
+    source = calibration_source(calibration) if calibration is not None else None
+    if name is None:
+        if source is None or source.model is None:
+            raise fail("model export: name the model (station model export ur5e ...), or give --calibration "
+                       "SESSION, whose robot URL names it")
+        name = source.model
+        tip_link, base_link = tip_link or source.tip_link, base_link or source.base_link
     m = load_cli_model(name, tip_link, base_link, payload)
     note = ""
-    if calibration is not None:
-        m = _calibrated(m, calibration)
-        note = f"Calibrated: {calibration}."
-    out = out or Path(f"{m.name}.{fmt}")
+    if source is not None:
+        m = source.apply(m)
+        note = f"Calibrated: {source.what}."
+    out = out or Path(f"{m.name}{'-calibrated' if source is not None else ''}.{fmt}")
     if Path(name).exists() and out.resolve() == Path(name).resolve():
         raise fail(f"--out {out}: that is the model being read; write somewhere else")
     if fmt == "urdf":
@@ -88,7 +105,7 @@ def export(name: str = NAME,
 
 @model_app.command("import")
 def import_urdf(urdf: Path = typer.Argument(..., help="URDF file"),
-                out: Path = typer.Option(None, "--out", "-o", help="model file to write (default ROBOT.yaml)"),
+                out: Path = typer.Option(None, "--out", "-o", help="Model file to write (default ROBOT.yaml)"),
                 units: str = UNITS, tip_link: str = TIP_LINK, base_link: str = BASE_LINK) -> None:
     """Convert the chain of a URDF into a station-model/1 file (modified DH, masses from <inertial>)."""
     from station.kinematics import dump_model
@@ -103,22 +120,6 @@ def import_urdf(urdf: Path = typer.Argument(..., help="URDF file"),
     _write(out, dump_model(m, length, angle))
     typer.echo(f"{out}: {m.name}, {m.n_joints} joints ({', '.join(j.name for j in m.joints)}), "
                f"{m.source['urdf']['base_link']} -> {m.source['urdf']['tip_link']}")
-
-
-def _calibrated(m, path: Path):
-    from station.robot.errors import ConfigError
-    from station.safeio import DuplicateKeyError, loads_strict
-    from station.solver import CalibrationResult
-
-    try:
-        cal = CalibrationResult.from_dict(loads_strict(path.read_text(), str(path)))
-        return cal.calibrated(m)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such file") from None
-    except DuplicateKeyError as e:
-        raise ConfigError(str(e)) from None
-    except (json.JSONDecodeError, ValueError, KeyError, AttributeError) as e:
-        raise ConfigError(f"{path}: {e}") from None
 
 
 def _write(path: Path, text: str) -> None:

@@ -16,11 +16,11 @@ import re
 from station.cli.optspec import REQUIRED, Opt
 
 MODEL_OPTIONS = [
-    Opt("model", "--model", "built-in model name, model file (station-model/1) or URDF", REQUIRED),
+    Opt("model", "--model", "Built-in model name, model file (station-model/1) or URDF", REQUIRED),
     Opt("tip_link", "--tip-link", "URDF: the link at the end of the chain (default: the end of the only longest "
                                   "chain)"),
     Opt("base_link", "--base-link", "URDF: the link the chain starts from (default: the root)"),
-    Opt("payload", "--payload", "mass at the tool, e.g. 0.1kg or 250g, optionally with its centre in the tool "
+    Opt("payload", "--payload", "Mass at the tool, e.g. 0.1kg or 250g, optionally with its centre in the tool "
                                 "frame: 0.5kg@0,0,30mm (loads the joints: compliance)"),
 ]
 _TYPER_NAMES = {"MODEL": "model", "TIP_LINK": "tip_link", "BASE_LINK": "base_link", "PAYLOAD": "payload"}

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import typer
 
+from station.cli.run_options import CONE
+
 
 def opcua(
     robot: str = typer.Option(..., "--robot", help="Robot URL."),
@@ -15,10 +17,10 @@ def opcua(
     procedure: str = typer.Option("zero_offsets", "--procedure", help="Default procedure of Start."),
     limits: Path = typer.Option(None, "--limits", help="Limits file (default: procedures/limits.yaml)."),
     db: str = typer.Option(None, "--db", help="Records database URL."),
-    reference: str = typer.Option(None, "--reference", help="unknown (solve the point) or cell (surveyed)."),
+    reference: str = typer.Option(None, "--reference", help="Reference: unknown (solve the point) or cell (surveyed)."),
     poses: int = typer.Option(None, "--poses", help="Number of fit poses."),
     holdout: int = typer.Option(None, "--holdout", help="Number of held-out poses."),
-    cone: float = typer.Option(None, "--cone", help="Half-angle (deg) of the tool orientation cone."),
+    cone: str = CONE,
     cert: Path = typer.Option(None, "--cert", help="Server certificate for Basic256Sha256."),
     key: Path = typer.Option(None, "--key", help="Server private key (PEM) for Basic256Sha256."),
     trust: Path = typer.Option(None, "--trust", help="Folder of trusted client certificates."),

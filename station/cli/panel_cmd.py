@@ -21,11 +21,11 @@ def panel(
                               "$STATION_PANEL_TOKEN)."),
     limits: Path = LIMITS,
     db: str = DB,
-    touch: str = typer.Option(None, "--touch", help="seat, guarded or manual (the operator touches each point)."),
-    reference: str = typer.Option(None, "--reference", help="unknown (solve the point) or cell (surveyed)."),
+    touch: str = typer.Option(None, "--touch", help="Seat, guarded or manual (the operator touches each point)."),
+    reference: str = typer.Option(None, "--reference", help="Reference: unknown (solve the point) or cell (surveyed)."),
     poses: int = POSES,
     holdout: int = HOLDOUT,
-    cone: float = CONE,
+    cone: str = CONE,
     confirm: bool = typer.Option(True, "--confirm/--no-confirm", help="Ask the operator to confirm the unit is "
                                  "clamped before the robot moves."),
     opcua: str = typer.Option(None, "--opcua", help="Also serve OPC UA at this endpoint, e.g. "

@@ -11,13 +11,15 @@ import typer
 from rich import box
 from rich.console import Console
 from rich.markup import escape
-from rich.table import Table
 
+from station.cli import COMMANDS
+from station.cli.helpgroup import HelpGroup
+from station.cli.tables import Col, print_table, wrap_lines
 from station.units import human_of
 
-records_app = typer.Typer(no_args_is_help=True, help="Calibration records per robot serial (list, show, export).")
+records_app = typer.Typer(cls=HelpGroup, no_args_is_help=True, help=COMMANDS["records"][1])
 
-DB_HELP = "records database URL (default $STATION_DB, else sqlite:///$STATION_HOME/station.db)"
+DB_HELP = "Records database URL (default $STATION_DB, else sqlite:///$STATION_HOME/station.db)"
 
 
 def _open(db: str | None):
@@ -90,32 +92,33 @@ def _with_verdicts(rec, rows: list[dict]) -> list[dict]:
     return out
 
 
-def _sessions_table(title: str, rows: list[dict], width: int = 160) -> Table:
-    t = Table(title=title, title_justify="left", box=box.SIMPLE_HEAD if width < NARROW else box.HEAVY_HEAD)
-    w = max([len(s["session"]) for s in rows] + [7])
-    t.add_column("session", no_wrap=True, min_width=w)  # the id is what people copy: never truncated
-    cols = ("procedure", "started", "took", "station", "operator", "samples", "rms before mm", "rms after mm",
-            "verdict", "written") if width >= NARROW else ("samples", "rms after mm", "verdict")
-    for col in cols:
-        t.add_column(col, justify="right" if col in ("samples",) or col.endswith("mm") else "left",
-                     no_wrap=col in ("started", "took", "verdict"), min_width=11 if col == "verdict" else None,
-                     overflow="fold")
+SESSION_COLS = [Col("session"), Col("procedure", priority=3), Col("started", priority=2), Col("took", priority=4),
+                Col("station", priority=5), Col("operator", priority=5), Col("samples", "right"),
+                Col("rms before mm", "right", priority=3), Col("rms after mm", "right"),
+                Col("verdict"), Col("written", priority=2)]
+
+
+def _print_sessions(con: Console, title: str, rows: list[dict]) -> None:
+    out = []
     for s in rows:
         wb = "-" if s["writeback_applied"] is None else (
             ("verified" if s["writeback_verified"] else "NOT verified") if s["writeback_applied"] else "not applied")
-        cells = {"procedure": s["procedure"], "started": _when(s["started"]),
-                 "took": _duration(s["started"], s["finished"]), "station": s["station"], "operator": s["operator"],
-                 "samples": str(s["n_samples"]), "rms before mm": _mm(s["rms_before_m"]),
-                 "rms after mm": _mm(s["rms_after_m"]),
-                 "verdict": _verdict(s["passed"]) if s["passed"] is not None else (
-                     s.get("verdict_word") or s["status"] or "-"), "written": wb}
-        t.add_row(s["session"], *(cells[c] for c in cols))
-    return t
+        out.append({"session": s["session"], "procedure": s["procedure"], "started": _when(s["started"]),
+                    "took": _duration(s["started"], s["finished"]), "station": s["station"],
+                    "operator": s["operator"], "samples": str(s["n_samples"]), "rms before mm": _mm(s["rms_before_m"]),
+                    "rms after mm": _mm(s["rms_after_m"]),
+                    "verdict": _verdict(s["passed"]) if s["passed"] is not None else (
+                        s.get("verdict_word") or s["status"] or "-"), "written": wb})
+    print_table(con, title, SESSION_COLS, out, style=_box(con))
+
+
+def _box(con: Console):
+    return box.SIMPLE_HEAD if con.width < NARROW else box.HEAVY_HEAD
 
 
 @records_app.command("list")
 def list_records(db: str = typer.Option(None, "--db", help=DB_HELP),
-                 serial: str = typer.Option(None, "--serial", help="only the sessions of this robot")) -> None:
+                 serial: str = typer.Option(None, "--serial", help="Only the sessions of this robot")) -> None:
     """List robots, or the sessions of one robot with --serial (readable at 80 columns: serials, session ids
     and verdicts are never cut)."""
     from station.cli import fail
@@ -125,21 +128,14 @@ def list_records(db: str = typer.Option(None, "--db", help=DB_HELP),
     with _open(db) as rec:
         if serial is None:
             robots = rec.robots()
-            narrow = con.width < NARROW
-            t = Table(title=f"Robots in {rec.url}", title_justify="left",
-                      box=box.SIMPLE_HEAD if narrow else box.HEAVY_HEAD)
-            cols = ("serial", "model", "sessions", "last started", "last verdict") if narrow else (
-                "serial", "vendor", "model", "firmware", "sessions", "last session", "last started", "last verdict")
-            for col in cols:
-                t.add_column(col, justify="right" if col == "sessions" else "left",
-                             no_wrap=col in ("serial", "last verdict", "last session"), overflow="fold",
-                             min_width=max([len(r["serial"]) for r in robots] + [6]) if col == "serial" else None)
-            for r in robots:
-                cells = {"serial": r["serial"], "vendor": r["vendor"], "model": r["model"], "firmware": r["firmware"],
-                         "sessions": str(r["n_sessions"]), "last session": r["last_session"] or "",
-                         "last started": _when(r["last_started"]), "last verdict": _verdict(r["last_passed"])}
-                t.add_row(*(cells[c] for c in cols))
-            con.print(t)
+            cols = [Col("serial"), Col("vendor", priority=2), Col("model"), Col("firmware", priority=3),
+                    Col("sessions", "right"), Col("last session", priority=2), Col("last started", priority=1),
+                    Col("last verdict")]
+            rows = [{"serial": r["serial"], "vendor": r["vendor"], "model": r["model"], "firmware": r["firmware"],
+                     "sessions": str(r["n_sessions"]), "last session": r["last_session"] or "",
+                     "last started": _when(r["last_started"]), "last verdict": _verdict(r["last_passed"])}
+                    for r in robots]
+            print_table(con, f"Robots in {rec.url}", cols, rows, style=_box(con))
             if not robots:
                 con.print("no records yet")
             return
@@ -147,15 +143,14 @@ def list_records(db: str = typer.Option(None, "--db", help=DB_HELP),
             rec.robot(serial)
         except RecordNotFound as e:
             raise fail(str(e)) from None
-        con.print(_sessions_table(f"Sessions of robot {serial}", _with_verdicts(rec, rec.sessions(serial)),
-                                  con.width))
+        _print_sessions(con, f"Sessions of robot {serial}", _with_verdicts(rec, rec.sessions(serial)))
 
 
 @records_app.command("show")
-def show(serial: str = typer.Argument(..., help="robot serial number"),
+def show(serial: str = typer.Argument(..., help="Robot serial number"),
          db: str = typer.Option(None, "--db", help=DB_HELP),
-         session: str = typer.Option(None, "--session", help="this session instead of the latest one"),
-         trend: bool = typer.Option(False, "--trend", help="each parameter across the robot's runs with its "
+         session: str = typer.Option(None, "--session", help="This session instead of the latest one"),
+         trend: bool = typer.Option(False, "--trend", help="Each parameter across the robot's runs with its "
                                     "uncertainty, drift beyond 3 sigma flagged")) -> None:
     """One robot: identity, its sessions, and the latest (or --session) result, verdict and write-back;
     with --trend each parameter across runs."""
@@ -178,7 +173,7 @@ def show(serial: str = typer.Argument(..., help="robot serial number"),
         con.print(f"[bold]Robot {serial}[/]  {robot['vendor']} {robot['model']}  firmware {robot['firmware'] or '-'}"
                   f"  {robot['url']}")
         con.print(f"first seen {robot['first_seen']}, last seen {robot['last_seen']}, {robot['n_sessions']} session(s)")
-        con.print(_sessions_table("Sessions", _with_verdicts(rec, sessions), con.width))
+        _print_sessions(con, "Sessions", _with_verdicts(rec, sessions))
         if trend:
             _show_trend(con, [rec.session(x["session"]) for x in sessions])
             return
@@ -188,7 +183,7 @@ def show(serial: str = typer.Argument(..., help="robot serial number"),
 
 
 @records_app.command("sync")
-def sync(sessions: list[str] = typer.Argument(None, help="session ids or folders (default: every ended "
+def sync(sessions: list[str] = typer.Argument(None, help="Session ids or folders (default: every ended "
                                                           "session in $STATION_HOME/sessions not stored yet)"),
          db: str = typer.Option(None, "--db", help=DB_HELP + "; default: the URL each session's journal names")
          ) -> None:
@@ -219,32 +214,31 @@ def _show_trend(con: Console, docs: list[dict]) -> None:
 
     model = load_session_model(docs[-1])[0] if docs else None
     trend = parameter_trend(docs)
-    t = Table(title=f"Trend (drift: a change beyond {DRIFT_SIGMA:g} combined sigma from the previous run)",
-              title_justify="left", box=box.SIMPLE_HEAD)
-    for col in ("parameter", "started", "value", "±σ", "unit", "Δ/σ", "drift"):
-        t.add_column(col, justify="right" if col in ("value", "±σ", "Δ/σ") else "left",
-                     no_wrap=col in ("parameter", "started", "drift"))
+    cols = [Col("parameter"), Col("started"), Col("value", "right"), Col("±σ", "right"), Col("unit"),
+            Col("Δ/σ", "right", priority=1), Col("drift")]
+    rows = []
     n_drift = 0
-    for name, rows in trend.items():
-        for i, r in enumerate(rows):
+    for name, series in trend.items():
+        for i, r in enumerate(series):
             unit = param_unit(name, {"unit": r["unit"]}, model)
-            flag = "DRIFT" if r["drift"] else ""
             n_drift += bool(r["drift"])
-            t.add_row(name if i == 0 else "", _when(r["started"])[:16],
-                      _human(r["value"], unit) if r["identifiable"] else "not identifiable",
-                      _human(r["std"], unit) if r["identifiable"] else "", _hunit(unit),
-                      "" if r["drift_sigma"] is None else f"{r['drift_sigma']:.1f}",
-                      f"[red]{flag}[/]" if flag else "")
-    con.print(t)
+            rows.append({"parameter": name if i == 0 or con.width < 60 else "", "started": _when(r["started"])[:16],
+                         "value": _human(r["value"], unit) if r["identifiable"] else "not identifiable",
+                         "±σ": _human(r["std"], unit) if r["identifiable"] else "", "unit": _hunit(unit),
+                         "Δ/σ": "" if r["drift_sigma"] is None else f"{r['drift_sigma']:.1f}",
+                         "drift": "[red]DRIFT[/]" if r["drift"] else (
+                             f"model {r.get('model')}" if r.get("model_changed") else "")})
+    print_table(con, f"Trend (drift: a change beyond {DRIFT_SIGMA:g} combined sigma from the previous run)", cols,
+                rows, style=box.SIMPLE_HEAD)
     con.print(f"{n_drift} drift(s) beyond {DRIFT_SIGMA:g} σ" if n_drift else "no drift beyond 3 σ")
 
 
 @records_app.command("export")
-def export(fmt: str = typer.Option("csv", "--format", help="csv (one row per session and parameter) or json"),
-           since: str = typer.Option(None, "--since", help="only sessions started at/after this ISO date or time "
+def export(fmt: str = typer.Option("csv", "--format", help="Format: csv (one row per session and parameter) or json"),
+           since: str = typer.Option(None, "--since", help="Only sessions started at/after this ISO date or time "
                                      "(UTC unless a zone is given)"),
-           serial: str = typer.Option(None, "--serial", help="only this robot"),
-           out: Path = typer.Option(None, "--out", help="write to this file instead of stdout"),
+           serial: str = typer.Option(None, "--serial", help="Only this robot"),
+           out: Path = typer.Option(None, "--out", help="Write to this file instead of stdout"),
            db: str = typer.Option(None, "--db", help=DB_HELP)) -> None:
     """Export sessions for analysis (SI units: m, rad; the unit of each value in its own column/field)."""
     import csv
@@ -293,61 +287,73 @@ def _show_session(con: Console, s: dict) -> None:
     result = s.get("result")
     if result:
         res = result.get("residuals") or {}
-        t = Table(title=f"Result ({'converged' if result.get('converged') else 'NOT converged'}, rank "
-                        f"{result.get('rank')} of {result.get('n_parameters')}; rms {_mm(res.get('rms_before_m'))} -> "
-                        f"{_mm(res.get('rms_after_m'))} mm)", title_justify="left")
-        for col in ("parameter", "nominal", "estimate", "±σ", "unit", "note"):
-            t.add_column(col, justify="right" if col in ("nominal", "estimate", "±σ") else "left")
+        title = (f"Result ({'converged' if result.get('converged') else 'NOT converged'}, rank {result.get('rank')} "
+                 f"of {result.get('n_parameters')}; rms {_mm(res.get('rms_before_m'))} -> "
+                 f"{_mm(res.get('rms_after_m'))} mm)")
+        narrow = con.width < NARROW  # the reasons go below the table, wrapped at words, not into a thin column
+        cols = [Col("parameter"), Col("nominal", "right", priority=1), Col("estimate", "right"),
+                Col("±σ", "right"), Col("unit")] + ([] if narrow else [Col("note", text=True)])
+        rows, reasons = [], []
         for name, p in (result.get("parameters") or {}).items():
             unit = param_unit(name, p, model)
-            t.add_row(name, _human(p.get("nominal"), unit), _human(p.get("value"), unit) if p.get("identifiable")
-                      else "", _human(p.get("std"), unit), _hunit(unit),
-                      "" if p.get("identifiable") else f"not identifiable: {p.get('reason') or '?'}")
-        con.print(t)
+            seen = bool(p.get("identifiable"))
+            rows.append({"parameter": name, "nominal": _human(p.get("nominal"), unit),
+                         "estimate": _human(p.get("value"), unit) if seen else ("not identifiable" if narrow else ""),
+                         "±σ": _human(p.get("std"), unit), "unit": _hunit(unit),
+                         "note": "" if seen else f"not identifiable: {p.get('reason') or '?'}"})
+            if not seen:
+                reasons.append(f"{name}: {p.get('reason') or '?'}")
+        print_table(con, title, cols, rows, style=_box(con))
+        if narrow and reasons:
+            con.print("not identifiable (kept at nominal):")
+            for r in reasons:
+                for line in wrap_lines(r, con.width):
+                    con.print(line, markup=False, highlight=False, soft_wrap=True)
     else:
         con.print("no solver result")
     verdict = s.get("verdict")
     if verdict:
-        t = Table(title=f"Verdict: {overall_status(verdict)}", title_justify="left")
-        for col in ("measurement", "value", "low", "high", "unit", "result"):
-            t.add_column(col, justify="right" if col in ("value", "low", "high") else "left")
+        rows = []
         for m in verdict.get("measurements") or []:
             st = measurement_status(m)
             colour = {"PASS": "green", "FAIL": "red", "MARGINAL": "yellow"}[st]
-            t.add_row(str(m.get("name")), *(("" if m.get(k) is None else f"{float(m[k]):.4g}")
-                                            for k in ("value", "low", "high")), str(m.get("unit") or ""),
-                      f"[{colour}]{st}[/]")
-        con.print(t)
+            rows.append({"measurement": str(m.get("name")), "unit": str(m.get("unit") or ""),
+                         "result": f"[{colour}]{st}[/]",
+                         **{k: "" if m.get(k) is None else f"{float(m[k]):.4g}" for k in ("value", "low", "high")}})
+        print_table(con, f"Verdict: {overall_status(verdict)}", [
+            Col("measurement"), Col("value", "right"), Col("low", "right"), Col("high", "right"), Col("unit"),
+            Col("result")], rows, style=_box(con))
     wb = s.get("writeback")
     if wb:
         before, after = wb.get("before") or {}, wb.get("after") or {}
         if wb.get("phase") == "exported":
             con.print(f"Write-back: exported to {', '.join(wb.get('files') or [])}, controller unchanged")
-        t = Table(title=f"Write-back ({'applied' if wb.get('applied') else 'not applied'}, "
-                        f"{'verified' if wb.get('verified') else 'not verified'})", title_justify="left")
-        for col in ("value", "before", "after", "unit"):
-            t.add_column(col, justify="left" if col in ("value", "unit") else "right")
         params = (result or {}).get("parameters") or {}
+        rows = []
         for name in dict.fromkeys([*before, *after]):
             unit = param_unit(name, params.get(name) or {}, model)
-            t.add_row(name, _human(before.get(name), unit), _human(after.get(name), unit), _hunit(unit))
-        con.print(t)
+            rows.append({"value": name, "before": _human(before.get(name), unit),
+                         "after": _human(after.get(name), unit), "unit": _hunit(unit)})
+        print_table(con, f"Write-back ({'applied' if wb.get('applied') else 'not applied'}, "
+                         f"{'verified' if wb.get('verified') else 'not verified'})",
+                    [Col("value"), Col("before", "right"), Col("after", "right"), Col("unit")], rows, style=_box(con))
     steps = steps_rows(s)
     if steps:
-        t = Table(title="Steps", title_justify="left")
-        for col in ("step", "runs", "outcome", "time s", "arguments / why not done"):
-            t.add_column(col, justify="right" if col in ("runs", "time s") else "left")
+        rows = []
         for st in steps:
             colour = {"done": "green", "skipped": "default"}.get(st["status"], "red")
-            t.add_row("  " * st["depth"] + escape(st["name"]), str(st["runs"]), f"[{colour}]{escape(st['outcome'])}[/]",
-                      "" if st["duration_s"] is None else f"{st['duration_s']:.1f}",
-                      escape("; ".join([st["args"]] * bool(st["args"]) + st["notes"])))
-        con.print(t)
+            rows.append({"step": "  " * st["depth"] + escape(st["name"]), "runs": str(st["runs"]),
+                         "outcome": f"[{colour}]{escape(st['outcome'])}[/]",
+                         "time s": "" if st["duration_s"] is None else f"{st['duration_s']:.1f}",
+                         "arguments / why not done": escape("; ".join([st["args"]] * bool(st["args"]) + st["notes"]))})
+        print_table(con, "Steps", [Col("step"), Col("runs", "right"), Col("outcome"),
+                                   Col("time s", "right", priority=1),
+                                   Col("arguments / why not done", text=True, priority=2)], rows, style=_box(con))
 
 
-def report(source: str = typer.Argument(..., help="session id (in $STATION_HOME/sessions, as station resume "
+def report(source: str = typer.Argument(..., help="Session id (in $STATION_HOME/sessions, as station resume "
                                           "takes it), session folder (holding journal.jsonl) or a journal file"),
-           out: Path = typer.Option(None, "--out", help="folder for report.html/report.json "
+           out: Path = typer.Option(None, "--out", help="Folder for report.html/report.json "
                                                         "(default: the session folder)")) -> None:
     """Rebuild the HTML and JSON report of a session from its journal."""
     from station.cli import fail

@@ -51,7 +51,6 @@ def _progress_bar(quiet: bool):
 
 def preflight(robot: str, poses, holdout, cone, seed, touch, reference, limits, cell) -> None:
     """Every option and input file checked before any robot is opened or moved (issue 14): one line, exit 2."""
-    import math
 
     from station.robot.errors import ConfigError
 
@@ -59,8 +58,8 @@ def preflight(robot: str, poses, holdout, cone, seed, touch, reference, limits, 
         raise ConfigError(f"--poses {poses}: expected a pose count of at least 1 (and at least the unknowns)")
     if holdout is not None and not 0 <= holdout <= 100_000:
         raise ConfigError(f"--holdout {holdout}: expected a pose count of 0 or more")
-    if cone is not None and not (math.isfinite(cone) and 0 < cone <= 90):
-        raise ConfigError(f"--cone {cone!r}: expected a half-angle in degrees in (0, 90]")
+    if cone is not None and not 0 < cone_degrees(cone) <= 90:
+        raise ConfigError(f"--cone {cone!r}: expected a half-angle in (0, 90] deg, e.g. 50deg")
     if seed is not None and not 0 <= seed < 2**63:
         raise ConfigError(f"--seed {seed}: expected a non-negative integer")
     if touch is not None and touch not in ("seat", "guarded", "manual"):
@@ -89,9 +88,12 @@ def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None, spa
     if calibration is not None:  # correction_map: the map on top of this parametric calibration
         opts["calibration"] = str(check_calibration_file(calibration, opts.get("payload")))
     if span_deg is not None:
-        if not 0 < span_deg <= 90:  # also refuses nan
-            raise ConfigError(f"--span-deg {span_deg!r}: expected a half-width in degrees in (0, 90]")
-        opts["span_deg"] = float(span_deg)  # correction_map (serial arms): +- this around the start pose
+        from station.cli.quantity import parse_option
+
+        span = parse_option(span_deg, "--span-deg", "angle", "deg", "20deg")
+        if not 0 < span <= 90:
+            raise ConfigError(f"--span-deg {span_deg!r}: expected a half-width in (0, 90] deg, e.g. 20deg")
+        opts["span_deg"] = span  # correction_map (serial arms): +- this around the start pose
     if tracker is not None:
         opts["tracker"] = tracker  # correction_map: the measuring instrument's URL
     if grid is not None:
@@ -101,7 +103,7 @@ def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None, spa
     if holdout is not None:
         opts["n_holdout"] = holdout
     if cone is not None:
-        opts["cone_deg"] = cone
+        opts["cone_deg"] = cone_degrees(cone)
     if reference is not None:
         if reference not in ("unknown", "cell"):
             raise ConfigError(f"--reference must be 'unknown' or 'cell', got {reference!r}")
@@ -109,6 +111,13 @@ def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None, spa
     if seed is not None:
         opts["seed"] = seed
     return opts
+
+
+def cone_degrees(cone) -> float:
+    """``--cone 50deg`` (or ``0.87rad``; a bare number is degrees, as before units were written) in degrees."""
+    from station.cli.quantity import parse_option
+
+    return parse_option(cone, "--cone", "angle", "deg", "50deg")
 
 
 def iso_options(cycles: int | None, cube: str | None, plane: str | None) -> dict:
@@ -200,7 +209,10 @@ def summary(out, echo=typer.echo) -> None:
                 sd = "-" if p.get("std") is None else f"{p['std'] * k:.4f}"  # no ± is never printed as ± 0
                 echo(f"  {name:14s} {(p['value'] - p['nominal']) * k:+10.4f} {u} ± {sd}")
             else:
-                echo(f"  {name:14s} {'not identifiable':>14s}  ({p.get('reason') or ''})"[:118])
+                import textwrap  # the whole reason, wrapped at word boundaries, never cut mid-word
+
+                line = f"  {name:14s} {'not identifiable':>14s}  ({p.get('reason') or ''})"
+                echo("\n".join(textwrap.wrap(line, 118, subsequent_indent=" " * 34, break_long_words=False)))
         r = res["residuals"]
         echo(f"residuals: RMS {r['rms_before_m'] * 1e3:.3f} mm before -> {r['rms_after_m'] * 1e3:.3f} mm after"
              + (f"; held-out RMS {res['holdout']['rms_m'] * 1e3:.3f} mm" if res.get("holdout") else ""))
@@ -220,11 +232,14 @@ def summary(out, echo=typer.echo) -> None:
     if wb:
         echo(f"write-back: applied={wb.get('applied')} verified={wb.get('verified')} {wb.get('note') or ''}")
     echo(f"session:  {out.session}  ({out.folder / 'journal.jsonl'})")
+    if res and (out.folder / "result.json").is_file():
+        echo(f"result:   {out.folder / 'result.json'}  (station model export --calibration {out.session} "
+             "--format urdf writes the calibrated robot)")
     if out.report:
         echo(f"report:   {out.report}")
 
 
-def _finish(out) -> None:
+def _finish(out, next_step=None) -> None:
     """The last lines of a run: the summary, then PASS/FAIL (exit 0/1) only for a completed, stored session;
     otherwise one ``station: error:`` line, what to do next (only a command that will work), and the exit code
     (2 error or NOT STORED, 130 interrupted)."""
@@ -236,6 +251,9 @@ def _finish(out) -> None:
         _exit(2)
     if out.status == "completed" and out.passed is not None and out.stored:
         summary(out)
+        if out.passed is False and next_step is not None:
+            for line in next_step(out):
+                typer.echo(line)
         typer.echo(out.verdict)
         _exit(out.exit_code)
     summary(out, echo=lambda s: typer.echo(s, err=True))
@@ -258,14 +276,23 @@ def _finish(out) -> None:
         typer.echo(f"station: the record is stored; rebuild the report with: station report {out.folder}", err=True)
     elif "station restore" in msg:  # the message already names the one command that helps (resume would refuse)
         pass
+    elif "nothing moved" in msg:  # refused before any motion: a resume would meet the same refusal
+        typer.echo("station: nothing moved; start a new run with the change named above", err=True)
     else:
         typer.echo(f"station: the journal is kept; continue with: station resume {out.session}", err=True)
     _exit(2)
 
 
+def _shipped() -> list[str]:
+    """The shipped procedures, from the procedures folder: the help lists every one, never a copy that ages."""
+    from station.engine.procedure import shipped_names
+
+    return shipped_names()
+
+
 def run(
-    procedure: str = typer.Argument(..., help="Shipped procedure name (zero_offsets, tcp_4point, tcp_circle, "
-                                    "dh_full, verify, correction_map, iso9283) or a procedure .py file."),
+    procedure: str = typer.Argument(..., help="Shipped procedure (" + ", ".join(_shipped()) + ") or a procedure "
+                                    ".py file."),
     robot: str = typer.Option(..., "--robot", help="Robot URL, e.g. ur://127.0.0.2?model=ur5e"),
     serial: str = typer.Option(..., "--serial", help="Serial number of the robot under calibration."),
     limits: Path = LIMITS,
@@ -273,22 +300,27 @@ def run(
     apply: bool = typer.Option(False, "--apply", help="Write identified joint offsets back (two-phase)."),
     cell: Path = typer.Option(None, "--cell", help="Cell file (default $STATION_CELL, then ./cell.yaml)."),
     operator: str = typer.Option(None, "--operator", help="Who runs it (default: login name)."),
-    touch: str = typer.Option(None, "--touch", help="seat (socket), guarded (contact input) or manual."),
-    reference: str = typer.Option(None, "--reference", help="unknown (solve the point) or cell (use the cell "
-                                  "file's surveyed positions)."),
+    touch: str = typer.Option(None, "--touch", help="How the tool meets a point: seat (socket), guarded "
+                                "(contact input) or manual."),
+    reference: str = typer.Option(None, "--reference", help="Reference: unknown (solve the point) or cell (use "
+                                  "the cell file's surveyed positions)."),
     poses: int = POSES,
     holdout: int = HOLDOUT,
-    cone: float = CONE,
+    cone: str = CONE,
     seed: int = typer.Option(None, "--seed", help="Seed of the pose plan."),
     tracker: str = typer.Option(None, "--tracker", help="Measuring instrument URL (correction_map, iso9283), e.g. "
                                 "tcp://127.0.0.1:5300 (station mock tracker)."),
     grid: int = typer.Option(None, "--grid", help="correction_map: Q sub-intervals per actuator (Q+1 levels)."),
-    span_deg: float = typer.Option(None, "--span-deg", help="correction_map on a serial arm: the work box is +- "
-                                   "this many degrees per joint around the start pose (default 20)."),
+    span_deg: str = typer.Option(None, "--span-deg", help="With correction_map on a serial arm: the work box is +- "
+                                   "this angle per joint around the start pose: 20deg (a bare number is degrees; "
+                                   "default 20deg)."),
     calibration: Path = typer.Option(None, "--calibration", help="correction_map: build the map on top of this "
                                      "parametric calibration (result JSON of station solve for the robot's model); "
                                      "iso9283: evaluate it beside the nominal model."),
     payload: str = PAYLOAD,
+    identify: str = typer.Option(None, "--identify", help="Parameter groups to solve for instead of the "
+                                 "procedure's own (zero_offsets: offsets, dh_full: offsets,dh,tcp), e.g. "
+                                 "offsets,tcp; as station solve --identify."),
     cycles: int = typer.Option(None, "--cycles", help="iso9283: cycles per pose (default 30, as the standard)."),
     cube: str = typer.Option(None, "--cube", help="iso9283: the test cube's centre and edge X,Y,Z,EDGE in the base "
                              "frame (e.g. 400,0,500,300mm; default: the largest cube around the tool)."),
@@ -298,16 +330,22 @@ def run(
 ) -> None:
     """Run a procedure end of line: unattended, PASS/FAIL, exit 0 pass / 1 fail / 2 error."""
     from station.api import run as start
+    from station.cli.nextstep import suggest
 
     preflight(robot, poses, holdout, cone, seed, touch, reference, limits, cell)
     options = _options(poses, holdout, cone, reference, seed, tracker, grid, span_deg, calibration, payload, cycles,
                        cube, plane)
+    if identify is not None:
+        from station.cli.solve_cmd import check_identify
+
+        options["identify"] = check_identify(identify)
     cb, bar = _progress_bar(quiet)
     with bar:
         out = start(procedure, robot, serial, limits=limits, db=db, apply=apply, cell=cell, operator=operator,
                     options=options, touch=touch, progress=cb,
                     log=lambda s: typer.echo(s, err=True))
-    _finish(out)
+    cell_text = None if cell is None else str(cell)
+    _finish(out, lambda o: suggest(o, robot=robot, serial=serial, cell=cell_text, identify=identify))
 
 
 def resume_cmd(

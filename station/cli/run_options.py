@@ -9,4 +9,5 @@ LIMITS = typer.Option(None, "--limits", help="Limits file (default: procedures/l
 DB = typer.Option(None, "--db", help="Records database URL (default $STATION_DB, else SQLite in $STATION_HOME).")
 POSES = typer.Option(None, "--poses", help="Number of fit poses (default from the procedure).")
 HOLDOUT = typer.Option(None, "--holdout", help="Number of held-out poses.")
-CONE = typer.Option(None, "--cone", help="Half-angle (deg) of the tool orientation cone.")
+CONE = typer.Option(None, "--cone", help="Half-angle of the cone of tool directions around each point, an angle: "
+                    "50deg, 0.87rad (a bare number is degrees).")

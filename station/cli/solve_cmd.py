@@ -81,14 +81,19 @@ def _references(specs: list[str], labels: list[str], samples: str):
     return ref
 
 
-def check_max_std(max_std: float | None) -> float | None:
-    """``--max-std`` (m at the tool): 0, negative or non-finite would switch identifiability off. None (not
-    given): the priors decide what the data determine (docs/solver.md, section 3)."""
+def check_max_std(max_std) -> float | None:
+    """``--max-std 1mm`` (a length at the tool; a bare number is metres): 0, negative or non-finite would switch
+    identifiability off. None (not given): the priors decide what the data determine (docs/solver.md, section 3).
+    Returns metres."""
     if max_std is None:
         return None
-    if not (math.isfinite(max_std) and 0 < max_std <= 1.0):
-        raise _fail(f"--max-std {max_std!r}: expected a positive finite length in m (at most 1 m), e.g. 0.001")
-    return max_std
+    from station.cli.quantity import parse_option
+
+    value = parse_option(max_std, "--max-std", "length", "m", "1mm")
+    if not 0 < value <= 1.0:
+        raise _fail(f"--max-std {max_std!r}: expected a positive length of at most 1 m, e.g. 1mm (a bare number is "
+                    "metres: 0.001)")
+    return value
 
 
 def check_identify(identify: str) -> str:
@@ -149,33 +154,35 @@ def summary(res) -> str:
 SOLVE_OPTIONS = [
     *MODEL_OPTIONS,
     Opt("samples", "--samples", "CSV: q1..qN [point] [x,y,z]; units in headers", REQUIRED, Path),
-    Opt("identify", "--identify", "groups/names/globs, e.g. offsets,tcp,dh", "offsets,tcp"),
-    Opt("reference", "--reference", "unknown | x,y,z (m, or suffix mm) | LABEL=x,y,z (repeatable)", multiple=True),
-    Opt("tool", "--tool", "nominal TCP x,y,z in the flange frame (m, or suffix mm)"),
+    Opt("identify", "--identify", "Groups/names/globs, e.g. offsets,tcp,dh", "offsets,tcp"),
+    Opt("reference", "--reference", "Reference points: unknown (solved, the default), x,y,z of the one point (m, "
+        "or a unit suffix: 412,-120,35mm) or LABEL=x,y,z (repeatable)", multiple=True),
+    Opt("tool", "--tool", "Nominal TCP x,y,z in the flange frame (m, or suffix mm)"),
     Opt("holdout", "--holdout", "CSV of validation samples (same columns), or fixture=F1[,F2] / point=A[,B]: hold "
         "out the samples' rows of those fixture positions (or points) and score the fit on them", kind=Path),
-    Opt("out", "--out", "write the result JSON here", kind=Path),
-    Opt("instrument_frame", "--instrument-frame", "x,y,z columns: unknown (solve the instrument frame) | base",
-        "unknown"),
-    Opt("max_std", "--max-std", "m at the tool: also leave at nominal what the data leave a larger std than this "
-        "(default: none, a parameter the data determine to within its prior is estimated)", None, float),
+    Opt("out", "--out", "Write the result JSON here", kind=Path),
+    Opt("instrument_frame", "--instrument-frame", "With x,y,z columns: unknown (the instrument frame is solved) "
+        "or base", "unknown"),
+    Opt("max_std", "--max-std", "A length at the tool (1mm; a bare number is metres): also leave at nominal what the "
+        "data leave a larger std than this (default: none, a parameter the data determine to within its prior is "
+        "estimated)"),
     Opt("prior", "--prior", "SELECTOR=STD with a unit, e.g. offsets=0.5deg, dh=0.3mm, dh.j2.a=0.1mm, "
         "compliance=1e-4rad/Nm (repeatable; overrides the model file's tolerances)", multiple=True),
-    Opt("noise", "--noise", "declared touch noise per axis with a unit, e.g. 20um (default: fitted from the "
+    Opt("noise", "--noise", "Declared touch noise per axis with a unit, e.g. 20um (default: fitted from the "
         "residual of the fitted model)"),
-    Opt("loss", "--loss", "linear (outliers > 4 sigma excluded) | huber | soft_l1", "linear"),
+    Opt("loss", "--loss", "Loss: linear (outliers beyond 4 sigma excluded), huber or soft_l1", "linear"),
     Opt("distance", "--distance", "A,B=50mm[±0.01mm]: the measured distance between points A and B (repeatable; "
         "default uncertainty 0.01 mm)", multiple=True),
     Opt("plane", "--plane", "LABEL: the touches labelled LABEL lie on one unknown plane (touch-probing a flat "
         "surface; repeatable)", multiple=True),
-    Opt("touch", "--touch", "how the tip meets the points: socket (a seated ball) | needle (aligned by eye); a fit "
+    Opt("touch", "--touch", "How the tip meets the points: socket (a seated ball) | needle (aligned by eye); a fit "
         "far above what that gives is not trusted and says why", "socket"),
 ]
 
 
 def solve_command(model: str, tip_link: str | None, base_link: str | None, payload: str | None, samples: Path,
                   identify: str, reference: tuple[str, ...], tool: str | None, holdout: Path | None,
-                  out: Path | None, instrument_frame: str, max_std: float | None, prior: tuple[str, ...],
+                  out: Path | None, instrument_frame: str, max_std: str | None, prior: tuple[str, ...],
                   noise: str | None, loss: str, distance: tuple[str, ...], plane: tuple[str, ...],
                   touch: str = "socket") -> None:
     """Identify joint offsets, TCP, link geometry from touch samples. Exit 0: trusted result; 1: the solve
@@ -183,7 +190,7 @@ def solve_command(model: str, tip_link: str | None, base_link: str | None, paylo
     from station.safeio import dumps_json, write_atomic
     from station.solver import Observations, SolverInputError, solve
 
-    check_max_std(max_std)
+    max_std = check_max_std(max_std)
     check_identify(identify)
     if out is not None:  # refuse a bad destination before the work, not after
         write_atomic_check(out, {"--samples": samples, "--holdout": holdout})
@@ -421,9 +428,9 @@ def _noise(text: str | None) -> float | None:
 FK_OPTIONS = [
     *MODEL_OPTIONS,
     Opt("joints", "--joints", "CSV with q1..qN (units in headers: q1[deg], q3[mm])", REQUIRED, Path),
-    Opt("calibration", "--calibration", "result JSON of station solve", kind=Path),
-    Opt("tool", "--tool", "nominal TCP x,y,z (m, or suffix mm), before the calibration"),
-    Opt("out", "--out", "write CSV here (default: stdout)", kind=Path),
+    Opt("calibration", "--calibration", "Result JSON of station solve", kind=Path),
+    Opt("tool", "--tool", "Nominal TCP x,y,z (m, or suffix mm), before the calibration"),
+    Opt("out", "--out", "Write CSV here (default: stdout)", kind=Path),
 ]
 
 

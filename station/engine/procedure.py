@@ -215,6 +215,13 @@ class Procedure:
     def defaults(self) -> dict:
         return dict(getattr(self.module, "DEFAULTS", {}) or {})
 
+    @property
+    def identify(self) -> str | None:
+        """The parameter group the procedure solves for (its ``IDENTIFY``); None: it does not solve, so
+        ``--identify`` does not apply to it."""
+        value = getattr(self.module, "IDENTIFY", None)
+        return str(value) if value else None
+
 
 def shipped_names() -> list[str]:
     return sorted(p.stem for p in shipped_folder().glob("*.py") if NAME.fullmatch(p.stem))

@@ -27,7 +27,7 @@ from station.engine import events as ev
 from station.engine.cell import Cell, load_cell
 from station.engine.journal import Journal, JournalError, JournalWriteError, check_space, check_writable, read_journal
 from station.engine.limits import load_limits
-from station.engine.procedure import Procedure, is_name, load_procedure, procedure_for_resume
+from station.engine.procedure import Procedure, is_name, load_procedure, procedure_for_resume, shipped_names
 from station.engine.session import Session
 from station.kinematics.collision import keep_out_to_doc
 from station.robot.errors import ConfigError, DeviceFault, StationError
@@ -132,6 +132,7 @@ class Outcome:
     stored: bool = False
     db: str | None = None  # the records URL the session names (None: the default database)
     store_error: str | None = None  # why the record is NOT STORED (``station records sync`` stores it later)
+    model: object = field(repr=False, default=None)  # the kinematic model the session solved with (read-only)
 
     @property
     def verdict(self) -> str:
@@ -209,8 +210,14 @@ def _cell_from_header(d: dict | None, where: str = "journal") -> Cell | None:
     if isinstance(points, list):
         points = [{k: v for k, v in p.items() if k != "image"} if isinstance(p, dict) else p for p in points]
     doc = {"format": "station-cell/1", "units": {"length": "m", "angle": "rad"}, "points": points,
-           **{k: d[k] for k in ("model", "tool", "mounting", "keep_out") if d.get(k) is not None}}
-    unknown = set(d) - {"path", "model", "tool", "points", "mounting", "keep_out"}
+           **{k: d[k] for k in ("model", "tool", "mounting", "keep_out", "planes") if d.get(k) is not None}}
+    # the known distances as the solve was told them ([a, b, metres, std metres or None]; a journal of an older
+    # station has none): a resumed session solves the same problem
+    dist = d.get("distances")
+    if isinstance(dist, list) and dist:
+        doc["distances"] = [{"between": [x[0], x[1]], "distance": x[2], **({} if x[3] is None else {"std": x[3]})}
+                            if isinstance(x, list) and len(x) == 4 else x for x in dist]
+    unknown = set(d) - {"path", "model", "tool", "points", "mounting", "keep_out", "distances", "planes"}
     try:
         if unknown:
             raise CellError(f"{where}: field cell.{sorted(unknown)[0]}: unknown field of a journaled cell")
@@ -317,6 +324,8 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
         limits={"path": lim.path, "version": lim.version, "sha256": lim.sha256},
         cell=None if the_cell is None else {"path": the_cell.path, "model": the_cell.model, "tool": the_cell.tool,
                                             "points": [p.to_dict() for p in the_cell.points.values()],
+                                            "distances": [list(d) for d in the_cell.distances],
+                                            "planes": list(the_cell.planes),
                                             **keep_out_to_doc(the_cell.keep_out)},
         options=opts, db=_db_for_journal(db), versions=versions())
     journal = Journal.create(folder / "journal.jsonl", header)
@@ -367,6 +376,9 @@ def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, lim
     from station.robot import open_robot
 
     proc = procedure if isinstance(procedure, Procedure) else load_procedure(procedure)
+    if (options or {}).get("identify") and proc.identify is None:
+        raise ConfigError(f"--identify: procedure {proc.name} solves nothing (it has no IDENTIFY group); it "
+                          "applies to procedures that solve: " + ", ".join(solving_procedures()))
     load_limits(limits)  # a bad limits or cell file fails before the robot is opened
     if cell is not None:
         load_cell(cell)
@@ -595,6 +607,16 @@ def _install_sigterm():
         return None
 
 
+def solving_procedures() -> list[str]:
+    """The shipped procedures that solve for a parameter group (those ``--identify`` applies to)."""
+    out = []
+    for name in shipped_names():
+        with contextlib.suppress(ConfigError):
+            if load_procedure(name).identify:
+                out.append(name)
+    return out
+
+
 def _execute(s: Session, body: Callable[[Session], None], control: RunControl | None = None) -> Outcome:
     status, err = "completed", None
     old = _install_sigterm()
@@ -652,8 +674,24 @@ def finish(s: Session, status: str, err: BaseException | None) -> Outcome:
         s.write_samples_csv()
     except OSError as e:  # the journal holds every sample; samples.csv is a convenience copy
         s.log(f"samples.csv not written: {e.strerror or e}")
+    write_result_json(s.folder, record.get("result"), s.log)
     return Outcome(s.id, s.folder, status, _passed(s.verdict) if status == "completed" else None, record,
-                   error=err, db=s.journal.header.db)
+                   error=err, db=s.journal.header.db, model=s.model)
+
+
+def write_result_json(folder: Path, result: dict | None, log: Callable[[str], None]) -> None:
+    """``result.json``: the session's solve result in the format of ``station solve --out``
+    (``station-calibration/1``), what ``station fk --calibration``, ``station model export --calibration`` and
+    ``station run correction_map --calibration`` read. Written atomically after every run that solved; a copy
+    of the journal's last result event, so a failure to write it is a note, never a lost session."""
+    if not result:
+        return
+    from station.safeio import dumps_json, write_atomic
+
+    try:
+        write_atomic(folder / "result.json", dumps_json(result) + "\n")
+    except OSError as e:
+        log(f"result.json not written: {e.strerror or e}")
 
 
 def _failed_step(s: Session, err: BaseException) -> tuple[str | None, int | None]:

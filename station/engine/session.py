@@ -327,6 +327,7 @@ class Session:
                                   "journaled plan is not for this robot")
             self.current_plan = plan
             return self.current_plan
+        identify = self.identify(identify)
         with self.step("plan"):
             q0 = self.robot.joint_positions().q
             opt = self.options
@@ -356,6 +357,18 @@ class Session:
             self.event(ev.Plan(plan=plan.to_dict()))
         self.current_plan = plan
         return plan
+
+    def identify(self, group: str) -> str:
+        """The group a plan or solve is for: the procedure's ``group``, or what the run was given
+        (``station run --identify GROUPS``, journaled with the options: a resume solves for the same)."""
+        given = self.options.get("identify")
+        if not given:
+            return group
+        try:
+            self.model.select(str(given))
+        except KeyError as e:
+            raise ConfigError(f"--identify {given!r}: {e.args[0]}") from None
+        return str(given)
 
     def check_poses(self, n_fit: int, identify: str, points: list[RefPoint]) -> None:
         """``--poses`` must be at least the unknowns of the procedure's group (its model parameters plus the
@@ -399,16 +412,37 @@ class Session:
                 missing = "; ".join(f"{n}: {why}" for n, why in pred.missing.items())
                 problems.append(f"these poses can identify {len(seen)} parameter(s), the limits need "
                                 f"{lim_n.low:g} ({missing})")
-        rev = [p.std for n, p in seen.items() if n.startswith("offset.") and p.std is not None
-               and param_quantity(n, self.model) == "angle"]
+        rev = {n: p.std for n, p in seen.items() if n.startswith("offset.") and p.std is not None
+               and param_quantity(n, self.model) == "angle"}
         if lim_std is not None and rev:
-            worst = lim_std.judge(max(rev), "angle")
+            name = max(rev, key=rev.get)
+            worst = lim_std.judge(rev[name], "angle")
             if not worst["passed"]:
-                problems.append(f"offset_std_max would be at least {worst['value']:.3g} {worst['unit']} even at "
-                                f"{noise * 1e6:g} um touch noise, limit {lim_std.high:g} {lim_std.unit} (more "
-                                "poses, a wider pose spread (--cone), or a known reference position)")
+                problems.append(f"offset_std_max would be at least {worst['value']:.3g} {worst['unit']} ({name}) "
+                                f"even at {noise * 1e6:g} um touch noise, limit {lim_std.high:g} {lim_std.unit} ("
+                                + self._std_fix(fit, identify, ref, noise, name, lim_std) + ")")
         if problems:
             raise ConfigError("plan: the planned poses cannot meet the limits, nothing moved: " + "; ".join(problems))
+
+    def _std_fix(self, fit: list, identify: str, ref, noise: float, name: str, lim_std: Limit) -> str:
+        """What would bring ``name``'s std inside the limit. A joint zero seen only through a short lever (a
+        tool tip a fraction of a millimetre off the last axis) is the tool's rotation about that axis in
+        disguise: solved together with the tool it is named unidentifiable, and every other zero keeps its
+        std. Checked on the same poses before it is offered."""
+        from station.solver import SolverInputError, predict
+
+        if "tcp" not in identify.split(","):
+            group = f"{identify},tcp"
+            try:
+                pred = predict(self.model, np.array([p.q for p in fit]), [p.point for p in fit], group, ref,
+                               noise=noise)
+                stds = [p.std for n, p in pred.parameters.items() if n.startswith("offset.") and p.identifiable
+                        and p.std is not None and param_quantity(n, self.model) == "angle"]
+                if stds and lim_std.judge(max(stds), "angle")["passed"]:
+                    return f"{name} is seen through the tool's lever only: solve it with the tool, --identify {group}"
+            except (SolverInputError, KeyError):
+                pass
+        return "more poses, a wider pose spread (--cone), or a known reference position"
 
     def todo(self, plan: PosePlan | None = None) -> Iterator[PlannedPose]:
         """The poses not yet recorded, in plan order (a resumed session does not repeat recorded samples)."""
@@ -557,6 +591,7 @@ class Session:
         """Identify ``identify`` from the fit samples, check on the held-out samples; journals the result."""
         from station.solver import solve
 
+        identify = self.identify(identify)
         with self.step("solve", identify=identify):
             fit = self.observations("fit")
             if fit is None:

@@ -31,13 +31,14 @@ from pathlib import Path
 import numpy as np
 
 from station.engine.events import Writeback
-from station.robot.capabilities import CalibrationExport, CalibrationStore
+from station.robot.capabilities import CalibrationExport, CalibrationStore, WritePose
 from station.robot.errors import DeviceFault, StationError
 from station.safeio import loads_strict
 
 BACKUP = "calibration-backup.json"
 BACKUP_FORMAT = "station-calibration-backup/1"
 FLOAT_TOL = 1e-9  # rad/m on top of the device resolution
+MAX_POSE_MOVES = 40  # moves a WritePose robot may ask for before a write
 
 
 class WriteBackError(DeviceFault):
@@ -250,9 +251,11 @@ def write_back(s, check_pose=None) -> dict:
     tol = s.readback_tolerance
     plan, state = resume_point(s.events("writeback"), before, s.cal_tolerance)
     if plan is None:
-        apply(s.robot, plan_write(before, corrections_of(res)), event=s.event, folder=s.folder, session=s.id,
-              tolerance=tol)
+        plan = plan_write(before, corrections_of(res))
+        to_write_pose(s, plan.after)
+        apply(s.robot, plan, event=s.event, folder=s.folder, session=s.id, tolerance=tol)
     elif state == "pre-image" and not finished_writes(s.events("writeback")):  # cut before the write landed
+        to_write_pose(s, plan.after)
         apply(s.robot, plan, event=s.event, folder=s.folder, session=s.id, tolerance=tol, resumed=True,
               note="written on resume")
     elif state == "written" and finished_writes(s.events("writeback")):
@@ -261,6 +264,7 @@ def write_back(s, check_pose=None) -> dict:
         # cut before "written" was journaled: the values may sit in volatile memory only (a CANopen drive
         # before its 0x1010 store) or on some joints only; write them all again so the device's own store
         # command is sent again, and read back
+        to_write_pose(s, plan.after)
         apply(s.robot, plan, event=s.event, folder=s.folder, session=s.id, tolerance=tol, resumed=True,
               note=f"finished on resume (device held {'the new values' if state == 'written' else 'a mix'})")
     else:
@@ -269,6 +273,26 @@ def write_back(s, check_pose=None) -> dict:
     check = verify_known_pose(s, check_pose)
     s.event(Writeback(phase="verified", verified=bool(check["passed"]), check=check))
     return s.record_dict()["writeback"]
+
+
+def to_write_pose(s, values: dict[str, float]) -> None:
+    """A robot that stores its calibration only with a joint's power off (``WritePose``: DYNAMIXEL EEPROM, no
+    brake) says where the arm must stand for the write; the arm goes there along the collision-checked route from
+    where it stands, as often as the robot asks (it measures at each pose), before anything is written."""
+    if not isinstance(s.robot, WritePose):
+        return
+    from station.engine.plan import route_from
+
+    for _ in range(MAX_POSE_MOVES):
+        q = s.robot.write_pose(values)
+        if q is None:
+            return
+        s.check_space("the move to the write-back pose")
+        for via in route_from(s.model, s.cell.keep_out if s.cell else None, s.robot.joint_positions().q, [q],
+                              what="the write-back pose"):
+            s.robot.move_joints(via)
+    raise WriteBackError(f"write-back: the robot asked for more than {MAX_POSE_MOVES} moves to reach a pose it can "
+                         "be written in; nothing was written")
 
 
 def verify_known_pose(s, pose=None) -> dict:

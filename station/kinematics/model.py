@@ -230,8 +230,8 @@ class Model:
         """``(T, Jq)`` of :meth:`jacobians` without the parameter Jacobian (what IK and jogging need): through
         the fused chain, a few times faster. Under a gravity load with compliance the full routine is used."""
         q, p, _ = self._prep(q, params)
-        js, _ = self.compliance_index
-        if self.load is not None and len(js):
+        js, ps = self.compliance_index
+        if self.load is not None and len(js) and p[ps].any():  # zero compliance: no deflection, no stiffness term
             T, Jq, _ = self.jacobians(q, p)
             return T, Jq
         return forward_fused(self._fused(p), q, jacobian=True)

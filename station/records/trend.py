@@ -2,7 +2,8 @@
 
 Drift: a parameter whose identified value moved between two consecutive runs by more than 3 combined
 standard deviations (``|v_i - v_{i-1}| > 3 sqrt(s_i^2 + s_{i-1}^2)``) is flagged; the noise of both runs is
-allowed for, so a flag means the unit changed (or a run went wrong), not that the measurement is noisy."""
+allowed for, so a flag means the unit changed (or a run went wrong), not that the measurement is noisy. Runs
+under another kinematic model (``model``) are not compared: the row says ``model_changed`` instead."""
 
 from __future__ import annotations
 
@@ -23,10 +24,14 @@ def parameter_trend(sessions: list[dict]) -> dict[str, list[dict]]:
                 continue
             row = {"session": s.get("session"), "started": s.get("started"), "value": p.get("value"),
                    "std": p.get("std"), "unit": p.get("unit"), "identifiable": bool(p.get("identifiable")),
-                   "drift_sigma": None, "drift": False}
+                   "drift_sigma": None, "drift": False, "model": s.get("model"), "model_changed": False}
             prev = next((r for r in reversed(out.get(name, [])) if r["identifiable"]), None)
-            if row["identifiable"] and prev is not None and _finite(row["value"], row["std"], prev["value"],
-                                                                    prev["std"]):
+            if prev is not None and row["model"] != prev["model"]:
+                # another kinematic model under the same serial: its parameters are not the previous run's, a
+                # difference is no drift of the unit (say so instead)
+                row["model_changed"] = True
+            elif row["identifiable"] and prev is not None and _finite(row["value"], row["std"], prev["value"],
+                                                                      prev["std"]):
                 comb = math.hypot(row["std"], prev["std"])
                 if comb > 0:
                     row["drift_sigma"] = abs(row["value"] - prev["value"]) / comb
@@ -65,7 +70,7 @@ def started_after(summary: dict, since: datetime | None) -> bool:
     return (t if t.tzinfo else t.replace(tzinfo=UTC)) >= since
 
 
-EXPORT_COLUMNS = ("session", "serial", "procedure", "started", "finished", "station", "operator", "status",
+EXPORT_COLUMNS = ("session", "serial", "model", "procedure", "started", "finished", "station", "operator", "status",
                   "verdict", "n_samples", "rms_before_m", "rms_after_m", "parameter", "value", "std", "unit",
                   "identifiable")
 
@@ -77,7 +82,8 @@ def export_rows(records, serial: str | None = None, since: datetime | None = Non
         if not started_after(summ, since):
             continue
         doc = records.session(summ["session"])
-        base = {"session": summ["session"], "serial": summ["serial"], "procedure": summ["procedure"],
+        base = {"session": summ["session"], "serial": summ["serial"], "model": summ.get("model") or doc.get("model"),
+                "procedure": summ["procedure"],
                 "started": summ["started"], "finished": summ["finished"], "station": summ["station"],
                 "operator": summ["operator"], "status": summ["status"],
                 "verdict": None if summ["passed"] is None else ("PASS" if summ["passed"] else "FAIL"),

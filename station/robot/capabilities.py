@@ -30,6 +30,17 @@ class CalibrationStore(Protocol):
 
 
 @runtime_checkable
+class WritePose(Protocol):
+    """A ``CalibrationStore`` that stores only with a joint's power off (DYNAMIXEL: Homing Offset is EEPROM, written
+    with Torque Enable = 0, and the servo has no brake): ``write_pose(values)`` answers where the arm must stand for
+    ``write_calibration(values)`` (joint positions, SI; it may measure where the arm stands now, so it is asked
+    again after each move), or None when it may write where it stands. Write-back takes the arm there on a
+    collision-checked path first."""
+
+    def write_pose(self, values: dict[str, float] | None = None) -> np.ndarray | None: ...
+
+
+@runtime_checkable
 class CalibrationExport(Protocol):
     """The controller keeps its calibration internally and nothing the station speaks can change it (UR):
     ``export_calibration`` writes files for the integrator to install (e.g. ``calibration.conf``, URDF) and
@@ -102,7 +113,7 @@ FaultRecovery = (UnlockProtectiveStop, Reboot, Reconnect)
 
 
 CAPABILITIES = (CalibrationStore, CalibrationExport, ContactSensor, Compliant, CartesianMotion, UnlockProtectiveStop,
-                Reboot, Reconnect, VelocityJog)
+                Reboot, Reconnect, VelocityJog, WritePose)
 
 
 def capabilities_of(robot: object) -> list[str]:

@@ -215,8 +215,12 @@ class CorrectionMap:
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             k = int(np.flatnonzero((c[i] < lo - 1e-12) | (c[i] > hi + 1e-12))[0])
-            raise MapError(f"target {i + 1}: unreachable: the corrected command x{k + 1} = {c[i, k]:.9g} "
-                           f"{self._unit(k)} is outside the actuator limits [{lo[k]:.9g}, {hi[k]:.9g}]", i)
+            below = c[i, k] < lo[k]
+            lim = lo[k] if below else hi[k]
+            p = next((p for p in range(4, 10) if f"{c[i, k]:.{p}g}" != f"{lim:.{p}g}"), 10)  # digits that differ
+            raise MapError(f"target {i + 1}: unreachable: x{k + 1} {c[i, k]:.{p}g} {self._unit(k)} "
+                           f"{'below' if below else 'above'} {lim:.{p}g} {self._unit(k)} (the corrected command is "
+                           "outside the actuator limits)", i)
         return c, x_p
 
     def _ik(self, model, targets: np.ndarray, cols: tuple[str, ...]) -> np.ndarray:
