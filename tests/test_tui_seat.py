@@ -121,7 +121,7 @@ def test_seat_a_socket_and_record_a_real_touch(rig):
             assert "no contact" in ctl.message and not ctl.session.samples()
             # the seat key: freedrive, the ball seats, the contact input lights
             await pilot.press("v")
-            assert robot.status().compliant and ctl.compliant
+            assert robot.status().compliant and ctl.compliant, ctl.message
             assert "FREEDRIVE" in str(app.query_one("#jog").render())
             await until(pilot, lambda: ctl.readout is not None and ctl.readout.touch, what="the seated contact")
             q_seated = robot.joint_positions().q

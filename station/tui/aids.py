@@ -112,12 +112,15 @@ class ApproachAids:
             c.message = "clear the fault first (c)"
             return False
         on = not self.compliant
-        if on and (self.near is not None or c.holding.hold_state is not None or (
-                c.readout is not None and c.readout.moving)):
+        if on and (self.near is not None or c.holding.hold_state is not None):
             c.message = f"robot is moving: wait, or STOP (space), before {name}"
             return False
         with c.io_lock:
             try:
+                # asked now, not from the last poll: a move that just ended still reads "moving" there
+                if on and c.robot.status().moving:
+                    c.message = f"robot is moving: wait, or STOP (space), before {name}"
+                    return False
                 with c.session.step("compliant on" if on else "compliant off", point=c.point):
                     c.robot.set_compliant(on)
             except ConfigError as e:  # this robot's devices cannot yield (e.g. a servo without current control)
