@@ -1,24 +1,16 @@
 """``station solve`` / ``station fk`` end to end through the installed command (subprocess)."""
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from clirunner import station_proc
 
 from station.kinematics import load_model
 from station.solver.simulate import touch_observations
 
-STATION = str(Path(sys.executable).with_name("station"))
 UR_HOME = np.array([0.3, -1.2, 1.5, -1.9, -1.57, 0.4])
 HIDDEN = {"offset.j2": 0.004, "offset.j3": -0.003, "offset.j4": 0.005, "offset.j5": -0.002, "tcp.z": 0.1013}
-
-
-def run(*args, cwd):
-    p = subprocess.run([STATION, *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=60)
-    return p.returncode, p.stdout, p.stderr
 
 
 def write(path, q, units="deg", labels=None):
@@ -46,8 +38,8 @@ def data(tmp_path_factory):
 
 def test_solve_end_to_end(data):
     d, c = data
-    code, out, err = run("solve", "--model", "ur5e", "--samples", "s_deg.csv", "--identify", "offsets,tcp",
-                         "--tool", "0,0,100mm", "--holdout", "ho.csv", "--out", "r.json", cwd=d)
+    code, out, err = station_proc("solve", "--model", "ur5e", "--samples", "s_deg.csv", "--identify", "offsets,tcp",
+                                  "--tool", "0,0,100mm", "--holdout", "ho.csv", "--out", "r.json", cwd=d)
     assert code == 0, err
     assert "not identifiable" in out and "offset.j1: a rotation about joint 1 moves the unknown point" in out
     doc = json.loads((d / "r.json").read_text())
@@ -62,8 +54,8 @@ def test_solve_end_to_end(data):
     assert doc["holdout"]["n_samples"] == 8 and doc["holdout"]["rms_m"] < 1e-4
 
     # the same data in radians without a point column: the same answer
-    code, _, err = run("solve", "--model", "ur5e", "--samples", "s_rad.csv", "--tool", "0,0,0.1", "--out",
-                       "r2.json", cwd=d)
+    code, _, err = station_proc("solve", "--model", "ur5e", "--samples", "s_rad.csv", "--tool", "0,0,0.1", "--out",
+                                "r2.json", cwd=d)
     assert code == 0, err
     P2 = json.loads((d / "r2.json").read_text())["parameters"]
     for n in HIDDEN:
@@ -71,22 +63,22 @@ def test_solve_end_to_end(data):
 
     # known point given in mm: joint 1 becomes identifiable
     ref = ",".join(f"{v * 1e3:.9f}" for v in c) + "mm"
-    code, out, err = run("solve", "--model", "ur5e", "--samples", "s_deg.csv", "--reference", ref, "--tool",
-                         "0,0,0.1", "--out", "r3.json", cwd=d)
+    code, out, err = station_proc("solve", "--model", "ur5e", "--samples", "s_deg.csv", "--reference", ref, "--tool",
+                                  "0,0,0.1", "--out", "r3.json", cwd=d)
     assert code == 0, err
     P3 = json.loads((d / "r3.json").read_text())["parameters"]
     assert P3["offset.j1"]["identifiable"] and abs(P3["offset.j1"]["value"]) < 4 * P3["offset.j1"]["std"]
     assert "point.A.x" not in P3
 
     # fk with the calibration reproduces the touched point
-    code, out, err = run("fk", "--model", "ur5e", "--tool", "0,0,0.1", "--calibration", "r3.json", "--joints",
-                         "s_deg.csv", "--out", "fk.csv", cwd=d)
+    code, out, err = station_proc("fk", "--model", "ur5e", "--tool", "0,0,0.1", "--calibration", "r3.json", "--joints",
+                                  "s_deg.csv", "--out", "fk.csv", cwd=d)
     assert code == 0, err
     lines = [ln for ln in (d / "fk.csv").read_text().splitlines() if not ln.startswith("#")]
     assert lines[0] == "x[m],y[m],z[m],rx[rad],ry[rad],rz[rad]"
     xyz = np.array([[float(v) for v in ln.split(",")[:3]] for ln in lines[1:]])
     assert len(xyz) == 30 and np.max(np.linalg.norm(xyz - c, axis=1)) < 1e-4
-    code, out, _ = run("fk", "--model", "ur5e", "--joints", "s_deg.csv", cwd=d)  # nominal, to stdout
+    code, out, _ = station_proc("fk", "--model", "ur5e", "--joints", "s_deg.csv", cwd=d)  # nominal, to stdout
     assert code == 0 and out.splitlines()[1].startswith("x[m]")
 
 
@@ -109,7 +101,7 @@ def test_bad_input_exits_2_with_one_line(data, content, args, message):
     argv = ["solve", "--model", "ur5e", "--samples", samples, *args]
     if "--model" in args:
         argv = ["solve", "--samples", samples, *args]
-    code, out, err = run(*argv, cwd=d)
+    code, out, err = station_proc(*argv, cwd=d)
     assert code == 2
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("station: error: "), err
@@ -120,7 +112,7 @@ def test_fk_rejects_calibration_of_another_model(data):
     d, _ = data
     (d / "other.json").write_text(json.dumps({"model": "ur10e", "parameters": {}, "residuals": {}, "rank": 0,
                                               "n_parameters": 0, "converged": True, "iterations": 0}))
-    code, _, err = run("fk", "--model", "ur5e", "--calibration", "other.json", "--joints", "s_deg.csv", cwd=d)
+    code, _, err = station_proc("fk", "--model", "ur5e", "--calibration", "other.json", "--joints", "s_deg.csv", cwd=d)
     assert code == 2 and "ur10e" in err and err.startswith("station: error: ")
 
 
@@ -129,8 +121,8 @@ def test_solve_exit_codes_prior_noise_loss(data):
     line."""
     d, _ = data
     base = ("solve", "--model", "ur5e", "--samples", "s_deg.csv", "--identify", "offsets,tcp", "--tool", "0,0,100mm")
-    code, out, err = run(*base, "--noise", "20um", "--prior", "offsets=0.5deg", "--prior", "tcp=5mm",
-                         "--loss", "huber", "--out", "ok.json", cwd=d)
+    code, out, err = station_proc(*base, "--noise", "20um", "--prior", "offsets=0.5deg", "--prior", "tcp=5mm",
+                                  "--loss", "huber", "--out", "ok.json", cwd=d)
     assert code == 0, err
     doc = json.loads((d / "ok.json").read_text())
     assert doc["trusted"] is True and doc["solve_time_s"] > 0
@@ -139,14 +131,14 @@ def test_solve_exit_codes_prior_noise_loss(data):
     assert "result: trusted" in out
     # the data need offsets of 4-5 mrad that a 0.01 deg prior forbids: a prior-data conflict the data settle,
     # named with the data's estimate and std, estimated from the data alone (reported), exit 0
-    code, out, err = run(*base, "--prior", "offsets=0.01deg", "--out", "conflict.json", cwd=d)
+    code, out, err = station_proc(*base, "--prior", "offsets=0.01deg", "--out", "conflict.json", cwd=d)
     assert code == 0, (out, err)
     doc = json.loads((d / "conflict.json").read_text())
     assert doc["trusted"] is True and doc["conflicts"] and all(c["freed"] for c in doc["conflicts"])
     assert "note: prior-data conflict: offset.j" in out and "estimated from the data alone" in out
     for opt, val in (("--prior", "offsets"), ("--prior", "offsets=abc"), ("--prior", "offsets=-1deg"),
                      ("--prior", "nosuch=1mm"), ("--noise", "5deg"), ("--noise", "0um"), ("--loss", "cauchy")):
-        code, out, err = run(*base, opt, val, cwd=d)
+        code, out, err = station_proc(*base, opt, val, cwd=d)
         assert code == 2, (opt, val, out, err)
         assert err.startswith("station: error: ") and len(err.strip().splitlines()) == 1 and opt in err, err
 
@@ -161,8 +153,8 @@ def test_an_excluded_outlier_is_named_by_its_1_based_row(tmp_path):
     q = obs.q + rng.normal(0.0, 2e-5, obs.q.shape)  # encoder-class noise (~20 um at the tool)
     q[7, 1] += 0.01  # row 8 of the file: a slipped touch, ~5 mm off
     write(tmp_path / "s.csv", q, "rad")
-    code, out, err = run("solve", "--model", "ur5e", "--samples", "s.csv", "--identify", "offsets",
-                         "--tool", "0,0,100mm", "--out", "r.json", cwd=tmp_path)
+    code, out, err = station_proc("solve", "--model", "ur5e", "--samples", "s.csv", "--identify", "offsets",
+                                  "--tool", "0,0,100mm", "--out", "r.json", cwd=tmp_path)
     res = json.loads((tmp_path / "r.json").read_text())
     assert [o["index"] for o in res["outliers"]] == [7], (out, err)
     assert "  row 8 point A:" in out

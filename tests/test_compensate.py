@@ -6,13 +6,12 @@ surveyed), then the compensated commands driven through the driver: the TRUE too
 predicted uncertainty itself is calibrated: over Monte Carlo worlds, E|e|^2 / sigma^2 is about 1."""
 
 import csv
-import subprocess
-import sys
 import uuid
 from pathlib import Path
 
 import numpy as np
 import pytest
+from clirunner import station_main, station_proc
 from station.mocks.canopen.emulator import CanopenEmulator
 from station.mocks.tracker.config import tracker_config
 from station.mocks.world import World
@@ -24,10 +23,6 @@ from station.performance.compensate import Design, compensate, pose_covariance, 
 from station.solver import Observations, solve
 
 GOOD = np.array([0.0, 0.17, 0.17, 0.0, -0.87, 0.0])
-
-
-def _station(*args):
-    return subprocess.run([sys.executable, "-m", "station.cli", *args], capture_output=True, text=True, timeout=180)
 
 
 def _tracker_samples(world, cfg, n, rng, span=np.radians(30)):
@@ -63,9 +58,9 @@ def calibrated(tmp_path_factory):
     samples = tmp / "samples.csv"
     _csv(samples, [f"q{k}[rad]" for k in range(1, 7)] + ["x[m]", "y[m]", "z[m]"], np.column_stack([q, meas]))
     result = tmp / "result.json"
-    r = _station("solve", "--model", "arm6", "--samples", str(samples), "--identify", "offsets,dh,tcp",
-                 "--instrument-frame", "base", "--out", str(result))
-    assert r.returncode == 0, r.stderr
+    r = station_proc("solve", "--model", "arm6", "--samples", str(samples), "--identify", "offsets,dh,tcp",
+                     "--instrument-frame", "base", "--out", str(result))
+    assert r.code == 0, r.err
     rng = np.random.default_rng(8)
     qt = GOOD + rng.uniform(-np.radians(20), np.radians(20), (20, 6))
     T = world.nominal.fk(qt)  # targets the nominal model reaches: in the base frame, mm and deg in the file
@@ -81,12 +76,12 @@ def test_compensated_commands_bring_the_true_tool_onto_the_targets(calibrated, t
     c = calibrated
     out, script = tmp_path / "commands.csv", tmp_path / "program.script"
     start = ",".join(f"{np.degrees(v):.6f}" for v in GOOD) + "deg"
-    r = _station("compensate", "--model", "arm6", "--calibration", str(c["result"]), "--poses", str(c["targets"]),
-                 "--out", str(out), "--start", start, "--urscript", str(script))
-    assert r.returncode == 1, r.stderr  # one target out of reach: named, every other row written
-    err = r.stderr.strip().splitlines()
+    r = station_proc("compensate", "--model", "arm6", "--calibration", str(c["result"]), "--poses", str(c["targets"]),
+                     "--out", str(out), "--start", start, "--urscript", str(script))
+    assert r.code == 1, r.err  # one target out of reach: named, every other row written
+    err = r.err.strip().splitlines()
     assert len(err) == 1 and "1 of 21 targets unreachable: row 21" in err[0] and "targets.csv:22" in err[0]
-    assert "posterior of its 60 samples" in r.stdout
+    assert "posterior of its 60 samples" in r.out
     head, rows = _read(out)
     assert head[:3] == ["row", "name", "status"] and head[3:9] == [f"q{k}[rad]" for k in range(1, 7)]
     assert [row[2] for row in rows[:20]] == ["ok"] * 20 and rows[20][2].startswith("unreachable")
@@ -124,8 +119,8 @@ def test_cartesian_targets_come_back_to_the_same_joints_through_the_nominal_mode
     joints, cart = tmp_path / "j.csv", tmp_path / "c.csv"
     common = ["--model", "arm6", "--calibration", str(c["result"]), "--poses", str(c["targets"]), "--start",
               ",".join(str(v) for v in GOOD)]
-    assert _station("compensate", *common, "--out", str(joints)).returncode == 1
-    assert _station("compensate", *common, "--out", str(cart), "--cartesian", "--units", "mm,deg").returncode == 1
+    assert station_proc("compensate", *common, "--out", str(joints)).code == 1
+    assert station_proc("compensate", *common, "--out", str(cart), "--cartesian", "--units", "mm,deg").code == 1
     hj, rj = _read(joints)
     hc, rc = _read(cart)
     assert hc[3:9] == ["x[mm]", "y[mm]", "z[mm]", "rx[deg]", "ry[deg]", "rz[deg]"]
@@ -149,9 +144,9 @@ def test_a_report_alone_gives_the_conservative_uncertainty(calibrated, tmp_path)
     rp = tmp_path / "report.json"
     rp.write_text(json.dumps(report))
     out = tmp_path / "o.csv"
-    r = _station("compensate", "--model", "arm6", "--calibration", str(rp), "--poses", str(c["targets"]), "--out",
-                 str(out), "--start", ",".join(str(v) for v in GOOD))
-    assert r.returncode == 1 and "samples not found: conservative" in r.stdout
+    r = station_proc("compensate", "--model", "arm6", "--calibration", str(rp), "--poses", str(c["targets"]), "--out",
+                     str(out), "--start", ",".join(str(v) for v in GOOD))
+    assert r.code == 1 and "samples not found: conservative" in r.out
     head, rows = _read(out)
     assert float(rows[0][head.index("sigma[m]")]) > 0
 
@@ -161,20 +156,15 @@ def test_a_report_alone_gives_the_conservative_uncertainty(calibrated, tmp_path)
     (["--start", "1,2,3"], "--start '1,2,3': expected 6 joint values"),
     (["--units", "furlong,deg"], "--units 'furlong,deg'"),
 ])
-def test_bad_input_is_one_line(calibrated, tmp_path, args, expect, monkeypatch, capsys):
+def test_bad_input_is_one_line(calibrated, tmp_path, args, expect):
     """In process (``station.cli.main``, as the console script runs it): one line, exit 2, nothing written."""
-    from station.cli import main
-
     c = calibrated
     base = {"--calibration": str(c["result"]), "--poses": str(c["targets"]), "--out": str(tmp_path / "o.csv")}
     for k in range(0, len(args), 2):
         base[args[k]] = args[k + 1]
-    monkeypatch.setattr(sys, "argv", ["station", "compensate", "--model", "arm6",
-                                      *[x for kv in base.items() for x in kv]])
-    with pytest.raises(SystemExit) as e:
-        main()
-    assert e.value.code == 2 and not (tmp_path / "o.csv").exists()
-    lines = capsys.readouterr().err.strip().splitlines()
+    r = station_main("compensate", "--model", "arm6", *[x for kv in base.items() for x in kv])
+    assert r.code == 2 and not (tmp_path / "o.csv").exists()
+    lines = r.err_lines
     assert len(lines) == 1 and lines[0].startswith("station: error: ") and expect in lines[0], lines
 
 
@@ -238,19 +228,13 @@ def test_calibration_from_a_session(calibrated, tmp_path, monkeypatch):
     finally:
         emu.stop()
     out = tmp_path / "o.csv"
-    r = _station_env({"STATION_HOME": str(tmp_path / "home")}, "compensate", "--model", "arm6", "--calibration", sid,
+    r = station_proc("compensate", "--model", "arm6", "--calibration", sid,
                      "--poses", str(calibrated["targets"]), "--out", str(out), "--start",
-                     ",".join(str(v) for v in GOOD))
-    assert r.returncode == 1 and "posterior of its 50 samples" in r.stdout, r.stdout + r.stderr
+                     ",".join(str(v) for v in GOOD), env={"STATION_HOME": str(tmp_path / "home")})
+    assert r.code == 1 and "posterior of its 50 samples" in r.out, r.out + r.err
     head, rows = _read(out)
     assert [row[2] for row in rows[:20]] == ["ok"] * 20
 
-
-def _station_env(env, *args):
-    import os
-
-    return subprocess.run([sys.executable, "-m", "station.cli", *args], capture_output=True, text=True, timeout=180,
-                          env={**os.environ, **env})
 
 
 @pytest.mark.slow
@@ -271,16 +255,16 @@ def test_a_seven_axis_franka_gets_compensated_joint_targets(tmp_path):
     samples, result = tmp_path / "samples.csv", tmp_path / "result.json"
     _csv(samples, [f"q{k}[rad]" for k in range(1, 8)] + ["x[m]", "y[m]", "z[m]"],
          np.column_stack([read, meas]))
-    r = _station("solve", "--model", "fr3", "--samples", str(samples), "--identify", "offsets,dh,tcp",
-                 "--instrument-frame", "base", "--out", str(result))
-    assert r.returncode == 0, r.stderr
+    r = station_proc("solve", "--model", "fr3", "--samples", str(samples), "--identify", "offsets,dh,tcp",
+                     "--instrument-frame", "base", "--out", str(result))
+    assert r.code == 0, r.err
     qt = start + rng.uniform(-0.3, 0.3, (12, 7))
     T = world.nominal.fk(qt)
     targets, out = tmp_path / "targets.csv", tmp_path / "commands.csv"
     _csv(targets, ["x[m]", "y[m]", "z[m]"], T[:, :3, 3])
-    r = _station("compensate", "--model", "fr3", "--calibration", str(result), "--poses", str(targets),
-                 "--out", str(out), "--start", ",".join(f"{v:.6f}" for v in start))
-    assert r.returncode == 0, r.stderr
+    r = station_proc("compensate", "--model", "fr3", "--calibration", str(result), "--poses", str(targets),
+                     "--out", str(out), "--start", ",".join(f"{v:.6f}" for v in start))
+    assert r.code == 0, r.err
     head, rows = _read(out)
     assert [row[1] for row in rows] == ["ok"] * 12
     cols = [head.index(f"q{k}[rad]") for k in range(1, 8)]

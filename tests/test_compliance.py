@@ -3,13 +3,12 @@ deflection, exact Jacobians, model files, the simulated world's deflection (its 
 against the model's first-order one, and recovery of the world's compliance from noisy tip positions."""
 
 import math
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 import urdf_robots as robots
 import yourdfpy
+from clirunner import station_proc
 
 from station.kinematics import ModelFileError, load_model, model_from_dict
 from station.kinematics.modelfile import dump_model
@@ -264,11 +263,6 @@ def test_compliance_is_recovered_from_noisy_tip_positions_within_its_sigma():
     assert 0.6 < np.sqrt((z ** 2).mean()) < 1.5
 
 
-def _station(*args):
-    return subprocess.run([sys.executable, "-m", "station.cli", *map(str, args)], capture_output=True, text=True,
-                          timeout=120)
-
-
 def test_cli_payload_option(tmp_path):
     from station.cli.model_options import parse_payload
 
@@ -277,16 +271,16 @@ def test_cli_payload_option(tmp_path):
     assert parse_payload("0.5kg@0,0,30mm")[1] == pytest.approx((0.0, 0.0, 0.03))
     joints = tmp_path / "q.csv"
     joints.write_text("q1,q2,q3,q4,q5,q6\n0.1,-1.2,1.4,-1.5,-1.6,0.2\n")
-    r = _station("model", "show", "ur5e", "--payload", "0.5kg@0,0,30mm")
-    assert r.returncode == 0 and "compliance.j2" in r.stdout and "mass: 0.5" in r.stdout
+    r = station_proc("model", "show", "ur5e", "--payload", "0.5kg@0,0,30mm")
+    assert r.code == 0 and "compliance.j2" in r.out and "mass: 0.5" in r.out
     for bad, msg in (("5", "expected a mass with its unit"), ("-1kg", "a mass is a finite number"),
                      ("1kg@1,2", "--payload")):
-        r = _station("fk", "--model", "ur5e", "--joints", joints, "--payload", bad)
-        assert r.returncode == 2 and r.stderr.startswith("station: error: --payload") and msg in r.stderr, r.stderr
-        assert len(r.stderr.strip().splitlines()) == 1
+        r = station_proc("fk", "--model", "ur5e", "--joints", joints, "--payload", bad)
+        assert r.code == 2 and r.err.startswith("station: error: --payload") and msg in r.err, r.err
+        assert len(r.err.strip().splitlines()) == 1
     samples = tmp_path / "s.csv"
     samples.write_text("q1,q2,q3,q4,q5,q6,point\n" + "".join(f"0.1,-1.2,1.4,-1.5,-1.6,{0.1 * i},A\n"
                                                              for i in range(8)))
-    r = _station("solve", "--model", "ur5e", "--samples", samples, "--identify", "offsets,compliance")
-    assert r.returncode == 2 and "has no link masses and no payload" in r.stderr
-    assert len(r.stderr.strip().splitlines()) == 1
+    r = station_proc("solve", "--model", "ur5e", "--samples", samples, "--identify", "offsets,compliance")
+    assert r.code == 2 and "has no link masses and no payload" in r.err
+    assert len(r.err.strip().splitlines()) == 1

@@ -7,19 +7,17 @@ space); the solver only ever sees the nominal model and the joint readings."""
 
 import json
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from clirunner import station_proc
 from station.mocks.world import World
 
 from station.engine.cell import CellError, cell_from_dict
 from station.solver import Observations, SolverInputError, solve
 from station.solver.simulate import noisy_q, touch_observations, touch_q
 
-STATION = str(Path(sys.executable).with_name("station"))
 HIDDEN = {"dh.j2.a": 8e-4, "dh.j3.a": -6e-4, "offset.j2": 1e-3, "offset.j3": -7e-4, "tcp.z": 3e-4}
 NOISE = 20e-6  # m per axis
 LENGTHS = ("dh.j2.a", "dh.j3.a")
@@ -190,17 +188,12 @@ def _csv(path: Path, obs: Observations) -> Path:
     return path
 
 
-def run(*args, cwd):
-    p = subprocess.run([STATION, *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=120)
-    return p.returncode, p.stdout, p.stderr
-
-
 def test_cli_distance_and_result_json(world, tmp_path):
     obs = data(world, np.random.default_rng(5), 20)
     f = _csv(tmp_path / "s.csv", obs)
     d_mm = true_distance(world) * 1e3
-    code, out, err = run("solve", "--model", "ur5e", "--samples", f, "--identify", "offsets,dh,tcp",
-                         "--distance", f"A,B={d_mm:.6f}mm±0.005mm", "--out", tmp_path / "r.json", cwd=tmp_path)
+    code, out, err = station_proc("solve", "--model", "ur5e", "--samples", f, "--identify", "offsets,dh,tcp",
+                                  "--distance", f"A,B={d_mm:.6f}mm±0.005mm", "--out", tmp_path / "r.json", cwd=tmp_path)
     assert code == 0, err
     assert "constraints:" in out and "distance A,B: stated" in out
     doc = json.loads((tmp_path / "r.json").read_text())
@@ -210,8 +203,9 @@ def test_cli_distance_and_result_json(world, tmp_path):
     assert {"fitted_m", "residual_m", "fitted_std_m"} <= set(c)
     assert doc["parameters"]["dh.j2.a"]["identifiable"]
     # the same in metres gives the same answer (SI inside)
-    code, _, err = run("solve", "--model", "ur5e", "--samples", f, "--identify", "offsets,dh,tcp",
-                       "--distance", f"A,B={d_mm * 1e-3:.9f}m+-5um", "--out", tmp_path / "r2.json", cwd=tmp_path)
+    code, _, err = station_proc("solve", "--model", "ur5e", "--samples", f, "--identify", "offsets,dh,tcp",
+                                "--distance", f"A,B={d_mm * 1e-3:.9f}m+-5um", "--out", tmp_path / "r2.json",
+                                cwd=tmp_path)
     assert code == 0, err
     doc2 = json.loads((tmp_path / "r2.json").read_text())
     assert doc2["parameters"]["dh.j2.a"]["value"] == pytest.approx(doc["parameters"]["dh.j2.a"]["value"], abs=1e-9)
@@ -221,7 +215,7 @@ def test_cli_distance_and_result_json(world, tmp_path):
                                       ("A,C=50mm", "no touches of point 'C'")])
 def test_cli_distance_bad_input_is_one_line(world, tmp_path, arg, msg):
     f = _csv(tmp_path / "s.csv", data(world, np.random.default_rng(6), 6))
-    code, out, err = run("solve", "--model", "ur5e", "--samples", f, "--distance", arg, cwd=tmp_path)
+    code, out, err = station_proc("solve", "--model", "ur5e", "--samples", f, "--distance", arg, cwd=tmp_path)
     assert code == 2
     assert err.startswith("station: error: --distance") and msg in err and err.count("\n") == 1, err
 

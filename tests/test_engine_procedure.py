@@ -1,10 +1,9 @@
 """Procedure files: shipped ones load and read like checklists; broken files give one-line errors, also from
 the command line (exit 2, ``station: error: ...``)."""
 
-import subprocess
-import sys
 
 import pytest
+from clirunner import station_proc
 
 from station.engine import ProcedureError, load_procedure, shipped_names
 
@@ -36,20 +35,15 @@ def test_unknown_procedure_name():
         load_procedure("zero_ofsets")
 
 
-def _station(*args, env=None):
-    return subprocess.run([sys.executable, "-c", "from station.cli import main; main()", *args],
-                          capture_output=True, text=True, timeout=60, env=env)
-
-
 def test_cli_bad_procedure_and_limits_files_exit_2_with_one_line(tmp_path):
     bad = tmp_path / "bad.py"
     bad.write_text('"""doc"""\ndef checklist(s)\n    pass\n')
-    r = _station("run", str(bad), "--robot", "ur://127.0.0.1", "--serial", "X")
-    assert r.returncode == 2
-    assert r.stderr.strip().count("\n") == 0
-    assert r.stderr.startswith("station: error: procedure") and "line 2" in r.stderr
+    r = station_proc("run", str(bad), "--robot", "ur://127.0.0.1", "--serial", "X")
+    assert r.code == 2
+    assert r.err.strip().count("\n") == 0
+    assert r.err.startswith("station: error: procedure") and "line 2" in r.err
     lim = tmp_path / "limits.yaml"
     lim.write_text("format: station-limits/1\nversion: 1\nmodels: {ur5e: {zero_offsets: {fit_rms: {high: 1}}}}\n")
-    r = _station("run", "zero_offsets", "--robot", "ur://127.0.0.1", "--serial", "X", "--limits", str(lim))
-    assert r.returncode == 2
-    assert r.stderr.strip().count("\n") == 0 and "fit_rms: unit '(missing)'" in r.stderr
+    r = station_proc("run", "zero_offsets", "--robot", "ur://127.0.0.1", "--serial", "X", "--limits", str(lim))
+    assert r.code == 2
+    assert r.err.strip().count("\n") == 0 and "fit_rms: unit '(missing)'" in r.err

@@ -3,26 +3,19 @@ last one silently); calibration values beyond physical bounds are refused; a mod
 impossible for its stated unit is refused naming the likely unit."""
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from clirunner import station_proc
 
 from station.kinematics import ModelFileError, load_model
 from station.safeio import DuplicateKeyError, loads_strict
 
-STATION = str(Path(sys.executable).with_name("station"))
-
-
-def run(*args, cwd):
-    return subprocess.run([STATION, *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=120)
-
 
 def one_error(p, *needles):
-    assert p.returncode == 2, (p.stdout, p.stderr)
-    lines = p.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("station: error: "), p.stderr
+    assert p.code == 2, (p.out, p.err)
+    lines = p.err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("station: error: "), p.err
     for n in needles:
         assert n in lines[0], lines[0]
 
@@ -49,7 +42,7 @@ def _calibration(tmp_path, edit) -> Path:
 def test_a_calibration_with_a_duplicated_key_is_refused(tmp_path):
     cal = _calibration(tmp_path, lambda t: t.replace('"value": 0.001,', '"value": 0.001, "value": 0.5,'))
     line = next(i for i, s in enumerate(cal.read_text().splitlines(), 1) if '"value": 0.5' in s)
-    one_error(run("fk", "--model", "ur5e", "--joints", "q.csv", "--calibration", cal, cwd=tmp_path),
+    one_error(station_proc("fk", "--model", "ur5e", "--joints", "q.csv", "--calibration", cal, cwd=tmp_path),
               f"cal.json:{line}: key 'value' is given twice")
 
 
@@ -65,7 +58,7 @@ def test_calibration_values_beyond_physical_bounds_are_refused(tmp_path, value, 
         return json.dumps(d)
 
     cal = _calibration(tmp_path, edit)
-    one_error(run("fk", "--model", "ur5e", "--joints", "q.csv", "--calibration", cal, cwd=tmp_path),
+    one_error(station_proc("fk", "--model", "ur5e", "--joints", "q.csv", "--calibration", cal, cwd=tmp_path),
               f"parameters.{name}", needle)
 
 

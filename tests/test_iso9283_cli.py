@@ -3,21 +3,16 @@ units in the headers (mm, deg) in, the JSON per pose in SI out, equal to the sta
 independently; bad files are one line naming file, line and column, exit 2, nothing written."""
 
 import json
-import subprocess
 import sys
 
 import numpy as np
 import pytest
+from clirunner import station_proc
 
 from station.kinematics import se3
 
 POSES = {"P1": (400, 0, 500), "P2": (480, 80, 420), "P3": (320, 80, 420), "P4": (320, -80, 580),
          "P5": (480, -80, 580)}  # mm
-
-
-def _station(*args, timeout=120):
-    return subprocess.run([sys.executable, "-m", "station.cli", *args], capture_output=True, text=True,
-                          timeout=timeout)
 
 
 @pytest.fixture(scope="module")
@@ -48,9 +43,9 @@ def export(tmp_path_factory):
 def test_result_json_per_pose_in_si(export, tmp_path):
     path, _ = export
     out = tmp_path / "result.json"
-    r = _station("iso9283", "--samples", str(path), "--out", str(out), "--noise", "15um")
-    assert r.returncode == 0, r.stderr
-    assert "RP_l" in r.stdout and "P1" in r.stdout
+    r = station_proc("iso9283", "--samples", str(path), "--out", str(out), "--noise", "15um")
+    assert r.code == 0, r.err
+    assert "RP_l" in r.out and "P1" in r.out
     res = json.loads(out.read_text())
     assert res["format"] == "station-iso9283/1" and res["units"] == "SI (m, rad)"
     assert res["source"]["direction"] == "-z" and res["source"]["cycles"]["P1"] == 30

@@ -6,21 +6,15 @@ and joint compliance seats a ball in two sockets 50 mm apart at two fixture posi
 
 import csv
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import urdf_robots as robots
+from clirunner import station_proc
 from station.mocks.world.realdata import arm_world, consistency, two_socket_data
 
-STATION = str(Path(sys.executable).with_name("station"))
 NOISE = 0.06e-3
-
-
-def station(*args, cwd):
-    return subprocess.run([STATION, *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=300)
 
 
 def write(path: Path, q: np.ndarray, point=None) -> Path:
@@ -33,9 +27,9 @@ def write(path: Path, q: np.ndarray, point=None) -> Path:
 
 def fk(cwd, urdf, joints, cal=None) -> np.ndarray:
     args = ["fk", "--model", urdf, "--tip-link", "ball", "--joints", joints] + (["--calibration", cal] if cal else [])
-    p = station(*args, cwd=cwd)
-    assert p.returncode == 0, p.stderr
-    rows = list(csv.reader(ln for ln in p.stdout.splitlines() if not ln.startswith("#")))[1:]
+    p = station_proc(*args, cwd=cwd, timeout=300)
+    assert p.code == 0, p.err
+    rows = list(csv.reader(ln for ln in p.out.splitlines() if not ln.startswith("#")))[1:]
     return np.array([[float(v) for v in r[:3]] for r in rows])
 
 
@@ -54,9 +48,9 @@ def test_train_on_one_position_predict_another(case):
     train, held = data.where("1"), data.where("2")
     write(d / "train.csv", data.q[train], data.point[train])
     write(d / "held.csv", data.q[held])
-    p = station("solve", "--model", urdf, "--tip-link", "ball", "--samples", "train.csv", "--identify",
-                "full,compliance", "--distance", "A,B=50mm", "--out", "cal.json", cwd=d)
-    assert (d / "cal.json").exists(), p.stderr
+    p = station_proc("solve", "--model", urdf, "--tip-link", "ball", "--samples", "train.csv", "--identify",
+                     "full,compliance", "--distance", "A,B=50mm", "--out", "cal.json", cwd=d, timeout=300)
+    assert (d / "cal.json").exists(), p.err
     res = json.loads((d / "cal.json").read_text())
     (c,) = res["constraints"]
     assert c["kind"] == "distance" and abs(c["residual_m"]) < 4 * c["stated_std_m"]

@@ -13,17 +13,15 @@ regress:
 
 import csv
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from clirunner import station_proc
 
 from station.kinematics import load_model
 
 DATA = Path(__file__).parent / "data" / "mukca"
-STATION = str(Path(sys.executable).with_name("station"))
 
 
 def touches(robot, pos):
@@ -51,16 +49,12 @@ def write(path, q, labels=None, fixture=None):
     return path
 
 
-def station(*args, cwd):
-    return subprocess.run([STATION, *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=300)
-
-
 def fk(cwd, urdf, q, cal):
     write(cwd / "held.csv", q)
-    p = station("fk", "--model", urdf, "--tip-link", "ball_link", "--joints", "held.csv", "--calibration", cal,
-                cwd=cwd)
-    assert p.returncode == 0, p.stderr
-    rows = list(csv.reader(ln for ln in p.stdout.splitlines() if not ln.startswith("#")))[1:]
+    p = station_proc("fk", "--model", urdf, "--tip-link", "ball_link", "--joints", "held.csv", "--calibration", cal,
+                     cwd=cwd, timeout=300)
+    assert p.code == 0, p.err
+    rows = list(csv.reader(ln for ln in p.out.splitlines() if not ln.startswith("#")))[1:]
     return np.array([[float(v) for v in r[:3]] for r in rows])
 
 
@@ -68,9 +62,9 @@ def test_panda_trained_on_front_predicts_the_others_as_well_as_the_published_opt
     urdf = DATA / "panda.urdf"
     q, lab = touches("panda_6", "front")
     write(tmp_path / "front.csv", q, lab)
-    p = station("solve", "--model", urdf, "--tip-link", "ball_link", "--samples", "front.csv", "--identify", "full",
-                "--distance", "A,B=50mm", "--out", "cal.json", cwd=tmp_path)
-    assert p.returncode == 0, p.stdout[-2000:] + p.stderr
+    p = station_proc("solve", "--model", urdf, "--tip-link", "ball_link", "--samples", "front.csv", "--identify",
+                     "full", "--distance", "A,B=50mm", "--out", "cal.json", cwd=tmp_path, timeout=300)
+    assert p.code == 0, p.out[-2000:] + p.err
     assert json.loads((tmp_path / "cal.json").read_text())["trusted"]
     published = load_model(DATA / "published" / "panda_6" / "panda.urdf", tip_link="ball_link")
     nominal = load_model(urdf, tip_link="ball_link")
@@ -92,10 +86,10 @@ def test_fixture_positions_pooled_in_one_solve_and_held_out_by_group(tmp_path):
         labs += lab.tolist()
         fix += [pos] * len(q)
     write(tmp_path / "all.csv", np.vstack(qs), labs, fix)
-    p = station("solve", "--model", DATA / "panda.urdf", "--tip-link", "ball_link", "--samples", "all.csv",
-                "--identify", "full", "--distance", "A,B=50mm", "--holdout", "fixture=right", "--out", "r.json",
-                cwd=tmp_path)
-    assert p.returncode == 0, p.stdout[-2000:] + p.stderr
+    p = station_proc("solve", "--model", DATA / "panda.urdf", "--tip-link", "ball_link", "--samples", "all.csv",
+                     "--identify", "full", "--distance", "A,B=50mm", "--holdout", "fixture=right", "--out", "r.json",
+                     cwd=tmp_path, timeout=300)
+    assert p.code == 0, p.out[-2000:] + p.err
     doc = json.loads((tmp_path / "r.json").read_text())
     # two positions in the fit: two unknown point pairs, the known distance once per position
     assert {c["fixture"] for c in doc["constraints"]} == {"front", "left"}
@@ -109,19 +103,19 @@ def test_fixture_positions_pooled_in_one_solve_and_held_out_by_group(tmp_path):
     assert abs(d["error_m"]) < 0.5e-3  # the held-out sockets are 50 mm apart in the calibrated model
     for bad, msg in (("fixture=nowhere", "no fixture 'nowhere'"), ("fixture=front,left,right", "every row"),
                      ("point=C", "no point 'C'")):
-        p = station("solve", "--model", DATA / "panda.urdf", "--tip-link", "ball_link", "--samples", "all.csv",
-                    "--holdout", bad, cwd=tmp_path)
-        assert p.returncode == 2 and msg in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
+        p = station_proc("solve", "--model", DATA / "panda.urdf", "--tip-link", "ball_link", "--samples", "all.csv",
+                         "--holdout", bad, cwd=tmp_path, timeout=300)
+        assert p.code == 2 and msg in p.err and len(p.err.strip().splitlines()) == 1, p.err
 
 
 @pytest.mark.parametrize("robot", ["dinova_1", "dinova_2"])
 def test_kinova_gen3_lite_with_backlash_is_not_trusted_and_says_why(tmp_path, robot):
     q, lab = touches(robot, "left")
     write(tmp_path / "s.csv", q, lab)
-    p = station("solve", "--model", DATA / "gen3lite.urdf", "--tip-link", "ball_link", "--samples", "s.csv",
-                "--identify", "full", "--distance", "A,B=50mm", "--out", "r.json", cwd=tmp_path)
-    assert p.returncode == 1, p.stdout[-2000:] + p.stderr
-    err = [ln for ln in p.stderr.splitlines() if not ln.startswith("station: warning: ")]
+    p = station_proc("solve", "--model", DATA / "gen3lite.urdf", "--tip-link", "ball_link", "--samples", "s.csv",
+                     "--identify", "full", "--distance", "A,B=50mm", "--out", "r.json", cwd=tmp_path, timeout=300)
+    assert p.code == 1, p.out[-2000:] + p.err
+    err = [ln for ln in p.err.splitlines() if not ln.startswith("station: warning: ")]
     assert len(err) == 1 and err[0].startswith("station: solve failed: nothing to trust: the fit leaves ")
     assert "far above what socket touches give" in err[0] and "likely cause: backlash" in err[0]
     assert "pool more fixture positions in one solve" in err[0]

@@ -3,14 +3,13 @@ refusals with one-line errors, hostile XML, export of nominal and calibrated rob
 and the CLI and world files taking a URDF wherever a model is accepted."""
 
 import math
-import subprocess
-import sys
 import time
 
 import numpy as np
 import pytest
 import urdf_robots as robots
 import yourdfpy
+from clirunner import station_proc
 
 from station.kinematics import ModelFileError, load_model
 from station.kinematics.urdfexport import urdf_text
@@ -222,15 +221,10 @@ def test_generated_urdf_of_builtin_models(tmp_path, name):
     assert "point mass" in out.read_text()
 
 
-def _station(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "station.cli", *map(str, args)], capture_output=True, text=True,
-                          cwd=cwd, timeout=120)
-
-
 def test_cli_import_export_show_and_fk_take_a_urdf(tmp_path):
     path = robots.write(tmp_path, "arm7")
-    r = _station("model", "import", path, "--tip-link", "ball", "--out", tmp_path / "arm7.yaml")
-    assert r.returncode == 0, r.stderr
+    r = station_proc("model", "import", path, "--tip-link", "ball", "--out", tmp_path / "arm7.yaml")
+    assert r.code == 0, r.err
     imported = load_model(tmp_path / "arm7.yaml")
     m = load_model(path, tip_link="ball")
     q = _q(m, 20, np.random.default_rng(2))
@@ -241,20 +235,20 @@ def test_cli_import_export_show_and_fk_take_a_urdf(tmp_path):
     joints = tmp_path / "q.csv"
     joints.write_text("q1,q2,q3,q4,q5,q6,q7\n" + "\n".join(",".join(f"{x:.12f}" for x in row) for row in q) + "\n")
     for model_args in (["--model", path, "--tip-link", "ball"], ["--model", tmp_path / "arm7.yaml"]):
-        r = _station("fk", *model_args, "--joints", joints)
-        assert r.returncode == 0, r.stderr
-        xyz = np.loadtxt(r.stdout.splitlines()[2:], delimiter=",")[:, :3]
+        r = station_proc("fk", *model_args, "--joints", joints)
+        assert r.code == 0, r.err
+        xyz = np.loadtxt(r.out.splitlines()[2:], delimiter=",")[:, :3]
         np.testing.assert_allclose(xyz, m.position(q), atol=2e-9)
-    r = _station("fk", "--model", path, "--joints", joints)
-    assert r.returncode == 2 and r.stderr.startswith("station: error: ") and "several chain ends" in r.stderr
-    assert len(r.stderr.strip().splitlines()) == 1
-    r = _station("model", "show", path, "--tip-link", "ball")
-    assert r.returncode == 0 and "chain world -> ball" in r.stdout and "compliance.j2" in r.stdout
-    r = _station("model", "export", path, "--tip-link", "ball", "--format", "urdf", "--out", tmp_path / "o.urdf")
-    assert r.returncode == 0, r.stderr
+    r = station_proc("fk", "--model", path, "--joints", joints)
+    assert r.code == 2 and r.err.startswith("station: error: ") and "several chain ends" in r.err
+    assert len(r.err.strip().splitlines()) == 1
+    r = station_proc("model", "show", path, "--tip-link", "ball")
+    assert r.code == 0 and "chain world -> ball" in r.out and "compliance.j2" in r.out
+    r = station_proc("model", "export", path, "--tip-link", "ball", "--format", "urdf", "--out", tmp_path / "o.urdf")
+    assert r.code == 0, r.err
     assert _max_fk_error(m, tmp_path / "o.urdf", "ball") < TOL
-    r = _station("model", "export", "ur5e", "--tip-link", "x")
-    assert r.returncode == 2 and "URDF model only" in r.stderr
+    r = station_proc("model", "export", "ur5e", "--tip-link", "x")
+    assert r.code == 2 and "URDF model only" in r.err
 
 
 def test_cli_export_of_a_calibrated_urdf_robot(tmp_path):
@@ -266,13 +260,13 @@ def test_cli_export_of_a_calibrated_urdf_robot(tmp_path):
     params = {n: ParameterEstimate(n, v, m.param(n), 1e-6, True) for n, v in true.items()}
     res = CalibrationResult(m.name, params, {"rms_before_m": 0, "rms_after_m": 0, "max_after_m": 0}, 3, 3, True, 1)
     (tmp_path / "cal.json").write_text(__import__("json").dumps(res.to_dict()))
-    r = _station("model", "export", path, "--format", "urdf", "--calibration", tmp_path / "cal.json",
-                 "--out", tmp_path / "cal.urdf")
-    assert r.returncode == 0, r.stderr
+    r = station_proc("model", "export", path, "--format", "urdf", "--calibration", tmp_path / "cal.json",
+                     "--out", tmp_path / "cal.urdf")
+    assert r.code == 0, r.err
     assert _max_fk_error(m.with_params(true), tmp_path / "cal.urdf", "tool0") < TOL
     assert _max_fk_error(m, tmp_path / "cal.urdf", "tool0") > 1e-4  # and it is not the nominal robot
-    r = _station("model", "export", path, "--format", "urdf", "--out", path)
-    assert r.returncode == 2 and "the model being read" in r.stderr
+    r = station_proc("model", "export", path, "--format", "urdf", "--out", path)
+    assert r.code == 2 and "the model being read" in r.err
 
 
 def test_world_file_with_a_urdf_robot(tmp_path):

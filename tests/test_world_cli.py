@@ -1,33 +1,24 @@
 """``station mock world ...`` through the installed command (subprocess)."""
 
 import math
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 import yaml
+from clirunner import station_proc
 from station.mocks.world import World
-
-STATION = Path(sys.executable).parent / "station"
-
-
-def _run(*args, cwd=None):
-    return subprocess.run([str(STATION), "mock", "world", *args], capture_output=True, text=True, timeout=60,
-                          cwd=cwd)
 
 
 def test_example_show_cell(tmp_path):
-    r = _run("example", "--model", "omx", "--seed", "7")
-    assert r.returncode == 0, r.stderr
+    r = station_proc("mock", "world", "example", "--model", "omx", "--seed", "7")
+    assert r.code == 0, r.err
     f = tmp_path / "world.yaml"
-    f.write_text(r.stdout)
+    f.write_text(r.out)
     w = World.from_file(f)
     assert w.nominal.name == "omx" and w.spec.seed == 7
 
-    r = _run("show", str(f))
-    assert r.returncode == 0, r.stderr
-    out = r.stdout
+    r = station_proc("mock", "world", "show", str(f))
+    assert r.code == 0, r.err
+    out = r.out
     # every perturbed parameter with nominal, true and difference, in mm / deg
     for name, err in w.errors().items():
         line = next(ln for ln in out.splitlines() if ln.split() and ln.split()[0] == name)
@@ -39,19 +30,19 @@ def test_example_show_cell(tmp_path):
     for label in w.points:
         assert any(ln.split()[:1] == [label] for ln in out.splitlines())
 
-    r = _run("cell", str(f), "--out", str(tmp_path / "cell.yaml"))
-    assert r.returncode == 0, r.stderr
+    r = station_proc("mock", "world", "cell", str(f), "--out", str(tmp_path / "cell.yaml"))
+    assert r.code == 0, r.err
     cell = yaml.safe_load((tmp_path / "cell.yaml").read_text())
     assert cell == w.station_cell()
-    r = _run("cell", str(f))
-    assert yaml.safe_load(r.stdout) == cell
+    r = station_proc("mock", "world", "cell", str(f))
+    assert yaml.safe_load(r.out) == cell
 
 
 def test_freeze_keeps_truth(tmp_path):
     f = tmp_path / "w.yaml"
-    f.write_text(_run("example", "--model", "scara").stdout)
-    r = _run("freeze", str(f), "--out", str(tmp_path / "frozen.yaml"))
-    assert r.returncode == 0, r.stderr
+    f.write_text(station_proc("mock", "world", "example", "--model", "scara").out)
+    r = station_proc("mock", "world", "freeze", str(f), "--out", str(tmp_path / "frozen.yaml"))
+    assert r.code == 0, r.err
     a, b = World.from_file(f), World.from_file(tmp_path / "frozen.yaml")
     assert b.spec.random == []
     assert b.hidden() == pytest.approx(a.hidden(), abs=1e-9)
@@ -62,8 +53,8 @@ def test_errors_exit_2_with_one_line(tmp_path):
     bad.write_text("format: station-world/1\nunits: {length: mm, angle: deg}\nnoise: {seating: -1}\n")
     for args in (("show", str(bad)), ("cell", str(bad)), ("show", str(tmp_path / "missing.yaml")),
                  ("example", "--model", "nosuchrobot"), ("show", str(bad), "--length", "inch")):
-        r = _run(*args)
-        assert r.returncode == 2, (args, r.stdout, r.stderr)
-        lines = r.stderr.strip().splitlines()
-        assert len(lines) == 1 and lines[0].startswith("station: error: "), r.stderr
-    assert "noise.seating" in _run("show", str(bad)).stderr
+        r = station_proc("mock", "world", *args)
+        assert r.code == 2, (args, r.out, r.err)
+        lines = r.err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("station: error: "), r.err
+    assert "noise.seating" in station_proc("mock", "world", "show", str(bad)).err
