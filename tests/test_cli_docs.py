@@ -5,13 +5,11 @@ every shipped procedure, every emulator stops with its parent."""
 
 from __future__ import annotations
 
-import contextlib
-import io
 import re
-import sys
 from pathlib import Path
 
 import pytest
+from clirunner import station_main
 
 from station.cli import COMMANDS
 from station.cli.docgen import commands, current_block, reference
@@ -22,20 +20,7 @@ OWN_STYLE_EXEMPT = ("station jog",)  # the jog UI's options are the jog UI's (do
 
 
 def _help(*args: str, columns: int = 80) -> str:
-    from station.cli import main
-
-    out = io.StringIO()
-    argv, env = sys.argv, dict(__import__("os").environ)
-    sys.argv = ["station", *args, "--help"]
-    __import__("os").environ["COLUMNS"] = str(columns)
-    try:
-        with contextlib.redirect_stdout(out), contextlib.suppress(SystemExit):
-            main()
-    finally:
-        sys.argv = argv
-        __import__("os").environ.clear()
-        __import__("os").environ.update(env)
-    return out.getvalue()
+    return station_main(*args, "--help", columns=columns).out
 
 
 def _flat(text: str) -> str:
@@ -107,17 +92,9 @@ def test_run_help_lists_every_shipped_procedure():
 def test_model_list_and_the_docs_agree():
     from station.kinematics import builtin_names
 
-    out = io.StringIO()
-    from station.cli import main
-
-    argv = sys.argv
-    sys.argv = ["station", "model", "list"]
-    try:
-        with contextlib.redirect_stdout(out), contextlib.suppress(SystemExit):
-            main()
-    finally:
-        sys.argv = argv
-    listed = [ln.split()[0] for ln in out.getvalue().splitlines() if ln.strip()]
+    r = station_main("model", "list")
+    assert r.code == 0, r.err
+    listed = [ln.split()[0] for ln in r.out.splitlines() if ln.strip()]
     assert listed == list(builtin_names())
     documented = re.findall(r"^\| `([a-z0-9]+)` \| \d+ \|", current_block(DOC.read_text()), re.M)
     assert documented == listed

@@ -9,14 +9,12 @@ truth is the world's true tool pose at each held-out reading (approached from be
 
 import hashlib
 import json
-import os
 import re
-import subprocess
-import sys
 import uuid
 
 import numpy as np
 import pytest
+from clirunner import station_proc
 from station.mocks.canopen.emulator import CanopenEmulator
 from station.mocks.tracker.config import tracker_config
 from station.mocks.tracker.server import TrackerServer
@@ -59,9 +57,8 @@ def rig(tmp_path_factory):
 
 
 def _cli(tmp_path, *args):
-    env = {**os.environ, "STATION_HOME": str(tmp_path / "home")}
-    return subprocess.run([sys.executable, "-m", "station.cli", *args, "-q", "--db", f"sqlite:///{tmp_path / 'r.db'}"],
-                          capture_output=True, text=True, timeout=60, env=env)
+    return station_proc(*args, "-q", "--db", f"sqlite:///{tmp_path / 'r.db'}", timeout=60,
+                        env={"STATION_HOME": str(tmp_path / "home")})
 
 
 def test_run_refuses_a_compliance_calibration_without_payload_before_the_robot_opens(rig, tmp_path):
@@ -74,19 +71,19 @@ def test_run_refuses_a_compliance_calibration_without_payload_before_the_robot_o
             "--calibration", str(cal)]
     for extra, expect in (([], "compliance."), (["--payload", "15"], "--payload '15'")):
         r = _cli(tmp_path, *base, *extra)
-        assert r.returncode == 2, r.stderr
-        lines = r.stderr.strip().splitlines()
+        assert r.code == 2, r.err
+        lines = r.err.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("station: error: ") and expect in lines[0], lines
         if not extra:
             assert str(cal) in lines[0] and "--payload" in lines[0]
     r = _cli(tmp_path, *base, "--payload", "15kg")
-    assert r.returncode == 2 and "calibration" not in r.stderr.splitlines()[0] and "compliance" not in r.stderr, \
-        r.stderr  # past the calibration check: the robot at 127.0.0.1:9 is what fails
+    assert r.code == 2 and "calibration" not in r.err.splitlines()[0] and "compliance" not in r.err, \
+        r.err  # past the calibration check: the robot at 127.0.0.1:9 is what fails
     # the result records the load it was solved under; another one is refused, naming both
     assert json.loads(cal.read_text())["settings"]["payload"] == PAYLOAD
     r = _cli(tmp_path, *base, "--payload", "10kg")
-    lines = r.stderr.strip().splitlines()
-    assert r.returncode == 2 and len(lines) == 1 and "settings.payload" in lines[0] and "15 kg" in lines[0] \
+    lines = r.err.strip().splitlines()
+    assert r.code == 2 and len(lines) == 1 and "settings.payload" in lines[0] and "15 kg" in lines[0] \
         and "10 kg" in lines[0], lines
 
 
@@ -133,8 +130,8 @@ def test_a_compliance_calibration_is_refused_without_payload_before_motion(rig, 
         resume(out.session, report=False, store=False, payload=PAYLOAD)
     for arg, expect in (("15kg", "was run without a payload"), ("15", "--payload '15'")):  # the CLI: one line
         r = _cli(tmp_path, "resume", out.session, "--payload", arg)
-        lines = r.stderr.strip().splitlines()
-        assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("station: error: --payload"), r.stderr
+        lines = r.err.strip().splitlines()
+        assert r.code == 2 and len(lines) == 1 and lines[0].startswith("station: error: --payload"), r.err
         assert expect in lines[0], lines
 
 
@@ -173,10 +170,9 @@ def test_map_on_a_compliance_calibration_uses_the_payload(rig, tmp_path, monkeyp
     cmd = ["map", "correct", "--model", "arm6", "--map", str(tmp_path / "map.json"), "--joints",
            str(tmp_path / "q.csv"), "--out", str(tmp_path / "poses.csv")]
     for extra, rc in (([], 2), (["--payload", "10kg"], 2), (["--payload", "15kg"], 0)):
-        r = subprocess.run([sys.executable, "-m", "station.cli", *cmd, *extra], capture_output=True, text=True,
-                           timeout=60)
-        assert r.returncode == rc, (extra, r.stderr)
-        assert rc == 0 or (len(r.stderr.strip().splitlines()) == 1 and "payload" in r.stderr), r.stderr
+        r = station_proc(*cmd, *extra, timeout=60)
+        assert r.code == rc, (extra, r.err)
+        assert rc == 0 or (len(r.err.strip().splitlines()) == 1 and "payload" in r.err), r.err
 
     # truth from the world, in the tracker's frame, seen through the session's registration: a replica of the world
     # (same seed, same hidden errors), since the session left the emulated drives disabled

@@ -12,28 +12,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from clirunner import station_main, station_proc
 
 from station.kinematics import dump_model, load_model
 
-STATION = str(Path(sys.executable).with_name("station"))
 UR_Q = "q1[rad],q2[rad],q3[rad],q4[rad],q5[rad],q6[rad]\n0.3,-1.2,1.5,-1.9,-1.57,0.4\n"
-
-
-def cli(argv: list[str], capsys) -> tuple[int, str, str]:
-    """Run ``station ARGV`` in this process: (exit code, stdout, stderr)."""
-    from station.cli import main
-
-    old = sys.argv
-    sys.argv = ["station", *map(str, argv)]
-    code = 0
-    try:
-        main()
-    except SystemExit as e:
-        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
-    finally:
-        sys.argv = old
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def assert_one_line(code: int, err: str, *needles: str) -> None:
@@ -87,40 +70,40 @@ BAD_MODELS = [  # (replace this, with that, expected text in the error)
 
 
 @pytest.mark.parametrize("old,new,needle", BAD_MODELS, ids=[c[2][:20] for c in BAD_MODELS])
-def test_bad_model_file(tmp_path, capsys, old, new, needle):
+def test_bad_model_file(tmp_path, old, new, needle):
     assert old in GOOD_MODEL
     f = tmp_path / "m.yaml"
     f.write_text(GOOD_MODEL.replace(old, new, 1))
-    code, _, err = cli(["model", "show", f], capsys)
+    code, _, err = station_main("model", "show", f)
     assert_one_line(code, err, needle, str(f))
 
 
-def test_good_model_file_still_reads(tmp_path, capsys):
+def test_good_model_file_still_reads(tmp_path):
     f = tmp_path / "m.yaml"
     f.write_text(GOOD_MODEL)
-    code, out, err = cli(["model", "show", f], capsys)
+    code, out, err = station_main("model", "show", f)
     assert code == 0, err
     assert "arm2" in out
 
 
-def test_model_error_names_the_line(tmp_path, capsys):
+def test_model_error_names_the_line(tmp_path):
     f = tmp_path / "m.yaml"
     f.write_text(GOOD_MODEL.replace("alpha: 0", "alfa: 0"))
-    code, _, err = cli(["model", "show", f], capsys)
+    code, _, err = station_main("model", "show", f)
     assert_one_line(code, err, f"{f}:9: joints[1].dh", "'alfa'")
 
 
-def test_poe_screw_shapes(tmp_path, capsys):
+def test_poe_screw_shapes(tmp_path):
     doc = dump_model(load_model("ur5e").with_params({}), "mm", "deg")
     assert "convention: dh" in doc  # the built-in UR is DH; write a tiny PoE model instead
     poe = ("format: station-model/1\nconvention: poe\nunits: {length: m, angle: rad}\nhome: {x: 1}\n"
            "joints:\n  - limits: [-3, 3]\n    screw: {axis: 5, point: [0, 1]}\n")
     f = tmp_path / "p.yaml"
     f.write_text(poe)
-    code, _, err = cli(["model", "show", f], capsys)
+    code, _, err = station_main("model", "show", f)
     assert_one_line(code, err, "screw.axis")
     f.write_text(poe.replace("axis: 5", "axis: [0, 0, 1]"))
-    code, _, err = cli(["model", "show", f], capsys)
+    code, _, err = station_main("model", "show", f)
     assert_one_line(code, err, "screw.point")
 
 
@@ -132,22 +115,22 @@ BOMB = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
     b"\xff\xfef\x00o\x00r\x00m\x00a\x00t\x00", b"format: station-model/1\n\x89PNG\r\n\x1a\n\x00\x00",
     b"format: \xe9\n", ("[" * 30000).encode(), BOMB.encode(), b"description: " + BOMB.replace("\n", " ").encode(),
 ], ids=["utf16", "binary", "latin1", "deep", "bomb", "bomb-in-field"])
-def test_unreadable_yaml(tmp_path, capsys, data):
+def test_unreadable_yaml(tmp_path, data):
     f = tmp_path / "m.yaml"
     f.write_bytes(data)
-    code, _, err = cli(["model", "show", f], capsys)
+    code, _, err = station_main("model", "show", f)
     assert_one_line(code, err, str(f))
 
 
 @pytest.mark.parametrize("path", ["/dev/zero", "fifo", "dir"])
-def test_special_files_are_refused_without_reading(tmp_path, capsys, path):
+def test_special_files_are_refused_without_reading(tmp_path, path):
     if path == "fifo":
         path = tmp_path / "f.yaml"
         os.mkfifo(path)
     elif path == "dir":
         path = tmp_path / "d.yaml"
         path.mkdir()
-    code, _, err = cli(["model", "show", path], capsys)
+    code, _, err = station_main("model", "show", path)
     assert_one_line(code, err, "not a regular file")
 
 
@@ -208,39 +191,39 @@ def _ur_rows(n=20, seed=1):
     return np.array([0.3, -1.2, 1.5, -1.9, -1.57, 0.4]) + rng.uniform(-0.3, 0.3, (n, 6))
 
 
-def test_degrees_in_a_radian_column_are_named_per_row(tmp_path, capsys):
+def test_degrees_in_a_radian_column_are_named_per_row(tmp_path):
     rows = _ur_rows()
     rows[6, 2] = 85.0  # this row was written in degrees
     f = _samples(tmp_path, rows)
-    code, _, err = cli(["solve", "--model", "ur5e", "--samples", f], capsys)
+    code, _, err = station_main("solve", "--model", "ur5e", "--samples", f)
     assert_one_line(code, err, "row 7: q3 = 85 rad is outside the joint limits", "degrees in a radian column?")
 
 
-def test_all_degrees_under_rad_header(tmp_path, capsys):
+def test_all_degrees_under_rad_header(tmp_path):
     f = _samples(tmp_path, np.degrees(_ur_rows()))
-    code, _, err = cli(["fk", "--model", "ur5e", "--joints", f], capsys)
+    code, _, err = station_main("fk", "--model", "ur5e", "--joints", f)
     assert_one_line(code, err, "outside the joint limits")
 
 
 @pytest.mark.parametrize("cell", ["1_0", "\u0661", "0x10", "1e400", "nan"])
-def test_sample_numbers_must_be_plain(tmp_path, capsys, cell):
+def test_sample_numbers_must_be_plain(tmp_path, cell):
     f = tmp_path / "s.csv"
     f.write_text(UR_Q.replace("0.3,", f"{cell},"))
-    code, _, err = cli(["fk", "--model", "ur5e", "--joints", f], capsys)
+    code, _, err = station_main("fk", "--model", "ur5e", "--joints", f)
     assert_one_line(code, err, "q1")
 
 
-def test_csv_field_beyond_the_csv_limit(tmp_path, capsys):
+def test_csv_field_beyond_the_csv_limit(tmp_path):
     f = tmp_path / "s.csv"
     f.write_text(UR_Q + '"' + "x" * 140_000 + '",1,2,3,4,5\n')
-    code, _, err = cli(["fk", "--model", "ur5e", "--joints", f], capsys)
+    code, _, err = station_main("fk", "--model", "ur5e", "--joints", f)
     assert_one_line(code, err, "not a CSV row")
 
 
 @pytest.mark.parametrize("value", ["0", "-1", "nan", "inf"])
-def test_max_std_must_be_positive_and_finite(tmp_path, capsys, value):
+def test_max_std_must_be_positive_and_finite(tmp_path, value):
     f = _samples(tmp_path, _ur_rows())
-    code, _, err = cli(["solve", "--model", "ur5e", "--samples", f, f"--max-std={value}"], capsys)
+    code, _, err = station_main("solve", "--model", "ur5e", "--samples", f, f"--max-std={value}")
     assert_one_line(code, err, "--max-std")
 
 
@@ -249,22 +232,22 @@ def test_max_std_must_be_positive_and_finite(tmp_path, capsys, value):
     (["--identify", "offsets,,tcp"], "--identify"),
     (["--reference", "A=0,0,0", "--reference", "A=1,1,1mm"], "twice"),
 ])
-def test_solve_options(tmp_path, capsys, args, needle):
+def test_solve_options(tmp_path, args, needle):
     f = _samples(tmp_path, _ur_rows())
-    code, _, err = cli(["solve", "--model", "ur5e", "--samples", f, *args], capsys)
+    code, _, err = station_main("solve", "--model", "ur5e", "--samples", f, *args)
     assert_one_line(code, err, needle)
 
 
-def test_out_equal_to_samples_is_refused_and_samples_kept(tmp_path, capsys):
+def test_out_equal_to_samples_is_refused_and_samples_kept(tmp_path):
     f = _samples(tmp_path, _ur_rows())
     before = f.read_bytes()
-    code, _, err = cli(["solve", "--model", "ur5e", "--samples", f, "--out", f], capsys)
+    code, _, err = station_main("solve", "--model", "ur5e", "--samples", f, "--out", f)
     assert_one_line(code, err, "refusing to overwrite")
     assert f.read_bytes() == before
 
 
 @pytest.mark.parametrize("where", ["dir", "missing", "readonly"])
-def test_unwritable_out_is_one_line_and_leaves_nothing(tmp_path, capsys, where):
+def test_unwritable_out_is_one_line_and_leaves_nothing(tmp_path, where):
     f = tmp_path / "j.csv"
     f.write_text(UR_Q)
     if where == "dir":
@@ -280,7 +263,7 @@ def test_unwritable_out_is_one_line_and_leaves_nothing(tmp_path, capsys, where):
         if os.access(ro, os.W_OK):  # root (CI) ignores permissions: a folder that is a file refuses even root
             (tmp_path / "afile").write_text("")
             out = tmp_path / "afile" / "x.csv"
-    code, _, err = cli(["fk", "--model", "ur5e", "--joints", f, "--out", out], capsys)
+    code, _, err = station_main("fk", "--model", "ur5e", "--joints", f, "--out", out)
     assert_one_line(code, err, "--out")
     assert not list(tmp_path.rglob("*.tmp"))
 
@@ -294,9 +277,8 @@ def _result(tmp_path) -> dict:
     obs = touch_observations(truth, {"A": truth.position(q0)}, 30, np.random.default_rng(3), centre=q0, spread=0.3)
     f = _samples(tmp_path, obs.q)
     out = tmp_path / "r.json"
-    p = subprocess.run([STATION, "solve", "--model", "ur5e", "--samples", f, "--tool", "0,0,0.1",
-                        "--out", out], capture_output=True, text=True, timeout=120)
-    assert p.returncode == 0, p.stderr
+    p = station_proc("solve", "--model", "ur5e", "--samples", f, "--tool", "0,0,0.1", "--out", out)
+    assert p.code == 0, p.err
     return json.loads(out.read_text())
 
 
@@ -324,7 +306,7 @@ def test_result_json_is_strict_json(result):
      "boolean"),
     (lambda d: d.__setitem__("notes", "[" * 100_000), "nested"),
 ])
-def test_bad_calibration_json(tmp_path, capsys, result, change, needle):
+def test_bad_calibration_json(tmp_path, result, change, needle):
     doc = json.loads(json.dumps(result))
     change(doc)
     text = json.dumps(doc)
@@ -335,24 +317,23 @@ def test_bad_calibration_json(tmp_path, capsys, result, change, needle):
     cal.write_text(text)
     j = tmp_path / "j.csv"
     j.write_text(UR_Q)
-    code, _, err = cli(["fk", "--model", "ur5e", "--tool", "0,0,0.1", "--calibration", cal, "--joints", j], capsys)
+    code, _, err = station_main("fk", "--model", "ur5e", "--tool", "0,0,0.1", "--calibration", cal, "--joints", j)
     assert_one_line(code, err, needle)
 
 
-def test_calibration_directory(tmp_path, capsys):
+def test_calibration_directory(tmp_path):
     j = tmp_path / "j.csv"
     j.write_text(UR_Q)
-    code, _, err = cli(["fk", "--model", "ur5e", "--calibration", tmp_path, "--joints", j], capsys)
+    code, _, err = station_main("fk", "--model", "ur5e", "--calibration", tmp_path, "--joints", j)
     assert_one_line(code, err, "directory")
 
 
-def test_good_calibration_applies(tmp_path, capsys, result):
+def test_good_calibration_applies(tmp_path, result):
     cal = tmp_path / "c.json"
     cal.write_text(json.dumps(result))
     j = tmp_path / "j.csv"
     j.write_text(UR_Q)
-    code, out, err = cli(["fk", "--model", "ur5e", "--tool", "0,0,0.1", "--calibration", cal, "--joints", j],
-                         capsys)
+    code, out, err = station_main("fk", "--model", "ur5e", "--tool", "0,0,0.1", "--calibration", cal, "--joints", j)
     assert code == 0, err
     assert "calibration" in out
 
@@ -366,23 +347,23 @@ NOBODY = "ur://127.0.0.250"
     (["--cone", "-10"], "--cone"), (["--cone", "0"], "--cone"), (["--cone", "180"], "--cone"),
     (["--cone", "nan"], "--cone"), (["--seed", "-1"], "--seed"), (["--touch", "bogus"], "--touch"),
 ])
-def test_run_options_checked_before_connecting(capsys, args, needle):
-    code, _, err = cli(["run", "zero_offsets", "--robot", NOBODY, "--serial", "S", *args], capsys)
+def test_run_options_checked_before_connecting(args, needle):
+    code, _, err = station_main("run", "zero_offsets", "--robot", NOBODY, "--serial", "S", *args)
     assert_one_line(code, err, needle)
 
 
-def test_run_limits_unit_slip_before_connecting(tmp_path, capsys):
+def test_run_limits_unit_slip_before_connecting(tmp_path):
     f = tmp_path / "l.yaml"
     f.write_text(LIMITS.replace("unit: mm", "unit: m"))
-    code, _, err = cli(["run", "zero_offsets", "--robot", NOBODY, "--serial", "S", "--limits", f], capsys)
+    code, _, err = station_main("run", "zero_offsets", "--robot", NOBODY, "--serial", "S", "--limits", f)
     assert_one_line(code, err, "unit slip")
 
 
 @pytest.mark.parametrize("url,needle", [
     ("ur://[::1?x", "not a URL"), ("dynamixel:///dev/null?ids=1-100000000&model=omx", "id"),
 ])
-def test_urls(capsys, url, needle):
-    code, _, err = cli(["run", "zero_offsets", "--robot", url, "--serial", "S"], capsys)
+def test_urls(url, needle):
+    code, _, err = station_main("run", "zero_offsets", "--robot", url, "--serial", "S")
     assert_one_line(code, err, needle)
 
 
@@ -405,9 +386,8 @@ def test_internal_error_is_exit_2_one_line(tmp_path):
 def test_out_of_process_fifo_does_not_hang(tmp_path):
     fifo = tmp_path / "cell.yaml"
     os.mkfifo(fifo)
-    p = subprocess.run([STATION, "run", "zero_offsets", "--robot", NOBODY, "--serial", "S", "--cell", fifo],
-                       capture_output=True, text=True, timeout=60)
-    assert p.returncode == 2 and "FIFO" in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
+    p = station_proc("run", "zero_offsets", "--robot", NOBODY, "--serial", "S", "--cell", fifo, timeout=60)
+    assert p.code == 2 and "FIFO" in p.err and len(p.err_lines) == 1, p.err
 
 
 # ---- bounded cost --------------------------------------------------------------------------------------------

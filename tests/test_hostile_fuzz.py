@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from clirunner import station_main
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -228,28 +229,6 @@ def test_samples_reader_random_bytes(data):
 
 
 # ---- CLI entry points -----------------------------------------------------------------------------------------
-def _cli(argv):
-    """``station ARGV`` in process: (exit code, stdout, stderr)."""
-    import contextlib
-    import io
-    import sys
-
-    from station.cli import main
-
-    out, err = io.StringIO(), io.StringIO()
-    old = sys.argv
-    sys.argv = ["station", *map(str, argv)]
-    code = 0
-    try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            main()
-    except SystemExit as e:
-        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
-    finally:
-        sys.argv = old
-    return code, out.getvalue(), err.getvalue()
-
-
 def _exit_0_or_one_line(code, err):
     assert code in (0, 2), (code, err)
     if code == 2:
@@ -264,7 +243,7 @@ def test_cli_fk_fuzz(text):
     with tempfile.TemporaryDirectory() as d:
         f = Path(d) / "j.csv"
         f.write_text(text, encoding="utf-8")
-        code, out, err = _cli(["fk", "--model", "ur5e", "--joints", f])
+        code, out, err = station_main("fk", "--model", "ur5e", "--joints", f)
     _exit_0_or_one_line(code, err)
     if code == 0:
         rows = [r for r in out.splitlines()[2:] if r]
@@ -293,7 +272,8 @@ def test_cli_run_options_fuzz(option, value):
     try:
         kw[key] = value if key == "touch" else (float(value) if key == "cone" else int(value))
     except (ValueError, OverflowError):
-        code, _, err = _cli(["run", "zero_offsets", "--robot", "ur://127.0.0.250", "--serial", "S", option, value])
+        code, _, err = station_main("run", "zero_offsets", "--robot", "ur://127.0.0.250", "--serial", "S",
+                                      option, value)
         _exit_0_or_one_line(code, err)
         assert code == 2
         return
@@ -386,7 +366,7 @@ def _clean_cli(argv, env: dict | None = None) -> tuple[int, str, str]:
     with warnings.catch_warnings(record=True) as caught, mock.patch.dict(os.environ, env or {}):
         warnings.simplefilter("always")
         with np.errstate(all="warn", under="ignore"):
-            code, out, err = _cli(argv)
+            code, out, err = station_main(*argv)
     assert code in (0, 1, 2), (argv, code, err)
     assert "Traceback" not in err and "internal error" not in err, (argv, err)
     assert not caught, (argv, [f"{w.category.__name__}: {w.message}" for w in caught])
@@ -632,13 +612,13 @@ def map_files(tmp_path_factory):
     and a readings and a targets file for ``map correct`` / ``map apply``."""
     d = tmp_path_factory.mktemp("map")
     truth = load_model("struts2").with_params({"strut.1.offset": 2.5e-4, "pivot.2.y": -6e-4})
-    assert _cli(["map", "plan", "--model", "struts2", "--grid", "2", "--out", d / "plan.csv"])[0] == 0
+    assert station_main("map", "plan", "--model", "struts2", "--grid", "2", "--out", d / "plan.csv").code == 0
     rows = [r.split(",") for r in (d / "plan.csv").read_text().splitlines() if r and not r.startswith("#")]
     x = np.array([[float(v) for v in r] for r in rows[1:]])
     xy = truth.fk(x)[:, :2, 3]
     (d / "m.csv").write_text("x1,x2,x,y\n" + "".join(",".join(repr(float(v)) for v in (*a, *b)) + "\n"
                                                      for a, b in zip(x, xy, strict=True)))
-    code, _, err = _cli(["map", "build", "--model", "struts2", "--samples", d / "m.csv", "--out", d / "map.json"])
+    code, _, err = station_main("map", "build", "--model", "struts2", "--samples", d / "m.csv", "--out", d / "map.json")
     assert code == 0, err
     (d / "readings.csv").write_text("x1,x2\n" + "".join(f"{a!r},{b!r}\n" for a, b in x[:3]))
     (d / "targets.csv").write_text("x,y\n" + "".join(f"{a!r},{b!r}\n" for a, b in xy[:3]))

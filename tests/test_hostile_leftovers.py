@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from clirunner import station_main
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -19,12 +20,6 @@ from station.solver.simulate import touch_observations
 
 UR5E = load_model("ur5e")
 TRUTH = UR5E.with_params({"offset.j2": 0.004, "offset.j3": -0.003, "offset.j4": 0.002})
-
-
-def _cli(argv):
-    from tests.test_hostile_fuzz import _cli as run
-
-    return run(argv)
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +40,7 @@ def _csv(path: Path, q: np.ndarray, unit: str = "rad") -> Path:
 
 
 def _solve(samples: Path, *extra):
-    return _cli(["solve", "--model", "ur5e", "--samples", samples, "--identify", "offsets", *extra])
+    return station_main("solve", "--model", "ur5e", "--samples", samples, "--identify", "offsets", *extra)
 
 
 # ---- unit slips inside the joint limits ----------------------------------------------------------------------
@@ -157,7 +152,7 @@ def test_jog_bad_url_is_the_run_error(url):
     codes = {}
     for cmd in ("jog", "run"):
         argv = [cmd, "--robot", url] + (["zero_offsets", "--serial", "S"] if cmd == "run" else [])
-        code, _, err = _cli(argv)
+        code, _, err = station_main(*argv)
         assert code == 2 and len(err.strip().splitlines()) == 1, err
         assert "internal error" not in err
         codes[cmd] = err.strip()
@@ -193,7 +188,7 @@ def test_journal_sample_field_fuzz(field, value, where):
         except JournalError as e:
             assert "\n" not in str(e) and f"journal.jsonl:{2 + where}:" in str(e), str(e)
             assert f"field {field}" in str(e), str(e)
-        code, _, err = _cli(["report", path])
+        code, _, err = station_main("report", path)
         assert code in (0, 2), err
         if code == 2:
             assert len(err.strip().splitlines()) == 1 and "internal error" not in err, err

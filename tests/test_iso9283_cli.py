@@ -3,11 +3,10 @@ units in the headers (mm, deg) in, the JSON per pose in SI out, equal to the sta
 independently; bad files are one line naming file, line and column, exit 2, nothing written."""
 
 import json
-import sys
 
 import numpy as np
 import pytest
-from clirunner import station_proc
+from clirunner import station_main, station_proc
 
 from station.kinematics import se3
 
@@ -99,17 +98,13 @@ def test_mm_and_m_give_the_same_answer(export, tmp_path):
     (lambda t: t.replace("P1,2,-z", "P1,1,-z"), "export.csv:4: pose P1 cycle 1 direction -z is also on line 3"),
     (lambda t: t.replace("P1,3,-z", "P1,three,-z"), "export.csv:5: column 'cycle': not an integer ('three')"),
 ])
-def test_bad_files_are_one_line_and_write_nothing(export, tmp_path, edit, expect, monkeypatch, capsys):
+def test_bad_files_are_one_line_and_write_nothing(export, tmp_path, edit, expect):
     """In process (``station.cli.main``, as the console script runs it): one line, exit 2, nothing written."""
-    from station.cli import main
-
     path, _ = export
     bad = tmp_path / "export.csv"
     bad.write_text(edit(path.read_text()))
     out = tmp_path / "r.json"
-    monkeypatch.setattr(sys, "argv", ["station", "iso9283", "--samples", str(bad), "--out", str(out)])
-    with pytest.raises(SystemExit) as e:
-        main()
-    assert e.value.code == 2 and not out.exists()
-    lines = capsys.readouterr().err.strip().splitlines()
+    r = station_main("iso9283", "--samples", bad, "--out", out)
+    assert r.code == 2 and not out.exists()
+    lines = r.err_lines
     assert len(lines) == 1 and lines[0].startswith("station: error: ") and expect in lines[0], lines

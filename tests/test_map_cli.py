@@ -3,18 +3,15 @@ the true robot from the simulated world, mm/deg headers giving the SI answer, on
 
 import csv
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from clirunner import station_main, station_proc
 from station.mocks.world import World
-from test_parallel import station
 
 from station.kinematics import se3
 
-STATION = str(Path(sys.executable).with_name("station"))
 FULL = ("x", "y", "z", "rx", "ry", "rz")
 
 
@@ -49,13 +46,14 @@ def measured_file(path, x, T, planar, mm=False):
 
 
 def ok(*args):
-    rc, out, err = station(*args)
+    rc, out, err = station_main(*args)
     assert rc == 0, err
     return out
 
 
 def one_line_error(*args, contains=()):
-    rc, _, lines = station(*args)
+    r = station_main(*args)
+    rc, lines = r.code, r.err_lines
     assert rc == 2, lines
     assert len(lines) == 1 and lines[0].startswith("station: error:"), lines
     for c in contains:
@@ -150,8 +148,9 @@ def test_apply_and_correct_answer_every_row(struts):
     rows = [("A", *good[0]), ("B", "5", "5"), ("C", "0.2", "-0.3"), ("D", *good[1]), ("E", "0.0", "0.5"),
             ("F", "0.31875", "0.391693")]
     f.write_text("# targets of line 3\nlabel,x,y\n" + "".join(f"{a},{b},{c}\n" for a, b, c in rows))
-    rc, out, err = station("map", "apply", "--model", "struts2", "--map", d / "si.json", "--poses", f, "--out",
-                           d / "mixed_out.csv")
+    r = station_main("map", "apply", "--model", "struts2", "--map", d / "si.json", "--poses", f, "--out",
+                     d / "mixed_out.csv")
+    rc, err = r.code, r.err_lines
     assert rc == 1, err
     assert err[0].startswith("station: 4 of 6 targets have no command"), err
     text = (d / "mixed_out.csv").read_text().splitlines()
@@ -173,8 +172,9 @@ def test_apply_and_correct_answer_every_row(struts):
     np.testing.assert_allclose(served, c_alone, atol=1e-12)
     # correct: a reading outside the map gets its status; exit 1
     (d / "readings.csv").write_text("x1,x2\n0.4,0.4\n400,400\n")
-    rc, _, err = station("map", "correct", "--model", "struts2", "--map", d / "si.json", "--joints",
-                         d / "readings.csv", "--out", d / "poses_out.csv")
+    r = station_main("map", "correct", "--model", "struts2", "--map", d / "si.json", "--joints",
+                     d / "readings.csv", "--out", d / "poses_out.csv")
+    rc, err = r.code, r.err_lines
     assert rc == 1 and "1 of 2 readings have no pose" in err[0], err
     lines = list(csv.reader((d / "poses_out.csv").read_text().splitlines()))
     assert lines[0] == ["x", "y", "status", "x1", "x2"] and lines[1][2] == "ok"
@@ -226,10 +226,9 @@ def test_hexapod_with_mm_deg_files_and_the_installed_command(tmp_path):
     _, x = read_csv(tmp_path / "plan.csv")
     T = w.truth.fk(x, guess=w.nominal.fk(x))
     measured_file(tmp_path / "m.csv", x, T, planar=False, mm=True)
-    p = subprocess.run([STATION, "map", "build", "--model", "hexapod", "--samples", str(tmp_path / "m.csv"),
-                        "--mesh", "simplex", "--out", str(tmp_path / "map.json")], capture_output=True, text=True,
-                       timeout=120)
-    assert p.returncode == 0, p.stderr
+    p = station_proc("map", "build", "--model", "hexapod", "--samples", tmp_path / "m.csv", "--mesh", "simplex",
+                     "--out", tmp_path / "map.json")
+    assert p.code == 0, p.err
     doc = json.loads((tmp_path / "map.json").read_text())
     assert doc["mesh"]["type"] == "simplex" and doc["pose"] == list(FULL)
     rng = np.random.default_rng(4)
@@ -276,9 +275,8 @@ def test_map_on_top_of_a_parametric_calibration(tmp_path):
                 instrument_frame="base")
     (tmp_path / "cal.json").write_text(json.dumps(res.to_dict()))
     limited = tmp_path / "arm6-cell.yaml"
-    doc = subprocess.run([STATION, "model", "export", "arm6", "--units", "m,rad", "--out", str(limited)],
-                         capture_output=True, text=True, timeout=120)
-    assert doc.returncode == 0, doc.stderr
+    doc = station_proc("model", "export", "arm6", "--units", "m,rad", "--out", limited)
+    assert doc.code == 0, doc.err
     import yaml
 
     m = yaml.safe_load(limited.read_text())

@@ -1,18 +1,15 @@
 """Parallel models: round trips against independent leg-length computations, analytic Jacobians against finite
 differences, model files in both unit systems, one-line errors, and the simulated world holding a parallel truth."""
 
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from clirunner import station_main, station_proc
 
 from station.kinematics import ModelFileError, dump_model, load_model, model_from_dict, se3
 from station.kinematics.parallel import ParallelKinematicsError, planar_struts
 
-STATION = str(Path(sys.executable).with_name("station"))
 RNG = np.random.default_rng(11)
 
 
@@ -170,29 +167,6 @@ def test_issue_file_forms_load(tmp_path):
     assert m.fk([0.4, 0.4])[1, 3] < 0  # branch -1: right of pivot1 -> pivot2
 
 
-def station(*args):
-    """``station ARGS`` in this process (the same ``main`` the installed command runs): (exit code, stdout, stderr
-    lines)."""
-    import contextlib
-    import io
-
-    from station.cli import main
-
-    out, err = io.StringIO(), io.StringIO()
-    argv = sys.argv
-    sys.argv = ["station", *map(str, args)]
-    try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            try:
-                main()
-                rc = 0
-            except SystemExit as e:
-                rc = e.code if isinstance(e.code, int) else 1
-    finally:
-        sys.argv = argv
-    return rc, out.getvalue(), err.getvalue().strip().splitlines()
-
-
 @pytest.mark.parametrize("edit,message", [
     (lambda d: d["parallel"].update(base_anchors=d["parallel"]["base_anchors"][:5]), "base_anchors: expected 6"),
     (lambda d: d["parallel"].update(type="delta"), "parallel.type"),
@@ -213,7 +187,8 @@ def test_bad_parallel_files_fail_in_one_line(tmp_path, edit, message):
     f.write_text(yaml.safe_dump(doc))
     with pytest.raises(ModelFileError, match=message.replace("[", r"\[").replace("]", r"\]")):
         load_model(f)
-    rc, _, lines = station("model", "show", f)
+    r = station_main("model", "show", f)
+    rc, lines = r.code, r.err_lines
     assert rc == 2
     assert len(lines) == 1 and lines[0].startswith("station: error:") and str(f) in lines[0], lines
 
@@ -221,17 +196,18 @@ def test_bad_parallel_files_fail_in_one_line(tmp_path, edit, message):
 @pytest.mark.slow
 def test_installed_command_shows_parallel_models():
     for name in ("hexapod", "struts2"):
-        p = subprocess.run([STATION, "model", "show", name], capture_output=True, text=True, timeout=120)
-        assert p.returncode == 0, p.stderr
-        assert "kind: parallel" in p.stdout and "# actuators at home" in p.stdout
-    rc, out, _ = station("model", "list")
+        p = station_proc("model", "show", name)
+        assert p.code == 0, p.err
+        assert "kind: parallel" in p.out and "# actuators at home" in p.out
+    rc, out, _ = station_main("model", "list")
     assert rc == 0 and "hexapod" in out and "struts2" in out
 
 
 def test_parametric_solve_refuses_a_parallel_model_in_one_line(tmp_path):
     f = tmp_path / "s.csv"
     f.write_text("q1,q2,q3,q4,q5,q6,x,y,z\n" + "0.52,0.52,0.52,0.52,0.52,0.52,0,0,0.5\n" * 30)
-    rc, _, lines = station("solve", "--model", "hexapod", "--samples", f)
+    r = station_main("solve", "--model", "hexapod", "--samples", f)
+    rc, lines = r.code, r.err_lines
     assert rc == 2 and len(lines) == 1 and "station map" in lines[0], lines
 
 
@@ -262,10 +238,10 @@ def test_world_holds_a_parallel_truth():
 
 @pytest.mark.parametrize("name", ["hexapod", "struts2"])
 def test_world_example_and_show_for_parallel_robots(tmp_path, name):
-    rc, text, err = station("mock", "world", "example", "--model", name)
+    rc, text, err = station_main("mock", "world", "example", "--model", name)
     assert rc == 0, err
     f = tmp_path / "w.yaml"
     f.write_text(text)
-    rc, out, err = station("mock", "world", "show", f)
+    rc, out, err = station_main("mock", "world", "show", f)
     assert rc == 0, err
     assert f"model {name} (parallel)" in out and ".offset" in out

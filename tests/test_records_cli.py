@@ -4,19 +4,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
-from typer.testing import CliRunner
+from clirunner import station_main, station_proc
 
-from station.cli import app
 from station.records import open_records
-
-runner = CliRunner()
 
 
 @pytest.fixture
@@ -28,16 +22,11 @@ def db(tmp_path, session_factory):
     return url
 
 
-def _run(*args: str):
-    result = runner.invoke(app, list(args), env={"COLUMNS": "200"})
-    return result.exit_code, result.output
-
-
 def test_list_robots_and_sessions(db, session_factory):
-    code, out = _run("records", "list", "--db", db)
+    code, out, err = station_main("records", "list", "--db", db, columns=200)
     assert code == 0, out
     assert "UR5E-A" in out and "UR5E-B" in out and "Universal Robots" in out
-    code, out = _run("records", "list", "--db", db, "--serial", "UR5E-A")
+    code, out, err = station_main("records", "list", "--db", db, "--serial", "UR5E-A", columns=200)
     assert code == 0, out
     s1, s2 = session_factory(seed=1, serial="UR5E-A")[0], session_factory(seed=2, serial="UR5E-A")[0]
     assert s1["session"] in out and s2["session"] in out and "UR5E-B" not in out
@@ -46,14 +35,14 @@ def test_list_robots_and_sessions(db, session_factory):
 
 
 def test_show_latest_session_in_mm_and_deg(db, session_factory):
-    code, out = _run("records", "show", "UR5E-A", "--db", db)
+    code, out, err = station_main("records", "show", "UR5E-A", "--db", db, columns=200)
     assert code == 0, out
     s2 = session_factory(seed=2, serial="UR5E-A")[0]
     j2 = s2["result"]["parameters"]["offset.j2"]
     assert f"{math.degrees(j2['value']):.4f}" in out and f"{math.degrees(j2['std']):.4f}" in out
     assert "not identifiable" in out and "Write-back (applied, verified)" in out and "rms_after" in out
-    code, out = _run("records", "show", "UR5E-A", "--db", db, "--session",
-                     session_factory(seed=1, serial="UR5E-A")[0]["session"])
+    code, out, err = station_main("records", "show", "UR5E-A", "--db", db, "--session",
+                     session_factory(seed=1, serial="UR5E-A")[0]["session"], columns=200)
     assert code == 0 and "Session 20261121-0001-UR5E-A" in out
 
 
@@ -63,26 +52,24 @@ def test_show_latest_session_in_mm_and_deg(db, session_factory):
     (["records", "show", "UR5E-A", "--session", "20261121-0003-UR5E-B"], "not a session of robot 'UR5E-A'"),
 ])
 def test_unknown_serial_or_session_exit_2_one_line(db, args, message):
-    code, out = _run(*args, "--db", db)
-    assert code == 2
-    lines = [ln for ln in out.splitlines() if ln.strip()]
+    code, out, err = station_main(*args, "--db", db, columns=200)
+    assert code == 2 and not out
+    lines = [ln for ln in err.splitlines() if ln.strip()]
     assert lines == [f"station: error: {lines[0].split('station: error: ', 1)[1]}"] and message in lines[0]
 
 
 @pytest.mark.parametrize("url", ["nonsense", "postgresql+psycopg://x@127.0.0.1:1/none"])
 def test_bad_db_url_exit_2_one_line(url):
-    code, out = _run("records", "list", "--db", url)
-    assert code == 2
-    assert len(out.strip().splitlines()) == 1 and out.startswith("station: error: ")
+    code, out, err = station_main("records", "list", "--db", url, columns=200)
+    assert code == 2 and not out
+    assert len(err.strip().splitlines()) == 1 and err.startswith("station: error: ")
 
 
 def test_installed_command_exit_code_for_unknown_serial(db):
     """Through the installed entry point (``station.cli:main``), as a shell script or EOL line sees it."""
-    exe = Path(sys.executable).with_name("station")
-    out = subprocess.run([str(exe), "records", "show", "NOPE", "--db", db], capture_output=True, text=True,
-                         timeout=60, env={**os.environ, "COLUMNS": "200"})
-    assert out.stderr.strip() == f"station: error: no records for serial 'NOPE' in {db}"
-    assert out.returncode == 2
+    out = station_proc("records", "show", "NOPE", "--db", db, timeout=60, env={"COLUMNS": "200"})
+    assert out.err.strip() == f"station: error: no records for serial 'NOPE' in {db}"
+    assert out.code == 2
 
 
 def _write_journal(folder: Path, session: dict) -> Path:
@@ -110,7 +97,7 @@ def test_report_from_journal(tmp_path, session_factory, monkeypatch):
     session, _ = session_factory(seed=13)
     folder = tmp_path / "sessions" / session["session"]
     _write_journal(folder, session)
-    code, out = _run("report", str(folder))
+    code, out, err = station_main("report", str(folder), columns=200)
     assert code == 0, out
     assert out.strip() == str(folder / "report.html")
     rep = json.loads((folder / "report.json").read_text())
@@ -121,14 +108,14 @@ def test_report_from_journal(tmp_path, session_factory, monkeypatch):
     assert pp["after_m"][:n_fit] == pytest.approx(session["result"]["residuals"]["per_sample_after_m"], rel=1e-6)
 
     out_dir = tmp_path / "elsewhere"
-    code, out = _run("report", str(folder / "journal.jsonl"), "--out", str(out_dir))
+    code, out, err = station_main("report", str(folder / "journal.jsonl"), "--out", str(out_dir), columns=200)
     assert code == 0 and (out_dir / "report.html").is_file()
     # the session id, as station resume takes it: looked up in $STATION_HOME/sessions
     home = tmp_path / "home"
     (home / "sessions").mkdir(parents=True)
     shutil.copytree(folder, home / "sessions" / "S-1")
     monkeypatch.setenv("STATION_HOME", str(home))
-    code, out = _run("report", "S-1", "--out", str(tmp_path / "by-id"))
+    code, out, err = station_main("report", "S-1", "--out", str(tmp_path / "by-id"), columns=200)
     assert code == 0 and (tmp_path / "by-id" / "report.html").is_file(), out
 
 
@@ -139,6 +126,6 @@ def test_report_from_journal(tmp_path, session_factory, monkeypatch):
 ])
 def test_report_bad_input_exit_2(tmp_path, make, message):
     target = make(tmp_path / "x")
-    code, out = _run("report", str(target))
-    assert code == 2 and out.startswith("station: error: ") and message in out
-    assert len(out.strip().splitlines()) == 1
+    code, out, err = station_main("report", str(target), columns=200)
+    assert code == 2 and err.startswith("station: error: ") and message in err
+    assert len(err.strip().splitlines()) == 1

@@ -10,12 +10,10 @@ import json
 import math
 
 import pytest
-from typer.testing import CliRunner
+from clirunner import station_main
 
-from station.cli import app
 from station.records import open_records
 
-runner = CliRunner()
 LONG = "OMX-2026-LINE3-000000004217"  # longer than rich would leave a column at 80 columns
 
 
@@ -44,19 +42,14 @@ def db(tmp_path, session_factory):
     return url
 
 
-def _run(*args: str, columns: int = 80):
-    result = runner.invoke(app, list(args), env={"COLUMNS": str(columns)})
-    return result.exit_code, result.output
-
-
 def test_list_at_80_columns_keeps_serial_and_verdict(db, session_factory):
-    code, out = _run("records", "list", "--db", db)
+    code, out, _ = station_main("records", "list", "--db", db, columns=80)
     assert code == 0, out
     assert max(len(line) for line in out.splitlines()[1:]) <= 80, out  # (title line names the db path)
     rows = {line.split()[0]: line for line in out.splitlines() if line.strip().startswith((LONG, "UR5E-B"))}
     assert LONG in rows and "PASS" in rows[LONG], out
     assert "FAIL" in rows["UR5E-B"], out
-    code, out = _run("records", "list", "--db", db, "--serial", LONG)
+    code, out, _ = station_main("records", "list", "--db", db, "--serial", LONG, columns=80)
     assert code == 0, out
     assert all(len(line) <= 80 for line in out.splitlines()[1:]), out
     for seed in (1, 2, 3):
@@ -66,7 +59,7 @@ def test_list_at_80_columns_keeps_serial_and_verdict(db, session_factory):
 
 
 def test_trend_flags_the_moved_parameter_only(db, session_factory):
-    code, out = _run("records", "show", LONG, "--db", db, "--trend", columns=120)
+    code, out, _ = station_main("records", "show", LONG, "--db", db, "--trend", columns=120)
     assert code == 0, out
     # independent computation of the flagged change
     a = session_factory(seed=3, serial=LONG)[0]["result"]["parameters"]["offset.j2"]
@@ -84,12 +77,13 @@ def test_trend_of_repeat_runs_without_change_has_no_drift(tmp_path, session_fact
     with open_records(url) as rec:
         for seed in (11, 12, 13):  # the same hidden truth, independent noise
             rec.store_session(session_factory(seed=seed, serial="SAME")[0])
-    code, out = _run("records", "show", "SAME", "--db", url, "--trend", columns=120)
+    code, out, _ = station_main("records", "show", "SAME", "--db", url, "--trend", columns=120)
     assert code == 0 and "no drift beyond 3 σ" in out and "DRIFT" not in out, out
 
 
 def test_export_csv_and_json_since(db, session_factory):
-    code, out = _run("records", "export", "--db", db, "--format", "csv", "--since", "2026-11-21T08:02:00Z")
+    code, out, _ = station_main("records", "export", "--db", db, "--format", "csv", "--since",
+                                  "2026-11-21T08:02:00Z", columns=80)
     assert code == 0, out
     rows = list(csv.DictReader(io.StringIO(out)))
     sessions = {r["session"] for r in rows}
@@ -99,7 +93,7 @@ def test_export_csv_and_json_since(db, session_factory):
     assert float(r["value"]) == pytest.approx(s2["result"]["parameters"]["offset.j3"]["value"], rel=1e-12)
     assert r["unit"] == "rad" and r["verdict"] == "PASS" and r["serial"] == LONG
     assert {x["verdict"] for x in rows if x["serial"] == "UR5E-B"} == {"FAIL"}
-    code, out = _run("records", "export", "--db", db, "--format", "json", "--serial", LONG)
+    code, out, _ = station_main("records", "export", "--db", db, "--format", "json", "--serial", LONG, columns=80)
     assert code == 0, out
     doc = json.loads(out)
     assert doc["units"].startswith("SI") and len(doc["sessions"]) == 4
@@ -112,7 +106,7 @@ def test_export_csv_and_json_since(db, session_factory):
     (["--since", "yesterday"], "--since 'yesterday' is not an ISO date"),
 ])
 def test_export_bad_input_one_line_exit_2(db, args, message):
-    result = runner.invoke(app, ["records", "export", "--db", db, *args])
-    assert result.exit_code == 2
-    lines = result.output.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("station: error: ") and message in lines[0], result.output
+    result = station_main("records", "export", "--db", db, *args, columns=80)
+    assert result.code == 2 and not result.out
+    lines = result.err_lines
+    assert len(lines) == 1 and lines[0].startswith("station: error: ") and message in lines[0], result.err

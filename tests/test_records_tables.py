@@ -10,13 +10,10 @@ import math
 import re
 
 import pytest
-from typer.testing import CliRunner
+from clirunner import station_main
 
-from station.cli import app
 from station.records import open_records
 from tests.test_records_cli_questions import LONG, _shifted
-
-runner = CliRunner()
 
 
 @pytest.fixture
@@ -33,10 +30,10 @@ def stored(tmp_path, session_factory):
         return url, rec.session(last["session"])
 
 
-def _run(*args: str, columns: int) -> str:
-    result = runner.invoke(app, list(args), env={"COLUMNS": str(columns)})
-    assert result.exit_code == 0, result.output
-    return result.output
+def _shown(*args: str, columns: int) -> str:
+    result = station_main(*args, columns=columns)
+    assert result.code == 0, result.err
+    return result.out
 
 
 def _flat(text: str) -> str:
@@ -46,7 +43,7 @@ def _flat(text: str) -> str:
 @pytest.mark.parametrize("columns", [80, 160])
 def test_show_keeps_numbers_headers_and_reasons_whole(stored, columns):
     url, session = stored
-    out = _run("records", "show", LONG, "--db", url, columns=columns)
+    out = _shown("records", "show", LONG, "--db", url, columns=columns)
     lines = out.splitlines()
     assert max(len(x) for x in lines) <= columns, out
     assert "…" not in out  # nothing cut with an ellipsis
@@ -82,10 +79,10 @@ def test_list_and_trend_fit_and_keep_numbers(stored, columns):
     url, session = stored
     for args in (("records", "list", "--db", url), ("records", "list", "--db", url, "--serial", LONG),
                  ("records", "show", LONG, "--db", url, "--trend")):
-        out = _run(*args, columns=columns)
+        out = _shown(*args, columns=columns)
         assert max(len(x) for x in out.splitlines()[1:]) <= columns, out
         assert "…" not in out.split("\n", 1)[1], out
-    out = _run("records", "show", LONG, "--db", url, "--trend", columns=columns)
+    out = _shown("records", "show", LONG, "--db", url, "--trend", columns=columns)
     p = session["result"]["parameters"]["offset.j2"]
     row = next(x for x in out.splitlines() if "DRIFT" in x)
     assert f"{math.degrees(p['value']):.4f}" in row and f"{math.degrees(p['std']):.4f}" in row, out
@@ -93,7 +90,7 @@ def test_list_and_trend_fit_and_keep_numbers(stored, columns):
 
 def test_narrow_terminal_falls_back_to_one_block_per_session(stored):
     url, session = stored
-    out = _run("records", "list", "--db", url, "--serial", LONG, columns=50)
+    out = _shown("records", "list", "--db", url, "--serial", LONG, columns=50)
     assert max(len(x) for x in out.splitlines()[1:]) <= 50, out
     block = out.split(session["session"], 1)[1]
     assert re.search(r"^\s+verdict\s+PASS$", block, re.M) and re.search(r"^\s+samples\s+\d+$", block, re.M), out
@@ -101,7 +98,7 @@ def test_narrow_terminal_falls_back_to_one_block_per_session(stored):
 
 def test_csv_export_names_the_model(stored):
     url, session = stored
-    out = _run("records", "export", "--format", "csv", "--db", url, columns=160)
+    out = _shown("records", "export", "--format", "csv", "--db", url, columns=160)
     rows = list(csv.DictReader(io.StringIO(out)))
     assert rows and "model" in rows[0]
     assert {r["model"] for r in rows if r["session"] == session["session"]} == {session["model"]}
@@ -116,5 +113,5 @@ def test_trend_does_not_call_a_model_change_drift(tmp_path, session_factory):
     with open_records(url) as rec:
         rec.store_session(first)
         rec.store_session(other)
-    out = _run("records", "show", LONG, "--db", url, "--trend", columns=160)
+    out = _shown("records", "show", LONG, "--db", url, "--trend", columns=160)
     assert "DRIFT" not in out and "model ur5e-other" in out, out

@@ -10,6 +10,7 @@ import sys
 import textwrap
 
 import pytest
+from clirunner import station_proc
 
 from station.cli import COMMANDS, load_commands
 
@@ -129,9 +130,8 @@ def test_the_console_script_flushes_everything_before_its_fast_exit(tmp_path):
     lines = p.stderr.strip().splitlines()
     assert p.returncode == 2 and len(lines) == 1 and lines[0].startswith("station: error:"), p.stderr
     assert "No space left on device" in p.stderr
-    p = subprocess.run([sys.executable, "-m", "station.cli", "solve", "--model", "ur5e", "--samples",
-                        str(samples), "--max-std", "abc"], capture_output=True, text=True, timeout=120)
-    assert p.returncode == 2 and p.stderr.count("\n") == 1 and "--max-std" in p.stderr
+    p = station_proc("solve", "--model", "ur5e", "--samples", samples, "--max-std", "abc", module=True)
+    assert p.code == 2 and p.err.count("\n") == 1 and "--max-std" in p.err
 
 
 def test_shipped_models_parse_alike_with_libyaml():

@@ -2,18 +2,16 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import pytest
+from clirunner import station_proc
 
 from station.cli.jog_cmd import url_with_model
 
 
 def _station(*args, cwd):
-    code = "import sys; from station.cli import main; sys.argv = ['station', *sys.argv[1:]]; main()"
-    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=60, cwd=cwd,
-                          stdin=subprocess.DEVNULL, env={"STATION_HOME": str(cwd / "home"), "PATH": "/usr/bin:/bin"})
+    # a bare environment: no terminal, no inherited STATION_* settings
+    return station_proc(*args, cwd=cwd, timeout=60, env={"STATION_HOME": str(cwd / "home"), "PATH": "/usr/bin:/bin"},
+                        replace_env=True)
 
 
 @pytest.mark.parametrize("args, message", [
@@ -22,9 +20,9 @@ def _station(*args, cwd):
 ])
 def test_bad_arguments_exit_2(tmp_path, args, message):
     p = _station("jog", *args, cwd=tmp_path)
-    assert p.returncode == 2, p.stderr
-    lines = p.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("station: error:") and message in lines[0], p.stderr
+    assert p.code == 2, p.err
+    lines = p.err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("station: error:") and message in lines[0], p.err
     assert not (tmp_path / "home").exists()
 
 
@@ -48,10 +46,10 @@ def test_serial_and_identify_checked_before_any_session(tmp_path):
                        cwd=tmp_path)
     finally:
         emu.stop()
-    assert bad.returncode == 2 and "--identify" in bad.stderr and "wings" in bad.stderr, bad.stderr
-    assert len(bad.stderr.strip().splitlines()) == 1
-    assert p.returncode == 2 and "reports serial" in p.stderr and "NOT-THIS-ONE" in p.stderr, p.stderr
-    assert len(p.stderr.strip().splitlines()) == 1
+    assert bad.code == 2 and "--identify" in bad.err and "wings" in bad.err, bad.err
+    assert len(bad.err.strip().splitlines()) == 1
+    assert p.code == 2 and "reports serial" in p.err and "NOT-THIS-ONE" in p.err, p.err
+    assert len(p.err.strip().splitlines()) == 1
     assert not (tmp_path / "home").exists()
 
 
@@ -67,8 +65,8 @@ def test_jog_without_serial_and_without_a_terminal_is_refused(tmp_path):
         p = _station("jog", "--robot", f"dynamixel://{path}?ids=11-14&model=omx", cwd=tmp_path)
     finally:
         emu.stop()
-    assert p.returncode == 2, p.stderr
-    assert p.stderr.strip().splitlines()[-1].startswith("station: error: --serial is required")
-    assert "Traceback" not in p.stderr
+    assert p.code == 2, p.err
+    assert p.err.strip().splitlines()[-1].startswith("station: error: --serial is required")
+    assert "Traceback" not in p.err
     sessions = tmp_path / "home" / "sessions"
     assert not sessions.exists() or not any(sessions.iterdir())
