@@ -1,12 +1,11 @@
 """The cell file's keep-out section (station-cell/1: mounting, keep_out) and the model file's link radii
 (station-model/1: collision): units, defaults, one-line errors naming the field, round trips."""
 
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 import yaml
+from clirunner import station_proc
 
 from station.engine.cell import CellError, cell_from_dict, load_cell
 from station.kinematics import ModelFileError, load_model, model_from_dict, model_to_dict
@@ -83,13 +82,11 @@ def test_station_run_refuses_a_bad_keep_out_before_touching_the_robot(tmp_path):
     cell = tmp_path / "cell.yaml"
     cell.write_text(yaml.safe_dump({"format": "station-cell/1", "units": {"length": "mm"}, "points": POINTS,
                                     "keep_out": [{"name": "fixture", "box": {"min": [0, 0, 0], "max": [0, 1, 1]}}]}))
-    r = subprocess.run([sys.executable, "-c", "from station.cli import main; main()", "run", "zero_offsets",
-                        "--robot", "ur://127.0.0.1:1?model=ur5e", "--serial", "X1", "--cell", str(cell)],
-                       capture_output=True, text=True, timeout=120,
-                       env={"STATION_HOME": str(tmp_path), "PATH": "/usr/bin:/bin"})
-    assert r.returncode == 2, r.stderr
-    assert r.stderr.strip().startswith("station: error: ") and "keep_out[0] (fixture).box: max" in r.stderr
-    assert len(r.stderr.strip().splitlines()) == 1
+    r = station_proc("run", "zero_offsets", "--robot", "ur://127.0.0.1:1?model=ur5e", "--serial", "X1", "--cell",
+                     cell, env={"STATION_HOME": str(tmp_path), "PATH": "/usr/bin:/bin"}, replace_env=True)
+    assert r.code == 2, r.err
+    assert r.err.strip().startswith("station: error: ") and "keep_out[0] (fixture).box: max" in r.err
+    assert len(r.err_lines) == 1
 
 
 def test_load_cell_reads_the_keep_out_from_yaml(tmp_path):

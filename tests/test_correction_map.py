@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from clirunner import station_proc
 from station.mocks.launch import launch
 from station.mocks.tracker.config import tracker_config
 from station.mocks.tracker.server import TrackerServer
@@ -156,15 +157,14 @@ def test_command_line_over_socketcand_and_tcp(tmp_path):
     try:
         trk = proc.stdout.readline().split()[3]
         robot = proc.stdout.readline().split()[5]
-        env = {**__import__("os").environ, "STATION_HOME": str(tmp_path / "home")}
-        r = subprocess.run([sys.executable, "-m", "station.cli", "run", "correction_map", "--robot", robot,
-                            "--serial", "HX-9", "--tracker", trk, "--grid", "1", "-q", "--db",
-                            f"sqlite:///{tmp_path / 'r.db'}"], capture_output=True, text=True, timeout=300, env=env)
+        r = station_proc("run", "correction_map", "--robot", robot, "--serial", "HX-9", "--tracker", trk, "--grid",
+                         "1", "-q", "--db", f"sqlite:///{tmp_path / 'r.db'}", timeout=300,
+                         env={"STATION_HOME": str(tmp_path / "home")})
     finally:
         proc.terminate()
         proc.wait(timeout=10)
-    assert r.returncode == 0, r.stderr
-    lines = r.stdout.strip().splitlines()
+    assert r.code == 0, r.err
+    lines = r.out.strip().splitlines()
     assert lines[-1] == "PASS" and any(line.split()[0] == "holdout_rms" for line in lines if line.strip())
 
 

@@ -14,24 +14,20 @@ The truth is the world's true tool pose at each held-out reading, from a replica
 the procedure drives the arm (approached from 0.5 deg below: backlash and compliance included)."""
 
 import json
-import os
 import socket
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 import yaml
+from clirunner import station_main, station_proc
 from station.mocks.tracker.config import tracker_config
 from station.mocks.tracker.server import TrackerServer
 from station.mocks.world import World
 from station.mocks.world.tracker import measure_poses
 from trackerproc import TrackerProcess
-from typer.testing import CliRunner
 
 from station.api import resume
 from station.api import run as start
-from station.cli import app
 from station.engine import read_journal
 from station.engine.session_record import session_from_journal
 from station.kinematics import se3
@@ -67,8 +63,8 @@ def calibration_file(world, cfg, tmp_path, solve: tuple = ("--identify", "offset
     csv.write_text("q1[rad],q2[rad],q3[rad],q4[rad],q5[rad],q6[rad],point,x[m],y[m],z[m]\n"
                    + "".join(",".join(str(v) for v in r) + "\n" for r in rows))
     out = tmp_path / "result.json"
-    r = CliRunner().invoke(app, ["solve", "--model", "arm6", "--samples", str(csv), *solve, "--out", str(out)])
-    assert r.exit_code == 0, r.output
+    r = station_main("solve", "--model", "arm6", "--samples", csv, *solve, "--out", out)
+    assert r.code == 0, r.err
     return out
 
 
@@ -79,10 +75,8 @@ def _free_port() -> int:
 
 
 def _resume_cli(tmp_path, session, tracker):
-    env = {**os.environ, "STATION_HOME": str(tmp_path / "home")}
-    return subprocess.run([sys.executable, "-m", "station.cli", "resume", session, "--tracker", tracker, "-q", "--db",
-                           f"sqlite:///{tmp_path / 'records.db'}"], capture_output=True, text=True, timeout=300,
-                          env=env)
+    return station_proc("resume", session, "--tracker", tracker, "-q", "--db", f"sqlite:///{tmp_path / 'records.db'}",
+                        timeout=300, env={"STATION_HOME": str(tmp_path / "home")})
 
 
 @pytest.mark.slow  # ~30 s CPU idle, more under load; fast counterparts: tests/test_correction_map_resume.py
@@ -141,9 +135,9 @@ def test_map_on_a_calibration_resumed_on_a_restarted_tracker(tmp_path, monkeypat
             assert other.url not in (old_url, emu.tracker)
             r = _resume_cli(tmp_path, out.session, other.url)
             assert other.measurements == 0
-        assert r.returncode == 2, r.stderr
-        err = [line for line in r.stderr.splitlines() if line.startswith("station: error:")]
-        assert len(err) == 1 and "LT-OTHER-0002" in err[0] and "LT-EMU-0001" in err[0], r.stderr
+        assert r.code == 2, r.err
+        err = [line for line in r.err.splitlines() if line.startswith("station: error:")]
+        assert len(err) == 1 and "LT-OTHER-0002" in err[0] and "LT-EMU-0001" in err[0], r.err
 
         # the same tracker on yet another port, but the calibration file changed under the session: refused
         assert emu.tracker != old_url
@@ -157,11 +151,11 @@ def test_map_on_a_calibration_resumed_on_a_restarted_tracker(tmp_path, monkeypat
         # the address given last is journaled: the CLI resume needs no --tracker now, but gives it anyway
         r = _resume_cli(tmp_path, out.session, emu.tracker)
         for _ in range(2):  # a CAN timeout of the shared CI machine: resumed again, as a technician would
-            if r.returncode != 2 or "canopen" not in r.stderr or "continue with: station resume" not in r.stderr:
+            if r.code != 2 or "canopen" not in r.err or "continue with: station resume" not in r.err:
                 break
             r = _resume_cli(tmp_path, out.session, emu.tracker)
         new_url = emu.tracker
-    assert r.returncode in (0, 1), r.stderr
+    assert r.code in (0, 1), r.err
     _, events = read_journal(out.folder / "journal.jsonl")
     moves = [e.data for e in events if e.type == "instrument_url"]
     assert moves[0]["old"] == old_url and moves[-1]["new"] == new_url
@@ -175,8 +169,8 @@ def test_map_on_a_calibration_resumed_on_a_restarted_tracker(tmp_path, monkeypat
     # judged honestly either way: the map on top of this calibration sits near the 0.10 mm limit (0.086-0.104 mm
     # measured), which is what it is; the verdict and the exit code must say the same
     passed = meas["holdout_rms"]["value"] <= 0.10 and meas["holdout_max"]["value"] <= 0.25
-    assert rec["verdict"]["passed"] == passed and r.returncode == (0 if passed else 1)
-    assert r.stdout.strip().splitlines()[-1] == ("PASS" if passed else "FAIL")
+    assert rec["verdict"]["passed"] == passed and r.code == (0 if passed else 1)
+    assert r.out.strip().splitlines()[-1] == ("PASS" if passed else "FAIL")
     poses = [smp["pose"] for smp in rec["samples"]]
     assert len(poses) == len(set(poses)) == 64 + 12  # every configuration measured once
 

@@ -3,6 +3,7 @@ by every journaled ``instrument_url``, then the one given). End to end, with the
 tracker restarted on another port: tests/test_correction_map_calibration.py."""
 
 import pytest
+from clirunner import station_proc
 
 
 def test_resume_tracker_option_needs_a_session_that_used_one(tmp_path, monkeypatch):
@@ -31,19 +32,14 @@ def test_resume_tracker_option_needs_a_session_that_used_one(tmp_path, monkeypat
 def test_run_calibration_option_is_checked_before_the_robot_is_opened(tmp_path):
     """``station run correction_map --calibration FILE``: a missing or malformed file is one line, exit 2, before
     the robot URL is even opened (a robot that does not exist: the error names the file, not the bus)."""
-    import os
-    import subprocess
-    import sys
 
-    env = {**os.environ, "STATION_HOME": str(tmp_path / "home")}
     bad = tmp_path / "bad.json"
     bad.write_text('{"format": "station-calibration/1", "units": "SI (m, rad)", "model": "arm6"}')
     for cal, expect in ((tmp_path / "none.json", "calibration"), (bad, "parameters")):
-        r = subprocess.run([sys.executable, "-m", "station.cli", "run", "correction_map", "--robot",
-                            "canopen+socketcand://127.0.0.1:9?channel=can0&model=arm6", "--serial", "X", "--tracker",
-                            "tcp://127.0.0.1:9", "--calibration", str(cal), "-q", "--db",
-                            f"sqlite:///{tmp_path / 'r.db'}"], capture_output=True, text=True, timeout=60, env=env)
-        assert r.returncode == 2, r.stderr
-        lines = r.stderr.strip().splitlines()
+        r = station_proc("run", "correction_map", "--robot", "canopen+socketcand://127.0.0.1:9?channel=can0&model=arm6",
+                         "--serial", "X", "--tracker", "tcp://127.0.0.1:9", "--calibration", cal, "-q", "--db",
+                         f"sqlite:///{tmp_path / 'r.db'}", timeout=60, env={"STATION_HOME": str(tmp_path / "home")})
+        assert r.code == 2, r.err
+        lines = r.err_lines
         assert len(lines) == 1 and lines[0].startswith("station: error: calibration ") and str(cal) in lines[0]
         assert expect in lines[0], lines

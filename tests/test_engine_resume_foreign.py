@@ -4,18 +4,15 @@ procedures live, and runs only with the journaled sha256 (checked before it is c
 
 import hashlib
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from clirunner import station_proc
 
 from station.kinematics import load_model
 from station.robot import Identity, JointSnapshot
 from station.tui.session import session_header, technician_session
-
-STATION = str(Path(sys.executable).with_name("station"))
 
 
 def test_resume_of_a_crashed_jog_session_is_a_one_line_error(tmp_path):
@@ -26,10 +23,10 @@ def test_resume_of_a_crashed_jog_session_is_a_one_line_error(tmp_path):
     s.add_sample(JointSnapshot(np.zeros(4), (2048,) * 4, "tick", 0.0), "A", pose=0,
                  status={"enabled": True, "touch": True})
     # no close(): the station crashed while the technician was jogging
-    p = subprocess.run([STATION, "resume", str(tmp_path / "jog")], capture_output=True, text=True, timeout=60)
-    assert p.returncode == 2
-    lines = p.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("station: error:"), p.stderr
+    p = station_proc("resume", tmp_path / "jog", timeout=60)
+    assert p.code == 2
+    lines = p.err_lines
+    assert len(lines) == 1 and lines[0].startswith("station: error:"), p.err
     assert "no procedure file to resume" in lines[0]
     assert (tmp_path / "jog" / "journal.jsonl").read_text().count('"type":"sample"') == 1  # nothing lost
 
@@ -66,10 +63,10 @@ def test_a_planted_journal_naming_a_file_with_its_own_sha256_runs_nothing(tmp_pa
     evil, marker, sha = _evil(tmp_path)
     (tmp_path / "site").mkdir()
     _plant(tmp_path / "home", name, evil, sha)
-    env = {**os.environ, "STATION_HOME": str(tmp_path / "home"), "STATION_PROCEDURES": str(tmp_path / "site")}
-    p = subprocess.run([STATION, "resume", "S-1"], capture_output=True, text=True, timeout=60, env=env)
-    lines = p.stderr.strip().splitlines()
-    assert p.returncode == 2 and len(lines) == 1 and lines[0].startswith("station: error:"), p.stderr
+    env = {"STATION_HOME": str(tmp_path / "home"), "STATION_PROCEDURES": str(tmp_path / "site")}
+    p = station_proc("resume", "S-1", timeout=60, env=env)
+    lines = p.err_lines
+    assert p.code == 2 and len(lines) == 1 and lines[0].startswith("station: error:"), p.err
     assert says in lines[0], lines[0]
     assert not marker.exists()
 

@@ -5,19 +5,16 @@ the first fixture position; the second position is the same fixture moved rigidl
 its sockets does not change)."""
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from clirunner import station_proc
 from station.mocks.world import World
 
 from station.kinematics import se3
 from station.solver import Observations, SolverInputError, solve
 from station.solver.simulate import touch_observations
 
-STATION = str(Path(sys.executable).with_name("station"))
 HIDDEN = {"dh.j2.a": 8e-4, "dh.j3.a": -6e-4, "offset.j2": 1e-3, "offset.j3": -7e-4, "tcp.z": 3e-4}
 NOISE = 20e-6
 LENGTHS = ("dh.j2.a", "dh.j3.a")
@@ -132,15 +129,13 @@ def test_cli_weight_and_fixture_columns(world, tmp_path):
               for q, p, f, wt in zip(obs.q, obs.point, obs.fixture, w, strict=True)]
     (tmp_path / "s.csv").write_text("\n".join(lines) + "\n")
     d_mm = float(np.linalg.norm(world.points["A"].position - world.points["B"].position)) * 1e3
-    p = subprocess.run([STATION, "solve", "--model", "ur5e", "--samples", "s.csv", "--identify", "offsets,dh,tcp",
-                        "--distance", f"A,B={d_mm:.6f}mm", "--out", "r.json"], capture_output=True, text=True,
-                       cwd=tmp_path, timeout=120)
-    assert p.returncode == 0, p.stderr
+    p = station_proc("solve", "--model", "ur5e", "--samples", "s.csv", "--identify", "offsets,dh,tcp",
+                     "--distance", f"A,B={d_mm:.6f}mm", "--out", "r.json", cwd=tmp_path)
+    assert p.code == 0, p.err
     doc = json.loads((tmp_path / "r.json").read_text())
     assert sorted(c["fixture"] for c in doc["constraints"]) == ["1", "2"]
     assert {"point.A@1.x", "point.B@2.z"} <= set(doc["parameters"])
     assert doc["settings"]["fixtures"] == ["1", "2"] and doc["settings"]["weighted"] is True
     (tmp_path / "bad.csv").write_text("q1,q2,q3,q4,q5,q6,weight\n0,0,0,0,0,0,-1\n")
-    p = subprocess.run([STATION, "solve", "--model", "ur5e", "--samples", "bad.csv"], capture_output=True, text=True,
-                       cwd=tmp_path, timeout=60)
-    assert p.returncode == 2 and "bad.csv:2: column 'weight'" in p.stderr and p.stderr.count("\n") == 1, p.stderr
+    p = station_proc("solve", "--model", "ur5e", "--samples", "bad.csv", cwd=tmp_path, timeout=60)
+    assert p.code == 2 and "bad.csv:2: column 'weight'" in p.err and p.err.count("\n") == 1, p.err

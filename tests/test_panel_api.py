@@ -5,13 +5,12 @@ the token off loopback, and bad requests refused with a reason."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import time
 import urllib.error
 import urllib.request
 
 import pytest
+from clirunner import station_proc
 from test_panel_browser import Panel, _files, _url
 
 from station.engine import read_journal
@@ -111,8 +110,8 @@ def test_token_required_and_checked(tmp_path, panels):
 
 def test_off_loopback_without_token_is_refused(tmp_path):
     _, cell_path = _files(tmp_path, seed=64)
-    proc = subprocess.run([sys.executable, "-m", "station.cli", "panel", "--robot", "dynamixel:///dev/null?model=omx",
-                           "--cell", str(cell_path), "--host", "0.0.0.0"], capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 2
-    lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("station: error: ") and "--token" in lines[0], proc.stderr
+    proc = station_proc("panel", "--robot", "dynamixel:///dev/null?model=omx", "--cell", cell_path, "--host", "0.0.0.0",
+                        timeout=60)
+    assert proc.code == 2
+    lines = proc.err_lines
+    assert len(lines) == 1 and lines[0].startswith("station: error: ") and "--token" in lines[0], proc.err

@@ -5,14 +5,12 @@ from the cell file (inside the cell's folder only) and the generated sketch of w
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
 import yaml
+from clirunner import station_proc
 
 from station.engine.cell import CellError, load_cell
 from station.engine.procedure import BadAnswer, Question
@@ -86,23 +84,21 @@ def _run_asker(tmp_path: Path, emulators, seed: int, stdin: str):
     (tmp_path / "limits.yaml").write_text(LIMITS)
     serial = f"DXL-ASK-{seed}"
     emu = emulators("dynamixel", world, serial=serial)
-    env = {**os.environ, "STATION_HOME": str(tmp_path / "home")}
-    out = subprocess.run([sys.executable, "-m", "station.cli", "run", str(tmp_path / "ask_length.py"),
-                          "--robot", emu.url + "&latency=100", "--serial", serial, "--cell",
-                          str(tmp_path / "cell.yaml"), "--limits", str(tmp_path / "limits.yaml"), "--db",
-                          f"sqlite:///{tmp_path / 'r.db'}", "--quiet"],
-                         input=stdin, capture_output=True, text=True, env=env, timeout=120)
+    out = station_proc("run", tmp_path / "ask_length.py", "--robot", emu.url + "&latency=100", "--serial", serial,
+                       "--cell", tmp_path / "cell.yaml", "--limits", tmp_path / "limits.yaml", "--db",
+                       f"sqlite:///{tmp_path / 'r.db'}", "--quiet", stdin=stdin, timeout=120,
+                       env={"STATION_HOME": str(tmp_path / "home")})
     (journal,) = (tmp_path / "home" / "sessions").glob("*/journal.jsonl")
     return out, read_journal(journal)[1]
 
 
 def test_station_run_in_a_terminal_asks_until_the_value_is_valid(tmp_path, emulators):
     out, events = _run_asker(tmp_path, emulators, 71, "abc\n20\n5 kg\n0.6 cm\n")
-    assert out.returncode == 0, out.stderr
-    err = out.stderr
+    assert out.code == 0, out.err
+    err = out.err
     assert "station: 'abc' is not a number" in err and "station: 20 mm is out of range" in err
     assert "station: '5 kg': the unit must be mm" in err
-    assert out.stdout.count("Stylus ball diameter") == 4  # asked again after each refusal
+    assert out.out.count("Stylus ball diameter") == 4  # asked again after each refusal
     (ans,) = [e for e in events if e["type"] == "answer"]
     assert ans["key"] == "ball" and ans["value"] == pytest.approx(0.006, abs=1e-12) and ans["unit"] == "mm"
     (m,) = [e for e in events if e["type"] == "measurement" and e["name"] == "ball_diameter"]
@@ -111,7 +107,7 @@ def test_station_run_in_a_terminal_asks_until_the_value_is_valid(tmp_path, emula
 
 def test_station_run_without_an_answer_stops_resumable(tmp_path, emulators):
     out, events = _run_asker(tmp_path, emulators, 72, "1000\n")
-    assert out.returncode == 130, out.stderr  # stdin closed before a valid answer: interrupted, never a PASS
+    assert out.code == 130, out.err  # stdin closed before a valid answer: interrupted, never a PASS
     assert events[-1]["type"] == "end" and events[-1]["status"] == "interrupted"
     assert not [e for e in events if e["type"] == "answer"]
 

@@ -6,12 +6,10 @@ station sees are the world's exact inverse of its own deflection (``q = theta - 
 world's independent finite-difference torque; checked against ``Gravity.deflect``), never the solver's model."""
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from clirunner import station_proc
 from scipy.stats import chi2
 from scipy.stats import t as student
 from station.mocks.world import World
@@ -25,7 +23,6 @@ HIDDEN_ERR = {"offset.j2": 0.001, "offset.j3": -0.0008}
 PAYLOAD = 2.5  # kg
 NOISE = 20e-6  # m per axis at the tip
 POINTS = {"A": np.array([0.45, 0.1, 0.15]), "B": np.array([0.45, -0.25, 0.15]), "C": np.array([0.3, 0.35, 0.1])}
-STATION = str(Path(sys.executable).with_name("station"))
 
 
 @pytest.fixture(scope="module")
@@ -136,11 +133,10 @@ def test_cli_solve_identifies_compliance(world, tmp_path):
     write(tmp_path / "s.csv", obs)
     write(tmp_path / "h.csv", ho)
     out = tmp_path / "r.json"
-    p = subprocess.run([STATION, "solve", "--model", "ur5e", "--payload", f"{PAYLOAD}kg", "--samples",
-                        str(tmp_path / "s.csv"), "--holdout", str(tmp_path / "h.csv"), "--identify",
-                        "offsets,compliance", "--out", str(out)], capture_output=True, text=True, timeout=120)
-    assert p.returncode == 0, p.stdout + p.stderr
-    assert "compliance.j3" in p.stdout and "urad/(N m)" in p.stdout
+    p = station_proc("solve", "--model", "ur5e", "--payload", f"{PAYLOAD}kg", "--samples", tmp_path / "s.csv",
+                     "--holdout", tmp_path / "h.csv", "--identify", "offsets,compliance", "--out", out)
+    assert p.code == 0, p.out + p.err
+    assert "compliance.j3" in p.out and "urad/(N m)" in p.out
     doc = json.loads(out.read_text())
     c3 = doc["parameters"]["compliance.j3"]
     assert c3["unit"] == "rad/(N m)"
@@ -156,15 +152,14 @@ def test_cli_compliance_prior_with_its_unit(world, tmp_path):
                  + "".join(",".join(f"{v:.15g}" for v in r) + f",{lb}\n"
                            for r, lb in zip(obs.q, obs.point, strict=True)))
     out = tmp_path / "r.json"
-    base = [STATION, "solve", "--model", "ur5e", "--payload", f"{PAYLOAD}kg", "--samples", str(f), "--identify",
+    base = ["solve", "--model", "ur5e", "--payload", f"{PAYLOAD}kg", "--samples", f, "--identify",
             "offsets,compliance"]
-    subprocess.run([*base, "--prior", "compliance=1e-7rad/Nm", "--out", str(out)], capture_output=True, text=True,
-                   timeout=120)
+    station_proc(*base, "--prior", "compliance=1e-7rad/Nm", "--out", out)
     doc = json.loads(out.read_text())
     assert doc["settings"]["priors"]["compliance.j3"] == pytest.approx(1e-7)
     # the data contradict so tight a prior and determine the compliance: the conflict is named, the prior freed
     c = {c["parameter"]: c for c in doc["conflicts"]}
     assert c["compliance.j3"]["freed"] and c["compliance.j3"]["prior_std"] == pytest.approx(1e-7)
     assert doc["parameters"]["compliance.j3"]["prior_share"] == 0.0 and doc["trusted"]
-    p = subprocess.run([*base, "--prior", "compliance=xrad/Nm"], capture_output=True, text=True, timeout=120)
-    assert p.returncode == 2 and p.stderr.startswith("station: error: --prior") and len(p.stderr.splitlines()) == 1
+    p = station_proc(*base, "--prior", "compliance=xrad/Nm")
+    assert p.code == 2 and p.err.startswith("station: error: --prior") and len(p.err.splitlines()) == 1

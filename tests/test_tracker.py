@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 import pytest
+from clirunner import station_proc
 from station.drivers.tracker import open_tracker
 from station.mocks.tracker.config import tracker_config
 from station.mocks.tracker.server import TrackerServer
@@ -113,9 +114,9 @@ def test_faults_are_bounded_and_one_line(hexapod):
 
 def test_station_mock_tracker_process(tmp_path):
     world = tmp_path / "w.yaml"
-    subprocess.run([sys.executable, "-m", "station.cli", "mock", "world", "example", "--model", "hexapod"],
-                   stdout=world.open("w"), check=True)
-    text = world.read_text().replace("buses:", "buses:\n  tracker: {serial: LT-42}", 1)
+    r = station_proc("mock", "world", "example", "--model", "hexapod")
+    assert r.code == 0, r.err
+    text = r.out.replace("buses:", "buses:\n  tracker: {serial: LT-42}", 1)
     world.write_text(text)
     proc = subprocess.Popen([sys.executable, "-m", "station.cli", "mock", "tracker", "--world", str(world)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -130,9 +131,8 @@ def test_station_mock_tracker_process(tmp_path):
         proc.wait(timeout=10)
     bad = tmp_path / "bad.yaml"
     bad.write_text(text.replace("{serial: LT-42}", "{pose: {x: 1}}"))
-    r = subprocess.run([sys.executable, "-m", "station.cli", "mock", "tracker", "--world", str(bad)],
-                       capture_output=True, text=True, timeout=60)
-    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+    r = station_proc("mock", "tracker", "--world", bad, timeout=60)
+    assert r.code == 2 and r.err_lines == [
         "station: error: buses.tracker.units: state the units of pose and reflectors ({length: mm, angle: deg})"]
 
 
@@ -151,11 +151,9 @@ def test_csv_import_of_a_tracker_export(tmp_path, hexapod):
                header="x1[mm],x2[mm],x3[mm],x4[mm],x5[mm],x6[mm]")
     np.savetxt(tmp_path / "tracker.csv", np.column_stack([v[:, :3] * 1e3, np.degrees(v[:, 3:])]), delimiter=",",
                header="# tracker export, instrument frame\nx[mm],y[mm],z[mm],rx[deg],ry[deg],rz[deg]", comments="")
-    cmd = [sys.executable, "-m", "station.cli", "map", "build", "--model", "hexapod", "--samples",
-           str(tmp_path / "x.csv"), "--measurements", str(tmp_path / "tracker.csv"), "--mesh", "simplex",
-           "--out", str(tmp_path / "map.json")]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
-    assert r.returncode == 0, r.stderr
+    r = station_proc("map", "build", "--model", "hexapod", "--samples", tmp_path / "x.csv", "--measurements",
+                     tmp_path / "tracker.csv", "--mesh", "simplex", "--out", tmp_path / "map.json")
+    assert r.code == 0, r.err
     import json
 
     doc = json.loads((tmp_path / "map.json").read_text())
@@ -176,8 +174,7 @@ def test_csv_import_of_a_tracker_export(tmp_path, hexapod):
     assert rms < 0.3 * np.sqrt(np.mean(e_nom ** 2))
     # a wrong row count is one line, exit 2, nothing written
     (tmp_path / "short.csv").write_text("\n".join((tmp_path / "tracker.csv").read_text().splitlines()[:10]) + "\n")
-    cmd[cmd.index(str(tmp_path / "tracker.csv"))] = str(tmp_path / "short.csv")
-    cmd[-1] = str(tmp_path / "map2.json")
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
-    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "one row per sample" in r.stderr
+    r = station_proc("map", "build", "--model", "hexapod", "--samples", tmp_path / "x.csv", "--measurements",
+                     tmp_path / "short.csv", "--mesh", "simplex", "--out", tmp_path / "map2.json")
+    assert r.code == 2 and len(r.err_lines) == 1 and "one row per sample" in r.err
     assert not (tmp_path / "map2.json").exists()

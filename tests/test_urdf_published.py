@@ -8,20 +8,18 @@ accepts is accepted (limits on fixed and continuous joints ignored, zero velocit
 joint a warning); what makes a chain unusable is one line naming file, line and element."""
 
 import math
-import subprocess
-import sys
 import sysconfig
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yourdfpy
+from clirunner import station_proc
 
 from station.kinematics import ModelFileError, load_model
 from station.kinematics.urdf import chain_ends, read_urdf
 
 DATA = Path(__file__).parent / "data"
-STATION = str(Path(sys.executable).with_name("station"))
 TOL = 1e-9
 
 
@@ -201,12 +199,11 @@ def test_cli_prints_each_warning_as_one_line_on_stderr(tmp_path):
     p = _write(tmp_path, UR.replace('lower="-2" upper="2" effort="1" velocity="2"',
                                     'lower="0" upper="0" effort="1" velocity="0"'))
     (tmp_path / "q.csv").write_text("q1,q2\n0.1,0.2\n")
-    r = subprocess.run([STATION, "fk", "--model", str(p), "--joints", "q.csv"], capture_output=True, text=True,
-                       cwd=tmp_path, timeout=60)
-    assert r.returncode == 0, r.stderr
-    lines = r.stderr.strip().splitlines()
+    r = station_proc("fk", "--model", p, "--joints", "q.csv", cwd=tmp_path, timeout=60)
+    assert r.code == 0, r.err
+    lines = r.err_lines
     assert len(lines) == 2 and all(s.startswith("station: warning: ") for s in lines)
-    assert "x[m]" in r.stdout and "warning" not in r.stdout
+    assert "x[m]" in r.out and "warning" not in r.out
 
 
 def test_a_chain_whose_tip_sits_on_its_only_axis_solves(tmp_path):
@@ -221,8 +218,7 @@ def test_a_chain_whose_tip_sits_on_its_only_axis_solves(tmp_path):
     xyz = np.array([ch.fk(v)[:3, 3] for v in q]) + rng.normal(0, 2e-5, (12, 3))
     (tmp_path / "s.csv").write_text("q1,x,y,z\n" + "\n".join(",".join(repr(float(v)) for v in (*a, *b))
                                                               for a, b in zip(q, xyz, strict=True)) + "\n")
-    p = subprocess.run([STATION, "solve", "--model", str(path), "--tip-link", "iris__rotor_0", "--samples", "s.csv",
-                        "--instrument-frame", "base", "--identify", "offsets,tcp"], capture_output=True, text=True,
-                       cwd=tmp_path, timeout=60)
-    assert p.returncode == 0, p.stderr
-    assert "offset.j1: the TCP is free" in p.stdout
+    p = station_proc("solve", "--model", path, "--tip-link", "iris__rotor_0", "--samples", "s.csv",
+                     "--instrument-frame", "base", "--identify", "offsets,tcp", cwd=tmp_path, timeout=60)
+    assert p.code == 0, p.err
+    assert "offset.j1: the TCP is free" in p.out

@@ -6,13 +6,10 @@ reach; two different worlds get two serials."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 import yaml
+from clirunner import station_proc
 from station.mocks.world import World
 from station.mocks.world.example import example_text
 from station.mocks.world.identity import default_serial
@@ -22,17 +19,14 @@ from station.engine.plan import generate_plan
 from station.kinematics.collision import KeepOut
 from tests.urdf_robots import arm7_urdf, ur5e_urdf
 
-STATION = Path(sys.executable).parent / "station"
-
 
 @pytest.fixture(scope="module")
 def own(tmp_path_factory):
     d = tmp_path_factory.mktemp("own")
     (d / "myarm.urdf").write_text(ur5e_urdf().replace('name="ur5e_urdf"', 'name="myarm"'))
-    r = subprocess.run([str(STATION), "mock", "world", "example", "--model", "myarm.urdf"], cwd=d,
-                       capture_output=True, text=True, timeout=120)
-    assert r.returncode == 0, r.stderr
-    (d / "world.yaml").write_text(r.stdout)
+    r = station_proc("mock", "world", "example", "--model", "myarm.urdf", cwd=d)
+    assert r.code == 0, r.err
+    (d / "world.yaml").write_text(r.out)
     return d, World.from_file(d / "world.yaml")
 
 
@@ -65,15 +59,13 @@ def test_cell_warns_on_no_points_and_unreachable_points(own, tmp_path):
     doc["robot"]["model"] = str(d / "myarm.urdf")
     doc["cell"]["points"] = []
     (tmp_path / "empty.yaml").write_text(yaml.safe_dump(doc))
-    r = subprocess.run([str(STATION), "mock", "world", "cell", str(tmp_path / "empty.yaml"), "--out",
-                        str(tmp_path / "cell.yaml")], capture_output=True, text=True, timeout=120)
-    assert r.returncode == 0 and "(0 points)" in r.stderr
-    assert "warning" in r.stderr and "cell.points is empty" in r.stderr and "mock world example --model" in r.stderr
+    r = station_proc("mock", "world", "cell", tmp_path / "empty.yaml", "--out", tmp_path / "cell.yaml")
+    assert r.code == 0 and "(0 points)" in r.err
+    assert "warning" in r.err and "cell.points is empty" in r.err and "mock world example --model" in r.err
     doc["cell"]["points"] = [{"label": "F", "kind": "socket", "position": [3000, 0, 50], "approach": [0, 0, 1]}]
     (tmp_path / "far.yaml").write_text(yaml.safe_dump(doc))
-    r = subprocess.run([str(STATION), "mock", "world", "cell", str(tmp_path / "far.yaml"), "--out",
-                        str(tmp_path / "cell.yaml")], capture_output=True, text=True, timeout=120)
-    assert r.returncode == 0 and "cell.points F" in r.stderr and "0% of a 35 deg cone" in r.stderr, r.stderr
+    r = station_proc("mock", "world", "cell", tmp_path / "far.yaml", "--out", tmp_path / "cell.yaml")
+    assert r.code == 0 and "cell.points F" in r.err and "0% of a 35 deg cone" in r.err, r.err
 
 
 def test_two_worlds_two_serials_and_the_same_world_keeps_its_own(own, tmp_path):
