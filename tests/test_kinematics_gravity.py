@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from station.mocks.world.physics import Gravity, Rigid
 
 from station.kinematics import load_model
 from station.kinematics.gravity import make_load, payload_dict, same_payload, show_payload
-from station.mocks.world.physics import Gravity, Rigid
 
 HOME = np.array([0.3, -1.2, 1.5, -1.9, -1.57, 0.4])
 MASSES = {2: (8.4, np.array([0.2, 0.0, 0.14])), 3: (2.3, np.array([0.2, 0.0, 0.02]))}

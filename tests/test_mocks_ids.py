@@ -1,7 +1,6 @@
 """``station.mocks.ids``: device id lists as mock commands and world files write them."""
 
 import pytest
-
 from station.mocks.ids import parse_id_list
 
 
