@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import pytest
 from canopen.objectdictionary import datatypes as dt
-
 from station.drivers.canopen.od import master_od, standard_od
 
 CIA = [  # index, name, type, access, PDO-mappable (CiA 402-2 / CiA 301)

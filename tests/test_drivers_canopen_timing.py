@@ -4,7 +4,6 @@ of a stalled host are kept by the watchdog's turns (time.monotonic set by hand: 
 from __future__ import annotations
 
 import pytest
-
 import station.drivers.canopen.timing as timing
 from station.drivers.canopen.timing import HostWatch
 

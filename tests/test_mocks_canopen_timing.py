@@ -4,7 +4,6 @@ its process was not scheduled (driven by a hand-set clock: the gaps are exact)."
 from __future__ import annotations
 
 import pytest
-
 from station.mocks.canopen.timing import OwnClock
 
 
