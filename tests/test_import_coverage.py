@@ -80,13 +80,18 @@ def reexports(package: str) -> dict[str, str]:
                 base = ".".join([*package.split(".")[:len(package.split(".")) - node.level + 1], *filter(None, [base])])
             for alias in node.names:
                 out[alias.asname or alias.name] = base
-        elif isinstance(node, ast.Dict):  # a lazy package's table: name -> "module" or ("module", "attr")
+        elif isinstance(node, ast.Dict):  # a lazy package's table, in one of its three shapes
             for k, v in zip(node.keys, node.values, strict=True):
-                if isinstance(v, ast.Tuple) and v.elts:
+                if not (isinstance(k, ast.Constant) and isinstance(k.value, str)):
+                    continue
+                names = [e.value for e in getattr(v, "elts", []) if isinstance(e, ast.Constant)]
+                if k.value.startswith(package + "."):  # "module": ("name", ...)
+                    out.update({n: k.value for n in names if isinstance(n, str)})
+                    continue
+                if isinstance(v, ast.Tuple) and v.elts:  # "name": ("module", "attr")
                     v = v.elts[0]
-                if (isinstance(k, ast.Constant) and isinstance(k.value, str) and isinstance(v, ast.Constant)
-                        and isinstance(v.value, str) and v.value.startswith(package + ".")):
-                    out[k.value] = v.value
+                if isinstance(v, ast.Constant) and isinstance(v.value, str) and v.value.startswith(package + "."):
+                    out[k.value] = v.value  # "name": "module"
     return out
 
 
@@ -159,6 +164,10 @@ def test_reexported_names_cover_their_defining_module():
     assert "station.solver.estimator" in _imports(ast.parse("from station.solver import solve"), modules)
     assert "station.drivers.ur.robot" in _imports(ast.parse("from station.drivers.ur import URRobot"), modules)
     assert "station.drivers.ur.robot" not in _imports(ast.parse("import station.drivers.ur"), modules)
+    # station.mocks.world: name -> (module, attr); station.instruments: module -> names
+    assert "station.mocks.world.world" in _imports(ast.parse("from station.mocks.world import World"), modules)
+    assert "station.instruments.base" in _imports(ast.parse("from station.instruments import InstrumentBase"),
+                                                  modules)
 
 
 def test_every_source_module_is_imported_by_a_test():
