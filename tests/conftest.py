@@ -232,3 +232,44 @@ def tui_no_idle_wait(monkeypatch):
 
     monkeypatch.setattr("textual.app.wait_for_idle", yield_once)
     monkeypatch.setattr("textual.pilot.wait_for_idle", yield_once)
+
+
+@pytest.fixture
+def robot_rig():
+    """Factory ``robot_rig(bus, world, *, query="", enable=True, **emulator_options) -> (emulator, robot)``: the
+    emulated devices of ``bus`` serving the ``World`` in this process (CANopen drives on a python-can virtual
+    channel of their own, Dynamixel servos on a pty) and the real driver connected to them through its URL
+    (``open_robot``; ``query`` is appended, e.g. ``"&heartbeat_ms=250"``), enabled. Robots are closed before their
+    emulators at teardown. A world file, a UR controller or a child process: the ``emulators`` fixture."""
+    from station.robot import open_robot
+
+    made: list = []
+
+    def make(bus: str, world, *, query: str = "", enable: bool = True, **options):
+        if bus == "canopen":
+            import uuid
+
+            from station.mocks.canopen.emulator import CanopenEmulator
+
+            channel = f"rig{uuid.uuid4().hex[:10]}"
+            emu = CanopenEmulator(world, "virtual", channel, **options).start()
+            made.append(emu)
+            nodes = ",".join(str(n) for n in emu.nodes)
+            url = f"canopen+virtual://{channel}?nodes={nodes}&model={world.nominal.name}"
+        elif bus == "dynamixel":
+            from station.mocks.dynamixel import DynamixelEmulator
+
+            emu = DynamixelEmulator(world, **options).start()
+            made.append(emu)
+            url = emu.url
+        else:
+            raise ValueError(f"robot_rig: no in-process emulator for bus {bus!r} (use the emulators fixture)")
+        robot = open_robot(url + query)
+        made.append(robot)
+        if enable:
+            robot.enable()
+        return emu, robot
+
+    yield make
+    for thing in reversed(made):
+        thing.close() if hasattr(thing, "close") else thing.stop()

@@ -4,19 +4,14 @@ one encoder count refused (Dynamixel, 0.088 deg per count), guidance with limits
 
 from __future__ import annotations
 
-import uuid
-
 import numpy as np
 import pytest
-from station.mocks.canopen.emulator import CanopenEmulator
-from station.mocks.dynamixel import DynamixelEmulator
 from station.mocks.world import World
 
 from station.engine.cell import cell_from_dict
 from station.engine.journal import read_journal
 from station.engine.limits import load_limits
 from station.engine.session_record import session_from_journal
-from station.robot import open_robot
 from station.tui.controller import JogController
 from station.tui.session import session_header, technician_session
 
@@ -36,20 +31,15 @@ models:
 
 
 @pytest.fixture
-def rig(tmp_path):
+def rig(tmp_path, robot_rig):
     made = []
 
     def make(cell=None, limits=None, time_mode="instant"):
-        chan = f"jogc-{uuid.uuid4().hex[:8]}"
         world = World.default(model="arm6", seed=5, start=START, time_mode=time_mode,
                               errors={"explicit": dict(HIDDEN)})
-        emu = CanopenEmulator(world, channel=chan).start()
-        made.append(emu)
-        robot = open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6&heartbeat_ms=250")
-        made.append(robot)
-        robot.enable()
+        emu, robot = robot_rig("canopen", world, query="&heartbeat_ms=250")
         header = session_header(identity=robot.identity(), model_name="arm6", serial="SN-C", identify="offsets",
-                                reference="unknown", url=f"canopen+virtual://{chan}")
+                                reference="unknown", url=emu.url)
         session = technician_session(robot, header, folder=tmp_path / f"s{len(made)}")
         table, version = {}, None
         if limits is not None:
@@ -62,8 +52,8 @@ def rig(tmp_path):
         return world, robot, ctl
 
     yield make
-    for thing in reversed(made):
-        thing.close() if hasattr(thing, "close") else thing.stop()
+    for ctl in reversed(made):
+        ctl.close()
 
 
 def test_keep_out_refuses_a_jog_naming_link_and_obstacle(rig):
@@ -190,30 +180,23 @@ def test_a_jog_session_without_limits_ends_no_limits(rig):
     assert overall_status(session_from_journal(folder)["verdict"]) == "NO LIMITS"
 
 
-def test_a_step_below_one_encoder_count_is_refused(tmp_path):
+def test_a_step_below_one_encoder_count_is_refused(tmp_path, robot_rig):
     world = World.default(model="omx", seed=2, start=[0.2, -0.3, 0.4, 0.1])
-    emu = DynamixelEmulator(world, ids=[11, 12, 13, 14])
-    path = emu.start().path
-    robot = open_robot(f"dynamixel://{path}?baud=1000000&ids=11-14&model=omx")
-    try:
-        robot.enable()
-        header = session_header(identity=robot.identity(), model_name="omx", serial="OMX", identify="offsets",
-                                reference="unknown", url="x")
-        ctl = JogController(robot, technician_session(robot, header, folder=tmp_path / "s"), identify="offsets")
-        q0 = world.encoder_q().copy()
-        ctl.set_step(0)  # 0.01 deg < 0.088 deg per count
-        assert not ctl.jog(1, +1)
-        assert "below one encoder count" in ctl.message and "0.08789 deg" in ctl.message, ctl.message
-        ctl.set_step(1)  # 0.1 deg: more than one count, moves
-        assert ctl.jog(1, +1)
-        ctl.toggle_mode()
-        ctl.set_step(0)  # 0.01 mm at the tool moves no joint by a count
-        assert not ctl.jog(0, +1) and "encoder count" in ctl.message
-        ctl.close()
-        assert np.abs(world.encoder_q() - q0)[[0, 2, 3]].max() == 0
-    finally:
-        robot.close()
-        emu.stop()
+    _, robot = robot_rig("dynamixel", world, ids=[11, 12, 13, 14])
+    header = session_header(identity=robot.identity(), model_name="omx", serial="OMX", identify="offsets",
+                            reference="unknown", url="x")
+    ctl = JogController(robot, technician_session(robot, header, folder=tmp_path / "s"), identify="offsets")
+    q0 = world.encoder_q().copy()
+    ctl.set_step(0)  # 0.01 deg < 0.088 deg per count
+    assert not ctl.jog(1, +1)
+    assert "below one encoder count" in ctl.message and "0.08789 deg" in ctl.message, ctl.message
+    ctl.set_step(1)  # 0.1 deg: more than one count, moves
+    assert ctl.jog(1, +1)
+    ctl.toggle_mode()
+    ctl.set_step(0)  # 0.01 mm at the tool moves no joint by a count
+    assert not ctl.jog(0, +1) and "encoder count" in ctl.message
+    ctl.close()
+    assert np.abs(world.encoder_q() - q0)[[0, 2, 3]].max() == 0
 
 
 def _hold_and_release(world, ctl, axis: int, direction: int, seconds: float) -> tuple[float, float]:

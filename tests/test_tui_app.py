@@ -7,15 +7,12 @@ import asyncio
 import json
 import subprocess
 import sys
-import uuid
 
 import numpy as np
 import pytest
-from station.mocks.canopen.emulator import CanopenEmulator
 from station.mocks.world import World
 
 from station.engine.journal import read_journal
-from station.robot import open_robot
 from station.samplesfile import read_samples
 from station.tui.app import JogApp
 from station.tui.controller import JOG_MAX_JOINT_SPEED, JogController
@@ -36,29 +33,25 @@ def quantum(model) -> np.ndarray:
 
 
 @pytest.fixture
-def rig(tmp_path):
+def rig(tmp_path, robot_rig):
     """World (instant motion) + emulated drives + the real driver + a session; yields a factory for the app."""
     made = []
 
     def make(time_mode="instant", identify="offsets,tcp", **emu_kw):
-        chan = f"jog-{uuid.uuid4().hex[:8]}"
         world = World.default(model="arm6", seed=5, start=START, time_mode=time_mode,
                               errors={"explicit": dict(HIDDEN)})
-        emu = CanopenEmulator(world, channel=chan, **emu_kw).start()
-        made.append(emu)
         # heartbeat 250 ms: margin for a loaded CI machine (the watchdog itself is tested in test_canopen_*)
-        robot = open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6&heartbeat_ms=250")
-        made.append(robot)
-        robot.enable()
+        emu, robot = robot_rig("canopen", world, query="&heartbeat_ms=250", **emu_kw)
         header = session_header(identity=robot.identity(), model_name="arm6", serial="SN-T", identify=identify,
-                                reference="unknown", url=f"canopen+virtual://{chan}")
+                                reference="unknown", url=emu.url)
         session = technician_session(robot, header, folder=tmp_path / f"session-{len(made)}")
         ctl = JogController(robot, session, identify=identify)
+        made.append(ctl)
         return world, robot, ctl
 
     yield make
-    for thing in reversed(made):
-        thing.close() if hasattr(thing, "close") else thing.stop()
+    for ctl in reversed(made):
+        ctl.close()
 
 
 def touch_poses(world, label="N", n=8, seed=0) -> list[np.ndarray]:
