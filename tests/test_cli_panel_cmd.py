@@ -1,0 +1,39 @@
+"""``station.cli.panel_cmd``: the panel's files are checked when it starts (one line each), not when the first unit
+is scanned; and the options ``station run`` and ``station panel`` share (``station.cli.run_options``)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+from clirunner import station_main
+
+from station.cli import run_options
+from station.cli.panel_cmd import _check_files
+
+CELL = ("format: station-cell/1\nunits: {length: mm}\npoints:\n"
+        "  A: {kind: socket, position: [350, 0, 750], approach: [0, 0, 1]}\n")
+
+
+def test_each_bad_file_is_named_at_start(tmp_path):
+    cell = tmp_path / "cell.yaml"
+    cell.write_text(CELL)
+    _check_files(SimpleNamespace(procedure="zero_offsets", limits=None, cell=str(cell)))  # all good
+    bad_limits = tmp_path / "limits.yaml"
+    bad_limits.write_text("format: nonsense\n")
+    for cfg, needle in ((SimpleNamespace(procedure="no_such_proc", limits=None, cell=str(cell)), "no_such_proc"),
+                        (SimpleNamespace(procedure="zero_offsets", limits=str(bad_limits), cell=str(cell)),
+                         "limits.yaml"),
+                        (SimpleNamespace(procedure="zero_offsets", limits=None, cell=str(tmp_path / "none.yaml")),
+                         "none.yaml")):
+        with pytest.raises(Exception, match=needle) as e:
+            _check_files(cfg)
+        assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("command", ["run", "panel"])
+def test_shared_options_are_offered_by_both_commands(command):
+    out = " ".join(station_main(command, "--help", columns=200).out.split())
+    for opt in (run_options.LIMITS, run_options.DB, run_options.POSES, run_options.HOLDOUT, run_options.CONE):
+        flag = opt.param_decls[0]
+        assert flag in out, (command, flag)
