@@ -170,10 +170,25 @@ def test_reexported_names_cover_their_defining_module():
                                                   modules)
 
 
+# Not imported by a test yet, and why. An entry leaves this table when a test imports the module (the test below
+# fails on a stale entry), never by being ignored.
+PENDING = {
+    # run only against franka-sim (MuJoCo, its own environment): exercised through open_robot("franka://...") by
+    # tests/test_franka_driver.py, which another change owns now; the import belongs there
+    "station.drivers.franka.robot": "through open_robot in tests/test_franka_driver.py",
+    "station.drivers.franka.stream": "the driver's 1 kHz loop, through tests/test_franka_driver.py",
+    # a script run by the franka-sim interpreter (imports mujoco, not installed in the station's environment)
+    "station.mocks.franka.simhost": "started by station.mocks.franka.launch in the franka-sim environment",
+}
+
+
 def test_every_source_module_is_imported_by_a_test():
-    missing = uncovered()
-    assert not missing, (f"{len(missing)} source modules no test imports (write tests/test_<part>_<module>.py "
-                         f"that imports and tests each): {', '.join(missing)}")
+    missing = set(uncovered())
+    new = sorted(missing - set(PENDING))
+    assert not new, (f"{len(new)} source modules no test imports (write tests/test_<part>_<module>.py that imports "
+                     f"and tests each): {', '.join(new)}")
+    stale = sorted(set(PENDING) - missing)
+    assert not stale, f"imported by a test now: remove from PENDING: {', '.join(stale)}"
 
 
 if __name__ == "__main__":
