@@ -13,6 +13,7 @@ Run ``python tests/test_import_coverage.py`` for the list of modules no test imp
 from __future__ import annotations
 
 import ast
+import functools
 import sys
 from pathlib import Path
 
@@ -45,6 +46,11 @@ def _only_reexports(tree: ast.Module) -> bool:
     return True
 
 
+@functools.lru_cache(maxsize=1)
+def _source_modules() -> frozenset[str]:
+    return frozenset(source_modules())
+
+
 def source_modules() -> set[str]:
     """Import names of the source modules that have code of their own."""
     out = set()
@@ -67,6 +73,7 @@ def _package_path(name: str) -> Path | None:
     return None
 
 
+@functools.cache
 def reexports(package: str) -> dict[str, str]:
     """name -> defining module for the names a package's ``__init__`` takes from elsewhere."""
     path = _package_path(package)
@@ -123,6 +130,11 @@ def _imports(tree: ast.AST, modules: set[str]) -> set[str]:
 
 def covered(modules: set[str]) -> dict[str, set[str]]:
     """module -> test files (paths relative to tests/) that import it."""
+    return {m: set(files) for m, files in _covered(frozenset(modules)).items()}
+
+
+@functools.lru_cache(maxsize=2)
+def _covered(modules: frozenset[str]) -> dict[str, set[str]]:
     by = {m: set() for m in modules}
     for path in TESTS.rglob("*.py"):
         tree = ast.parse(path.read_text(), str(path))
@@ -132,12 +144,12 @@ def covered(modules: set[str]) -> dict[str, set[str]]:
 
 
 def uncovered() -> list[str]:
-    modules = source_modules()
+    modules = set(_source_modules())
     return sorted(m for m, files in covered(modules).items() if not files)
 
 
 def test_the_walker_sees_the_source_tree():
-    modules = source_modules()
+    modules = set(_source_modules())
     # the walker must find the big parts; a path rule gone wrong would leave it with nothing to check
     for known in ("station.kinematics.chain", "station.drivers.ur.robot", "station.mocks.world.world",
                   "station.procedures.zero_offsets", "station.cli"):
