@@ -66,6 +66,12 @@ def station_main(*args, env: Mapping[str, str] | None = None, cwd: str | Path | 
     saved_argv, saved_env = sys.argv, dict(os.environ)
     sys.argv = ["station", *map(str, args)]
     os.environ.update(extra)
+    # click names the program after ``__main__``'s package when there is one ("python -m pytest"); the console
+    # script has none, so its messages say "station ...": the same here
+    main_module = sys.modules.get("__main__")
+    saved_package = getattr(main_module, "__package__", None)
+    if main_module is not None:
+        main_module.__package__ = None
     code = 0
     try:
         with contextlib.ExitStack() as stack:
@@ -81,6 +87,8 @@ def station_main(*args, env: Mapping[str, str] | None = None, cwd: str | Path | 
         sys.argv = saved_argv
         os.environ.clear()
         os.environ.update(saved_env)
+        if main_module is not None:
+            main_module.__package__ = saved_package
     return CliResult(code, out.getvalue(), err.getvalue())
 
 
