@@ -75,6 +75,38 @@ class Snapshot:
     seated: str | None
 
 
+def _hidden_errors(spec: WorldSpec, nominal: Model, g_err: np.random.Generator) -> dict[str, float]:
+    """The robot's hidden errors (SI), non-zero ones in model order: one standard normal per model parameter,
+    scaled by the sigma of the most specific selector that names it (neither the order of selectors nor adding
+    one elsewhere changes a draw), then the world file's explicit values."""
+    z = g_err.standard_normal(len(nominal.param_names))
+    chosen: dict[str, tuple[int, str, float]] = {}
+    for sel, sl, sa in spec.random:
+        names = [n for n in nominal.select(sel) if not n.startswith("compliance.")]
+        for name in names:
+            sigma = (sl if param_kind(nominal, name) == "length" else sa) or 0.0
+            key = (len(names), sel, sigma)
+            if name not in chosen or key[:2] < chosen[name][:2]:
+                chosen[name] = key
+    errors = {n: float(z[nominal.index(n)] * c[2]) for n, c in chosen.items()}
+    errors.update(spec.explicit)
+    errors = {n: errors[n] for n in nominal.param_names if n in errors}  # model order
+    return {n: v for n, v in errors.items() if v != 0.0}
+
+
+def _cell_points(spec: WorldSpec, g_survey: np.random.Generator) -> tuple[dict[str, CellPoint],
+                                                                           dict[str, np.ndarray]]:
+    """The cell's reference points (true positions, capture radius) and each one's survey error (m)."""
+    points: dict[str, CellPoint] = {}
+    survey: dict[str, np.ndarray] = {}
+    for p in spec.points:
+        radius = p["radius"] or (spec.capture_radius if p["kind"] == "socket" else spec.contact_radius)
+        points[p["label"]] = CellPoint(p["label"], p["kind"], np.array(p["position"], dtype=float),
+                                       float(radius), np.array(p["approach"], dtype=float))
+        survey[p["label"]] = g_survey.normal(0.0, spec.survey_sigma, 3)
+    return points, survey
+
+
 class World:
     """The truth behind every emulator. Build with :meth:`from_file`, :meth:`from_dict`, :meth:`default`."""
 
@@ -88,21 +120,7 @@ class World:
         # independent streams, so that e.g. more seatings never change the hidden errors
         g_err, self._g_seat, g_survey, self._g_enc, self._g_pos = (
             np.random.default_rng(s) for s in np.random.SeedSequence(spec.seed).spawn(5))
-        # one standard normal per model parameter, scaled by the sigma of the most specific selector
-        # that names it: neither the order of selectors nor adding one elsewhere changes a draw
-        z = g_err.standard_normal(len(nominal.param_names))
-        chosen: dict[str, tuple[int, str, float]] = {}
-        for sel, sl, sa in spec.random:
-            names = [n for n in nominal.select(sel) if not n.startswith("compliance.")]
-            for name in names:
-                sigma = (sl if param_kind(nominal, name) == "length" else sa) or 0.0
-                key = (len(names), sel, sigma)
-                if name not in chosen or key[:2] < chosen[name][:2]:
-                    chosen[name] = key
-        errors = {n: float(z[nominal.index(n)] * c[2]) for n, c in chosen.items()}
-        errors.update(spec.explicit)
-        errors = {n: errors[n] for n in nominal.param_names if n in errors}  # model order
-        self._errors = {n: v for n, v in errors.items() if v != 0.0}
+        self._errors = _hidden_errors(spec, nominal, g_err)
         n = nominal.n_joints
         # the robot's own compliance (joints.compliance, else the model's compliance.jN) acts through physics:
         # the truth model itself is rigid
@@ -122,13 +140,7 @@ class World:
         for i, b in spec.backlash.items():
             self._backlash[i] = b
         self.gravity = self._gravity_truth(spec, nominal)
-        self.points: dict[str, CellPoint] = {}
-        self._survey: dict[str, np.ndarray] = {}
-        for p in spec.points:
-            radius = p["radius"] or (spec.capture_radius if p["kind"] == "socket" else spec.contact_radius)
-            self.points[p["label"]] = CellPoint(p["label"], p["kind"], np.array(p["position"], dtype=float),
-                                                float(radius), np.array(p["approach"], dtype=float))
-            self._survey[p["label"]] = g_survey.normal(0.0, spec.survey_sigma, 3)
+        self.points, self._survey = _cell_points(spec, g_survey)
         self.faults = Faults()
         self._arm_file_faults(spec.faults)
         self.keep_out = KeepOutTruth(self.truth, spec.keep_out)  # the floor and fixtures the links can hit
@@ -141,7 +153,12 @@ class World:
         self.time_scale = spec.time_scale
         self._t = 0.0
         self._mono0 = time.monotonic()
-        # joints
+        self._init_joints(spec)
+
+    def _init_joints(self, spec: WorldSpec) -> None:
+        """The joints at the start: held on their profiles at ``motion.start`` (within the limits), enabled as
+        the world file says, brakes, and the state of joints off their profile (dynamics.py)."""
+        n = self.n_joints
         q0 = np.zeros(n) if spec.start is None else np.asarray(spec.start, dtype=float)
         q0 = np.clip(q0, self.lower, self.upper)
         self._version = 0
