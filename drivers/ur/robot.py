@@ -37,12 +37,9 @@ from station.drivers.ur.calibration import (
 from station.drivers.ur.dashboard import DashboardClient
 from station.drivers.ur.identity import check_arm
 from station.drivers.ur.link import RTDELink
+from station.drivers.ur.power import power_up
 from station.drivers.ur.primary import read_kinematics
 from station.drivers.ur.safety import (
-    ROBOT_MODE_BOOTING,
-    ROBOT_MODE_IDLE,
-    ROBOT_MODE_POWER_OFF,
-    ROBOT_MODE_POWER_ON,
     ROBOT_MODE_RUNNING,
     SS_ESTOP_MASK,
     SS_FAULT,
@@ -74,13 +71,11 @@ log = logging.getLogger("station.drivers.ur")
 
 # ur_rtde's own wait for its control script is 5 s; the driver waits itself, counting only what it observed
 CONTROL_SCRIPT_TIMEOUT_S = 5.0
-# power on -> IDLE and brake release -> RUNNING: UR's client library waits up to 300 s / 30 s (counted in polls)
-POWER_ON_TIMEOUT_S, BRAKE_RELEASE_TIMEOUT_S = 60.0, 30.0
-LOCAL_HOSTS = ("localhost", "127.0.0.1")
+LOCAL_HOSTS = ("localhost", "127.0.0.1")  # ur_rtde skips its remote-control check only for these
 # RTDE stall timeout: the controller sends a package every 2 ms; 200 ms gave spurious stalls on a loaded
-# 2-core PC (issue 15); 500 ms (250 packages) soaked with zero spurious faults under two busy loops
+# 2-core PC; 500 ms (250 packages) soaked with zero spurious faults under two busy loops
 # (tests/test_soak_buses.py) and still stops the arm within half a second of a dead link.
-STALL_MS = 500.0  # ur_rtde skips its remote-control check only for these
+STALL_MS = 500.0
 
 
 def _rows_checksum(table) -> str:
@@ -370,49 +365,6 @@ class URRobot(RobotBase):
             mode = int(self._r.getRobotMode()) if self._r is not None else -1
         return mode_name(mode)
 
-    def _power_up(self) -> None:
-        """Bring the arm to RUNNING the way UR's ROS driver does (robot_state_helper): ``power on``, wait for
-        IDLE (joints booted, brakes engaged), ``brake release``, wait for RUNNING. Only with ``power_on=yes``;
-        otherwise one line naming the option and the dashboard's robot mode. Waits count only observed time."""
-        mode = int(self._r.getRobotMode())
-        if mode == ROBOT_MODE_RUNNING:
-            return
-        self._check_safety()
-        if not self.power_on:
-            raise ConfigError(f"ur://{self.host}: the arm is not running (dashboard: "
-                              f"{self._dash.command('robotmode')}); power it on and release the brakes on the teach "
-                              "pendant, or let the station do it: add power_on=yes to the robot URL")
-        if mode in (ROBOT_MODE_POWER_OFF, ROBOT_MODE_POWER_ON, ROBOT_MODE_BOOTING):
-            if mode == ROBOT_MODE_POWER_OFF:
-                log.info("ur://%s: power on (power_on=yes)", self.host)
-                self._dash.command("power on")
-            mode = self._wait_mode((ROBOT_MODE_IDLE, ROBOT_MODE_RUNNING), POWER_ON_TIMEOUT_S, "power-on",
-                                   "IDLE after 'power on'")
-        if mode == ROBOT_MODE_IDLE:
-            log.info("ur://%s: brake release (power_on=yes)", self.host)
-            self._dash.command("brake release")
-            mode = self._wait_mode((ROBOT_MODE_RUNNING,), BRAKE_RELEASE_TIMEOUT_S, "brake-release",
-                                   "RUNNING after 'brake release'")
-        if mode != ROBOT_MODE_RUNNING:
-            raise DeviceFault(f"ur://{self.host}: the arm is in robot mode {self._mode_name(mode)}, which needs the "
-                              "teach pendant (confirm safety, release the teach button); nothing was moved")
-
-    def _wait_mode(self, targets: tuple[int, ...], timeout: float, which: str, what: str) -> int:
-        silence = Silence()  # the station's own scheduling gaps are not the controller's slowness
-        while True:
-            self._check_link()
-            mode = int(self._r.getRobotMode())
-            if mode in targets:
-                return mode
-            bits = int(self._r.getSafetyStatusBits())
-            err = safety_error(self.host, bits)
-            if err is not None:
-                raise err
-            if silence.tick() > timeout:
-                raise DeviceFault(f"ur://{self.host}: {which} timeout: the arm did not reach {what} within "
-                                  f"{timeout:g} s (robot mode {self._mode_name(mode)}; {silence.note()})")
-            time.sleep(0.02)
-
     def _start_script(self) -> None:
         """Upload ur_rtde's control script (a stale one is stopped first) and wait until the controller runs it:
         CONTROL_SCRIPT_TIMEOUT_S of observed time (``Silence``: a busy station PC's own gaps do not count)."""
@@ -433,7 +385,7 @@ class URRobot(RobotBase):
         self._check_link()
         self._check_safety()
         if int(self._r.getRobotMode()) != ROBOT_MODE_RUNNING:
-            self._power_up()
+            power_up(self._link, self.power_on, self._check_safety)
         if self._c is None:
             self._link.open_control()
             self._start_script()
@@ -771,8 +723,8 @@ class URRobot(RobotBase):
             raise DeviceFault(f"ur://{self.host}: stop: {e}") from None
 
     def enable(self) -> None:
-        """The arm RUNNING (powered on and brakes released: only with ``power_on=yes``, see ``_power_up``) and the
-        control script running."""
+        """The arm RUNNING (powered on and brakes released: only with ``power_on=yes``, see
+        ``drivers/ur/power.py``) and the control script running."""
         self._check_link()
         self._ready_for_motion()
 
