@@ -318,13 +318,7 @@ class URRobot(RobotBase):
             self._link.stop_program_after_loss(self.TEARDOWN_S)
         self._link.release_abandoned()
 
-    # ---- link and safety checks --------------------------------------------------------------
-    def _check_link(self) -> None:
-        self._link.check()
-
-    def _check_link_moving(self) -> None:
-        self._link.check_moving()
-
+    # ---- safety checks -------------------------------------------------------------------------
     def _check_safety(self) -> None:
         err = safety_error(self.host, int(self._r.getSafetyStatusBits()))
         if err is not None:
@@ -373,7 +367,7 @@ class URRobot(RobotBase):
         self._c.reuploadScript()
         silence = Silence()
         while not self._c.isProgramRunning():
-            self._check_link()
+            self._link.check()
             if silence.tick() > CONTROL_SCRIPT_TIMEOUT_S:
                 raise DeviceFault(f"ur://{self.host}: control-script start timeout: the controller did not run "
                                   f"ur_rtde's control script within {CONTROL_SCRIPT_TIMEOUT_S:g} s (runtime_state "
@@ -382,7 +376,7 @@ class URRobot(RobotBase):
             time.sleep(0.01)
 
     def _ready_for_motion(self) -> None:
-        self._check_link()
+        self._link.check()
         self._check_safety()
         if int(self._r.getRobotMode()) != ROBOT_MODE_RUNNING:
             power_up(self._link, self.power_on, self._check_safety)
@@ -398,7 +392,7 @@ class URRobot(RobotBase):
 
     def _refused(self, what: str) -> None:
         """A ur_rtde command returned False: say why, leave the robot stopped."""
-        self._check_link()
+        self._link.check()
         bits = int(self._r.getSafetyStatusBits())
         err = safety_error(self.host, bits)
         watchdog = self._watchdog.diagnosis()
@@ -434,7 +428,7 @@ class URRobot(RobotBase):
     def joint_positions(self) -> JointSnapshot:
         """actual_q of one RTDE package produced after this call began, with that package's controller
         timestamp (waits at most one 2 ms cycle). None within ``stale_timeout`` -> BusError, robot stopped."""
-        self._check_link()
+        self._link.check()
         silence = Silence()  # a loaded station PC's own gaps are not counted against the stream
         ts_entry = self._r.getTimestamp()
         while True:
@@ -444,7 +438,7 @@ class URRobot(RobotBase):
             if ts1 == ts2 and ts1 != ts_entry:
                 break
             if silence.tick() > self.stale_timeout:
-                self._check_link()
+                self._link.check()
                 self._halt_quietly(dashboard=True)
                 raise BusError(f"ur://{self.host}: RTDE stall timeout: no new package for "
                                f"{self.stale_timeout * 1e3:.0f} ms (last controller time {ts2:.3f} s; "
@@ -456,7 +450,7 @@ class URRobot(RobotBase):
 
     def tcp_pose(self) -> np.ndarray:
         """The controller's own ``actual_TCP_pose`` (x, y, z m; rx, ry, rz rotation vector), from ITS model."""
-        self._check_link()
+        self._link.check()
         return np.asarray(self._r.getActualTCPPose(), dtype=float)
 
     def move_joints(self, q, speed: float | None = None, wait: bool = True) -> None:
@@ -525,7 +519,7 @@ class URRobot(RobotBase):
         while True:
             if self._interrupt.is_set():
                 raise SafetyStop(f"ur://{self.host}: move interrupted by stop(); the arm holds where it stopped")
-            self._check_link_moving()
+            self._link.check_moving()
             self._check_safety()
             if not self._c.isProgramRunning():
                 self._why_script_stopped()
@@ -658,7 +652,7 @@ class URRobot(RobotBase):
         speed command runs, so the controller does not end the program a watchdog period after each stop.
         The arm stands still (speedStop was sent); if this process dies the watchdog ends an idle program."""
         if self._watchdog.armed and not self._speeding:
-            self._check_link()
+            self._link.check()
             self._kick()
 
     def _velocity_jog(self, send, remaining, v: float, a: float) -> None:
@@ -670,7 +664,7 @@ class URRobot(RobotBase):
             # (the script's rtde_set_watchdog(..., "stop")); it stays armed until the program ends
             self._send_speed(send)
             while True:
-                self._check_link_moving()
+                self._link.check_moving()
                 snap = self.joint_positions()
                 self._check_safety()
                 if remaining(snap.q) <= v * v / (2 * a) + v * 0.004:
@@ -703,7 +697,7 @@ class URRobot(RobotBase):
 
     def stop(self) -> None:
         self._interrupt.set()
-        self._check_link()
+        self._link.check()
         try:
             if self._r.getSafetyStatusBits() & SS_HALTED:
                 return  # already halted by the safety system; commands would be refused
@@ -725,7 +719,7 @@ class URRobot(RobotBase):
     def enable(self) -> None:
         """The arm RUNNING (powered on and brakes released: only with ``power_on=yes``, see
         ``drivers/ur/power.py``) and the control script running."""
-        self._check_link()
+        self._link.check()
         self._ready_for_motion()
 
     def disable(self) -> None:
@@ -733,7 +727,7 @@ class URRobot(RobotBase):
         self._dash.power_off()
 
     def status(self) -> RobotStatus:
-        self._check_link()
+        self._link.check()
         bits = int(self._r.getSafetyStatusBits())
         mode = int(self._r.getRobotMode())
         qd = np.asarray(self._r.getActualQd(), dtype=float)
@@ -749,13 +743,13 @@ class URRobot(RobotBase):
 
     def touch(self) -> bool:
         """Contact sensor on ``actual_digital_input_bits`` bit ``contact_bit`` (default 16 = tool DI 0)."""
-        self._check_link()
+        self._link.check()
         return bool((int(self._r.getActualDigitalInputBits()) >> self.contact_bit) & 1)
 
     def set_compliant(self, on: bool) -> None:
         """Freedrive (falls back to teach mode) so the tip can settle in a socket; off keeps the position."""
         if not on and self._compliant_mode is None:  # nothing to end; a safety stop is still said (teardown)
-            self._check_link()
+            self._link.check()
             self._check_safety()
             return
         if on:
