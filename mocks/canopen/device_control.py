@@ -1,7 +1,8 @@
 """The CiA 402 device control state machine as the emulated drive runs it: the states (names as
 ``canopen.profiles.p402`` spells them), the statusword bits each state shows, and which controlword command
-moves which state where (CiA 402 "device control": the controlword command table and the state transitions
-numbered there; canopen's ``BaseNode402`` drives the same table from the master side)."""
+moves which state where, with CiA 402's transition numbers. Source: python-canopen's
+``canopen/profiles/p402.py`` (its controlword command and transition tables, which ``BaseNode402`` drives from
+the master side); not re-read from the standard itself (docs/hardware-canopen.md, conformance table)."""
 
 from __future__ import annotations
 
