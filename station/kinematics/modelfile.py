@@ -41,8 +41,8 @@ class _Scale:
     length: float
     angle: float
 
-    def of(self, key: str) -> float:
-        return self.angle if param_quantity(key) == "angle" else self.length
+    def of(self, key) -> float:
+        return self.angle if param_quantity(str(key)) == "angle" else self.length
 
     def joint(self, revolute: bool) -> float:
         return self.angle if revolute else self.length
