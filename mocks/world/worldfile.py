@@ -489,7 +489,8 @@ def spec_to_dict(s: WorldSpec, model, length: str = "m", angle: str = "rad") -> 
         if len(kinds) == 1:
             random[sel] = r((sl if kinds == {"length"} else sa) * U[kinds.pop()])
         else:
-            random[sel] = {"length": r(sl * L), "angle": r(sa * A)}
+            # the sigmas the file gave (a selector may select nothing on this model: no quantity to infer)
+            random[sel] = {k: r(v * f) for k, v, f in (("length", sl, L), ("angle", sa, A)) if v is not None}
     doc["errors"] = {"explicit": {n: r(v * U[param_kind(model, n)]) for n, v in s.explicit.items()},
                      "random": random}
     doc["joints"] = {"backlash": {f"j{i + 1}": r(v * jscale(i)) for i, v in s.backlash.items()},
