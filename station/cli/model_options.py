@@ -55,7 +55,7 @@ def parse_payload(text: str) -> tuple[float, object]:
         raise ConfigError(f"--payload {text!r}: a mass is a finite number >= 0")
     com = (0.0, 0.0, 0.0)
     if m.group(3):
-        from station.cli.solve_cmd import parse_xyz
+        from station.cli.quantity import parse_xyz
 
         com = tuple(parse_xyz(m.group(3), "--payload"))
     return mass, com

@@ -5,8 +5,11 @@ suffixes still run."""
 from __future__ import annotations
 
 import math
+import re
 
 from station.robot.errors import ConfigError
+
+_TRIPLE = re.compile(r"^\s*([^,]+),([^,]+),([^,]+?)\s*([a-z]*)\s*$")
 
 
 def parse_option(text, option: str, quantity: str, bare: str, example: str) -> float:
@@ -35,3 +38,24 @@ def parse_option(text, option: str, quantity: str, bare: str, example: str) -> f
     if not math.isfinite(value):
         raise ConfigError(f"{option} {text!r}: not a finite number")
     return value
+
+
+def parse_xyz(text: str, option: str):
+    """``x,y,z`` in metres, or with one unit suffix for all three: ``100,200,50mm``; a numpy array (m)."""
+    import numpy as np
+
+    from station.units import LENGTH_UNITS
+
+    m = _TRIPLE.match(text)
+    if not m:
+        raise ConfigError(f"{option} {text!r}: expected x,y,z (metres, or with a unit suffix like 100,200,50mm)")
+    unit = m.group(4) or "m"
+    if unit not in LENGTH_UNITS:
+        raise ConfigError(f"{option} {text!r}: unknown length unit {unit!r} (m, mm, cm, um)")
+    try:
+        v = np.array([float(m.group(k)) for k in (1, 2, 3)]) * LENGTH_UNITS[unit]
+    except ValueError:
+        raise ConfigError(f"{option} {text!r}: not a number") from None
+    if not np.isfinite(v).all():
+        raise ConfigError(f"{option} {text!r}: not a finite number")
+    return v

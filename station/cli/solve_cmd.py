@@ -12,9 +12,10 @@ from pathlib import Path
 
 from station.cli.model_options import MODEL_OPTIONS
 from station.cli.optspec import REQUIRED, Opt, click_command
+from station.cli.quantity import parse_xyz
 from station.lazy import lazy_module
 from station.robot.errors import ConfigError
-from station.samplesfile import LENGTH_UNITS, SamplesFileError, read_joints, read_samples
+from station.samplesfile import SamplesFileError, read_joints, read_samples
 
 np = lazy_module("numpy")  # imported on first use (station.lazy: start-up of every command)
 
@@ -22,26 +23,6 @@ np = lazy_module("numpy")  # imported on first use (station.lazy: start-up of ev
 def _fail(msg: str) -> ConfigError:
     """The one-line error to raise: station.cli.main prints ``station: error: MSG`` and exits 2."""
     return ConfigError(msg)
-
-
-_TRIPLE = re.compile(r"^\s*([^,]+),([^,]+),([^,]+?)\s*([a-z]*)\s*$")
-
-
-def parse_xyz(text: str, option: str) -> np.ndarray:
-    """``x,y,z`` in metres, or with one unit suffix for all three: ``100,200,50mm``."""
-    m = _TRIPLE.match(text)
-    if not m:
-        raise _fail(f"{option} {text!r}: expected x,y,z (metres, or with a unit suffix like 100,200,50mm)")
-    unit = m.group(4) or "m"
-    if unit not in LENGTH_UNITS:
-        raise _fail(f"{option} {text!r}: unknown length unit {unit!r} (m, mm, cm, um)")
-    try:
-        v = np.array([float(m.group(k)) for k in (1, 2, 3)]) * LENGTH_UNITS[unit]
-    except ValueError:
-        raise _fail(f"{option} {text!r}: not a number") from None
-    if not np.isfinite(v).all():
-        raise _fail(f"{option} {text!r}: not a finite number")
-    return v
 
 
 def _load_model(name: str, tool: str | None, tip_link: str | None = None, base_link: str | None = None,

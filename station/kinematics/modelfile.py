@@ -8,28 +8,9 @@ from pathlib import Path
 import numpy as np
 
 from station.kinematics.model import FRAME_AXES, Encoder, Joint, Model, from_dh, from_mdh, from_poe, screws_of
+from station.kinematics.modelformat import ANGLE, ANGLE_KEYS, FORMAT, LENGTH, ModelFileError
+from station.kinematics.modelformat import number as _num
 from station.textfile import YamlDoc
-
-FORMAT = "station-model/1"
-LENGTH = {"m": 1.0, "mm": 1e-3}
-ANGLE = {"rad": 1.0, "deg": np.pi / 180}
-ANGLE_KEYS = {"alpha", "theta", "beta", "rx", "ry", "rz"}
-
-
-class ModelFileError(ValueError):
-    """Malformed model file; the message names the file and the field."""
-
-
-def _num(v, where: str) -> float:
-    try:
-        x = float(v)
-    except (TypeError, ValueError, OverflowError):
-        raise ModelFileError(f"{where}: expected a number, got {v!r}") from None
-    if isinstance(v, bool | str):  # true is not 1, "1_0" is not 10
-        raise ModelFileError(f"{where}: expected a number, got {v!r}")
-    if not np.isfinite(x):
-        raise ModelFileError(f"{where}: not a finite number ({v!r})")
-    return x
 
 
 def model_from_dict(doc: dict | YamlDoc, where: str = "<model>", *, shipped: bool = False) -> Model:
