@@ -12,8 +12,8 @@ from pathlib import Path
 
 from station.cli.model_options import MODEL_OPTIONS
 from station.cli.optspec import REQUIRED, Opt, click_command
-from station.cli.quantity import parse_xyz
 from station.lazy import lazy_module
+from station.quantity import parse_xyz
 from station.robot.errors import ConfigError
 from station.samplesfile import SamplesFileError, read_joints, read_samples
 
@@ -68,7 +68,7 @@ def check_max_std(max_std) -> float | None:
     Returns metres."""
     if max_std is None:
         return None
-    from station.cli.quantity import parse_option
+    from station.quantity import parse_option
 
     value = parse_option(max_std, "--max-std", "length", "m", "1mm")
     if not 0 < value <= 1.0:
@@ -278,7 +278,7 @@ def _payload_setting(payload: str | None) -> dict | None:
     so whoever uses the result (``station run correction_map --calibration``) can check it is the same."""
     if not payload:
         return None
-    from station.cli.model_options import parse_payload
+    from station.quantity import parse_payload
 
     mass, com = parse_payload(payload)
     return {"mass": float(mass), "com": [float(c) for c in com]}
