@@ -51,7 +51,10 @@ def _help(o: Option, procedures: tuple[str, ...]) -> str:
 
 
 def with_declared_flags(fn):
-    """``fn`` (a typer command taking ``**declared``) with one parameter per declared flag before its last one."""
+    """``fn`` (a typer command taking ``**declared``) with one parameter per declared flag before its last one
+    (once: a command registered again keeps its parameters)."""
+    if "__signature__" in fn.__dict__:
+        return fn
     sig = inspect.signature(fn)
     params = [p for p in sig.parameters.values() if p.kind is not inspect.Parameter.VAR_KEYWORD]
     last = params.pop()

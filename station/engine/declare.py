@@ -10,9 +10,9 @@ OpenHTF declares measurements on a phase (``@htf.measures(...)``) and a driver d
 
 A measurement states its name, the unit it is shown and judged in, what it is, and whether the limits file must
 judge it (``judged``): when the procedure is run, every section of the limits file for it is checked against the
-declaration before the robot is opened (:func:`check_limits`: a judged measurement without a limit, a limit for a
-measurement the procedure does not take, a limit in a unit of another quantity are each one line). A session
-refuses to journal a measurement its procedure did not declare.
+declaration before the robot is opened (``station.engine.limits.check_limits``: a judged measurement without a
+limit, a limit for a measurement the procedure does not take, a limit in a unit of another quantity are each one
+line). A session refuses to journal a measurement its procedure did not declare.
 
 An option states its command-line flag, the session option it sets, what values it accepts (a :class:`Kind`: its
 form in words and its reading, one line naming the flag for a bad value) and its unit; its default is the
@@ -194,31 +194,3 @@ def declared_measurements(checklist) -> tuple[Measurement, ...] | None:
 
 def declared_options(checklist) -> tuple[Option, ...] | None:
     return getattr(checklist, "options", None)
-
-
-def check_limits(procedure: str, measurements: tuple[Measurement, ...], limits) -> None:
-    """Every section of ``limits`` (``station.engine.limits.Limits``) for ``procedure`` against what it
-    declares: a judged measurement without a limit, a limit for a measurement it does not take, a limit in a unit
-    of another quantity: one line naming the file, the section and the name (``LimitsError``, exit 2)."""
-    from station.engine.limits import LimitsError
-
-    declared = {m.name: m for m in measurements}
-    for model, table in sorted(limits.models.items()):
-        section = table.get(procedure)
-        if section is None:
-            continue
-        where = f"limits file {limits.path} (version {limits.version}): models.{model}.{procedure}"
-        for name, lim in section.items():
-            m = declared.get(name)
-            if m is None:
-                raise LimitsError(f"{where}.{name}: procedure {procedure} measures no {name!r} (it measures: "
-                                  f"{', '.join(declared)})")
-            if lim.quantity != m.quantity:
-                raise LimitsError(f"{where}.{name}: the limit is in {lim.unit} ({lim.quantity}) but {name} is "
-                                  f"a {m.quantity} ({m.unit})")
-        missing = [m for m in measurements if m.judged and m.name not in section]
-        if missing:
-            m = missing[0]
-            raise LimitsError(f"{where}: no limit for {m.name} ({m.unit}: {m.doc}), which procedure {procedure} "
-                              f"declares judged; add e.g. {m.name}: {{high: ..., unit: {m.unit}}}")
-

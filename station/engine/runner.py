@@ -25,9 +25,8 @@ from pathlib import Path
 
 from station.engine import events as ev
 from station.engine.cell import Cell, load_cell
-from station.engine.declare import check_limits
 from station.engine.journal import Journal, JournalError, JournalWriteError, check_space, check_writable, read_journal
-from station.engine.limits import load_limits
+from station.engine.limits import check_limits, load_limits
 from station.engine.procedure import Procedure, is_name, load_procedure, procedure_for_resume, shipped_names
 from station.engine.session import Session
 from station.kinematics.collision import keep_out_to_doc
