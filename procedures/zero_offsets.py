@@ -4,7 +4,7 @@ End-of-line procedure after seed 000 (tip touch on a fixed reference, position o
 Offsets that a single fixed point cannot show (the base axis, a wrist axis the tip lies on) are reported
 unidentifiable, never guessed. Limits: ``procedures/limits.yaml``, section ``zero_offsets`` of the model."""
 
-from station.engine.declare import PLAN_OPTIONS, SOLVE, measures, takes
+from station.engine.declare import PLAN_OPTIONS, SOLVE, WRITE_BACK, measures, takes
 
 IDENTIFY = "offsets"
 # a 50 deg cone of tool directions: at 35 deg the elbow/wrist zeros of a 6R arm are 2x worse conditioned
@@ -12,7 +12,8 @@ IDENTIFY = "offsets"
 DEFAULTS = {"n_holdout": 4, "cone_deg": 50.0}
 
 
-@measures(*SOLVE, judged=("samples", "identified", "fit_rms", "holdout_rms", "offset_abs_max", "offset_std_max"))
+@measures(*SOLVE, *WRITE_BACK,
+          judged=("samples", "identified", "fit_rms", "holdout_rms", "offset_abs_max", "offset_std_max"))
 @takes(*PLAN_OPTIONS)
 def checklist(s):
     s.connect()                                  # 1. connect and identify the robot (serial must match)

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from station.engine.declare import CONSISTENCY, PLAN_OPTIONS, SOLVE, Measurement, measures
+from station.engine.declare import CONSISTENCY, PLAN_OPTIONS, SOLVE, WRITE_BACK, Measurement, measures
 from station.engine.limits import LimitsError, check_limits, default_limits, load_limits
 from station.engine.procedure import ProcedureError, load_procedure, shipped_folder, shipped_names
 
@@ -53,6 +53,8 @@ def _measured_in_source(path: Path) -> set[str]:
                       "offset_std_max"}
         elif node.func.attr == "measure_consistency":
             names |= {"samples", "verify_rms", "verify_max"}
+        elif node.func.attr == "write_back":
+            names.add("writeback_check")
         elif node.func.attr == "measure" and node.args:
             first = node.args[0]
             if isinstance(first, ast.Constant) and isinstance(first.value, str):
@@ -185,11 +187,14 @@ def test_run_procedure_help_lists_its_options_with_units_and_defaults(capsys):
 
 def test_engine_sets_name_what_the_engine_measures():
     """SOLVE and CONSISTENCY against the engine's own measure calls (read from its source)."""
-    src = ast.parse((Path(__file__).resolve().parents[1] / "station" / "engine" / "session.py").read_text())
-    measured = {n.args[0].value for n in ast.walk(src) if isinstance(n, ast.Call)
-                and isinstance(n.func, ast.Attribute) and n.func.attr == "measure" and n.args
-                and isinstance(n.args[0], ast.Constant)}
-    assert measured == {m.name for m in SOLVE} | {m.name for m in CONSISTENCY}
+    engine = Path(__file__).resolve().parents[1] / "station" / "engine"
+    measured = set()
+    for module in ("session.py", "writeback.py"):
+        src = ast.parse((engine / module).read_text())
+        measured |= {n.args[0].value for n in ast.walk(src) if isinstance(n, ast.Call)
+                     and isinstance(n.func, ast.Attribute) and n.func.attr == "measure" and n.args
+                     and isinstance(n.args[0], ast.Constant)}
+    assert measured == {m.name for m in (*SOLVE, *CONSISTENCY, *WRITE_BACK)}
 
 
 def test_shipped_folder_is_where_the_procedures_are():

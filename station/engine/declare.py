@@ -147,6 +147,9 @@ SOLVE = (
     Measurement("offset_abs_max", "deg", "largest identified joint zero offset (revolute joints)"),
     Measurement("offset_std_max", "deg", "largest standard deviation of an identified joint zero (revolute joints)"),
 )
+# what the write-back's check touch measures (station.engine.writeback: only with --apply)
+WRITE_BACK = (Measurement("writeback_check", "mm", "after the write-back: distance of the check touch from the solved "
+                          "reference (default limit: 3 x fit_rms)"),)
 # what Session.measure_consistency measures (no solve)
 CONSISTENCY = (
     Measurement("samples", "count", "touches recorded"),
