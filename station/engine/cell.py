@@ -191,7 +191,21 @@ def cell_from_dict(doc, where: str = "cell") -> Cell:
     if length not in LENGTH:
         raise CellError(f"{where}: units.length must be m or mm (every position is in it), got {length!r}")
     scale = LENGTH[length]
-    raw = doc.get("points")
+    points = _points(doc.get("points"), where, scale)
+    angle = ANGLE.get((units or {}).get("angle", "rad"))
+    if angle is None:
+        raise CellError(f"{where}: units.angle must be rad or deg")
+    tool = _tool(doc.get("tool"), where, scale, angle)
+    distances = _distances(ydoc, doc.get("distances") or [], points, scale)
+    planes = [str(p) for p in doc.get("planes") or []]
+    try:  # the one reader of mounting and keep_out (the world file's truth uses it too)
+        keep_out = keep_out_from_dict(doc, where, scale, angle)
+    except KeepOutError as e:
+        raise CellError(str(e)) from None
+    return Cell(where, points, doc.get("model"), tool, keep_out, distances, planes)
+
+
+def _points(raw, where: str, scale: float) -> dict[str, RefPoint]:
     if isinstance(raw, dict):
         raw = [{"label": k, **(v or {})} for k, v in raw.items()]
     if not isinstance(raw, list) or not raw:
@@ -211,22 +225,25 @@ def cell_from_dict(doc, where: str = "cell") -> Cell:
         points[label] = RefPoint(label, kind, _vec(f"{w}.position", d.get("position"), scale),
                                  _vec(f"{w}.approach", d.get("approach", [0, 0, 1]), 1.0, unit=True),
                                  float(radius) * scale, _image(f"{w}.image", d.get("image"), where))
-    tool = doc.get("tool")
-    if tool is not None:
-        if not isinstance(tool, dict) or set(tool) - {"x", "y", "z", "rx", "ry", "rz"}:
-            raise CellError(f"{where}: tool must map x, y, z (length unit), rx, ry, rz (rad) to numbers")
-        angle = ANGLE.get((units or {}).get("angle", "rad"))
-        if angle is None:
-            raise CellError(f"{where}: units.angle must be rad or deg")
-        try:
-            tool = {k: float(v) * (angle if k.startswith("r") else scale) for k, v in tool.items()}
-        except (TypeError, ValueError):
-            raise CellError(f"{where}: tool values must be numbers") from None
-    angle = {"rad": 1.0, "deg": math.pi / 180}.get((units or {}).get("angle", "rad"))
-    if angle is None:
-        raise CellError(f"{where}: units.angle must be rad or deg")
-    distances = []
-    for i, d in enumerate(doc.get("distances") or []):
+    return points
+
+
+def _tool(tool, where: str, scale: float, angle: float) -> dict | None:
+    """The mounted tool the cell names: x, y, z in the length unit, rx, ry, rz in the angle unit (SI out)."""
+    if tool is None:
+        return None
+    if not isinstance(tool, dict) or set(tool) - {"x", "y", "z", "rx", "ry", "rz"}:
+        raise CellError(f"{where}: tool must map x, y, z (length unit), rx, ry, rz (rad) to numbers")
+    try:
+        return {k: float(v) * (angle if k.startswith("r") else scale) for k, v in tool.items()}
+    except (TypeError, ValueError):
+        raise CellError(f"{where}: tool values must be numbers") from None
+
+
+def _distances(ydoc: YamlDoc, raw: list, points: dict, scale: float) -> list[tuple]:
+    """Certified distances between two points: (a, b, distance m, std m or None)."""
+    out = []
+    for i, d in enumerate(raw):
         a, b = (str(x) for x in d["between"])
         if a == b:
             raise CellError(f"{ydoc.where(('distances', i, 'between'))}: the two points must differ")
@@ -235,13 +252,8 @@ def cell_from_dict(doc, where: str = "cell") -> Cell:
                 raise CellError(f"{ydoc.where(('distances', i, 'between'))}: no reference point {lb!r} "
                                 f"(points: {', '.join(points)})")
         k = LENGTH[d["units"]] if d.get("units") else scale
-        distances.append((a, b, float(d["distance"]) * k, None if d.get("std") is None else float(d["std"]) * k))
-    planes = [str(p) for p in doc.get("planes") or []]
-    try:  # the one reader of mounting and keep_out (the world file's truth uses it too)
-        keep_out = keep_out_from_dict(doc, where, scale, angle)
-    except KeepOutError as e:
-        raise CellError(str(e)) from None
-    return Cell(where, points, doc.get("model"), tool, keep_out, distances, planes)
+        out.append((a, b, float(d["distance"]) * k, None if d.get("std") is None else float(d["std"]) * k))
+    return out
 
 
 IMAGE_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".gif": "image/gif",
