@@ -199,3 +199,23 @@ def test_engine_sets_name_what_the_engine_measures():
 
 def test_shipped_folder_is_where_the_procedures_are():
     assert {p.stem for p in shipped_folder().glob("*.py") if not p.stem.startswith("_")} == set(shipped_names())
+
+
+def test_a_session_measures_only_what_its_procedure_declares():
+    """``Session.measure`` on a session whose procedure declares: an undeclared name or another quantity is one
+    line naming the procedure; a declared one is journaled (the journal here: a list)."""
+    from types import SimpleNamespace
+
+    from station.engine.session import Session
+    from station.robot.errors import ConfigError
+
+    journaled = []
+    s = SimpleNamespace(declared={m.name: m for m in SOLVE}, limits={}, measurements=[],
+                        journal=SimpleNamespace(header=SimpleNamespace(procedure="mine")), event=journaled.append)
+    with pytest.raises(ConfigError, match="procedure mine: measures 'fit_rmss' .length., which it does not declare"):
+        Session.measure(s, "fit_rmss", 1e-4)
+    with pytest.raises(ConfigError, match="measures 'fit_rms' .angle., declared as a length .mm."):
+        Session.measure(s, "fit_rms", 1e-4, "angle")
+    assert journaled == []
+    Session.measure(s, "fit_rms", 1e-4)
+    assert journaled[0]["name"] == "fit_rms" and journaled[0]["value"] == pytest.approx(0.1)  # shown in mm
