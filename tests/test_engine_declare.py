@@ -219,3 +219,55 @@ def test_a_session_measures_only_what_its_procedure_declares():
     assert journaled == []
     Session.measure(s, "fit_rms", 1e-4)
     assert journaled[0]["name"] == "fit_rms" and journaled[0]["value"] == pytest.approx(0.1)  # shown in mm
+
+
+SITE_PROCEDURE = '''"""My check: touch the socket a few times and judge the spread."""
+from station.engine.declare import HOLDOUT, POSES, Measurement, Option, count, measures, takes
+
+DEFAULTS = {"passes": 3}
+PASSES = Option("passes", "--passes", count(1, 20), "Passes over every point.", "count")
+
+
+@measures(Measurement("spread_max", "mm", "largest spread"))
+@takes(POSES, HOLDOUT, PASSES)
+def checklist(s):
+    pass
+'''
+
+
+@pytest.fixture
+def handed_over(monkeypatch):
+    """``station run`` up to the hand-over to the engine: the options it would start the session with, as the
+    one-line error of a stand-in for ``station.api.run`` (nothing is opened)."""
+    import station.api
+    from station.robot.errors import ConfigError
+
+    def stand_in(procedure, robot, serial, *, options=None, **kw):
+        raise ConfigError(f"handed over {procedure.name}: {sorted(options.items())}")
+
+    monkeypatch.setattr(station.api, "run", stand_in)
+
+
+def test_declared_values_reach_the_session_options(capsys, handed_over):
+    code, _, err = _station(capsys, "run", "correction_map", "--robot", "ur://127.0.0.250", "--serial", "S",
+                            "--grid", "3", "--span-deg", "0.1rad", "--tracker", "tcp://127.0.0.1:5300", "--seed", "4")
+    assert code == 2 and "handed over correction_map: [('grid', 3), ('seed', 4), ('span_deg', 5.7295" in err, err
+    assert "('tracker', 'tcp://127.0.0.1:5300')" in err
+
+
+def test_a_site_procedure_declares_flags_of_its_own(tmp_path, monkeypatch, capsys, handed_over):
+    (tmp_path / "my_check.py").write_text(SITE_PROCEDURE)
+    monkeypatch.setenv("STATION_PROCEDURES", str(tmp_path))
+    base = ["run", "my_check", "--robot", "ur://127.0.0.250", "--serial", "S"]
+    code, _, err = _station(capsys, *base, "--passes", "5", "--poses", "7")
+    assert code == 2 and "handed over my_check: [('n_fit', 7), ('passes', 5)]" in err, err
+    code, _, err = _station(capsys, *base, "--passes", "50")
+    assert code == 2 and err.strip() == "station: error: --passes 50: expected an integer 1..20", err
+    code, _, err = _station(capsys, *base, "--cone", "30deg")
+    assert code == 2 and "--cone: procedure my_check takes no --cone (its options: --holdout, --passes, --poses)" in err
+    code, out, _ = _station(capsys, "run", "my_check", "--help")
+    flat = " ".join(out.split())
+    assert code == 0 and "--passes <int> Passes over every point. Unit: count; default: 3." in flat
+    code, _, err = _station(capsys, "run", "zero_offsets", "--robot", "ur://127.0.0.250", "--serial", "S",
+                            "--passes", "5")  # not a flag of a procedure that does not declare it
+    assert code == 2 and "No such option: --passes" in err, err

@@ -5,10 +5,12 @@ declaration (one line naming the flag when it is wrong); a flag the named proced
 
 from __future__ import annotations
 
+import contextvars
 import functools
 import inspect
 
 import typer
+import typer.main
 from typer import _click as click
 from typer.core import TyperCommand
 
@@ -16,6 +18,7 @@ from station.engine.declare import PLAN_OPTIONS, Option
 from station.robot.errors import ConfigError
 
 META = "station.run.procedure"  # where the command keeps the procedure named on the command line (for --help)
+_OWN_GIVEN: contextvars.ContextVar[dict | None] = contextvars.ContextVar("station_run_own_options", default=None)
 
 
 @functools.cache
@@ -75,7 +78,7 @@ def read_options(given: dict, procedure=None) -> dict:
     ``Procedure`` whose declaration is held to (a flag it does not take: one line)."""
     takes = None if procedure is None or procedure.options is None else {o.flag for o in procedure.options}
     out: dict = {}
-    for o, _ in declared_flags():
+    for o in _all_options(procedure):
         value = given.get(o.param)
         if value is None:
             continue
@@ -84,6 +87,38 @@ def read_options(given: dict, procedure=None) -> dict:
             raise ConfigError(f"{o.flag}: procedure {procedure.name} takes no {o.flag} (its options: {their})")
         out[o.name] = o.read(value, out)
     return out
+
+
+def _all_options(procedure=None) -> list[Option]:
+    """The declared flags of station run, then the options only ``procedure`` declares (a site's procedure)."""
+    out = [o for o, _ in declared_flags()]
+    known = {o.flag for o in out}
+    return out + [o for o in (procedure.options or ()) if o.flag not in known] if procedure is not None else out
+
+
+def _own_params(procedure) -> list:
+    """Command-line parameters for the options only ``procedure`` declares (not a shipped procedure's flag), made
+    the way the declared flags are (a typer option each)."""
+    known = {o.flag for o, _ in declared_flags()}
+    own = [o for o in procedure.options or () if o.flag not in known]
+    if not own:
+        return []
+    reserved = {"procedure", "robot", "serial", "limits", "db", "apply", "cell", "operator", "touch", "identify",
+                "quiet"}
+    clash = [o.flag for o in own if o.param in reserved]
+    if clash:
+        raise ConfigError(f"procedure {procedure.name}: option {clash[0]} is one of station run's own")
+
+    def own_options(**given) -> None:
+        """The procedure's own options."""
+
+    own_options.__signature__ = inspect.Signature([inspect.Parameter(
+        o.param, inspect.Parameter.KEYWORD_ONLY, annotation=o.kind.type,
+        default=typer.Option(None, o.flag, help=f"{o.doc} (procedure {procedure.name})")) for o in own])
+    own_options.__annotations__ = {o.param: o.kind.type for o in own}
+    scratch = typer.Typer(rich_markup_mode=None)
+    scratch.command()(own_options)
+    return list(typer.main.get_command(scratch).params)
 
 
 def _is_option(param) -> bool:
@@ -108,32 +143,39 @@ def _named(command: click.Command, args: list[str]) -> str | None:
 
 
 class RunCommand(TyperCommand):
-    """``station run``: with a procedure named, ``--help`` shows that procedure's options and measurements."""
+    """``station run``: a procedure of a site folder (or a file) may declare options of its own, which become flags
+    of its run; with a procedure named, ``--help`` shows that procedure's options and measurements."""
 
     def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
         ctx.meta[META] = _named(self, args)
         return super().parse_args(ctx, args)
 
     def _procedure(self, ctx: click.Context):
-        name = ctx.meta.get(META)
-        if not name:
-            return None
-        from station.engine.procedure import load_procedure
-
-        try:
-            return load_procedure(name)
-        except ConfigError:
-            return None  # the run says what is wrong with it; the help stays the general one
+        if META + ".loaded" not in ctx.meta:
+            ctx.meta[META + ".loaded"] = _load(ctx.meta.get(META))
+        return ctx.meta[META + ".loaded"]
 
     def get_params(self, ctx: click.Context) -> list:
-        """With a procedure that declares its options named for ``--help``: the declared flags are listed in its
-        own section (with units and its defaults), not among the general ones."""
+        """With a procedure named: its own flags added; for ``--help`` with a procedure that declares its options,
+        the declared flags are listed in its own section (units, its defaults), not among the general ones."""
         params = super().get_params(ctx)
-        proc = self._procedure(ctx) if ctx.meta.get(META + ".help") else None
+        proc = self._procedure(ctx)
         if proc is None or proc.options is None:
             return params
-        declared = {o.flag for o, _ in declared_flags()}
-        return [p for p in params if not (_is_option(p) and set(p.opts) & declared)]
+        if ctx.meta.get(META + ".help"):
+            declared = {o.flag for o in _all_options(proc)}
+            return [p for p in params if not (_is_option(p) and set(p.opts) & declared)]
+        own = ctx.meta.setdefault(META + ".own", _own_params(proc))
+        return [*params[:-1], *own, *params[-1:]]  # click's --help stays last
+
+    def invoke(self, ctx: click.Context):
+        # the procedure's own flags are not parameters of the run function: handed over beside the call
+        own = {p.name for p in ctx.meta.get(META + ".own", ())}
+        token = _OWN_GIVEN.set({k: ctx.params.pop(k) for k in list(ctx.params) if k in own})
+        try:
+            return super().invoke(ctx)
+        finally:
+            _OWN_GIVEN.reset(token)
 
     def format_help(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         ctx.meta[META + ".help"] = True
@@ -141,6 +183,22 @@ class RunCommand(TyperCommand):
         proc = self._procedure(ctx)
         if proc is not None:
             procedure_help(proc, formatter)
+
+
+def own_given() -> dict:
+    """The values of the named procedure's own flags in the running ``station run`` (``{param: value}``)."""
+    return dict(_OWN_GIVEN.get() or {})
+
+
+def _load(name: str | None):
+    if not name:
+        return None
+    from station.engine.procedure import load_procedure
+
+    try:
+        return load_procedure(name)
+    except ConfigError:
+        return None  # the run says what is wrong with it; the help stays the general one
 
 
 def procedure_help(proc, formatter: click.HelpFormatter) -> None:

@@ -208,9 +208,11 @@ def run(
     options (--poses, --tracker, ...) are the ones it declares."""
     from station.api import run as start
     from station.cli.nextstep import suggest
+    from station.cli.procedure_options import own_given
     from station.engine.procedure import load_procedure
 
     proc = load_procedure(procedure)
+    declared.update(own_given())  # the options only this procedure declares (a site's own procedure)
     plan = {k: declared.pop(k, None) for k in ("poses", "holdout", "cone", "reference", "seed")}
     preflight(robot, plan["poses"], plan["holdout"], plan["cone"], plan["seed"], touch, plan["reference"], limits,
               cell)
