@@ -42,11 +42,12 @@ def declared_flags() -> tuple[tuple[Option, tuple[str, ...]], ...]:
     return tuple((o, tuple(names)) for o, names in seen.values())
 
 
-def _help(o: Option, procedures: tuple[str, ...]) -> str:
-    """The flag's help for every procedure: what it is, its unit, which shipped procedures take it."""
-    every = [p.name for p in shipped_procedures()]
-    others = [n for n in every if n not in procedures]
+def _help(o: Option, procedures: tuple[str, ...] | None = None) -> str:
+    """The flag's help: what it is, its unit, which shipped procedures take it (when they are loaded anyway)."""
     unit = f" Unit: {o.unit}." if o.unit and o.unit != "count" else ""
+    if procedures is None:
+        return o.doc + unit
+    others = [p.name for p in shipped_procedures() if p.name not in procedures]
     if not others:
         return o.doc + unit
     which = f"all but {', '.join(others)}" if len(others) < len(procedures) else ", ".join(procedures)
@@ -54,22 +55,37 @@ def _help(o: Option, procedures: tuple[str, ...]) -> str:
 
 
 def with_declared_flags(fn):
-    """``fn`` (a typer command taking ``**declared``) with one parameter per declared flag before its last one
-    (once: a command registered again keeps its parameters)."""
+    """``fn`` (a typer command taking ``**declared``) with one parameter per plan option (the engine's, taken by
+    most procedures) before its last one; once: a command registered again keeps its parameters. A procedure's
+    other flags are added when it is named (:class:`RunCommand`): no procedure is loaded to build the command."""
     if "__signature__" in fn.__dict__:
         return fn
     sig = inspect.signature(fn)
     params = [p for p in sig.parameters.values() if p.kind is not inspect.Parameter.VAR_KEYWORD]
     last = params.pop()
     hints = dict(fn.__annotations__)
-    for o, procedures in declared_flags():
+    for o in PLAN_OPTIONS:
         params.append(inspect.Parameter(o.param, inspect.Parameter.POSITIONAL_OR_KEYWORD,
-                                        default=typer.Option(None, o.flag, help=_help(o, procedures)),
-                                        annotation=o.kind.type))
+                                        default=typer.Option(None, o.flag, help=_help(o)), annotation=o.kind.type))
         hints[o.param] = o.kind.type
     fn.__signature__ = sig.replace(parameters=[*params, last])
     fn.__annotations__ = hints
     return fn
+
+
+def _option_of(param: str, procedure=None) -> tuple[int, Option]:
+    """The declaration of a given parameter, with its place in the order values are read."""
+    mine = list(procedure.options or ()) if procedure is not None and procedure.options is not None else []
+    for k, o in enumerate(mine):
+        if o.param == param:
+            return k, o
+    for k, o in enumerate(PLAN_OPTIONS):
+        if o.param == param:
+            return len(mine) + k, o
+    for k, (o, _) in enumerate(declared_flags()):
+        if o.param == param:
+            return len(mine) + len(PLAN_OPTIONS) + k, o
+    raise ConfigError(f"--{param.replace('_', '-')}: no procedure declares this option")
 
 
 def read_options(given: dict, procedure=None) -> dict:
@@ -77,11 +93,10 @@ def read_options(given: dict, procedure=None) -> dict:
     order (a value may depend on one read before it: ``--calibration`` on ``--payload``). ``procedure``: a
     ``Procedure`` whose declaration is held to (a flag it does not take: one line)."""
     takes = None if procedure is None or procedure.options is None else {o.flag for o in procedure.options}
+    found = sorted((_option_of(k, procedure) + (v,) for k, v in given.items() if v is not None),
+                   key=lambda t: t[0])
     out: dict = {}
-    for o in _all_options(procedure):
-        value = given.get(o.param)
-        if value is None:
-            continue
+    for _, o, value in found:
         if takes is not None and o.flag not in takes:
             their = ", ".join(sorted(takes)) or "none"
             raise ConfigError(f"{o.flag}: procedure {procedure.name} takes no {o.flag} (its options: {their})")
@@ -89,46 +104,39 @@ def read_options(given: dict, procedure=None) -> dict:
     return out
 
 
-def _all_options(procedure=None) -> list[Option]:
-    """The declared flags of station run, then the options only ``procedure`` declares (a site's procedure)."""
-    out = [o for o, _ in declared_flags()]
-    known = {o.flag for o in out}
-    return out + [o for o in (procedure.options or ()) if o.flag not in known] if procedure is not None else out
-
-
-def _own_params(procedure) -> list:
-    """Command-line parameters for the options only ``procedure`` declares (not a shipped procedure's flag), made
-    the way the declared flags are (a typer option each)."""
-    known = {o.flag for o, _ in declared_flags()}
-    own = [o for o in procedure.options or () if o.flag not in known]
-    if not own:
+def _params(options: list[tuple[Option, str]]) -> list:
+    """Command-line parameters for ``(option, help)``, made the way typer makes the run's own (a typer option
+    each, value type from the declaration)."""
+    if not options:
         return []
     reserved = {"procedure", "robot", "serial", "limits", "db", "apply", "cell", "operator", "touch", "identify",
                 "quiet"}
-    clash = [o.flag for o in own if o.param in reserved]
+    clash = [o.flag for o, _ in options if o.param in reserved]
     if clash:
-        raise ConfigError(f"procedure {procedure.name}: option {clash[0]} is one of station run's own")
+        raise ConfigError(f"option {clash[0]} is one of station run's own; a procedure declares another name")
 
-    def own_options(**given) -> None:
-        """The procedure's own options."""
+    def declared(**given) -> None:
+        """The declared options."""
 
-    own_options.__signature__ = inspect.Signature([inspect.Parameter(
-        o.param, inspect.Parameter.KEYWORD_ONLY, annotation=o.kind.type,
-        default=typer.Option(None, o.flag, help=f"{o.doc} (procedure {procedure.name})")) for o in own])
-    own_options.__annotations__ = {o.param: o.kind.type for o in own}
-    scratch = typer.Typer(rich_markup_mode=None)
-    scratch.command()(own_options)
+    declared.__signature__ = inspect.Signature([inspect.Parameter(
+        o.param, inspect.Parameter.KEYWORD_ONLY, annotation=o.kind.type, default=typer.Option(None, o.flag, help=h))
+        for o, h in options])
+    declared.__annotations__ = {o.param: o.kind.type for o, _ in options}
+    scratch = typer.Typer(rich_markup_mode=None, add_completion=False)
+    scratch.command()(declared)
     return list(typer.main.get_command(scratch).params)
 
 
-def _is_option(param) -> bool:
-    return getattr(param, "param_type_name", "") == "option"  # typer carries its own click: no isinstance
+def own_given() -> dict:
+    """The values of the named procedure's own flags in the running ``station run`` (``{param: value}``)."""
+    return dict(_OWN_GIVEN.get() or {})
 
 
-def _named(command: click.Command, args: list[str]) -> str | None:
-    """The first positional argument (the procedure), skipping the values of options that take one."""
-    takes_value = {name for p in command.params if _is_option(p) and not p.is_flag and not p.count
-                   for name in p.opts}
+def _named(command: RunCommand, args: list[str]) -> str | None:
+    """The first positional argument (the procedure), skipping the values of options that take one (a flag the
+    command does not have yet is a procedure's declared option: every one takes a value)."""
+    flags = {name for p in command.params if getattr(p, "param_type_name", "") == "option"
+             and (p.is_flag or p.count) for name in [*p.opts, *p.secondary_opts]}
     skip = False
     for a in args:
         if skip:
@@ -136,18 +144,47 @@ def _named(command: click.Command, args: list[str]) -> str | None:
         elif a == "--":
             continue
         elif a.startswith("-"):
-            skip = a in takes_value
+            skip = "=" not in a and a not in flags and a != "--help"
         else:
             return a
     return None
 
 
 class RunCommand(TyperCommand):
-    """``station run``: a procedure of a site folder (or a file) may declare options of its own, which become flags
-    of its run; with a procedure named, ``--help`` shows that procedure's options and measurements."""
+    """``station run``: its own options and the plan's are the command's ``params``; the named procedure's other
+    declared options become flags of its run (a shipped one's or a site's alike: only that procedure is loaded).
+    Without a procedure, ``--help`` (and the docs: :meth:`documented`) list every shipped procedure's flags; with
+    one, its options and measurements in sections of their own."""
+
+    _every: list | None = None
+
+    def every_param(self) -> list:
+        """The command's parameters and every flag a shipped procedure declares (loads them all)."""
+        if self._every is None:
+            have = {o for p in self.params for o in getattr(p, "opts", ())}
+            self._every = [*self.params, *_params([(o, _help(o, names)) for o, names in declared_flags()
+                                                   if o.flag not in have])]
+        return self._every
+
+    def documented(self) -> RunCommand:
+        """A copy whose ``params`` are :meth:`every_param` (docs/cli.md's reference is generated from it)."""
+        import copy
+
+        doc = copy.copy(self)
+        doc.params = self.every_param()
+        return doc
 
     def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
         ctx.meta[META] = _named(self, args)
+        proc = self._procedure(ctx)
+        if proc is not None and proc.options is not None and "--help" not in args:
+            have = {o for p in self.get_params(ctx)
+                    for o in [*getattr(p, "opts", ()), *getattr(p, "secondary_opts", ())]}
+            unknown = next((a.split("=")[0] for a in args if a.startswith("--") and a.split("=")[0] not in have), None)
+            if unknown is not None and unknown != "--":
+                theirs = ", ".join(sorted(o.flag for o in proc.options)) or "none"
+                raise ConfigError(f"{unknown}: procedure {proc.name} takes no {unknown} (its options: {theirs}; "
+                                  "station run's own: station run --help)")
         return super().parse_args(ctx, args)
 
     def _procedure(self, ctx: click.Context):
@@ -155,23 +192,31 @@ class RunCommand(TyperCommand):
             ctx.meta[META + ".loaded"] = _load(ctx.meta.get(META))
         return ctx.meta[META + ".loaded"]
 
+    def _own(self, ctx: click.Context, proc) -> list:
+        if META + ".own" not in ctx.meta:
+            have = {o for p in self.params for o in getattr(p, "opts", ())}
+            ctx.meta[META + ".own"] = _params([(o, _help(o)) for o in proc.options if o.flag not in have])
+        return ctx.meta[META + ".own"]
+
     def get_params(self, ctx: click.Context) -> list:
-        """With a procedure named: its own flags added; for ``--help`` with a procedure that declares its options,
-        the declared flags are listed in its own section (units, its defaults), not among the general ones."""
-        params = super().get_params(ctx)
         proc = self._procedure(ctx)
-        if proc is None or proc.options is None:
-            return params
-        if ctx.meta.get(META + ".help"):
-            declared = {o.flag for o in _all_options(proc)}
-            return [p for p in params if not (_is_option(p) and set(p.opts) & declared)]
-        own = ctx.meta.setdefault(META + ".own", _own_params(proc))
-        return [*params[:-1], *own, *params[-1:]]  # click's --help stays last
+        helping = bool(ctx.meta.get(META + ".help"))
+        if proc is None:
+            params = self.every_param() if helping else self.params
+        elif proc.options is None:  # a procedure that declares nothing: every flag, as before declarations
+            params = self.every_param()
+        elif helping:  # its options are listed in its own section, with their units and its defaults
+            plan = {o.flag for o in PLAN_OPTIONS}
+            params = [p for p in self.params if not set(getattr(p, "opts", ())) & plan]
+        else:
+            params = [*self.params, *self._own(ctx, proc)]
+        help_option = self.get_help_option(ctx)
+        return [*params, help_option] if help_option is not None else params
 
     def invoke(self, ctx: click.Context):
-        # the procedure's own flags are not parameters of the run function: handed over beside the call
-        own = {p.name for p in ctx.meta.get(META + ".own", ())}
-        token = _OWN_GIVEN.set({k: ctx.params.pop(k) for k in list(ctx.params) if k in own})
+        # flags that are not parameters of the run function: handed over beside the call
+        mine = {p.name for p in self.params}
+        token = _OWN_GIVEN.set({k: ctx.params.pop(k) for k in list(ctx.params) if k not in mine})
         try:
             return super().invoke(ctx)
         finally:
@@ -183,11 +228,6 @@ class RunCommand(TyperCommand):
         proc = self._procedure(ctx)
         if proc is not None:
             procedure_help(proc, formatter)
-
-
-def own_given() -> dict:
-    """The values of the named procedure's own flags in the running ``station run`` (``{param: value}``)."""
-    return dict(_OWN_GIVEN.get() or {})
 
 
 def _load(name: str | None):
