@@ -69,7 +69,7 @@ SPAN = Option("span_deg", "--span-deg", angle(0, 90, "deg", "20deg", "a half-wid
     Measurement("holdout_max", "mm", "held out: largest position error with the map"),
     Measurement("holdout_rotation_rms", "deg", "held out: RMS rotation error with the map"),
     Measurement("tracker_noise_rms", "mm", "the tracker's stated noise at the held-out distances (RMS)"),
-    judged=("samples", "holdout", "holdout_rms", "holdout_max"))
+    judged=("holdout_rms",))
 @takes(HOLDOUT, SEED, TRACKER, GRID, SPAN, PAYLOAD, CALIBRATION)
 def checklist(s):
     s.connect()                                  # 1. connect and identify the robot (serial must match)

@@ -21,7 +21,7 @@ DEFAULTS = {"n_holdout": 6}
 MIN_POINTS = 3  # from one or two unknown points most link parameters of a 6R arm stay unobservable
 
 
-@measures(*SOLVE, *WRITE_BACK, judged=("samples", "fit_rms", "holdout_rms"))
+@measures(*SOLVE, *WRITE_BACK, judged=("fit_rms",))
 @takes(*PLAN_OPTIONS)
 def checklist(s):
     s.connect()                                  # 1. connect and identify

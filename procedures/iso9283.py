@@ -91,7 +91,7 @@ def _figure(name: str, quantity: str, suffix: str = "", what: str = "") -> Measu
     Measurement("RP_l_upper", "mm", "upper end of RP_l's confidence interval"),
     Measurement("rp_floor", "mm", "the instrument's own scatter at P1 (the floor under RP)"),
     Measurement("registration_rms", "mm", "RMS residual of the tracker frame's registration"),
-    judged=("cycles", *(n for n, _ in JUDGED)))
+    judged=("AP_p", "RP_l"))
 @takes(TRACKER, CYCLES, CUBE, PLANE, PAYLOAD, CALIBRATION)
 def checklist(s):
     s.connect()                                  # 1. connect and identify the robot (serial must match)

@@ -10,7 +10,7 @@ IDENTIFY = "tcp"
 DEFAULTS = {"n_fit": 8, "n_holdout": 2}
 
 
-@measures(*SOLVE, judged=("samples", "fit_rms", "holdout_rms"))
+@measures(*SOLVE, judged=("fit_rms",))
 @takes(POSES, HOLDOUT, SEED, REFERENCE)  # the cone is its own: 40 deg
 def checklist(s):
     s.connect()                                  # 1. connect and identify

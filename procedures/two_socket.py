@@ -40,7 +40,7 @@ MIN_PER_SOCKET = 20
           Measurement("distance_error", "mm", "calibrated model: held-out socket centroids' distance against the "
                       "certified one"),
           Measurement("nominal_distance_error", "mm", "the same with the nominal model"),
-          judged=("samples", "identified", "fit_rms", "holdout_rms", "holdout_consistency", "distance_error"))
+          judged=("fit_rms", "distance_error"))
 @takes(*PLAN_OPTIONS)
 def checklist(s):
     s.connect()                                  # 1. connect and identify (serial, the served model)

@@ -8,7 +8,7 @@ from station.engine.declare import CONSISTENCY, PLAN_OPTIONS, measures, takes
 DEFAULTS = {"n_fit": 8, "n_holdout": 0, "seed": 17}
 
 
-@measures(*CONSISTENCY, judged=("samples", "verify_rms", "verify_max"))
+@measures(*CONSISTENCY, judged=("verify_rms",))
 @takes(*PLAN_OPTIONS)
 def checklist(s):
     s.connect()                                  # 1. connect and identify

@@ -12,8 +12,7 @@ IDENTIFY = "offsets"
 DEFAULTS = {"n_holdout": 4, "cone_deg": 50.0}
 
 
-@measures(*SOLVE, *WRITE_BACK,
-          judged=("samples", "identified", "fit_rms", "holdout_rms", "offset_abs_max", "offset_std_max"))
+@measures(*SOLVE, *WRITE_BACK, judged=("fit_rms",))
 @takes(*PLAN_OPTIONS)
 def checklist(s):
     s.connect()                                  # 1. connect and identify the robot (serial must match)

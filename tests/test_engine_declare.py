@@ -104,15 +104,15 @@ def _limits_without(tmp_path, model: str, procedure: str, drop: str | None = Non
 
 
 def test_a_missing_limit_is_one_line_before_the_robot_opens(tmp_path, capsys):
-    lim = _limits_without(tmp_path, "omx", "zero_offsets", drop="offset_std_max")
-    with pytest.raises(LimitsError, match=r"models\.omx\.zero_offsets: no limit for offset_std_max"):
+    lim = _limits_without(tmp_path, "omx", "zero_offsets", drop="fit_rms")
+    with pytest.raises(LimitsError, match=r"models\.omx\.zero_offsets: no limit for fit_rms"):
         check_limits("zero_offsets", load_procedure("zero_offsets").measurements, load_limits(lim))
     # nobody answers at this address: an error naming the limit proves it came before the robot was opened
     code, out, err = _station(capsys, "run", "zero_offsets", "--robot", "ur://127.0.0.250", "--serial", "S",
                               "--limits", lim)
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1, err
-    assert lines[0].startswith("station: error: limits file") and "no limit for offset_std_max" in lines[0]
+    assert lines[0].startswith("station: error: limits file") and "no limit for fit_rms (mm: RMS" in lines[0]
 
 
 def test_a_limit_the_procedure_does_not_measure_or_in_another_quantity_is_refused(tmp_path):
@@ -180,7 +180,7 @@ def test_run_procedure_help_lists_its_options_with_units_and_defaults(capsys):
     assert "holdout_rms [mm, judged]" in meas and "tracker_noise_rms [mm]" in meas
     code, out, _ = _station(capsys, "run", "--robot", "ur://x", "zero_offsets", "--help")  # after an option
     assert code == 0 and "Options of zero_offsets:" in out and "--tracker <" not in out
-    assert "offset_std_max [deg, judged]" in " ".join(out.split())
+    assert "fit_rms [mm, judged]" in " ".join(out.split()) and "offset_std_max [deg]" in " ".join(out.split())
     code, out, _ = _station(capsys, "run", "--help")  # no procedure: every flag, which procedures take it
     assert code == 0 and "--tracker <" in out and "--poses <" in out and "Options of" not in out
 

@@ -34,7 +34,9 @@ class Measurement:
     name: str
     unit: str  # the unit it is shown and judged in (station.units: mm, deg, count, ...)
     doc: str
-    judged: bool = False  # the limits file must give it a limit (else: judged where the file gives one)
+    # the limits file must give it a limit: the figure a verdict means nothing without (every other declared
+    # measurement is judged where the file gives it a limit, informational where not)
+    judged: bool = False
 
     @property
     def quantity(self) -> str:
