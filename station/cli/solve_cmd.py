@@ -210,16 +210,7 @@ def solve_command(model: str, tip_link: str | None, base_link: str | None, paylo
                     noise=noise_m, priors=priors, loss=loss, distances=distances or None, planes=planes or None,
                     touch=touch)
     except SolverInputError as e:
-        msg = str(e)
-        if msg.startswith("distance "):
-            raise _fail(f"--distance: {msg}") from None
-        if msg.startswith("plane "):
-            raise _fail(f"--plane: {msg}") from None
-        if msg.startswith("prior "):
-            raise _fail(f"--prior: {msg}") from None
-        if "parameter or group" in msg or msg.startswith("compliance."):
-            raise _fail(f"--identify {identify!r}: {msg}") from None
-        raise _fail(f"{samples}: {msg}") from None
+        raise _fail(_input_error(str(e), identify, samples)) from None
     _diagnose(res, m, obs, s, str(samples), noise_m,
               lambda o: solve(m, o, identify, ref, None, instrument_frame=instrument_frame, max_std=max_std,
                               noise=noise_m, priors=priors, loss=loss, distances=distances or None,
@@ -233,6 +224,16 @@ def solve_command(model: str, tip_link: str | None, base_link: str | None, paylo
     if not res.trusted:
         print(f"station: solve failed: {res.failure or 'result not trusted'}", file=sys.stderr, flush=True)
         sys.exit(1)
+
+
+def _input_error(msg: str, identify: str, samples: Path) -> str:
+    """The solver's refusal, named by the option (or the file) it came from."""
+    for option in ("distance", "plane", "prior"):
+        if msg.startswith(f"{option} "):
+            return f"--{option}: {msg}"
+    if "parameter or group" in msg or msg.startswith("compliance."):
+        return f"--identify {identify!r}: {msg}"
+    return f"{samples}: {msg}"
 
 
 _GROUP = re.compile(r"^(fixture|point)=([A-Za-z0-9_-]+(?:,[A-Za-z0-9_-]+)*)$")

@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from station.units import ANGLE_PARAMS, ANGLE_UNITS, LENGTH_UNITS
+
 FORMAT = "station-model/1"
-LENGTH = {"m": 1.0, "mm": 1e-3}
-ANGLE = {"rad": 1.0, "deg": np.pi / 180}
-ANGLE_KEYS = {"alpha", "theta", "beta", "rx", "ry", "rz"}
+LENGTH = {u: LENGTH_UNITS[u] for u in ("m", "mm")}  # the units a model file may state
+ANGLE = {u: ANGLE_UNITS[u] for u in ("rad", "deg")}
+ANGLE_KEYS = ANGLE_PARAMS  # the keys of a frame or a link table that are angles (station.units' one rule)
 
 
 class ModelFileError(ValueError):
