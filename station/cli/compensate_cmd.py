@@ -37,54 +37,22 @@ def _units(text: str | None) -> tuple[float, str, float, str]:
 
 
 def load_result(ref: str, model):
-    """The calibration a result JSON, a session or a report holds, as a ``CalibrationResult`` checked against
-    ``model`` (name and parameters); one line naming the file and the field otherwise."""
-    from station.solver import CalibrationResult
+    """The calibration ``--calibration REF`` names (``station.cli.calibration_source``, the one reader: a result
+    JSON, a session, a report) as a ``CalibrationResult`` checked against ``model``, where it came from, and
+    what it was solved from (its samples: a session's journal, a result's ``settings.samples``), if known."""
+    from station.cli.calibration_source import calibration_source
 
-    p = Path(ref)
-    doc = None
-    if p.is_file() and p.suffix.lower() == ".json":
-        from station.safeio import read_json
-
-        doc = read_json(p, "calibration")
-        fmt = doc.get("format") if isinstance(doc, dict) else None
-        if fmt == "station-calibration/1":
-            from station.resultfile import load_calibration
-
-            load_calibration(p, model)  # schema, model name, parameter names: one line each
-            res = CalibrationResult.from_dict(doc)
-            return res, str(p), _design_from_file(res, model, p)
-        if fmt == "station-report/1":
-            if (p.parent / "journal.jsonl").is_file():
-                return _from_session(str(p.parent), model)
-            return _from_report(doc, p, model), str(p), None
-        raise ConfigError(f"calibration {p}: format: {fmt!r} is neither a station solve result "
-                          "(station-calibration/1) nor a session report (station-report/1)")
-    return _from_session(ref, model)
-
-
-def _from_session(ref: str, model):
-    from station.engine.runner import find_session
-    from station.engine.session_record import session_from_journal
-    from station.solver import CalibrationResult
-
-    path = find_session(ref)
-    try:
-        rec = session_from_journal(path)
-    except (ValueError, OSError) as e:
-        raise ConfigError(f"calibration {ref}: {e}") from None
-    if not rec.get("result"):
-        raise ConfigError(f"calibration {ref}: session {rec.get('session')} ({rec.get('procedure')}) holds no "
-                          "calibration result (a solve); give a station solve result or a calibration session")
-    res = CalibrationResult.from_dict(rec["result"])
-    _check_model(res, model, str(path))
-    smp = [x for x in rec.get("samples") or [] if x.get("set", "fit") == "fit"]
+    src = calibration_source(ref)
+    res = src.calibration_result(model)
     design = None
-    if smp:
+    if src.samples:
+        smp = src.samples
         measured = all(x.get("measured") is not None for x in smp)
         design = _design(res, np.array([x["q"] for x in smp], float),
                          np.array([x.get("point", "A") for x in smp], dtype=object), measured)
-    return res, str(path), design
+    elif src.file is not None:
+        design = _design_from_file(res, model, src.file)
+    return res, src.what, design
 
 
 def _design(res, q, labels, measured: bool):
@@ -115,41 +83,6 @@ def _design_from_file(res, model, path: Path):
     except (SamplesFileError, OSError):
         return None
     return _design(res, smp.q, smp.point, smp.measured is not None)
-
-
-def _from_report(doc: dict, p: Path, model):
-    """A report without its journal: the parameters and their standard deviations (no correlations)."""
-    from station.solver.result import CalibrationResult, ParameterEstimate
-
-    params = {}
-    for row in doc.get("parameters") or []:
-        try:
-            name = str(row["name"])
-            params[name] = ParameterEstimate(name, float(row["value"]), float(row["nominal"]),
-                                             None if row.get("std") is None else float(row["std"]),
-                                             bool(row["identifiable"]), row.get("reason") or "",
-                                             row.get("kind", "model"), row.get("unit", "m"))
-        except (KeyError, TypeError, ValueError):
-            raise ConfigError(f"calibration {p}: parameters: {row!r} is not a parameter row") from None
-    if not params:
-        raise ConfigError(f"calibration {p}: the report holds no calibration parameters")
-    res = CalibrationResult(str((doc.get("header") or {}).get("model")), params, {}, 0, len(params), True, 0)
-    ids = res.identified
-    std = [params[n].std for n in ids]
-    if all(s is not None for s in std):
-        res.covariance = np.diag(np.square(std))
-    res.notes.append("from a report: standard deviations only, correlations unknown")
-    _check_model(res, model, str(p))
-    return res
-
-
-def _check_model(res, model, where: str) -> None:
-    if res.model != model.name:
-        raise ConfigError(f"calibration {where}: model: the calibration is for {res.model!r}, not {model.name!r}")
-    unknown = [n for n, p in res.parameters.items() if p.kind == "model" and p.identifiable
-               and n not in model.param_names]
-    if unknown:
-        raise ConfigError(f"calibration {where}: parameters.{unknown[0]}: model {model.name!r} has no such parameter")
 
 
 def read_targets(path: Path) -> tuple[np.ndarray, list[str] | None, object]:

@@ -13,8 +13,9 @@ from pathlib import Path
 from station.cli.model_options import MODEL_OPTIONS
 from station.cli.optspec import REQUIRED, Opt, click_command
 from station.lazy import lazy_module
+from station.quantity import parse_xyz
 from station.robot.errors import ConfigError
-from station.samplesfile import LENGTH_UNITS, SamplesFileError, read_joints, read_samples
+from station.samplesfile import SamplesFileError, read_joints, read_samples
 
 np = lazy_module("numpy")  # imported on first use (station.lazy: start-up of every command)
 
@@ -22,26 +23,6 @@ np = lazy_module("numpy")  # imported on first use (station.lazy: start-up of ev
 def _fail(msg: str) -> ConfigError:
     """The one-line error to raise: station.cli.main prints ``station: error: MSG`` and exits 2."""
     return ConfigError(msg)
-
-
-_TRIPLE = re.compile(r"^\s*([^,]+),([^,]+),([^,]+?)\s*([a-z]*)\s*$")
-
-
-def parse_xyz(text: str, option: str) -> np.ndarray:
-    """``x,y,z`` in metres, or with one unit suffix for all three: ``100,200,50mm``."""
-    m = _TRIPLE.match(text)
-    if not m:
-        raise _fail(f"{option} {text!r}: expected x,y,z (metres, or with a unit suffix like 100,200,50mm)")
-    unit = m.group(4) or "m"
-    if unit not in LENGTH_UNITS:
-        raise _fail(f"{option} {text!r}: unknown length unit {unit!r} (m, mm, cm, um)")
-    try:
-        v = np.array([float(m.group(k)) for k in (1, 2, 3)]) * LENGTH_UNITS[unit]
-    except ValueError:
-        raise _fail(f"{option} {text!r}: not a number") from None
-    if not np.isfinite(v).all():
-        raise _fail(f"{option} {text!r}: not a finite number")
-    return v
 
 
 def _load_model(name: str, tool: str | None, tip_link: str | None = None, base_link: str | None = None,
@@ -87,7 +68,7 @@ def check_max_std(max_std) -> float | None:
     Returns metres."""
     if max_std is None:
         return None
-    from station.cli.quantity import parse_option
+    from station.quantity import parse_option
 
     value = parse_option(max_std, "--max-std", "length", "m", "1mm")
     if not 0 < value <= 1.0:
@@ -298,7 +279,7 @@ def _payload_setting(payload: str | None) -> dict | None:
     so whoever uses the result (``station run correction_map --calibration``) can check it is the same."""
     if not payload:
         return None
-    from station.cli.model_options import parse_payload
+    from station.quantity import parse_payload
 
     mass, com = parse_payload(payload)
     return {"mass": float(mass), "com": [float(c) for c in com]}

@@ -35,8 +35,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field
 
-from station.kinematics.collision import Checker, KeepOut, KeepOutError
-from station.kinematics.collision import keep_out_from_dict as parse_keep_out
+from station.kinematics.collision import Checker, KeepOut, KeepOutError, keep_out_from_dict
 from station.robot.errors import ConfigError, LimitError
 from station.strict import Name, NonNeg, Pos, Strict, Vec3, check
 from station.units import ANGLE_UNITS, LENGTH_UNITS, param_quantity
@@ -268,8 +267,11 @@ def cell_from_dict(doc, where: str = "cell") -> Cell:
     angle = _angle_unit(units, where)
     distances = _distances(ydoc, points, scale)
     planes = [str(p) for p in doc.get("planes") or []]
-    return Cell(where, points, doc.get("model"), tool, keep_out_from_dict(doc, where, scale, angle), distances,
-                planes)
+    try:  # the one reader of mounting and keep_out (the world file's truth uses it too)
+        keep_out = keep_out_from_dict(doc, where, scale, angle)
+    except KeepOutError as e:
+        raise CellError(str(e)) from None
+    return Cell(where, points, doc.get("model"), tool, keep_out, distances, planes)
 
 
 IMAGE_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".gif": "image/gif",
@@ -298,14 +300,6 @@ def _image(w: str, image, cell_path: str) -> str | None:
 
 
 # ---- keep-out ----------------------------------------------------------------------------------------------
-def keep_out_from_dict(doc: dict, where: str, scale: float, angle: float) -> KeepOut:
-    """``mounting`` and ``keep_out`` of a cell document (lengths in ``scale`` m, angles in ``angle`` rad)."""
-    try:
-        return parse_keep_out(doc, where, scale, angle)
-    except KeepOutError as e:
-        raise CellError(str(e)) from None
-
-
 def check_clear(model, keep_out: KeepOut | Cell | None, q, what: str = "target") -> None:
     """Refuse a joint target that brings a link capsule of ``model`` into a keep-out or within its clearance
     (``keep_out`` None: the default mounting plane). Raises ``LimitError`` naming the link and the obstacle."""

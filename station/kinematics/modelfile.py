@@ -8,30 +8,12 @@ from pathlib import Path
 import numpy as np
 
 from station.kinematics.model import FRAME_AXES, Encoder, Joint, Model, from_dh, from_mdh, from_poe, screws_of
+from station.kinematics.modelformat import ANGLE, ANGLE_KEYS, FORMAT, LENGTH, ModelFileError
+from station.kinematics.modelformat import number as _num
 from station.textfile import YamlDoc
-from station.units import ANGLE_PARAMS, ANGLE_UNITS, LENGTH_UNITS, param_quantity
+from station.units import param_quantity
 
-FORMAT = "station-model/1"
-LENGTH = {u: LENGTH_UNITS[u] for u in ("m", "mm")}  # the units a model file may state
-ANGLE = {u: ANGLE_UNITS[u] for u in ("rad", "deg")}
-ANGLE_KEYS = ANGLE_PARAMS  # the keys of a frame or a link table that are angles (station.units' one rule)
 FRAME_KEYS = {"x", "y", "z", "rx", "ry", "rz"}
-
-
-class ModelFileError(ValueError):
-    """Malformed model file; the message names the file and the field."""
-
-
-def _num(v, where: str) -> float:
-    try:
-        x = float(v)
-    except (TypeError, ValueError, OverflowError):
-        raise ModelFileError(f"{where}: expected a number, got {v!r}") from None
-    if isinstance(v, bool | str):  # true is not 1, "1_0" is not 10
-        raise ModelFileError(f"{where}: expected a number, got {v!r}")
-    if not np.isfinite(x):
-        raise ModelFileError(f"{where}: not a finite number ({v!r})")
-    return x
 
 
 @dataclass(frozen=True)
