@@ -5,8 +5,8 @@ A module counts as covered when a test file names it in an import: ``import M``,
 ``from P import m`` with ``m`` a submodule of ``P``, or ``from P import name`` where package ``P`` re-exports
 ``name`` from ``M`` (``from M import name`` in its ``__init__``, or the name -> module table of a lazy package,
 ``station.lazy.lazy_names``). Importing a package does not cover its submodules. ``M.__main__`` counts as
-covered when a test runs ``python -m M``. A package's ``__init__.py`` that only re-exports (docstring, imports,
-``__all__``) has nothing of its own to test.
+covered when a test runs ``python -m M``. A module that only re-exports (docstring, imports, ``__all__``: a
+package's ``__init__.py``, a command-line name for a shared module) has nothing of its own to test.
 
 Run ``python tests/test_import_coverage.py`` for the list of modules no test imports."""
 
@@ -58,7 +58,7 @@ def source_modules() -> set[str]:
         for path in (ROOT / folder).rglob("*.py"):
             if any(part.startswith(".") or part == "__pycache__" for part in path.relative_to(ROOT).parts):
                 continue
-            if path.name == "__init__.py" and _only_reexports(ast.parse(path.read_text(), str(path))):
+            if _only_reexports(ast.parse(path.read_text(), str(path))):
                 continue
             out.add(_module_name(path))
     return out

@@ -1,4 +1,5 @@
-"""``station.cli.quantity``: option values with their unit (``--cone 50deg``, ``--max-std 1mm``)."""
+"""``station.quantity``: option values with their unit (``--cone 50deg``, ``--max-std 1mm``, ``--tool 0,0,100mm``,
+``--payload 0.5kg@0,0,30mm``), for the command line and the options procedures declare."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import math
 
 import pytest
 
-from station.cli.quantity import parse_option
+from station.quantity import parse_option, parse_payload, parse_xyz
 from station.robot.errors import ConfigError
 
 
@@ -38,3 +39,18 @@ def test_bad_values_are_one_line_naming_the_option(text, needle):
         cone(text)
     msg = str(e.value)
     assert msg.startswith(f"--cone {text!r}: ") and needle in msg and "\n" not in msg
+
+
+def test_points_and_payloads():
+    assert parse_xyz("100,200,50mm", "--tool") == pytest.approx([0.1, 0.2, 0.05])
+    assert parse_xyz("0.1, 0, -0.02", "--tool") == pytest.approx([0.1, 0.0, -0.02])  # bare: metres
+    mass, com = parse_payload("250g")
+    assert mass == pytest.approx(0.25) and com == (0.0, 0.0, 0.0)
+    mass, com = parse_payload("0.5kg@0,0,30mm")
+    assert mass == 0.5 and com == pytest.approx((0.0, 0.0, 0.03))
+    for bad, needle in (("1,2", "expected x,y,z"), ("1,2,3in", "unknown length unit 'in'"),
+                        ("1,2,1e999mm", "not a finite number")):
+        with pytest.raises(ConfigError, match=needle):
+            parse_xyz(bad, "--tool")
+    with pytest.raises(ConfigError, match="expected a mass with its unit"):
+        parse_payload("5")
