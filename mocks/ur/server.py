@@ -16,6 +16,7 @@ import threading
 import time
 
 import numpy as np
+from station.mocks.emulator import EmulatorBase
 from station.mocks.ur import primary_wire as P
 from station.mocks.ur import rtde_wire as W
 from station.mocks.ur import state as S
@@ -411,8 +412,9 @@ class PrimaryConn(ScriptConn):
             self.close()
 
 
-class URServer:
-    """Listens on ``host`` for the three ports and owns the controller thread."""
+class URServer(EmulatorBase):
+    """Listens on ``host`` for the controller's ports and owns the controller thread (an ``EmulatorBase``:
+    ``start()`` returns it, ``stop()``/``close()`` idempotent, ``url``, ``world``, ``power_cycle()``)."""
 
     def __init__(self, controller: URController, host: str = "127.0.0.1", *, rtde_port: int = RTDE_PORT,
                  dashboard_port: int = DASHBOARD_PORT, script_port: int = SCRIPT_PORT,
@@ -435,32 +437,19 @@ class URServer:
         controller.on_drop = self.drop
 
     @property
+    def world(self):
+        """The World the controller drives."""
+        return self.controller.world
+
+    @property
     def url(self) -> str:
         """The robot URL the station opens for this controller."""
         return self._url or f"ur://{self.host}"
 
-    def start(self) -> URServer:
+    def _startup(self) -> None:
         self.running = True
-        try:
-            self._listen()
-        except OSError:
-            self._close_listeners()
-            self.running = False
-            raise
+        self._listen()
         self.controller.start()
-        return self
-
-    def stop(self) -> None:
-        """Close every port and stop the controller; calling it again does nothing."""
-        if not self.running and not self.listeners:
-            return
-        self.close()
-
-    def __enter__(self) -> URServer:
-        return self.start()
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
 
     def power_cycle(self, boot_s: float | None = None) -> None:
         """Switch the controller off and on: every connection drops, the ports refuse connections while it
@@ -539,7 +528,8 @@ class URServer:
         if self.running:
             self._listen()
 
-    def close(self) -> None:
+    def _shutdown(self) -> None:
+        """Close every port and stop the controller (also after a start that failed half way)."""
         self.running = False
         self._close_listeners()
         self.close_connections()

@@ -1,0 +1,36 @@
+"""The Franka emulator as the station's tools see it (``station.emulators`` entry point ``franka``): always
+``station mock franka`` in a child process (franka-sim runs in its own environment, ``make franka-sim``), on a
+free random loopback address 127.x.y.z (libfranka's port 1337 is fixed: one robot per address)."""
+
+from __future__ import annotations
+
+from station.mocks.plug import CHILD, Plug
+
+
+class FrankaPlug(Plug):
+    bus = "franka"
+    cli = "station.mocks.franka.cli"
+    modes = (CHILD,)
+    default_model = "fr3"
+
+    def child_args(self, emu) -> list[str]:
+        from station.mocks.franka.simenv import free_loopback
+
+        emu.host = emu.host or free_loopback()
+        return ["--host", emu.host, *(["--serial", emu.serial] if emu.serial else [])]
+
+    def serial_in_url(self, emu) -> bool:
+        return False  # `station mock franka --serial` prints it in the URL (the FCI reports none)
+
+    def power_cycle_child(self, emu) -> None:
+        """The robot off and on: the simulator process ends and starts again on the same address with the same
+        world (what the robot keeps, its served model, is in the world; its errors, impedance settings and
+        motions are gone). franka-sim has no brakes: the arm comes back at the world's start pose."""
+        from station.mocks.launch import end_child
+
+        proc, emu.proc = emu.proc, None
+        end_child(proc, timeout=15.0)
+        emu._start_child()
+
+
+PLUG = FrankaPlug()
