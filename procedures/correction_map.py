@@ -25,6 +25,7 @@ from station.procedures._calibration import calibration, journaled_calibration, 
 
 from station.engine import events as ev
 from station.engine.plan import PlannedPose, PosePlan
+from station.engine.steps import step
 from station.kinematics import se3
 from station.robot.errors import ConfigError, DeviceFault
 from station.solver.map import FULL, POSITION, MapError, build_map, plan, to_vectors
@@ -156,6 +157,7 @@ def clear_of_keep_outs(s, x: np.ndarray) -> tuple[np.ndarray, int]:
     return x[keep], int((~keep).sum())
 
 
+@step(args=("pose",))
 def move(s, pose: PlannedPose) -> None:
     """A serial arm moves along a path checked against the keep-outs (vias where the straight one is
     blocked; refused in one line if none is clear) and approaches every configuration from below on every

@@ -17,6 +17,7 @@ from station.procedures._calibration import calibration, journaled_calibration, 
 
 from station.engine import events as ev
 from station.engine.plan import PlannedPose, PosePlan
+from station.engine.steps import step
 from station.kinematics import se3
 from station.performance import iso9283 as iso
 from station.performance.cube import CubeError, given_cube, largest_cube
@@ -117,6 +118,7 @@ def test_plan(s) -> PosePlan:
     return plan
 
 
+@step(args=("pose",))
 def approach(s, pose: PlannedPose) -> None:
     """To the pose's approach pose along a path clear of the keep-outs, then straight onto the pose: the last
     motion comes from the same side in every cycle, so the gears' backlash sits on the same side. The static
@@ -127,7 +129,6 @@ def approach(s, pose: PlannedPose) -> None:
     here = np.asarray(s.robot.joint_positions().q, float)
     if label == "static" and k > 1 and np.max(np.abs(here - pose.q_arr)) < 1e-4:
         return
-    s.doing = ("approach", pose.index)
     s.check_space(f"the approach to pose {pose.index}")
     for q in route_from(s.model, s.cell.keep_out if s.cell else None, s.robot.joint_positions().q,
                         [pose.approach_q, pose.q], what=f"pose {pose.index} ({pose.point})"):

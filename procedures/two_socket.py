@@ -21,6 +21,7 @@ flange, two sockets 50 mm apart, many configurations per socket)."""
 import numpy as np
 
 from station.engine import PlanError
+from station.engine.steps import step
 from station.engine.touch import TouchFailed
 from station.robot.capabilities import CalibrationExport, Compliant, ContactSensor
 from station.robot.errors import ConfigError
@@ -180,6 +181,7 @@ def _along(s, point, q, depth):
     return r.q[0]
 
 
+@step("seat", args=("pose",))
 def seat_by_impedance(s, pose):
     """From the approach pose: stiff to ``standoff_mm`` above where the model puts the socket (corrected by the
     earlier seatings there), compliant, then drive ``press_mm`` past the centre; the ball seats in the cone and
@@ -191,7 +193,6 @@ def seat_by_impedance(s, pose):
     if not (isinstance(robot, Compliant) and isinstance(robot, ContactSensor)):
         raise ConfigError("two_socket seats by impedance and records on force contact: the robot needs a compliant "
                           "mode and contact sensing (a Franka arm: franka://)")
-    s.doing = ("seat", pose.index)
     s.check_space(f"seating at pose {pose.index}")
     point = s.point(pose.point)
     opt = s.options
@@ -222,10 +223,10 @@ def seat_by_impedance(s, pose):
                       "where the model puts it (socket elsewhere? check the cell file)")
 
 
+@step(args=("pose",))
 def leave(s, pose):
     """Stiff again where the ball rests (the robot holds it there: the push is gone), then straight back up to
     the approach pose."""
-    s.doing = ("leave", pose.index)
     s.robot.set_compliant(False)
     s.robot.move_joints(pose.approach_arr)
 

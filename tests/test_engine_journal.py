@@ -111,7 +111,6 @@ def test_damaged_middle_line_is_an_error_naming_the_line(tmp_path):
     ("pose", True, r":2: field pose: expected an integer, got bool"),
     ("set", "train", r":2: field set: 'train' is not one of fit, holdout"),
     ("seq", None, r":2: field seq: expected an integer, got null"),
-    ("bogus", 1, r":2: field bogus: unknown field of a sample event"),
 ])
 def test_wrong_field_on_read_is_one_line_naming_file_line_and_field(tmp_path, field, value, expect):
     j = _journal(tmp_path)

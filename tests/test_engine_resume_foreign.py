@@ -11,8 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from station.robot import Identity
-from station.tui.session import JogSession, session_header
+from station.kinematics import load_model
+from station.robot import Identity, JointSnapshot
+from station.tui.session import session_header, technician_session
 
 STATION = str(Path(sys.executable).with_name("station"))
 
@@ -21,9 +22,9 @@ def test_resume_of_a_crashed_jog_session_is_a_one_line_error(tmp_path):
     ident = Identity(vendor="ROBOTIS", model="omx", serial="OMX-1")
     header = session_header(identity=ident, model_name="omx", serial="OMX-1", identify="offsets",
                             reference="unknown", url="dynamixel:///dev/null?ids=11-14&model=omx")
-    s = JogSession.create(header=header, joint_units=["rad"] * 4, folder=tmp_path / "jog")
-    s.add_sample(np.zeros(4), "A", raw=(2048,) * 4, raw_unit="tick", t=0.0, t_device=None,
-                 touch=True, status={"enabled": True})
+    s = technician_session(None, header, folder=tmp_path / "jog", model=load_model("omx"))
+    s.add_sample(JointSnapshot(np.zeros(4), (2048,) * 4, "tick", 0.0), "A", pose=0,
+                 status={"enabled": True, "touch": True})
     # no close(): the station crashed while the technician was jogging
     p = subprocess.run([STATION, "resume", str(tmp_path / "jog")], capture_output=True, text=True, timeout=60)
     assert p.returncode == 2

@@ -18,7 +18,7 @@ from station.engine.limits import load_limits
 from station.engine.session_record import session_from_journal
 from station.robot import open_robot
 from station.tui.controller import JogController
-from station.tui.session import JogSession, joint_units, session_header
+from station.tui.session import session_header, technician_session
 
 START = [0.0, -0.5, 0.5, 0.0, 0.6, 0.0]
 HIDDEN = {"offset.j1": 0.0009, "offset.j2": -0.0012, "offset.j3": 0.0010, "offset.j4": 0.0015,
@@ -50,8 +50,7 @@ def rig(tmp_path):
         robot.enable()
         header = session_header(identity=robot.identity(), model_name="arm6", serial="SN-C", identify="offsets",
                                 reference="unknown", url=f"canopen+virtual://{chan}")
-        session = JogSession.create(header=header, joint_units=joint_units(robot.model),
-                                    folder=tmp_path / f"s{len(made)}")
+        session = technician_session(robot, header, folder=tmp_path / f"s{len(made)}")
         table, version = {}, None
         if limits is not None:
             f = tmp_path / "limits.yaml"
@@ -78,9 +77,9 @@ def test_keep_out_refuses_a_jog_naming_link_and_obstacle(rig):
                                                                             tip[2] - 0.03]},
                                          "clearance": 0.0}]})
     ctl0.close()
-    ctl = JogController(robot, ctl0.session.__class__.create(
-        header=session_header(identity=robot.identity(), model_name="arm6", serial="SN-C", identify="offsets",
-                              reference="unknown", url="x"), joint_units=joint_units(robot.model),
+    ctl = JogController(robot, technician_session(
+        robot, session_header(identity=robot.identity(), model_name="arm6", serial="SN-C", identify="offsets",
+                              reference="unknown", url="x"),
         folder=ctl0.session.folder.parent / "ko"), identify="offsets", cell=cell)
     try:
         ctl.toggle_mode()
@@ -200,8 +199,7 @@ def test_a_step_below_one_encoder_count_is_refused(tmp_path):
         robot.enable()
         header = session_header(identity=robot.identity(), model_name="omx", serial="OMX", identify="offsets",
                                 reference="unknown", url="x")
-        ctl = JogController(robot, JogSession.create(header=header, joint_units=joint_units(robot.model),
-                                                     folder=tmp_path / "s"), identify="offsets")
+        ctl = JogController(robot, technician_session(robot, header, folder=tmp_path / "s"), identify="offsets")
         q0 = world.encoder_q().copy()
         ctl.set_step(0)  # 0.01 deg < 0.088 deg per count
         assert not ctl.jog(1, +1)

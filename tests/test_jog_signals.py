@@ -24,7 +24,7 @@ from station.mocks.world import World
 from station.robot import open_robot
 from station.tui.app import JogApp
 from station.tui.controller import JogController
-from station.tui.session import JogSession, joint_units, session_header
+from station.tui.session import session_header, technician_session
 
 folder, marker = Path(sys.argv[1]), Path(sys.argv[2])
 START = [0.0, -0.5, 0.5, 0.0, 0.6, 0.0]
@@ -42,11 +42,11 @@ def slow_write(self, values):
 type(robot).write_calibration = slow_write
 header = session_header(identity=robot.identity(), model_name="arm6", serial="SN-S", identify="offsets",
                         reference="unknown", url="x")
-ctl = JogController(robot, JogSession.create(header=header, joint_units=joint_units(robot.model), folder=folder),
+ctl = JogController(robot, technician_session(robot, header, folder=folder),
                     identify="offsets")
 rng = np.random.default_rng(0)
 target = world.points["N"].position
-while len(ctl.session.samples) < 10:
+while len(ctl.session.samples()) < 10:
     q0 = np.array(START) + rng.uniform(-1, 1, 6) * np.array([0.3, 0.3, 0.3, 1.3, 0.9, 1.3])
     r = world.truth.ik(target, q0, position_only=True)
     if r.ok[0] and world.truth.within_limits(r.q[0], 0.05)[0]:

@@ -19,7 +19,7 @@ from station.robot import open_robot
 from station.samplesfile import read_samples
 from station.tui.app import JogApp
 from station.tui.controller import JOG_MAX_JOINT_SPEED, JogController
-from station.tui.session import JogSession, joint_units, session_header
+from station.tui.session import session_header, technician_session
 
 START = [0.0, -0.5, 0.5, 0.0, 0.6, 0.0]
 # hidden truth (SI): joint zero errors and a TCP error the technician's touches must reveal
@@ -52,8 +52,7 @@ def rig(tmp_path):
         robot.enable()
         header = session_header(identity=robot.identity(), model_name="arm6", serial="SN-T", identify=identify,
                                 reference="unknown", url=f"canopen+virtual://{chan}")
-        session = JogSession.create(header=header, joint_units=joint_units(robot.model),
-                                    folder=tmp_path / f"session-{len(made)}")
+        session = technician_session(robot, header, folder=tmp_path / f"session-{len(made)}")
         ctl = JogController(robot, session, identify=identify)
         return world, robot, ctl
 
@@ -148,17 +147,17 @@ def test_record_discard_retake_live_solve_and_writeback(rig):
             # away from the needle: the indicator is off and enter refuses to record
             await pilot.press("enter")
             await settle(pilot, app)
-            assert ctl.session.samples == [] and "no contact" in ctl.message
+            assert ctl.session.samples() == [] and "no contact" in ctl.message
             for i, q in enumerate(poses[:8]):
                 robot.move_joints(q, speed=1.0)  # the technician jogged onto the needle
                 assert await until(pilot, lambda: "CONTACT" in str(app.query_one("#jog").render()))
                 await pilot.press("enter")
                 await settle(pilot, app)
-                assert len(ctl.session.samples) == i + 1
+                assert len(ctl.session.samples()) == i + 1
                 # journaled (and fsynced) as soon as the UI shows it; samples.csv follows
                 _, events = read_journal(journal)
                 last = [e for e in events if e["type"] == "sample"][-1]
-                assert last["seq"] == ctl.session.samples[-1].seq and last["point"] == "A"
+                assert last["seq"] == ctl.session.samples()[-1].seq and last["point"] == "A"
                 np.testing.assert_allclose(last["q"], world.encoder_q(), atol=quantum(world.nominal).max() * 2)
                 assert read_samples(ctl.session.samples_csv, world.nominal.joints).q.shape == (i + 1, 6)
             st = ctl.solve_state
@@ -186,24 +185,24 @@ def test_record_discard_retake_live_solve_and_writeback(rig):
                 v = par["value"] - par["nominal"] if name.startswith(("offset.", "tcp.")) else par["value"]
                 assert v == pytest.approx(value, rel=1e-6, abs=1e-9), name
             # discard the selected (latest) sample
-            n_rows = len(ctl.session.samples)
-            dropped = ctl.session.samples[-1].seq
+            n_rows = len(ctl.session.samples())
+            dropped = ctl.session.samples()[-1].seq
             await pilot.press("delete", "y")  # discard asks first
             await settle(pilot, app)
-            assert len(ctl.session.samples) == n_rows - 1
+            assert len(ctl.session.samples()) == n_rows - 1
             _, events = read_journal(journal)
             assert events[-1]["type"] == "discard" and events[-1]["sample"] == dropped
             assert len(read_samples(ctl.session.samples_csv, world.nominal.joints).q) == n_rows - 1
             # retake sample #2 at a new pose: new record first, then the old one discarded
             robot.move_joints(poses[8], speed=1.0)
             await pilot.pause(0.12)
-            old = ctl.session.samples[1]
+            old = ctl.session.samples()[1]
             await pilot.press("up")
-            for _ in range(len(ctl.session.samples) - 3):
+            for _ in range(len(ctl.session.samples()) - 3):
                 await pilot.press("up")
             await pilot.press("k")
             await settle(pilot, app)
-            seqs = [s.seq for s in ctl.session.samples]
+            seqs = [s.seq for s in ctl.session.samples()]
             assert old.seq not in seqs and len(seqs) == n_rows - 1
             _, events = read_journal(journal)
             assert events[-1].type == "discard" and events[-1].sample == old.seq
@@ -256,7 +255,7 @@ def test_failed_writeback_is_journaled_and_restored(rig):
             for q in touch_poses(world, n=7, seed=4):
                 robot.move_joints(q, speed=1.0)
                 await pilot.press("enter")
-            assert len(ctl.session.samples) == 7 and ctl.solve_state.status == "ok"
+            assert len(ctl.session.samples()) == 7 and ctl.solve_state.status == "ok"
             original = robot.read_calibration()
             await pilot.press("W")
             assert app.screen.__class__.__name__ == "WritebackScreen"
@@ -279,7 +278,7 @@ def test_failed_writeback_is_journaled_and_restored(rig):
                     break
             assert ctl.fault is None, ctl.fault
             await pilot.press("enter")  # no recording on a possibly half-written robot
-            assert len(ctl.session.samples) == 7
+            assert len(ctl.session.samples()) == 7
             await pilot.press("W")
             await settle(pilot, app)
             assert app.screen.__class__.__name__ == "WritebackScreen" and app.screen.plan.kind == "restore"
@@ -296,7 +295,7 @@ def test_failed_writeback_is_journaled_and_restored(rig):
                 ("pre-image", "write"), ("failed", "write"), ("pre-image", "restore"), ("written", "restore")]
             robot.move_joints(touch_poses(world, n=1, seed=9)[0], speed=1.0)
             await pilot.press("enter")  # the calibration is the original again: samples are consistent
-            assert len(ctl.session.samples) == 8
+            assert len(ctl.session.samples()) == 8
 
     asyncio.run(run())
 
@@ -326,7 +325,7 @@ def test_fault_shows_banner_and_stops(rig):
             await pilot.press("q", "enter")  # refused while faulted
             await pilot.pause(0.1)
             np.testing.assert_allclose(world.encoder_q(), held, atol=1e-9)
-            assert ctl.session.samples == []
+            assert ctl.session.samples() == []
             # the EMCY was one event: a fault reset + re-enable clears it, the banner goes, jogging works again
             await pilot.press("c")
             await until(pilot, lambda: ctl.fault is None, 2.0)

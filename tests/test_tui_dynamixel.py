@@ -74,7 +74,7 @@ def test_jog_record_and_fault_on_dynamixel(rig, tmp_path):
             np.testing.assert_array_equal(world.encoder_q(), q1)
             assert "tool position only" in ctl.message
             await pilot.press("m", "enter")
-            assert ctl.session.samples == [] and "no contact" in ctl.message
+            assert ctl.session.samples() == [] and "no contact" in ctl.message
             robot.move_joints(q_touch, speed=1.0)  # jogged onto the needle
             for _ in range(100):  # the UI polls every 0.1 s; a loaded machine may take longer
                 if "CONTACT" in str(app.query_one("#jog").render()):
@@ -82,7 +82,7 @@ def test_jog_record_and_fault_on_dynamixel(rig, tmp_path):
                 await pilot.pause(0.02)
             assert world.contact() and "CONTACT" in str(app.query_one("#jog").render())
             await pilot.press("p", "enter")  # label B
-            assert [s.point for s in ctl.session.samples] == ["B"]
+            assert [s.point for s in ctl.session.samples()] == ["B"]
             rows = read_samples(ctl.session.samples_csv, world.nominal.joints)
             np.testing.assert_allclose(rows.q[0], world.encoder_q(), atol=one.max())
             # a servo hardware error: banner, motion refused

@@ -23,7 +23,7 @@ from station.robot import open_robot
 from station.tui.app import JogApp, NearScreen, QuitScreen
 from station.tui.approach import NEAR_STANDOFF
 from station.tui.controller import JogController
-from station.tui.session import JogSession, joint_units, session_header
+from station.tui.session import session_header, technician_session
 
 START = [0.1, -1.45, 1.6, -1.72, -1.5708, 0.2]
 SERIAL = "20235500021"
@@ -49,7 +49,7 @@ def rig(tmp_path, emulators):
     robot.enable()
     header = session_header(identity=robot.identity(), model_name="ur5e", serial=SERIAL, identify="offsets",
                             reference="unknown", url="ur://")
-    session = JogSession.create(header=header, joint_units=joint_units(robot.model), folder=tmp_path / "s")
+    session = technician_session(robot, header, folder=tmp_path / "s")
     from station.engine.limits import load_limits
 
     lim = load_limits(None)
@@ -75,7 +75,7 @@ def still(robot) -> bool:
 
 def steps(ctl) -> list[str]:
     _, events = read_journal(ctl.session.folder / "journal.jsonl")
-    return [e["name"] for e in events if e["type"] == "step"]
+    return [e["name"] for e in events if e["type"] == "step" and e["status"] == "done"]
 
 
 @pytest.mark.timeout(180)
@@ -118,10 +118,10 @@ def test_seat_a_socket_and_record_a_real_touch(rig):
             assert ctl.proximity.distance <= 0.007, ctl.message
             assert ctl.proximity.within and not ctl.readout.touch  # close, but a stiff arm does not seat
             await pilot.press("enter")
-            assert "no contact" in ctl.message and not ctl.session.samples
+            assert "no contact" in ctl.message and not ctl.session.samples()
             # the seat key: freedrive, the ball seats, the contact input lights
             await pilot.press("v")
-            assert robot.status().compliant and ctl.compliant
+            assert robot.status().compliant and ctl.compliant, ctl.message
             assert "FREEDRIVE" in str(app.query_one("#jog").render())
             await until(pilot, lambda: ctl.readout is not None and ctl.readout.touch, what="the seated contact")
             q_seated = robot.joint_positions().q
@@ -130,8 +130,8 @@ def test_seat_a_socket_and_record_a_real_touch(rig):
             await pilot.pause(0.3)
             np.testing.assert_allclose(robot.joint_positions().q, q_seated, atol=1e-6)
             await pilot.press("enter")
-            assert len(ctl.session.samples) == 1, ctl.message
-            sample = ctl.session.samples[0]
+            assert len(ctl.session.samples()) == 1, ctl.message
+            sample = ctl.session.samples()[0]
             assert sample.point == "A" and sample.status["touch"] is True and not sample.status["forced"]
             assert sample.status["compliant"] is True
             # the true tip sits in the socket: the controller's TCP within the seating noise + hidden errors

@@ -1,5 +1,5 @@
-"""The jog UI's session folder: journal events (engine journal, fsynced) and a samples.csv that the
-`station solve` reader accepts, kept equal to the journal's live samples."""
+"""The jog UI's session (an engine session in technician mode): journal events (fsynced) and a samples.csv that
+the `station solve` reader accepts, kept equal to the journal's live samples."""
 
 from __future__ import annotations
 
@@ -9,10 +9,11 @@ import pytest
 from station.engine.journal import read_journal
 from station.engine.session_record import session_from_journal
 from station.kinematics import load_model
+from station.robot import JointSnapshot
 from station.robot.errors import ConfigError
 from station.samplesfile import read_samples
 from station.tui.controller import parse_reference
-from station.tui.session import JogSession, joint_units, session_header
+from station.tui.session import session_header, technician_session
 
 
 def _session(tmp_path, model):
@@ -20,7 +21,8 @@ def _session(tmp_path, model):
                                       "url": ""},
                             model_name=model.name, serial="SN7", identify="offsets", reference="unknown",
                             url="test://")
-    return JogSession.create(header=header, joint_units=joint_units(model), folder=tmp_path / "s")
+    # the session journals what the UI reads from the robot; no robot is needed to test the folder
+    return technician_session(None, header, folder=tmp_path / "s", model=model)
 
 
 def test_parse_reference_units_and_labels():
@@ -42,21 +44,21 @@ def test_samples_journaled_and_csv_readable(tmp_path):
     s = _session(tmp_path, model)
     rng = np.random.default_rng(1)
     qs = [rng.uniform(model.lower / 2, model.upper / 2) for _ in range(3)]
-    kept = [s.add_sample(q, "AB"[i % 2], raw=list(range(model.n_joints)), raw_unit="count", t=1.0 + i,
-                         t_device=None, touch=True, status={}) for i, q in enumerate(qs)]
+    kept = [s.add_sample(JointSnapshot(q, tuple(range(model.n_joints)), "count", 1.0 + i), "AB"[i % 2], pose=i,
+                         status={"touch": True}) for i, q in enumerate(qs)]
     # each sample is in the journal as soon as add_sample returned
     _, events = read_journal(s.folder / "journal.jsonl")
     assert [e["seq"] for e in events if e["type"] == "sample"] == [k.seq for k in kept]
     s.discard(kept[1], reason="technician")
     _, events = read_journal(s.folder / "journal.jsonl")
     assert events[-1].type == "discard" and events[-1].sample == kept[1].seq
-    assert all(e.session == s.session_id for e in events)
+    assert all(e.session == s.id for e in events)
     record = session_from_journal(s.folder)
     assert [e["seq"] for e in record["samples"]] == [kept[0].seq, kept[2].seq]
     samples = read_samples(s.samples_csv, model.joints)
     np.testing.assert_array_equal(samples.q, np.array([qs[0], qs[2]]))
     assert list(samples.point) == ["A", "A"]
-    s.close()
+    s.end()
     header, events = read_journal(s.folder / "journal.jsonl")
     assert header.procedure == "jog" and header.serial == "SN7" and header.mode == "technician"
     assert header.options == {"identify": "offsets", "reference": "unknown"} and header.url == "test://"
@@ -67,6 +69,6 @@ def test_samples_journaled_and_csv_readable(tmp_path):
 
 def test_refuses_existing_journal(tmp_path):
     model = load_model("omx")
-    _session(tmp_path, model).close()
+    _session(tmp_path, model).end()
     with pytest.raises(ConfigError, match="already has a journal"):
         _session(tmp_path, model)

@@ -17,7 +17,7 @@ from station.engine.journal import read_journal
 from station.robot import open_robot
 from station.tui.app import JogApp
 from station.tui.controller import JogController
-from station.tui.session import JogSession, joint_units, session_header
+from station.tui.session import session_header, technician_session
 
 START = [0.1, -1.45, 1.6, -1.72, -1.5708, 0.2]
 
@@ -42,8 +42,7 @@ def ur(tmp_path, emulators):
 def jog_controller(robot, folder, serial: str = "20235500001") -> JogController:
     header = session_header(identity=robot.identity(), model_name="ur5e", serial=serial,
                             identify="offsets", reference="unknown", url="ur://")
-    return JogController(robot, JogSession.create(header=header, joint_units=joint_units(robot.model),
-                                                  folder=folder), identify="offsets")
+    return JogController(robot, technician_session(robot, header, folder=folder), identify="offsets")
 
 
 async def wait_still(pilot, ctl, timeout=10.0):
@@ -77,7 +76,7 @@ def test_jog_and_record_on_ur(ur, tmp_path):
             q2 = (await wait_still(pilot, ctl)).q
             np.testing.assert_allclose(model.position(q2) - p0, [0, 0, 1e-4], atol=3e-5)
             await pilot.press("exclamation_mark")  # no contact here: record anyway, marked forced
-            assert len(ctl.session.samples) == 1
+            assert len(ctl.session.samples()) == 1
 
     asyncio.run(run())
     _, events = read_journal(tmp_path / "s" / "journal.jsonl")

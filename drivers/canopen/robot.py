@@ -369,6 +369,7 @@ class CanopenRobot(RobotBase):
         another thread ends with SafetyStop."""
         self._interrupt.set()
         latest = self.bus.latest()
+        sent = False
         for node_id in self.bus.drives:
             # only to drives that are enabled: the halt controlword carries "enable operation", which would take
             # a drive in SWITCHED ON or QUICK STOP ACTIVE (a fault's quick stop) back to OPERATION ENABLED
@@ -376,6 +377,11 @@ class CanopenRobot(RobotBase):
                 continue
             with contextlib.suppress(Exception):
                 self.bus.send_rpdo1(node_id, CW_ENABLE | CW_HALT)
+                sent = True
+        if sent and self.faults.error is None:
+            # a halt nobody answered is no stop: every drive must report once after it (a silent drive raises,
+            # naming the node, and the fault latches: the teardown says so instead of a quiet PASS)
+            self.bus.round()
 
     def enable(self) -> None:
         """Fault reset where needed, then every drive to OPERATION ENABLED holding its present position.
@@ -656,10 +662,12 @@ class CanopenRobot(RobotBase):
         if bus is None:
             return
         bus.closing = True
+        if bus.drives and self.faults.error is None and self._connected:
+            with contextlib.suppress(Exception):  # a drive that does not answer the halt latches a fault: below
+                self.stop()
         if bus.drives and self.faults.error is None and not self._connected:
             bus.release_consumers()  # refused at connect: nothing was commanded, nothing to take back
         elif bus.drives and self.faults.error is None:
-            self.stop()
             with contextlib.suppress(Exception):
                 time.sleep(2 * bus.sync_period)
                 for node_id in bus.drives:

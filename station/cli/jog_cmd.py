@@ -55,7 +55,7 @@ def open_jog(url: str, *, serial: str | None = None, model: str | None = None, s
     from station.robot.errors import ConfigError
     from station.robot.url import parse_url
     from station.tui.controller import JogController, parse_reference
-    from station.tui.session import JogSession, joint_units, session_header
+    from station.tui.session import session_header, technician_session
 
     parse_url(url)  # a malformed URL is the same one-line error as for station run, before anything else
     ref = parse_reference(reference)
@@ -85,8 +85,7 @@ def open_jog(url: str, *, serial: str | None = None, model: str | None = None, s
                            "points": [p.to_dict() for p in the_cell.points.values()],
                            **keep_out_to_doc(the_cell.keep_out)}
         sid = session.name if session is not None else None
-        jog_session = JogSession.create(header=header, joint_units=joint_units(robot.model), folder=session,
-                                        session_id=sid)
+        jog_session = technician_session(robot, header, folder=session, session_id=sid)
         try:
             table = lim.for_procedure(robot.model.name, judge)
         except ConfigError:
@@ -158,7 +157,7 @@ def register(app: typer.Typer) -> None:
         finally:
             ctl.close()
             rob.close()
-        kept = ctl.session.samples
+        kept = ctl.session.samples()
         if not kept:  # nothing to judge, store or solve: say only that (the journal stays in the folder)
             typer.echo(f"no samples kept: the session is not stored in the records database; its journal stays in "
                        f"{ctl.session.folder}")

@@ -10,6 +10,7 @@ from pathlib import Path
 import typer
 from rich import box
 from rich.console import Console
+from rich.markup import escape
 
 from station.cli import COMMANDS
 from station.cli.helpgroup import HelpGroup
@@ -277,7 +278,7 @@ def export(fmt: str = typer.Option("csv", "--format", help="Format: csv (one row
 def _show_session(con: Console, s: dict) -> None:
     from station.records import measurement_status, overall_status
     from station.report.analysis import load_session_model
-    from station.report.content import param_unit
+    from station.report.content import param_unit, steps_rows
 
     model, _ = load_session_model(s)  # joint kinds: a prismatic joint's offset is shown in mm
 
@@ -336,6 +337,18 @@ def _show_session(con: Console, s: dict) -> None:
         print_table(con, f"Write-back ({'applied' if wb.get('applied') else 'not applied'}, "
                          f"{'verified' if wb.get('verified') else 'not verified'})",
                     [Col("value"), Col("before", "right"), Col("after", "right"), Col("unit")], rows, style=_box(con))
+    steps = steps_rows(s)
+    if steps:
+        rows = []
+        for st in steps:
+            colour = {"done": "green", "skipped": "default"}.get(st["status"], "red")
+            rows.append({"step": "  " * st["depth"] + escape(st["name"]), "runs": str(st["runs"]),
+                         "outcome": f"[{colour}]{escape(st['outcome'])}[/]",
+                         "time s": "" if st["duration_s"] is None else f"{st['duration_s']:.1f}",
+                         "arguments / why not done": escape("; ".join([st["args"]] * bool(st["args"]) + st["notes"]))})
+        print_table(con, "Steps", [Col("step"), Col("runs", "right"), Col("outcome"),
+                                   Col("time s", "right", priority=1),
+                                   Col("arguments / why not done", text=True, priority=2)], rows, style=_box(con))
 
 
 def report(source: str = typer.Argument(..., help="Session id (in $STATION_HOME/sessions, as station resume "

@@ -4,8 +4,12 @@ and validates every line it reads back against them; consumers (session record, 
 ``samples.csv``) read them. One meaning per field; units SI; times are host ``time.time()`` seconds unless the
 field says otherwise.
 
-``station-journal/2`` is written; ``station-journal/1`` files (before this schema) are converted on read
-(:func:`upgrade_v1`). Pure Python (dataclasses), cheap to import."""
+``station-journal/2`` is written. The format is versioned ``station-journal/MAJOR[.MINOR]``: a writer that only
+adds fields (or event types) keeps the major version, and a reader of that major version keeps what it does not
+know (an unknown field is carried in the event and written back as it was, never dropped, never checked);
+a newer major version is refused in one line (:func:`check_format`). The fields a reader knows are checked
+for type and range whatever version wrote them. ``station-journal/1`` files (before this schema) are
+converted on read (:func:`upgrade_v1`). Pure Python (dataclasses), cheap to import."""
 
 import math
 import types
@@ -15,6 +19,8 @@ from typing import Any, ClassVar, Literal
 
 FORMAT = "station-journal/2"
 FORMAT_V1 = "station-journal/1"
+FORMAT_NAME = "station-journal"
+MAJOR = 2  # the major version this station reads and writes (and /1, converted)
 UNITS = "SI (m, rad, s); t = host unix time"
 
 
@@ -42,12 +48,18 @@ class Event:
     def type(self) -> str:
         return self.TYPE
 
+    @property
+    def unknown(self) -> dict:
+        """Fields a newer writer of the same major version added, as read (kept and written back, unchecked)."""
+        return self.__dict__.get("_unknown") or {}
+
     def to_dict(self) -> dict:
-        """The JSON object of the journal line (``type`` first, then every field; values are the event's own,
-        not copies)."""
+        """The JSON object of the journal line (``type`` first, then every field, then the fields this station
+        does not know, as read; values are the event's own, not copies)."""
         out: dict[str, Any] = {"type": self.type}
         for name, _, _ in _spec(type(self))[1]:
             out[name] = getattr(self, name)
+        out.update(self.unknown)
         return out
 
     # events also read like the plain dicts of journal /1, for scripts written against it (``sample["q"]``)
@@ -55,7 +67,7 @@ class Event:
         if key == "type":
             return self.type
         if key not in _field_names(type(self)):
-            raise KeyError(key)
+            return self.unknown[key]
         return getattr(self, key)
 
     def get(self, key: str, default=None):
@@ -96,7 +108,9 @@ class Header(Event):
 
 @dataclass(kw_only=True)
 class Step(Event):
-    """A phase of the procedure (OpenHTF-style): start, then done/failed/skipped."""
+    """One step of a session (``station.engine.steps``): ``start`` with its arguments (``info``), then ``done`` or
+    ``failed`` with its ``duration``; or ``skipped`` with the reason. Steps nest: the journal's order says which
+    step ran inside which."""
 
     TYPE: ClassVar[str] = "step"
     name: str
@@ -104,7 +118,8 @@ class Step(Event):
     error: str | None = None  # exception class name when failed
     message: str | None = None  # what went wrong when failed
     reason: str | None = None  # why it was skipped
-    info: dict = field(default_factory=dict)  # step arguments worth keeping (e.g. identify)
+    info: dict = field(default_factory=dict)  # the step's arguments (e.g. identify, the plan pose)
+    duration: float | None = None  # s from start to done/failed (monotonic clock; t is host time)
 
 
 @dataclass(kw_only=True)
@@ -152,6 +167,35 @@ class Sample(Event):
     pose: int | None = None  # index in the pose plan (the jog UI numbers its touches)
     set: Literal["fit", "holdout"] = "fit"
     status: dict = field(default_factory=dict)  # touch indicator, forced record, enabled...
+
+    @classmethod
+    def from_snapshot(cls, snap, point: str, *, pose: int | None = None, set: str = "fit",  # noqa: A002
+                      status: dict | None = None, reading=None, instrument: str | None = None,
+                      measured=None) -> "Sample":
+        """The one way a sample is built, whoever takes it (engine, procedures, jog UI): every joint of one
+        reading ``snap`` (``station.robot.JointSnapshot``: ``q`` SI, ``raw`` and ``raw_unit`` as the device
+        sent them, ``t`` host time of the reading, ``t_device``), the reference ``point``, the plan ``pose``
+        and its ``set``, and what the taker knows about the touch in ``status`` (touch indicator, forced,
+        compliant...). An instrument's 6-DoF ``reading`` (``station.instruments.PoseReading``: ``xyz`` m, ``rv``
+        rad, its clock ``t``) of the instrument with serial ``instrument`` goes into ``measured`` and
+        ``measured_rotation`` (``status`` names the instrument and its time); ``measured`` alone is a position
+        [x, y, z] (m). Checked when it is journaled."""
+        status = dict(status or {})
+        rotation = None
+        if reading is not None:
+            measured, rotation = reading.xyz, reading.rv
+            status = {"instrument": instrument, "t_instrument": reading.t, **status}
+        return cls(point=point, q=_floats(snap.q), raw=list(snap.raw), raw_unit=snap.raw_unit, t_read=snap.t,
+                   t_device=snap.t_device, measured=None if measured is None else _floats(measured),
+                   measured_rotation=None if rotation is None else _floats(rotation), pose=pose, set=set,
+                   status=status)
+
+
+def _floats(v) -> list:
+    """Plain floats of a vector (a numpy array, tuple or list); what is not a number is left for the schema
+    check to name."""
+    return [float(x) if isinstance(x, (int, float)) or hasattr(x, "__float__") else x for x in
+            (v.tolist() if hasattr(v, "tolist") else v)]
 
 
 @dataclass(kw_only=True)
@@ -283,10 +327,12 @@ EVENT_TYPES: dict[str, type[Event]] = {c.TYPE: c for c in (
 
 
 # ---- building and checking --------------------------------------------------------------------------------
-def from_dict(d: dict, *, strict: bool = True) -> Event:
-    """The typed event of a journal object. ``strict``: every required field present, no unknown field (how
-    ``station-journal/2`` lines are read); otherwise unknown fields are an error too but ``seq``/``t`` may be
-    missing (an event about to be appended). Raises :class:`SchemaError` naming the field."""
+def from_dict(d: dict, *, strict: bool = True, keep_unknown: bool | None = None) -> Event:
+    """The typed event of a journal object; every field this schema knows is checked (type, range, shapes).
+    ``strict`` (how journal lines are read): every required field present, and fields this station does not
+    know are kept as read (``event.unknown``: a newer writer of the same major version added them);
+    otherwise (an event about to be appended) ``seq``/``t`` may be missing and an unknown field is an error (a
+    producer's typo), unless ``keep_unknown``. Raises :class:`SchemaError` naming the field."""
     if type(d) is not dict:
         raise SchemaError("", f"expected a JSON object, got {type(d).__name__}")
     kind = d.get("type")
@@ -298,8 +344,11 @@ def from_dict(d: dict, *, strict: bool = True) -> Event:
                 if k in d}
         return Custom(kind, {k: v for k, v in d.items() if k not in ("type", "seq", "t", "session")}, **base)
     names, spec = _spec(cls)
+    unknown = None
     if len(d) > len(names) or any(k not in names for k in d):
-        raise SchemaError(next(k for k in d if k not in names), f"unknown field of a {kind} event")
+        if not (strict if keep_unknown is None else keep_unknown):
+            raise SchemaError(next(k for k in d if k not in names), f"unknown field of a {kind} event")
+        unknown = {k: v for k, v in d.items() if k not in names}
     kw = {}
     for name, check, required in spec:
         if name in d:
@@ -310,7 +359,27 @@ def from_dict(d: dict, *, strict: bool = True) -> Event:
     deep = _DEEP_CHECKS.get(cls)
     if deep is not None:
         deep(event)
+    if unknown:
+        event.__dict__["_unknown"] = unknown
     return event
+
+
+def check_format(value) -> int:
+    """The major version of a journal's ``format`` (``station-journal/MAJOR`` or ``/MAJOR.MINOR``): 1 or 2.
+    A newer major version, or anything else, raises :class:`SchemaError` (one line: what the file is, what
+    this station reads)."""
+    prefix = FORMAT_NAME + "/"
+    text = value if isinstance(value, str) else ""
+    major, _, minor = text[len(prefix):].partition(".")
+    if not text.startswith(prefix) or not major.isdigit() or (minor and not minor.isdigit()) or \
+            (major == "1" and minor):
+        raise SchemaError("format", f"{str(value)[:40]!r} is not a {FORMAT} (or /1) journal")
+    if int(major) > MAJOR:
+        raise SchemaError("format", f"{text[:40]} is a newer major version than this station reads ({FORMAT} "
+                                    "and older): update the station to read it")
+    if int(major) < 1:
+        raise SchemaError("format", f"{text[:40]} is not a {FORMAT} (or /1) journal")
+    return int(major)
 
 
 # ---- what a field's annotation cannot say: the shapes inside a plan, bounds of joint values -------------------
@@ -338,17 +407,13 @@ def _check_plan(e: Plan) -> None:
         raise SchemaError("plan.poses", "expected a list of planned poses")
     if not isinstance(plan.get("settings", {}), dict):
         raise SchemaError("plan.settings", "expected an object")
-    unknown = set(plan) - {"poses", "settings"}
-    if unknown:
-        raise SchemaError(f"plan.{sorted(unknown)[0]}", "unknown field of a plan")
+    # fields of a plan or a planned pose this station does not know stay in the dict, unchecked (a newer writer
+    # of the same major version); PosePlan.from_dict takes only the ones it knows
     n = None
     for i, pose in enumerate(plan["poses"]):
         w = f"plan.poses[{i}]"
         if type(pose) is not dict:
             _fail(w, "an object", pose)
-        for k in pose:
-            if k not in _POSE_FIELDS:
-                raise SchemaError(f"{w}.{k}", "unknown field of a planned pose")
         for k in _POSE_REQUIRED:
             if k not in pose:
                 raise SchemaError(f"{w}.{k}", "missing from a planned pose")
@@ -378,12 +443,16 @@ _DEEP_CHECKS = {Plan: _check_plan, Sample: _check_sample}
 
 def make(event: "Event | dict") -> Event:
     """A typed, checked event from a producer (an Event or a dict). Numpy values become plain numbers and NaN/inf
-    become null (JSON has neither), so a field that may be null takes them and a required number refuses them."""
+    become null (JSON has neither), so a field that may be null takes them and a required number refuses them.
+    A dict with a field the schema does not know is refused (a producer's typo); an event read from a journal
+    keeps the unknown fields it was read with."""
     if isinstance(event, Custom):
         if event.type in EVENT_TYPES:
             raise SchemaError("type", f"{event.type!r} is a known event type; build it as such")
         return Custom(event.type, _plain(event.data), seq=event.seq, t=event.t, session=event.session)
-    return from_dict(_plain(event.to_dict() if isinstance(event, Event) else event), strict=False)
+    if isinstance(event, Event):
+        return from_dict(_plain(event.to_dict()), strict=False, keep_unknown=bool(event.unknown))
+    return from_dict(_plain(event), strict=False)
 
 
 _SPECS: dict[type, tuple[frozenset, tuple]] = {}

@@ -1,7 +1,9 @@
 """Append-only JSON-lines session journal: the one truth of a session (records and reports are projections).
 
 Line 1 is the header (``type: header``, ``format: station-journal/2``); every later line is one event of the
-schema in ``station.engine.events`` with a sequence number ``seq`` and the host time of the append ``t``.
+schema in ``station.engine.events`` with a sequence number ``seq`` and the host time of the append ``t``. A
+journal of the same major version written by a newer station (``station-journal/2.N``, fields this station
+does not know) is read with those fields kept; a newer major version is refused in one line.
 Each append is checked against the schema, then flushed and fsynced before it returns, so an event that
 ``append`` returned for survives a crash or power loss. Reading validates every line against the schema
 (``station-journal/1`` files are converted); a wrong line is one error naming the file, line and field
@@ -268,9 +270,12 @@ def _read(path: Path) -> tuple[Header, list[Event], int]:
             break  # parseable but no newline: the write may not have completed; treat as torn
         where = f"journal {path}:{i + 1}"
         if header is None:
-            version = obj.get("format")
-            if obj.get("type") != "header" or version not in (FORMAT, FORMAT_V1):
+            if obj.get("type") != "header":
                 raise JournalError(f"{where}: not a {FORMAT} (or /1) header")
+            try:
+                version = FORMAT_V1 if ev.check_format(obj.get("format")) == 1 else FORMAT
+            except SchemaError as e:
+                raise JournalError(f"{where}: header {e}") from None
         if version == FORMAT_V1:
             obj = ev.upgrade_v1(obj)
         try:

@@ -32,7 +32,6 @@ from station.engine.session import Session
 from station.kinematics.collision import keep_out_to_doc
 from station.robot.errors import ConfigError, DeviceFault, StationError
 from station.robot.protocol import adopt_serial
-from station.samplesfile import joint_units, write_samples_csv
 
 
 class DiskError(StationError):
@@ -110,7 +109,8 @@ class RunControl:
             except Exception:
                 if self.reason is None:
                     raise
-                what = f"{s.doing[0]} of pose {s.doing[1]}" if s.doing and s.doing[1] is not None else "a move"
+                step = s.steps.current
+                what = step.describe() if step is not None and step.pose is not None else "a move"
                 self.stopped_moving = what
                 raise Aborted(f"{self.reason}; the robot was stopped during {what}") from None
             finally:
@@ -170,7 +170,8 @@ def new_session_id(procedure: str, serial: str) -> str:
     return f"{procedure}-{safe}-{stamp}"
 
 
-def _versions() -> dict:
+def versions() -> dict:
+    """The versions a journal header names: python, the station, numpy, scipy."""
     from importlib import metadata
 
     out = {"python": platform.python_version()}
@@ -318,7 +319,7 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
         procedure_sha256=procedure.sha256 if procedure else sha256,
         procedure_version=procedure.version if procedure else None,
         procedure_title=procedure.title if procedure else title, mode="procedure" if procedure else "script",
-        serial=str(serial), operator=operator or getpass.getuser(), station=socket.gethostname(),
+        serial=str(serial), operator=operator or operator_name(), station=socket.gethostname(),
         url=robot_url or getattr(robot, "url", "") or ident.url, model=robot.model.name, robot=_identity_dict(ident),
         limits={"path": lim.path, "version": lim.version, "sha256": lim.sha256},
         cell=None if the_cell is None else {"path": the_cell.path, "model": the_cell.model, "tool": the_cell.tool,
@@ -326,7 +327,7 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
                                             "distances": [list(d) for d in the_cell.distances],
                                             "planes": list(the_cell.planes),
                                             **keep_out_to_doc(the_cell.keep_out)},
-        options=opts, db=_db_for_journal(db), versions=_versions())
+        options=opts, db=_db_for_journal(db), versions=versions())
     journal = Journal.create(folder / "journal.jsonl", header)
     s = Session(journal, robot, limits=table, limits_version=lim.version, cell=the_cell, options=opts,
                 progress=progress, touch=None if isinstance(touch, str) else touch, log=log, prompt=prompt)
@@ -334,6 +335,34 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
         control.attach(s)
     s.given = set(options or {})  # what the caller chose (checked against the procedure), not its DEFAULTS
     return s
+
+
+def technician_session(robot, header: ev.Header | dict, *, folder: str | Path | None = None,
+                       session_id: str | None = None, model=None) -> Session:
+    """A technician's session (``station jog``): the journal (header ``mode: technician``, procedure ``jog``;
+    ``folder`` default ``$STATION_HOME/sessions/<id>``) and the engine session that journals what the
+    technician records. The UI drives the robot itself; ``samples.csv`` follows every record and discard.
+    A folder that already holds a journal is refused (a session is never appended to by a second run)."""
+    from station.engine.journal import make_header
+
+    head = make_header(header)
+    head.mode = "technician"
+    head.session = session_id or new_session_id(head.procedure or "jog", str(head.serial or "unknown"))
+    folder = Path(folder) if folder is not None else station_home() / "sessions" / head.session
+    if (folder / "journal.jsonl").exists():
+        raise ConfigError(f"session folder {folder} already has a journal; choose a new --session folder")
+    folder.mkdir(parents=True, exist_ok=True)
+    s = Session(Journal.create(folder / "journal.jsonl", head), robot, options=dict(head.options), model=model)
+    s.write_samples_csv()
+    return s
+
+
+def operator_name() -> str:
+    """Who runs the station: the login name (``unknown`` where there is none, as in some containers)."""
+    try:
+        return getpass.getuser()
+    except Exception:  # getpass raises OSError/KeyError without a login name
+        return "unknown"
 
 
 def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, limits: str | Path | None = None,
@@ -526,10 +555,9 @@ def restore(session_ref: str | Path, *, robot=None, log: Callable[[str], None] |
     old = _install_sigterm()
     try:
         before = read_device(robot)
-        s.event(ev.Step(name="restore", status="start", info={"backup": str(path.parent / BACKUP)}))
-        readback = _restore(robot, path.parent, s.id, event=s.event, tolerance=s.readback_tolerance,
-                            note=f"station restore: {BACKUP} written back")
-        s.event(ev.Step(name="restore", status="done"))
+        with s.step("restore", backup=str(path.parent / BACKUP)):
+            readback = _restore(robot, path.parent, s.id, event=s.event, tolerance=s.readback_tolerance,
+                                note=f"station restore: {BACKUP} written back")
     except Exception as e:
         with contextlib.suppress(JournalWriteError):
             s.event(ev.Fault(step="restore", error=type(e).__name__, message=str(e) or type(e).__name__,
@@ -627,13 +655,12 @@ def finish(s: Session, status: str, err: BaseException | None) -> Outcome:
             status, err = "error", JournalWriteError(f"journal {s.journal.path}: {len(s.journal.lost)} event(s) "
                                                      "could not be written; the session cannot PASS")
         if err is not None:
-            step, pose = _failed_step(s)
+            step, pose = _failed_step(s, err)
             with contextlib.suppress(JournalWriteError):
                 s.event(ev.Fault(step=step, error=type(err).__name__, message=str(err) or type(err).__name__,
                                  teardown=problems, pose=pose))
         with contextlib.suppress(JournalWriteError):  # without an End the session stays resumable
-            s.event(ev.End(status=status, passed=_passed(s.verdict) if status == "completed" else None,
-                           n_samples=len(s.samples())))
+            s.end(status, _passed(s.verdict) if status == "completed" else None)
         if s.journal.lost and status == "completed":
             status, err = "error", JournalWriteError(f"journal {s.journal.path}: the end of the session could "
                                                      "not be written; the session cannot PASS")
@@ -644,8 +671,7 @@ def finish(s: Session, status: str, err: BaseException | None) -> Outcome:
         s.journal.close()
     record = s.record_dict()
     try:
-        write_samples_csv(s.folder / "samples.csv", s.samples(), joint_units(s.model),
-                          comment=f"session {s.id}, model {s.model.name}")
+        s.write_samples_csv()
     except OSError as e:  # the journal holds every sample; samples.csv is a convenience copy
         s.log(f"samples.csv not written: {e.strerror or e}")
     write_result_json(s.folder, record.get("result"), s.log)
@@ -668,17 +694,16 @@ def write_result_json(folder: Path, result: dict | None, log: Callable[[str], No
         log(f"result.json not written: {e.strerror or e}")
 
 
-def _failed_step(s: Session) -> tuple[str | None, int | None]:
-    """The step a fault came in, and the pose: an open (or failed) step; else the pose-loop action under way
-    (approach/seat/record/leave of pose N); else "after STEP" (between steps of the checklist)."""
-    steps = s.events("step")
-    last = steps[-1] if steps else None
-    if last is not None and last.status in ("start", "failed"):
-        return last.name, None
-    if s.doing is not None:
-        return s.doing
+def _failed_step(s: Session, err: BaseException) -> tuple[str | None, int | None]:
+    """The step a fault came in, and its pose: the innermost step ``err`` came out of (approach of pose N, solve);
+    else the step still running (a teardown fault); else "after STEP" (between steps of the checklist, e.g. in
+    the checklist's own code)."""
+    step = s.steps.failed_for(err) or s.steps.current
+    if step is not None:
+        return step.name, step.pose
+    last = s.steps.last
     if last is not None:
-        return f"after {last.name}", None
+        return f"after {last.name}", last.pose
     return None, None
 
 

@@ -13,12 +13,14 @@ from pathlib import Path
 import numpy as np
 
 from station.engine import events as ev
+from station.engine import steps
 from station.engine.cell import Cell, RefPoint
 from station.engine.journal import Journal
 from station.engine.limits import NO_LIMITS, Limit, LimitsError
 from station.engine.plan import PlannedPose, PosePlan, generate_plan, plan_from_joints
 from station.engine.procedure import Question, terminal_prompt
 from station.engine.session_record import live_samples, session_from_events
+from station.engine.steps import Steps
 from station.engine.touch import TouchProvider, provider_for
 from station.kinematics import Model
 from station.robot.capabilities import CalibrationStore, Compliant, ContactSensor
@@ -38,16 +40,19 @@ class ResumeMismatch(StationError):
 
 class Session:
     """One calibration session on one robot. Build it with ``station.connect``/``station.engine.runner``;
-    procedures receive it as ``s``."""
+    procedures receive it as ``s``. A technician's session (``station jog``, header ``mode: technician``,
+    ``runner.technician_session``) is the same object: the jog UI drives the robot itself and journals what it
+    records through :meth:`add_sample`, :meth:`discard` and :meth:`step`; its ``samples.csv`` is rewritten
+    after every change."""
 
     def __init__(self, journal: Journal, robot, *, limits: dict[str, Limit] | None = None,
                  limits_version: str | None = None, cell: Cell | None = None, options: dict | None = None,
                  replay: list[dict] | None = None, progress: Callable[[int, int, str], None] | None = None,
                  touch: TouchProvider | str | None = None, log: Callable[[str], None] | None = None,
-                 prompt: Callable[[Question], str] | None = None) -> None:
+                 prompt: Callable[[Question], str] | None = None, model: Model | None = None) -> None:
         self.journal = journal
         self.robot = robot
-        self.model: Model = robot.model
+        self.model: Model = model if model is not None else robot.model
         if cell is not None and cell.tool:
             # the cell names the mounted tool: plans and solves start from it (the driver knows the arm only)
             self.model = self.model.with_params({f"tcp.{k}": v for k, v in cell.tool.items()})
@@ -70,7 +75,10 @@ class Session:
         self._events: list[ev.Event] = list(self.replay)
         self._aim: dict[str, list[np.ndarray]] = {}
         self.instruments: dict[str, object] = {}  # session option -> open instrument (closed by the teardown)
-        self.doing: tuple[str, int | None] | None = None  # (action, pose) in the pose loop: names a fault's step
+        self.steps = Steps(self.event)  # the running steps (station.engine.steps): name faults, aborts, moves
+        # a technician's samples.csv follows every record and discard (the jog UI shows its path: station solve
+        # reads it while the session is open); a procedure's is written when the run ends
+        self.live_csv = journal.header.mode == "technician"
 
     # ---- journal ---------------------------------------------------------------------------------
     @property
@@ -103,17 +111,18 @@ class Session:
         """The session record (what ``station.records`` stores), projected from the journal so far."""
         return session_from_events(self.journal.header, self._events)
 
-    @contextlib.contextmanager
-    def step(self, name: str, **info) -> Iterator[None]:
-        """An OpenHTF-style phase: journaled start and outcome; a failure names the step."""
-        self.doing = None
-        self.event(ev.Step(name=name, status="start", info=info))
+    def step(self, name: str, /, **info) -> contextlib.AbstractContextManager[steps.RunningStep]:
+        """A step (``station.engine.steps``): journaled start with its arguments ``info``, then ``done`` or
+        ``failed`` with its duration; a fault inside it is named after it. The decorator
+        ``station.engine.steps.step`` makes a whole function one."""
+        return self.steps.run(name, info)
+
+    def end(self, status: str = "completed", passed: bool | None = None) -> None:
+        """Journal the session's ``end`` (with the kept samples' count), then close the journal."""
         try:
-            yield
-        except BaseException as e:
-            self.event(ev.Step(name=name, status="failed", error=type(e).__name__, message=str(e)[:500]))
-            raise
-        self.event(ev.Step(name=name, status="done"))
+            self.event(ev.End(status=status, passed=passed, n_samples=len(self.samples())))
+        finally:
+            self.journal.close()
 
     # ---- the operator ----------------------------------------------------------------------------
     def ask(self, question: Question | str, kind: str = "confirm", **spec) -> str | float:
@@ -134,55 +143,55 @@ class Session:
         return value
 
     # ---- connect and check -----------------------------------------------------------------------
+    @steps.step()
     def connect(self) -> dict:
         """Connect and identify: the robot must be the one the session is for (serial, model)."""
-        with self.step("connect"):
-            ident = adopt_serial(self.robot.identity(), self.journal.header.get("serial"))
-            d = _identity_dict(ident)
-            first = self.events("identity")
-            if first and (first[0].robot.get("serial"), first[0].robot.get("model")) != (d["serial"], d["model"]):
-                raise ResumeMismatch(f"resume: robot is {d['model']} {d['serial']!r}, the session was recorded on "
-                                     f"{first[0].robot.get('model')} {first[0].robot.get('serial')!r}")
-            self.event(ev.Identity(robot=d))
-            return d
+        ident = adopt_serial(self.robot.identity(), self.journal.header.get("serial"))
+        d = _identity_dict(ident)
+        first = self.events("identity")
+        if first and (first[0].robot.get("serial"), first[0].robot.get("model")) != (d["serial"], d["model"]):
+            raise ResumeMismatch(f"resume: robot is {d['model']} {d['serial']!r}, the session was recorded on "
+                                 f"{first[0].robot.get('model')} {first[0].robot.get('serial')!r}")
+        self.event(ev.Identity(robot=d))
+        return d
 
+    @steps.step()
     def check_state(self) -> dict:
         """Check state: no fault/stop, powered, and (on resume) the device calibration unchanged since the
         samples were taken."""
-        with self.step("check_state"):
+        st = self.robot.status()
+        if st.estop or st.protective_stop:
+            raise SafetyStop(f"robot is in {'emergency' if st.estop else 'protective'} stop; clear it first")
+        if st.faults:
+            # latched faults a re-enable clears (e.g. a bus watchdog that tripped when the previous run died
+            # mid-move) are journaled and cleared once; anything that persists stops the session
+            self.event(ev.Warn(step="check_state", message="clearing faults: " + "; ".join(st.faults)))
+            self.robot.enable()
             st = self.robot.status()
-            if st.estop or st.protective_stop:
-                raise SafetyStop(f"robot is in {'emergency' if st.estop else 'protective'} stop; clear it first")
-            if st.faults:
-                # latched faults a re-enable clears (e.g. a bus watchdog that tripped when the previous run died
-                # mid-move) are journaled and cleared once; anything that persists stops the session
-                self.event(ev.Warn(step="check_state", message="clearing faults: " + "; ".join(st.faults)))
-                self.robot.enable()
+            if st.faults:  # some drives re-arm on the next command: hold where it stands (no motion)
+                with contextlib.suppress(StationError):
+                    self.robot.move_joints(self.robot.joint_positions().q)
                 st = self.robot.status()
-                if st.faults:  # some drives re-arm on the next command: hold where it stands (no motion)
-                    with contextlib.suppress(StationError):
-                        self.robot.move_joints(self.robot.joint_positions().q)
-                    st = self.robot.status()
-                if st.faults:
-                    raise DeviceFault(f"robot reports faults: {', '.join(st.faults)}")
-            if not st.enabled:
-                self.robot.enable()
-            if st.compliant:
-                self.robot.set_compliant(False)
-            cal = self._read_calibration()
-            q = self.robot.joint_positions().q
-            prior = self.events("state")
-            if prior and cal is not None and prior[0].calibration is not None:
-                allowed = self._expected_calibrations(prior[0].calibration)
-                mismatch = [[k for k, v in exp.items() if abs(cal.get(k, math.nan) - v) > self.cal_tolerance(k)]
-                            for exp in allowed]
-                if all(mismatch) and not self._write_cut(cal):
-                    k = mismatch[0][0]
-                    raise ResumeMismatch(f"resume: device calibration {k} is {cal.get(k)!r}, the journal expects "
-                                         f"{allowed[0][k]!r}; the recorded samples no longer apply")
-            out = {"enabled": True, "calibration": cal, "q": q.tolist()}
-            self.event(ev.State(**out))
-            return out
+            if st.faults:
+                raise DeviceFault(f"robot reports faults: {', '.join(st.faults)}")
+        if not st.enabled:
+            self.robot.enable()
+        if st.compliant:
+            self.robot.set_compliant(False)
+        cal = self._read_calibration()
+        q = self.robot.joint_positions().q
+        prior = self.events("state")
+        if prior and cal is not None and prior[0].calibration is not None:
+            allowed = self._expected_calibrations(prior[0].calibration)
+            mismatch = [[k for k, v in exp.items() if abs(cal.get(k, math.nan) - v) > self.cal_tolerance(k)]
+                        for exp in allowed]
+            if all(mismatch) and not self._write_cut(cal):
+                k = mismatch[0][0]
+                raise ResumeMismatch(f"resume: device calibration {k} is {cal.get(k)!r}, the journal expects "
+                                     f"{allowed[0][k]!r}; the recorded samples no longer apply")
+        out = {"enabled": True, "calibration": cal, "q": q.tolist()}
+        self.event(ev.State(**out))
+        return out
 
     def _read_calibration(self) -> dict[str, float] | None:
         if not isinstance(self.robot, CalibrationStore):
@@ -250,12 +259,12 @@ class Session:
             self.event({"type": "instrument", "option": option, "url": url, **ident.to_dict()})
         return inst
 
+    @steps.step("measure", args=("pose",))
     def measure_pose(self, pose: PlannedPose, instrument=None, **status) -> ev.Sample:
         """Read all joints, then the instrument (it answers once the probe stands still), then the joints
         again: a robot that moved in between is a fault, not a sample. The 6-DoF reading (instrument frame) is
         journaled with the joints (fsynced) before the next move. ``instrument``: an open instrument or the
         option it was opened for (default: the only one open)."""
-        self.doing = ("measure", pose.index)
         inst = self._instrument_for(instrument)
         snap = self.robot.joint_positions()
         reading = inst.measure()
@@ -264,11 +273,8 @@ class Session:
         if not np.all(np.isfinite(q)) or np.max(np.abs(q2 - q)) > 1e-6:
             raise DeviceFault(f"measure: the robot moved while the instrument measured pose {pose.index} "
                               f"(joints changed by {np.max(np.abs(q2 - q)):.3g})")
-        ident = inst.identity()
-        return self.event(ev.Sample(
-            point=pose.point, q=q.tolist(), raw=list(snap.raw), raw_unit=snap.raw_unit, t_read=snap.t,
-            t_device=snap.t_device, measured=list(reading.xyz), measured_rotation=list(reading.rv),
-            pose=pose.index, set=pose.set, status={"instrument": ident.serial, "t_instrument": reading.t, **status}))
+        return self.add_sample(snap, pose.point, pose=pose, status=status, reading=reading,
+                               instrument=inst.identity().serial)
 
     def _instrument_for(self, which):
         if which is not None and not isinstance(which, str):
@@ -464,12 +470,12 @@ class Session:
         self.check_space("a move")
         self.robot.move_joints(np.asarray(q, float), speed=speed)
 
+    @steps.step(args=("pose",))
     def approach(self, pose: PlannedPose) -> None:
         """Move above the reference (approach pose of the plan) through the plan's via poses; the path from where
         the arm stands (e.g. after a resume) is checked against the keep-outs first, refused in one line."""
         from station.engine.plan import route_from
 
-        self.doing = ("approach", pose.index)
         self.check_space(f"the approach to pose {pose.index}")
         for q in route_from(self.model, self.cell.keep_out if self.cell else None, self.robot.joint_positions().q,
                             [*pose.via, pose.approach_q], what=f"pose {pose.index}"):
@@ -505,40 +511,66 @@ class Session:
                                        self.options.get("touch"))
         return self._touch
 
+    @steps.step(args=("pose",))
     def seat(self, pose: PlannedPose) -> None:
         """Bring the tip onto the reference (socket seating, guarded contact or the technician)."""
-        self.doing = ("seat", pose.index)
         self.check_space(f"seating at pose {pose.index}")
         self.toucher.bring_to(self, pose)
 
+    @steps.step(args=("pose",))
     def leave(self, pose: PlannedPose) -> None:
         """Leave the reference: compliance off, back to the approach pose."""
-        self.doing = ("leave", pose.index)
         self.toucher.release(self, pose)
 
     # ---- samples ---------------------------------------------------------------------------------
+    @steps.step(args=("pose",))
     def record(self, pose: PlannedPose | None = None, point: str | None = None, measured=None) -> ev.Sample:
         """Read all joints in one transaction and journal the sample (fsynced before the next motion)."""
-        self.doing = ("record", None if pose is None else pose.index)
         snap = self.robot.joint_positions()
         touch = self.robot.touch() if isinstance(self.robot, ContactSensor) else None
         if touch is False:
             raise DeviceFault(f"record: touch indicator is off at pose {pose.index if pose else '?'}; the tip is "
                               "not on the reference")
+        return self.add_sample(snap, point or (pose.point if pose else "A"), pose=pose, status={"touch": touch},
+                               measured=measured)
+
+    def add_sample(self, snap, point: str, *, pose: PlannedPose | int | None = None, status: dict | None = None,
+                   reading=None, instrument: str | None = None, measured=None) -> ev.Sample:
+        """Journal one sample taken from the joint reading ``snap`` (fsynced when it returns): the one way a
+        sample reaches a journal (``record``, ``measure_pose`` and the jog UI come here; the event is built by
+        ``events.Sample.from_snapshot``). ``pose``: the planned pose (its index and set; its point's aim) or a
+        technician's touch number; ``status``: what the taker knows of the touch; ``reading``/``instrument``/
+        ``measured``: an instrument's measurement. A joint reading that is not finite is a device fault."""
         q = np.asarray(snap.q, float)
         if not np.all(np.isfinite(q)):
             raise DeviceFault(f"record: joint reading is not finite: {q.tolist()}")
-        sample = self.event(ev.Sample(
-            point=point or (pose.point if pose else "A"), q=q.tolist(), raw=list(snap.raw), raw_unit=snap.raw_unit,
-            t_read=snap.t, t_device=snap.t_device,
-            measured=None if measured is None else np.asarray(measured, float).tolist(),
-            pose=None if pose is None else pose.index, set=pose.set if pose else "fit", status={"touch": touch}))
-        if pose is not None:
-            self._aim.setdefault(pose.point, []).append(self.model.position(q))
+        planned = pose if isinstance(pose, PlannedPose) else None
+        sample = self.event(ev.Sample.from_snapshot(
+            snap, point, pose=planned.index if planned else pose, set=planned.set if planned else "fit",
+            status=status, reading=reading, instrument=instrument, measured=measured))
+        if planned is not None:
+            self._aim.setdefault(planned.point, []).append(self.model.position(q))
+        if self.live_csv:
+            self.write_samples_csv()
         return sample
 
-    def discard(self, seq: int, reason: str = "") -> None:
-        self.event(ev.Discard(sample=int(seq), reason=reason))
+    def discard(self, sample: ev.Sample | int, reason: str = "") -> None:
+        """Leave a recorded sample (or the sample with journal sequence number ``sample``) out of solves and
+        records; journaled, never erased."""
+        self.event(ev.Discard(sample=int(sample.seq if isinstance(sample, ev.Sample) else sample), reason=reason))
+        if self.live_csv:
+            self.write_samples_csv()
+
+    @property
+    def samples_csv(self) -> Path:
+        return self.folder / "samples.csv"
+
+    def write_samples_csv(self) -> None:
+        """The kept samples as ``samples.csv`` beside the journal (``station solve --samples`` reads it)."""
+        from station.samplesfile import joint_units, write_samples_csv
+
+        write_samples_csv(self.samples_csv, self.samples(), joint_units(self.model),
+                          comment=f"session {self.id}, model {self.model.name}")
 
     def samples(self, which: str | None = None) -> list[ev.Sample]:
         """The kept samples (``station.engine.events.Sample``), of one set (``fit``/``holdout``) if given."""
@@ -624,23 +656,23 @@ class Session:
                 self.measure("verify_rms", float(np.sqrt(np.mean(np.square(d))))),
                 self.measure("verify_max", float(np.max(d)))]
 
+    @steps.step()
     def judge(self) -> dict:
         """Verdict: every limit of this procedure and model must be measured and inside its bounds."""
-        with self.step("judge"):
-            names = {m["name"] for m in self.measurements}
-            for name, lim in self.limits.items():
-                if name not in names:
-                    try:
-                        self.measurements.append({**lim.judge(None, lim.quantity), "quantity": lim.quantity})
-                    except LimitsError:
-                        raise
-            if not self.limits:  # informational measurements only: nothing a quality engineer could sign
-                self.verdict = {"passed": None, "status": NO_LIMITS, "measurements": self.measurements,
-                                "limits_version": self.limits_version}
-            else:
-                self.verdict = {"passed": all(m["passed"] for m in self.measurements),
-                                "measurements": self.measurements, "limits_version": self.limits_version}
-            self.event(ev.Verdict(**self.verdict))
+        names = {m["name"] for m in self.measurements}
+        for name, lim in self.limits.items():
+            if name not in names:
+                try:
+                    self.measurements.append({**lim.judge(None, lim.quantity), "quantity": lim.quantity})
+                except LimitsError:
+                    raise
+        if not self.limits:  # informational measurements only: nothing a quality engineer could sign
+            self.verdict = {"passed": None, "status": NO_LIMITS, "measurements": self.measurements,
+                            "limits_version": self.limits_version}
+        else:
+            self.verdict = {"passed": all(m["passed"] for m in self.measurements),
+                            "measurements": self.measurements, "limits_version": self.limits_version}
+        self.event(ev.Verdict(**self.verdict))
         return self.verdict
 
     # ---- write-back ------------------------------------------------------------------------------
@@ -650,11 +682,10 @@ class Session:
         from station.engine.writeback import write_back
 
         if not self.options.get("apply"):
-            self.event(ev.Step(name="write_back", status="skipped", reason="not requested (--apply)"))
+            self.steps.skip("write_back", "not requested (--apply)")
             return None
         if self.verdict is not None and not self.verdict["passed"]:
-            self.event(ev.Step(name="write_back", status="skipped",
-                               reason=f"verdict {self.verdict.get('status') or 'FAIL'}"))
+            self.steps.skip("write_back", f"verdict {self.verdict.get('status') or 'FAIL'}")
             return None
         with self.step("write_back"):
             return write_back(self, check_pose)

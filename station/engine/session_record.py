@@ -8,6 +8,7 @@ from pathlib import Path
 
 from station.engine import events as ev
 from station.engine.journal import read_journal
+from station.engine.steps import summarize
 
 
 def iso(t: float | None) -> str | None:
@@ -92,6 +93,7 @@ def session_from_events(header: ev.Header, events: list[ev.Event]) -> dict:
         "verdict": verdict,
         "writeback": writeback_summary(events),
         "faults": faults,
+        "steps": summarize(events, iso),
     }
     if cmap is not None:
         record["correction_map"] = cmap

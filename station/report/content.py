@@ -57,6 +57,46 @@ def param_unit(name: str, p: dict, model=None) -> str:
     return units.param_unit(name, model)
 
 
+def _count(v) -> int:
+    return v if isinstance(v, int) and not isinstance(v, bool) and v >= 0 else 0
+
+
+def _note(run: dict) -> str:
+    """Why one run of a step did not end done: ``pose 2: DeviceFault: the ball slipped``, the skip reason."""
+    info = run.get("info") if isinstance(run.get("info"), dict) else {}
+    where = f"pose {info['pose']}: " if isinstance(info.get("pose"), int) else ""
+    if run.get("status") == "skipped":
+        return f"{where}skipped: {run.get('reason') or ''}".strip()
+    if run.get("status") == "failed":
+        return f"{where}{run.get('error') or 'failed'}: {run.get('message') or ''}".strip()
+    return f"{where}{run.get('status') or ''} (never ended)"
+
+
+def steps_rows(session: dict) -> list[dict]:
+    """The session's steps as the report and ``station records show`` list them (one row per step name, from the
+    record's ``steps``): ``name``, ``depth`` (0: a step of the checklist, 1: inside another), ``runs``,
+    ``outcome`` (``done``, or the counts that were not), ``status`` (done, skipped, problem), ``duration_s``,
+    ``args`` (of a step that ran once) and ``notes`` (why runs did not end done). Entries that are not what the
+    engine writes are left out."""
+    rows = []
+    for e in session.get("steps") or [] if isinstance(session.get("steps"), list) else []:
+        if not isinstance(e, dict) or not isinstance(e.get("name"), str):
+            continue
+        runs = _count(e.get("runs"))
+        counts = {k: _count(e.get(k)) for k in ("done", "failed", "skipped", "unfinished")}
+        outcome = "done" if counts["done"] == runs else ", ".join(f"{n} {k}" for k, n in counts.items() if n)
+        # the report's colour: every run done, only skipped (a choice, e.g. no --apply), or a problem
+        status = "done" if outcome == "done" else "skipped" if counts["skipped"] == runs else "problem"
+        info = e.get("info") if isinstance(e.get("info"), dict) else {}
+        runs_not_done = [r for r in e.get("not_done") or [] if isinstance(r, dict)]
+        rows.append({"name": e["name"], "depth": min(_count(e.get("depth")), 4), "runs": runs, "outcome": outcome,
+                     "status": status,
+                     "duration_s": finite_or_none(e.get("duration_s")),
+                     "args": ", ".join(f"{k}={v}" for k, v in info.items()),
+                     "notes": [_note(r) for r in runs_not_done]})
+    return rows
+
+
 def build_report(session: dict) -> dict:
     if not isinstance(session, dict) or not session.get("session"):
         raise ReportError("report: the session record must be a dict with a 'session' id")
@@ -127,6 +167,7 @@ def build_report(session: dict) -> dict:
         "residuals": {"summary": residual_summary, "holdout": (result or {}).get("holdout"), "per_pose": per_pose},
         "coverage": {**coverage(model, arrays), "model_note": model_note},
         "writeback": wb,
+        "steps": steps_rows(session),
         "correction_map": correction_map_section(session),
         "iso9283": iso9283_section(session),
     })

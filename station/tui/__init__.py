@@ -1,6 +1,6 @@
-"""The technician's jog terminal UI (``station jog``): a textual app over a widget-free controller."""
+"""The technician's jog terminal UI (``station jog``): a textual app over a widget-free controller, on an engine
+session in technician mode (``station.tui.session``)."""
 
 from station.tui.controller import JogController, parse_reference
-from station.tui.session import JogSession
 
-__all__ = ["JogController", "JogSession", "parse_reference"]
+__all__ = ["JogController", "parse_reference"]

@@ -59,13 +59,13 @@ class ApproachAids:
         if not self.compliant or not self.can_seat:
             return False
         try:
-            c.robot.set_compliant(False)
+            with c.session.step("compliant off", by="stop"):
+                c.robot.set_compliant(False)
         except StationError as e:
             if not quiet:
                 c._on_error(e, "compliance off")
             return False
         self.compliant = False
-        c._journal_step("compliant off", {"by": "stop"})
         return True
 
     @property
@@ -112,13 +112,17 @@ class ApproachAids:
             c.message = "clear the fault first (c)"
             return False
         on = not self.compliant
-        if on and (self.near is not None or c.holding.hold_state is not None or (
-                c.readout is not None and c.readout.moving)):
+        if on and (self.near is not None or c.holding.hold_state is not None):
             c.message = f"robot is moving: wait, or STOP (space), before {name}"
             return False
         with c.io_lock:
             try:
-                c.robot.set_compliant(on)
+                # asked now, not from the last poll: a move that just ended still reads "moving" there
+                if on and c.robot.status().moving:
+                    c.message = f"robot is moving: wait, or STOP (space), before {name}"
+                    return False
+                with c.session.step("compliant on" if on else "compliant off", point=c.point):
+                    c.robot.set_compliant(on)
             except ConfigError as e:  # this robot's devices cannot yield (e.g. a servo without current control)
                 c.message = f"refused: {e}"
                 return False
@@ -126,7 +130,6 @@ class ApproachAids:
                 c._on_error(e, f"{name} {'on' if on else 'off'}")
                 return False
         self.compliant = on
-        c._journal_step("compliant on" if on else "compliant off", {"point": c.point})
         target = self.targets.get(c.point)
         if on and target is not None and target.kind == "socket":
             c.message = (f"{name} ON: the ball settles into socket {c.point} (guide it in by hand if it "

@@ -315,7 +315,7 @@ class JogApp(App):
     def _refresh_samples(self) -> None:
         table = self.query_one("#samples", DataTable)
         ctl = self.ctl
-        samples = ctl.session.samples
+        samples = ctl.session.samples()
         key = (tuple((s.seq, s.point, s.status.get("touch"), ctl.number(s), ctl.solve_state.sample_residuals.get(
             s.seq)) for s in samples), ctl.selected, self.compact)
         if key == self._shown.get("#samples"):

@@ -18,6 +18,7 @@ import numpy as np
 
 from station.engine import events as ev
 from station.engine.cell import Cell
+from station.engine.session import Session
 from station.engine.writeback import (
     WriteBackError,
     WritebackPlan,
@@ -48,7 +49,6 @@ from station.tui.hold import (  # noqa: F401  (the hold-to-run constants, import
     HoldToRun,
 )
 from station.tui.livesolve import SolveState, is_forced, live_solve
-from station.tui.session import JogSession
 
 STEP_PRESETS = (0.01, 0.1, 1.0, 10.0)  # mm for translations / prismatic joints, deg for rotations
 SPEED_PERCENT = (1, 2, 5, 10, 25, 50, 100)  # speed override, % of the manual tool-speed cap (250 mm/s)
@@ -123,12 +123,13 @@ class JogController:
     """One robot, one session. The UI calls everything from its own thread; ``io_lock`` only protects callers
     that use the controller from other threads too. ``stop()`` deliberately bypasses the lock."""
 
-    def __init__(self, robot, session: JogSession, *, model: Model | None = None, identify: str = "offsets,tcp",
+    def __init__(self, robot, session: Session, *, model: Model | None = None, identify: str = "offsets,tcp",
                  reference: str | dict = "unknown", cell: Cell | None = None, limits: dict | None = None,
                  limits_version: str | None = None, judged_as: str = "jog") -> None:
         self.robot = robot
         self.model: Model = model if model is not None else robot.model
-        self.session = session
+        self.session = session  # the engine session in technician mode (station.engine.runner.technician_session)
+        session.steps.on_lost = self._trace_lost  # a full disk never holds back an action the technician asked for
         self.identify = identify
         self.reference = reference
         self.cell = cell
@@ -162,7 +163,7 @@ class JogController:
         # (measured 8 of 25 mm/s, 0.5 s late stop): there each tick re-sends the speed instead
         self.velocity_jog = isinstance(robot, VelocityJog)
         self.hold_supported = True
-        self.selected: int | None = None  # index into session.samples; None = the latest
+        self.selected: int | None = None  # index into session.samples(); None = the latest
         self.fault: str | None = None
         self.message = "ready"
         self.readout: Readout | None = None
@@ -325,11 +326,10 @@ class JogController:
             if locked:
                 self.io_lock.release()
 
-    def _journal_step(self, name: str, info: dict) -> None:
-        try:
-            self.session.event(ev.Step(name=name, status="done", info=info))
-        except Exception as e:  # the journal is gone (disk full): the banner says so, the robot still obeys
-            self.message = f"{name} (not journaled: {e})"
+    def _trace_lost(self, name: str, err: Exception) -> None:
+        """A step's event could not be journaled (disk full): the banner says so, the robot still obeys (the
+        journal lists the lost event: the session cannot pass)."""
+        self.message = f"{name} (not journaled: {err})"
 
     def poll(self, block: bool = False) -> Readout | None:
         """Refresh joints, TCP, touch and status (and the proximity cue; a running "go near" starts its next
@@ -381,7 +381,7 @@ class JogController:
             out.append("the robot is moving: it stops")
         if self.compliant:
             out.append(f"the arm is {self.compliant_name}: it is held stiff")
-        n = len(self.session.samples)
+        n = len(self.session.samples())
         if n:
             verdict = {"good enough": "PASS expected", "NO LIMITS": "verdict NO LIMITS"}.get(
                 self.guide.status, "FAIL expected: not good enough yet")
@@ -574,28 +574,28 @@ class JogController:
         """Reset a fault: re-enable the robot and clear the banner only if the robot then reports OK."""
         with self.io_lock:
             try:
-                self.robot.enable()
-                status = self.robot.status()
+                with self.session.step("enable"):
+                    self.robot.enable()
+                    status = self.robot.status()
             except StationError as e:
                 self.fault = f"enable: {e}"
                 return
         if status.ok:
             self.fault = None
             self.message = "enabled"
-            self.session.event(ev.Step(name="enable", status="done"))
         else:
             self.fault = "still faulted: " + "; ".join(status.faults or ("stop input active",))
 
     # ---- samples ---------------------------------------------------------------------------------------
     def _selected_sample(self) -> ev.Sample | None:
-        samples = self.session.samples
+        samples = self.session.samples()
         if not samples:
             return None
         i = len(samples) - 1 if self.selected is None else max(0, min(len(samples) - 1, self.selected))
         return samples[i]
 
     def select(self, delta: int) -> None:
-        n = len(self.session.samples)
+        n = len(self.session.samples())
         if not n:
             return
         cur = n - 1 if self.selected is None else self.selected
@@ -628,13 +628,17 @@ class JogController:
         if touch is False and not force:
             self.message = "no contact: jog onto the reference until the touch indicator lights (! records anyway)"
             return None
-        sample = self.session.add_sample(
-            snap.q, point or self.point, raw=snap.raw, raw_unit=snap.raw_unit, t=snap.t, t_device=snap.t_device,
-            touch=touch, status={"enabled": status.enabled, "forced": bool(force and touch is False),
-                                 "compliant": self.compliant})
+        try:  # the technician's touches are numbered in recording order (retakes included)
+            sample = self.session.add_sample(
+                snap, point or self.point, pose=len(self.numbers),
+                status={"enabled": status.enabled, "forced": bool(force and touch is False),
+                        "compliant": self.compliant, "touch": touch})
+        except StationError as e:  # a joint reading that is not finite: a device fault, nothing journaled
+            self._on_error(e, "record")
+            return None
         self.numbers[sample.seq] = len(self.numbers) + 1
         self.selected = None
-        n = len(self.session.samples)
+        n = len(self.session.samples())
         self.message = f"recorded #{self.number(sample)} on {sample.point} ({n} sample{'s' if n != 1 else ''})"
         if is_forced(sample):
             self.message += ": FORCED without contact, a pose and not a touch (retake it on contact)"
@@ -679,7 +683,7 @@ class JogController:
     # ---- live solve ------------------------------------------------------------------------------------
     def solve(self) -> SolveState:
         """The live solve of the kept samples (``station.tui.livesolve``), then the guidance's prediction."""
-        samples = self.session.samples
+        samples = self.session.samples()
         self.predicted = {}
         self.solve_state = live_solve(self.model, samples, self.identify, self.reference)
         if self.limits and self.solve_state.status == "ok":
@@ -693,7 +697,7 @@ class JogController:
         return self.solve_state
 
     def _update_guidance(self) -> None:
-        self.guide = gd.guidance(self.model, self._guide_labels(), self.session.samples, self.solve_state.result,
+        self.guide = gd.guidance(self.model, self._guide_labels(), self.session.samples(), self.solve_state.result,
                                  self.limits, self.predicted, self.blocked)
 
     def _guide_labels(self) -> list[str]:
@@ -793,7 +797,7 @@ class JogController:
                 return False
             try:
                 apply(self.robot, plan, event=self.session.event, folder=self.session.folder,
-                      session=self.session.session_id, tolerance=self._tolerance, note=note)
+                      session=self.session.id, tolerance=self._tolerance, note=note)
             except WriteBackError:
                 self.writeback_failed = True
                 self.writeback_done = {"before": plan.before, "after": plan.after, "verified": False}
@@ -831,13 +835,16 @@ class JogController:
             if result is not None and self.writeback_done is None:
                 self.session.event(ev.Result(result=result.to_dict()))
             # the verdict against the limits that judge this session; none: NO LIMITS, never a PASS
-            measured = gd.measurements(self.model, result, len(self.session.samples), self.predicted,
-                                       sum(is_forced(s) for s in self.session.samples))
+            kept = self.session.samples()
+            measured = gd.measurements(self.model, result, len(kept), self.predicted,
+                                       sum(is_forced(s) for s in kept))
             self.verdict = gd.judge(self.limits, measured, self.limits_version)
             self.session.event(ev.Verdict(**self.verdict))
+            self.session.verdict = self.verdict
             passed = self.verdict["passed"]
         finally:
-            self.session.close(passed=passed)
+            # "completed" (the engine's word) also tells station resume there is nothing to do
+            self.session.end("completed", passed)
 
     @property
     def verdict_text(self) -> str:

@@ -40,7 +40,7 @@ def title_text(ctl: JogController, compact: bool) -> Text:
     serial = getattr(header, "serial", None)
     t.append(f" {ctl.model.name}" + (f" · serial {serial}" if serial else ""))
     if not compact:
-        t.append(f" · session {ctl.session.session_id}", style="dim")
+        t.append(f" · session {ctl.session.id}", style="dim")
     return t
 
 
