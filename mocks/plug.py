@@ -36,6 +36,7 @@ class Demo:
     options: dict = field(default_factory=dict)  # procedure options (e.g. reference, cone_deg)
     query: str = ""  # extra robot URL options of the demo (e.g. a faster default speed)
     world: dict = field(default_factory=dict)  # world document keys set for the demo (e.g. a tool: the ball)
+    sigma_deg: float = 0.15  # spread of the hidden joint zero errors
 
 
 class Plug:

@@ -433,7 +433,7 @@ def _demo_plug(bus: str):
     return buses[bus]
 
 
-def demo_world(bus: str, seed: int, time_mode: str = "instant", sigma_deg: float = 0.15) -> dict:
+def demo_world(bus: str, seed: int, time_mode: str = "instant", sigma_deg: float | None = None) -> dict:
     """World document (SI) with hidden joint zero offsets only (what zero_offsets identifies)."""
     import math
 
@@ -443,6 +443,7 @@ def demo_world(bus: str, seed: int, time_mode: str = "instant", sigma_deg: float
     from station.mocks.world.world import default_doc
 
     demo = _demo_plug(bus).demo
+    sigma_deg = demo.sigma_deg if sigma_deg is None else sigma_deg
     m = load_model(demo.model)
     rng = np.random.default_rng(seed)
     doc = default_doc(demo.model, seed)
