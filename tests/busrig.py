@@ -257,8 +257,9 @@ def _dxl_watchdog() -> float:
 
 @rig("ur")
 def ur(tmp_path: Path, *, realtime: bool, seed: int) -> Iterator[Rig]:
-    # the controller's 2 ms cycle drives the world (moves take real time in either mode)
-    world_path, cell_path, serial = _demo("ur", tmp_path, seed, "instant")
+    # instant: the controller's 2 ms cycle is the world's clock, ticked as fast as the controller runs (a
+    # procedure's moves take less than their real time); realtime: on the wall clock
+    world_path, cell_path, serial = _demo("ur", tmp_path, seed, "realtime" if realtime else "instant")
     with launch("ur", world_path, serial=serial) as emu:
         def fault():
             from station.robot import SafetyStop

@@ -77,6 +77,8 @@ LOCAL_HOSTS = ("localhost", "127.0.0.1")
 # 2-core PC (issue 15); 500 ms (250 packages) soaked with zero spurious faults under two busy loops
 # (tests/test_soak_buses.py) and still stops the arm within half a second of a dead link.
 STALL_MS = 500.0  # ur_rtde skips its remote-control check only for these
+MOVE_WATCHDOG_HZ = 2.0  # the RTDE watchdog during a waited move: a killed station's arm stops within 0.5 s
+MOVE_IDLE_WATCHDOG_HZ = 0.01  # between waited moves (100 s): an expiry only means a fresh script next time
 JOG_IDLE_WATCHDOG_HZ = 1.0  # the RTDE watchdog between velocity jogs (arm standing; jog_keep_alive feeds it)
 
 
@@ -118,6 +120,8 @@ class URRobot(RobotBase):
                "default tool speed of Cartesian jogs and `move_linear`"),
         Option("jog_watchdog", number(0, 500, unit="Hz"), 10.0, "controller-side RTDE watchdog during speed jogs "
                "(0 = off)"),
+        Option("move_watchdog", number(0, 500, unit="Hz"), MOVE_WATCHDOG_HZ, "controller-side RTDE watchdog during "
+               "waited moves: a station that dies mid-move stops the arm within its period (0 = off)"),
         Option("serial", text(), None, "serial number to use only if the controller does not report one "
                "(PolyScope < 5.6)"),
         Option("robot_type", text(), None, "the arm a model file is for (`UR5e`, `UR10`, ...), checked against "
@@ -134,7 +138,7 @@ class URRobot(RobotBase):
                  export_dir: str | None = None, contact_bit: int = 16, speed: float = 0.5, accel: float = 1.0,
                  jog_speed: float = 0.2, tool_speed: float = 0.05, stale_timeout: float = STALL_MS / 1000.0,
                  jog_watchdog: float = 10.0, serial: str | None = None, robot_type: str | None = None,
-                 url: str = "", connect: bool = True) -> None:
+                 url: str = "", connect: bool = True, move_watchdog: float = 2.0) -> None:
         self.host = host
         self.catalog = catalog  # the arm's published geometry
         self.deltas = deltas  # a copied calibration.conf, if given (calibration=PATH)
@@ -149,6 +153,7 @@ class URRobot(RobotBase):
         self.jog_speed, self.tool_speed = jog_speed, tool_speed
         self.stale_timeout = stale_timeout
         self.jog_watchdog = jog_watchdog  # Hz: controller-side RTDE watchdog armed for speed jogs (0: off)
+        self.move_watchdog = move_watchdog  # Hz: the same during a waited move, kicked by its wait loop (0: off)
         # the RTDE watchdog the running control script carries (0: none); JOG_IDLE_WATCHDOG_HZ between jogs
         self._watchdog_hz = 0.0
         self._rt_sent = self._last_kick = 0.0
@@ -191,7 +196,8 @@ class URRobot(RobotBase):
         args = dict(deltas=deltas, calibration={"controller": "controller", "none": None}.get(cal, "file"),
                     power_on=o["power_on"] == "yes", export_dir=o["export"], contact_bit=o["contact_bit"],
                     speed=o["speed"] or min(0.5, vmax), jog_speed=o["jog_speed"] or min(0.2, vmax),
-                    tool_speed=o["tool_speed"], jog_watchdog=o["jog_watchdog"], serial=o["serial"],
+                    tool_speed=o["tool_speed"], jog_watchdog=o["jog_watchdog"],
+                    move_watchdog=o["move_watchdog"], serial=o["serial"],
                     robot_type=o["robot_type"], stale_timeout=o["stall_ms"] / 1000.0, url=url.raw)
         args.update(overrides)
         return cls(url.host, catalog, **args)
@@ -683,6 +689,8 @@ class URRobot(RobotBase):
 
     def _move(self, target: np.ndarray, v: float, wait: bool) -> None:
         start = self.joint_positions().q
+        if wait:  # ur_rtde's script runs a moveJ to its end without a client: the watchdog stops a dead station's
+            self._arm_watchdog(self.move_watchdog)
         previous = self._last_write
         ok = self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True)
         self._last_write = time.monotonic()
@@ -696,6 +704,8 @@ class URRobot(RobotBase):
         if wait:
             lead = float(np.max(np.abs(target - start)))
             self._wait_move(target, lead / v + 2 * v / self.accel + 5.0)
+            if self._watchdog_armed:  # standing, nothing kicks until the next command: relaxed, not ended (a
+                self._arm_watchdog(MOVE_IDLE_WATCHDOG_HZ)  # script start per move costs seconds on a busy PC)
 
     def move_linear(self, pose, speed: float | None = None, wait: bool = True) -> None:
         """UR-specific: ``moveL`` of the controller's TCP to ``pose`` (x, y, z m; rx, ry, rz rotation vector, base
