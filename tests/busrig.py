@@ -121,6 +121,11 @@ class Rig:
     speed: float = 0.2  # rad/s: a slow move (stop and kill tests)
 
     @property
+    def default_url(self) -> str:
+        """``url`` with the drivers' default fault thresholds (no relaxed timeouts)."""
+        return self.url.replace(CANOPEN_RELAXED, "")
+
+    @property
     def world(self):
         return getattr(self.emu, "world", None)
 
@@ -247,6 +252,17 @@ def dynamixel(tmp_path: Path, *, realtime: bool, seed: int) -> Iterator[Rig]:
         yield Rig("dynamixel", "dynamixel", emu, emu.url, serial, world_path, cell_path, WorldTruth(world), half,
                   half, True, fault, volatile, True, kill_url=emu.url, kill_bound=_dxl_watchdog(),
                   options=_options("dynamixel"))
+
+
+@rig("dynamixel-process")
+def dynamixel_process(tmp_path: Path, *, realtime: bool, seed: int) -> Iterator[Rig]:
+    """The servos as ``station mock dynamixel`` in a child process (its own interpreter, as a real bus's servos
+    are not starved by the station's host): the load soak. Its world is read back through no side channel, so
+    this rig has no truth, fault or volatile checks (the conformance suite uses ``dynamixel``)."""
+    world_path, cell_path, serial = _demo("dynamixel", tmp_path, seed, "realtime" if realtime else "instant")
+    with launch("dynamixel", world_path, serial=serial, process=True) as emu:
+        yield Rig("dynamixel-process", "dynamixel", emu, emu.url, serial, world_path, cell_path, None,
+                  np.zeros(0), np.zeros(0), True, None, lambda: None, True, options=_options("dynamixel"))
 
 
 def _dxl_watchdog() -> float:

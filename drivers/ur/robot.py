@@ -479,10 +479,12 @@ class URRobot(RobotBase):
             self._c.kickWatchdog()
             self._last_kick = self._last_write = now
 
-    def _disarm_watchdog(self) -> None:
+    def _disarm_watchdog(self, keep_relaxed: bool = True) -> None:
         """Before anything that is not followed by kicks (freedrive, unwatched moves): end the script that
         carries the jog watchdog; a fresh one (without it) is uploaded by _ready_for_motion."""
-        if self._watchdog_armed:
+        # the relaxed watchdog a waited move leaves (100 s) is kept: ending and re-uploading the script before
+        # every unwatched move was a control-script start timeout on a busy PC
+        if self._watchdog_armed and not (keep_relaxed and self._watchdog_hz == MOVE_IDLE_WATCHDOG_HZ):
             self._check_link()
             if self._c.isProgramRunning():
                 self._c.stopScript()
@@ -990,7 +992,7 @@ class URRobot(RobotBase):
             self._check_safety()
             return
         if on:
-            self._disarm_watchdog()  # the arm rests in freedrive without kicks
+            self._disarm_watchdog(keep_relaxed=False)  # the arm rests in freedrive without kicks, for any time
         self._ready_for_motion()
         if on:
             if self._compliant_mode is not None:
