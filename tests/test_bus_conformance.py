@@ -216,6 +216,13 @@ def _offsets(record) -> dict[str, dict]:
     return {n: p for n, p in record["result"]["parameters"].items() if n.startswith("offset.") and p["identifiable"]}
 
 
+def _hidden(rig) -> dict[str, float]:
+    """The world's hidden errors (the truth zero_offsets must recover), read from the world file."""
+    from station.mocks.world import World
+
+    return (rig.world or World.from_file(rig.world_path)).hidden()
+
+
 def _park(rig) -> None:
     """A robot without brakes (``WritePose``) is parked where no joint carries load before its power is cut, as
     a technician parks it."""
@@ -245,7 +252,9 @@ def test_apply_power_cycle_then_verify_finds_zero_offsets(rig, tmp_path, monkeyp
                   options=dict(rig.options), report=False)
     assert out.status == "completed" and out.passed, (out.status, out.error, out.verdict)
     first = _offsets(out.record)
-    assert first
+    hidden = _hidden(rig)
+    assert first and all(abs(p["value"] - hidden[n]) <= 4 * p["std"] + float(np.max(rig.tol))
+                         for n, p in first.items()), {n: (p["value"], hidden[n], p["std"]) for n, p in first.items()}
     wb = out.record["writeback"]
     phases = [e["phase"] for e in read_journal(out.folder / "journal.jsonl")[1] if e["type"] == "writeback"]
     if rig.store:  # journaled as a transaction: pre-image with its backup, written and read back, verified
