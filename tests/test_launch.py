@@ -96,5 +96,7 @@ def _alive(pid: int) -> bool:
 def test_station_demo_with_an_unknown_bus_is_one_line():
     p = subprocess.run([STATION, "demo", "--robot", "profibus"], capture_output=True, text=True, timeout=60)
     assert p.returncode == 2
-    assert p.stderr.strip().splitlines() == ["station: error: --robot must be one of canopen, dynamixel, ur, got "
-                                             "'profibus'"]
+    from station.mocks.plug import demo_buses
+
+    assert p.stderr.strip().splitlines() == [f"station: error: --robot must be one of {', '.join(demo_buses())}, "
+                                             "got 'profibus'"]

@@ -689,9 +689,10 @@ class URRobot(RobotBase):
         self._ready_for_motion()
         self._move(target, v, wait)
 
-    def _move(self, target: np.ndarray, v: float, wait: bool) -> None:
+    def _move(self, target: np.ndarray, v: float, wait: bool, watch: bool = True) -> None:
         start = self.joint_positions().q
-        if wait:  # ur_rtde's script runs a moveJ to its end without a client: the watchdog stops a dead station's
+        watch = wait and watch and self.move_watchdog > 0
+        if watch:  # ur_rtde's script runs a moveJ to its end without a client: the watchdog stops a dead station's
             self._arm_watchdog(self.move_watchdog)
         previous = self._last_write
         ok = self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True)
@@ -705,9 +706,18 @@ class URRobot(RobotBase):
             self._refused("moveJ")
         if wait:
             lead = float(np.max(np.abs(target - start)))
-            self._wait_move(target, lead / v + 2 * v / self.accel + 5.0)
-            if self._watchdog_armed:  # standing, nothing kicks until the next command: relaxed, not ended (a
-                self._arm_watchdog(MOVE_IDLE_WATCHDOG_HZ)  # script start per move costs seconds on a busy PC)
+            self._wait_move(target, lead / v + 2 * v / self.accel + 5.0, v if watch else None)
+            if watch and self._watchdog_armed:  # standing, nothing kicks until the next command: relaxed, not
+                self._arm_watchdog(MOVE_IDLE_WATCHDOG_HZ)  # ended (a script start per move is slow on a busy PC)
+
+    def _resend_after_watchdog(self, target: np.ndarray, v: float) -> None:
+        """The move watchdog ended the script because this process did not kick it for a whole period (a loaded
+        PC): a fresh script, the move watchdog again, and the same moveJ from where the arm stopped."""
+        self._restart_after_watchdog("the move is finished", self._last_write)
+        self._arm_watchdog(self.move_watchdog)
+        if not self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True):
+            self._refused("moveJ")
+        self._last_write = time.monotonic()
 
     def move_linear(self, pose, speed: float | None = None, wait: bool = True) -> None:
         """UR-specific: ``moveL`` of the controller's TCP to ``pose`` (x, y, z m; rx, ry, rz rotation vector, base
@@ -738,7 +748,7 @@ class URRobot(RobotBase):
                 self._halt_quietly()
                 raise DeviceFault(f"ur://{self.host}: moveL ended {err * 1e3:.3f} mm from its target")
 
-    def _wait_move(self, target: np.ndarray | None, budget: float) -> None:
+    def _wait_move(self, target: np.ndarray | None, budget: float, resend_v: float | None = None) -> None:
         # The budget (planned motion + margin) runs on the controller's clock (RTDE timestamp): the motion
         # runs on that clock, which on a real UR is wall time, so nothing is loosened there; an emulated
         # controller starved of CPU (busy CI machine) runs its world slower and cannot use up a wall-clock
@@ -753,6 +763,9 @@ class URRobot(RobotBase):
             self._check_link_moving()
             self._check_safety()
             if not self._c.isProgramRunning():
+                if resend_v is not None and self._watchdog_ended_script(self._last_write):
+                    self._resend_after_watchdog(target, resend_v)  # this process was not scheduled: not a fault
+                    continue
                 self._why_script_stopped()
                 self._halt_quietly()
                 raise DeviceFault(f"ur://{self.host}: the control script stopped during the move")
@@ -820,7 +833,7 @@ class URRobot(RobotBase):
             self._velocity_jog(lambda: self._bounded("speedJ", self._c.speedJ, qd, self.accel, 0.0),
                                lambda q: lead - float(np.dot(q - q0, u)), v, self.accel)
             v_fix = v
-        self._move(target, max(min(v_fix, self.jog_speed), 1e-3), True)
+        self._move(target, max(min(v_fix, self.jog_speed), 1e-3), True, watch=False)  # under the jog's watchdog
 
     def jog_velocity(self, mode: str, axis: int, velocity: float, frame: str = "base") -> None:
         """Non-blocking velocity jog for hold-to-run: speedJ (``mode="joint"``, ``velocity`` rad/s on joint
