@@ -86,7 +86,7 @@ def _load() -> dict[str, Plug]:
     for ep in sorted(entry_points(group=GROUP), key=lambda e: e.name):
         try:
             plug = ep.load()
-        except ImportError as e:
+        except (ImportError, AttributeError) as e:  # a missing module or a missing name in it
             raise MockError(f"emulator {ep.name!r} ({ep.value}) cannot be imported: {e}") from None
         if not isinstance(plug, Plug) or plug.bus != ep.name:
             raise MockError(f"entry point {GROUP} {ep.name} = {ep.value} is not the Plug of bus {ep.name!r}")
