@@ -193,19 +193,6 @@ def _canopen_volatile(emu):
     return volatile
 
 
-@rig("canopen-virtual")
-def canopen_virtual(tmp_path: Path, *, realtime: bool, seed: int) -> Iterator[Rig]:
-    from station.mocks.world import World
-
-    world_path, cell_path, serial = _demo("canopen", tmp_path, seed, "realtime" if realtime else "instant")
-    world = World.from_file(world_path)
-    with launch("canopen", world, serial=serial) as emu:
-        q = _quantum(world.nominal)
-        yield Rig("canopen-virtual", "canopen", emu, emu.url + CANOPEN_RELAXED, serial, world_path, cell_path,
-                  WorldTruth(world), q, 2 * q, True, _canopen_fault(world), _canopen_volatile(emu.emulator), False,
-                  options=_options("canopen"))
-
-
 @rig("canopen-socketcand")
 def canopen_socketcand(tmp_path: Path, *, realtime: bool, seed: int) -> Iterator[Rig]:
     """The same drives behind a socketcand hub: python-can's real socketcand client, reachable from a station in
@@ -226,6 +213,17 @@ def canopen_socketcand(tmp_path: Path, *, realtime: bool, seed: int) -> Iterator
                   WorldTruth(world), q, 2 * q, True, _canopen_fault(world), _canopen_volatile(emu), True,
                   kill_url=url + "&master_timeout_ms=400&sdo_timeout_ms=2000", kill_bound=0.4,
                   options=_options("canopen"))
+
+
+@rig("canopen-process")
+def canopen_process(tmp_path: Path, *, realtime: bool, seed: int) -> Iterator[Rig]:
+    """The drives as ``station mock canopen`` in a child process behind its socketcand hub (an interpreter of
+    their own, as real drives are not starved by the station's host): the load soak. No truth, fault or
+    volatile checks (the conformance suite uses ``canopen-socketcand``)."""
+    world_path, cell_path, serial = _demo("canopen", tmp_path, seed, "realtime" if realtime else "instant")
+    with launch("canopen", world_path, serial=serial, process=True) as emu:
+        yield Rig("canopen-process", "canopen", emu, emu.url, serial, world_path, cell_path, None, np.zeros(0),
+                  np.zeros(0), True, None, lambda: None, True, options=_options("canopen"))
 
 
 @rig("dynamixel")

@@ -29,9 +29,8 @@ pytestmark = [pytest.mark.slow, pytest.mark.exclusive]  # saturates both cores: 
 BUSY = 4  # busy-loop processes on the 2 cores
 # documented detection bounds (docs/hardware.md) + 0.5 s for the loaded host's scheduling of the poll itself
 # franka: libfranka's UDP receive timeout, 1.6-3.6 s measured (docs/hardware-franka.md).
-# the servos run in a process of their own (a real bus's devices are not starved by the station's host); the
-# CANopen drives share the station's process: see _detect_loss
-DETECT = {"canopen-virtual": 0.8 + 0.05, "dynamixel-process": 4 * 0.102, "ur": 0.5, "franka": 3.6}
+# the drives and servos run in processes of their own (a real bus's devices are not starved by the station's host)
+DETECT = {"canopen-process": 0.8 + 0.05, "dynamixel-process": 4 * 0.102, "ur": 0.5, "franka": 3.6}
 SLACK = 0.5
 N_FIT, N_HOLDOUT = 12, 2  # the zero_offsets limits want >= 12 fit samples
 
@@ -95,9 +94,7 @@ def _detect_loss(rig) -> tuple[float, BaseException | None]:
     import gc
 
     gc.collect()
-    # the in-process drives' SDO answers wait for this process's GIL behind four busy loops: the connect's SDO
-    # timeout is relaxed (what is timed here is the heartbeat consumer, at its default)
-    robot = open_robot(rig.default_url + ("&sdo_timeout_ms=2000" if rig.bus == "canopen" else ""))
+    robot = open_robot(rig.default_url)
     try:
         robot.joint_positions()
         _kill(rig.emu)
