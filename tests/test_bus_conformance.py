@@ -34,7 +34,11 @@ BUSES = ["canopen-socketcand", "dynamixel", "ur", "franka"]
 CLI = "import sys; sys.argv[0] = 'station'; from station.cli import main; main()"
 
 
-@pytest.fixture(scope="module", params=BUSES)
+# franka-sim (MuJoCo in its own environment) starts in seconds: in the slow part, as tests/test_franka_driver.py
+PARAMS = [pytest.param(b, marks=pytest.mark.slow) if b == "franka" else b for b in BUSES]
+
+
+@pytest.fixture(scope="module", params=PARAMS)
 def rig(request, tmp_path_factory):
     with open_rig(request.param, tmp_path_factory.mktemp(request.param)) as r:
         yield r
