@@ -251,3 +251,46 @@ def _station_env(env, *args):
 
     return subprocess.run([sys.executable, "-m", "station.cli", *args], capture_output=True, text=True, timeout=180,
                           env={**os.environ, **env})
+
+
+@pytest.mark.slow
+def test_a_seven_axis_franka_gets_compensated_joint_targets(tmp_path):
+    """A Franka arm keeps its own kinematics (no write-back): the calibration is used by compensating targets.
+    7 joints: the redundant IK starts from the robot's configuration; the truth is the world's true tool."""
+    start = np.array([0.0, -0.4, 0.0, -2.1, 0.0, 1.7, 0.8])
+    world = World.default("fr3", seed=11, start=start.tolist())
+    cfg = tracker_config({})
+    rng = np.random.default_rng(5)
+    q = start + rng.uniform(-0.4, 0.4, (70, 7))
+    read, meas = [], []
+    for qi in q:
+        world.command_q(qi)
+        read.append(world.encoder_q())
+        M = measure_poses(world.tip_pose_true()[None], cfg.reflectors, cfg.tracker_in_base, rng)[0]
+        meas.append((cfg.tracker_in_base @ M)[:3, 3])
+    samples, result = tmp_path / "samples.csv", tmp_path / "result.json"
+    _csv(samples, [f"q{k}[rad]" for k in range(1, 8)] + ["x[m]", "y[m]", "z[m]"],
+         np.column_stack([read, meas]))
+    r = _station("solve", "--model", "fr3", "--samples", str(samples), "--identify", "offsets,dh,tcp",
+                 "--instrument-frame", "base", "--out", str(result))
+    assert r.returncode == 0, r.stderr
+    qt = start + rng.uniform(-0.3, 0.3, (12, 7))
+    T = world.nominal.fk(qt)
+    targets, out = tmp_path / "targets.csv", tmp_path / "commands.csv"
+    _csv(targets, ["x[m]", "y[m]", "z[m]"], T[:, :3, 3])
+    r = _station("compensate", "--model", "fr3", "--calibration", str(result), "--poses", str(targets),
+                 "--out", str(out), "--start", ",".join(f"{v:.6f}" for v in start))
+    assert r.returncode == 0, r.stderr
+    head, rows = _read(out)
+    assert [row[1] for row in rows] == ["ok"] * 12
+    cols = [head.index(f"q{k}[rad]") for k in range(1, 8)]
+    sigma = np.array([float(row[head.index("sigma[m]")]) for row in rows])
+    e_comp, e_nom = [], []
+    for i, row in enumerate(rows):
+        world.command_q(np.array([float(row[c]) for c in cols]))
+        e_comp.append(np.linalg.norm(world.tip_pose_true()[:3, 3] - T[i, :3, 3]))
+        world.command_q(qt[i])
+        e_nom.append(np.linalg.norm(world.tip_pose_true()[:3, 3] - T[i, :3, 3]))
+    e_comp, e_nom = np.array(e_comp), np.array(e_nom)
+    assert np.all(e_comp <= 3 * sigma), np.round(e_comp / sigma, 2)
+    assert np.sqrt(np.mean(e_comp ** 2)) < 0.1 * np.sqrt(np.mean(e_nom ** 2)), (e_comp, e_nom)

@@ -378,7 +378,18 @@ class FrankaRobot(RobotBase):
         path = loop.move_to(target, speed)
         if not wait and compliant:
             return
-        deadline = time.monotonic() + 2 * path.T + SETTLE_S
+        self._watch_stream(loop, target, 2 * path.T + SETTLE_S, compliant)
+        if not compliant:
+            loop.finish()
+            self._loop = None
+            if loop.error is not None:
+                self._raise_motion_error(loop.error, "move_joints")
+
+    def _watch_stream(self, loop: StreamLoop, target: np.ndarray, budget: float, compliant: bool) -> None:
+        """Until the streamed path has ended at rest: stiff, on ``target`` (FOLLOW_TOL, REST_DQ); compliant, the
+        tool still for 50 ms where it arrived (or where a contact stopped it). Out of ``budget`` s: stiff, a
+        fault (motion ended); compliant, done (the arm stays compliant against what stopped it)."""
+        deadline = time.monotonic() + budget
         rest_since = None
         while True:
             if self._interrupt.is_set():  # stop() from another thread ended the motion
@@ -388,26 +399,25 @@ class FrankaRobot(RobotBase):
                 self._raise_motion_error(loop.error, "move_joints")
             if loop.path_done():
                 s = loop.state
-                dq = float(np.max(np.abs(np.asarray(s.dq))))
-                if not compliant and float(np.max(np.abs(np.asarray(s.q) - target))) < FOLLOW_TOL and dq < REST_DQ:
-                    break
-                if compliant:  # compliant: the tool at rest where it arrived (or where the contact stopped it)
+                if not compliant and self._stream_on_target(s, target):
+                    return
+                if compliant:
                     rest_since = rest_since or time.monotonic()
                     if self._moving(s):
                         rest_since = time.monotonic()
                     elif time.monotonic() - rest_since > 0.05:
-                        break
+                        return
             if time.monotonic() > deadline:
                 if compliant:
-                    break  # the arm stays compliant against what stopped it
+                    return
                 self._end_motions()
                 raise DeviceFault(f"{self.where}: move_joints: the arm did not reach its target in time; stopped")
             time.sleep(0.004)
-        if not compliant:
-            loop.finish()
-            self._loop = None
-            if loop.error is not None:
-                self._raise_motion_error(loop.error, "move_joints")
+
+    @staticmethod
+    def _stream_on_target(s, target: np.ndarray) -> bool:
+        dq = float(np.max(np.abs(np.asarray(s.dq))))
+        return float(np.max(np.abs(np.asarray(s.q) - target))) < FOLLOW_TOL and dq < REST_DQ
 
     def _start_loop(self, mode) -> StreamLoop:
         robot = self._live("move_joints")

@@ -10,7 +10,9 @@ for IDLE, ``brake release``, wait for RUNNING.
 
 Units: joints in rad, joint speed rad/s, tool speed m/s. Every motion command checks limits first (a refused
 command sends nothing) and is then watched: protective/emergency stop -> SafetyStop, lost link ->
-ConnectionLost, stalled data stream -> BusError; each leaves the robot stopped."""
+ConnectionLost, stalled data stream -> BusError; each leaves the robot stopped. The channels and their supervision
+are ``RTDELink`` (drivers/ur/link.py), the controller-side jog watchdog is ``JogWatchdog`` (drivers/ur/watchdog.py);
+``URRobot`` composes both."""
 
 from __future__ import annotations
 
@@ -34,7 +36,20 @@ from station.drivers.ur.calibration import (
 )
 from station.drivers.ur.dashboard import DashboardClient
 from station.drivers.ur.identity import check_arm
+from station.drivers.ur.link import RTDELink
+from station.drivers.ur.power import power_up
 from station.drivers.ur.primary import read_kinematics
+from station.drivers.ur.safety import (
+    ROBOT_MODE_RUNNING,
+    SS_ESTOP_MASK,
+    SS_FAULT,
+    SS_HALTED,
+    SS_PROTECTIVE,
+    SS_VIOLATION,
+    mode_name,
+    safety_error,
+)
+from station.drivers.ur.watchdog import MOVE_IDLE_WATCHDOG_HZ, MOVE_WATCHDOG_HZ, JogWatchdog
 
 from station.kinematics import Model
 from station.robot.base import CHAIN_OPTIONS, RobotBase
@@ -49,37 +64,18 @@ from station.robot.errors import (
 )
 from station.robot.motion import MANUAL_TOOL_SPEED_CAP, check_joint_limits, joint_speed_for_tool_cap
 from station.robot.protocol import Identity, JointSnapshot, JointState, RobotStatus
-from station.robot.registry import bus_library
 from station.robot.silence import Silence
 from station.robot.url import Option, Options, RobotURL, either, integer, number, text
 
-with bus_library("ur-rtde"):
-    import rtde_control
-    import rtde_receive
-
 log = logging.getLogger("station.drivers.ur")
 
-# The receive recipe: only what the driver reads (fewer bytes per 2 ms package than ur_rtde's default).
-RECV_VARIABLES = ["timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "actual_digital_input_bits",
-                  "robot_mode", "safety_mode", "runtime_state", "robot_status_bits", "safety_status_bits"]
-
-SS_PROTECTIVE, SS_SAFEGUARD, SS_ESTOP_MASK = 1 << 2, 1 << 4, (1 << 5) | (1 << 6) | (1 << 7)
-SS_VIOLATION, SS_FAULT = 1 << 8, 1 << 9
-ROBOT_MODE_POWER_OFF, ROBOT_MODE_POWER_ON, ROBOT_MODE_IDLE, ROBOT_MODE_RUNNING = 3, 4, 5, 7
-ROBOT_MODES = {-1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
-               4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE"}
 # ur_rtde's own wait for its control script is 5 s; the driver waits itself, counting only what it observed
 CONTROL_SCRIPT_TIMEOUT_S = 5.0
-# power on -> IDLE and brake release -> RUNNING: UR's client library waits up to 300 s / 30 s (counted in polls)
-POWER_ON_TIMEOUT_S, BRAKE_RELEASE_TIMEOUT_S = 60.0, 30.0
-LOCAL_HOSTS = ("localhost", "127.0.0.1")
+LOCAL_HOSTS = ("localhost", "127.0.0.1")  # ur_rtde skips its remote-control check only for these
 # RTDE stall timeout: the controller sends a package every 2 ms; 200 ms gave spurious stalls on a loaded
-# 2-core PC (issue 15); 500 ms (250 packages) soaked with zero spurious faults under two busy loops
+# 2-core PC; 500 ms (250 packages) soaked with zero spurious faults under two busy loops
 # (tests/test_soak_buses.py) and still stops the arm within half a second of a dead link.
-STALL_MS = 500.0  # ur_rtde skips its remote-control check only for these
-MOVE_WATCHDOG_HZ = 2.0  # the RTDE watchdog during a waited move: a killed station's arm stops within 0.5 s
-MOVE_IDLE_WATCHDOG_HZ = 0.01  # between waited moves (100 s): an expiry only means a fresh script next time
-JOG_IDLE_WATCHDOG_HZ = 1.0  # the RTDE watchdog between velocity jogs (arm standing; jog_keep_alive feeds it)
+STALL_MS = 500.0
 
 
 def _rows_checksum(table) -> str:
@@ -151,13 +147,12 @@ class URRobot(RobotBase):
         self.contact_bit = contact_bit
         self.speed, self.accel = speed, accel
         self.jog_speed, self.tool_speed = jog_speed, tool_speed
-        self.stale_timeout = stale_timeout
+        self._dash = DashboardClient(host)
+        self._link = RTDELink(host, self._dash, stale_timeout, on_abandon=self._speed_ended)
         self.jog_watchdog = jog_watchdog  # Hz: controller-side RTDE watchdog armed for speed jogs (0: off)
         self.move_watchdog = move_watchdog  # Hz: the same during a waited move, kicked by its wait loop (0: off)
-        # the RTDE watchdog the running control script carries (0: none); JOG_IDLE_WATCHDOG_HZ between jogs
-        self._watchdog_hz = 0.0
-        self._rt_sent = self._last_kick = 0.0
-        self._last_write = 0.0  # monotonic: our last write to the command register (what the watchdog watches)
+        # looked up on the robot at each call: a test (and a subclass) may wrap _bounded
+        self._watchdog = JogWatchdog(self._link, lambda *a: self._bounded(*a))
         self.url = url or f"ur://{host}?model={catalog.name}"
         self.url_serial = serial  # used only when the controller does not report one (PolyScope < 5.6)
         self.serial = serial or ""
@@ -166,15 +161,37 @@ class URRobot(RobotBase):
         self.robot_type = robot_type  # the arm the model is for, when its name does not say (model files)
         self.arm = ""  # what the controller is, e.g. "UR5e" (checked at connect)
         self.last_export: list[Path] = []
-        self._r = None
-        self._c = None
-        self._dash = DashboardClient(host)
         self._compliant_mode: str | None = None  # "freedrive" | "teach"
         self._speeding = False
         self._interrupt = threading.Event()  # set by stop() from any thread: ends a waited move
         self._last_ts: float | None = None
         if connect:
             self.connect()
+
+    # the link's channels and stall timeout under the names the motion code reads them by
+    @property
+    def stale_timeout(self) -> float:
+        """s: the RTDE stall timeout (URL ``stall_ms``)."""
+        return self._link.stale_timeout
+
+    @stale_timeout.setter
+    def stale_timeout(self, seconds: float) -> None:
+        self._link.stale_timeout = seconds
+
+    @property
+    def _r(self):
+        return self._link.receive
+
+    @property
+    def _c(self):
+        return self._link.control
+
+    @_c.setter
+    def _c(self, control) -> None:
+        self._link.control = control
+
+    def _speed_ended(self) -> None:
+        self._speeding = False
 
     # ---- construction ------------------------------------------------------------------------
     @classmethod
@@ -220,29 +237,25 @@ class URRobot(RobotBase):
             self._dash.close()
             raise ConfigError(f"ur://{self.host}: the robot is in local control; switch it to Remote Control on "
                               "the teach pendant (Settings > System > Remote Control, then the pendant's top bar)")
-        try:
-            self._r = rtde_receive.RTDEReceiveInterface(self.host, -1.0, RECV_VARIABLES)
-        except Exception as e:
-            self._dash.close()
-            raise ConnectionLost(f"ur://{self.host}: RTDE (port 30004) connection failed: {e}") from None
+        self._link.open_receive()
         try:
             self._load_calibration()
         except Exception:
-            self._drop_interfaces()
+            self._link.drop()
             raise
-        self._c = None
+        self._link.control = None
         self._last_ts = None
-        self._watchdog_hz = 0.0
-        self._link_lost = False
+        self._watchdog.script_started()
+        self._link.lost = False
         if int(self._r.getRobotMode()) == ROBOT_MODE_RUNNING and \
-                self._safety_error(int(self._r.getSafetyStatusBits())) is None:
+                safety_error(self.host, int(self._r.getSafetyStatusBits())) is None:
             # a running arm: take control now, as ur_rtde does (a stale control script of a station that died is
             # stopped and a fresh one started; the teardown stops ours)
             try:
-                self._open_control()
+                self._link.open_control()
                 self._start_script()
             except Exception:
-                self._drop_interfaces()
+                self._link.drop()
                 raise
         log.info("ur://%s connected: serial %s, %s, robot mode %s", self.host, self.serial, self.firmware,
                  self._mode_name())
@@ -269,32 +282,17 @@ class URRobot(RobotBase):
         self.model = controller_model(self.catalog, table, source=f"ur://{self.host} ({cal['source']})")
         self.calibration = cal
 
-    def _drop_interfaces(self) -> None:
-        # ur_rtde's disconnect() waits 0.5 s after closing (with the GIL released): both interfaces at once
-        def disconnect(obj) -> None:
-            with contextlib.suppress(Exception):  # already broken: nothing to release
-                obj.disconnect()
-
-        workers = [threading.Thread(target=disconnect, args=(obj,), name="ur-disconnect", daemon=True)
-                   for obj in (self._c, self._r) if obj is not None]
-        for t in workers:
-            t.start()
-        for t in workers:
-            t.join()
-        self._c = self._r = None
-        self._dash.close()
-
     def reconnect(self, timeout: float = 10.0) -> None:
         """Re-open every channel after a ConnectionLost (retries until ``timeout`` s)."""
         self._check_open("reconnect")
-        self._drop_interfaces()
+        self._link.drop()
         deadline = time.monotonic() + timeout
         while True:
             try:
                 self.connect()
                 return
             except (ConnectionLost, BusError) as e:
-                self._drop_interfaces()
+                self._link.drop()
                 if time.monotonic() > deadline:
                     raise ConnectionLost(f"ur://{self.host}: reconnect failed for {timeout:g} s: {e}") from None
                 time.sleep(0.25)
@@ -307,7 +305,7 @@ class URRobot(RobotBase):
         dashboard instead, retried for TEARDOWN_S (a short outage: the controller's ports come back); a
         controller that stays unreachable is said loudly: its program may still run."""
         # after a link loss the control interface is not trusted (ur_rtde may report a half-reconnected state)
-        lost = getattr(self, "_link_lost", False) or getattr(self, "_abandoned", None) is not None
+        lost = self._link.lost or self._link.abandoned is not None
         if self._c is not None and not lost:
             try:
                 if self._c.isConnected():
@@ -319,83 +317,14 @@ class URRobot(RobotBase):
             except Exception as e:  # closing must not fail (the link may already be gone)
                 log.warning("ur://%s: close: %s", self.host, e)
                 lost = True
-        self._drop_interfaces()
+        self._link.drop()
         if lost:
-            self._stop_program_after_link_loss()
-        zombie, self._abandoned = getattr(self, "_abandoned", None), None
-        if zombie is not None:
-            # the control interface abandoned in a hanging call still holds its RTDE connection (and the input
-            # registers the next client needs): disconnect it where a hang does no harm, waited for a moment
-            def release() -> None:
-                with contextlib.suppress(Exception):
-                    zombie.disconnect()
+            self._link.stop_program_after_loss(self.TEARDOWN_S)
+        self._link.release_abandoned()
 
-            t = threading.Thread(target=release, name="ur-abandoned-disconnect", daemon=True)
-            t.start()
-            t.join(1.0)
-
-    def _stop_program_after_link_loss(self) -> bool:
-        """``stop`` over the dashboard (a fresh connection each try) until it answers or TEARDOWN_S passed; the
-        control script ends with it, and a later connect uploads a fresh one. False (and a warning) if not."""
-        deadline = time.monotonic() + self.TEARDOWN_S
-        why: Exception | None = None
-        while True:
-            dash = DashboardClient(self.host, timeout=0.5)
-            try:
-                reply = dash.stop_program()
-                log.info("ur://%s: program stopped over the dashboard after the link loss (%s)", self.host, reply)
-                return True
-            except (ConnectionLost, BusError) as e:
-                why = e
-            finally:
-                dash.close()
-            if time.monotonic() > deadline:
-                break
-            time.sleep(0.1)
-        log.warning("ur://%s: could not stop the robot program after the link loss: the controller stayed "
-                    "unreachable for %g s (%s); it may still run: press Stop on the teach pendant before "
-                    "approaching the arm", self.host, self.TEARDOWN_S, why)
-        return False
-
-    # ---- link and safety checks --------------------------------------------------------------
-    def _check_link(self) -> None:
-        # the control interface is opened with the first motion (None before); once abandoned or lost, the link
-        # is lost until a reconnect
-        if self._r is None or getattr(self, "_link_lost", False):
-            self._link_lost = True
-            raise ConnectionLost(f"ur://{self.host}: not connected to the controller; check the network, then "
-                                 "resume the session")
-        if not self._r.isConnected() or (self._c is not None and not self._c.isConnected()):
-            self._link_lost = True
-            raise ConnectionLost(f"ur://{self.host}: connection to the controller lost (RTDE port 30004 closed); "
-                                 "resume the session when the network is back")
-
-    def _check_link_moving(self) -> None:
-        """During motion: on a lost RTDE link still try to stop the program over the dashboard (it may be a
-        different failure than the network), then raise."""
-        try:
-            self._check_link()
-        except ConnectionLost:
-            with contextlib.suppress(ConnectionLost, BusError):
-                self._dash.stop_program()
-            raise
-
-    def _safety_error(self, bits: int) -> SafetyStop | None:
-        if bits & SS_ESTOP_MASK:
-            return SafetyStop(f"ur://{self.host}: emergency stop (safety_status_bits 0x{bits:x}); release the "
-                              "e-stop, power on and restart")
-        if bits & SS_PROTECTIVE:
-            return SafetyStop(f"ur://{self.host}: protective stop (safety_status_bits 0x{bits:x}): the robot halted. "
-                              "Inspect the cause, unlock it on the teach pendant (allowed 5 s after "
-                              "the stop), then resume the session")
-        if bits & SS_SAFEGUARD:
-            return SafetyStop(f"ur://{self.host}: safeguard stop (safety_status_bits 0x{bits:x}); close the guard")
-        if bits & (SS_VIOLATION | SS_FAULT):
-            return SafetyStop(f"ur://{self.host}: safety system fault/violation (safety_status_bits 0x{bits:x})")
-        return None
-
+    # ---- safety checks -------------------------------------------------------------------------
     def _check_safety(self) -> None:
-        err = self._safety_error(int(self._r.getSafetyStatusBits()))
+        err = safety_error(self.host, int(self._r.getSafetyStatusBits()))
         if err is not None:
             self._halt_quietly()
             raise err
@@ -422,154 +351,27 @@ class URRobot(RobotBase):
             self._dash.stop_program()
 
     def _bounded(self, what: str, fn, *args):
-        """``fn(*args)`` (a ur_rtde command that waits for the controller's acknowledgement) in a worker thread,
-        waited for at most the RTDE stall timeout: ur_rtde releases the GIL but never gives up on a link that
-        vanished (it retries its reconnect for minutes). On expiry the worker is abandoned with its control
-        interface, a stop is sent over the dashboard in the background, and ConnectionLost is raised. The wait
-        wakes every 20 ms, so Ctrl-C is acted on at once."""
-        box: dict = {}
-        done = threading.Event()
-
-        def run() -> None:
-            try:
-                box["value"] = fn(*args)
-            except BaseException as e:  # noqa: BLE001 - handed to the caller's thread
-                box["error"] = e
-            finally:
-                done.set()
-
-        threading.Thread(target=run, name=f"ur-{what}", daemon=True).start()
-        silence = Silence()  # this process's own scheduling gaps are not the controller's silence
-        while True:
-            try:
-                if done.wait(0.02):
-                    break
-            except KeyboardInterrupt:  # the command may still reach the controller later: never let it run
-                self._abandon_control()
-                raise
-            if silence.tick() > self.stale_timeout:
-                self._abandon_control()
-                raise ConnectionLost(f"ur://{self.host}: the controller did not acknowledge {what} within "
-                                     f"{self.stale_timeout * 1e3:.0f} ms (RTDE stall timeout; {silence.note()}): "
-                                     "link lost, nothing more was sent and a stop went out over the dashboard; "
-                                     "reconnect the robot when the network is back")
-        if "error" in box:
-            raise box["error"]
-        return box["value"]
-
-    def _abandon_control(self) -> None:
-        """The control interface hangs in a call: drop it (its worker thread is left to ur_rtde) so every later
-        call fails fast with ConnectionLost, and stop the program over the dashboard without waiting for it."""
-        if self._c is not None:
-            self._c, self._abandoned = None, self._c  # kept referenced: destroying it would block on the link
-        self._speeding = False
-        self._link_lost = True
-
-        def stop() -> None:
-            with contextlib.suppress(Exception):
-                DashboardClient(self.host, timeout=1.0).stop_program()
-
-        threading.Thread(target=stop, name="ur-dashboard-stop", daemon=True).start()
+        """``fn(*args)``, a ur_rtde command that waits for the controller, within the RTDE stall timeout
+        (``RTDELink.bounded``: on expiry the control interface is abandoned and ConnectionLost raised)."""
+        return self._link.bounded(what, fn, *args)
 
     def _kick(self) -> None:
-        # A kick writes 0 into the command register: never within a few controller cycles of a speed
-        # command, or the script would not have read the command yet (and the jog would never start).
-        now = time.monotonic()
-        if self._watchdog_armed and now - self._rt_sent > 0.01 and now - self._last_kick > 0.02:
-            self._c.kickWatchdog()
-            self._last_kick = self._last_write = now
-
-    def _disarm_watchdog(self, keep_relaxed: bool = True) -> None:
-        """Before anything that is not followed by kicks (freedrive, unwatched moves): end the script that
-        carries the jog watchdog; a fresh one (without it) is uploaded by _ready_for_motion."""
-        # the relaxed watchdog a waited move leaves (100 s) is kept: ending and re-uploading the script before
-        # every unwatched move was a control-script start timeout on a busy PC
-        if self._watchdog_armed and not (keep_relaxed and self._watchdog_hz == MOVE_IDLE_WATCHDOG_HZ):
-            self._check_link()
-            if self._c.isProgramRunning():
-                self._c.stopScript()
-            self._watchdog_hz = 0.0
+        self._watchdog.kick()
 
     def _mode_name(self, mode: int | None = None) -> str:
         if mode is None:
             mode = int(self._r.getRobotMode()) if self._r is not None else -1
-        return ROBOT_MODES.get(mode, str(mode))
-
-    def _power_up(self) -> None:
-        """Bring the arm to RUNNING the way UR's ROS driver does (robot_state_helper): ``power on``, wait for
-        IDLE (joints booted, brakes engaged), ``brake release``, wait for RUNNING. Only with ``power_on=yes``;
-        otherwise one line naming the option and the dashboard's robot mode. Waits count only observed time."""
-        mode = int(self._r.getRobotMode())
-        if mode == ROBOT_MODE_RUNNING:
-            return
-        self._check_safety()
-        if not self.power_on:
-            raise ConfigError(f"ur://{self.host}: the arm is not running (dashboard: "
-                              f"{self._dash.command('robotmode')}); power it on and release the brakes on the teach "
-                              "pendant, or let the station do it: add power_on=yes to the robot URL")
-        if mode in (ROBOT_MODE_POWER_OFF, ROBOT_MODE_POWER_ON, 2):  # 2: BOOTING
-            if mode == ROBOT_MODE_POWER_OFF:
-                log.info("ur://%s: power on (power_on=yes)", self.host)
-                self._dash.command("power on")
-            mode = self._wait_mode((ROBOT_MODE_IDLE, ROBOT_MODE_RUNNING), POWER_ON_TIMEOUT_S, "power-on",
-                                   "IDLE after 'power on'")
-        if mode == ROBOT_MODE_IDLE:
-            log.info("ur://%s: brake release (power_on=yes)", self.host)
-            self._dash.command("brake release")
-            mode = self._wait_mode((ROBOT_MODE_RUNNING,), BRAKE_RELEASE_TIMEOUT_S, "brake-release",
-                                   "RUNNING after 'brake release'")
-        if mode != ROBOT_MODE_RUNNING:
-            raise DeviceFault(f"ur://{self.host}: the arm is in robot mode {self._mode_name(mode)}, which needs the "
-                              "teach pendant (confirm safety, release the teach button); nothing was moved")
-
-    def _wait_mode(self, targets: tuple[int, ...], timeout: float, which: str, what: str) -> int:
-        silence = Silence()  # the station's own scheduling gaps are not the controller's slowness
-        while True:
-            self._check_link()
-            mode = int(self._r.getRobotMode())
-            if mode in targets:
-                return mode
-            bits = int(self._r.getSafetyStatusBits())
-            err = self._safety_error(bits)
-            if err is not None:
-                raise err
-            if silence.tick() > timeout:
-                raise DeviceFault(f"ur://{self.host}: {which} timeout: the arm did not reach {what} within "
-                                  f"{timeout:g} s (robot mode {self._mode_name(mode)}; {silence.note()})")
-            time.sleep(0.02)
-
-    def _open_control(self) -> None:
-        """ur_rtde's RTDEControlInterface, without its own wait for the control script (``FLAG_NO_WAIT``, no
-        upload by the constructor): the driver uploads the script and waits for it itself (``_start_script``),
-        counting only time it observed. Its constructor's wait counts 10 ms sleeps up to 5 s."""
-        flags = rtde_control.RTDEControlInterface.Flags.FLAG_NO_WAIT
-        deadline = time.monotonic() + 2.0
-        while True:
-            try:
-                self._c = rtde_control.RTDEControlInterface(self.host, -1.0, flags)
-                return
-            except Exception as e:  # noqa: BLE001 - ur_rtde raises RuntimeError
-                # a previous client's connection may still be closing (its registers are freed when its socket
-                # closes): give it a moment before calling the robot taken
-                if "already in use" in str(e) and time.monotonic() < deadline:
-                    time.sleep(0.2)
-                    continue
-                if "already in use" in str(e):
-                    raise BusError(f"ur://{self.host}: another RTDE client already controls this robot (input "
-                                   "registers in use); close it, or disable EtherNet/IP, PROFINET and MODBUS units "
-                                   "on the controller") from None
-                raise ConnectionLost(f"ur://{self.host}: RTDE control (script upload on 30003) failed: {e}") \
-                    from None
+        return mode_name(mode)
 
     def _start_script(self) -> None:
         """Upload ur_rtde's control script (a stale one is stopped first) and wait until the controller runs it:
         CONTROL_SCRIPT_TIMEOUT_S of observed time (``Silence``: a busy station PC's own gaps do not count)."""
-        self._watchdog_hz = 0.0  # a new script has no watchdog
+        self._watchdog.script_started()
         log.info("ur://%s: starting the control script", self.host)
         self._c.reuploadScript()
         silence = Silence()
         while not self._c.isProgramRunning():
-            self._check_link()
+            self._link.check()
             if silence.tick() > CONTROL_SCRIPT_TIMEOUT_S:
                 raise DeviceFault(f"ur://{self.host}: control-script start timeout: the controller did not run "
                                   f"ur_rtde's control script within {CONTROL_SCRIPT_TIMEOUT_S:g} s (runtime_state "
@@ -578,12 +380,12 @@ class URRobot(RobotBase):
             time.sleep(0.01)
 
     def _ready_for_motion(self) -> None:
-        self._check_link()
+        self._link.check()
         self._check_safety()
         if int(self._r.getRobotMode()) != ROBOT_MODE_RUNNING:
-            self._power_up()
+            power_up(self._link, self.power_on, self._check_safety)
         if self._c is None:
-            self._open_control()
+            self._link.open_control()
             self._start_script()
             return
         self._kick()
@@ -594,49 +396,24 @@ class URRobot(RobotBase):
 
     def _refused(self, what: str) -> None:
         """A ur_rtde command returned False: say why, leave the robot stopped."""
-        self._check_link()
+        self._link.check()
         bits = int(self._r.getSafetyStatusBits())
-        err = self._safety_error(bits)
-        # a field diagnosis: the controller ends the program when its RTDE watchdog starves (PolyScope's log
-        # says so; RTDE does not), so say whether one was armed and how long ago we last wrote
-        watchdog = (f"; its RTDE watchdog ({self._watchdog_hz:g} Hz) was armed, last write "
-                    f"{(time.monotonic() - self._last_write) * 1e3:.0f} ms before" if self._watchdog_armed else "")
+        err = safety_error(self.host, bits)
+        watchdog = self._watchdog.diagnosis()
         self._halt_quietly()
         if err is not None:
             raise err
         raise DeviceFault(f"ur://{self.host}: {what} was not executed by the controller (runtime_state "
                           f"{self._r.getRuntimeState()}, robot_mode {self._r.getRobotMode()}){watchdog}")
 
-    @property
-    def _watchdog_armed(self) -> bool:
-        return self._watchdog_hz > 0
-
-    def _arm_watchdog(self, hz: float) -> None:
-        """The script's rtde_set_watchdog on the command register at ``hz`` (``"stop"``: a station or network
-        that stops writing stops the program); it stays armed until the script ends. No-op when already at hz."""
-        if hz <= 0 or self._watchdog_hz == hz:
-            return
-        if self._bounded("setWatchdog", self._c.setWatchdog, hz):
-            self._watchdog_hz = hz
-            self._last_write = time.monotonic()
-        # refused: the script is gone (a new one starts without a watchdog: _ready_for_motion). What it carried
-        # and our last write are kept, so the next command can tell whether that watchdog ended it.
-
-    def _watchdog_ended_script(self, previous_write: float) -> bool:
-        """The script is gone and the jog watchdog can be what ended it: armed, and nothing written for at least
-        its period (the controller counts from receiving our write, which is later than sending it). Anything
-        else that ends the script (Stop on the pendant, a script error) is never resumed by the driver."""
-        return (not self._c.isProgramRunning() and self._watchdog_armed
-                and time.monotonic() - previous_write >= 1.0 / self._watchdog_hz)
-
     def _restart_after_watchdog(self, what: str, previous_write: float) -> None:
         """A station starved of CPU for a whole watchdog period (a loaded PC) had the arm stopped by the
         controller: say so, then a fresh script (a safety stop found meanwhile is raised instead)."""
         log.warning("ur://%s: the RTDE watchdog (%g Hz) ended the control script %.0f ms after our last write "
-                    "(this process was not scheduled); %s on a fresh script", self.host, self._watchdog_hz,
+                    "(this process was not scheduled); %s on a fresh script", self.host, self._watchdog.hz,
                     (time.monotonic() - previous_write) * 1e3, what)
         self._why_script_stopped()
-        self._watchdog_hz = 0.0
+        self._watchdog.script_started()
         self._ready_for_motion()
 
     # ---- Robot protocol ----------------------------------------------------------------------
@@ -655,7 +432,7 @@ class URRobot(RobotBase):
     def joint_positions(self) -> JointSnapshot:
         """actual_q of one RTDE package produced after this call began, with that package's controller
         timestamp (waits at most one 2 ms cycle). None within ``stale_timeout`` -> BusError, robot stopped."""
-        self._check_link()
+        self._link.check()
         silence = Silence()  # a loaded station PC's own gaps are not counted against the stream
         ts_entry = self._r.getTimestamp()
         while True:
@@ -665,7 +442,7 @@ class URRobot(RobotBase):
             if ts1 == ts2 and ts1 != ts_entry:
                 break
             if silence.tick() > self.stale_timeout:
-                self._check_link()
+                self._link.check()
                 self._halt_quietly(dashboard=True)
                 raise BusError(f"ur://{self.host}: RTDE stall timeout: no new package for "
                                f"{self.stale_timeout * 1e3:.0f} ms (last controller time {ts2:.3f} s; "
@@ -677,14 +454,14 @@ class URRobot(RobotBase):
 
     def tcp_pose(self) -> np.ndarray:
         """The controller's own ``actual_TCP_pose`` (x, y, z m; rx, ry, rz rotation vector), from ITS model."""
-        self._check_link()
+        self._link.check()
         return np.asarray(self._r.getActualTCPPose(), dtype=float)
 
     def move_joints(self, q, speed: float | None = None, wait: bool = True) -> None:
         target = self._checked_target(q, "move_joints")
         v = self._checked_speed(speed, "move_joints", "rad/s", float(self.model.max_velocity.min())) or self.speed
         if not wait:
-            self._disarm_watchdog()  # nobody kicks while an unwatched move runs
+            self._watchdog.disarm()  # nobody kicks while an unwatched move runs
         self._interrupt.clear()
         self._ready_for_motion()
         self._move(target, v, wait)
@@ -693,31 +470,31 @@ class URRobot(RobotBase):
         start = self.joint_positions().q
         watch = wait and watch and self.move_watchdog > 0
         if watch:  # ur_rtde's script runs a moveJ to its end without a client: the watchdog stops a dead station's
-            self._arm_watchdog(self.move_watchdog)
-        previous = self._last_write
+            self._watchdog.arm(self.move_watchdog)
+        previous = self._watchdog.last_write
         ok = self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True)
-        self._last_write = time.monotonic()
-        if not ok and self._watchdog_ended_script(previous):
+        self._watchdog.wrote()
+        if not ok and self._watchdog.ended_script(previous):
             # between the check before this move and the move (seen on a loaded CI host)
             self._restart_after_watchdog("moveJ is sent again", previous)
             ok = self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True)
-            self._last_write = time.monotonic()
+            self._watchdog.wrote()
         if not ok:
             self._refused("moveJ")
         if wait:
             lead = float(np.max(np.abs(target - start)))
             self._wait_move(target, lead / v + 2 * v / self.accel + 5.0, v if watch else None)
-            if watch and self._watchdog_armed:  # standing, nothing kicks until the next command: relaxed, not
-                self._arm_watchdog(MOVE_IDLE_WATCHDOG_HZ)  # ended (a script start per move is slow on a busy PC)
+            if watch and self._watchdog.armed:  # standing, nothing kicks until the next command: relaxed, not
+                self._watchdog.arm(MOVE_IDLE_WATCHDOG_HZ)  # ended (a script start per move is slow on a busy PC)
 
     def _resend_after_watchdog(self, target: np.ndarray, v: float) -> None:
         """The move watchdog ended the script because this process did not kick it for a whole period (a loaded
         PC): a fresh script, the move watchdog again, and the same moveJ from where the arm stopped."""
-        self._restart_after_watchdog("the move is finished", self._last_write)
-        self._arm_watchdog(self.move_watchdog)
+        self._restart_after_watchdog("the move is finished", self._watchdog.last_write)
+        self._watchdog.arm(self.move_watchdog)
         if not self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True):
             self._refused("moveJ")
-        self._last_write = time.monotonic()
+        self._watchdog.wrote()
 
     def move_linear(self, pose, speed: float | None = None, wait: bool = True) -> None:
         """UR-specific: ``moveL`` of the controller's TCP to ``pose`` (x, y, z m; rx, ry, rz rotation vector, base
@@ -736,7 +513,7 @@ class URRobot(RobotBase):
             raise LimitError(f"move_linear: pose {np.round(p, 4).tolist()} is not reachable; nothing was sent")
         check_joint_limits(self.model, res.q[0], "move_linear")
         if not wait:
-            self._disarm_watchdog()
+            self._watchdog.disarm()
         self._ready_for_motion()
         if not self._bounded("moveL", self._c.moveL, p.tolist(), v, 0.5, True):
             self._refused("moveL")
@@ -760,10 +537,10 @@ class URRobot(RobotBase):
         while True:
             if self._interrupt.is_set():
                 raise SafetyStop(f"ur://{self.host}: move interrupted by stop(); the arm holds where it stopped")
-            self._check_link_moving()
+            self._link.check_moving()
             self._check_safety()
             if not self._c.isProgramRunning():
-                if resend_v is not None and self._watchdog_ended_script(self._last_write):
+                if resend_v is not None and self._watchdog.ended_script(self._watchdog.last_write):
                     self._resend_after_watchdog(target, resend_v)  # this process was not scheduled: not a fault
                     continue
                 self._why_script_stopped()
@@ -877,34 +654,26 @@ class URRobot(RobotBase):
         standing script between the check before it and the command (a refresh late by a whole period on a
         loaded station PC), the controller had already stopped the arm: restart the script once and send again,
         with a warning. Refused otherwise (``DeviceFault``, robot stopped)."""
-        self._arm_watchdog(self.jog_watchdog)
+        self._watchdog.arm(self.jog_watchdog)
         self._speeding = True
-        previous = self._last_write
+        previous = self._watchdog.last_write
         ok = send()
-        self._rt_sent = self._last_write = time.monotonic()  # kicks wait for the script to read the command
-        if not ok and self._watchdog_ended_script(previous):
+        self._watchdog.speed_written()
+        if not ok and self._watchdog.ended_script(previous):
             self._restart_after_watchdog("the speed command is sent again", previous)
-            self._arm_watchdog(self.jog_watchdog)
+            self._watchdog.arm(self.jog_watchdog)
             ok = send()
-            self._rt_sent = self._last_write = time.monotonic()
+            self._watchdog.speed_written()
         if not ok:
             self._speeding = False
             self._refused("speed command")
-
-    def _watchdog_to_idle(self) -> None:
-        """After a velocity jog's speedStop: the arm stands, so the armed watchdog may wait longer
-        (JOG_IDLE_WATCHDOG_HZ) for the keep-alive until the next jog sets ``jog_watchdog`` again before its
-        first speed command. At 10 Hz a keep-alive late by 0.1 s (a busy station PC) ended the program, and
-        the next press had to upload the script first (or met the program ending under its speed command)."""
-        if self._watchdog_armed and self._watchdog_hz > JOG_IDLE_WATCHDOG_HZ:
-            self._arm_watchdog(JOG_IDLE_WATCHDOG_HZ)
 
     def jog_keep_alive(self) -> None:
         """Between velocity jogs: feed the jog watchdog (armed for the control script's lifetime) while no
         speed command runs, so the controller does not end the program a watchdog period after each stop.
         The arm stands still (speedStop was sent); if this process dies the watchdog ends an idle program."""
-        if self._watchdog_armed and not self._speeding:
-            self._check_link()
+        if self._watchdog.armed and not self._speeding:
+            self._link.check()
             self._kick()
 
     def _velocity_jog(self, send, remaining, v: float, a: float) -> None:
@@ -916,20 +685,20 @@ class URRobot(RobotBase):
             # (the script's rtde_set_watchdog(..., "stop")); it stays armed until the program ends
             self._send_speed(send)
             while True:
-                self._check_link_moving()
+                self._link.check_moving()
                 snap = self.joint_positions()
                 self._check_safety()
                 if remaining(snap.q) <= v * v / (2 * a) + v * 0.004:
                     break
                 if not self._c.isProgramRunning():
-                    if not self._watchdog_ended_script(self._last_write):
+                    if not self._watchdog.ended_script(self._watchdog.last_write):
                         self._why_script_stopped()  # a safety stop says so; else a stop nobody here asked for
                         self._speeding = False
                         raise DeviceFault(f"ur://{self.host}: the control script stopped during the jog (not by "
                                           "the station); the arm holds where it stopped")
                     # this process was kept from kicking the watchdog for a whole period: the arm stands, and the
                     # step is finished with its move
-                    self._restart_after_watchdog("the step is finished with a move", self._last_write)
+                    self._restart_after_watchdog("the step is finished with a move", self._watchdog.last_write)
                     break
                 if time.monotonic() > deadline:
                     raise BusError(f"ur://{self.host}: jog watchdog: the step did not complete in time; stopped")
@@ -940,25 +709,25 @@ class URRobot(RobotBase):
                 self._speeding = False
                 try:
                     if self._bounded("speedStop", self._c.speedStop, a * 4):
-                        self._last_write = time.monotonic()
+                        self._watchdog.wrote()
                     # the arm stands: relax the armed 10 Hz watchdog, or a late first kick of the fix move that
                     # follows a step ends the script under it (moveJ refused, runtime_state STOPPED: seen in CI)
-                    self._watchdog_to_idle()
+                    self._watchdog.to_idle()
                 except Exception:
                     self._halt_quietly()
 
     def stop(self) -> None:
         self._interrupt.set()
-        self._check_link()
+        self._link.check()
         try:
-            if self._r.getSafetyStatusBits() & (SS_PROTECTIVE | SS_ESTOP_MASK | SS_SAFEGUARD):
+            if self._r.getSafetyStatusBits() & SS_HALTED:
                 return  # already halted by the safety system; commands would be refused
             if self._c is not None and self._c.isProgramRunning():
                 if self._speeding:
                     if self._bounded("speedStop", self._c.speedStop, 10.0):
-                        self._last_write = time.monotonic()
+                        self._watchdog.wrote()
                     self._speeding = False
-                    self._watchdog_to_idle()
+                    self._watchdog.to_idle()
                 self._bounded("stopJ", self._c.stopJ, 2.0, False)
             elif any(abs(v) > 1e-4 for v in self._r.getActualQd()):
                 self._dash.stop_program()
@@ -969,9 +738,9 @@ class URRobot(RobotBase):
             raise DeviceFault(f"ur://{self.host}: stop: {e}") from None
 
     def enable(self) -> None:
-        """The arm RUNNING (powered on and brakes released: only with ``power_on=yes``, see ``_power_up``) and the
-        control script running."""
-        self._check_link()
+        """The arm RUNNING (powered on and brakes released: only with ``power_on=yes``, see
+        ``drivers/ur/power.py``) and the control script running."""
+        self._link.check()
         self._ready_for_motion()
 
     def disable(self) -> None:
@@ -979,7 +748,7 @@ class URRobot(RobotBase):
         self._dash.power_off()
 
     def status(self) -> RobotStatus:
-        self._check_link()
+        self._link.check()
         bits = int(self._r.getSafetyStatusBits())
         mode = int(self._r.getRobotMode())
         qd = np.asarray(self._r.getActualQd(), dtype=float)
@@ -995,17 +764,17 @@ class URRobot(RobotBase):
 
     def touch(self) -> bool:
         """Contact sensor on ``actual_digital_input_bits`` bit ``contact_bit`` (default 16 = tool DI 0)."""
-        self._check_link()
+        self._link.check()
         return bool((int(self._r.getActualDigitalInputBits()) >> self.contact_bit) & 1)
 
     def set_compliant(self, on: bool) -> None:
         """Freedrive (falls back to teach mode) so the tip can settle in a socket; off keeps the position."""
         if not on and self._compliant_mode is None:  # nothing to end; a safety stop is still said (teardown)
-            self._check_link()
+            self._link.check()
             self._check_safety()
             return
         if on:
-            self._disarm_watchdog(keep_relaxed=False)  # the arm rests in freedrive without kicks, for any time
+            self._watchdog.disarm(keep_relaxed=False)  # the arm rests in freedrive without kicks, for any time
         self._ready_for_motion()
         if on:
             if self._compliant_mode is not None:

@@ -26,6 +26,29 @@ from typing import TYPE_CHECKING
 
 import canopen
 from canopen.sdo import SdoAbortedError
+from station.mocks.canopen.device_control import (
+    CW_FAULT_RESET,
+    CW_HALT,
+    CW_HOMING_START,
+    CW_NEW_SETPOINT,
+    CW_RELATIVE,
+    FAULT,
+    FRA,
+    NOT_READY,
+    OE,
+    QSA,
+    RTSO,
+    SO,
+    SOD,
+    STATE_BITS,
+    SW_HOMING_ATTAINED,
+    SW_HOMING_ERROR,
+    SW_LIMIT,
+    SW_REMOTE,
+    SW_SETPOINT_ACK,
+    SW_TARGET_REACHED,
+    next_state,
+)
 from station.mocks.canopen.eds import (
     CONTACT_INPUT_BIT,
     DEFAULT_TORQUE_LIMIT,
@@ -43,23 +66,19 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("station.mocks.canopen")
 
-# 402 states (names as canopen.profiles.p402 spells them) and their statusword bits (incl. voltage
-# enabled, bit 4, from READY TO SWITCH ON on)
-NOT_READY, SOD, RTSO, SO, OE, QSA, FRA, FAULT = (
-    "NOT READY TO SWITCH ON", "SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON",
-    "OPERATION ENABLED", "QUICK STOP ACTIVE", "FAULT REACTION ACTIVE", "FAULT")
-STATE_BITS = {NOT_READY: 0x0000, SOD: 0x0040, RTSO: 0x0031, SO: 0x0033, OE: 0x0037, QSA: 0x0017,
-              FRA: 0x001F, FAULT: 0x0018}
-SW_REMOTE, SW_TARGET_REACHED, SW_LIMIT, SW_SETPOINT_ACK = 1 << 9, 1 << 10, 1 << 11, 1 << 12
-SW_HOMING_ATTAINED, SW_HOMING_ERROR = 1 << 12, 1 << 13  # the same bits in homing mode (CiA 402 homing)
-CW_NEW_SETPOINT, CW_IMMEDIATE, CW_RELATIVE, CW_FAULT_RESET, CW_HALT = 0x10, 0x20, 0x40, 0x80, 0x100
-CW_HOMING_START = 0x10  # bit 4 in homing mode: a rising edge starts the homing
-
 MODE_PP, MODE_PV, MODE_PT, MODE_HM = 1, 3, 4, 6
 SUPPORTED = {0, MODE_PP, MODE_PV, MODE_PT, MODE_HM}
 HOMING_CURRENT_POSITION = (35, 37)  # CiA 402 homing on the current position (35 in older editions, then 37)
 HOMING_METHODS = {0, *HOMING_CURRENT_POSITION}  # what 0x6098 accepts here (0: no method assigned)
 ABORT_REACTIONS = {0: "none", 1: "fault", 2: "disable voltage", 3: "quick stop"}  # 0x6007
+# objects that take only some values (any other: SDO abort "value range of parameter exceeded")
+ACCEPTED = {
+    0x6060: SUPPORTED,
+    0x6098: HOMING_METHODS,
+    0x6007: ABORT_REACTIONS,
+    0x60A8: {UNIT_INC},  # positions in increments only
+    0x60A9: {UNIT_INC_PER_S, *(UNIT_RPM | (e & 0xFF) << 24 for e in (0, -1, -2, -3))},
+}
 # objects whose value the drive computes on every read (``_on_read``), not a stored parameter
 COMPUTED = frozenset({0x1001, 0x1003, 0x1010, 0x1011, 0x603F, 0x6041, 0x6061, 0x6062, 0x6063, 0x6064, 0x606C,
                       0x6077, 0x60FD})
@@ -455,6 +474,20 @@ class Drive402:
     def _check_write(self, index: int, subindex: int, od, data: bytes) -> None:
         """Validation before LocalNode stores a value (raising aborts the SDO)."""
         value = od.decode_raw(data) if od.data_type in canopen.objectdictionary.NUMBER_TYPES else None
+        if index in (0x1003, 0x1010, 0x1011):
+            self._check_store_restore(index, subindex, value)
+        if index in ACCEPTED and value not in ACCEPTED[index]:
+            raise SdoAbortedError(ABORT_RANGE)
+        if index == 0x1016 and subindex >= 1 and value:
+            self._check_consumer(subindex, value)
+        if (0x1600 <= index < 0x1604 or 0x1A00 <= index < 0x1A04) and subindex >= 1 and value:
+            self._check_mapping_entry(value, tx=index >= 0x1A00)
+        if (0x1600 <= index < 0x1604 or 0x1A00 <= index < 0x1A04) and subindex == 0:
+            self._check_mapping_length(index, value)
+
+    def _check_store_restore(self, index: int, subindex: int, value) -> None:
+        """0x1010 store / 0x1011 restore take only their signature; the error history 0x1003 is cleared by
+        writing 0 to its count, nothing else."""
         if index == 0x1010 and subindex >= 1 and value != SAVE_SIGNATURE:
             raise SdoAbortedError(ABORT_STORE)
         if index == 0x1010 and subindex in (1, 4) and self.state not in (SOD, NOT_READY, FAULT):
@@ -465,30 +498,21 @@ class Drive402:
             raise SdoAbortedError(ABORT_STORE)
         if index == 0x1003 and subindex == 0 and value != 0:
             raise SdoAbortedError(ABORT_RANGE)
-        if index == 0x6060 and value not in SUPPORTED:
-            raise SdoAbortedError(ABORT_RANGE)
-        if index == 0x6098 and value not in HOMING_METHODS:
-            raise SdoAbortedError(ABORT_RANGE)
-        if index == 0x6007 and value not in ABORT_REACTIONS:
-            raise SdoAbortedError(ABORT_RANGE)
-        if index == 0x60A8 and value != UNIT_INC:
-            raise SdoAbortedError(ABORT_RANGE)  # positions in increments only
-        if index == 0x60A9 and value not in (UNIT_INC_PER_S, *(UNIT_RPM | (e & 0xFF) << 24 for e in (0, -1, -2, -3))):
-            raise SdoAbortedError(ABORT_RANGE)
-        if index == 0x1016 and subindex >= 1 and value:
-            node = (value >> 16) & 0x7F
-            for k in range(1, int(self.get(0x1016, 0)) + 1):
-                other = int(self.get(0x1016, k))
-                if k != subindex and (other >> 16) & 0x7F == node and other & 0xFFFF:
-                    raise SdoAbortedError(ABORT_INCOMPATIBLE)  # CiA 301: one consumer entry per producer
-        if (0x1600 <= index < 0x1604 or 0x1A00 <= index < 0x1A04) and subindex >= 1 and value:
-            self._check_mapping_entry(value, tx=index >= 0x1A00)
-        if (0x1600 <= index < 0x1604 or 0x1A00 <= index < 0x1A04) and subindex == 0:
-            if value > 8:
-                raise SdoAbortedError(ABORT_PDO_LENGTH)
-            bits = sum((int(self.get(index, k)) & 0xFF) for k in range(1, value + 1))
-            if bits > 64:
-                raise SdoAbortedError(ABORT_PDO_LENGTH)
+
+    def _check_consumer(self, subindex: int, value: int) -> None:
+        node = (value >> 16) & 0x7F
+        for k in range(1, int(self.get(0x1016, 0)) + 1):
+            other = int(self.get(0x1016, k))
+            if k != subindex and (other >> 16) & 0x7F == node and other & 0xFFFF:
+                raise SdoAbortedError(ABORT_INCOMPATIBLE)  # CiA 301: one consumer entry per producer
+
+    def _check_mapping_length(self, index: int, count: int) -> None:
+        """A PDO maps at most 8 objects and 64 bits (CiA 301)."""
+        if count > 8:
+            raise SdoAbortedError(ABORT_PDO_LENGTH)
+        bits = sum((int(self.get(index, k)) & 0xFF) for k in range(1, count + 1))
+        if bits > 64:
+            raise SdoAbortedError(ABORT_PDO_LENGTH)
 
     def _check_mapping_entry(self, value: int, tx: bool) -> None:
         index, sub, bits = value >> 16, (value >> 8) & 0xFF, value & 0xFF
@@ -566,27 +590,15 @@ class Drive402:
             if cw & CW_FAULT_RESET and not prev & CW_FAULT_RESET:
                 self._fault_reset()
             return
-        old = self.state
-        if cw & CW_FAULT_RESET:
-            pass  # a fault reset outside FAULT is ignored
-        elif cw & 0x02 == 0:  # disable voltage
-            if old in (RTSO, SO, OE, QSA):
-                self._enter(SOD)
-        elif cw & 0x06 == 0x02:  # quick stop
-            if old == OE:
-                self._enter(QSA)
-            elif old in (RTSO, SO):
-                self._enter(SOD)
-        elif cw & 0x07 == 0x06:  # shutdown
-            if old in (SOD, SO, OE):
-                self._enter(RTSO)
-        elif cw & 0x0F == 0x07:  # switch on / disable operation
-            if old in (RTSO, OE):
-                self._enter(SO)
-        elif cw & 0x0F == 0x0F and old in (SO, RTSO, QSA):  # enable operation (3+4, 16)
-            self._enter(OE)
-        if self.state != OE:
-            return
+        new = next_state(self.state, cw)
+        if new is not None:
+            self._enter(new)
+        if self.state == OE:
+            self._operation_bits(cw, prev)
+
+    def _operation_bits(self, cw: int, prev: int) -> None:
+        """The controlword's operation mode bits in OPERATION ENABLED: halt (bit 8), and the rising edge of bit 4
+        (a new set-point in profile position, the start of a homing in homing mode)."""
         halt = bool(cw & CW_HALT)
         if halt and not self.halted:
             self.halted = True

@@ -120,8 +120,14 @@ def _pair(index: int, name: str, dtype: int, first: tuple[str, int], second: tup
 
 
 def objects() -> list[Obj]:
-    C, A = "PERSIST_COMM", "PERSIST_APP"
-    objs = [
+    """The drive's object dictionary, in index order."""
+    return [*_communication_objects(), *_pdo_objects(), *_manufacturer_objects(), *_profile_objects()]
+
+
+def _communication_objects() -> list[Obj]:
+    """CiA 301 communication profile area (0x1000-0x1029) without the PDO parameters."""
+    C = "PERSIST_COMM"
+    return [
         var(0x1000, "Device type", U32, "ro", 0x00020192),  # CiA 402, servo drive
         var(0x1001, "Error register", U8, "ro", 0, pdo=True),
         Obj(0x1003, "Pre-defined error field", 8, (
@@ -160,11 +166,22 @@ def objects() -> list[Obj]:
             Var(0, "Highest sub-index supported", U8, "const", 1),
             Var(1, "Communication error", U8, "rw", 0, storage=C),  # 0: OPERATIONAL -> PRE-OPERATIONAL
         )),
-        *_pdo_objects(),
+    ]
+
+
+def _manufacturer_objects() -> list[Obj]:
+    return [
         var(0x2000, "Contact input wired", U8, "ro", 0),  # 1: bit 16 of 0x60FD follows the cell contact
         # the homing result (position actual - position actual internal value); stored with the application
         # parameters (0x1010:03) so that an absolute encoder keeps its zero across power cycles
-        var(POSITION_OFFSET, "Position offset", I32, "ro", 0, storage=A),
+        var(POSITION_OFFSET, "Position offset", I32, "ro", 0, storage="PERSIST_APP"),
+    ]
+
+
+def _profile_objects() -> list[Obj]:
+    """CiA 402 drive profile area (0x6000-): what the station's driver and the emulated drive exchange."""
+    A = "PERSIST_APP"
+    return [
         var(0x603F, "Error code", U16, "ro", 0, pdo=True),
         var(0x6007, "Abort connection option code", I16, "rw", 0, storage=A),
         var(0x6040, "Controlword", U16, "rw", 0, pdo=True),
@@ -205,7 +222,6 @@ def objects() -> list[Obj]:
         var(0x60FF, "Target velocity", I32, "rw", 0, pdo=True),
         var(0x6502, "Supported drive modes", U32, "ro", SUPPORTED_MODES),
     ]
-    return objs
 
 
 def _fmt(v) -> str:

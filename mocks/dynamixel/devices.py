@@ -104,40 +104,58 @@ class Device:
         a = addr
         end = addr + len(data)
         while a < end:
-            f = self._by_addr[a]
-            if f is None or f.access != RW:
-                raise WriteRefused(ERR_ACCESS, f"address {a} is read-only or reserved")
-            if f.addr != a or f.addr + f.size > end:
-                raise WriteRefused(ERR_DATA_LENGTH, f"write covers only part of {f.name} ({f.addr}+{f.size})")
-            if f.area == EEPROM and self.torque:
-                raise WriteRefused(ERR_ACCESS, f"{f.name} is in EEPROM: torque must be off to write it")
+            f = self._writable_field(a, end)
             value = int.from_bytes(data[a - addr:a - addr + f.size], "little", signed=f.signed)
-            if (f.lo is not None and value < f.lo) or (f.hi is not None and value > f.hi):
-                raise WriteRefused(ERR_DATA_RANGE, f"{f.name}={value} outside [{f.lo}, {f.hi}]")
-            if f.name == "operating_mode" and self.type.modes and value not in self.type.modes:
-                raise WriteRefused(ERR_DATA_RANGE, f"operating mode {value} not supported by {self.type.name}")
-            unused = value & ~self.type.drive_mode_bits if f.name == "drive_mode" else 0
-            if unused:
-                raise WriteRefused(ERR_DATA_RANGE, f"drive mode 0x{value:02X}: bits 0x{unused:02X} are unused on "
-                                   f"{self.type.name} (always 0)")
-            time_based = self.has("drive_mode") and self.get("drive_mode") & DRIVE_TIME_PROFILE
-            if f.name in ("profile_velocity", "profile_acceleration") and time_based and value > 32737:
-                raise WriteRefused(ERR_DATA_RANGE, f"{f.name}={value} ms outside the time-based range [0, 32737]")
-            if f.name == "goal_position" and self.get("operating_mode") == 3:
-                lo, hi = self.get("min_position_limit"), self.get("max_position_limit")
-                if not lo <= value <= hi:
-                    raise WriteRefused(ERR_DATA_LIMIT, f"goal {value} outside position limits [{lo}, {hi}]")
-            if f.name == "goal_current" and abs(value) > self.get("current_limit"):
-                raise WriteRefused(ERR_DATA_LIMIT, f"goal current {value} above current limit")
-            if f.name == "profile_velocity" and not time_based and value > self.get("velocity_limit") > 0:
-                value = self.get("velocity_limit")  # the profile is clamped to the velocity limit
-            if f.name == "goal_position" and self.has("bus_watchdog") and self.get("bus_watchdog") == 255:
-                raise WriteRefused(ERR_RESULT_FAIL, "bus watchdog tripped: write 0 to bus watchdog (98) first")
-            if f.name == "torque_enable" and value and self.hardware_error:
-                raise WriteRefused(ERR_RESULT_FAIL, "hardware error latched: reboot before enabling torque")
-            out.append((f, value))
+            self._check_range(f, value)
+            out.append((f, self._check_state(f, value)))
             a += f.size
         return out
+
+    def _writable_field(self, a: int, end: int) -> Field:
+        """The field a write to ``a`` (ending before ``end``) stores into: a whole RW field, EEPROM only with
+        torque off."""
+        f = self._by_addr[a]
+        if f is None or f.access != RW:
+            raise WriteRefused(ERR_ACCESS, f"address {a} is read-only or reserved")
+        if f.addr != a or f.addr + f.size > end:
+            raise WriteRefused(ERR_DATA_LENGTH, f"write covers only part of {f.name} ({f.addr}+{f.size})")
+        if f.area == EEPROM and self.torque:
+            raise WriteRefused(ERR_ACCESS, f"{f.name} is in EEPROM: torque must be off to write it")
+        return f
+
+    def _check_range(self, f: Field, value: int) -> None:
+        """The values a field takes at all: its range, the model's operating modes and drive mode bits, the
+        time-based profile's range."""
+        if (f.lo is not None and value < f.lo) or (f.hi is not None and value > f.hi):
+            raise WriteRefused(ERR_DATA_RANGE, f"{f.name}={value} outside [{f.lo}, {f.hi}]")
+        if f.name == "operating_mode" and self.type.modes and value not in self.type.modes:
+            raise WriteRefused(ERR_DATA_RANGE, f"operating mode {value} not supported by {self.type.name}")
+        unused = value & ~self.type.drive_mode_bits if f.name == "drive_mode" else 0
+        if unused:
+            raise WriteRefused(ERR_DATA_RANGE, f"drive mode 0x{value:02X}: bits 0x{unused:02X} are unused on "
+                               f"{self.type.name} (always 0)")
+        if f.name in ("profile_velocity", "profile_acceleration") and self._time_based() and value > 32737:
+            raise WriteRefused(ERR_DATA_RANGE, f"{f.name}={value} ms outside the time-based range [0, 32737]")
+
+    def _time_based(self) -> bool:
+        return bool(self.has("drive_mode") and self.get("drive_mode") & DRIVE_TIME_PROFILE)
+
+    def _check_state(self, f: Field, value: int) -> int:
+        """What the servo's present state allows (limits, bus watchdog, a latched hardware error); the value
+        to store (a profile velocity is clamped to the velocity limit)."""
+        if f.name == "goal_position" and self.get("operating_mode") == 3:
+            lo, hi = self.get("min_position_limit"), self.get("max_position_limit")
+            if not lo <= value <= hi:
+                raise WriteRefused(ERR_DATA_LIMIT, f"goal {value} outside position limits [{lo}, {hi}]")
+        if f.name == "goal_current" and abs(value) > self.get("current_limit"):
+            raise WriteRefused(ERR_DATA_LIMIT, f"goal current {value} above current limit")
+        if f.name == "profile_velocity" and not self._time_based() and value > self.get("velocity_limit") > 0:
+            value = self.get("velocity_limit")  # the profile is clamped to the velocity limit
+        if f.name == "goal_position" and self.has("bus_watchdog") and self.get("bus_watchdog") == 255:
+            raise WriteRefused(ERR_RESULT_FAIL, "bus watchdog tripped: write 0 to bus watchdog (98) first")
+        if f.name == "torque_enable" and value and self.hardware_error:
+            raise WriteRefused(ERR_RESULT_FAIL, "hardware error latched: reboot before enabling torque")
+        return value
 
     def apply(self, items: list[tuple[Field, int]]) -> None:
         for f, value in items:

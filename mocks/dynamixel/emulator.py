@@ -86,6 +86,29 @@ def _u16(b: bytes, i: int) -> int:
     return b[i] | (b[i + 1] << 8)
 
 
+def _sync_write_chunks(prm: bytes) -> list[tuple[int, int, bytes]] | None:
+    """SYNC WRITE parameters (address, length, then id + data per device) as (id, address, data); None when
+    they do not divide into whole devices."""
+    if len(prm) < 4:
+        return None
+    addr, length = _u16(prm, 0), _u16(prm, 2)
+    body = prm[4:]
+    if length == 0 or len(body) % (length + 1):
+        return None
+    return [(body[k], addr, body[k + 1:k + 1 + length]) for k in range(0, len(body), length + 1)]
+
+
+def _bulk_write_chunks(prm: bytes) -> list[tuple[int, int, bytes]] | None:
+    """BULK WRITE parameters (id, address, length, data per device) as (id, address, data); None when the last
+    one is cut short."""
+    chunks, k = [], 0
+    while k + 5 <= len(prm):
+        i, addr, length = prm[k], _u16(prm, k + 1), _u16(prm, k + 3)
+        chunks.append((i, addr, prm[k + 5:k + 5 + length]))
+        k += 5 + length
+    return chunks if k == len(prm) else None
+
+
 class DynamixelEmulator(EmulatorBase):
     """``DynamixelEmulator(world, ids=[11, 12, 13, 14]).start()`` -> the started emulator (``.path``: the pty,
     ``.url``: the robot URL); ``.stop()`` (idempotent); a context manager; ``.power_cycle()``.
@@ -725,57 +748,55 @@ class DynamixelEmulator(EmulatorBase):
         return self._status(dev, ERR_INSTRUCTION)
 
     def _broadcast(self, p: pk.Packet) -> list[tuple[Device, bytes]]:
-        inst, prm = p.inst, p.params
+        """An instruction to every device: PING and the sync/bulk reads are answered (each device in turn); a
+        broadcast write, ACTION or REBOOT is answered by nobody."""
+        if p.inst == INST_PING:
+            return self._ping_all()
+        if p.inst in (INST_SYNC_READ, INST_FAST_SYNC_READ, INST_BULK_READ, INST_FAST_BULK_READ):
+            return self._broadcast_read(p.inst, p.params)
+        self._broadcast_write(p.inst, p.params)
+        return []
+
+    def _ping_all(self) -> list[tuple[Device, bytes]]:
         out: list[tuple[Device, bytes]] = []
-        if inst == INST_PING:
-            for i in sorted(self.devices):
-                dev = self.devices[i]
-                if self._answering(i):
-                    mt = dev.type.model_number
-                    out.append((dev, self._maybe_corrupt(i, self._status(
-                        dev, 0, bytes([mt & 0xFF, mt >> 8, dev.get("firmware_version")])))))
-            return out
+        for i in sorted(self.devices):
+            dev = self.devices[i]
+            if self._answering(i):
+                mt = dev.type.model_number
+                out.append((dev, self._maybe_corrupt(i, self._status(
+                    dev, 0, bytes([mt & 0xFF, mt >> 8, dev.get("firmware_version")])))))
+        return out
+
+    def _broadcast_read(self, inst: int, prm: bytes) -> list[tuple[Device, bytes]]:
         if inst in (INST_FAST_SYNC_READ, INST_FAST_BULK_READ) and not self.fast_sync_read:
-            return out  # firmware without the fast reads: an instruction it does not know, sent to all: silence
+            return []  # firmware without the fast reads: an instruction it does not know, sent to all: silence
         if inst in (INST_SYNC_READ, INST_FAST_SYNC_READ):
             if len(prm) < 5:
-                return out
+                return []
             addr, length = _u16(prm, 0), _u16(prm, 2)
             return self._read_many([(i, addr, length) for i in prm[4:]], fast=inst == INST_FAST_SYNC_READ)
-        if inst in (INST_BULK_READ, INST_FAST_BULK_READ):
-            if len(prm) % 5:
-                return out
-            req = [(prm[k], _u16(prm, k + 1), _u16(prm, k + 3)) for k in range(0, len(prm), 5)]
-            return self._read_many(req, fast=inst == INST_FAST_BULK_READ)
+        if len(prm) % 5:
+            return []
+        req = [(prm[k], _u16(prm, k + 1), _u16(prm, k + 3)) for k in range(0, len(prm), 5)]
+        return self._read_many(req, fast=inst == INST_FAST_BULK_READ)
+
+    def _broadcast_write(self, inst: int, prm: bytes) -> None:
+        """A malformed sync/bulk write is dropped whole (nothing written)."""
         if inst == INST_SYNC_WRITE:
-            if len(prm) < 4:
-                return out
-            addr, length = _u16(prm, 0), _u16(prm, 2)
-            body = prm[4:]
-            if length == 0 or len(body) % (length + 1):
-                return out
-            chunks = [(body[k], addr, body[k + 1:k + 1 + length]) for k in range(0, len(body), length + 1)]
-            self._write_many(chunks)
-            return out
-        if inst == INST_BULK_WRITE:
-            chunks, k = [], 0
-            while k + 5 <= len(prm):
-                i, addr, length = prm[k], _u16(prm, k + 1), _u16(prm, k + 3)
-                chunks.append((i, addr, prm[k + 5:k + 5 + length]))
-                k += 5 + length
-            if k == len(prm):
+            chunks = _sync_write_chunks(prm)
+            if chunks is not None:
                 self._write_many(chunks)
-            return out
-        if inst == INST_ACTION:
+        elif inst == INST_BULK_WRITE:
+            chunks = _bulk_write_chunks(prm)
+            if chunks is not None:
+                self._write_many(chunks)
+        elif inst == INST_ACTION:
             self._action(list(self.devices.values()))
-            return out
-        if inst == INST_REBOOT:
+        elif inst == INST_REBOOT:
             for dev in list(self.devices.values()):
                 self._reboot(dev)
-            return out
-        if inst in (INST_WRITE, INST_REG_WRITE) and len(prm) >= 3:
+        elif inst in (INST_WRITE, INST_REG_WRITE) and len(prm) >= 3:
             self._write_many([(i, _u16(prm, 0), prm[2:]) for i in list(self.devices)], reg=inst == INST_REG_WRITE)
-        return out
 
     def _read_many(self, req: list[tuple[int, int, int]], fast: bool) -> list[tuple[Device, bytes]]:
         """Sync/bulk read: each listed device answers in turn; a silent device ends the chain (the next

@@ -147,16 +147,7 @@ class URController:
         self.cmd_log: deque[tuple[int, int]] = deque(maxlen=40)  # (tick, command id) written by clients
         self.q_prev = np.asarray(world.encoder_q(), dtype=float)
         self.qd = np.zeros(self.n)
-        # the controller's own kinematics: its factory calibration (kept across a power cycle, like
-        # calibration.conf); actual_TCP_pose, IK and moveL use it, KinematicsInfo reports its DH rows
-        self.factory = factory(world, calibration)
-        self.flange_model = self.factory.model
-        names = [n for n in self.nominal.param_names if n.startswith("tcp.")]
-        nominal_flange = self.nominal.with_params({n: 0.0 for n in names})
-        q0 = np.zeros(self.n)
-        # installation TCP = nominal tool (the installation is kept across a power cycle; setTcp is not)
-        self.installation_tcp = invert(nominal_flange.fk(q0)) @ self.nominal.fk(q0)
-        self.tcp = self.installation_tcp.copy()
+        self._load_kinematics(calibration)
         self.on_drop = None  # set by the server: closes every connection for ``seconds``
         # instant/sim worlds: the controller's cycle is the world's clock (2 ms of world time per tick)
         self._sim = getattr(world, "time_mode", "realtime") != "realtime"
@@ -165,6 +156,18 @@ class URController:
         self._state_cache: dict | None = None
         self._pose_key: tuple | None = None
         self._pose: list[float] = []
+
+    def _load_kinematics(self, calibration: str) -> None:
+        """The controller's own kinematics: its factory calibration (kept across a power cycle, like
+        calibration.conf); actual_TCP_pose, IK and moveL use it, KinematicsInfo reports its DH rows."""
+        self.factory = factory(self.world, calibration)
+        self.flange_model = self.factory.model
+        names = [n for n in self.nominal.param_names if n.startswith("tcp.")]
+        nominal_flange = self.nominal.with_params({n: 0.0 for n in names})
+        q0 = np.zeros(self.n)
+        # installation TCP = nominal tool (the installation is kept across a power cycle; setTcp is not)
+        self.installation_tcp = invert(nominal_flange.fk(q0)) @ self.nominal.fk(q0)
+        self.tcp = self.installation_tcp.copy()
 
     # ---- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:
@@ -467,76 +470,96 @@ class URController:
                 self._out_i(0, S.SCRIPT_DONE)
 
     def _execute(self, cmd: int) -> bool:
-        """Run one command like the control script's ``process_cmd``; False ends the program."""
+        """Run one command like the control script's ``process_cmd``; False ends the program. A command without
+        an entry in ``_COMMANDS`` (payload, force-mode gains, IO, ...) has no effect on the simulated world."""
         if cmd == S.CMD_STOP_SCRIPT:
             self._halt_all()
             return False
-        if cmd in (S.CMD_MOVEJ, S.CMD_MOVEJ_IK, S.CMD_MOVEL, S.CMD_MOVEL_FK):
-            return self._move(cmd)
-        if cmd == S.CMD_SPEEDJ:
-            self.speed_xd = None
-            self.speed_qd = self._reg_d(0, 6)
-        elif cmd == S.CMD_SPEEDL:
-            self.speed_qd = None
-            self.speed_xd = self._reg_d(0, 6)
-        elif cmd == S.CMD_JOG_START:
-            self.speed_qd = None
-            speed, feature = self._reg_d(0, 6), int(self._reg_d(6))
-            if feature == 1:  # tool frame -> base frame
-                R = self._tcp_T(self.q_prev)[:3, :3]
-                speed = np.concatenate([R @ speed[:3], R @ speed[3:]])
-            self.speed_xd = speed
-        elif cmd == S.CMD_SERVOJ:
-            self.speed_qd = self.speed_xd = None
-            self._command_q(self._reg_d(0, 6), None)
-        elif cmd in (S.CMD_SPEED_STOP, S.CMD_SERVO_STOP, S.CMD_STOPJ, S.CMD_STOPL, S.CMD_JOG_STOP,
-                     S.CMD_FORCE_MODE_STOP):
-            self._halt_all()
-        elif cmd in (S.CMD_TEACH_MODE, S.CMD_FREEDRIVE_MODE):
-            self.speed_qd = self.speed_xd = None
-            self.world.halt()
-            if cmd == S.CMD_FREEDRIVE_MODE:
-                self.freedrive_axes = [self._reg_i(1 + k) for k in range(6)]
-            self.teach = True
-            self.world.set_compliant(True)
-        elif cmd in (S.CMD_END_TEACH_MODE, S.CMD_END_FREEDRIVE_MODE):
-            self.teach = False
-            self.world.set_compliant(False)
-        elif cmd == S.CMD_GET_FREEDRIVE_STATUS:
-            self._out_i(1, 1 if self.teach else 0)
-        elif cmd == S.CMD_SET_TCP:
-            self.tcp = pose_to_matrix(self._reg_d(0, 6))
-        elif cmd == S.CMD_GET_TCP_OFFSET:
-            self._out_d(0, matrix_to_pose(self.tcp))
-        elif cmd == S.CMD_GET_FORWARD_KINEMATICS_DEFAULT:
-            self._out_d(0, matrix_to_pose(self._tcp_T(self.q_prev)))
-        elif cmd == S.CMD_GET_FORWARD_KINEMATICS_ARGS:
-            q, tcp = self._reg_d(0, 6), pose_to_matrix(self._reg_d(6, 6))
-            self._out_d(0, matrix_to_pose(self.flange_model.fk(q) @ tcp))
-        elif cmd in (S.CMD_GET_INVERSE_KINEMATICS_DEFAULT, S.CMD_GET_INVERSE_KINEMATICS_ARGS):
-            q0 = self._reg_d(6, 6) if cmd == S.CMD_GET_INVERSE_KINEMATICS_ARGS else self.q_prev
-            q = self._ik(pose_to_matrix(self._reg_d(0, 6)), q0)
-            if q is None:
-                self.messages.append("get_inverse_kin: no solution")
-                return False  # the script raises: the program stops, as on the robot
-            self._out_d(0, q)
-        elif cmd == S.CMD_IS_JOINTS_WITHIN_SAFETY_LIMITS:
-            self._out_i(1, int(bool(self.nominal.within_limits(self._reg_d(0, 6))[0])))
-        elif cmd == S.CMD_IS_POSE_WITHIN_SAFETY_LIMITS:
-            self._out_i(1, 1)
-        elif cmd == S.CMD_IS_STEADY:
-            self._out_i(1, int(not self.world.is_moving()))
-        elif cmd == S.CMD_PROTECTIVE_STOP:
-            self.protective_stop("triggerProtectiveStop() from the client")
-        elif cmd == S.CMD_SET_WATCHDOG:
-            self.watchdog_hz = float(self._reg_d(0))
-            self.in_int0_written = self.controller_time()
-        elif cmd == S.CMD_GET_STEPTIME:
-            self._out_d(0, PERIOD)
-        elif cmd == S.CMD_GET_ACTUAL_JOINT_POSITIONS_HISTORY:
-            self._out_d(0, self.q_prev)
-        # anything else (payload, force-mode gains, IO, ...) has no effect on the simulated world
+        run = self._COMMANDS.get(cmd)
+        return run is None or run(self, cmd) is not False
+
+    # ---- the control script's commands (each: False ends the program) -------------------------
+    def _speedj(self, cmd: int) -> None:
+        self.speed_xd = None
+        self.speed_qd = self._reg_d(0, 6)
+
+    def _speedl(self, cmd: int) -> None:
+        self.speed_qd = None
+        self.speed_xd = self._reg_d(0, 6)
+
+    def _jog_start(self, cmd: int) -> None:
+        self.speed_qd = None
+        speed, feature = self._reg_d(0, 6), int(self._reg_d(6))
+        if feature == 1:  # tool frame -> base frame
+            R = self._tcp_T(self.q_prev)[:3, :3]
+            speed = np.concatenate([R @ speed[:3], R @ speed[3:]])
+        self.speed_xd = speed
+
+    def _servoj(self, cmd: int) -> None:
+        self.speed_qd = self.speed_xd = None
+        self._command_q(self._reg_d(0, 6), None)
+
+    def _stop_motion(self, cmd: int) -> None:
+        self._halt_all()
+
+    def _teach_on(self, cmd: int) -> None:
+        self.speed_qd = self.speed_xd = None
+        self.world.halt()
+        if cmd == S.CMD_FREEDRIVE_MODE:
+            self.freedrive_axes = [self._reg_i(1 + k) for k in range(6)]
+        self.teach = True
+        self.world.set_compliant(True)
+
+    def _teach_off(self, cmd: int) -> None:
+        self.teach = False
+        self.world.set_compliant(False)
+
+    def _freedrive_status(self, cmd: int) -> None:
+        self._out_i(1, 1 if self.teach else 0)
+
+    def _set_tcp(self, cmd: int) -> None:
+        self.tcp = pose_to_matrix(self._reg_d(0, 6))
+
+    def _tcp_offset(self, cmd: int) -> None:
+        self._out_d(0, matrix_to_pose(self.tcp))
+
+    def _fk_default(self, cmd: int) -> None:
+        self._out_d(0, matrix_to_pose(self._tcp_T(self.q_prev)))
+
+    def _fk_args(self, cmd: int) -> None:
+        q, tcp = self._reg_d(0, 6), pose_to_matrix(self._reg_d(6, 6))
+        self._out_d(0, matrix_to_pose(self.flange_model.fk(q) @ tcp))
+
+    def _inverse_kin(self, cmd: int) -> bool:
+        q0 = self._reg_d(6, 6) if cmd == S.CMD_GET_INVERSE_KINEMATICS_ARGS else self.q_prev
+        q = self._ik(pose_to_matrix(self._reg_d(0, 6)), q0)
+        if q is None:
+            self.messages.append("get_inverse_kin: no solution")
+            return False  # the script raises: the program stops, as on the robot
+        self._out_d(0, q)
         return True
+
+    def _joints_within_limits(self, cmd: int) -> None:
+        self._out_i(1, int(bool(self.nominal.within_limits(self._reg_d(0, 6))[0])))
+
+    def _pose_within_limits(self, cmd: int) -> None:
+        self._out_i(1, 1)
+
+    def _is_steady(self, cmd: int) -> None:
+        self._out_i(1, int(not self.world.is_moving()))
+
+    def _client_protective_stop(self, cmd: int) -> None:
+        self.protective_stop("triggerProtectiveStop() from the client")
+
+    def _set_watchdog(self, cmd: int) -> None:
+        self.watchdog_hz = float(self._reg_d(0))
+        self.in_int0_written = self.controller_time()
+
+    def _steptime(self, cmd: int) -> None:
+        self._out_d(0, PERIOD)
+
+    def _q_history(self, cmd: int) -> None:
+        self._out_d(0, self.q_prev)
 
     # ---- motion ------------------------------------------------------------------------------
     def _tcp_T(self, q) -> np.ndarray:
@@ -708,3 +731,25 @@ class URController:
                             self.cmd_log.append((self.tick_count, int(v)))
                 elif name.startswith("input_double_register_"):
                     self.in_double[int(name.rsplit("_", 1)[1])] = float(v)
+
+    # ur_rtde control-script command -> what the controller does for it (``_execute``); the commands are
+    # ur_rtde's (rtde_control.script, ``process_cmd``), their effects the URScript functions they call
+    _COMMANDS = {
+        S.CMD_MOVEJ: _move, S.CMD_MOVEJ_IK: _move, S.CMD_MOVEL: _move, S.CMD_MOVEL_FK: _move,
+        S.CMD_SPEEDJ: _speedj, S.CMD_SPEEDL: _speedl, S.CMD_JOG_START: _jog_start, S.CMD_SERVOJ: _servoj,
+        **dict.fromkeys((S.CMD_SPEED_STOP, S.CMD_SERVO_STOP, S.CMD_STOPJ, S.CMD_STOPL, S.CMD_JOG_STOP,
+                         S.CMD_FORCE_MODE_STOP), _stop_motion),
+        S.CMD_TEACH_MODE: _teach_on, S.CMD_FREEDRIVE_MODE: _teach_on,
+        S.CMD_END_TEACH_MODE: _teach_off, S.CMD_END_FREEDRIVE_MODE: _teach_off,
+        S.CMD_GET_FREEDRIVE_STATUS: _freedrive_status,
+        S.CMD_SET_TCP: _set_tcp, S.CMD_GET_TCP_OFFSET: _tcp_offset,
+        S.CMD_GET_FORWARD_KINEMATICS_DEFAULT: _fk_default, S.CMD_GET_FORWARD_KINEMATICS_ARGS: _fk_args,
+        S.CMD_GET_INVERSE_KINEMATICS_DEFAULT: _inverse_kin, S.CMD_GET_INVERSE_KINEMATICS_ARGS: _inverse_kin,
+        S.CMD_IS_JOINTS_WITHIN_SAFETY_LIMITS: _joints_within_limits,
+        S.CMD_IS_POSE_WITHIN_SAFETY_LIMITS: _pose_within_limits,
+        S.CMD_IS_STEADY: _is_steady,
+        S.CMD_PROTECTIVE_STOP: _client_protective_stop,
+        S.CMD_SET_WATCHDOG: _set_watchdog,
+        S.CMD_GET_STEPTIME: _steptime,
+        S.CMD_GET_ACTUAL_JOINT_POSITIONS_HISTORY: _q_history,
+    }

@@ -1,4 +1,5 @@
-"""Calibration cell: fixed reference points the tool tip can touch (needle) or seat in (socket)."""
+"""Calibration cell: fixed reference points the tool tip can touch (needle) or seat in (socket), the keep-outs the
+arm's links meet, and what the integrator was told about them (positions with survey error)."""
 
 from __future__ import annotations
 
@@ -111,3 +112,54 @@ class KeepOutTruth:
         if self._checker.hits(q_from[None])[0] is not None:
             return None
         return self._checker.path_hit(q_from, q_to, step=self.STEP)
+
+
+class Cell:
+    """The reference points as they truly are (``points``, m) and as the integrator surveyed them (``survey``:
+    the error of each), with the contact rules the world applies to the true tip: which needle it touches,
+    which socket captures it and where in that socket it settles (seating noise, its own random stream)."""
+
+    def __init__(self, spec, g_survey: np.random.Generator, g_seat: np.random.Generator) -> None:
+        self.spec = spec
+        self.points: dict[str, CellPoint] = {}
+        self.survey: dict[str, np.ndarray] = {}
+        for p in spec.points:
+            radius = p["radius"] or (spec.capture_radius if p["kind"] == "socket" else spec.contact_radius)
+            self.points[p["label"]] = CellPoint(p["label"], p["kind"], np.array(p["position"], dtype=float),
+                                                float(radius), np.array(p["approach"], dtype=float))
+            self.survey[p["label"]] = g_survey.normal(0.0, spec.survey_sigma, 3)
+        self._g_seat = g_seat
+
+    def capturing(self, tip) -> CellPoint | None:
+        """The socket whose capture radius holds ``tip`` (the nearest of several), or None."""
+        sockets = [p for p in self.points.values() if p.kind == "socket" and p.distance(tip) <= p.radius]
+        return min(sockets, key=lambda s: s.distance(tip)) if sockets else None
+
+    def settling_point(self, socket: CellPoint) -> np.ndarray:
+        """Where the compliant tip comes to rest in ``socket`` this time: its centre plus seating noise (m)."""
+        return socket.position + self._g_seat.normal(0.0, self.spec.seating_sigma, 3)
+
+    def needle_touched(self, tip) -> str | None:
+        """Label of the needle whose contact radius holds ``tip``, or None."""
+        for p in self.points.values():
+            if p.kind == "needle" and p.distance(tip) <= p.radius:
+                return p.label
+        return None
+
+    def station_doc(self, nominal) -> dict:
+        """The cell as the integrator knows it (``station-cell/1``): approximate positions in the robot
+        base frame = true + survey error, rounded to 0.1 mm."""
+        pts = []
+        for label, p in self.points.items():
+            pos = p.position + self.survey[label]
+            pts.append({"label": label, "kind": p.kind, "position": [round(float(x), 4) for x in pos],
+                        "approach": [round(float(x), 6) for x in p.approach],
+                        "radius": round(p.radius, 6)})
+        tool = {k: round(nominal.param(f"tcp.{k}"), 6) for k in ("x", "y", "z", "rx", "ry", "rz")
+                if f"tcp.{k}" in nominal.param_names}  # the planar parallel robot has no tool frame
+        from station.kinematics.collision import DEFAULT_CLEARANCE, keep_out_to_doc
+
+        # the floor and fixtures as built (no survey error), with the station's default clearance around them
+        return {"format": CELL_FORMAT, "units": {"length": "m", "angle": "rad"}, "frame": "robot base",
+                "model": nominal.name, "tool": tool, "survey_sigma": self.spec.survey_sigma,
+                "points": pts, **keep_out_to_doc(self.spec.keep_out, clearance=DEFAULT_CLEARANCE)}

@@ -23,27 +23,34 @@ def _mm(x: float) -> str:
     return f"{x * 1e3:g}"
 
 
+def _example_cell(m, builtin: bool, seed: int) -> tuple[dict, str]:
+    """The example's start pose and cell points (SI), and a comment on where they came from: a built-in
+    model's default cell (with EXTRA_SOCKETS), a parallel robot's home (its points measured by a tracker), or a
+    cell computed from the workspace of an arm of one's own."""
+    d = DEFAULTS.get(m.name) if builtin else None
+    if d is not None and m.name in EXTRA_SOCKETS:
+        d = {**d, "points": [*d["points"], *({"label": lb, "kind": "socket", "position": p, "approach": [0, 0, 1]}
+                                            for lb, p in EXTRA_SOCKETS[m.name])]}
+    if d is not None:
+        return d, ""
+    if getattr(m, "kind", "serial") == "parallel":
+        return {"start": list(m.home_q), "points": []}, ""
+    from station.mocks.world.reach import place_points
+
+    placed = place_points(m, seed=seed)
+    d = {"start": [round(x, 3) if not j.revolute else math.radians(round(math.degrees(x), 1))
+                   for x, j in zip(placed.start, m.joints, strict=True)], "points": placed.points}
+    return d, (f"  # computed for {m.name} (reach {placed.reach * 1e3:.0f} mm): reached from a 35 deg cone of "
+               "tool directions, links clear of the floor" + (f"; {placed.note}" if placed.note else ""))
+
+
 def example_text(model: str = "ur5e", seed: int = 0, tip_link: str | None = None,
                  base_link: str | None = None) -> str:
     from station.kinematics import builtin_names, load_model
 
     m = load_model(model, tip_link=tip_link, base_link=base_link)
     ref = m.name if model in builtin_names() else str(model)  # a model file: keep its path
-    d = DEFAULTS.get(m.name) if model in builtin_names() else None
-    if d is not None and m.name in EXTRA_SOCKETS:
-        d = {**d, "points": [*d["points"], *({"label": lb, "kind": "socket", "position": p, "approach": [0, 0, 1]}
-                                            for lb, p in EXTRA_SOCKETS[m.name])]}
-    note = ""
-    if d is None and getattr(m, "kind", "serial") == "parallel":  # the home configuration; measured by a tracker
-        d = {"start": list(m.home_q), "points": []}
-    elif d is None:  # an arm of one's own: a cell computed from its workspace (mocks/world/reach.py)
-        from station.mocks.world.reach import place_points
-
-        placed = place_points(m, seed=seed)
-        d = {"start": [round(x, 3) if not j.revolute else math.radians(round(math.degrees(x), 1))
-                       for x, j in zip(placed.start, m.joints, strict=True)], "points": placed.points}
-        note = (f"  # computed for {m.name} (reach {placed.reach * 1e3:.0f} mm): reached from a 35 deg cone of "
-                "tool directions, links clear of the floor" + (f"; {placed.note}" if placed.note else ""))
+    d, note = _example_cell(m, model in builtin_names(), seed)
     start = ", ".join(f"{math.degrees(x):g}" if j.revolute else _mm(x) for x, j in zip(d["start"], m.joints,
                                                                                        strict=True))
     pts = "\n".join(

@@ -29,10 +29,14 @@ def world_digest(world) -> str:
 
 def default_serial(world, kind: str = "ur") -> str:
     """``ur``: eleven digits as a UR controller's serial (``2023`` + 7 digits of the digest); ``canopen``: the
-    base of the drives' 0x1018 serial numbers (node id added per drive), as hex-like 32-bit integer text."""
+    base of the drives' 0x1018 serial numbers (node id added per drive), as hex-like 32-bit integer text;
+    ``dynamixel``: the ``serial=`` an integrator writes into the robot URL (X-series servos carry no serial
+    number, so the driver would otherwise derive one from the ids, the same for every arm)."""
     d = int(world_digest(world)[:15], 16)
     if kind == "ur":
         return f"2023{d % 10**7:07d}"
     if kind == "canopen":
         return str(0x5A000000 | ((d % 0xFFFF) << 8))
+    if kind == "dynamixel":
+        return f"DXL-{d % 16**8:08X}"
     raise ValueError(f"default_serial: unknown kind {kind!r}")

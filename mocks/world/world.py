@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 from station.mocks.world import dynamics, motion
-from station.mocks.world.cell import CELL_FORMAT, DEFAULTS, CellPoint, KeepOutTruth
+from station.mocks.world.cell import DEFAULTS, Cell, CellPoint, KeepOutTruth
 from station.mocks.world.faults import Faults
 from station.mocks.world.physics import Gravity, Rigid
 from station.mocks.world.worldfile import (
@@ -75,6 +75,25 @@ class Snapshot:
     seated: str | None
 
 
+def _hidden_errors(spec: WorldSpec, nominal: Model, g_err: np.random.Generator) -> dict[str, float]:
+    """The robot's hidden errors (SI), non-zero ones in model order: one standard normal per model parameter,
+    scaled by the sigma of the most specific selector that names it (neither the order of selectors nor adding
+    one elsewhere changes a draw), then the world file's explicit values."""
+    z = g_err.standard_normal(len(nominal.param_names))
+    chosen: dict[str, tuple[int, str, float]] = {}
+    for sel, sl, sa in spec.random:
+        names = [n for n in nominal.select(sel) if not n.startswith("compliance.")]
+        for name in names:
+            sigma = (sl if param_kind(nominal, name) == "length" else sa) or 0.0
+            key = (len(names), sel, sigma)
+            if name not in chosen or key[:2] < chosen[name][:2]:
+                chosen[name] = key
+    errors = {n: float(z[nominal.index(n)] * c[2]) for n, c in chosen.items()}
+    errors.update(spec.explicit)
+    errors = {n: errors[n] for n in nominal.param_names if n in errors}  # model order
+    return {n: v for n, v in errors.items() if v != 0.0}
+
+
 class World:
     """The truth behind every emulator. Build with :meth:`from_file`, :meth:`from_dict`, :meth:`default`."""
 
@@ -86,23 +105,9 @@ class World:
             nominal = nominal.with_params({f"tcp.{k}": v for k, v in spec.tool.items()})
         self.nominal: Model = nominal
         # independent streams, so that e.g. more seatings never change the hidden errors
-        g_err, self._g_seat, g_survey, self._g_enc, self._g_pos = (
+        g_err, g_seat, g_survey, self._g_enc, self._g_pos = (
             np.random.default_rng(s) for s in np.random.SeedSequence(spec.seed).spawn(5))
-        # one standard normal per model parameter, scaled by the sigma of the most specific selector
-        # that names it: neither the order of selectors nor adding one elsewhere changes a draw
-        z = g_err.standard_normal(len(nominal.param_names))
-        chosen: dict[str, tuple[int, str, float]] = {}
-        for sel, sl, sa in spec.random:
-            names = [n for n in nominal.select(sel) if not n.startswith("compliance.")]
-            for name in names:
-                sigma = (sl if param_kind(nominal, name) == "length" else sa) or 0.0
-                key = (len(names), sel, sigma)
-                if name not in chosen or key[:2] < chosen[name][:2]:
-                    chosen[name] = key
-        errors = {n: float(z[nominal.index(n)] * c[2]) for n, c in chosen.items()}
-        errors.update(spec.explicit)
-        errors = {n: errors[n] for n in nominal.param_names if n in errors}  # model order
-        self._errors = {n: v for n, v in errors.items() if v != 0.0}
+        self._errors = _hidden_errors(spec, nominal, g_err)
         n = nominal.n_joints
         # the robot's own compliance (joints.compliance, else the model's compliance.jN) acts through physics:
         # the truth model itself is rigid
@@ -122,13 +127,8 @@ class World:
         for i, b in spec.backlash.items():
             self._backlash[i] = b
         self.gravity = self._gravity_truth(spec, nominal)
-        self.points: dict[str, CellPoint] = {}
-        self._survey: dict[str, np.ndarray] = {}
-        for p in spec.points:
-            radius = p["radius"] or (spec.capture_radius if p["kind"] == "socket" else spec.contact_radius)
-            self.points[p["label"]] = CellPoint(p["label"], p["kind"], np.array(p["position"], dtype=float),
-                                                float(radius), np.array(p["approach"], dtype=float))
-            self._survey[p["label"]] = g_survey.normal(0.0, spec.survey_sigma, 3)
+        self.cell = Cell(spec, g_survey, g_seat)
+        self.points: dict[str, CellPoint] = self.cell.points
         self.faults = Faults()
         self._arm_file_faults(spec.faults)
         self.keep_out = KeepOutTruth(self.truth, spec.keep_out)  # the floor and fixtures the links can hit
@@ -141,7 +141,12 @@ class World:
         self.time_scale = spec.time_scale
         self._t = 0.0
         self._mono0 = time.monotonic()
-        # joints
+        self._init_joints(spec)
+
+    def _init_joints(self, spec: WorldSpec) -> None:
+        """The joints at the start: held on their profiles at ``motion.start`` (within the limits), enabled as
+        the world file says, brakes, and the state of joints off their profile (dynamics.py)."""
+        n = self.n_joints
         q0 = np.zeros(n) if spec.start is None else np.asarray(spec.start, dtype=float)
         q0 = np.clip(q0, self.lower, self.upper)
         self._version = 0
@@ -849,13 +854,12 @@ class World:
     def _try_seat(self) -> None:
         q, _, side = self._state()
         qj, tip = self._joint_q_now()
-        sockets = [p for p in self.points.values() if p.kind == "socket" and p.distance(tip) <= p.radius]
-        if not sockets or not self._enabled.any():
+        p = self.cell.capturing(tip)
+        if p is None or not self._enabled.any():
             return
         if self._seat_failed is not None and np.array_equal(self._seat_failed, q):
             return
-        p = min(sockets, key=lambda s: s.distance(tip))
-        target = p.position + self._g_seat.normal(0.0, self.spec.seating_sigma, 3)
+        target = self.cell.settling_point(p)
         res = self.truth.ik(target, qj, position_only=True, weights=self._enabled.astype(float), tol_pos=1e-9)
         if res.position_error[0] > 1e-7:
             if self._seat_failed is None or not np.array_equal(self._seat_failed, q):
@@ -879,29 +883,12 @@ class World:
             self._update()
             if self._seated:
                 return self._seated
-            tip = self.tip_true()
-            for p in self.points.values():
-                if p.kind == "needle" and p.distance(tip) <= p.radius:
-                    return p.label
-            return None
+            return self.cell.needle_touched(self.tip_true())
 
     def station_cell(self) -> dict:
-        """The cell as the integrator knows it (``station-cell/1``): approximate positions in the robot
-        base frame = true + survey error, rounded to 0.1 mm."""
-        pts = []
-        for label, p in self.points.items():
-            pos = p.position + self._survey[label]
-            pts.append({"label": label, "kind": p.kind, "position": [round(float(x), 4) for x in pos],
-                        "approach": [round(float(x), 6) for x in p.approach],
-                        "radius": round(p.radius, 6)})
-        tool = {k: round(self.nominal.param(f"tcp.{k}"), 6) for k in ("x", "y", "z", "rx", "ry", "rz")
-                if f"tcp.{k}" in self.nominal.param_names}  # the planar parallel robot has no tool frame
-        from station.kinematics.collision import DEFAULT_CLEARANCE, keep_out_to_doc
-
-        # the floor and fixtures as built (no survey error), with the station's default clearance around them
-        return {"format": CELL_FORMAT, "units": {"length": "m", "angle": "rad"}, "frame": "robot base",
-                "model": self.nominal.name, "tool": tool, "survey_sigma": self.spec.survey_sigma,
-                "points": pts, **keep_out_to_doc(self.spec.keep_out, clearance=DEFAULT_CLEARANCE)}
+        """The cell as the integrator knows it (``station-cell/1``, ``Cell.station_doc``): true positions plus
+        survey error."""
+        return self.cell.station_doc(self.nominal)
 
     # ---- truth --------------------------------------------------------------------------------
     def errors(self) -> dict[str, float]:
