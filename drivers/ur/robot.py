@@ -774,7 +774,10 @@ class URRobot(RobotBase):
             self._check_safety()
             return
         if on:
-            self._watchdog.disarm(keep_relaxed=False)  # the arm rests in freedrive without kicks, for any time
+            # the arm rests in freedrive without kicks: a jog watchdog's script is ended; the relaxed one a waited
+            # move leaves (MOVE_IDLE_WATCHDOG_HZ) is kept (ending the script before every seat, then starting a
+            # fresh one, timed out now and then)
+            self._watchdog.disarm()
         self._ready_for_motion()
         if on:
             if self._compliant_mode is not None:
