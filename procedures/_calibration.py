@@ -8,9 +8,53 @@ from pathlib import Path
 
 import numpy as np
 
+from station.engine.declare import Kind, Option, url
 from station.robot.errors import ConfigError
 from station.safeio import DuplicateKeyError, loads_strict
 from station.solver.map import working_model
+
+
+def _payload_value(text, flag: str, options: dict) -> dict:
+    """``--payload 15kg[@x,y,z mm]`` (as ``station solve --payload``) as ``{"mass": kg, "com": [x, y, z] m}``."""
+    from station.quantity import parse_payload
+
+    mass, com = parse_payload(str(text))
+    return {"mass": float(mass), "com": [float(c) for c in com]}
+
+
+def _calibration_file(path, flag: str, options: dict) -> str:
+    """``--calibration``: a readable ``station-calibration/1`` result (schema checked; its model name and
+    parameters are checked against the robot's model once it is connected, before anything moves). A result with
+    compliance parameters was solved under a payload: refused without the same ``--payload`` (read before it).
+    The absolute path (journaled: a resume from another folder finds it)."""
+    from station.kinematics.gravity import same_payload, show_payload
+    from station.resultfile import CalibrationSchema
+    from station.safeio import read_json
+    from station.strict import check
+
+    payload = options.get("payload")
+    cal = check(CalibrationSchema, read_json(path, "calibration"), ConfigError, f"calibration {path}")
+    compliance = [n for n, p in cal.parameters.items() if n.startswith("compliance.") and p.identifiable]
+    if compliance and not payload:
+        raise ConfigError(f"calibration {path}: parameters.{compliance[0]}: a compliance term (solved under a "
+                          "payload, station solve --payload); give the same payload: --payload MASS (e.g. 15kg)")
+    solved_under = (getattr(cal, "settings", None) or {}).get("payload")
+    if compliance and solved_under is not None and not same_payload(solved_under, payload):
+        raise ConfigError(f"calibration {path}: settings.payload: solved under {show_payload(solved_under)}, "
+                          f"--payload gives {show_payload(payload)}; give the same --payload")
+    return str(Path(path).resolve())
+
+
+# the options of the procedures that measure with an instrument (declared once: correction_map, iso9283)
+TRACKER = Option("tracker", "--tracker", url("tcp://127.0.0.1:5300"), "Measuring instrument URL, e.g. "
+                 "tcp://127.0.0.1:5300 (station mock tracker).")
+PAYLOAD = Option("payload", "--payload", Kind("a mass with its unit, optionally @x,y,z: 0.5kg@0,0,30mm", str,
+                                              _payload_value),
+                 "Mass at the tool, e.g. 0.1kg or 250g, optionally with its centre in the tool frame: 0.5kg@0,0,30mm "
+                 "(loads the joints: compliance).", "kg", "none")
+CALIBRATION = Option("calibration", "--calibration", Kind("a station solve result JSON", Path, _calibration_file),
+                     "A parametric calibration of the robot's model (result JSON of station solve) the procedure "
+                     "works on top of.", None, "none (the nominal model)")
 
 
 def _name(s) -> str:

@@ -21,9 +21,18 @@ import json
 from pathlib import Path
 
 import numpy as np
-from station.procedures._calibration import calibration, journaled_calibration, payload, working
+from station.procedures._calibration import (
+    CALIBRATION,
+    PAYLOAD,
+    TRACKER,
+    calibration,
+    journaled_calibration,
+    payload,
+    working,
+)
 
 from station.engine import events as ev
+from station.engine.declare import HOLDOUT, SEED, Measurement, Option, angle, count, measures, takes
 from station.engine.plan import PlannedPose, PosePlan
 from station.engine.steps import step
 from station.kinematics import se3
@@ -38,7 +47,30 @@ APPROACH = np.radians(0.5)  # serial arms: every configuration is approached fro
 APPROACH_LENGTH = 0.5e-3  # m, the same for a prismatic joint
 PREDICTED_LIMIT = 0.5  # serial arms: refuse a work box where the map would leave more than this of a pose error
 
+GRID = Option("grid", "--grid", count(1, 100, "sub-intervals 1..100"), "Q sub-intervals per actuator (Q+1 levels).",
+              "count")
+SPAN = Option("span_deg", "--span-deg", angle(0, 90, "deg", "20deg", "a half-width"), "With a serial arm: the work "
+              "box is +- this angle per joint around the start pose: 20deg (a bare number is degrees).", "deg", "20")
 
+
+@measures(
+    Measurement("registration_rms", "mm", "RMS residual of the tracker frame's registration (grid samples)"),
+    Measurement("samples", "count", "grid samples the map is built from"),
+    Measurement("predicted_residual", "1", "serial arms: the plan's singularity check"),
+    Measurement("summand_max_length", "mm", "largest correction of a prismatic actuator"),
+    Measurement("summand_max_angle", "deg", "largest correction of a revolute actuator"),
+    Measurement("holdout", "count", "held-out configurations measured"),
+    Measurement("holdout_nominal_rms", "mm", "held out: RMS position error of the nominal model"),
+    Measurement("calibration_parameters", "count", "parameters of the --calibration the map sits on"),
+    Measurement("holdout_calibrated_rms", "mm", "held out: RMS position error of the calibrated model alone"),
+    Measurement("holdout_calibrated_max", "mm", "held out: largest position error of the calibrated model alone"),
+    Measurement("holdout_calibrated_rotation_rms", "deg", "held out: RMS rotation error of the calibrated model"),
+    Measurement("holdout_rms", "mm", "held out: RMS position error with the map"),
+    Measurement("holdout_max", "mm", "held out: largest position error with the map"),
+    Measurement("holdout_rotation_rms", "deg", "held out: RMS rotation error with the map"),
+    Measurement("tracker_noise_rms", "mm", "the tracker's stated noise at the held-out distances (RMS)"),
+    judged=("holdout_rms",))
+@takes(HOLDOUT, SEED, TRACKER, GRID, SPAN, PAYLOAD, CALIBRATION)
 def checklist(s):
     s.connect()                                  # 1. connect and identify the robot (serial must match)
     s.check_state()                              # 2. no fault or stop, powered

@@ -13,6 +13,7 @@ tool's ``z``) the solver names it unidentifiable, as everything several fixed po
 measurements (``s.record(pose, measured=xyz)``), in which case the instrument frame is solved."""
 
 from station.engine import PlanError
+from station.engine.declare import PLAN_OPTIONS, SOLVE, WRITE_BACK, measures, takes
 
 IDENTIFY = "offsets,dh,tcp"  # planned for; solved with the tool only where the data need it (tool_needed)
 WITHOUT_TOOL = "offsets,dh"
@@ -20,6 +21,8 @@ DEFAULTS = {"n_holdout": 6}
 MIN_POINTS = 3  # from one or two unknown points most link parameters of a 6R arm stay unobservable
 
 
+@measures(*SOLVE, *WRITE_BACK, judged=("fit_rms",))
+@takes(*PLAN_OPTIONS)
 def checklist(s):
     s.connect()                                  # 1. connect and identify
     s.check_state()                              # 2. state OK

@@ -13,14 +13,23 @@ figures are the worst pose's; with a calibration, those of the calibrated model)
 each figure means and how far it can be trusted."""
 
 import numpy as np
-from station.procedures._calibration import calibration, journaled_calibration, payload, working
+from station.procedures._calibration import (
+    CALIBRATION,
+    PAYLOAD,
+    TRACKER,
+    calibration,
+    journaled_calibration,
+    payload,
+    working,
+)
 
 from station.engine import events as ev
+from station.engine.declare import Kind, Measurement, Option, choice, count, measures, takes
 from station.engine.plan import PlannedPose, PosePlan
 from station.engine.steps import step
 from station.kinematics import se3
 from station.performance import iso9283 as iso
-from station.performance.cube import CubeError, given_cube, largest_cube
+from station.performance.cube import PLANES, CubeError, given_cube, largest_cube
 from station.robot.errors import ConfigError
 from station.solver.map import FULL, MapError, to_vectors
 from station.solver.map.register import register
@@ -34,7 +43,56 @@ PAIR = ("P2", "P4")  # distance accuracy: the two opposite poses
 REGISTRATION_DRAWS = 200  # Monte Carlo refits of the tracker frame: its uncertainty at each pose
 STATIC = 10  # readings of P1 without moving: the instrument's own scatter here (the floor under RP)
 
+# the judged figures (the worst test pose's) and their quantity; with a calibration the nominal model's are
+# measured too, as NAME_nominal
+JUDGED = (("AP_p", "length"), ("RP_l", "length"), ("vAP_p", "length"), ("AD_p", "length"), ("RD_p", "length"),
+          ("AP_abc", "angle"), ("RP_abc", "angle"), ("vAP_abc", "angle"))
+FIGURES = {"AP": "pose accuracy", "RP": "pose repeatability", "vAP": "multi-directional pose accuracy variation",
+           "AD": "distance accuracy", "RD": "distance repeatability"}
 
+
+def _cube_value(text, flag: str, options: dict) -> list[float]:
+    """``X,Y,Z,EDGE`` in the base frame, metres or one unit suffix for all (``400,0,500,300mm``), edge > 0 (SI)."""
+    import math
+    import re
+
+    from station.units import LENGTH_UNITS
+
+    m = re.match(r"^\s*([^,]+),([^,]+),([^,]+),([^,]+?)\s*([a-z]*)\s*$", str(text))
+    if not m or (m.group(5) or "m") not in LENGTH_UNITS:
+        raise ValueError
+    v = [float(m.group(k)) * LENGTH_UNITS[m.group(5) or "m"] for k in range(1, 5)]
+    if not all(math.isfinite(x) for x in v) or v[3] <= 0:
+        raise ValueError
+    return v
+
+
+CYCLES = Option("cycles", "--cycles", count(4, 1000, "4..1000 cycles per pose (the standard: 30)"),
+                "Cycles per pose (the standard's 30).", "count")
+CUBE = Option("cube", "--cube", Kind("the centre and edge X,Y,Z,EDGE in the base frame (metres, or one unit for all: "
+                                     "400,0,500,300mm), edge > 0", str, _cube_value),
+              "The test cube's centre and edge X,Y,Z,EDGE in the base frame (e.g. 400,0,500,300mm).", "m",
+              "the largest cube around the tool")
+PLANE = Option("plane", "--plane", choice(*PLANES), "The cube's diagonal plane of the test poses: x+, x-, y+, y-, z+ "
+               "or z-.")
+
+
+def _figure(name: str, quantity: str, suffix: str = "", what: str = "") -> Measurement:
+    unit = "mm" if quantity == "length" else "deg"
+    axis = "position" if name.endswith(("_p", "_l")) else "orientation"
+    return Measurement(name + suffix, unit, f"{FIGURES[name.split('_')[0]]} ({axis}) at the worst pose{what}")
+
+
+@measures(
+    Measurement("cycles", "count", "complete cycles per pose"),
+    *(_figure(n, q) for n, q in JUDGED),
+    *(_figure(n, q, "_nominal", ", nominal model (with --calibration)") for n, q in JUDGED),
+    Measurement("AP_p_upper", "mm", "upper end of AP_p's confidence interval"),
+    Measurement("RP_l_upper", "mm", "upper end of RP_l's confidence interval"),
+    Measurement("rp_floor", "mm", "the instrument's own scatter at P1 (the floor under RP)"),
+    Measurement("registration_rms", "mm", "RMS residual of the tracker frame's registration"),
+    judged=("AP_p", "RP_l"))
+@takes(TRACKER, CYCLES, CUBE, PLANE, PAYLOAD, CALIBRATION)
 def checklist(s):
     s.connect()                                  # 1. connect and identify the robot (serial must match)
     s.check_state()                              # 2. no fault or stop, powered
@@ -254,9 +312,6 @@ def evaluate_model(s, model, data: dict, noise: np.ndarray) -> tuple[dict, dict]
         res.setdefault("instrument", {})["stated_sigma_m"] = max(known)
     return res, reg.to_dict()
 
-
-JUDGED = (("AP_p", "length"), ("RP_l", "length"), ("vAP_p", "length"), ("AD_p", "length"), ("RD_p", "length"),
-          ("AP_abc", "angle"), ("RP_abc", "angle"), ("vAP_abc", "angle"))
 
 
 def evaluate(s) -> None:

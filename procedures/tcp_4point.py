@@ -4,10 +4,14 @@ Seed 001 (SCARA 4-point method, generalised): the tip rests on one point C at di
 tool offset and C are solved together. On a SCARA the rotations are about one vertical axis, so the tool
 length cannot be separated from the height of C and is reported unidentifiable. Works on 6-axis arms too."""
 
+from station.engine.declare import HOLDOUT, POSES, REFERENCE, SEED, SOLVE, measures, takes
+
 IDENTIFY = "tcp"
 DEFAULTS = {"n_fit": 8, "n_holdout": 2}
 
 
+@measures(*SOLVE, judged=("fit_rms",))
+@takes(POSES, HOLDOUT, SEED, REFERENCE)  # the cone is its own: 40 deg
 def checklist(s):
     s.connect()                                  # 1. connect and identify
     s.check_state()                              # 2. state OK

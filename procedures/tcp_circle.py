@@ -4,10 +4,14 @@ Seed 003c (XYZR tool self-calibration): at evenly spread angles of the last (rot
 bring the tip back onto the point; the flange positions lie on a circle around it, whose radius is the
 tool's distance from the rotary axis. No external instrument."""
 
+from station.engine.declare import HOLDOUT, POSES, REFERENCE, SOLVE, measures, takes
+
 IDENTIFY = "tcp"
 DEFAULTS = {"n_fit": 8, "n_holdout": 2}
 
 
+@measures(*SOLVE, judged=("fit_rms",))
+@takes(POSES, HOLDOUT, REFERENCE)  # angles of the rotary axis: no cone, no random draw
 def checklist(s):
     s.connect()                                  # 1. connect and identify
     s.check_state()                              # 2. state OK

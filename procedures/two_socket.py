@@ -21,6 +21,7 @@ flange, two sockets 50 mm apart, many configurations per socket)."""
 import numpy as np
 
 from station.engine import PlanError
+from station.engine.declare import PLAN_OPTIONS, SOLVE, WRITE_BACK, Measurement, measures, takes
 from station.engine.steps import step
 from station.engine.touch import TouchFailed
 from station.robot.capabilities import CalibrationExport, Compliant, ContactSensor
@@ -32,6 +33,15 @@ DEFAULTS = {"per_socket": 20, "n_holdout": 8, "cone_deg": 35.0, "standoff_mm": 4
 MIN_PER_SOCKET = 20
 
 
+@measures(*SOLVE, *WRITE_BACK,
+          Measurement("holdout_consistency", "mm", "calibrated model: mean distance of the held-out touches of a "
+                      "socket from their centroid"),
+          Measurement("nominal_consistency", "mm", "the same with the nominal model"),
+          Measurement("distance_error", "mm", "calibrated model: held-out socket centroids' distance against the "
+                      "certified one"),
+          Measurement("nominal_distance_error", "mm", "the same with the nominal model"),
+          judged=("fit_rms", "distance_error"))
+@takes(*PLAN_OPTIONS)
 def checklist(s):
     s.connect()                                  # 1. connect and identify (serial, the served model)
     s.check_state()                              # 2. no reflex or stop; not compliant

@@ -3,9 +3,13 @@
 After a calibration (and write-back) the nominal model must put the tip on the same spot at every touch of
 a fixed point. The spread about the point's centroid is judged against ``verify_rms``/``verify_max``."""
 
+from station.engine.declare import CONSISTENCY, PLAN_OPTIONS, measures, takes
+
 DEFAULTS = {"n_fit": 8, "n_holdout": 0, "seed": 17}
 
 
+@measures(*CONSISTENCY, judged=("verify_rms",))
+@takes(*PLAN_OPTIONS)
 def checklist(s):
     s.connect()                                  # 1. connect and identify
     s.check_state()                              # 2. state OK

@@ -4,12 +4,16 @@ End-of-line procedure after seed 000 (tip touch on a fixed reference, position o
 Offsets that a single fixed point cannot show (the base axis, a wrist axis the tip lies on) are reported
 unidentifiable, never guessed. Limits: ``procedures/limits.yaml``, section ``zero_offsets`` of the model."""
 
+from station.engine.declare import PLAN_OPTIONS, SOLVE, WRITE_BACK, measures, takes
+
 IDENTIFY = "offsets"
 # a 50 deg cone of tool directions: at 35 deg the elbow/wrist zeros of a 6R arm are 2x worse conditioned
 # from some start poses (arm6: offset std 0.012 vs 0.0066 deg), failing the 0.01 deg limit
 DEFAULTS = {"n_holdout": 4, "cone_deg": 50.0}
 
 
+@measures(*SOLVE, *WRITE_BACK, judged=("fit_rms",))
+@takes(*PLAN_OPTIONS)
 def checklist(s):
     s.connect()                                  # 1. connect and identify the robot (serial must match)
     s.check_state()                              # 2. no fault or stop, powered, not compliant

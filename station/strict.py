@@ -38,12 +38,8 @@ def _short(v: Any) -> str:
     return r if len(r) <= 40 else r[:37] + "..."
 
 
-def _message(err: dict, field: str = "value") -> str:
-    kind, v = err["type"], err.get("input")
-    if kind == "extra_forbidden":
-        return "unknown key (not part of the format: misspelt? see docs/formats.md)"
-    if kind == "missing":
-        return "missing (required)"
+def _number_message(kind: str, v: Any, err: dict, field: str) -> str | None:
+    """What is wrong with a number: not one, not finite, absurd (a unit slip), of the wrong sign."""
     if isinstance(v, bool) and kind in ("float_type", "int_type", "greater_than", "less_than_equal"):
         return f"expected a number, got {v!r} (a boolean is not a number)"
     if kind in ("float_type", "int_type"):
@@ -59,6 +55,11 @@ def _message(err: dict, field: str = "value") -> str:
             f"must not be negative, got {_short(v)}"
     if kind == "greater_than" and err.get("ctx", {}).get("gt") == 0:
         return f"must be positive, got {_short(v)}"
+    return None
+
+
+def _shape_message(kind: str, v: Any, err: dict) -> str | None:
+    """What is wrong with a container or a choice: a mapping or list expected, a wrong length, not a choice."""
     if kind in ("dict_type", "model_type"):
         return f"expected a mapping, got {_short(v)}"
     if kind in ("list_type", "tuple_type"):
@@ -75,6 +76,18 @@ def _message(err: dict, field: str = "value") -> str:
         return f"too short ({len(v)} items): {err['msg'][0].lower()}{err['msg'][1:]}"
     if kind == "too_long" and isinstance(v, list | tuple):
         return f"too long ({len(v)} items): {err['msg'][0].lower()}{err['msg'][1:]}"
+    return None
+
+
+def _message(err: dict, field: str = "value") -> str:
+    kind, v = err["type"], err.get("input")
+    if kind == "extra_forbidden":
+        return "unknown key (not part of the format: misspelt? see docs/formats.md)"
+    if kind == "missing":
+        return "missing (required)"
+    known = _number_message(kind, v, err, field) or _shape_message(kind, v, err)
+    if known is not None:
+        return known
     msg = err["msg"].removeprefix("Value error, ").removeprefix("Assertion failed, ")
     msg = msg[0].lower() + msg[1:] if msg else kind
     return f"{msg}, got {_short(v)}" if "input" in err and kind != "value_error" else msg

@@ -201,6 +201,9 @@ def test_bad_maps_samples_and_options_are_one_line(struts, tmp_path):
     (tmp_path / "broken.json").write_text("{\n")
     one_line_error("map", "correct", "--model", "struts2", "--map", tmp_path / "broken.json", "--joints",
                    d / "m_si.csv", "--out", tmp_path / "o.csv", contains=["broken.json", "not valid JSON"])
+    (tmp_path / "inf.json").write_text(json.dumps({"format": float("inf")}))  # Python's json writes Infinity
+    one_line_error("map", "correct", "--model", "struts2", "--map", tmp_path / "inf.json", "--joints",
+                   d / "m_si.csv", "--out", tmp_path / "o.csv", contains=["inf.json", "Infinity is not JSON"])
     doc = json.loads((d / "si.json").read_text())
     doc["mesh"]["levels"][0] = [0.5, 0.3, 0.4]
     (tmp_path / "levels.json").write_text(json.dumps(doc))

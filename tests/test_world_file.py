@@ -65,6 +65,16 @@ def test_round_trip_preserves_everything():
     assert w2.time_mode == "sim"
 
 
+def test_a_selector_that_selects_nothing_is_written_back_as_given():
+    """The struts2 example's ``tcp`` selector selects nothing on that parallel robot: the world writes back the
+    sigma the file gave (no quantity to infer from no parameters) and reads it back the same."""
+    w = World.from_dict(yaml.safe_load(example_text("struts2")))
+    d = w.to_dict()
+    assert d["errors"]["random"]["tcp"] == {"angle": pytest.approx(math.radians(0.5))}  # 0.5 deg, written in rad
+    w2 = World.from_dict(yaml.safe_load(yaml.safe_dump(d)))
+    assert w2.to_dict() == d and w2.hidden() == pytest.approx(w.hidden())
+
+
 def test_frozen_world_keeps_truth_without_seed():
     w = World.default("arm6", seed=21)
     d = w.to_dict(frozen=True)

@@ -16,15 +16,14 @@ from station.mocks.world.cell import DEFAULTS, KINDS
 from station.mocks.world.dynamics import JointDynamicsSpec
 
 from station.kinematics.collision import KeepOut, KeepOutError, keep_out_from_dict, keep_out_to_doc
+from station.units import ANGLE_UNITS, LENGTH_UNITS, joint_quantity, param_quantity
 
 FORMAT = "station-world/1"
-LENGTH = {"m": 1.0, "mm": 1e-3}
-ANGLE = {"rad": 1.0, "deg": math.pi / 180}
+LENGTH = {u: LENGTH_UNITS[u] for u in ("m", "mm")}  # the units a world file may state
+ANGLE = {u: ANGLE_UNITS[u] for u in ("rad", "deg")}
 TIME_MODES = ("instant", "sim", "realtime")
 SECTIONS = {"format", "units", "seed", "robot", "errors", "joints", "motion", "cell", "noise", "buses",
             "description", "faults"}
-ANGLE_SUFFIX = {"alpha", "beta", "theta", "rx", "ry", "rz"}
-LENGTH_SUFFIX = {"a", "d", "x", "y", "z", "offset"}  # offset: leg.K.offset, strut.K.offset (parallel robots)
 
 # defaults (SI)
 CONTACT_RADIUS = 50e-6
@@ -75,18 +74,11 @@ class WorldSpec:
 
 
 def param_kind(model, name: str) -> str:
-    """``"length"`` or ``"angle"``: the unit class of a parameter of ``model``."""
-    if name.startswith("offset.j"):
-        i = int(name.split(".j")[1]) - 1
-        return "angle" if model.joints[i].revolute else "length"
+    """``"length"``, ``"angle"`` (station.units' one rule for a parameter of ``model``) or ``"compliance"``
+    (the world sets joint compliance in ``joints.compliance``, not as a parameter error)."""
     if name.startswith("compliance."):
         return "compliance"
-    last = name.rsplit(".", 1)[-1]
-    if last in ANGLE_SUFFIX:
-        return "angle"
-    if last in LENGTH_SUFFIX:
-        return "length"
-    raise KeyError(name)
+    return param_quantity(name, model)
 
 
 class _Reader:
@@ -149,12 +141,29 @@ def spec_from_dict(doc, where: str = "<world>") -> WorldSpec:
         raise WorldFileError(f"{where}: malformed world file ({type(e).__name__}: {str(e)[:120]})") from None
 
 
-def _spec_from_dict(doc, where: str) -> WorldSpec:
-    from station.kinematics import ModelFileError, load_model
+@dataclass(frozen=True)
+class _Scale:
+    """SI value of one file unit of length and of angle; which one a value takes is station.units' one rule."""
 
-    r = _Reader(where)
+    length: float
+    angle: float
+
+    def of(self, quantity: str) -> float:
+        return {"length": self.length, "angle": self.angle}[quantity]
+
+    def key(self, key: str) -> float:
+        """A frame's key (x, y, z, rx, ry, rz)."""
+        return self.of(param_quantity(key))
+
+    def joint(self, model, i: int) -> float:
+        """A value of joint ``i`` (its limits, backlash, compliance): an angle or a length by the joint's kind."""
+        return self.of(joint_quantity(model.joints[i].revolute))
+
+
+def _read_head(doc, r: _Reader) -> _Scale:
+    """Format, known sections and the stated units (no default: a bare number means nothing)."""
     if not isinstance(doc, dict):
-        raise WorldFileError(f"{where}: not a mapping (expected a station-world/1 document)")
+        raise WorldFileError(f"{r.where}: not a mapping (expected a station-world/1 document)")
     if doc.get("format") != FORMAT:
         raise r.fail("format", f"{doc.get('format')!r} is not {FORMAT!r}")
     unknown = sorted(set(doc) - SECTIONS)
@@ -166,21 +175,20 @@ def _spec_from_dict(doc, where: str) -> WorldSpec:
         raise r.fail("units", f"must state length (m|mm) and angle (rad|deg), got {units!r}")
     if units.get("time", "s") != "s" or units.get("mass", "kg") != "kg":
         raise r.fail("units", "time must be s and mass kg")
-    L, A = LENGTH[units["length"]], ANGLE[units["angle"]]
-    s = WorldSpec()
-    s.description = str(doc.get("description", ""))
-    seed = doc.get("seed", 0)
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise r.fail("seed", f"expected a non-negative integer, got {seed!r}")
-    s.seed = seed
+    return _Scale(LENGTH[units["length"]], ANGLE[units["angle"]])
 
-    robot = r.mapping(doc.get("robot"), "robot", {"model", "tool", "tip_link", "base_link"})
+
+def _read_robot(s: WorldSpec, robot: dict, r: _Reader, u: _Scale):
+    """``robot:``: the model (a file next to the world file, a built-in name or a URDF chain) and its tool;
+    the model, loaded."""
+    from station.kinematics import ModelFileError, load_model
+
     s.model = str(robot.get("model", "ur5e"))
     s.tip_link = None if robot.get("tip_link") is None else str(robot["tip_link"])
     s.base_link = None if robot.get("base_link") is None else str(robot["base_link"])
     model_name = s.model
-    if not Path(model_name).is_absolute() and where not in ("<world>",) and not _is_builtin(model_name):
-        cand = Path(where).parent / model_name
+    if not Path(model_name).is_absolute() and r.where not in ("<world>",) and not _is_builtin(model_name):
+        cand = Path(r.where).parent / model_name
         if cand.exists():
             s.model = str(cand.resolve())  # absolute: to_dict() output may be written elsewhere
     try:
@@ -189,18 +197,41 @@ def _spec_from_dict(doc, where: str) -> WorldSpec:
         raise r.fail("robot.model", str(e)) from None
     if robot.get("tool") is not None:
         t = r.mapping(robot["tool"], "robot.tool", {"x", "y", "z", "rx", "ry", "rz"})
-        s.tool = {k: r.num(v, f"robot.tool.{k}") * (A if k.startswith("r") else L) for k, v in t.items()}
-    U = {"length": L, "angle": A}
+        s.tool = {k: r.num(v, f"robot.tool.{k}") * u.key(k) for k, v in t.items()}
+    return model
 
-    errors = r.mapping(doc.get("errors"), "errors", {"explicit", "random"})
-    for name, v in r.mapping(errors.get("explicit"), "errors.explicit").items():
+
+def _read_explicit(s: WorldSpec, model, explicit, r: _Reader, u: _Scale) -> None:
+    """``errors.explicit``: parameter -> its error, in the parameter's own unit."""
+    for name, v in r.mapping(explicit, "errors.explicit").items():
         if name.startswith("compliance."):
             raise r.fail(f"errors.explicit.{name}", "the world's joint compliance is set in joints.compliance")
         if name not in model.param_names:
             raise r.fail(f"errors.explicit.{name}", f"no such parameter in model {model.name} "
                                                     f"(names like offset.j2, {model.param_names[7]}, tcp.z)")
-        s.explicit[name] = r.num(v, f"errors.explicit.{name}") * U[param_kind(model, name)]
-    for sel, v in r.mapping(errors.get("random"), "errors.random").items():
+        s.explicit[name] = r.num(v, f"errors.explicit.{name}") * u.of(param_kind(model, name))
+
+
+def _random_sigmas(v, kinds: set[str], f: str, r: _Reader, u: _Scale) -> tuple[float | None, float | None]:
+    """``(σ length, σ angle)`` of one ``errors.random`` entry selecting parameters of ``kinds``: one number
+    when they are all of one quantity, ``{length: σ, angle: σ}`` when mixed."""
+    if isinstance(v, dict):
+        v = r.mapping(v, f, {"length", "angle"})
+        sl = r.num(v["length"], f + ".length", nonneg=True) * u.length if "length" in v else None
+        sa = r.num(v["angle"], f + ".angle", nonneg=True) * u.angle if "angle" in v else None
+        missing = [k for k in kinds if (sl if k == "length" else sa) is None]
+        if missing:
+            raise r.fail(f, f"selects {missing[0]} parameters but gives no {missing[0]} sigma")
+        return sl, sa
+    if len(kinds) > 1:
+        raise r.fail(f, "selects lengths and angles: give {length: sigma, angle: sigma}")
+    x = r.num(v, f, nonneg=True)
+    return (x * u.length, None) if kinds == {"length"} else (None, x * u.angle)
+
+
+def _read_random(s: WorldSpec, model, random, r: _Reader, u: _Scale) -> None:
+    """``errors.random``: selector -> sigma, drawn by the World from its seed."""
+    for sel, v in r.mapping(random, "errors.random").items():
         f = f"errors.random.{sel}"
         try:
             names = model.select(str(sel))
@@ -211,53 +242,51 @@ def _spec_from_dict(doc, where: str) -> WorldSpec:
             if not names:
                 raise r.fail(f, "selects compliance parameters: the world's joint compliance is set in "
                                 "joints.compliance")
-        kinds = {param_kind(model, n) for n in names}
-        if isinstance(v, dict):
-            v = r.mapping(v, f, {"length", "angle"})
-            sl = r.num(v["length"], f + ".length", nonneg=True) * L if "length" in v else None
-            sa = r.num(v["angle"], f + ".angle", nonneg=True) * A if "angle" in v else None
-            missing = [k for k in kinds if (sl if k == "length" else sa) is None]
-            if missing:
-                raise r.fail(f, f"selects {missing[0]} parameters but gives no {missing[0]} sigma")
-        else:
-            if len(kinds) > 1:
-                raise r.fail(f, "selects lengths and angles: give {length: sigma, angle: sigma}")
-            x = r.num(v, f, nonneg=True)
-            sl, sa = (x * L, None) if kinds == {"length"} else (None, x * A)
+        sl, sa = _random_sigmas(v, {param_kind(model, n) for n in names}, f, r, u)
         s.random.append((str(sel), sl, sa))
 
-    joints = r.mapping(doc.get("joints"), "joints", {"backlash", "compliance", "payload", "gravity", "masses",
-                                                     "brakes", "dynamics"})
-    if "brakes" in joints:
-        s.brakes = _parse_brakes(model, joints["brakes"], r)
-    if joints.get("dynamics") is not None:
-        s.dynamics = _parse_dynamics(model, joints["dynamics"], r)
+
+def _read_per_joint(s: WorldSpec, model, joints: dict, r: _Reader, u: _Scale) -> None:
+    """``joints.backlash``, ``joints.compliance`` (in the joint's unit) and ``joints.masses``."""
     for k, v in r.mapping(joints.get("backlash"), "joints.backlash").items():
         i = _joint_index(model, k, r, f"joints.backlash.{k}")
-        s.backlash[i] = r.num(v, f"joints.backlash.{k}", nonneg=True) * (A if model.joints[i].revolute else L)
+        s.backlash[i] = r.num(v, f"joints.backlash.{k}", nonneg=True) * u.joint(model, i)
     for k, v in r.mapping(joints.get("compliance"), "joints.compliance").items():
         i = _joint_index(model, k, r, f"joints.compliance.{k}")
-        s.compliance[i] = r.num(v, f"joints.compliance.{k}", nonneg=True) * (A if model.joints[i].revolute
-                                                                             else L)
+        s.compliance[i] = r.num(v, f"joints.compliance.{k}", nonneg=True) * u.joint(model, i)
     for k, v in r.mapping(joints.get("masses"), "joints.masses").items():
         i = _joint_index(model, k, r, f"joints.masses.{k}")
         v = r.mapping(v, f"joints.masses.{k}", {"mass", "com"})
         if "mass" not in v:
             raise r.fail(f"joints.masses.{k}", "expected {mass: kg, com: [x, y, z]}")
         s.masses[i + 1] = (r.num(v["mass"], f"joints.masses.{k}.mass", nonneg=True),
-                           r.vec3(v.get("com", [0, 0, 0]), f"joints.masses.{k}.com", L))
+                           r.vec3(v.get("com", [0, 0, 0]), f"joints.masses.{k}.com", u.length))
+
+
+def _read_joints(s: WorldSpec, model, joints, r: _Reader, u: _Scale) -> None:
+    """``joints:``: brakes, free-joint dynamics, per-joint errors, the load (payload, gravity)."""
+    joints = r.mapping(joints, "joints", {"backlash", "compliance", "payload", "gravity", "masses", "brakes",
+                                          "dynamics"})
+    if "brakes" in joints:
+        s.brakes = _parse_brakes(model, joints["brakes"], r)
+    if joints.get("dynamics") is not None:
+        s.dynamics = _parse_dynamics(model, joints["dynamics"], r)
+    _read_per_joint(s, model, joints, r, u)
     pay = joints.get("payload")
     if isinstance(pay, dict):
         pay = r.mapping(pay, "joints.payload", {"mass", "com"})
         if "com" in pay:
-            s.payload_com = r.vec3(pay["com"], "joints.payload.com", L)
+            s.payload_com = r.vec3(pay["com"], "joints.payload.com", u.length)
         pay = pay.get("mass", 0.0)
     if pay is not None:
         s.payload = r.num(pay, "joints.payload", nonneg=True)
     if "gravity" in joints:
         s.gravity = tuple(r.vec3(joints["gravity"], "joints.gravity", 1.0))
 
-    motion = r.mapping(doc.get("motion"), "motion", {"time_mode", "time_scale", "start", "enabled"})
+
+def _read_motion(s: WorldSpec, model, motion, r: _Reader, u: _Scale) -> None:
+    """``motion:``: the clock, and where the arm starts (inside its joint limits)."""
+    motion = r.mapping(motion, "motion", {"time_mode", "time_scale", "start", "enabled"})
     s.time_mode = str(motion.get("time_mode", "instant"))
     if s.time_mode not in TIME_MODES:
         raise r.fail("motion.time_mode", f"{s.time_mode!r} is not one of {', '.join(TIME_MODES)}")
@@ -269,8 +298,7 @@ def _spec_from_dict(doc, where: str) -> WorldSpec:
         st = motion["start"]
         if not isinstance(st, list) or len(st) != model.n_joints:
             raise r.fail("motion.start", f"expected {model.n_joints} joint values, got {st!r}")
-        s.start = [r.num(x, f"motion.start[{i}]") * (A if model.joints[i].revolute else L)
-                   for i, x in enumerate(st)]
+        s.start = [r.num(x, f"motion.start[{i}]") * u.joint(model, i) for i, x in enumerate(st)]
         lo, hi = model.lower, model.upper
         for i, x in enumerate(s.start):
             if not lo[i] <= x <= hi[i]:
@@ -278,13 +306,40 @@ def _spec_from_dict(doc, where: str) -> WorldSpec:
     elif model.name in DEFAULTS:
         s.start = list(DEFAULTS[model.name]["start"])
 
-    cell = r.mapping(doc.get("cell"), "cell", {"contact_radius", "capture_radius", "points", "mounting", "keep_out",
-                                               "collision"})
+
+def _read_point(p, f: str, labels: set[str], r: _Reader, u: _Scale) -> dict:
+    """One reference point of ``cell.points`` (``f`` names it), positions in SI; its label joins ``labels``."""
+    p = r.mapping(p, f, {"label", "kind", "position", "approach", "radius"})
+    label = p.get("label", "")
+    if not isinstance(label, str):  # null would become "None", 5 would become "5"
+        raise r.fail(f + ".label", f"expected a text label, got {label!r}")
+    if not label or label in labels:
+        raise r.fail(f + ".label", f"missing or duplicate label {label!r}")
+    labels.add(label)
+    kind = p.get("kind")
+    if kind not in KINDS:
+        raise r.fail(f + ".kind", f"expected socket or needle, got {kind!r}")
+    if "position" not in p:
+        raise r.fail(f + ".position", "missing")
+    ap = np.array(r.vec3(p.get("approach", [0, 0, 1]), f + ".approach", 1.0))
+    if np.linalg.norm(ap) < 1e-9:
+        raise r.fail(f + ".approach", "must be a non-zero vector")
+    rad = r.num(p["radius"], f + ".radius", positive=True) * u.length if "radius" in p else None
+    return {"label": label, "kind": kind, "position": r.vec3(p["position"], f + ".position", u.length),
+            "approach": (ap / np.linalg.norm(ap)).tolist(), "radius": rad}
+
+
+def _read_cell(s: WorldSpec, model, cell, r: _Reader, u: _Scale) -> None:
+    """``cell:``: the true keep-out, contact and capture radii, the true reference points (default: the
+    model's built-in cell)."""
+    L = u.length
+    cell = r.mapping(cell, "cell", {"contact_radius", "capture_radius", "points", "mounting", "keep_out",
+                                    "collision"})
     s.collision = str(cell.get("collision", "record"))
     if s.collision not in ("record", "stop"):
         raise r.fail("cell.collision", f"expected record or stop, got {s.collision!r}")
     try:
-        s.keep_out = keep_out_from_dict(cell, f"{where}: cell", L, A, default_clearance=0.0)
+        s.keep_out = keep_out_from_dict(cell, f"{r.where}: cell", L, u.angle, default_clearance=0.0)
     except KeepOutError as e:
         raise WorldFileError(str(e)) from None
     s.contact_radius = r.num(cell.get("contact_radius", CONTACT_RADIUS / L), "cell.contact_radius",
@@ -298,32 +353,34 @@ def _spec_from_dict(doc, where: str) -> WorldSpec:
     if not isinstance(pts, list):
         raise r.fail("cell.points", "expected a list of points")
     labels: set[str] = set()
-    for i, p in enumerate(pts):
-        f = f"cell.points[{i}]"
-        p = r.mapping(p, f, {"label", "kind", "position", "approach", "radius"})
-        label = p.get("label", "")
-        if not isinstance(label, str):  # null would become "None", 5 would become "5"
-            raise r.fail(f + ".label", f"expected a text label, got {label!r}")
-        if not label or label in labels:
-            raise r.fail(f + ".label", f"missing or duplicate label {label!r}")
-        labels.add(label)
-        kind = p.get("kind")
-        if kind not in KINDS:
-            raise r.fail(f + ".kind", f"expected socket or needle, got {kind!r}")
-        if "position" not in p:
-            raise r.fail(f + ".position", "missing")
-        ap = np.array(r.vec3(p.get("approach", [0, 0, 1]), f + ".approach", 1.0))
-        if np.linalg.norm(ap) < 1e-9:
-            raise r.fail(f + ".approach", "must be a non-zero vector")
-        rad = r.num(p["radius"], f + ".radius", positive=True) * L if "radius" in p else None
-        s.points.append({"label": label, "kind": kind, "position": r.vec3(p["position"], f + ".position", L),
-                         "approach": (ap / np.linalg.norm(ap)).tolist(), "radius": rad})
+    s.points.extend(_read_point(p, f"cell.points[{i}]", labels, r, u) for i, p in enumerate(pts))
 
-    noise = r.mapping(doc.get("noise"), "noise", {"seating", "survey", "encoder", "positioning"})
-    s.seating_sigma = r.num(noise.get("seating", SEATING_SIGMA / L), "noise.seating", nonneg=True) * L
-    s.survey_sigma = r.num(noise.get("survey", 0.0), "noise.survey", nonneg=True) * L
-    s.encoder_sigma = r.num(noise.get("encoder", 0.0), "noise.encoder", nonneg=True) * A
-    s.positioning_sigma = r.num(noise.get("positioning", 0.0), "noise.positioning", nonneg=True) * A
+
+def _read_noise(s: WorldSpec, noise, r: _Reader, u: _Scale) -> None:
+    noise = r.mapping(noise, "noise", {"seating", "survey", "encoder", "positioning"})
+    s.seating_sigma = r.num(noise.get("seating", SEATING_SIGMA / u.length), "noise.seating", nonneg=True) * u.length
+    s.survey_sigma = r.num(noise.get("survey", 0.0), "noise.survey", nonneg=True) * u.length
+    s.encoder_sigma = r.num(noise.get("encoder", 0.0), "noise.encoder", nonneg=True) * u.angle
+    s.positioning_sigma = r.num(noise.get("positioning", 0.0), "noise.positioning", nonneg=True) * u.angle
+
+
+def _spec_from_dict(doc, where: str) -> WorldSpec:
+    r = _Reader(where)
+    u = _read_head(doc, r)
+    s = WorldSpec()
+    s.description = str(doc.get("description", ""))
+    seed = doc.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise r.fail("seed", f"expected a non-negative integer, got {seed!r}")
+    s.seed = seed
+    model = _read_robot(s, r.mapping(doc.get("robot"), "robot", {"model", "tool", "tip_link", "base_link"}), r, u)
+    errors = r.mapping(doc.get("errors"), "errors", {"explicit", "random"})
+    _read_explicit(s, model, errors.get("explicit"), r, u)
+    _read_random(s, model, errors.get("random"), r, u)
+    _read_joints(s, model, doc.get("joints"), r, u)
+    _read_motion(s, model, doc.get("motion"), r, u)
+    _read_cell(s, model, doc.get("cell"), r, u)
+    _read_noise(s, doc.get("noise"), r, u)
     buses = doc.get("buses") or {}
     if not isinstance(buses, dict) or any(not isinstance(v, dict | type(None)) for v in buses.values()):
         raise r.fail("buses", "expected a mapping of bus name -> settings mapping")
@@ -414,7 +471,7 @@ def spec_to_dict(s: WorldSpec, model, length: str = "m", angle: str = "rad") -> 
     U = {"length": L, "angle": A}
 
     def jscale(i):
-        return A if model.joints[i].revolute else L
+        return U[joint_quantity(model.joints[i].revolute)]
 
     def r(x):
         return float(round(x, 12))
@@ -424,7 +481,7 @@ def spec_to_dict(s: WorldSpec, model, length: str = "m", angle: str = "rad") -> 
     robot: dict = {"model": s.model}
     robot.update({k: v for k, v in (("tip_link", s.tip_link), ("base_link", s.base_link)) if v is not None})
     if s.tool:
-        robot["tool"] = {k: r(v * (A if k.startswith("r") else L)) for k, v in s.tool.items()}
+        robot["tool"] = {k: r(v * U[param_quantity(k)]) for k, v in s.tool.items()}
     doc["robot"] = robot
     random: dict = {}
     for sel, sl, sa in s.random:
@@ -432,7 +489,8 @@ def spec_to_dict(s: WorldSpec, model, length: str = "m", angle: str = "rad") -> 
         if len(kinds) == 1:
             random[sel] = r((sl if kinds == {"length"} else sa) * U[kinds.pop()])
         else:
-            random[sel] = {"length": r(sl * L), "angle": r(sa * A)}
+            # the sigmas the file gave (a selector may select nothing on this model: no quantity to infer)
+            random[sel] = {k: r(v * f) for k, v, f in (("length", sl, L), ("angle", sa, A)) if v is not None}
     doc["errors"] = {"explicit": {n: r(v * U[param_kind(model, n)]) for n, v in s.explicit.items()},
                      "random": random}
     doc["joints"] = {"backlash": {f"j{i + 1}": r(v * jscale(i)) for i, v in s.backlash.items()},

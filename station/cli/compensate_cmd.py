@@ -37,54 +37,22 @@ def _units(text: str | None) -> tuple[float, str, float, str]:
 
 
 def load_result(ref: str, model):
-    """The calibration a result JSON, a session or a report holds, as a ``CalibrationResult`` checked against
-    ``model`` (name and parameters); one line naming the file and the field otherwise."""
-    from station.solver import CalibrationResult
+    """The calibration ``--calibration REF`` names (``station.cli.calibration_source``, the one reader: a result
+    JSON, a session, a report) as a ``CalibrationResult`` checked against ``model``, where it came from, and
+    what it was solved from (its samples: a session's journal, a result's ``settings.samples``), if known."""
+    from station.cli.calibration_source import calibration_source
 
-    p = Path(ref)
-    doc = None
-    if p.is_file() and p.suffix.lower() == ".json":
-        from station.safeio import read_json
-
-        doc = read_json(p, "calibration")
-        fmt = doc.get("format") if isinstance(doc, dict) else None
-        if fmt == "station-calibration/1":
-            from station.resultfile import load_calibration
-
-            load_calibration(p, model)  # schema, model name, parameter names: one line each
-            res = CalibrationResult.from_dict(doc)
-            return res, str(p), _design_from_file(res, model, p)
-        if fmt == "station-report/1":
-            if (p.parent / "journal.jsonl").is_file():
-                return _from_session(str(p.parent), model)
-            return _from_report(doc, p, model), str(p), None
-        raise ConfigError(f"calibration {p}: format: {fmt!r} is neither a station solve result "
-                          "(station-calibration/1) nor a session report (station-report/1)")
-    return _from_session(ref, model)
-
-
-def _from_session(ref: str, model):
-    from station.engine.runner import find_session
-    from station.engine.session_record import session_from_journal
-    from station.solver import CalibrationResult
-
-    path = find_session(ref)
-    try:
-        rec = session_from_journal(path)
-    except (ValueError, OSError) as e:
-        raise ConfigError(f"calibration {ref}: {e}") from None
-    if not rec.get("result"):
-        raise ConfigError(f"calibration {ref}: session {rec.get('session')} ({rec.get('procedure')}) holds no "
-                          "calibration result (a solve); give a station solve result or a calibration session")
-    res = CalibrationResult.from_dict(rec["result"])
-    _check_model(res, model, str(path))
-    smp = [x for x in rec.get("samples") or [] if x.get("set", "fit") == "fit"]
+    src = calibration_source(ref)
+    res = src.calibration_result(model)
     design = None
-    if smp:
+    if src.samples:
+        smp = src.samples
         measured = all(x.get("measured") is not None for x in smp)
         design = _design(res, np.array([x["q"] for x in smp], float),
                          np.array([x.get("point", "A") for x in smp], dtype=object), measured)
-    return res, str(path), design
+    elif src.file is not None:
+        design = _design_from_file(res, model, src.file)
+    return res, src.what, design
 
 
 def _design(res, q, labels, measured: bool):
@@ -115,41 +83,6 @@ def _design_from_file(res, model, path: Path):
     except (SamplesFileError, OSError):
         return None
     return _design(res, smp.q, smp.point, smp.measured is not None)
-
-
-def _from_report(doc: dict, p: Path, model):
-    """A report without its journal: the parameters and their standard deviations (no correlations)."""
-    from station.solver.result import CalibrationResult, ParameterEstimate
-
-    params = {}
-    for row in doc.get("parameters") or []:
-        try:
-            name = str(row["name"])
-            params[name] = ParameterEstimate(name, float(row["value"]), float(row["nominal"]),
-                                             None if row.get("std") is None else float(row["std"]),
-                                             bool(row["identifiable"]), row.get("reason") or "",
-                                             row.get("kind", "model"), row.get("unit", "m"))
-        except (KeyError, TypeError, ValueError):
-            raise ConfigError(f"calibration {p}: parameters: {row!r} is not a parameter row") from None
-    if not params:
-        raise ConfigError(f"calibration {p}: the report holds no calibration parameters")
-    res = CalibrationResult(str((doc.get("header") or {}).get("model")), params, {}, 0, len(params), True, 0)
-    ids = res.identified
-    std = [params[n].std for n in ids]
-    if all(s is not None for s in std):
-        res.covariance = np.diag(np.square(std))
-    res.notes.append("from a report: standard deviations only, correlations unknown")
-    _check_model(res, model, str(p))
-    return res
-
-
-def _check_model(res, model, where: str) -> None:
-    if res.model != model.name:
-        raise ConfigError(f"calibration {where}: model: the calibration is for {res.model!r}, not {model.name!r}")
-    unknown = [n for n, p in res.parameters.items() if p.kind == "model" and p.identifiable
-               and n not in model.param_names]
-    if unknown:
-        raise ConfigError(f"calibration {where}: parameters.{unknown[0]}: model {model.name!r} has no such parameter")
 
 
 def read_targets(path: Path) -> tuple[np.ndarray, list[str] | None, object]:
@@ -193,6 +126,67 @@ def _start(text: str | None, model):
     f = ANGLE_UNITS.get(unit or "rad", 1.0)
     lf = LENGTH_UNITS["mm"] if unit == "deg" else 1.0
     return np.array([x * (f if j.revolute else lf) for x, j in zip(v, model.joints, strict=True)])
+
+
+def _uncertainty(res, cal, design) -> tuple:
+    """``(covariance, its parameter names, parameters kept at their prior {name: (std, why)}, how it was
+    obtained)`` for the predicted uncertainty of each compensated target."""
+    if design is not None:  # the calibration's own samples: the parameters weighed again, aliasing included
+        from station.performance.compensate import predictive_covariance
+
+        cov, names_ = predictive_covariance(cal, design)
+        return cov, names_, None, f"posterior of its {len(design.q)} samples"
+    # the parameters' reported (consider) covariance: conservative
+    kept = {n: (p.prior_std, p.cause or "weak") for n, p in res.parameters.items()
+            if p.kind == "model" and not p.identifiable and p.prior_std}
+    return res.covariance, res.identified, kept, "reported parameter covariance (its samples not found: conservative)"
+
+
+def _commands_csv(m, source: str, comp, n_targets: int, names, u, cartesian: bool, how: str) -> str:
+    """The text of the commands CSV: one row per target, its status, the command (empty when
+    not reached) in the output units, residual, uncertainty and correction."""
+    header = ["row", *(["name"] if names else []), "status"]
+    if cartesian:
+        header += [f"{c}[{u[3] if c.startswith('r') else u[1]}]" for c in ("x", "y", "z", "rx", "ry", "rz")]
+        scale = [u[0]] * 3 + [u[2]] * 3
+        values = comp.cartesian
+    else:
+        header += [f"q{k + 1}[{u[3] if j.revolute else u[1]}]" for k, j in enumerate(m.joints)]
+        scale = [u[2] if j.revolute else u[0] for j in m.joints]
+        values = comp.q
+    header += [f"residual[{u[1]}]", f"residual_rotation[{u[3]}]", f"sigma[{u[1]}]", f"sigma_rotation[{u[3]}]",
+               f"correction[{u[1]}]"]
+    buf = io.StringIO()
+    buf.write(f"# station compensate: model {m.name}, calibration {source}; "
+              f"{'corrected Cartesian targets (rotation vector)' if cartesian else 'joint commands'} for the "
+              f"controller's nominal model; residual and sigma (1 sigma, 3-D RMS) as the calibration predicts them, "
+              f"sigma from the calibration's {how}\n")
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    for i in range(n_targets):
+        row = [i + 1, *([names[i]] if names else []), comp.status[i]]
+        ok = comp.status[i] == "ok"
+        row += [f"{v / s:.12g}" if ok else "" for v, s in zip(values[i], scale, strict=True)]
+        extra = (comp.residual[i] / u[0], comp.residual_rotation[i] / u[2], comp.sigma[i] / u[0],
+                 comp.sigma_rotation[i] / u[2], comp.correction[i] / u[0])
+        row += ["" if not np.isfinite(v) else f"{v:.6g}" for v in extra]
+        w.writerow(row)
+    return buf.getvalue()
+
+
+def _report(comp, n_targets: int, out: Path, urscript: Path | None, how: str, table) -> None:
+    """One line for the operator; the unreachable rows on stderr, exit 1 when there are any."""
+    good = int(comp.ok.sum())
+    typer.echo(f"compensate: {good} of {n_targets} targets -> {out}"
+               + (f" (+ URScript {urscript})" if urscript is not None else "")
+               + (f"; largest correction {np.nanmax(comp.correction) * 1e3:.4f} mm, predicted uncertainty up to "
+                  f"{np.nanmax(comp.sigma) * 1e3:.4f} mm (1 sigma, from the calibration's {how})" if good else ""))
+    bad = [i for i, s in enumerate(comp.status) if s != "ok"]
+    if bad:
+        listed = "; ".join(f"row {i + 1} ({table.where(i)}): {comp.status[i]}" for i in bad[:5])
+        more = f"; and {len(bad) - 5} more" if len(bad) > 5 else ""
+        typer.echo(f"station: {len(bad)} of {n_targets} targets unreachable: {listed}{more}", err=True)
+        raise typer.Exit(1)
 
 
 def compensate_command(
@@ -242,58 +236,14 @@ def compensate_command(
     target, names, table = read_targets(poses)
     u = _units(units)
     q0 = _start(start, m)
-    if design is not None:  # the calibration's own samples: the parameters weighed again, aliasing included
-        from station.performance.compensate import predictive_covariance
-
-        cov, names_, kept = *predictive_covariance(cal, design), None
-        how = f"posterior of its {len(design.q)} samples"
-    else:  # the parameters' reported (consider) covariance: conservative
-        cov, names_ = res.covariance, res.identified
-        kept = {n: (p.prior_std, p.cause or "weak") for n, p in res.parameters.items()
-                if p.kind == "model" and not p.identifiable and p.prior_std}
-        how = "reported parameter covariance (its samples not found: conservative)"
+    cov, names_, kept, how = _uncertainty(res, cal, design)
     comp = compensate(m, cal, target, covariance=cov, names=names_, kept=kept, start=q0)
-    header = ["row", *(["name"] if names else []), "status"]
-    if cartesian:
-        header += [f"{c}[{u[3] if c.startswith('r') else u[1]}]" for c in ("x", "y", "z", "rx", "ry", "rz")]
-        scale = [u[0]] * 3 + [u[2]] * 3
-        values = comp.cartesian
-    else:
-        header += [f"q{k + 1}[{u[3] if j.revolute else u[1]}]" for k, j in enumerate(m.joints)]
-        scale = [u[2] if j.revolute else u[0] for j in m.joints]
-        values = comp.q
-    header += [f"residual[{u[1]}]", f"residual_rotation[{u[3]}]", f"sigma[{u[1]}]", f"sigma_rotation[{u[3]}]",
-               f"correction[{u[1]}]"]
-    buf = io.StringIO()
-    buf.write(f"# station compensate: model {m.name}, calibration {source}; "
-              f"{'corrected Cartesian targets (rotation vector)' if cartesian else 'joint commands'} for the "
-              f"controller's nominal model; residual and sigma (1 sigma, 3-D RMS) as the calibration predicts them, "
-              f"sigma from the calibration's {how}\n")
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(header)
-    for i in range(len(target)):
-        row = [i + 1, *([names[i]] if names else []), comp.status[i]]
-        ok = comp.status[i] == "ok"
-        row += [f"{v / s:.12g}" if ok else "" for v, s in zip(values[i], scale, strict=True)]
-        extra = (comp.residual[i] / u[0], comp.residual_rotation[i] / u[2], comp.sigma[i] / u[0],
-                 comp.sigma_rotation[i] / u[2], comp.correction[i] / u[0])
-        row += ["" if not np.isfinite(v) else f"{v:.6g}" for v in extra]
-        w.writerow(row)
-    write_atomic(out, buf.getvalue(), inputs)
+    text = _commands_csv(m, source, comp, len(target), names, u, cartesian, how)
+    write_atomic(out, text, inputs)
     if urscript is not None:
         write_atomic(urscript, ur_program(comp.q, comp.status, header=f"station compensate: model {m.name}, "
                                           f"calibration {Path(source).name}; joint targets in rad"), inputs)
-    good = int(comp.ok.sum())
-    typer.echo(f"compensate: {good} of {len(target)} targets -> {out}"
-               + (f" (+ URScript {urscript})" if urscript is not None else "")
-               + (f"; largest correction {np.nanmax(comp.correction) * 1e3:.4f} mm, predicted uncertainty up to "
-                  f"{np.nanmax(comp.sigma) * 1e3:.4f} mm (1 sigma, from the calibration's {how})" if good else ""))
-    bad = [i for i, s in enumerate(comp.status) if s != "ok"]
-    if bad:
-        listed = "; ".join(f"row {i + 1} ({table.where(i)}): {comp.status[i]}" for i in bad[:5])
-        more = f"; and {len(bad) - 5} more" if len(bad) > 5 else ""
-        typer.echo(f"station: {len(bad)} of {len(target)} targets unreachable: {listed}{more}", err=True)
-        raise typer.Exit(1)
+    _report(comp, len(target), out, urscript, how, table)
 
 
 def register(app: typer.Typer) -> None:

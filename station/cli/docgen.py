@@ -27,7 +27,8 @@ def commands() -> list[tuple[str, object]]:
     out: list[tuple[str, object]] = []
 
     def walk(path: str, cmd) -> None:
-        out.append((path, cmd))
+        documented = getattr(cmd, "documented", None)  # station run: with every flag a procedure declares
+        out.append((path, documented() if documented is not None else cmd))
         if isinstance(cmd, click.Group) or hasattr(cmd, "list_commands"):
             ctx = click.Context(cmd, info_name=path.split()[-1])
             for name in cmd.list_commands(ctx):

@@ -194,6 +194,8 @@ def _load_map(path: Path):
         raise _fail(f"{path}: cannot read ({e})") from None
     except json.JSONDecodeError as e:
         raise _fail(f"{path}: line {e.lineno}: not valid JSON") from None
+    except ValueError as e:  # NaN/Infinity: Python's json reads them, JSON has no such numbers
+        raise _fail(f"{path}: {e}") from None
     try:
         return CorrectionMap.from_dict(doc, str(path))
     except MapError as e:

@@ -11,9 +11,8 @@ as parameter defaults (built on first access, so that the click commands never i
 
 from __future__ import annotations
 
-import re
-
 from station.cli.optspec import REQUIRED, Opt
+from station.quantity import parse_payload  # noqa: F401  (the --payload reading: commands import it from here)
 
 MODEL_OPTIONS = [
     Opt("model", "--model", "Built-in model name, model file (station-model/1) or URDF", REQUIRED),
@@ -33,32 +32,6 @@ def __getattr__(name: str):
         globals()[name] = opt
         return opt
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-MASS_UNITS = {"kg": 1.0, "g": 1e-3}
-_PAYLOAD = re.compile(r"^\s*([-+0-9.eE]+)\s*(kg|g)\s*(?:@(.+))?$")
-
-
-def parse_payload(text: str) -> tuple[float, object]:
-    """``0.1kg`` / ``250g`` / ``0.5kg@0,0,30mm`` -> (kg, centre of mass in the tool frame, m)."""
-    from station.robot.errors import ConfigError
-
-    m = _PAYLOAD.match(text)
-    if not m:
-        raise ConfigError(f"--payload {text!r}: expected a mass with its unit (0.1kg, 250g), optionally "
-                          f"@x,y,z for its centre in the tool frame (0.5kg@0,0,30mm)")
-    try:
-        mass = float(m.group(1)) * MASS_UNITS[m.group(2)]
-    except ValueError:
-        raise ConfigError(f"--payload {text!r}: {m.group(1)!r} is not a number") from None
-    if not (mass >= 0 and mass < float("inf")):
-        raise ConfigError(f"--payload {text!r}: a mass is a finite number >= 0")
-    com = (0.0, 0.0, 0.0)
-    if m.group(3):
-        from station.cli.solve_cmd import parse_xyz
-
-        com = tuple(parse_xyz(m.group(3), "--payload"))
-    return mass, com
 
 
 def load_cli_model(model: str, tip_link: str | None = None, base_link: str | None = None,

@@ -1,37 +1,6 @@
-"""Option values with their unit: ``--cone 50deg``, ``--max-std 1mm``, as ``--noise 20um`` always took them. A bare
-number keeps its documented unit (degrees for a cone, metres for ``--max-std``), so scripts written before the
-suffixes still run."""
+"""Option values with their unit: the command line's name for :mod:`station.quantity` (the one reading, shared
+with the options procedures declare)."""
 
-from __future__ import annotations
+from station.quantity import parse_option, parse_xyz
 
-import math
-
-from station.robot.errors import ConfigError
-
-
-def parse_option(text, option: str, quantity: str, bare: str, example: str) -> float:
-    """``text`` (``50deg``, ``0.87rad``, ``1mm``, or a bare number in unit ``bare``) as a value in ``bare``'s unit
-    (``deg`` or ``m``); ``ConfigError`` in one line naming the option otherwise."""
-    from station.units import to_si
-
-    if isinstance(text, (int, float)):
-        value = float(text)
-    else:
-        s = str(text).strip()
-        try:
-            value = float(s)
-        except ValueError:
-            from station.kinematics.tolerances import parse_quantity
-
-            try:
-                si, q = parse_quantity(s)
-            except ValueError:
-                raise ConfigError(f"{option} {text!r}: expected {'an' if quantity == 'angle' else 'a'} {quantity} "
-                                  f"with its unit, e.g. {example} (a bare number is {bare})") from None
-            if q != quantity:
-                raise ConfigError(f"{option} {text!r}: expected {'an' if quantity == 'angle' else 'a'} {quantity}, "
-                                  f"e.g. {example} (a bare number is {bare})") from None
-            value = si / to_si(1.0, bare, quantity)
-    if not math.isfinite(value):
-        raise ConfigError(f"{option} {text!r}: not a finite number")
-    return value
+__all__ = ["parse_option", "parse_xyz"]

@@ -5,14 +5,13 @@ after the session record is stored in the records database."""
 
 from __future__ import annotations
 
-import math
 import sys
 from pathlib import Path
 
 import typer
 
 from station.cli.model_options import PAYLOAD
-from station.cli.run_options import CONE, DB, HOLDOUT, LIMITS, POSES
+from station.cli.run_options import DB, LIMITS
 
 
 def _exit(code: int):
@@ -50,22 +49,12 @@ def _progress_bar(quiet: bool):
 
 
 def preflight(robot: str, poses, holdout, cone, seed, touch, reference, limits, cell) -> None:
-    """Every option and input file checked before any robot is opened or moved (issue 14): one line, exit 2."""
-
+    """Every option and input file checked before any robot is opened or moved: one line, exit 2."""
     from station.robot.errors import ConfigError
 
-    if poses is not None and not 1 <= poses <= 100_000:
-        raise ConfigError(f"--poses {poses}: expected a pose count of at least 1 (and at least the unknowns)")
-    if holdout is not None and not 0 <= holdout <= 100_000:
-        raise ConfigError(f"--holdout {holdout}: expected a pose count of 0 or more")
-    if cone is not None and not 0 < cone_degrees(cone) <= 90:
-        raise ConfigError(f"--cone {cone!r}: expected a half-angle in (0, 90] deg, e.g. 50deg")
-    if seed is not None and not 0 <= seed < 2**63:
-        raise ConfigError(f"--seed {seed}: expected a non-negative integer")
+    _options(poses, holdout, cone, reference, seed)  # each value read by its declaration (station.engine.declare)
     if touch is not None and touch not in ("seat", "guarded", "manual"):
         raise ConfigError(f"--touch {touch!r}: expected seat, guarded or manual")
-    if reference is not None and reference not in ("unknown", "cell"):
-        raise ConfigError(f"--reference must be 'unknown' or 'cell', got {reference!r}")
     from station.robot.url import parse_url
 
     parse_url(robot)
@@ -78,115 +67,22 @@ def preflight(robot: str, poses, holdout, cone, seed, touch, reference, limits, 
         load_cell(cell)
 
 
-def _options(poses, holdout, cone, reference, seed, tracker=None, grid=None, span_deg=None,
-             calibration=None, payload=None, cycles=None, cube=None, plane=None) -> dict:
-    from station.robot.errors import ConfigError
+def _options(poses=None, holdout=None, cone=None, reference=None, seed=None, procedure=None, **given) -> dict:
+    """The session options of the declared flags given (``station.cli.procedure_options``): the plan's
+    (``--poses`` ...) and the procedures' own (``--tracker``, ``--grid`` ...; by parameter name in ``given``).
+    ``procedure``: refuse a flag it does not take."""
+    from station.cli.procedure_options import read_options
 
-    opts = iso_options(cycles, cube, plane)
-    if payload is not None:  # the procedure's model carries it (compliance terms); journaled with the options
-        opts["payload"] = payload_option(payload)
-    if calibration is not None:  # correction_map: the map on top of this parametric calibration
-        opts["calibration"] = str(check_calibration_file(calibration, opts.get("payload")))
-    if span_deg is not None:
-        from station.cli.quantity import parse_option
-
-        span = parse_option(span_deg, "--span-deg", "angle", "deg", "20deg")
-        if not 0 < span <= 90:
-            raise ConfigError(f"--span-deg {span_deg!r}: expected a half-width in (0, 90] deg, e.g. 20deg")
-        opts["span_deg"] = span  # correction_map (serial arms): +- this around the start pose
-    if tracker is not None:
-        opts["tracker"] = tracker  # correction_map: the measuring instrument's URL
-    if grid is not None:
-        opts["grid"] = grid  # correction_map: Q sub-intervals per actuator
-    if poses is not None:
-        opts["n_fit"] = poses
-    if holdout is not None:
-        opts["n_holdout"] = holdout
-    if cone is not None:
-        opts["cone_deg"] = cone_degrees(cone)
-    if reference is not None:
-        if reference not in ("unknown", "cell"):
-            raise ConfigError(f"--reference must be 'unknown' or 'cell', got {reference!r}")
-        opts["reference"] = reference
-    if seed is not None:
-        opts["seed"] = seed
-    return opts
-
-
-def cone_degrees(cone) -> float:
-    """``--cone 50deg`` (or ``0.87rad``; a bare number is degrees, as before units were written) in degrees."""
-    from station.cli.quantity import parse_option
-
-    return parse_option(cone, "--cone", "angle", "deg", "50deg")
-
-
-def iso_options(cycles: int | None, cube: str | None, plane: str | None) -> dict:
-    """iso9283's ``--cycles N``, ``--cube X,Y,Z,EDGE`` (m, or one unit suffix for all: ``400,0,500,300mm``) and
-    ``--plane`` as procedure options (SI); one line, exit 2, on a bad value."""
-    from station.robot.errors import ConfigError
-
-    opts: dict = {}
-    if cycles is not None:
-        if not 4 <= cycles <= 1000:
-            raise ConfigError(f"--cycles {cycles}: expected 4..1000 cycles per pose (the standard: 30)")
-        opts["cycles"] = int(cycles)
-    if cube is not None:
-        import re
-
-        from station.units import LENGTH_UNITS
-
-        m = re.match(r"^\s*([^,]+),([^,]+),([^,]+),([^,]+?)\s*([a-z]*)\s*$", cube)
-        try:
-            if not m or (m.group(5) or "m") not in LENGTH_UNITS:
-                raise ValueError
-            v = [float(m.group(k)) * LENGTH_UNITS[m.group(5) or "m"] for k in range(1, 5)]
-            if not all(math.isfinite(x) for x in v) or v[3] <= 0:
-                raise ValueError
-        except ValueError:
-            raise ConfigError(f"--cube {cube!r}: expected the centre and edge X,Y,Z,EDGE in the base frame (metres, "
-                              "or one unit for all: 400,0,500,300mm), edge > 0") from None
-        opts["cube"] = v
-    if plane is not None:
-        from station.performance.cube import PLANES
-
-        if plane not in PLANES:
-            raise ConfigError(f"--plane {plane!r}: expected one of {', '.join(PLANES)}")
-        opts["plane"] = plane
-    return opts
+    return read_options({"poses": poses, "holdout": holdout, "cone": cone, "reference": reference, "seed": seed,
+                         **given}, procedure)
 
 
 def payload_option(text: str) -> dict:
     """``--payload 15kg[@x,y,z mm]`` (the declaration of ``station solve --payload``) as the procedure option
     ``{"mass": kg, "com": [x, y, z] m in the tool frame}``; one line, exit 2 on a bad value."""
-    from station.cli.model_options import parse_payload
+    from station.procedures._calibration import PAYLOAD
 
-    mass, com = parse_payload(text)
-    return {"mass": float(mass), "com": [float(c) for c in com]}
-
-
-def check_calibration_file(path: Path, payload: dict | None = None) -> Path:
-    """``--calibration``: a readable ``station-calibration/1`` result (schema checked; the model name and its
-    parameters are checked against the robot's model once it is connected, before anything moves). A result
-    with compliance parameters was solved under a payload (``station solve --payload``): refused without
-    ``--payload``. Returns the absolute path (journaled: a resume from another folder finds it)."""
-    from station.resultfile import CalibrationSchema
-    from station.robot.errors import ConfigError
-    from station.safeio import read_json
-    from station.strict import check
-
-    cal = check(CalibrationSchema, read_json(path, "calibration"), ConfigError, f"calibration {path}")
-    compliance = [n for n, p in cal.parameters.items() if n.startswith("compliance.") and p.identifiable]
-    if compliance and not payload:
-        raise ConfigError(f"calibration {path}: parameters.{compliance[0]}: a compliance term (solved under a "
-                          "payload, station solve --payload); give the same payload: --payload MASS (e.g. 15kg)")
-    solved_under = (getattr(cal, "settings", None) or {}).get("payload")
-    if compliance and solved_under is not None:
-        from station.kinematics.gravity import same_payload, show_payload
-
-        if not same_payload(solved_under, payload):  # its compliance terms hold under that load only
-            raise ConfigError(f"calibration {path}: settings.payload: solved under {show_payload(solved_under)}, "
-                              f"--payload gives {show_payload(payload)}; give the same --payload")
-    return Path(path).resolve()
+    return PAYLOAD.read(text)
 
 
 def _fmt(value: float | None, unit: str) -> str:
@@ -292,7 +188,7 @@ def _shipped() -> list[str]:
 
 def run(
     procedure: str = typer.Argument(..., help="Shipped procedure (" + ", ".join(_shipped()) + ") or a procedure "
-                                    ".py file."),
+                                    ".py file; station run PROCEDURE --help lists its options and measurements."),
     robot: str = typer.Option(..., "--robot", help="Robot URL, e.g. ur://127.0.0.2?model=ur5e"),
     serial: str = typer.Option(..., "--serial", help="Serial number of the robot under calibration."),
     limits: Path = LIMITS,
@@ -302,46 +198,32 @@ def run(
     operator: str = typer.Option(None, "--operator", help="Who runs it (default: login name)."),
     touch: str = typer.Option(None, "--touch", help="How the tool meets a point: seat (socket), guarded "
                                 "(contact input) or manual."),
-    reference: str = typer.Option(None, "--reference", help="Reference: unknown (solve the point) or cell (use "
-                                  "the cell file's surveyed positions)."),
-    poses: int = POSES,
-    holdout: int = HOLDOUT,
-    cone: str = CONE,
-    seed: int = typer.Option(None, "--seed", help="Seed of the pose plan."),
-    tracker: str = typer.Option(None, "--tracker", help="Measuring instrument URL (correction_map, iso9283), e.g. "
-                                "tcp://127.0.0.1:5300 (station mock tracker)."),
-    grid: int = typer.Option(None, "--grid", help="correction_map: Q sub-intervals per actuator (Q+1 levels)."),
-    span_deg: str = typer.Option(None, "--span-deg", help="With correction_map on a serial arm: the work box is +- "
-                                   "this angle per joint around the start pose: 20deg (a bare number is degrees; "
-                                   "default 20deg)."),
-    calibration: Path = typer.Option(None, "--calibration", help="correction_map: build the map on top of this "
-                                     "parametric calibration (result JSON of station solve for the robot's model); "
-                                     "iso9283: evaluate it beside the nominal model."),
-    payload: str = PAYLOAD,
     identify: str = typer.Option(None, "--identify", help="Parameter groups to solve for instead of the "
                                  "procedure's own (zero_offsets: offsets, dh_full: offsets,dh,tcp), e.g. "
                                  "offsets,tcp; as station solve --identify."),
-    cycles: int = typer.Option(None, "--cycles", help="iso9283: cycles per pose (default 30, as the standard)."),
-    cube: str = typer.Option(None, "--cube", help="iso9283: the test cube's centre and edge X,Y,Z,EDGE in the base "
-                             "frame (e.g. 400,0,500,300mm; default: the largest cube around the tool)."),
-    plane: str = typer.Option(None, "--plane", help="iso9283: the cube's diagonal plane of the test poses: x+, x-, "
-                              "y+, y-, z+ or z- (default x+)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
+    **declared,
 ) -> None:
-    """Run a procedure end of line: unattended, PASS/FAIL, exit 0 pass / 1 fail / 2 error."""
+    """Run a procedure end of line: unattended, PASS/FAIL, exit 0 pass / 1 fail / 2 error. The procedure's own
+    options (--poses, --tracker, ...) are the ones it declares."""
     from station.api import run as start
     from station.cli.nextstep import suggest
+    from station.cli.procedure_options import own_given
+    from station.engine.procedure import load_procedure
 
-    preflight(robot, poses, holdout, cone, seed, touch, reference, limits, cell)
-    options = _options(poses, holdout, cone, reference, seed, tracker, grid, span_deg, calibration, payload, cycles,
-                       cube, plane)
+    proc = load_procedure(procedure)
+    declared.update(own_given())  # the options only this procedure declares (a site's own procedure)
+    plan = {k: declared.pop(k, None) for k in ("poses", "holdout", "cone", "reference", "seed")}
+    preflight(robot, plan["poses"], plan["holdout"], plan["cone"], plan["seed"], touch, plan["reference"], limits,
+              cell)
+    options = _options(**plan, procedure=proc, **declared)
     if identify is not None:
         from station.cli.solve_cmd import check_identify
 
         options["identify"] = check_identify(identify)
     cb, bar = _progress_bar(quiet)
     with bar:
-        out = start(procedure, robot, serial, limits=limits, db=db, apply=apply, cell=cell, operator=operator,
+        out = start(proc, robot, serial, limits=limits, db=db, apply=apply, cell=cell, operator=operator,
                     options=options, touch=touch, progress=cb,
                     log=lambda s: typer.echo(s, err=True))
     cell_text = None if cell is None else str(cell)
@@ -539,7 +421,9 @@ def run_demo(bus: str, *, time_mode: str = "instant", seed: int = 5, quiet: bool
 
 
 def register(app: typer.Typer) -> None:
-    app.command("run")(run)
+    from station.cli.procedure_options import RunCommand, with_declared_flags
+
+    app.command("run", cls=RunCommand)(with_declared_flags(run))
     app.command("resume")(resume_cmd)
     app.command("restore")(restore_cmd)
     app.command("demo")(demo)

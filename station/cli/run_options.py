@@ -1,13 +1,15 @@
 """The options ``station run`` and ``station panel`` share (the limits, the records database, the pose plan).
-Use them as parameter defaults, as station/cli/model_options.py's are used."""
+Use them as parameter defaults, as station/cli/model_options.py's are used. The plan's are the engine's
+declarations (``station.engine.declare``: the flags ``station run`` builds for the procedures that plan poses)."""
 
 from __future__ import annotations
 
 import typer
 
+from station.engine import declare
+
 LIMITS = typer.Option(None, "--limits", help="Limits file (default: procedures/limits.yaml).")
 DB = typer.Option(None, "--db", help="Records database URL (default $STATION_DB, else SQLite in $STATION_HOME).")
-POSES = typer.Option(None, "--poses", help="Number of fit poses (default from the procedure).")
-HOLDOUT = typer.Option(None, "--holdout", help="Number of held-out poses.")
-CONE = typer.Option(None, "--cone", help="Half-angle of the cone of tool directions around each point, an angle: "
-                    "50deg, 0.87rad (a bare number is degrees).")
+POSES = typer.Option(None, declare.POSES.flag, help=declare.POSES.doc + " Default: the procedure's.")
+HOLDOUT = typer.Option(None, declare.HOLDOUT.flag, help=declare.HOLDOUT.doc)
+CONE = typer.Option(None, declare.CONE.flag, help=declare.CONE.doc)

@@ -13,8 +13,9 @@ from pathlib import Path
 from station.cli.model_options import MODEL_OPTIONS
 from station.cli.optspec import REQUIRED, Opt, click_command
 from station.lazy import lazy_module
+from station.quantity import parse_xyz
 from station.robot.errors import ConfigError
-from station.samplesfile import LENGTH_UNITS, SamplesFileError, read_joints, read_samples
+from station.samplesfile import SamplesFileError, read_joints, read_samples
 
 np = lazy_module("numpy")  # imported on first use (station.lazy: start-up of every command)
 
@@ -22,26 +23,6 @@ np = lazy_module("numpy")  # imported on first use (station.lazy: start-up of ev
 def _fail(msg: str) -> ConfigError:
     """The one-line error to raise: station.cli.main prints ``station: error: MSG`` and exits 2."""
     return ConfigError(msg)
-
-
-_TRIPLE = re.compile(r"^\s*([^,]+),([^,]+),([^,]+?)\s*([a-z]*)\s*$")
-
-
-def parse_xyz(text: str, option: str) -> np.ndarray:
-    """``x,y,z`` in metres, or with one unit suffix for all three: ``100,200,50mm``."""
-    m = _TRIPLE.match(text)
-    if not m:
-        raise _fail(f"{option} {text!r}: expected x,y,z (metres, or with a unit suffix like 100,200,50mm)")
-    unit = m.group(4) or "m"
-    if unit not in LENGTH_UNITS:
-        raise _fail(f"{option} {text!r}: unknown length unit {unit!r} (m, mm, cm, um)")
-    try:
-        v = np.array([float(m.group(k)) for k in (1, 2, 3)]) * LENGTH_UNITS[unit]
-    except ValueError:
-        raise _fail(f"{option} {text!r}: not a number") from None
-    if not np.isfinite(v).all():
-        raise _fail(f"{option} {text!r}: not a finite number")
-    return v
 
 
 def _load_model(name: str, tool: str | None, tip_link: str | None = None, base_link: str | None = None,
@@ -87,7 +68,7 @@ def check_max_std(max_std) -> float | None:
     Returns metres."""
     if max_std is None:
         return None
-    from station.cli.quantity import parse_option
+    from station.quantity import parse_option
 
     value = parse_option(max_std, "--max-std", "length", "m", "1mm")
     if not 0 < value <= 1.0:
@@ -229,16 +210,7 @@ def solve_command(model: str, tip_link: str | None, base_link: str | None, paylo
                     noise=noise_m, priors=priors, loss=loss, distances=distances or None, planes=planes or None,
                     touch=touch)
     except SolverInputError as e:
-        msg = str(e)
-        if msg.startswith("distance "):
-            raise _fail(f"--distance: {msg}") from None
-        if msg.startswith("plane "):
-            raise _fail(f"--plane: {msg}") from None
-        if msg.startswith("prior "):
-            raise _fail(f"--prior: {msg}") from None
-        if "parameter or group" in msg or msg.startswith("compliance."):
-            raise _fail(f"--identify {identify!r}: {msg}") from None
-        raise _fail(f"{samples}: {msg}") from None
+        raise _fail(_input_error(str(e), identify, samples)) from None
     _diagnose(res, m, obs, s, str(samples), noise_m,
               lambda o: solve(m, o, identify, ref, None, instrument_frame=instrument_frame, max_std=max_std,
                               noise=noise_m, priors=priors, loss=loss, distances=distances or None,
@@ -252,6 +224,16 @@ def solve_command(model: str, tip_link: str | None, base_link: str | None, paylo
     if not res.trusted:
         print(f"station: solve failed: {res.failure or 'result not trusted'}", file=sys.stderr, flush=True)
         sys.exit(1)
+
+
+def _input_error(msg: str, identify: str, samples: Path) -> str:
+    """The solver's refusal, named by the option (or the file) it came from."""
+    for option in ("distance", "plane", "prior"):
+        if msg.startswith(f"{option} "):
+            return f"--{option}: {msg}"
+    if "parameter or group" in msg or msg.startswith("compliance."):
+        return f"--identify {identify!r}: {msg}"
+    return f"{samples}: {msg}"
 
 
 _GROUP = re.compile(r"^(fixture|point)=([A-Za-z0-9_-]+(?:,[A-Za-z0-9_-]+)*)$")
@@ -297,7 +279,7 @@ def _payload_setting(payload: str | None) -> dict | None:
     so whoever uses the result (``station run correction_map --calibration``) can check it is the same."""
     if not payload:
         return None
-    from station.cli.model_options import parse_payload
+    from station.quantity import parse_payload
 
     mass, com = parse_payload(payload)
     return {"mass": float(mass), "com": [float(c) for c in com]}

@@ -35,11 +35,10 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field
 
-from station.kinematics.collision import Checker, KeepOut, KeepOutError
-from station.kinematics.collision import keep_out_from_dict as parse_keep_out
+from station.kinematics.collision import Checker, KeepOut, KeepOutError, keep_out_from_dict
 from station.robot.errors import ConfigError, LimitError
 from station.strict import Name, NonNeg, Pos, Strict, Vec3, check
-from station.units import ANGLE_UNITS, LENGTH_UNITS
+from station.units import ANGLE_UNITS, LENGTH_UNITS, param_quantity
 from station.yamlfile import YamlDoc
 
 FORMAT = "station-cell/1"
@@ -174,60 +173,70 @@ def load_cell(path: str | Path | None = None) -> Cell:
     return cell_from_dict(doc, str(path))
 
 
-def cell_from_dict(doc, where: str = "cell") -> Cell:
-    """The cell of a parsed cell file (a ``YamlDoc`` names lines in errors)."""
-    ydoc = doc if isinstance(doc, YamlDoc) else YamlDoc(where, doc)
+def _check_strict(ydoc: YamlDoc) -> None:
+    """A ``cell/1`` document against the strict schema (file, line, field in the error); labels unique."""
     doc = ydoc.data
-    if isinstance(doc, dict) and doc.get("format") == FORMAT:
-        check(CellSchemaByLabel if isinstance(doc.get("points"), dict) else CellSchema, ydoc, CellError)
-        labels = [p.get("label") for p in doc["points"]] if isinstance(doc["points"], list) else []
-        for i, lb in enumerate(labels):
-            if lb in labels[:i]:
-                raise CellError(f"{ydoc.where(('points', i, 'label'))}: label {lb!r} is used twice; labels name "
-                                f"points and must be unique")
-    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        raise CellError(f"{where}: expected 'format: {FORMAT}'")
-    units = doc.get("units") or {}
-    length = units.get("length") if isinstance(units, dict) else None
-    if length not in LENGTH:
-        raise CellError(f"{where}: units.length must be m or mm (every position is in it), got {length!r}")
-    scale = LENGTH[length]
-    raw = doc.get("points")
+    check(CellSchemaByLabel if isinstance(doc.get("points"), dict) else CellSchema, ydoc, CellError)
+    labels = [p.get("label") for p in doc["points"]] if isinstance(doc["points"], list) else []
+    for i, lb in enumerate(labels):
+        if lb in labels[:i]:
+            raise CellError(f"{ydoc.where(('points', i, 'label'))}: label {lb!r} is used twice; labels name "
+                            f"points and must be unique")
+
+
+def _point(d, w: str, scale: float, where: str) -> RefPoint:
+    """One reference point (``w`` names it in errors), positions in SI."""
+    if not isinstance(d, dict) or "label" not in d:
+        raise CellError(f"{w}: needs label, kind, position")
+    kind = d.get("kind", "socket")
+    if kind not in ("socket", "needle"):
+        raise CellError(f"{w}: kind must be socket or needle, got {kind!r}")
+    radius = d.get("radius", 2e-3 / scale)
+    if not isinstance(radius, (int, float)) or not math.isfinite(radius) or radius <= 0:
+        raise CellError(f"{w}: radius must be a positive number")
+    label = str(d["label"])
+    return RefPoint(label, kind, _vec(f"{w}.position", d.get("position"), scale),
+                    _vec(f"{w}.approach", d.get("approach", [0, 0, 1]), 1.0, unit=True),
+                    float(radius) * scale, _image(f"{w}.image", d.get("image"), where))
+
+
+def _points(raw, where: str, scale: float) -> dict[str, RefPoint]:
+    """``points:`` as a list of points or a mapping label -> point."""
     if isinstance(raw, dict):
         raw = [{"label": k, **(v or {})} for k, v in raw.items()]
     if not isinstance(raw, list) or not raw:
         raise CellError(f"{where}: 'points' must list at least one reference point")
     points: dict[str, RefPoint] = {}
     for i, d in enumerate(raw):
-        w = f"{where}: points[{i}]"
-        if not isinstance(d, dict) or "label" not in d:
-            raise CellError(f"{w}: needs label, kind, position")
-        kind = d.get("kind", "socket")
-        if kind not in ("socket", "needle"):
-            raise CellError(f"{w}: kind must be socket or needle, got {kind!r}")
-        radius = d.get("radius", 2e-3 / scale)
-        if not isinstance(radius, (int, float)) or not math.isfinite(radius) or radius <= 0:
-            raise CellError(f"{w}: radius must be a positive number")
-        label = str(d["label"])
-        points[label] = RefPoint(label, kind, _vec(f"{w}.position", d.get("position"), scale),
-                                 _vec(f"{w}.approach", d.get("approach", [0, 0, 1]), 1.0, unit=True),
-                                 float(radius) * scale, _image(f"{w}.image", d.get("image"), where))
-    tool = doc.get("tool")
-    if tool is not None:
-        if not isinstance(tool, dict) or set(tool) - {"x", "y", "z", "rx", "ry", "rz"}:
-            raise CellError(f"{where}: tool must map x, y, z (length unit), rx, ry, rz (rad) to numbers")
-        angle = ANGLE.get((units or {}).get("angle", "rad"))
-        if angle is None:
-            raise CellError(f"{where}: units.angle must be rad or deg")
-        try:
-            tool = {k: float(v) * (angle if k.startswith("r") else scale) for k, v in tool.items()}
-        except (TypeError, ValueError):
-            raise CellError(f"{where}: tool values must be numbers") from None
-    angle = {"rad": 1.0, "deg": math.pi / 180}.get((units or {}).get("angle", "rad"))
+        pt = _point(d, f"{where}: points[{i}]", scale, where)
+        points[pt.label] = pt
+    return points
+
+
+def _angle_unit(units, where: str) -> float:
+    angle = ANGLE.get((units or {}).get("angle", "rad"))
     if angle is None:
         raise CellError(f"{where}: units.angle must be rad or deg")
+    return angle
+
+
+def _tool(tool, units, where: str, scale: float) -> dict[str, float] | None:
+    """The optional tool frame, in SI (which keys are angles: station.units' one rule)."""
+    if tool is None:
+        return None
+    if not isinstance(tool, dict) or set(tool) - {"x", "y", "z", "rx", "ry", "rz"}:
+        raise CellError(f"{where}: tool must map x, y, z (length unit), rx, ry, rz (rad) to numbers")
+    angle = _angle_unit(units, where)
+    try:
+        return {k: float(v) * (angle if param_quantity(k) == "angle" else scale) for k, v in tool.items()}
+    except (TypeError, ValueError):
+        raise CellError(f"{where}: tool values must be numbers") from None
+
+
+def _distances(ydoc: YamlDoc, points: dict[str, RefPoint], scale: float) -> list:
+    """Surveyed distances between points: ``(a, b, distance, std or None)`` in m."""
     distances = []
-    for i, d in enumerate(doc.get("distances") or []):
+    for i, d in enumerate(ydoc.data.get("distances") or []):
         a, b = (str(x) for x in d["between"])
         if a == b:
             raise CellError(f"{ydoc.where(('distances', i, 'between'))}: the two points must differ")
@@ -237,9 +246,32 @@ def cell_from_dict(doc, where: str = "cell") -> Cell:
                                 f"(points: {', '.join(points)})")
         k = LENGTH[d["units"]] if d.get("units") else scale
         distances.append((a, b, float(d["distance"]) * k, None if d.get("std") is None else float(d["std"]) * k))
+    return distances
+
+
+def cell_from_dict(doc, where: str = "cell") -> Cell:
+    """The cell of a parsed cell file (a ``YamlDoc`` names lines in errors)."""
+    ydoc = doc if isinstance(doc, YamlDoc) else YamlDoc(where, doc)
+    doc = ydoc.data
+    if isinstance(doc, dict) and doc.get("format") == FORMAT:
+        _check_strict(ydoc)
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise CellError(f"{where}: expected 'format: {FORMAT}'")
+    units = doc.get("units") or {}
+    length = units.get("length") if isinstance(units, dict) else None
+    if length not in LENGTH:
+        raise CellError(f"{where}: units.length must be m or mm (every position is in it), got {length!r}")
+    scale = LENGTH[length]
+    points = _points(doc.get("points"), where, scale)
+    tool = _tool(doc.get("tool"), units, where, scale)
+    angle = _angle_unit(units, where)
+    distances = _distances(ydoc, points, scale)
     planes = [str(p) for p in doc.get("planes") or []]
-    return Cell(where, points, doc.get("model"), tool, keep_out_from_dict(doc, where, scale, angle), distances,
-                planes)
+    try:  # the one reader of mounting and keep_out (the world file's truth uses it too)
+        keep_out = keep_out_from_dict(doc, where, scale, angle)
+    except KeepOutError as e:
+        raise CellError(str(e)) from None
+    return Cell(where, points, doc.get("model"), tool, keep_out, distances, planes)
 
 
 IMAGE_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".gif": "image/gif",
@@ -268,14 +300,6 @@ def _image(w: str, image, cell_path: str) -> str | None:
 
 
 # ---- keep-out ----------------------------------------------------------------------------------------------
-def keep_out_from_dict(doc: dict, where: str, scale: float, angle: float) -> KeepOut:
-    """``mounting`` and ``keep_out`` of a cell document (lengths in ``scale`` m, angles in ``angle`` rad)."""
-    try:
-        return parse_keep_out(doc, where, scale, angle)
-    except KeepOutError as e:
-        raise CellError(str(e)) from None
-
-
 def check_clear(model, keep_out: KeepOut | Cell | None, q, what: str = "target") -> None:
     """Refuse a joint target that brings a link capsule of ``model`` into a keep-out or within its clearance
     (``keep_out`` None: the default mounting plane). Raises ``LimitError`` naming the link and the obstacle."""

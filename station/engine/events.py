@@ -487,90 +487,115 @@ def _fail(where: str, what: str, v):
     raise SchemaError(where, f"expected {what}, got {_got(v)}")
 
 
+def _number(v, where):
+    t = type(v)
+    if t is float:
+        if math.isfinite(v):
+            return v
+        raise SchemaError(where, f"not a finite number ({v})")
+    if t is int:
+        return float(v)
+    _fail(where, "a number", v)
+
+
+def _integer(v, where):
+    if type(v) is int:
+        return v
+    if type(v) is float and v.is_integer():
+        return int(v)
+    _fail(where, "an integer", v)
+
+
+def _boolean(v, where):
+    if type(v) is bool:
+        return v
+    _fail(where, "true or false", v)
+
+
+def _text(v, where):
+    if type(v) is str:
+        return v
+    _fail(where, "text", v)
+
+
+# exact types only: JSON's true is not the number 1, and 1 is not the text "1"
+_SCALAR_CHECKS = {float: _number, int: _integer, bool: _boolean, str: _text}
+
+
+def _union_check(tp):
+    """``A | B | None``: null where allowed, else the first member that accepts the value."""
+    args = typing.get_args(tp)
+    nullable = type(None) in args
+    rest = [_checker(a) for a in args if a is not type(None)]
+    if len(rest) == 1:
+        inner = rest[0]
+        return (lambda v, where: None if v is None else inner(v, where)) if nullable else inner
+
+    def union(v, where):
+        if v is None and nullable:
+            return None
+        for c in rest:
+            try:
+                return c(v, where)
+            except SchemaError:
+                pass
+        _fail(where, _name(tp), v)
+    return union
+
+
+def _literal_check(tp):
+    allowed = typing.get_args(tp)
+
+    def literal(v, where):
+        if type(v) is str and v in allowed:
+            return v
+        raise SchemaError(where, f"{v!r} is not one of {', '.join(map(str, allowed))}")
+    return literal
+
+
+def _mapping_check(tp, origin):
+    """``dict`` (any object) or ``dict[str, T]`` (every value checked, named ``where.key``)."""
+    inner = _checker(typing.get_args(tp)[1]) if origin is dict else None
+
+    def mapping(v, where):
+        if type(v) is not dict:
+            _fail(where, "an object", v)
+        if inner is None:
+            return v
+        return {str(k): inner(x, f"{where}.{k}") for k, x in v.items()}
+    return mapping
+
+
+def _sequence_check(tp, origin):
+    """``list`` or ``list[T]`` (every item checked; an error names the item's index)."""
+    inner = _checker(typing.get_args(tp)[0]) if origin is list else None
+
+    def sequence(v, where):
+        if type(v) is not list and type(v) is not tuple:
+            _fail(where, "a list", v)
+        if inner is None:
+            return list(v)
+        try:
+            return [inner(x, where) for x in v]
+        except SchemaError:  # again, naming the element (errors are rare: no index strings on the way)
+            return [inner(x, f"{where}[{i}]") for i, x in enumerate(v)]
+    return sequence
+
+
 def _compile(tp):
     if tp is Any:
         return lambda v, where: v
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
-        args = typing.get_args(tp)
-        nullable = type(None) in args
-        rest = [_checker(a) for a in args if a is not type(None)]
-        if len(rest) == 1:
-            inner = rest[0]
-            return (lambda v, where: None if v is None else inner(v, where)) if nullable else inner
-
-        def union(v, where):
-            if v is None and nullable:
-                return None
-            for c in rest:
-                try:
-                    return c(v, where)
-                except SchemaError:
-                    pass
-            _fail(where, _name(tp), v)
-        return union
+        return _union_check(tp)
     if origin is Literal:
-        allowed = typing.get_args(tp)
-
-        def literal(v, where):
-            if type(v) is str and v in allowed:
-                return v
-            raise SchemaError(where, f"{v!r} is not one of {', '.join(map(str, allowed))}")
-        return literal
-    if tp is float:
-        def number(v, where):
-            t = type(v)
-            if t is float:
-                if math.isfinite(v):
-                    return v
-                raise SchemaError(where, f"not a finite number ({v})")
-            if t is int:
-                return float(v)
-            _fail(where, "a number", v)
-        return number
-    if tp is int:
-        def integer(v, where):
-            if type(v) is int:
-                return v
-            if type(v) is float and v.is_integer():
-                return int(v)
-            _fail(where, "an integer", v)
-        return integer
-    if tp is bool:
-        def boolean(v, where):
-            if type(v) is bool:
-                return v
-            _fail(where, "true or false", v)
-        return boolean
-    if tp is str:
-        def text(v, where):
-            if type(v) is str:
-                return v
-            _fail(where, "text", v)
-        return text
+        return _literal_check(tp)
+    if tp in _SCALAR_CHECKS:
+        return _SCALAR_CHECKS[tp]
     if tp is dict or origin is dict:
-        inner = _checker(typing.get_args(tp)[1]) if origin is dict else None
-
-        def mapping(v, where):
-            if type(v) is not dict:
-                _fail(where, "an object", v)
-            if inner is None:
-                return v
-            return {str(k): inner(x, f"{where}.{k}") for k, x in v.items()}
-        return mapping
+        return _mapping_check(tp, origin)
     if tp is list or origin is list:
-        inner = _checker(typing.get_args(tp)[0]) if origin is list else None
-
-        def sequence(v, where):
-            if type(v) is not list and type(v) is not tuple:
-                _fail(where, "a list", v)
-            if inner is None:
-                return list(v)
-            try:
-                return [inner(x, where) for x in v]
-            except SchemaError:  # again, naming the element (errors are rare: no index strings on the way)
-                return [inner(x, f"{where}[{i}]") for i, x in enumerate(v)]
-        return sequence
+        return _sequence_check(tp, origin)
     raise TypeError(f"events: no check for {tp!r}")  # a schema bug, not bad data
 
 

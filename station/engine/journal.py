@@ -236,6 +236,29 @@ def data_lines(path: Path, upto: int) -> int:
         return fh.read(upto).count(b"\n") + 1
 
 
+def _line_object(raw: bytes, path: Path, i: int, torn: bool) -> dict | None:
+    """Line ``i`` as a JSON object; None for a last line that does not parse (torn by power loss: dropped)."""
+    try:
+        obj = loads_strict(raw, "line")
+        if not isinstance(obj, dict):
+            raise ValueError("not a JSON object")
+    except ValueError as e:
+        if torn:
+            return None
+        raise JournalError(f"journal {path}:{i + 1}: damaged line ({e})") from None
+    return obj
+
+
+def _header_version(obj: dict, where: str) -> str:
+    """The format of the journal whose first line is ``obj`` (the current one, or /1 read by conversion)."""
+    if obj.get("type") != "header":
+        raise JournalError(f"{where}: not a {FORMAT} (or /1) header")
+    try:
+        return FORMAT_V1 if ev.check_format(obj.get("format")) == 1 else FORMAT
+    except SchemaError as e:
+        raise JournalError(f"{where}: header {e}") from None
+
+
 def _read(path: Path) -> tuple[Header, list[Event], int]:
     if not path.exists():
         raise JournalError(f"journal {path} does not exist")
@@ -256,26 +279,13 @@ def _read(path: Path) -> tuple[Header, list[Event], int]:
             if not last:
                 good = end
             continue
-        torn = last  # the final piece has no newline: it was cut mid-write
-        try:
-            obj = loads_strict(raw, "line")
-            if not isinstance(obj, dict):
-                raise ValueError("not a JSON object")
-        except ValueError as e:
-            if torn or (i == len(lines) - 2 and not lines[-1]):
-                # a last line that does not parse was torn by power loss: drop it
-                break
-            raise JournalError(f"journal {path}:{i + 1}: damaged line ({e})") from None
-        if torn:
-            break  # parseable but no newline: the write may not have completed; treat as torn
+        # a last piece without a newline was cut mid-write: dropped even when it parses (it may be incomplete)
+        obj = _line_object(raw, path, i, torn=last or (i == len(lines) - 2 and not lines[-1]))
+        if obj is None or last:
+            break
         where = f"journal {path}:{i + 1}"
         if header is None:
-            if obj.get("type") != "header":
-                raise JournalError(f"{where}: not a {FORMAT} (or /1) header")
-            try:
-                version = FORMAT_V1 if ev.check_format(obj.get("format")) == 1 else FORMAT
-            except SchemaError as e:
-                raise JournalError(f"{where}: header {e}") from None
+            version = _header_version(obj, where)
         if version == FORMAT_V1:
             obj = ev.upgrade_v1(obj)
         try:

@@ -185,3 +185,30 @@ def load_limits(path: str | Path | None = None) -> Limits:
                 str(n): _limit(f"limits file {path}: models.{model}.{proc}.{n}", str(n), d) for n, d in table.items()}
     check(LimitsSchema, ydoc, LimitsError)  # what the checks above do not name: unknown keys, types, lines
     return Limits(str(path), str(version), hashlib.sha256(text).hexdigest(), out)
+
+
+def check_limits(procedure: str, measurements, limits: Limits) -> None:
+    """Every section of ``limits``  for ``procedure`` against what it
+    declares: a judged measurement without a limit, a limit for a measurement it does not take, a limit in a unit
+    of another quantity: one line naming the file, the section and the name (``LimitsError``, exit 2).
+    ``measurements``: ``station.engine.declare.Measurement`` (name, unit, quantity, doc, judged)."""
+    declared = {m.name: m for m in measurements}
+    for model, table in sorted(limits.models.items()):
+        section = table.get(procedure)
+        if section is None:
+            continue
+        where = f"limits file {limits.path} (version {limits.version}): models.{model}.{procedure}"
+        for name, lim in section.items():
+            m = declared.get(name)
+            if m is None:
+                raise LimitsError(f"{where}.{name}: procedure {procedure} measures no {name!r} (it measures: "
+                                  f"{', '.join(declared)})")
+            if lim.quantity != m.quantity:
+                raise LimitsError(f"{where}.{name}: the limit is in {lim.unit} ({lim.quantity}) but {name} is "
+                                  f"a {m.quantity} ({m.unit})")
+        missing = [m for m in measurements if m.judged and m.name not in section]
+        if missing:
+            m = missing[0]
+            raise LimitsError(f"{where}: no limit for {m.name} ({m.unit}: {m.doc}), which procedure {procedure} "
+                              f"declares judged; add e.g. {m.name}: {{high: ..., unit: {m.unit}}}")
+

@@ -4,6 +4,8 @@ A procedure file defines::
 
     \"\"\"One-line title.  Longer description.\"\"\"
     IDENTIFY = "offsets"            # optional constants the checklist uses
+    @measures(*SOLVE, judged=("samples", "fit_rms"))   # what it measures (station.engine.declare)
+    @takes(*PLAN_OPTIONS)           # the options it takes (station run builds its flags from them)
     def checklist(s):               # s: station.engine.Session
         s.connect()
         ...
@@ -216,6 +218,21 @@ class Procedure:
         return dict(getattr(self.module, "DEFAULTS", {}) or {})
 
     @property
+    def measurements(self):
+        """What the checklist declares it measures (``station.engine.declare.measures``); None: it declares
+        nothing (then nothing is checked against the limits file)."""
+        from station.engine.declare import declared_measurements
+
+        return declared_measurements(self.module.checklist)
+
+    @property
+    def options(self):
+        """The options the checklist declares it takes (``station.engine.declare.takes``); None: undeclared."""
+        from station.engine.declare import declared_options
+
+        return declared_options(self.module.checklist)
+
+    @property
     def identify(self) -> str | None:
         """The parameter group the procedure solves for (its ``IDENTIFY``); None: it does not solve, so
         ``--identify`` does not apply to it."""
@@ -339,6 +356,17 @@ def _station_version() -> str | None:
         return None
 
 
+def _check_declarations(path: Path, checklist) -> None:
+    """``@measures``/``@takes`` hold what they say (a procedure that sets the attributes by hand is checked too)."""
+    from station.engine.declare import Measurement, Option, declared_measurements, declared_options
+
+    for what, items, kind in (("measures", declared_measurements(checklist), Measurement),
+                              ("takes", declared_options(checklist), Option)):
+        if items is not None and not (isinstance(items, tuple) and all(isinstance(x, kind) for x in items)):
+            raise ProcedureError(f"procedure {path}: checklist.{'measurements' if what == 'measures' else 'options'}"
+                                 f" must be declared with @{what}(...) of station.engine.declare")
+
+
 def _load(path: Path, data: bytes) -> Procedure:
     """Compile and run exactly ``data`` (the bytes that were hashed) as the procedure module of ``path``."""
     try:
@@ -364,6 +392,7 @@ def _load(path: Path, data: bytes) -> Procedure:
     fn = module.__dict__.get("checklist")
     if not callable(fn):
         raise ProcedureError(f"procedure {path}: defines no checklist(s) function")
+    _check_declarations(path, fn)
     doc = (module.__doc__ or "").strip()
     if not doc:
         raise ProcedureError(f"procedure {path}: needs a docstring saying what it calibrates")

@@ -26,7 +26,7 @@ from pathlib import Path
 from station.engine import events as ev
 from station.engine.cell import Cell, load_cell
 from station.engine.journal import Journal, JournalError, JournalWriteError, check_space, check_writable, read_journal
-from station.engine.limits import load_limits
+from station.engine.limits import check_limits, load_limits
 from station.engine.procedure import Procedure, is_name, load_procedure, procedure_for_resume, shipped_names
 from station.engine.session import Session
 from station.kinematics.collision import keep_out_to_doc
@@ -334,6 +334,7 @@ def create_session(robot, serial: str, *, procedure: Procedure | None = None, na
     if control is not None:
         control.attach(s)
     s.given = set(options or {})  # what the caller chose (checked against the procedure), not its DEFAULTS
+    s.declared = _declared(procedure)
     return s
 
 
@@ -355,6 +356,12 @@ def technician_session(robot, header: ev.Header | dict, *, folder: str | Path | 
     s = Session(Journal.create(folder / "journal.jsonl", head), robot, options=dict(head.options), model=model)
     s.write_samples_csv()
     return s
+
+
+def _declared(procedure: Procedure | None) -> dict | None:
+    """The measurements a procedure declares, by name (None: it declares none, a script: not checked)."""
+    measurements = procedure.measurements if procedure is not None else None
+    return None if measurements is None else {m.name: m for m in measurements}
 
 
 def operator_name() -> str:
@@ -379,7 +386,9 @@ def start(procedure: str | Path | Procedure, robot_url: str, serial: str, *, lim
     if (options or {}).get("identify") and proc.identify is None:
         raise ConfigError(f"--identify: procedure {proc.name} solves nothing (it has no IDENTIFY group); it "
                           "applies to procedures that solve: " + ", ".join(solving_procedures()))
-    load_limits(limits)  # a bad limits or cell file fails before the robot is opened
+    lim = load_limits(limits)  # a bad limits or cell file fails before the robot is opened
+    if proc.measurements is not None:  # what the procedure declares against every section of the file for it
+        check_limits(proc.name, proc.measurements, lim)
     if cell is not None:
         load_cell(cell)
     check_journal_folder()
@@ -461,6 +470,7 @@ def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int,
         raise
     s = Session(journal, robot, limits=table, limits_version=lim.version, cell=cell,
                 options=options, replay=events, progress=progress, touch=touch, log=log, prompt=prompt)
+    s.declared = _declared(proc)
     if control is not None:
         control.attach(s)
     try:

@@ -63,6 +63,8 @@ class Session:
         # options the caller gave (--poses...), not the procedure's DEFAULTS: only those are held to rules such
         # as "poses >= unknowns" (a procedure's own default is its author's choice, e.g. verify does not solve)
         self.given: set[str] = set()
+        # what the procedure declares it measures (station.engine.declare), by name; None: not declared
+        self.declared: dict | None = None
         self.replay: list[ev.Event] = list(replay or [])  # events of the interrupted run (resume)
         self.progress = progress or (lambda done, total, text: None)
         self.log = log or (lambda text: None)
@@ -610,7 +612,14 @@ class Session:
         return self.result
 
     def measure(self, name: str, value_si: float | None, quantity: str = "length") -> dict:
-        """A measurement, judged against the limits file (a measurement without a limit is informational)."""
+        """A measurement, judged against the limits file (a measurement without a limit is informational). A
+        procedure that declares its measurements (``@measures``) measures only those, in their quantity."""
+        if self.declared is not None:
+            d = self.declared.get(name)
+            if d is None or d.quantity != quantity:
+                raise ConfigError(f"procedure {self.journal.header.procedure}: measures {name!r} ({quantity}), "
+                                  + ("which it does not declare (@measures)" if d is None else
+                                     f"declared as a {d.quantity} ({d.unit})"))
         lim = self.limits.get(name)
         if lim is not None:
             m = lim.judge(value_si, quantity)

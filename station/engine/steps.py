@@ -167,50 +167,68 @@ def summarize(events: list[ev.Event], when: Callable[[float | None], Any] = lamb
     ``when`` writes it), ``depth`` (how many steps it ran in), ``info`` (the arguments, when it ran once) and
     ``not_done`` (every run that did not end done: its arguments and why). A ``resume`` event ends every step
     still open before it as unfinished."""
-    out: dict[tuple, dict] = {}
-    open_: list[tuple[tuple, dict, float | None]] = []  # (key, info, t) of the steps running, outermost first
-
-    def entry(name: str, info: dict, t: float | None) -> tuple:
-        parent = open_[-1][0][1] if open_ else None
-        key = (parent, name)
-        if key not in out:
-            out[key] = {"name": name, "parent": parent, "runs": 0, "done": 0, "failed": 0, "skipped": 0,
-                        "unfinished": 0, "duration_s": 0.0, "started": when(t), "depth": len(open_), "info": info,
-                        "not_done": []}
-        out[key]["runs"] += 1
-        return key
-
-    def unfinished(key: tuple, info: dict, t: float | None) -> None:
-        out[key]["unfinished"] += 1
-        out[key]["not_done"].append({"status": "unfinished", "info": info, "started": when(t)})
-
+    table = _StepTable(when)
     for event in events:
         if isinstance(event, ev.Resume):
-            while open_:
-                unfinished(*open_.pop())
-        if not isinstance(event, ev.Step):
-            continue
+            table.close_all()
+        if isinstance(event, ev.Step):
+            table.add(event)
+    table.close_all()
+    return table.entries()
+
+
+class _StepTable:
+    """The running tally behind :func:`summarize`: the entries so far and the steps still open."""
+
+    def __init__(self, when: Callable[[float | None], Any]) -> None:
+        self.when = when
+        self.out: dict[tuple, dict] = {}
+        self.open: list[tuple[tuple, dict, float | None]] = []  # (key, info, t) of the steps running, outermost first
+
+    def entry(self, name: str, info: dict, t: float | None) -> tuple:
+        parent = self.open[-1][0][1] if self.open else None
+        key = (parent, name)
+        if key not in self.out:
+            self.out[key] = {"name": name, "parent": parent, "runs": 0, "done": 0, "failed": 0, "skipped": 0,
+                             "unfinished": 0, "duration_s": 0.0, "started": self.when(t), "depth": len(self.open),
+                             "info": info, "not_done": []}
+        self.out[key]["runs"] += 1
+        return key
+
+    def unfinished(self, key: tuple, info: dict, t: float | None) -> None:
+        self.out[key]["unfinished"] += 1
+        self.out[key]["not_done"].append({"status": "unfinished", "info": info, "started": self.when(t)})
+
+    def close_all(self) -> None:
+        """Every step still open ends unfinished (a resume: the process that ran them died)."""
+        while self.open:
+            self.unfinished(*self.open.pop())
+
+    def add(self, event: ev.Step) -> None:
         info = dict(event.info)
         if event.status == "start":
-            open_.append((entry(event.name, info, event.t), info, event.t))
+            self.open.append((self.entry(event.name, info, event.t), info, event.t))
         elif event.status == "skipped":
-            key = entry(event.name, info, event.t)
-            out[key]["skipped"] += 1
-            out[key]["not_done"].append({"status": "skipped", "info": info, "reason": event.reason,
-                                         "started": when(event.t)})
-        elif any(key[1] == event.name for key, _, _ in open_):
-            while open_[-1][0][1] != event.name:  # an inner step whose end was never written
-                unfinished(*open_.pop())
-            key, info, t = open_.pop()
-            e = out[key]
-            e[event.status] += 1
-            e["duration_s"] += event.duration or 0.0
-            if event.status == "failed":
-                e["not_done"].append({"status": "failed", "info": info, "started": when(t), "error": event.error,
-                                      "message": event.message})
-    while open_:
-        unfinished(*open_.pop())
-    for e in out.values():
-        if e["runs"] != 1:
-            e["info"] = {}
-    return list(out.values())
+            key = self.entry(event.name, info, event.t)
+            self.out[key]["skipped"] += 1
+            self.out[key]["not_done"].append({"status": "skipped", "info": info, "reason": event.reason,
+                                              "started": self.when(event.t)})
+        elif any(key[1] == event.name for key, _, _ in self.open):
+            self.end(event)
+
+    def end(self, event: ev.Step) -> None:
+        while self.open[-1][0][1] != event.name:  # an inner step whose end was never written
+            self.unfinished(*self.open.pop())
+        key, info, t = self.open.pop()
+        e = self.out[key]
+        e[event.status] += 1
+        e["duration_s"] += event.duration or 0.0
+        if event.status == "failed":
+            e["not_done"].append({"status": "failed", "info": info, "started": self.when(t), "error": event.error,
+                                  "message": event.message})
+
+    def entries(self) -> list[dict]:
+        for e in self.out.values():
+            if e["runs"] != 1:
+                e["info"] = {}  # several runs ran with several arguments: no one of them is the step's
+        return list(self.out.values())

@@ -5,7 +5,7 @@ socket, guarded approach on the contact input) or by a technician jogging until 
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -13,8 +13,22 @@ from station.robot.capabilities import Compliant, ContactSensor
 from station.robot.errors import ConfigError, DeviceFault
 
 if TYPE_CHECKING:
-    from station.engine.plan import PlannedPose
-    from station.engine.session import Session
+    from station.engine.plan import PlannedPose, PosePlan
+
+
+class Session(Protocol):
+    """What a touch needs of the session it works for (``station.engine.session.Session`` is one): the robot, the
+    model and plan it moves by, where it aims and how fast it goes near a point, and the operator. Named here so
+    that the session imports the touches and not the other way round."""
+
+    robot: Any
+    model: Any
+    current_plan: PosePlan | None
+
+    def aimed_q(self, pose: PlannedPose) -> np.ndarray: ...
+    def touch_speed(self, q_from, q_to) -> float: ...
+    def point(self, label: str) -> Any: ...
+    def ask(self, question, kind: str = "confirm", **spec) -> str | float: ...
 
 
 class TouchFailed(DeviceFault):

@@ -8,7 +8,7 @@ from typing import Literal
 
 from pydantic import Field, create_model, model_validator
 
-from station.kinematics.modelfile import FORMAT
+from station.kinematics.modelformat import FORMAT
 from station.strict import Name, NonNeg, Num, Pair, Pos, Strict, Text, Vec3, check
 from station.yamlfile import YamlDoc
 

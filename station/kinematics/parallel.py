@@ -25,7 +25,7 @@ import numpy as np
 from station.kinematics import se3
 from station.kinematics.ik import IKResult
 from station.kinematics.model import FRAME_AXES, Joint, Model
-from station.kinematics.modelfile import ModelFileError
+from station.kinematics.modelformat import ModelFileError
 
 GOUGH_STEWART = "gough-stewart"
 PLANAR_STRUTS = "planar-struts"

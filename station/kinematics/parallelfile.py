@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 
 from station.kinematics.model import Encoder
-from station.kinematics.modelfile import ANGLE, FORMAT, LENGTH, ModelFileError, _num
+from station.kinematics.modelformat import ANGLE, FORMAT, LENGTH, ModelFileError
+from station.kinematics.modelformat import number as _num
 from station.kinematics.parallel import (
     GOUGH_STEWART,
     PLANAR_STRUTS,

@@ -199,62 +199,66 @@ def _axis(robot: UrdfRobot, jn: Node, name: str, jtype: str) -> np.ndarray:
     return axis / norm if norm >= MIN_AXIS else np.array([1.0, 0.0, 0.0])  # unused: the joint does not move
 
 
-def parse_urdf(root: Node, path: str) -> UrdfRobot:
-    if root.tag != "robot":
-        raise ModelFileError(f"{path}:{root.line}: <{root.tag}>: a URDF's root element is <robot>")
-    robot = UrdfRobot(root.attrib.get("name", Path(path).stem), path, root, {}, {})
-    for ln in root.elements("link"):
-        name = ln.attrib.get("name")
-        if not name:
-            raise robot.fail(ln, "<link> without a name")
-        if name in robot.links:
-            raise robot.fail(ln, f"link {name!r} is defined twice (first on line {robot.links[name].node.line})")
-        mass, com = 0.0, np.zeros(3)
-        inertial = ln.first("inertial")
-        if inertial is not None:
-            mn = inertial.first("mass")
-            if mn is not None:
-                mass = _attr_float(path, mn, "value", 0.0, MAX_MASS, " kg")
-                if mass < 0:
-                    raise robot.fail(mn, f"link {name!r}: negative mass {mass}")
-            com = _origin(path, inertial)[:3, 3]  # the inertia tensor's orientation does not matter here
-        robot.links[name] = UrdfLink(name, mass, com, ln)
-    for jn in root.elements("joint"):
-        name = jn.attrib.get("name")
-        jtype = jn.attrib.get("type")
-        if not name:
-            raise robot.fail(jn, "<joint> without a name")
-        if name in robot.joints:
-            raise robot.fail(jn, f"joint {name!r} is defined twice (first on line {robot.joints[name].node.line})")
-        if jtype not in KNOWN_TYPES:
-            raise robot.fail(jn, f"joint {name!r}: type {jtype!r} is not one of {', '.join(KNOWN_TYPES)}")
-        ends = {}
-        for end in ("parent", "child"):
-            e = jn.first(end)
-            link = None if e is None else e.attrib.get("link")
-            if link is None:
-                raise robot.fail(jn, f"joint {name!r}: missing <{end} link=...>")
-            if link not in robot.links:
-                raise robot.fail(e, f"joint {name!r}: {end} link {link!r} is not defined")
-            ends[end] = link
-        axis = _axis(robot, jn, name, jtype)
-        lower, upper, velocity = _limits(robot, jn, name, jtype)
-        cal = jn.first("calibration")
-        calibration = {}
-        if cal is not None:
-            for key in ("rising", "falling", "reference_position"):
-                v = _attr_float(path, cal, key, None, MAX_ANGLE if jtype != "prismatic" else MAX_LENGTH)
-                if v is not None:
-                    calibration[key] = v
-        mimic = jn.first("mimic")
-        robot.joints[name] = UrdfJoint(name, jtype, ends["parent"], ends["child"], _origin(path, jn), axis,
-                                       lower, upper, velocity, calibration,
-                                       None if mimic is None else mimic.attrib.get("joint", "?"), jn)
-        if ends["child"] in robot.parent_of:
-            other = robot.joints[robot.parent_of[ends["child"]]]
-            raise robot.fail(jn, f"closed loop: link {ends['child']!r} is the child of joints {other.name!r} "
-                                 f"(line {other.node.line}) and {name!r}; a URDF must be a tree")
-        robot.parent_of[ends["child"]] = name
+def _read_link(robot: UrdfRobot, ln: Node) -> UrdfLink:
+    """A ``<link>``: its name (unique) and mass with its centre (the inertia tensor does not matter here)."""
+    name = ln.attrib.get("name")
+    if not name:
+        raise robot.fail(ln, "<link> without a name")
+    if name in robot.links:
+        raise robot.fail(ln, f"link {name!r} is defined twice (first on line {robot.links[name].node.line})")
+    mass, com = 0.0, np.zeros(3)
+    inertial = ln.first("inertial")
+    if inertial is not None:
+        mn = inertial.first("mass")
+        if mn is not None:
+            mass = _attr_float(robot.path, mn, "value", 0.0, MAX_MASS, " kg")
+            if mass < 0:
+                raise robot.fail(mn, f"link {name!r}: negative mass {mass}")
+        com = _origin(robot.path, inertial)[:3, 3]  # the inertia tensor's orientation does not matter here
+    return UrdfLink(name, mass, com, ln)
+
+
+def _joint_ends(robot: UrdfRobot, jn: Node, name: str) -> dict[str, str]:
+    """``{"parent": link, "child": link}``, both defined links."""
+    ends = {}
+    for end in ("parent", "child"):
+        e = jn.first(end)
+        link = None if e is None else e.attrib.get("link")
+        if link is None:
+            raise robot.fail(jn, f"joint {name!r}: missing <{end} link=...>")
+        if link not in robot.links:
+            raise robot.fail(e, f"joint {name!r}: {end} link {link!r} is not defined")
+        ends[end] = link
+    return ends
+
+
+def _read_joint(robot: UrdfRobot, jn: Node) -> UrdfJoint:
+    """A ``<joint>``: name (unique), type, ends, origin, axis, limits, calibration marks, mimic."""
+    name = jn.attrib.get("name")
+    jtype = jn.attrib.get("type")
+    if not name:
+        raise robot.fail(jn, "<joint> without a name")
+    if name in robot.joints:
+        raise robot.fail(jn, f"joint {name!r} is defined twice (first on line {robot.joints[name].node.line})")
+    if jtype not in KNOWN_TYPES:
+        raise robot.fail(jn, f"joint {name!r}: type {jtype!r} is not one of {', '.join(KNOWN_TYPES)}")
+    ends = _joint_ends(robot, jn, name)
+    axis = _axis(robot, jn, name, jtype)
+    lower, upper, velocity = _limits(robot, jn, name, jtype)
+    cal = jn.first("calibration")
+    calibration = {}
+    if cal is not None:
+        for key in ("rising", "falling", "reference_position"):
+            v = _attr_float(robot.path, cal, key, None, MAX_ANGLE if jtype != "prismatic" else MAX_LENGTH)
+            if v is not None:
+                calibration[key] = v
+    mimic = jn.first("mimic")
+    return UrdfJoint(name, jtype, ends["parent"], ends["child"], _origin(robot.path, jn), axis, lower, upper,
+                     velocity, calibration, None if mimic is None else mimic.attrib.get("joint", "?"), jn)
+
+
+def _check_tree(robot: UrdfRobot, root: Node) -> None:
+    """Something moves, and there is a root link (a link no joint has as its child)."""
     if not robot.joints:
         names = list(robot.links)
         shown = ", ".join(names[:6]) + (", ..." if len(names) > 6 else "")
@@ -264,6 +268,24 @@ def parse_urdf(root: Node, path: str) -> UrdfRobot:
     if not any(ln not in robot.parent_of for ln in robot.links):
         j = next(iter(robot.joints.values()))
         raise robot.fail(j.node, "closed loop: every link has a parent joint, so there is no root link")
+
+
+def parse_urdf(root: Node, path: str) -> UrdfRobot:
+    if root.tag != "robot":
+        raise ModelFileError(f"{path}:{root.line}: <{root.tag}>: a URDF's root element is <robot>")
+    robot = UrdfRobot(root.attrib.get("name", Path(path).stem), path, root, {}, {})
+    for ln in root.elements("link"):
+        link = _read_link(robot, ln)
+        robot.links[link.name] = link
+    for jn in root.elements("joint"):
+        joint = _read_joint(robot, jn)
+        robot.joints[joint.name] = joint
+        if joint.child in robot.parent_of:  # a link is the child of one joint only: a URDF is a tree
+            other = robot.joints[robot.parent_of[joint.child]]
+            raise robot.fail(jn, f"closed loop: link {joint.child!r} is the child of joints {other.name!r} "
+                                 f"(line {other.node.line}) and {joint.name!r}; a URDF must be a tree")
+        robot.parent_of[joint.child] = joint.name
+    _check_tree(robot, root)
     return robot
 
 

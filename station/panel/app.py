@@ -46,14 +46,15 @@ def _page() -> str:
     return resources.files("station.panel").joinpath("page.html").read_text(encoding="utf-8")
 
 
-def create_app(controller: Controller, token: str | None = None, *, host: str = "127.0.0.1", port: int = 8470,
-               loopback: bool = True, tls: bool = False, allow_hosts: tuple[str, ...] = ()) -> Guard:
-    """The panel's ASGI app for a server listening on ``host:port``: the Starlette routes inside the
-    :class:`~station.panel.webguard.Guard` of that address."""
-    page = _page()
-    app_guard: Guard | None = None  # set below; the page and /api/csrf issue its tokens
+class _Endpoints:
+    """The panel's HTTP endpoints over one controller; ``guard`` (set once built) issues the CSRF tokens."""
 
-    async def body(request: Request) -> dict:
+    def __init__(self, controller: Controller, token: str | None, tls: bool) -> None:
+        self.controller, self.token, self.tls = controller, token, tls
+        self.page = _page()
+        self.guard: Guard | None = None
+
+    async def body(self, request: Request) -> dict:
         try:
             data = await request.json()
         except (ValueError, UnicodeDecodeError):
@@ -62,95 +63,96 @@ def create_app(controller: Controller, token: str | None = None, *, host: str = 
             raise PanelError("the body must be a JSON object")
         return data
 
+    @staticmethod
     def refused(e: PanelError) -> JSONResponse:
         return JSONResponse({"error": str(e)}, status_code=409 if isinstance(e, WrongState) else 400)
 
-    async def index(request: Request):
+    async def index(self, request: Request):
         q = request.query_params.get("token")
-        if token and q and hmac.compare_digest(q.encode(), token.encode()):
+        if self.token and q and hmac.compare_digest(q.encode(), self.token.encode()):
             r = RedirectResponse("/", status_code=303)
-            r.set_cookie(COOKIE, token, httponly=True, samesite="strict", secure=tls)
+            r.set_cookie(COOKIE, self.token, httponly=True, samesite="strict", secure=self.tls)
             return r
         nonce = secrets.token_urlsafe(16)
-        html = page.replace("__STATION_CSRF__", app_guard.new_token()).replace("__STATION_NONCE__", nonce)
+        html = self.page.replace("__STATION_CSRF__", self.guard.new_token()).replace("__STATION_NONCE__", nonce)
         return HTMLResponse(html, headers={
             "Cache-Control": "no-store",  # the page carries its CSRF token
             "Content-Security-Policy": f"default-src 'self'; script-src 'nonce-{nonce}'; style-src 'self' "
                                        "'unsafe-inline'; img-src 'self' data:; connect-src 'self'; "
                                        "frame-ancestors 'none'; base-uri 'none'; form-action 'none'"})
 
-    async def csrf(request: Request):
-        return JSONResponse({"csrf": app_guard.new_token()}, headers={"Cache-Control": "no-store"})
+    async def csrf(self, request: Request):
+        return JSONResponse({"csrf": self.guard.new_token()}, headers={"Cache-Control": "no-store"})
 
-    async def state(request: Request):
-        return JSONResponse(controller.snapshot())
+    async def state(self, request: Request):
+        return JSONResponse(self.controller.snapshot())
 
-    async def start(request: Request):
+    async def start(self, request: Request):
         try:
-            d = await body(request)
-            sid = await asyncio.to_thread(controller.start, str(d.get("serial") or ""),
+            d = await self.body(request)
+            sid = await asyncio.to_thread(self.controller.start, str(d.get("serial") or ""),
                                           str(d.get("operator") or ""), d.get("procedure") or None)
         except PanelError as e:
-            return refused(e)
-        return JSONResponse({**controller.snapshot(), "session": sid or controller.snapshot()["session"]},
+            return self.refused(e)
+        return JSONResponse({**self.controller.snapshot(), "session": sid or self.controller.snapshot()["session"]},
                             status_code=202)
 
-    async def abort(request: Request):
+    async def abort(self, request: Request):
         try:
-            controller.abort()
+            self.controller.abort()
         except PanelError as e:
-            return refused(e)
-        return JSONResponse(controller.snapshot(), status_code=202)
+            return self.refused(e)
+        return JSONResponse(self.controller.snapshot(), status_code=202)
 
-    async def prompt(request: Request):
+    async def prompt(self, request: Request):
         try:
-            d = await body(request)
-            controller.answer(str(d.get("answer") or ""))
+            d = await self.body(request)
+            self.controller.answer(str(d.get("answer") or ""))
         except PanelError as e:
-            return refused(e)
-        return JSONResponse(controller.snapshot())
+            return self.refused(e)
+        return JSONResponse(self.controller.snapshot())
 
-    async def clear(request: Request):
+    async def clear(self, request: Request):
         try:
-            controller.clear()
+            self.controller.clear()
         except PanelError as e:
-            return refused(e)
-        return JSONResponse(controller.snapshot())
+            return self.refused(e)
+        return JSONResponse(self.controller.snapshot())
 
-    async def resume(request: Request):
+    async def resume(self, request: Request):
         try:
-            d = await body(request)
-            sid = await asyncio.to_thread(controller.resume, str(d.get("session") or ""), d.get("operator"))
+            d = await self.body(request)
+            sid = await asyncio.to_thread(self.controller.resume, str(d.get("session") or ""), d.get("operator"))
         except PanelError as e:
-            return refused(e)
-        return JSONResponse({**controller.snapshot(), "session": sid}, status_code=202)
+            return self.refused(e)
+        return JSONResponse({**self.controller.snapshot(), "session": sid}, status_code=202)
 
-    async def resumable(request: Request):
-        return JSONResponse(await asyncio.to_thread(controller.resumable))
+    async def resumable(self, request: Request):
+        return JSONResponse(await asyncio.to_thread(self.controller.resumable))
 
-    async def history(request: Request):
+    async def history(self, request: Request):
         serial = request.path_params["serial"]
-        return JSONResponse(await asyncio.to_thread(unit_history, serial, controller.config.db))
+        return JSONResponse(await asyncio.to_thread(unit_history, serial, self.controller.config.db))
 
-    async def events(request: Request):
+    async def events(self, request: Request):
         async def stream():
             version = -1
             while True:
                 if await request.is_disconnected():
                     return
-                snap = controller.snapshot()
+                snap = self.controller.snapshot()
                 if snap["version"] != version:
                     version = snap["version"]
                     yield f"data: {json.dumps(snap)}\n\n"
                 else:
-                    await asyncio.to_thread(controller.wait_change, version, 1.0)
-                    if controller.version == version:
+                    await asyncio.to_thread(self.controller.wait_change, version, 1.0)
+                    if self.controller.version == version:
                         yield ": keep-alive\n\n"
 
         return StreamingResponse(stream(), media_type="text/event-stream",
                                  headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
-    async def report(request: Request):
+    async def report(self, request: Request):
         p = report_path(request.path_params["session"])
         if p is None:
             return JSONResponse({"error": "no report for this session"}, status_code=404)
@@ -159,14 +161,14 @@ def create_app(controller: Controller, token: str | None = None, *, host: str = 
             "Content-Security-Policy": "default-src 'none'; img-src data:; style-src 'unsafe-inline'; "
                                        "frame-ancestors 'none'"})
 
-    def _point(request: Request):
-        cell = controller.cell()
+    def _point(self, request: Request):
+        cell = self.controller.cell()
         return None if cell is None else cell.points.get(request.path_params["label"])
 
-    async def point_image(request: Request):
+    async def point_image(self, request: Request):
         from station.engine.cell import IMAGE_TYPES
 
-        p = await asyncio.to_thread(_point, request)
+        p = await asyncio.to_thread(self._point, request)
         if p is None or not p.image:
             return JSONResponse({"error": "no picture of this point in the cell file"}, status_code=404)
         path = Path(p.image)  # checked at load: inside the cell file's folder; the URL names a label only
@@ -174,24 +176,32 @@ def create_app(controller: Controller, token: str | None = None, *, host: str = 
                             headers={"Content-Security-Policy": "default-src 'none'; style-src 'unsafe-inline'",
                                      "X-Content-Type-Options": "nosniff"})
 
-    async def point_sketch(request: Request):
+    async def point_sketch(self, request: Request):
         from station.panel.sketch import point_sketch as sketch
 
-        p = await asyncio.to_thread(_point, request)
+        p = await asyncio.to_thread(self._point, request)
         if p is None:
             return JSONResponse({"error": "no such reference point in the cell file"}, status_code=404)
-        return Response(sketch(controller.cell(), p.label), media_type="image/svg+xml",
+        return Response(sketch(self.controller.cell(), p.label), media_type="image/svg+xml",
                         headers={"Content-Security-Policy": "default-src 'none'; style-src 'unsafe-inline'"})
 
-    post = {"methods": ["POST"]}
-    routes = [Route("/", index), Route("/api/state", state),
-              Route("/api/start", start, **post), Route("/api/abort", abort, **post),
-              Route("/api/prompt", prompt, **post), Route("/api/clear", clear, **post),
-              Route("/api/resume", resume, **post), Route("/api/resumable", resumable),
-              Route("/api/history/{serial:path}", history), Route("/api/events", events),
-              Route("/api/points/{label}/image", point_image),
-              Route("/api/points/{label}/sketch.svg", point_sketch),
-              Route("/report/{session}", report), Route("/api/csrf", csrf)]
-    app_guard = Guard(Starlette(routes=routes), bind=host, port=port, loopback=loopback, tls=tls,
-                      allow_hosts=allow_hosts, token=token, cookie=COOKIE)
-    return app_guard
+    def routes(self) -> list[Route]:
+        post = {"methods": ["POST"]}
+        return [Route("/", self.index), Route("/api/state", self.state),
+                Route("/api/start", self.start, **post), Route("/api/abort", self.abort, **post),
+                Route("/api/prompt", self.prompt, **post), Route("/api/clear", self.clear, **post),
+                Route("/api/resume", self.resume, **post), Route("/api/resumable", self.resumable),
+                Route("/api/history/{serial:path}", self.history), Route("/api/events", self.events),
+                Route("/api/points/{label}/image", self.point_image),
+                Route("/api/points/{label}/sketch.svg", self.point_sketch),
+                Route("/report/{session}", self.report), Route("/api/csrf", self.csrf)]
+
+
+def create_app(controller: Controller, token: str | None = None, *, host: str = "127.0.0.1", port: int = 8470,
+               loopback: bool = True, tls: bool = False, allow_hosts: tuple[str, ...] = ()) -> Guard:
+    """The panel's ASGI app for a server listening on ``host:port``: the Starlette routes inside the
+    :class:`~station.panel.webguard.Guard` of that address."""
+    endpoints = _Endpoints(controller, token, tls)
+    endpoints.guard = Guard(Starlette(routes=endpoints.routes()), bind=host, port=port, loopback=loopback, tls=tls,
+                            allow_hosts=allow_hosts, token=token, cookie=COOKIE)
+    return endpoints.guard

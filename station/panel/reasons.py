@@ -40,15 +40,22 @@ def explain(err: BaseException | None, *, serial: str | None = None, resumable: 
     """The plain reason for an error that ended (or refused) a unit. ``resumable``: the unit's session can be
     continued (RESUME), else the operator starts it again (TRY AGAIN); ``reached``: the station had connected
     to the robot (a session exists), else a lost connection is one never made."""
-    from station.engine.journal import JournalError
-    from station.engine.plan import PlanError
-    from station.engine.runner import Aborted, DiskError
-    from station.engine.session import ResumeMismatch
-    from station.engine.writeback import WriteBackError
-    from station.records.store import RecordsError
+    go, detail = _again(resumable), _detail(err)
+    reason = (_unit_reason(err, serial, resumable, detail) or _robot_reason(err, go, detail, reached)
+              or _setup_reason(err, go, detail))
+    if reason is not None:
+        return reason
+    return Reason("The station hit an unexpected problem.",
+                  f"{go[0].upper() + go[1:]}. If it happens again, call the technician.", detail, "station")
+
+
+
+
+def _unit_reason(err, serial: str | None, resumable: bool, detail: str) -> Reason | None:
+    """Stopped on purpose, or not the unit (or robot type) the station expects."""
+    from station.engine.runner import Aborted
     from station.robot import errors
 
-    go, detail = _again(resumable), _detail(err)
     if isinstance(err, KeyboardInterrupt):  # Aborted, SIGTERM, Ctrl-C: stopped on purpose
         said = str(err) if isinstance(err, Aborted) and str(err) else "stopped (the station was interrupted)"
         return Reason(f"{said[:1].upper()}{said[1:]}.", "Scan the next unit" + (", or press RESUME to finish this one."
@@ -60,6 +67,14 @@ def explain(err: BaseException | None, *, serial: str | None = None, resumable: 
     if isinstance(err, errors.IdentityMismatch):
         return Reason("The robot in the cell is not the robot type this station is set up for.",
                       "Nothing moved. Call the technician.", detail, "setup")
+    return None
+
+
+def _robot_reason(err, go: str, detail: str, reached: bool) -> Reason | None:
+    """The robot or its connection: what the operator can check on the robot."""
+    from station.engine.writeback import WriteBackError
+    from station.robot import errors
+
     if isinstance(err, errors.BusError) and not reached:
         return Reason("The station cannot reach the robot.",
                       f"Check that the robot is switched on and its cable is plugged in, then {go}. If it still "
@@ -83,6 +98,18 @@ def explain(err: BaseException | None, *, serial: str | None = None, resumable: 
         return Reason("The robot reported a fault.",
                       f"Read the fault on the robot, clear it, then {go}. If it comes back, call the technician.",
                       detail, "robot")
+    return None
+
+
+def _setup_reason(err, go: str, detail: str) -> Reason | None:
+    """The station's own set-up or its PC: for the technician."""
+    from station.engine.journal import JournalError
+    from station.engine.plan import PlanError
+    from station.engine.runner import DiskError
+    from station.engine.session import ResumeMismatch
+    from station.records.store import RecordsError
+    from station.robot import errors
+
     if isinstance(err, errors.LimitError):
         return Reason("A planned move was outside the robot's limits; it was not sent.",
                       "Call the technician.", detail, "setup")
@@ -101,8 +128,7 @@ def explain(err: BaseException | None, *, serial: str | None = None, resumable: 
     if isinstance(err, errors.ConfigError):
         return Reason("The station is not set up correctly for this unit.", "Call the technician.", detail,
                       "setup")
-    return Reason("The station hit an unexpected problem.",
-                  f"{go[0].upper() + go[1:]}. If it happens again, call the technician.", detail, "station")
+    return None
 
 
 def refused(text: str, procedure: bool = False) -> Reason:

@@ -248,58 +248,10 @@ class Records:
         writeback = session.get("writeback")
         residuals = (result or {}).get("residuals") or {}
         doc = {k: v for k, v in session.items() if k != "samples"}
-
-        sample_rows, seen = [], set()
-        for i, smp in enumerate(session.get("samples") or []):
-            if not isinstance(smp, dict):
-                raise SessionDataError(f"session {sid}: sample {i} is not a dict")
-            seq = smp.get("seq")
-            if not isinstance(seq, int) or isinstance(seq, bool):
-                raise SessionDataError(f"session {sid}: sample {i}: 'seq' must be an integer, got {seq!r}")
-            if seq in seen:
-                raise SessionDataError(f"session {sid}: sample seq {seq} appears twice")
-            seen.add(seq)
-            if smp.get("session") not in (None, sid):
-                raise SessionDataError(f"session {sid}: sample seq {seq} belongs to session {smp['session']!r}")
-            q = _finite_list(smp.get("q"), f"session {sid} sample seq {seq}: q")
-            measured = _finite_list(smp.get("measured"), f"session {sid} sample seq {seq}: measured",
-                                    allow_none=True)
-            pose = smp.get("pose")
-            sample_rows.append({
-                "session_id": sid, "seq": seq, "point": str(smp.get("point") or ""),
-                "pose": int(pose) if isinstance(pose, (int, float)) and not isinstance(pose, bool) else None,
-                "set": str(smp.get("set") or "fit"), "t": _float(smp.get("t")), "t_read": _float(smp.get("t_read")),
-                "t_device": _float(smp.get("t_device")),
-                "raw_unit": smp.get("raw_unit"), "q_json": _dumps(q),
-                "measured_json": None if measured is None else _dumps(measured), "doc_json": _dumps(smp)})
-
-        param_rows = []
-        for name, p in ((result or {}).get("parameters") or {}).items():
-            if not isinstance(p, dict):
-                raise SessionDataError(f"session {sid}: result parameter {name!r} is not a dict")
-            param_rows.append({
-                "session_id": sid, "name": str(name), "value": _float(p.get("value")), "std": _float(p.get("std")),
-                "nominal": _float(p.get("nominal")), "identifiable": bool(p.get("identifiable")),
-                "reason": p.get("reason") or None, "kind": p.get("kind"), "unit": p.get("unit")})
-
-        meas_rows = []
-        for i, m in enumerate((verdict or {}).get("measurements") or []):
-            if not isinstance(m, dict) or not m.get("name"):
-                raise SessionDataError(f"session {sid}: verdict measurement {i} has no name")
-            meas_rows.append({
-                "session_id": sid, "idx": i, "name": str(m["name"]), "value": _float(m.get("value")),
-                "unit": m.get("unit"), "low": _float(m.get("low")), "high": _float(m.get("high")),
-                "marginal_json": _dumps(m.get("marginal")),
-                "passed": None if m.get("passed") is None else bool(m.get("passed")),
-                "status": measurement_status(m)})
-
-        wb_rows = []
-        if writeback:
-            before, after = writeback.get("before") or {}, writeback.get("after") or {}
-            for name in list(dict.fromkeys([*before, *after])):
-                wb_rows.append({"session_id": sid, "name": str(name), "before": _float(before.get(name)),
-                                "after": _float(after.get(name))})
-
+        sample_rows = _sample_rows(session.get("samples") or [], sid)
+        param_rows = _param_rows(result, sid)
+        meas_rows = _measurement_rows(verdict, sid)
+        wb_rows = _writeback_rows(writeback, sid)
         passed = (verdict or {}).get("passed")
         session_row = {
             "id": sid, "serial": serial, "procedure": str(session.get("procedure") or ""),
@@ -455,3 +407,68 @@ class Records:
             return [dict(r) for r in conn.execute(select(w.c.name, w.c.before, w.c.after)
                                                   .where(w.c.session_id == session_id).order_by(w.c.name))
                     .mappings()]
+
+
+def _sample_rows(samples: list, sid: str) -> list[dict]:
+    """One row per sample (sequence numbers unique, of this session; joint values finite)."""
+    sample_rows, seen = [], set()
+    for i, smp in enumerate(samples):
+        if not isinstance(smp, dict):
+            raise SessionDataError(f"session {sid}: sample {i} is not a dict")
+        seq = smp.get("seq")
+        if not isinstance(seq, int) or isinstance(seq, bool):
+            raise SessionDataError(f"session {sid}: sample {i}: 'seq' must be an integer, got {seq!r}")
+        if seq in seen:
+            raise SessionDataError(f"session {sid}: sample seq {seq} appears twice")
+        seen.add(seq)
+        if smp.get("session") not in (None, sid):
+            raise SessionDataError(f"session {sid}: sample seq {seq} belongs to session {smp['session']!r}")
+        q = _finite_list(smp.get("q"), f"session {sid} sample seq {seq}: q")
+        measured = _finite_list(smp.get("measured"), f"session {sid} sample seq {seq}: measured",
+                                allow_none=True)
+        pose = smp.get("pose")
+        sample_rows.append({
+            "session_id": sid, "seq": seq, "point": str(smp.get("point") or ""),
+            "pose": int(pose) if isinstance(pose, (int, float)) and not isinstance(pose, bool) else None,
+            "set": str(smp.get("set") or "fit"), "t": _float(smp.get("t")), "t_read": _float(smp.get("t_read")),
+            "t_device": _float(smp.get("t_device")),
+            "raw_unit": smp.get("raw_unit"), "q_json": _dumps(q),
+            "measured_json": None if measured is None else _dumps(measured), "doc_json": _dumps(smp)})
+    return sample_rows
+
+
+def _param_rows(result: dict | None, sid: str) -> list[dict]:
+    param_rows = []
+    for name, p in ((result or {}).get("parameters") or {}).items():
+        if not isinstance(p, dict):
+            raise SessionDataError(f"session {sid}: result parameter {name!r} is not a dict")
+        param_rows.append({
+            "session_id": sid, "name": str(name), "value": _float(p.get("value")), "std": _float(p.get("std")),
+            "nominal": _float(p.get("nominal")), "identifiable": bool(p.get("identifiable")),
+            "reason": p.get("reason") or None, "kind": p.get("kind"), "unit": p.get("unit")})
+    return param_rows
+
+
+def _measurement_rows(verdict: dict | None, sid: str) -> list[dict]:
+    meas_rows = []
+    for i, m in enumerate((verdict or {}).get("measurements") or []):
+        if not isinstance(m, dict) or not m.get("name"):
+            raise SessionDataError(f"session {sid}: verdict measurement {i} has no name")
+        meas_rows.append({
+            "session_id": sid, "idx": i, "name": str(m["name"]), "value": _float(m.get("value")),
+            "unit": m.get("unit"), "low": _float(m.get("low")), "high": _float(m.get("high")),
+            "marginal_json": _dumps(m.get("marginal")),
+            "passed": None if m.get("passed") is None else bool(m.get("passed")),
+            "status": measurement_status(m)})
+    return meas_rows
+
+
+def _writeback_rows(writeback: dict | None, sid: str) -> list[dict]:
+    """Each written parameter's value before and after."""
+    wb_rows = []
+    if writeback:
+        before, after = writeback.get("before") or {}, writeback.get("after") or {}
+        for name in list(dict.fromkeys([*before, *after])):
+            wb_rows.append({"session_id": sid, "name": str(name), "before": _float(before.get(name)),
+                            "after": _float(after.get(name))})
+    return wb_rows

@@ -147,38 +147,56 @@ def unit_slip(model, obs: Observations, res: CalibrationResult,
 
     ``refit(obs)`` solves again exactly as the caller did. ``path``/``lines`` (file line of each row) name the
     place as the samples reader does (``FILE:LINE: row 7``)."""
-    lo = np.array([j.lower for j in model.joints]) - 0.1
-    hi = np.array([j.upper for j in model.joints]) + 0.1
-    rot = np.array([jt.revolute for jt in model.joints])
-    q = obs.q
+    search = _SlipSearch(model, obs, refit, path, lines)
     rms0 = float(res.residuals.get("rms_after_m", math.inf))
-    best: Slip | None = None
+    if far_above_noise(res, declared):
+        return search.far_fit(res, rms0, declared)
+    return search.gross_rows(res, rms0)
 
-    spread0: list[float | None] = []  # computed on the first hypothesis that needs it
 
-    def attempt(qn: np.ndarray, where: str, factor: float, unit: str, before: float, fits) -> None:
-        nonlocal best
-        if np.any(qn < lo) or np.any(qn > hi):
+# a row's revolute readings rescaled: the factor and what it means
+_ROW_UNITS = ((DEG, "the readings look like degrees under a radian header"),
+              (1 / DEG, "the readings look like radians under a degree header"))
+
+
+class _SlipSearch:
+    """Tries unit hypotheses (the readings rescaled) with the caller's own solve; keeps the best that fits."""
+
+    def __init__(self, model, obs: Observations, refit: Callable[[Observations], CalibrationResult], path: str,
+                 lines: list[int] | None) -> None:
+        self.model, self.obs, self.refit, self.path, self.lines = model, obs, refit, path, lines
+        self.lo = np.array([j.lower for j in model.joints]) - 0.1
+        self.hi = np.array([j.upper for j in model.joints]) + 0.1
+        self.rot = np.array([jt.revolute for jt in model.joints])
+        self.best: Slip | None = None
+        self.spread0: list[float | None] = []  # computed on the first hypothesis that needs it
+
+    def attempt(self, qn: np.ndarray, where: str, factor: float, unit: str, before: float, fits) -> None:
+        if np.any(qn < self.lo) or np.any(qn > self.hi):
             return  # the rescaled readings are impossible: not this hypothesis
-        if not spread0:
-            spread0.append(_spread(model, obs, q))
-        if spread0[0] is not None and not _spread(model, obs, qn) < SCREEN * spread0[0]:
+        if not self.spread0:
+            self.spread0.append(_spread(self.model, self.obs, self.obs.q))
+        if self.spread0[0] is not None and not _spread(self.model, self.obs, qn) < SCREEN * self.spread0[0]:
             return  # the nominal model's touches do not come together: no refit can explain the misfit with it
         try:
-            r = refit(dataclasses.replace(obs, q=qn))
+            r = self.refit(dataclasses.replace(self.obs, q=qn))
         except Exception:  # a hypothesis the solver refuses is simply not the explanation
             return
         rms = float(r.residuals.get("rms_after_m", math.inf))
-        if math.isfinite(rms) and fits(r, rms) and (best is None or rms < best.rms_m):
-            best = Slip(where, factor, unit, rms, before)
+        if math.isfinite(rms) and fits(r, rms) and (self.best is None or rms < self.best.rms_m):
+            self.best = Slip(where, factor, unit, rms, before)
 
-    def row_where(i: int) -> str:
-        line = f":{lines[i]}" if lines is not None and i < len(lines) else ""
-        return f"{path}{line}: row {i + 1}"
+    def row_where(self, i: int) -> str:
+        line = f":{self.lines[i]}" if self.lines is not None and i < len(self.lines) else ""
+        return f"{self.path}{line}: row {i + 1}"
 
-    row_units = ((DEG, "the readings look like degrees under a radian header"),
-                 (1 / DEG, "the readings look like radians under a degree header"))
-    if far_above_noise(res, declared):
+    def rescaled_row(self, i: int, factor: float) -> np.ndarray:
+        qn = self.obs.q.copy()
+        qn[i, self.rot] *= factor
+        return qn
+
+    def far_fit(self, res: CalibrationResult, rms0: float, declared: float | None) -> Slip | None:
+        """A fit far above the noise: each column, then each of the worst rows, rescaled."""
         target = max(rms0 / GAIN, (3.0 * declared) if declared is not None else 0.0)
         if declared is None:
             target = min(target, FAR_ABOVE_M)
@@ -186,28 +204,28 @@ def unit_slip(model, obs: Observations, res: CalibrationResult,
         def to_noise(r, rms):
             return rms <= target
 
-        for j, factor, unit in _column_hypotheses(model):
+        q = self.obs.q
+        for j, factor, unit in _column_hypotheses(self.model):
             qn = q.copy()
             qn[:, j] *= factor
-            attempt(qn, f"{path}: column q{j + 1}", factor, unit, rms0, to_noise)
-        if best is not None:
-            return best
-        d = _row_residuals(model, obs, res)
+            self.attempt(qn, f"{self.path}: column q{j + 1}", factor, unit, rms0, to_noise)
+        if self.best is not None:
+            return self.best
+        d = _row_residuals(self.model, self.obs, res)
         rows = list(range(len(q))) if d is None else [int(i) for i in np.argsort(-d, kind="stable")]
         for i in rows[:MAX_ROWS]:
-            for factor, unit in row_units:
-                qn = q.copy()
-                qn[i, rot] *= factor
-                attempt(qn, row_where(i), factor, unit, rms0, to_noise)
-        return best
-    for i, resid in _gross_outliers(res)[:MAX_ROWS]:
-        def joins(r, rms, i=i):
-            return rms <= 1.5 * rms0 and all(o.get("index") != i for o in r.outliers)
+            for factor, unit in _ROW_UNITS:
+                self.attempt(self.rescaled_row(i, factor), self.row_where(i), factor, unit, rms0, to_noise)
+        return self.best
 
-        for factor, unit in row_units:
-            qn = q.copy()
-            qn[i, rot] *= factor
-            attempt(qn, row_where(i), factor, unit, resid, joins)
-        if best is not None:
-            return best
-    return best
+    def gross_rows(self, res: CalibrationResult, rms0: float) -> Slip | None:
+        """A good fit that excluded rows far too off for a bad touch: each such row rescaled joins the rest?"""
+        for i, resid in _gross_outliers(res)[:MAX_ROWS]:
+            def joins(r, rms, i=i):
+                return rms <= 1.5 * rms0 and all(o.get("index") != i for o in r.outliers)
+
+            for factor, unit in _ROW_UNITS:
+                self.attempt(self.rescaled_row(i, factor), self.row_where(i), factor, unit, resid, joins)
+            if self.best is not None:
+                return self.best
+        return self.best

@@ -88,6 +88,32 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
     the quantisation of the model's encoders (``station.solver.noise``); 0: none. A result carries
     ``trusted``; an untrusted one says why in ``failure``."""
     t0 = time.perf_counter()
+    _check_arguments(model, obs, instrument_frame, touch, loss, noise, max_std)
+    names = select_names(model, identify)
+    dist = _distance_list(distances)
+    prob = Problem(model, obs, names, reference, instrument_frame, dist, list(planes or []))
+    _check_enough(prob, obs, names)
+    prior = _prior_vector(prob, priors)
+    try:
+        est = _Estimation(prob, prior, noise, max_std, loss, outlier_threshold, max_iter, joint_noise)
+    except ValueError as e:
+        raise SolverInputError(str(e)) from None
+    est.method = "tracker" if obs.measured is not None else touch
+    est.run()
+    res = est.result()
+    if holdout is not None:
+        res.holdout = holdout_mod.score(prob, est.x, est.accepted, holdout, est.sigma,
+                                        {(a, b): v for a, b, v, _ in dist})
+    res.settings.update(identify=identify if isinstance(identify, str) else ",".join(identify),
+                        reference=_ref_setting(reference), instrument_frame=instrument_frame, noise_m=noise,
+                        max_std_m=max_std, loss=loss, outlier_threshold=outlier_threshold,
+                        **_fit_settings(prob, prior, dist, planes, obs, est.method, max_iter))
+    res.solve_time_s = time.perf_counter() - t0
+    return res
+
+
+def _check_arguments(model, obs, instrument_frame: str, touch: str, loss: str, noise, max_std) -> None:
+    """Refuse what no solve can use, before any work: one line naming the argument."""
     if not isinstance(obs, Observations):
         raise SolverInputError("obs must be an Observations")
     if getattr(model, "kind", "serial") == "parallel":  # station/kinematics/parallel.py
@@ -105,9 +131,11 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
         raise SolverInputError(f"noise must be a positive number of metres, got {noise!r}")
     if max_std is not None and not (math.isfinite(max_std) and max_std > 0):
         raise SolverInputError(f"max_std must be a positive number of metres, got {max_std!r}")
-    names = select_names(model, identify)
-    dist = _distance_list(distances)
-    prob = Problem(model, obs, names, reference, instrument_frame, dist, list(planes or []))
+
+
+def _check_enough(prob: Problem, obs: Observations, names: list[str]) -> None:
+    """More equations than unknowns, from enough distinct poses (repeat touches in one pose add no
+    independent equation about the model)."""
     m, p = int(prob.rows_per_touch.sum()) + len(prob.distances), prob.n_unknowns
     if m <= p:
         raise SolverInputError(
@@ -120,29 +148,18 @@ def solve(model, obs: Observations, identify="offsets,tcp", reference="unknown",
         raise SolverInputError(
             f"only {k} distinct pose(s) among {len(obs)} samples (readings within {POSE_TOL * 1e3:g} mrad/um count as "
             f"one): {3 * k} equations for {p} unknowns; move the robot between touches")
-    prior = _prior_vector(prob, priors)
-    try:
-        est = _Estimation(prob, prior, noise, max_std, loss, outlier_threshold, max_iter, joint_noise)
-    except ValueError as e:
-        raise SolverInputError(str(e)) from None
-    est.method = "tracker" if obs.measured is not None else touch
-    est.run()
-    res = est.result()
-    if holdout is not None:
-        res.holdout = holdout_mod.score(prob, est.x, est.accepted, holdout, est.sigma,
-                                        {(a, b): v for a, b, v, _ in dist})
-    res.settings.update(identify=identify if isinstance(identify, str) else ",".join(identify),
-                        reference=_ref_setting(reference), instrument_frame=instrument_frame, noise_m=noise,
-                        max_std_m=max_std, loss=loss, outlier_threshold=outlier_threshold, rtol=RTOL,
-                        max_ratio=MAX_RATIO, runaway_prior_std=RUNAWAY,
-                        characteristic_length_m=prob.length, max_iter=max_iter,
-                        priors={n: float(prior[i]) for i, n in enumerate(prob.names) if math.isfinite(prior[i])},
-                        distances=[{"between": [a, b], "distance_m": v, "std_m": sd} for a, b, v, sd in dist],
-                        planes=list(planes or []), weighted=obs.weight is not None, fixtures=obs.fixtures,
-                        touch=est.method,
-                        estimator="maximum a posteriori, Levenberg-Marquardt on the analytic Jacobian")
-    res.solve_time_s = time.perf_counter() - t0
-    return res
+
+
+def _fit_settings(prob: Problem, prior: np.ndarray, dist: list, planes, obs: Observations, method: str,
+                  max_iter: int) -> dict:
+    """The settings a result reports besides the caller's arguments: thresholds, priors, constraints (in the
+    order the result has always listed them)."""
+    return dict(rtol=RTOL, max_ratio=MAX_RATIO, runaway_prior_std=RUNAWAY, characteristic_length_m=prob.length,
+                max_iter=max_iter,
+                priors={n: float(prior[i]) for i, n in enumerate(prob.names) if math.isfinite(prior[i])},
+                distances=[{"between": [a, b], "distance_m": v, "std_m": sd} for a, b, v, sd in dist],
+                planes=list(planes or []), weighted=obs.weight is not None, fixtures=obs.fixtures, touch=method,
+                estimator="maximum a posteriori, Levenberg-Marquardt on the analytic Jacobian")
 
 
 DISTANCE_STD = 1e-5  # m: the uncertainty of a known distance when none is stated (a machined fixture, 10 um)

@@ -64,50 +64,8 @@ class FoldedChain:
 
     def __init__(self, chain, params: np.ndarray, param_idx) -> None:
         param_idx = np.asarray(param_idx, dtype=int)
-        col_of = {p: c for c, p in enumerate(param_idx.tolist())}
         self.n_cols = len(param_idx)
-        K = chain.n_elements
-        moving = (chain.joint >= 0).tolist()
-        c_param, c_axis = chain.param.tolist(), chain.axis.tolist()
-        # blocks: items are ("const", 4x4) or ("want", wanted-element number); a moving element closes a block
-        blocks: list[list] = [[]]
-        want_elem: list[int] = []  # chain element of each identified, non-moving element
-        self._want_block: list[int] = []  # block of each Jacobian column's frame
-        self._want_item: list[int] = []  # -1: the frame in front of the block's moving element (full product)
-        self._want_axis: list[int] = []
-        cols: list[int] = []
-        pending = None
-        # every fixed element's matrix at once (the identified and moving ones are skipped below)
-        vals = chain.const + np.where(chain.param >= 0, params[np.maximum(chain.param, 0)], 0.0)
-        E_all = _elementary_batch(chain.axis, vals)
-        nonzero = (vals != 0.0).tolist()
-        for k in range(K):
-            pk = c_param[k]
-            wanted = pk in col_of
-            ax = c_axis[k]
-            if (moving[k] or wanted) and pending is not None:
-                blocks[-1].append(("const", pending))
-                pending = None
-            if moving[k]:
-                if wanted:
-                    self._want_block.append(len(blocks) - 1)
-                    self._want_item.append(-1)
-                    self._want_axis.append(ax)
-                    cols.append(col_of[pk])
-                blocks.append([])
-                continue
-            if wanted:
-                self._want_block.append(len(blocks) - 1)
-                self._want_item.append(len(want_elem))
-                self._want_axis.append(ax)
-                cols.append(col_of[pk])
-                blocks[-1].append(("want", len(want_elem)))
-                want_elem.append(k)
-                continue
-            if nonzero[k]:
-                pending = E_all[k] if pending is None else pending @ E_all[k]
-        if pending is not None:
-            blocks[-1].append(("const", pending))
+        blocks, want_elem, cols = self._fold(chain, params, {p: c for c, p in enumerate(param_idx.tolist())})
         self._blocks = blocks
         # identified non-moving elements: value = const + param, elementary matrix from the generators
         we = np.array(want_elem, dtype=int)
@@ -140,8 +98,53 @@ class FoldedChain:
         self._block_range = [(int(lo), int(hi)) for lo, hi in zip(edges[:-1], edges[1:], strict=True)]
         self._rot_cols = np.flatnonzero(self._col_rot)
         self._cols_identity = bool(np.array_equal(self._cols, np.arange(self.n_cols)))
-        # what does not depend on the identified values, computed once: products of blocks without
-        # identified elements, the joint matrices [S, S K, S K^2] behind them, the frames of their columns
+        self._precompute_fixed(len(cols))
+
+    def _fold(self, chain, params: np.ndarray, col_of: dict[int, int]) -> tuple[list[list], list[int], list[int]]:
+        """The chain cut into blocks, one per moving element (which closes it) plus the tail; in a block the
+        fixed elements between identified ones are multiplied out once. Returns the blocks (items
+        ``("const", 4x4)`` or ``("want", identified-element number)``), the chain element of each identified
+        non-moving element, and the output column of each Jacobian column (chain order); fills the column
+        tables ``_want_block``/``_want_item``/``_want_axis``."""
+        moving = (chain.joint >= 0).tolist()
+        c_param, c_axis = chain.param.tolist(), chain.axis.tolist()
+        blocks: list[list] = [[]]
+        want_elem: list[int] = []  # chain element of each identified, non-moving element
+        self._want_block: list[int] = []  # block of each Jacobian column's frame
+        self._want_item: list[int] = []  # -1: the frame in front of the block's moving element (full product)
+        self._want_axis: list[int] = []
+        cols: list[int] = []
+        pending = None
+        # every fixed element's matrix at once (the identified and moving ones are skipped below)
+        vals = chain.const + np.where(chain.param >= 0, params[np.maximum(chain.param, 0)], 0.0)
+        E_all = _elementary_batch(chain.axis, vals)
+        nonzero = (vals != 0.0).tolist()
+        for k in range(chain.n_elements):
+            pk = c_param[k]
+            wanted = pk in col_of
+            if (moving[k] or wanted) and pending is not None:
+                blocks[-1].append(("const", pending))
+                pending = None
+            if wanted:
+                self._want_block.append(len(blocks) - 1)
+                self._want_item.append(-1 if moving[k] else len(want_elem))
+                self._want_axis.append(c_axis[k])
+                cols.append(col_of[pk])
+            if moving[k]:
+                blocks.append([])
+            elif wanted:
+                blocks[-1].append(("want", len(want_elem)))
+                want_elem.append(k)
+            elif nonzero[k]:
+                pending = E_all[k] if pending is None else pending @ E_all[k]
+        if pending is not None:
+            blocks[-1].append(("const", pending))
+        return blocks, want_elem, cols
+
+    def _precompute_fixed(self, nc: int) -> None:
+        """What does not depend on the identified values, computed once: products of blocks without
+        identified elements, the joint matrices [S, S K, S K^2] behind them, the frames of their columns."""
+        blocks = self._blocks
         self._var_blocks = [b for b, items in enumerate(blocks) if any(kind == "want" for kind, _ in items)]
         self._S_fixed = []
         for items in blocks:
@@ -153,7 +156,6 @@ class FoldedChain:
         Sm = np.array(self._S_fixed[:nm]) if nm else np.zeros((0, 4, 4))
         self._XT_fixed = np.concatenate([Sm, Sm @ self._mv_K, Sm @ self._mv_K2], axis=1).transpose(0, 2, 1).copy()
         self._var_moving = [b for b in self._var_blocks if b < nm]
-        nc = len(cols)
         var = {b for b in self._var_blocks}
         is_var = [it >= 0 or b in var for it, b in zip(self._want_item, self._want_block, strict=True)]
         self._var_cols = np.flatnonzero(np.array(is_var, dtype=bool)) if nc else np.zeros(0, dtype=int)
@@ -192,58 +194,16 @@ class FoldedChain:
         N = q.shape[0]
         nm = self._n_moving
         nc = len(self._cols)
-        # pose-independent part: only blocks holding identified elements change between calls
-        S = list(self._S_fixed)
-        prefix: list = [None] * len(self._we_param)
-        if self._var_blocks:
-            if self._we_translations:
-                Ew = _EYE4 + (self._we_const + params[self._we_param])[:, None, None] * self._we_K
-            else:
-                Ew = _elementary_batch(self._we_axis, self._we_const + params[self._we_param])
-            for b in self._var_blocks:
-                P = None
-                for kind, it in self._blocks[b]:
-                    if kind == "const":
-                        P = it if P is None else P @ it
-                    else:
-                        prefix[it] = _EYE4 if P is None else P
-                        P = Ew[it] if P is None else P @ Ew[it]
-                S[b] = _EYE4 if P is None else P
+        S, prefix = self._block_products(params)
         want_J = jacobian and nc > 0
         if want_J:
-            # frame in front of each column's element: homogeneous axis direction and origin, interleaved rows
-            VT = self._VT_fixed
-            if len(self._var_cols):
-                VT = VT.copy()
-                Fs = np.array([S[b] if it < 0 else prefix[it] for it, b in self._var_col_src])
-                vc = self._var_cols
-                VT[vc, 0] = Fs[np.arange(len(vc)), :, self._col_sel[vc]]
-                VT[vc, 0, 3] = 0.0
-                VT[vc, 1] = Fs[:, :, 3]
-            VT = VT.reshape(2 * nc, 4)
+            VT = self._column_frames(S, prefix)
             WO = np.empty((2 * nc, 3 * N))
+        if nm:
+            XT, coef = self._joint_terms(S, params, q)
         # pose-dependent part: the frame at each block start as Gt[c, i, n] = G_n[i, c] (rows 0-2), a (4, 3N)
         # matrix. Joint b: S_b E(v) = sum_t c_t(v) S_b K^t (c = 1, f1, f2), so Gt_{b+1} =
         # [S_b; S_b K; S_b K^2]^T (c (x) Gt_b): one element-wise product and one BLAS product per joint
-        if nm:
-            XT = self._XT_fixed
-            if self._var_moving:
-                XT = XT.copy()
-                vb = self._var_moving
-                Sm = np.array([S[b] for b in vb])
-                XT[vb] = np.concatenate([Sm, Sm @ self._mv_K[vb], Sm @ self._mv_K2[vb]], axis=1).transpose(0, 2, 1)
-            base = self._mv_const + np.where(self._mv_has_p, params[self._mv_pidx], 0.0)
-            vm = base[:, None] + q[:, self._mv_joint].T  # (nm, N)
-            coef = np.empty((nm, 3, N))
-            coef[:, 0] = 1.0
-            if self._mv_all_rot:
-                np.sin(vm, out=coef[:, 1])
-                np.cos(vm, out=coef[:, 2])
-                np.subtract(1.0, coef[:, 2], out=coef[:, 2])
-            else:
-                rot = self._mv_rot[:, None]
-                coef[:, 1] = np.where(rot, np.sin(vm), vm)
-                coef[:, 2] = np.where(rot, 1.0 - np.cos(vm), 0.0)
         Gt = _G0t(N)
         for b in range(nm + 1):
             if want_J:
@@ -265,7 +225,71 @@ class FoldedChain:
         if not want_J:
             J[...] = 0.0
             return P, J
-        WO = WO.reshape(nc, 2, 3, N)
+        self._write_jacobian(J, WO.reshape(nc, 2, 3, N), p)
+        return P, J
+
+    def _block_products(self, params: np.ndarray) -> tuple[list, list]:
+        """The pose-independent part: each block's product ``S`` (only blocks holding identified elements change
+        between calls) and the frame in front of each identified element within its block."""
+        S = list(self._S_fixed)
+        prefix: list = [None] * len(self._we_param)
+        if not self._var_blocks:
+            return S, prefix
+        if self._we_translations:
+            Ew = _EYE4 + (self._we_const + params[self._we_param])[:, None, None] * self._we_K
+        else:
+            Ew = _elementary_batch(self._we_axis, self._we_const + params[self._we_param])
+        for b in self._var_blocks:
+            P = None
+            for kind, it in self._blocks[b]:
+                if kind == "const":
+                    P = it if P is None else P @ it
+                else:
+                    prefix[it] = _EYE4 if P is None else P
+                    P = Ew[it] if P is None else P @ Ew[it]
+            S[b] = _EYE4 if P is None else P
+        return S, prefix
+
+    def _column_frames(self, S: list, prefix: list) -> np.ndarray:
+        """The frame in front of each column's element in its block: homogeneous axis direction and origin,
+        interleaved rows ``(2 k, 4)``."""
+        VT = self._VT_fixed
+        if len(self._var_cols):
+            VT = VT.copy()
+            Fs = np.array([S[b] if it < 0 else prefix[it] for it, b in self._var_col_src])
+            vc = self._var_cols
+            VT[vc, 0] = Fs[np.arange(len(vc)), :, self._col_sel[vc]]
+            VT[vc, 0, 3] = 0.0
+            VT[vc, 1] = Fs[:, :, 3]
+        return VT.reshape(2 * len(self._cols), 4)
+
+    def _joint_terms(self, S: list, params: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per joint, ``[S_b; S_b K; S_b K^2]^T`` and the coefficients ``(1, f1(v), f2(v))`` of its value at every
+        pose ``(nm, 3, N)``: sin and 1 - cos for a rotation, v and 0 for a translation."""
+        nm, N = self._n_moving, q.shape[0]
+        XT = self._XT_fixed
+        if self._var_moving:
+            XT = XT.copy()
+            vb = self._var_moving
+            Sm = np.array([S[b] for b in vb])
+            XT[vb] = np.concatenate([Sm, Sm @ self._mv_K[vb], Sm @ self._mv_K2[vb]], axis=1).transpose(0, 2, 1)
+        base = self._mv_const + np.where(self._mv_has_p, params[self._mv_pidx], 0.0)
+        vm = base[:, None] + q[:, self._mv_joint].T  # (nm, N)
+        coef = np.empty((nm, 3, N))
+        coef[:, 0] = 1.0
+        if self._mv_all_rot:
+            np.sin(vm, out=coef[:, 1])
+            np.cos(vm, out=coef[:, 2])
+            np.subtract(1.0, coef[:, 2], out=coef[:, 2])
+        else:
+            rot = self._mv_rot[:, None]
+            coef[:, 1] = np.where(rot, np.sin(vm), vm)
+            coef[:, 2] = np.where(rot, 1.0 - np.cos(vm), 0.0)
+        return XT, coef
+
+    def _write_jacobian(self, J: np.ndarray, WO: np.ndarray, p: np.ndarray) -> None:
+        """``J`` from each column's world axis and origin ``WO`` (k, 2, 3, N): the axis for a translation,
+        axis x (tool - origin) for a rotation."""
         W, O = WO[:, 0], WO[:, 1]  # (nc, 3, N) world axis and origin of each column's element
         rc = self._rot_cols
         if len(rc):
@@ -276,7 +300,6 @@ class FoldedChain:
             J[...] = W
         else:
             J[:, :, self._cols] = W
-        return P, J
 
 
 _G0_CACHE: dict[int, np.ndarray] = {}

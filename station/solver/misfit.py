@@ -14,6 +14,7 @@ Evidence, from the touches themselves (no model of the cause is assumed by the f
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -94,6 +95,115 @@ def nothing_improved(rms_before: float, rms_after: float, sigma: float, method: 
     return sigma > FAR * typical or (rms_after > STUCK * rms_before and sigma > 3.0 * typical)
 
 
+@dataclass
+class _Evidence:
+    """What the residual shows, each a candidate cause's share of it (fractions 0..1) or size (m)."""
+
+    rep: float | None  # std per axis between repeat touches of one point in one arm configuration
+    pairs: int  # how many such pairs
+    r2b: float  # share explained by play along each joint's direction of last motion
+    b: np.ndarray  # that play, per joint (half the full width)
+    r2t: float  # share explained by a TCP offset alone (0 when the TCP was identified)
+    heavy: float  # share of touches far off the median
+    tip_sd: float  # the tip's own std per axis (seating, instrument)
+    joint_sd: np.ndarray  # each joint's reading std
+    share: np.ndarray  # each joint's share of the residual variance
+
+    @property
+    def play(self) -> float:
+        return float(self.share.sum())
+
+    def repeat_text(self) -> str:
+        if self.rep is None:
+            return ""
+        return f"; repeat touches in one arm configuration scatter {self.rep * 1e3:.2g} mm per axis"
+
+
+def _repeatability(q: np.ndarray, keys: np.ndarray, r: np.ndarray, act: np.ndarray) -> tuple[float | None, int]:
+    """Std per axis between touches of one point in one arm configuration (what no model can fit), and the
+    number of pairs it comes from."""
+    pairs = []
+    for k in dict.fromkeys(keys[act].tolist()):
+        idx = act[keys[act] == k]
+        for a in range(len(idx)):
+            near = idx[a + 1:][np.max(np.abs(q[idx[a + 1:]] - q[idx[a]]), axis=1) < SAME_POSE]
+            pairs.extend(np.linalg.norm(r[near] - r[idx[a]], axis=1).tolist())
+    rep = float(np.sqrt(np.mean(np.square(pairs)) / 6.0)) if pairs else None  # |d|^2 = 2 x 3 sigma^2
+    return rep, len(pairs)
+
+
+def _gather(q, keys, r, act, Jq, Jtcp) -> _Evidence:
+    rep, pairs = _repeatability(q, keys, r, act)
+    # backlash: residual against each joint's direction of last motion
+    s = np.zeros_like(q)
+    s[1:] = np.sign(np.diff(q, axis=0))
+    X = (Jq * s[:, None, :])[act].reshape(-1, q.shape[1])
+    rr = r[act].ravel()
+    r2b, b = _explained(rr, X)
+    # wrong tip link / tool
+    r2t = 0.0 if Jtcp is None else _explained(rr, Jtcp[act].reshape(-1, 3))[0]
+    d = np.linalg.norm(r[act], axis=1)
+    heavy = float(np.mean(d > HEAVY * np.median(d))) if np.median(d) > 0 else 0.0
+    tip_sd, joint_sd, share = joint_play(r[act], Jq[act])
+    return _Evidence(rep, pairs, r2b, b, r2t, heavy, tip_sd, joint_sd, share)
+
+
+def _joint_amounts(joints, values, joint_names: list[str], revolute: list[bool]) -> str:
+    return ", ".join(f"{joint_names[j]} {math.degrees(values[j]):.2g} deg" if revolute[j] else
+                     f"{joint_names[j]} {values[j] * 1e3:.2g} mm" for j in joints)
+
+
+def _backlash_cause(e: _Evidence, joint_names: list[str], revolute: list[bool]) -> tuple[str, str, str]:
+    top = [j for j in np.argsort(-np.abs(e.b))[:3] if abs(e.b[j]) > 0]
+    parts = _joint_amounts(top, 2 * np.abs(e.b), joint_names, revolute)
+    evidence = (f"the residual follows the direction each joint last moved: play of {parts} explains "
+                f"{100 * e.r2b:.0f} % of it" + e.repeat_text())
+    return "backlash", evidence, ("approach every touch from the same side in each joint (repeat touches "
+                                  "approached from one direction), pool more fixture positions in one solve, or "
+                                  "model the backlash")
+
+
+def _play_cause(e: _Evidence, joint_names: list[str], revolute: list[bool]) -> tuple[str, str, str]:
+    # joints whose reading std is implausible for play (a joint with almost no lever soaks up anything) are
+    # left out of the list, not out of the share
+    plausible = [j for j in np.argsort(-e.share) if e.share[j] > 0.05 and (e.joint_sd[j] < MAX_PLAY if revolute[j]
+                                                                           else e.joint_sd[j] < 1e-3)]
+    top = plausible[:3] or [int(np.argmax(e.share))]
+    evidence = (f"the scatter is in the joint readings, not at the tip: reading std "
+                f"{_joint_amounts(top, e.joint_sd, joint_names, revolute)} carries {100 * e.play:.0f} % of it, the "
+                f"tip's own {e.tip_sd * 1e3:.2g} mm per axis the rest" + e.repeat_text())
+    return "backlash (play in the joints)", evidence, (
+        "approach every touch from the same side in each joint (repeat touches approached from one direction), "
+        "pool more fixture positions in one solve, or model the backlash; until then this scatter is the floor no "
+        "calibration gets below")
+
+
+def _cause(e: _Evidence, sigma: float, has_tcp: bool, joint_names: list[str],
+           revolute: list[bool]) -> tuple[str, str, str]:
+    """``(cause, evidence, action)``: the first candidate whose share passes its threshold, strongest signs
+    first; the model itself when none does."""
+    if e.r2t > TIP_R2:
+        return ("wrong tip link or tool", f"a TCP offset alone explains {100 * e.r2t:.0f} % of the residual",
+                "check --tip-link and --tool (or identify tcp)")
+    if e.r2b > BACKLASH_R2:
+        return _backlash_cause(e, joint_names, revolute)
+    if e.play > PLAY_SHARE:
+        return _play_cause(e, joint_names, revolute)
+    if e.heavy > HEAVY_SHARE:
+        return ("unseated touches", f"{100 * e.heavy:.0f} % of the touches sit more than {HEAVY:g}x the median "
+                "residual off", "re-seat those touches (check the ball and the sockets) and record them again")
+    if e.rep is not None and e.rep > 0.5 * sigma:
+        return ("the touches do not repeat", f"repeat touches in one arm configuration already scatter "
+                f"{e.rep * 1e3:.2g} mm per axis ({e.pairs} pairs): backlash or unseated touches",
+                "repeat touches approached from one direction, pool more fixture positions in one solve, or model "
+                "the backlash")
+    evidence = (f"neither the direction of motion ({100 * e.r2b:.0f} %), play in the joints ({100 * e.play:.0f} %)"
+                + (f", a TCP offset ({100 * e.r2t:.0f} %)" if has_tcp else "")
+                + f" nor far-off touches explain the residual; the tip's own scatter is {e.tip_sd * 1e3:.2g} mm")
+    return ("the model does not describe this robot", evidence,
+            "check the model (--tip-link, joint order and units of the columns) and identify more (dh)")
+
+
 def explain(q: np.ndarray, keys: np.ndarray, r: np.ndarray, active: np.ndarray, Jq: np.ndarray,
             Jtcp: np.ndarray | None, rms_before: float, rms_after: float, sigma: float, method: str,
             joint_names: list[str], revolute: list[bool]) -> dict | None:
@@ -111,87 +221,16 @@ def explain(q: np.ndarray, keys: np.ndarray, r: np.ndarray, active: np.ndarray, 
     head = (f"the fit leaves {sigma * 1e3:.3g} mm per axis, far above what {method} touches give "
             f"(~{typical * 1e3:.2g} mm)" if far else
             f"the fit leaves the residual where it started ({rms_before * 1e3:.3g} -> {rms_after * 1e3:.3g} mm RMS)")
+    e = _gather(q, keys, r, act, Jq, Jtcp)
     facts: dict[str, float | str] = {"sigma_m": sigma, "method": method, "method_noise_m": typical}
-    # repeatability between touches of one point in one arm configuration
-    pairs = []
-    for k in dict.fromkeys(keys[act].tolist()):
-        idx = act[keys[act] == k]
-        for a in range(len(idx)):
-            near = idx[a + 1:][np.max(np.abs(q[idx[a + 1:]] - q[idx[a]]), axis=1) < SAME_POSE]
-            pairs.extend(np.linalg.norm(r[near] - r[idx[a]], axis=1).tolist())
-    rep = float(np.sqrt(np.mean(np.square(pairs)) / 6.0)) if pairs else None  # |d|^2 = 2 x 3 sigma^2
-    if rep is not None:
-        facts.update(repeatability_m=rep, repeat_pairs=len(pairs))
-    # backlash: residual against each joint's direction of last motion
-    s = np.zeros_like(q)
-    s[1:] = np.sign(np.diff(q, axis=0))
-    X = (Jq * s[:, None, :])[act].reshape(-1, q.shape[1])
-    rr = r[act].ravel()
-    r2b, b = _explained(rr, X)
-    facts["backlash_explains"] = r2b
-    # wrong tip link / tool
-    r2t = 0.0
+    if e.rep is not None:
+        facts.update(repeatability_m=e.rep, repeat_pairs=e.pairs)
+    facts["backlash_explains"] = e.r2b
     if Jtcp is not None:
-        r2t, _ = _explained(rr, Jtcp[act].reshape(-1, 3))
-        facts["tcp_explains"] = r2t
-    d = np.linalg.norm(r[act], axis=1)
-    heavy = float(np.mean(d > HEAVY * np.median(d))) if np.median(d) > 0 else 0.0
-    facts["far_touches_share"] = heavy
-    tip_sd, joint_sd, share = joint_play(r[act], Jq[act])
-    play = float(share.sum())
-    facts.update(tip_noise_m=tip_sd, joint_play_share=play, joint_play_std=[float(v) for v in joint_sd])
-    if r2t > TIP_R2:
-        cause = "wrong tip link or tool"
-        evidence = f"a TCP offset alone explains {100 * r2t:.0f} % of the residual"
-        action = "check --tip-link and --tool (or identify tcp)"
-    elif r2b > BACKLASH_R2:
-        top = np.argsort(-np.abs(b))[:3]
-        parts = []
-        for j in top:
-            if abs(b[j]) <= 0:
-                continue
-            v = 2 * abs(b[j])
-            parts.append(f"{joint_names[j]} {math.degrees(v):.2g} deg" if revolute[j] else f"{joint_names[j]} "
-                         f"{v * 1e3:.2g} mm")
-        cause = "backlash"
-        evidence = (f"the residual follows the direction each joint last moved: play of {', '.join(parts)} explains "
-                    f"{100 * r2b:.0f} % of it")
-        if rep is not None:
-            evidence += f"; repeat touches in one arm configuration scatter {rep * 1e3:.2g} mm per axis"
-        action = ("approach every touch from the same side in each joint (repeat touches approached from one "
-                  "direction), pool more fixture positions in one solve, or model the backlash")
-    elif play > PLAY_SHARE:
-        # joints whose reading std is implausible for play (a joint with almost no lever soaks up anything) are
-        # left out of the list, not out of the share
-        plausible = [j for j in np.argsort(-share) if share[j] > 0.05 and (joint_sd[j] < MAX_PLAY if revolute[j]
-                                                                           else joint_sd[j] < 1e-3)]
-        top = plausible[:3] or [int(np.argmax(share))]
-        parts = [f"{joint_names[j]} {math.degrees(joint_sd[j]):.2g} deg" if revolute[j] else
-                 f"{joint_names[j]} {joint_sd[j] * 1e3:.2g} mm" for j in top]
-        cause = "backlash (play in the joints)"
-        evidence = (f"the scatter is in the joint readings, not at the tip: reading std {', '.join(parts)} carries "
-                    f"{100 * play:.0f} % of it, the tip's own {tip_sd * 1e3:.2g} mm per axis the rest")
-        if rep is not None:
-            evidence += f"; repeat touches in one arm configuration scatter {rep * 1e3:.2g} mm per axis"
-        action = ("approach every touch from the same side in each joint (repeat touches approached from one "
-                  "direction), pool more fixture positions in one solve, or model the backlash; until then this "
-                  "scatter is the floor no calibration gets below")
-    elif heavy > HEAVY_SHARE:
-        cause = "unseated touches"
-        evidence = f"{100 * heavy:.0f} % of the touches sit more than {HEAVY:g}x the median residual off"
-        action = "re-seat those touches (check the ball and the sockets) and record them again"
-    elif rep is not None and rep > 0.5 * sigma:
-        cause = "the touches do not repeat"
-        evidence = (f"repeat touches in one arm configuration already scatter {rep * 1e3:.2g} mm per axis "
-                    f"({len(pairs)} pairs): backlash or unseated touches")
-        action = ("repeat touches approached from one direction, pool more fixture positions in one solve, or "
-                  "model the backlash")
-    else:
-        cause = "the model does not describe this robot"
-        evidence = (f"neither the direction of motion ({100 * r2b:.0f} %), play in the joints ({100 * play:.0f} %)"
-                    + (f", a TCP offset ({100 * r2t:.0f} %)" if Jtcp is not None else "")
-                    + f" nor far-off touches explain the residual; the tip's own scatter is {tip_sd * 1e3:.2g} mm")
-        action = "check the model (--tip-link, joint order and units of the columns) and identify more (dh)"
+        facts["tcp_explains"] = e.r2t
+    facts["far_touches_share"] = e.heavy
+    facts.update(tip_noise_m=e.tip_sd, joint_play_share=e.play, joint_play_std=[float(v) for v in e.joint_sd])
+    cause, evidence, action = _cause(e, sigma, Jtcp is not None, joint_names, revolute)
     facts["explained_by"] = cause
     line = f"nothing to trust: {head}; likely cause: {cause} ({evidence}); {action}"
     return {"cause": cause, "evidence": evidence, "action": action, "line": line, "facts": facts}

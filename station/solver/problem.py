@@ -97,35 +97,9 @@ class Problem:
         keys = obs.keys
         self.keys = keys
         plane_labels = [str(p) for p in planes]
-        if plane_labels and instrument:
-            raise SolverInputError("planes: with instrument measurements the touches are not on a reference")
-        for lb in plane_labels:
-            if lb not in set(obs.point.tolist()):
-                raise SolverInputError(f"plane {lb!r}: no touches labelled {lb!r} (points: {', '.join(obs.labels)})")
-        on_plane = np.array([p in plane_labels for p in obs.point], dtype=bool)
-        self.on_plane = on_plane
-        self.plane_keys = list(dict.fromkeys(keys[on_plane].tolist()))
+        on_plane = self._plane_touches(obs, plane_labels, instrument)
         labels = list(dict.fromkeys(keys[~on_plane].tolist()))
-        if instrument:
-            self.known: dict[str, np.ndarray] = {}
-            self.unknown_points: list[str] = []
-        elif isinstance(reference, str):
-            if reference != "unknown":
-                raise SolverInputError(f"reference must be 'unknown' or {{label: xyz}}, got {reference!r}")
-            self.known, self.unknown_points = {}, labels
-        else:
-            if len(obs.fixtures) > 1 and dict(reference):
-                raise SolverInputError("known reference points with several fixture positions: each position has "
-                                       "its own points; give them as unknown (with known distances)")
-            self.known = {}
-            for k, v in dict(reference).items():
-                xyz = np.asarray(v, dtype=float)
-                if xyz.shape != (3,) or not np.isfinite(xyz).all():
-                    raise SolverInputError(f"reference point {k!r}: expected 3 finite coordinates (m), got {v!r}")
-                if str(k) in plane_labels:
-                    raise SolverInputError(f"reference point {k!r} is declared a plane")
-                self.known[str(k)] = xyz
-            self.unknown_points = [lb for lb in labels if lb not in self.known]
+        self.known, self.unknown_points = self._references(reference, labels, plane_labels)
         self.point_names = [f"point.{lb}.{a}" for lb in self.unknown_points for a in "xyz"]
         # a plane: normal n = unit(n0 + a t1 + b t2) about a nominal normal n0 (fitted to the nominal tip
         # positions, fixed for the solve), offset d (n . p = d, m)
@@ -135,6 +109,58 @@ class Problem:
         self.units += ["m"] * len(self.point_names) + ["rad", "rad", "m"] * len(self.plane_keys)
         self.n_model = len(self.model_names)
         self.n_points = len(self.point_names)
+        self._slots(keys, on_plane)
+        self.length = L
+        self._plane_frames = self._nominal_planes() if self.plane_keys else []
+        self.distances = self._distance_specs(distances)
+        # compliance columns (tau times a joint column, m per rad/(N m)) keep scale 1: the rank decisions are
+        # relative and the equilibration of the posterior treats them like any other column
+        self.scale = np.array([L if u == "rad" else 1.0 for u in self.units])
+        self._angle_cols = np.flatnonzero(self.scale != 1.0)
+        # lengths of the machine and the points; a prismatic offset is a zero reading, not a length
+        self._lengths = np.array([u == "m" and not n.startswith("offset.") for n, u in zip(self.names, self.units,
+                                                                                           strict=True)])
+        self.x_nominal = np.concatenate([model.params[self.model_idx], np.zeros(len(self.point_names)),
+                                         np.array([v for _, _, _, d in self._plane_frames for v in (0.0, 0.0, d)])])
+
+    def _plane_touches(self, obs: Observations, plane_labels: list[str], instrument: bool) -> np.ndarray:
+        """Which touches are on a plane (their label is one of ``plane_labels``); sets ``on_plane`` and
+        ``plane_keys`` (one plane per label and fixture position)."""
+        if plane_labels and instrument:
+            raise SolverInputError("planes: with instrument measurements the touches are not on a reference")
+        for lb in plane_labels:
+            if lb not in set(obs.point.tolist()):
+                raise SolverInputError(f"plane {lb!r}: no touches labelled {lb!r} (points: {', '.join(obs.labels)})")
+        on_plane = np.array([p in plane_labels for p in obs.point], dtype=bool)
+        self.on_plane = on_plane
+        self.plane_keys = list(dict.fromkeys(obs.keys[on_plane].tolist()))
+        return on_plane
+
+    def _references(self, reference, labels: list[str], plane_labels: list[str]) -> tuple[dict, list[str]]:
+        """``(known points {label: xyz}, unknown point labels)``: none with an instrument (it measures the
+        tip), all unknown for ``"unknown"``, else the given coordinates (one fixture position only)."""
+        if self.instrument:
+            return {}, []
+        if isinstance(reference, str):
+            if reference != "unknown":
+                raise SolverInputError(f"reference must be 'unknown' or {{label: xyz}}, got {reference!r}")
+            return {}, labels
+        if len(self.obs.fixtures) > 1 and dict(reference):
+            raise SolverInputError("known reference points with several fixture positions: each position has "
+                                   "its own points; give them as unknown (with known distances)")
+        known: dict[str, np.ndarray] = {}
+        for k, v in dict(reference).items():
+            xyz = np.asarray(v, dtype=float)
+            if xyz.shape != (3,) or not np.isfinite(xyz).all():
+                raise SolverInputError(f"reference point {k!r}: expected 3 finite coordinates (m), got {v!r}")
+            if str(k) in plane_labels:
+                raise SolverInputError(f"reference point {k!r} is declared a plane")
+            known[str(k)] = xyz
+        return known, [lb for lb in labels if lb not in known]
+
+    def _slots(self, keys: np.ndarray, on_plane: np.ndarray) -> None:
+        """Where each touch's unknowns sit: its point slot or plane slot, its residual rows, the fixed target
+        (a known point or the instrument's measurement)."""
         # sample -> unknown point slot (or -1 for a known point or a plane touch)
         slot = {lb: i for i, lb in enumerate(self.unknown_points)}
         self.slot = np.array([-1 if pl else slot.get(lb, -1) for lb, pl in zip(keys, on_plane, strict=True)],
@@ -151,24 +177,12 @@ class Problem:
         if len(rows):
             self._point_rows = ((3 * rows[:, None] + np.arange(3)).ravel(),
                                 (self.n_model + 3 * self.slot[rows][:, None] + np.arange(3)).ravel())
-        if instrument:
-            self.target_fixed = obs.measured
+        if self.instrument:
+            self.target_fixed = self.obs.measured
         else:
-            self.target_fixed = np.zeros((len(obs), 3))
+            self.target_fixed = np.zeros((len(self.obs), 3))
             for lb, xyz in self.known.items():
                 self.target_fixed[(keys == lb) & ~on_plane] = xyz
-        self.length = L
-        self._plane_frames = self._nominal_planes() if self.plane_keys else []
-        self.distances = self._distance_specs(distances)
-        # compliance columns (tau times a joint column, m per rad/(N m)) keep scale 1: the rank decisions are
-        # relative and the equilibration of the posterior treats them like any other column
-        self.scale = np.array([L if u == "rad" else 1.0 for u in self.units])
-        self._angle_cols = np.flatnonzero(self.scale != 1.0)
-        # lengths of the machine and the points; a prismatic offset is a zero reading, not a length
-        self._lengths = np.array([u == "m" and not n.startswith("offset.") for n, u in zip(self.names, self.units,
-                                                                                           strict=True)])
-        self.x_nominal = np.concatenate([model.params[self.model_idx], np.zeros(len(self.point_names)),
-                                         np.array([v for _, _, _, d in self._plane_frames for v in (0.0, 0.0, d)])])
 
     @property
     def n_unknowns(self) -> int:

@@ -292,77 +292,101 @@ class CorrectionMap:
 
     @classmethod
     def from_dict(cls, d, where: str = "<map>") -> CorrectionMap:
-        def fail(f: str, msg: str) -> MapError:
-            return MapError(f"{where}: {f}: {msg}")
-
-        def arr(v, f, shape=None):
-            try:
-                a = np.asarray(v, dtype=float)
-            except (TypeError, ValueError, OverflowError):
-                raise fail(f, "expected numbers") from None
-            if not np.all(np.isfinite(a)):
-                raise fail(f, "not finite")
-            if np.any(np.abs(a) > ABSURD):  # no actuator value, position or correction of a robot is this large
-                raise fail(f, f"beyond any robot's range (|value| <= {ABSURD:g} m or rad)")
-            if shape is not None and (a.ndim != len(shape) or any(s is not None and s != t
-                                                                  for s, t in zip(shape, a.shape, strict=True))):
-                raise fail(f, f"expected shape {tuple('N' if s is None else s for s in shape)}, got {a.shape}")
-            return a
-
+        r = _MapReader(where)
         if not isinstance(d, dict):
             raise MapError(f"{where}: not a JSON object")
         if d.get("format") != FORMAT:
-            raise fail("format", f"{d.get('format')!r} is not {FORMAT!r}")
+            raise r.fail("format", f"{d.get('format')!r} is not {FORMAT!r}")
         try:
             m = d["model"]
-            acts = tuple(str(a) for a in m["actuators"])
+            acts, lower, upper, nominal = r.model(m)
             n = len(acts)
-            if n < 1 or any(a not in ("prismatic", "revolute") for a in acts):
-                raise fail("model.actuators", "expected a list of prismatic|revolute")
-            lower, upper = arr(m["lower"], "model.lower", (n,)), arr(m["upper"], "model.upper", (n,))
-            nominal = {str(k): float(v) for k, v in dict(m["parameters"]).items()}
             mesh = d["mesh"]
-            if mesh.get("type") not in MESHES:
-                raise fail("mesh.type", f"expected {' or '.join(MESHES)}, got {mesh.get('type')!r}")
-            if len(mesh["levels"]) != n:
-                raise fail("mesh.levels", f"expected {n} lists of levels")
-            try:
-                grid = Grid.of([arr(lv, f"mesh.levels[{i}]", (None,)) for i, lv in enumerate(mesh["levels"])])
-            except ValueError as e:
-                raise fail("mesh.levels", str(e)) from None
-            nodes = d["nodes"]
-            values = arr(nodes["summand"], "nodes.summand", (grid.size, n))
-            raw = nodes["samples"]
-            if not isinstance(raw, list) or len(raw) != grid.size or \
-                    any(type(c) is not int or not 0 <= c <= 10**9 for c in raw):
-                raise fail("nodes.samples", f"expected {grid.size} sample counts (integers >= 0)")
-            counts = np.asarray(raw, dtype=int)
+            grid = r.mesh(mesh, n)
+            values, counts = r.nodes(d["nodes"], grid, n)
             pose = tuple(str(c) for c in d["pose"])
-            s = d["samples"]
-            sx = arr(s["x"], "samples.x", (None, n))
-            sp_ = arr(s["pose"], "samples.pose", (len(sx), len(pose)))
-            ss = arr(s["summand"], "samples.summand", (len(sx), n))
+            sx, sp_, ss = r.samples(d["samples"], n, len(pose))
             dom = d["domain"]
-            payload = m.get("payload")
-            if payload is not None:
-                if not (isinstance(payload, dict) and set(payload) == {"mass", "com"}):
-                    raise fail("model.payload", "expected null or {mass: kg, com: [x, y, z] m}")
-                mass = arr(payload["mass"], "model.payload.mass", ())
-                if mass < 0:
-                    raise fail("model.payload.mass", "a mass is >= 0")
-                payload = {"mass": float(mass), "com": [float(c) for c in arr(payload["com"], "model.payload.com",
-                                                                             (3,))]}
+            payload = r.payload(m.get("payload"))
             cal = d.get("calibration")
             if cal is not None and not (isinstance(cal, dict) and isinstance(cal.get("parameters"), dict)):
-                raise fail("calibration", "expected null or {source, parameters: {name: value}}")
+                raise r.fail("calibration", "expected null or {source, parameters: {name: value}}")
             return cls(str(m["name"]), str(m.get("kind", "serial")), acts, lower, upper, nominal, cal, pose,
-                       mesh["type"], grid, values, counts, arr(dom["lower"], "domain.lower", (n,)),
-                       arr(dom["upper"], "domain.upper", (n,)), sx, sp_, ss, dict(d.get("statistics") or {}),
+                       mesh["type"], grid, values, counts, r.arr(dom["lower"], "domain.lower", (n,)),
+                       r.arr(dom["upper"], "domain.upper", (n,)), sx, sp_, ss, dict(d.get("statistics") or {}),
                        payload)
         except KeyError as e:
             raise MapError(f"{where}: missing field {e.args[0]!r}") from None
         except (TypeError, AttributeError, ValueError, IndexError, OverflowError) as e:
             raise MapError(f"{where}: malformed map ({type(e).__name__}: {' '.join(str(e).split())[:200]})") from None
+
+
+class _MapReader:
+    """The parts of a map file as arrays, checked (finite, within any robot's range, of the stated shape);
+    errors name the file and the field."""
+
+    def __init__(self, where: str) -> None:
+        self.where = where
+
+    def fail(self, f: str, msg: str) -> MapError:
+        return MapError(f"{self.where}: {f}: {msg}")
+
+    def arr(self, v, f, shape=None):
+        try:
+            a = np.asarray(v, dtype=float)
+        except (TypeError, ValueError, OverflowError):
+            raise self.fail(f, "expected numbers") from None
+        if not np.all(np.isfinite(a)):
+            raise self.fail(f, "not finite")
+        if np.any(np.abs(a) > ABSURD):  # no actuator value, position or correction of a robot is this large
+            raise self.fail(f, f"beyond any robot's range (|value| <= {ABSURD:g} m or rad)")
+        if shape is not None and (a.ndim != len(shape) or any(s is not None and s != t
+                                                              for s, t in zip(shape, a.shape, strict=True))):
+            raise self.fail(f, f"expected shape {tuple('N' if s is None else s for s in shape)}, got {a.shape}")
+        return a
+
+    def model(self, m) -> tuple:
+        """``(actuators, lower, upper, nominal parameters)`` of the map's model."""
+        acts = tuple(str(a) for a in m["actuators"])
+        n = len(acts)
+        if n < 1 or any(a not in ("prismatic", "revolute") for a in acts):
+            raise self.fail("model.actuators", "expected a list of prismatic|revolute")
+        lower, upper = self.arr(m["lower"], "model.lower", (n,)), self.arr(m["upper"], "model.upper", (n,))
+        return acts, lower, upper, {str(k): float(v) for k, v in dict(m["parameters"]).items()}
+
+    def mesh(self, mesh, n: int) -> Grid:
+        if mesh.get("type") not in MESHES:
+            raise self.fail("mesh.type", f"expected {' or '.join(MESHES)}, got {mesh.get('type')!r}")
+        if len(mesh["levels"]) != n:
+            raise self.fail("mesh.levels", f"expected {n} lists of levels")
+        try:
+            return Grid.of([self.arr(lv, f"mesh.levels[{i}]", (None,)) for i, lv in enumerate(mesh["levels"])])
+        except ValueError as e:
+            raise self.fail("mesh.levels", str(e)) from None
+
+    def nodes(self, nodes, grid: Grid, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """The summand at every node and how many samples each rests on."""
+        values = self.arr(nodes["summand"], "nodes.summand", (grid.size, n))
+        raw = nodes["samples"]
+        if not isinstance(raw, list) or len(raw) != grid.size or \
+                any(type(c) is not int or not 0 <= c <= 10**9 for c in raw):
+            raise self.fail("nodes.samples", f"expected {grid.size} sample counts (integers >= 0)")
+        return values, np.asarray(raw, dtype=int)
+
+    def samples(self, s, n: int, n_pose: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        sx = self.arr(s["x"], "samples.x", (None, n))
+        return sx, self.arr(s["pose"], "samples.pose", (len(sx), n_pose)), \
+            self.arr(s["summand"], "samples.summand", (len(sx), n))
+
+    def payload(self, payload) -> dict | None:
+        if payload is None:
+            return None
+        if not (isinstance(payload, dict) and set(payload) == {"mass", "com"}):
+            raise self.fail("model.payload", "expected null or {mass: kg, com: [x, y, z] m}")
+        mass = self.arr(payload["mass"], "model.payload.mass", ())
+        if mass < 0:
+            raise self.fail("model.payload.mass", "a mass is >= 0")
+        return {"mass": float(mass), "com": [float(c) for c in self.arr(payload["com"], "model.payload.com", (3,))]}
 
 
 def build_map(nominal, x, measured, pose, *, mesh: str = "grid", levels=None, calibration: dict | None = None,
