@@ -1,5 +1,5 @@
 # ruff: noqa: E402  (BLAS thread count must be set before numpy is imported)
-"""Correction-map benchmark (seed 004): held-out position error before/after on the seed's planar robot and the
+"""Correction-map benchmark (docs/map.md): held-out position error before/after on the seed's planar robot and the
 hexapod with hidden geometric errors, parametric vs map vs both on a 6R arm with compliance and backlash, error
 vs number of samples (grid vs simplex), build and lookup time, (e) the 6R arm in the correction_map
 procedure's work boxes: a bent-elbow box vs one at the shoulder singularity (the plan's predicted residual), and

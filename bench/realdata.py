@@ -1,5 +1,5 @@
 # ruff: noqa: E402  (BLAS thread count must be set before numpy is imported)
-"""The real-data benchmark, simulated (issue 11 item 6): train on ONE fixture position, predict the others.
+"""The real-data benchmark, simulated (docs/solver.md, real data): train on ONE fixture position, predict the others.
 
 For each of several simulated 7-DOF arms (``station.mocks.world.realdata``: hidden geometry errors and joint
 compliance, a ball tool 30 mm beyond a rotated hand, two sockets 50 mm apart, ~30 seated touches per socket,

@@ -1,4 +1,4 @@
-"""Start-up cost of the station command, timed from outside (issue 8, "fast start").
+"""Start-up cost of the station command, timed from outside (the "fast start" budget).
 
 What a factory script pays per call is the whole process: interpreter, imports, the work, the exit. This bench
 writes a UR5e touch data set (50 samples, offsets + TCP + one unknown point = 12 unknowns, the `bench/solver.py`

@@ -1,4 +1,4 @@
-"""Correction map (seed 004): measure the tool pose at every configuration of the sample grid with a laser
+"""Correction map (docs/map.md): measure the tool pose at every configuration of the sample grid with a laser
 tracker, build the configuration-space correction map, verify it on held-out configurations.
 
 Technician: mount the 6-DoF probe on the tool, set the tracker up with a free line of sight to the whole

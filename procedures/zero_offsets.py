@@ -1,6 +1,6 @@
 """Zero offsets: seat the tool ball in the cell's socket from ~20 poses and identify the joint zero offsets.
 
-End-of-line procedure after seed 000 (tip touch on a fixed reference, position of the reference unknown).
+End-of-line procedure (docs/procedures.md: tip touch on a fixed reference, position of the reference unknown).
 Offsets that a single fixed point cannot show (the base axis, a wrist axis the tip lies on) are reported
 unidentifiable, never guessed. Limits: ``procedures/limits.yaml``, section ``zero_offsets`` of the model."""
 

@@ -2,7 +2,7 @@
 
 `station --help`, `station records` and `station mock` never touch numpy, yet the command modules that define
 `station solve`/`fk`/`map` use it at module level; importing it eagerly would make every command pay ~0.1-0.5 s
-of start-up (issue 8, fast start; `bench/startup.py` measures it)."""
+of start-up (fast start; `bench/startup.py` measures it)."""
 
 from __future__ import annotations
 

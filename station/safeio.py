@@ -1,4 +1,4 @@
-"""Outputs that a factory script can trust and inputs that cannot hang the station (issue 14).
+"""Outputs that a factory script can trust and inputs that cannot hang the station.
 
 - ``write_atomic``: write a temporary file next to the destination, fsync, rename; never onto an input file
   of the same command; an unwritable destination is one line and leaves no ``.tmp`` behind.

@@ -127,7 +127,7 @@ for _tag in ("omap", "pairs", "set", "timestamp", "binary", "merge", "value", "y
 class _ShippedLoader(getattr(yaml, "cyaml", None) and yaml.cyaml.CParser or yaml.SafeLoader,
                      yaml.constructor.SafeConstructor, yaml.resolver.Resolver):
     """StrictLoader's scalars, constructors and line record on libyaml's parser (~10x faster than the pure
-    Python one: ~15 ms of every command that loads a built-in model; issue 8). For the station's own package
+    Python one: ~15 ms of every command that loads a built-in model; bench/startup.py). For the station's own package
     data only: its composer does not refuse aliases or deep nesting, which shipped files do not have
     (tests/test_startup.py parses every built-in both ways and compares)."""
 

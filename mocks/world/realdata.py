@@ -1,4 +1,4 @@
-"""A simulated version of the real-data benchmark (issue 11 item 6): a 7-DOF arm with a ball tool seats the
+"""A simulated version of the real-data benchmark (docs/solver.md, real data): a 7-DOF arm with a ball tool seats the
 ball in two sockets a known distance apart, ~30 times per socket in varied arm configurations, at several
 positions of the fixture; its joints bend under the links' weight (hidden joint compliance).
 

@@ -1,4 +1,4 @@
-"""``station map plan|build|apply|correct``: the configuration-space correction map of seed 004 (docs/map.md).
+"""``station map plan|build|apply|correct``: the configuration-space correction map (docs/map.md).
 
 CSV files: actuator columns ``x1..xN`` (m for a prismatic actuator, rad for a revolute one, unless the header
 says ``x1[mm]``, ``x4[deg]``), pose columns ``x,y`` (planar robot) or ``x,y,z`` / ``x,y,z,rx,ry,rz``

@@ -2,7 +2,7 @@
 
 The hot commands of factory scripts (``station solve``, ``station fk``) are plain click commands: typer 0.29
 converts every option value through a pydantic ``TypeAdapter`` built at parse time, which cost those commands
-~0.2 s of cpu per call, more than the solve (issue 8, bench/startup.py). The other commands stay typer. An
+~0.2 s of cpu per call, more than the solve (bench/startup.py). The other commands stay typer. An
 option both kinds use (``--model``, ``--tip-link`` ...) is declared once here as an :class:`Opt` and turned into
 a ``click.Option`` (:meth:`Opt.click`) or a ``typer.Option`` default (:meth:`Opt.typer`); its help text exists once.
 

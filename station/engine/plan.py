@@ -522,7 +522,7 @@ def plan_from_joints(model: Model, entries: list[dict], points: dict[str, RefPoi
 def generate_rotation_plan(model: Model, point: RefPoint, q_start, *, joint: int = -1, n_fit: int = 8,
                            n_holdout: int = 2, span_deg: float = 300.0, clearance: float = 0.03,
                            keep_out: KeepOut | None = None) -> PosePlan:
-    """XYZR tool self-calibration (seed 003c): the rotary axis ``joint`` takes ``n_fit + n_holdout`` evenly
+    """XYZR tool self-calibration (tcp_circle): the rotary axis ``joint`` takes ``n_fit + n_holdout`` evenly
     spread angles; at each, the other joints put the nominal tip on ``point`` (position-only IK with the
     rotary joint held)."""
     j = joint % model.n_joints

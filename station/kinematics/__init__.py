@@ -1,7 +1,7 @@
 """Kinematic models (DH, MDH + Hayati beta, POE), batched FK, analytic Jacobians, numeric IK, catalog.
 
 Pure: numpy/scipy only. Everything SI (m, rad). The names are imported on first use (PEP 562): loading a
-model does not load the IK (start-up, issue 8)."""
+model does not load the IK (start-up time, measured by bench/startup.py)."""
 
 from station.lazy import lazy_names
 

@@ -10,7 +10,7 @@ from station.kinematics.modelfile import ModelFileError, load_model_file, model_
 
 def _models():
     """The folder of the built-in models (package data next to this module). Plain on disk it is read directly:
-    ``importlib.resources`` costs every command that loads a model ~10 ms of imports (issue 8); it is asked
+    ``importlib.resources`` costs every command that loads a model ~10 ms of imports (bench/startup.py); it is asked
     only when the package is not a folder (a zip import)."""
     here = Path(__file__).with_name("models")
     if here.is_dir():
@@ -34,7 +34,8 @@ def _builtin_doc(name: str):
     """The parsed built-in model ``name`` (values and the line of every field). libyaml parses it once; the
     parse is kept beside the file (``models/__pycache__/NAME.<python>.marshal``, as Python keeps bytecode) with
     the text it came from, and used while that text is the same: a solve or fk then imports no yaml (~20 ms of
-    their start-up; issue 8). A cache that cannot be written (a read-only install) or read only costs the parse."""
+    their start-up: bench/startup.py). A cache that cannot be written (a read-only install) or read only costs
+    the parse."""
     import contextlib
     import marshal
     import os

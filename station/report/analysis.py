@@ -178,7 +178,7 @@ def coverage(model, arrays: dict) -> dict:
 
 def _min_pairwise_dot(z: np.ndarray, exact_up_to: int = 2000, candidates: int = 500, chunk: int = 256) -> float:
     """Smallest dot product between two of the unit vectors ``z`` (the widest pair of tool axes) in memory linear
-    in N (issue 14: 100k samples must not build an N x N matrix). Up to ``exact_up_to`` vectors every pair is
+    in N (100k samples must not build an N x N matrix). Up to ``exact_up_to`` vectors every pair is
     compared (in row chunks); beyond, the ``candidates`` vectors farthest from the mean axis are compared with
     all — the widest pair of a cone of axes has an end on its rim."""
     n = len(z)

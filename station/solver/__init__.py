@@ -6,7 +6,7 @@ every parameter from planned poses, before anything moves) and the closed-form T
 ``tcp_from_flange_poses``, ``tcp_scara_4point``, ``tcp_circle_fit``. See docs/solver.md.
 
 The names are imported on first use (PEP 562): ``station solve`` loads the estimator, not the plan-time
-prediction or the TCP methods (start-up, issue 8)."""
+prediction or the TCP methods (start-up time, measured by bench/startup.py)."""
 
 from station.lazy import lazy_names
 

@@ -1,4 +1,4 @@
-"""Post-fit diagnosis of a solve that cannot be signed (issue 14): pure, arrays in, one line out.
+"""Post-fit diagnosis of a solve that cannot be signed: pure, arrays in, one line out.
 
 * :func:`noise_free`: a fit with (numerically) no residual gives an uncertainty of ~0 — the noise cannot be
   estimated from data that have none (synthetic or copied samples), so a ± of 0 must never be printed as if it

@@ -5,7 +5,7 @@
 * A holdout point with a NEW label (the fixture was moved, or another fixture) is re-estimated as the
   mean calibrated tip position of its touches; its *consistency* is the mean distance of each touch from
   that estimate. When the distance between two such points is known (``distances``), the measured one
-  is compared with it: a frame-independent check of the length scale (seed 003d).
+  is compared with it: a frame-independent check of the length scale.
 * With instrument measurements the held-out tip positions are compared with the measurements through
   the fitted instrument frame.
 

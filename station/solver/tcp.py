@@ -2,11 +2,11 @@
 
 * ``tcp_from_flange_poses``: flange poses ``(R_i, p_i)`` as a controller reports them while the tool tip
   rests on one fixed point ``c``: ``R_i t + p_i = c``; unknowns ``t`` (flange frame) and ``c`` (base).
-* ``tcp_scara_4point`` (seed 001): the same with ``R_i = Rz(theta_i)``; per touch the rows
+* ``tcp_scara_4point`` (SCARA): the same with ``R_i = Rz(theta_i)``; per touch the rows
   ``[cos, -sin, 0, -1, 0, 0]``, ``[sin, cos, 0, 0, -1, 0]``, ``[0, 0, 1, 0, 0, -1]`` = ``-(x_i, y_i, z_i)``.
   Rotations about one axis cannot separate the tool length from the point height: ``tcp.z`` needs the
   point's z (``point_z``), otherwise it is reported unidentifiable.
-* ``tcp_circle_fit`` (seed 003c, XYZR): flange positions recorded while the R axis turns with the tip on a
+* ``tcp_circle_fit`` (XYZR): flange positions recorded while the R axis turns with the tip on a
   fixed point lie on a circle around that point; plane + circle fit give the centre (the tip) and the
   radius (the tool's offset from the R axis)."""
 

@@ -1,4 +1,4 @@
-"""The configuration-space correction map of seed 004 (docs/map.md): sample plans, the map (``station-map/1``),
+"""The configuration-space correction map (docs/map.md): sample plans, the map (``station-map/1``),
 calibrated control and measuring kinematics, for serial and parallel robots. Pure (numpy/scipy), SI, no I/O.
 
 The ``correction_map`` procedure calls, in order: ``plan`` -> (drive, measure GDK(x)) -> ``build_map`` ->

@@ -1,4 +1,4 @@
-"""The configuration-space correction map of seed 004 (``station-map/1``): build, look up, calibrated control,
+"""The configuration-space correction map (docs/map.md, ``station-map/1``): build, look up, calibrated control,
 measuring kinematics. Notation of the seed:
 
 - PM: the sample set of configurations x (actuator values, SI) the robot was commanded to;

@@ -1,4 +1,4 @@
-"""A rectilinear grid over configuration space and the two interpolations of seed 004 on it.
+"""A rectilinear grid over configuration space and the two interpolations of the correction map (docs/map.md) on it.
 
 ``multilinear`` interpolates inside each grid cell from its 2^n corners; ``barycentric`` splits every cell
 into the n! simplices of its Kuhn (Freudenthal) triangulation and interpolates linearly in the simplex that

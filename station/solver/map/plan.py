@@ -1,5 +1,5 @@
-"""Sample sets PM of seed 004 ([0028]-[0034]): the grid of actuator levels (or, the same nodes, the corners of
-its Kuhn simplices). Configurations the nominal model cannot assemble are left out and reported."""
+"""Sample sets PM (docs/map.md; its source's [0028]-[0034]): the grid of actuator levels (or, the same nodes,
+the corners of its Kuhn simplices). Configurations the nominal model cannot assemble are left out and reported."""
 
 from __future__ import annotations
 
