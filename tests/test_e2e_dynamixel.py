@@ -179,13 +179,13 @@ def test_sigterm_stops_the_robot_and_journals_the_interruption(home):
 
 
 @pytest.mark.slow
-def test_apply_power_cycle_verify(home, monkeypatch):
-    """``zero_offsets --apply``, a power cycle of the servos (EEPROM kept, RAM lost: torque off), ``zero_offsets``
-    again: every offset it identifies is within 3 sigma of zero. A DYNAMIXEL has no brake and its homing offset is
-    EEPROM (written with the torque off): the write-back releases each servo alone, only where gravity's torque on
-    its joint is below what the joint's friction holds (no collision, no joint moved); before the power is cut
-    the arm is parked where no joint carries load (the servos' own Present Current says where), as a technician
-    parks an arm without brakes."""
+def test_apply_releases_only_servos_friction_holds_then_parks_for_the_power_cycle(home, monkeypatch):
+    """``zero_offsets --apply``, then a power cycle of the servos (EEPROM kept, RAM lost: torque off); the
+    identification after it is the bus-conformance suite's (tests/test_bus_conformance.py). A DYNAMIXEL has no
+    brake and its homing offset is EEPROM (written with the torque off): the write-back releases each servo
+    alone, only where gravity's torque on its joint is below what the joint's friction holds (no collision, no
+    joint moved); before the power is cut the arm is parked where no joint carries load (the servos' own Present
+    Current says where), as a technician parks an arm without brakes."""
     world_path, cell_path, serial = _files(home, seed=35)
     db = f"sqlite:///{home / 'r.db'}"
     with launch("dynamixel", world_path, serial=serial) as emu:
@@ -224,12 +224,4 @@ def test_apply_power_cycle_verify(home, monkeypatch):
         emu.emulator.power_cycle()
         assert np.max(np.abs(world.encoder_q() - parked)) <= TICK
         assert [emu.emulator.devices[i].get("homing_offset") for i in emu.emulator.joint_ids] == stored
-        again = start("zero_offsets", emu.url, serial, cell=cell_path, options=dict(BUS_OPTIONS["dynamixel"]), db=db)
-    assert again.status == "completed" and again.passed, (again.error, again.record["verdict"])
-    n = 0
-    for name, p in again.record["result"]["parameters"].items():
-        if name.startswith("offset.") and p["identifiable"]:
-            # the servo stores whole ticks: what is left after the write-back is up to half a tick
-            assert abs(p["value"] - p["nominal"]) <= 3 * p["std"] + TICK / 2, (name, p["value"], p["std"])
-            n += 1
-    assert n == 4
+

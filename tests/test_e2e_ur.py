@@ -39,18 +39,6 @@ def _within(record, hidden, prefix, k=4.0) -> list[str]:
     return ok
 
 
-def test_zero_offsets_on_ur(home):
-    doc = demo_world("ur", seed=41)
-    world_path, cell_path, hidden = _world(home, doc)
-    serial = doc["buses"]["ur"]["serial"]
-    with launch("ur", world_path, serial=serial) as emu:
-        out = start("zero_offsets", emu.url, serial, cell=cell_path, db=f"sqlite:///{home / 'r.db'}")
-    assert out.status == "completed" and out.passed, (out.error, out.record.get("verdict"))
-    assert _within(out.record, hidden, "offset.") == ["offset.j2", "offset.j3", "offset.j4", "offset.j5"]
-    unseen = {n: p["reason"] for n, p in out.record["result"]["parameters"].items() if not p["identifiable"]}
-    assert "offset.j1" in unseen and "offset.j6" in unseen
-
-
 def test_tcp_methods_on_ur(home):
     doc = demo_world("ur", seed=42)
     doc["robot"]["tool"] = {"x": 0.02, "y": -0.01, "z": 0.12, "rx": 0.0, "ry": 0.0, "rz": 0.0}

@@ -120,8 +120,3 @@ def test_canopen_non_402_device_refused(tmp_path, emulators):
     with pytest.raises(IdentityMismatch, match=r"not a CiA 402 drive \(device type 0x00000191\)"):
         open_robot(emu.url)
 
-
-def test_canopen_matching_model_connects(tmp_path, emulators):
-    emu = emulators("canopen", _arm6_world(tmp_path))
-    with open_robot(emu.url) as robot:
-        assert robot.joint_positions().q.shape == (6,)

@@ -96,5 +96,114 @@ def _alive(pid: int) -> bool:
 def test_station_demo_with_an_unknown_bus_is_one_line():
     p = subprocess.run([STATION, "demo", "--robot", "profibus"], capture_output=True, text=True, timeout=60)
     assert p.returncode == 2
-    assert p.stderr.strip().splitlines() == ["station: error: --robot must be one of ur, canopen, dynamixel, got "
-                                             "'profibus'"]
+    from station.mocks.plug import demo_buses
+
+    assert p.stderr.strip().splitlines() == [f"station: error: --robot must be one of {', '.join(demo_buses())}, "
+                                             "got 'profibus'"]
+
+
+# ---- the emulators' base and registry (station.mocks.emulator, station.mocks.plug) ----------------------------
+def test_emulator_base_lifecycle_start_returns_it_stop_is_idempotent_failed_start_releases():
+    from station.mocks.emulator import EmulatorBase
+
+    class Paper(EmulatorBase):
+        def __init__(self, fail: bool = False) -> None:
+            self.fail, self.log = fail, []
+
+        @property
+        def url(self) -> str:
+            return "paper://bench"
+
+        def _startup(self) -> None:
+            self.log.append("up")
+            if self.fail:
+                raise OSError("port busy")
+
+        def _shutdown(self) -> None:
+            self.log.append("down")
+
+    emu = Paper()
+    assert emu.start() is emu and emu.start() is emu and emu.started
+    emu.stop()
+    emu.stop()
+    emu.close()
+    assert emu.log == ["up", "down"] and not emu.started
+    with Paper() as e2:
+        assert e2.started and e2.url == "paper://bench"
+    assert e2.log == ["up", "down"]
+    bad = Paper(fail=True)
+    with pytest.raises(OSError, match="port busy"):
+        bad.start()
+    assert bad.log == ["up", "down"] and not bad.started  # what was opened is released; stop() does nothing more
+    bad.stop()
+    assert bad.log == ["up", "down"]
+    with pytest.raises(NotImplementedError, match="no power cycle"):
+        Paper().power_cycle()
+
+
+def test_a_new_emulator_is_an_entry_point_found_by_launch_mock_and_demo(tmp_path, monkeypatch):
+    """A plug of another package, registered only through the ``station.emulators`` entry points: the launcher
+    starts it, ``station mock`` lists its command, ``station demo`` offers it."""
+    import textwrap
+    from importlib.metadata import EntryPoint
+
+    import typer
+    from station.mocks import plug as plug_module
+
+    pkg = tmp_path / "papermock"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text(textwrap.dedent('''
+        import typer
+        from station.mocks.emulator import EmulatorBase
+        from station.mocks.plug import Demo, Plug
+
+        class PaperEmulator(EmulatorBase):
+            def __init__(self, world):
+                self.world = world
+
+            @property
+            def url(self):
+                return "paper://bench?model=arm6"
+
+            def _startup(self):
+                pass
+
+            def _shutdown(self):
+                pass
+
+        class PaperPlug(Plug):
+            bus = "paper"
+            cli = "papermock"
+            default_model = "arm6"
+            demo = Demo(model="arm6")
+
+            def build(self, world):
+                return PaperEmulator(world)
+
+        def register(mock_app):
+            @mock_app.command("paper", help="Emulated paper bus.")
+            def paper():
+                pass
+
+        PLUG = PaperPlug()
+    '''))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    eps = [*plug_module.entry_points(group=plug_module.GROUP),
+           EntryPoint(name="paper", value="papermock:PLUG", group=plug_module.GROUP)]
+    monkeypatch.setattr(plug_module, "entry_points", lambda group: eps)
+    monkeypatch.setattr(plug_module, "_PLUGS", None)
+    with launch("paper", serial="P-1") as emu:
+        assert emu.url == "paper://bench?model=arm6&serial=P-1" and emu.world.nominal.name == "arm6"
+    assert "paper" in plug_module.demo_buses()
+    app = typer.Typer()
+    from station.cli import mock_cmd
+
+    monkeypatch.setattr(mock_cmd, "mock_app", typer.Typer())
+    mock_cmd.register(app)
+    assert "paper" in {c.name for c in mock_cmd.mock_app.registered_commands}
+    bad = [*eps, EntryPoint(name="broken", value="papermock:NOPE", group=plug_module.GROUP)]
+    monkeypatch.setattr(plug_module, "entry_points", lambda group: bad)
+    monkeypatch.setattr(plug_module, "_PLUGS", None)
+    with pytest.raises(MockError, match="broken"):
+        plug_module.plugs()
+    monkeypatch.setattr(plug_module, "_PLUGS", None)

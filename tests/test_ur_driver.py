@@ -166,6 +166,25 @@ def test_step_jog_finishes_when_the_jog_watchdog_ends_the_script(tmp_path, emula
     np.testing.assert_allclose(robot.joint_positions().q, q0 + np.array([0.02, 0, 0, 0, 0, 0]), atol=1e-9)
 
 
+def test_a_waited_move_finishes_when_its_watchdog_ends_the_script_of_a_starved_station(tmp_path, emulator, robots,
+                                                                                      caplog, monkeypatch):
+    """The move watchdog (``move_watchdog``, 2 Hz) stops the arm when the station dies mid-move; a station that
+    lives but is not scheduled for a whole period (a loaded PC; made certain here by withholding the kicks) has
+    the script ended too: the driver starts a fresh one and finishes the move, no fault."""
+    path, world = world_file(tmp_path)
+    emu = emulator(path)
+    robot = robots(f"ur://{emu.host}?power_on=yes")
+    robot.enable()
+    q0 = robot.joint_positions().q
+    expired = emu.dashboard("emulator log").count("watchdog expired")
+    monkeypatch.setattr(robot, "_kick", lambda: None)
+    with caplog.at_level("WARNING", logger="station.drivers.ur"):
+        robot.move_joints(q0 + np.array([0.5, 0, 0, 0, 0, 0]), speed=0.5)  # 1 s: longer than the 0.5 s period
+    np.testing.assert_allclose(robot.joint_positions().q, q0 + np.array([0.5, 0, 0, 0, 0, 0]), atol=1e-9)
+    assert emu.dashboard("emulator log").count("watchdog expired") > expired  # the path was taken
+    assert any("the move is finished on a fresh script" in r.getMessage() for r in caplog.records)
+
+
 @pytest.mark.parametrize("late", ["speedStop", "setWatchdog"])
 def test_step_jog_finishes_when_the_station_starves_after_its_speed_part(tmp_path, emulator, robots, caplog,
                                                                           monkeypatch, late):

@@ -108,7 +108,9 @@ class _BusWatch(can.Listener):
                      self.bus.where, cls, self.error_frames)
 
     def on_error(self, exc: Exception) -> None:
-        self.bus.faults.latch(ConnectionLost(f"CAN interface {self.bus.where} failed: {exc}"))
+        # python-can's socketcand client puts the formatted traceback into its error's text: its first line only
+        text = (str(exc).strip().splitlines() or [type(exc).__name__])[0].strip()
+        self.bus.faults.latch(ConnectionLost(f"CAN interface {self.bus.where} failed: {text}"))
 
 
 class MasterLoss:

@@ -49,7 +49,7 @@ from station.drivers.ur.safety import (
     mode_name,
     safety_error,
 )
-from station.drivers.ur.watchdog import JogWatchdog
+from station.drivers.ur.watchdog import MOVE_IDLE_WATCHDOG_HZ, MOVE_WATCHDOG_HZ, JogWatchdog
 
 from station.kinematics import Model
 from station.robot.base import CHAIN_OPTIONS, RobotBase
@@ -116,6 +116,8 @@ class URRobot(RobotBase):
                "default tool speed of Cartesian jogs and `move_linear`"),
         Option("jog_watchdog", number(0, 500, unit="Hz"), 10.0, "controller-side RTDE watchdog during speed jogs "
                "(0 = off)"),
+        Option("move_watchdog", number(0, 500, unit="Hz"), MOVE_WATCHDOG_HZ, "controller-side RTDE watchdog during "
+               "waited moves: a station that dies mid-move stops the arm within its period (0 = off)"),
         Option("serial", text(), None, "serial number to use only if the controller does not report one "
                "(PolyScope < 5.6)"),
         Option("robot_type", text(), None, "the arm a model file is for (`UR5e`, `UR10`, ...), checked against "
@@ -132,7 +134,7 @@ class URRobot(RobotBase):
                  export_dir: str | None = None, contact_bit: int = 16, speed: float = 0.5, accel: float = 1.0,
                  jog_speed: float = 0.2, tool_speed: float = 0.05, stale_timeout: float = STALL_MS / 1000.0,
                  jog_watchdog: float = 10.0, serial: str | None = None, robot_type: str | None = None,
-                 url: str = "", connect: bool = True) -> None:
+                 url: str = "", connect: bool = True, move_watchdog: float = 2.0) -> None:
         self.host = host
         self.catalog = catalog  # the arm's published geometry
         self.deltas = deltas  # a copied calibration.conf, if given (calibration=PATH)
@@ -148,6 +150,7 @@ class URRobot(RobotBase):
         self._dash = DashboardClient(host)
         self._link = RTDELink(host, self._dash, stale_timeout, on_abandon=self._speed_ended)
         self.jog_watchdog = jog_watchdog  # Hz: controller-side RTDE watchdog armed for speed jogs (0: off)
+        self.move_watchdog = move_watchdog  # Hz: the same during a waited move, kicked by its wait loop (0: off)
         # looked up on the robot at each call: a test (and a subclass) may wrap _bounded
         self._watchdog = JogWatchdog(self._link, lambda *a: self._bounded(*a))
         self.url = url or f"ur://{host}?model={catalog.name}"
@@ -210,7 +213,8 @@ class URRobot(RobotBase):
         args = dict(deltas=deltas, calibration={"controller": "controller", "none": None}.get(cal, "file"),
                     power_on=o["power_on"] == "yes", export_dir=o["export"], contact_bit=o["contact_bit"],
                     speed=o["speed"] or min(0.5, vmax), jog_speed=o["jog_speed"] or min(0.2, vmax),
-                    tool_speed=o["tool_speed"], jog_watchdog=o["jog_watchdog"], serial=o["serial"],
+                    tool_speed=o["tool_speed"], jog_watchdog=o["jog_watchdog"],
+                    move_watchdog=o["move_watchdog"], serial=o["serial"],
                     robot_type=o["robot_type"], stale_timeout=o["stall_ms"] / 1000.0, url=url.raw)
         args.update(overrides)
         return cls(url.host, catalog, **args)
@@ -462,8 +466,11 @@ class URRobot(RobotBase):
         self._ready_for_motion()
         self._move(target, v, wait)
 
-    def _move(self, target: np.ndarray, v: float, wait: bool) -> None:
+    def _move(self, target: np.ndarray, v: float, wait: bool, watch: bool = True) -> None:
         start = self.joint_positions().q
+        watch = wait and watch and self.move_watchdog > 0
+        if watch:  # ur_rtde's script runs a moveJ to its end without a client: the watchdog stops a dead station's
+            self._watchdog.arm(self.move_watchdog)
         previous = self._watchdog.last_write
         ok = self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True)
         self._watchdog.wrote()
@@ -476,7 +483,18 @@ class URRobot(RobotBase):
             self._refused("moveJ")
         if wait:
             lead = float(np.max(np.abs(target - start)))
-            self._wait_move(target, lead / v + 2 * v / self.accel + 5.0)
+            self._wait_move(target, lead / v + 2 * v / self.accel + 5.0, v if watch else None)
+            if watch and self._watchdog.armed:  # standing, nothing kicks until the next command: relaxed, not
+                self._watchdog.arm(MOVE_IDLE_WATCHDOG_HZ)  # ended (a script start per move is slow on a busy PC)
+
+    def _resend_after_watchdog(self, target: np.ndarray, v: float) -> None:
+        """The move watchdog ended the script because this process did not kick it for a whole period (a loaded
+        PC): a fresh script, the move watchdog again, and the same moveJ from where the arm stopped."""
+        self._restart_after_watchdog("the move is finished", self._watchdog.last_write)
+        self._watchdog.arm(self.move_watchdog)
+        if not self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True):
+            self._refused("moveJ")
+        self._watchdog.wrote()
 
     def move_linear(self, pose, speed: float | None = None, wait: bool = True) -> None:
         """UR-specific: ``moveL`` of the controller's TCP to ``pose`` (x, y, z m; rx, ry, rz rotation vector, base
@@ -507,7 +525,7 @@ class URRobot(RobotBase):
                 self._halt_quietly()
                 raise DeviceFault(f"ur://{self.host}: moveL ended {err * 1e3:.3f} mm from its target")
 
-    def _wait_move(self, target: np.ndarray | None, budget: float) -> None:
+    def _wait_move(self, target: np.ndarray | None, budget: float, resend_v: float | None = None) -> None:
         # The budget (planned motion + margin) runs on the controller's clock (RTDE timestamp): the motion
         # runs on that clock, which on a real UR is wall time, so nothing is loosened there; an emulated
         # controller starved of CPU (busy CI machine) runs its world slower and cannot use up a wall-clock
@@ -522,6 +540,9 @@ class URRobot(RobotBase):
             self._link.check_moving()
             self._check_safety()
             if not self._c.isProgramRunning():
+                if resend_v is not None and self._watchdog.ended_script(self._watchdog.last_write):
+                    self._resend_after_watchdog(target, resend_v)  # this process was not scheduled: not a fault
+                    continue
                 self._why_script_stopped()
                 self._halt_quietly()
                 raise DeviceFault(f"ur://{self.host}: the control script stopped during the move")
@@ -589,7 +610,7 @@ class URRobot(RobotBase):
             self._velocity_jog(lambda: self._bounded("speedJ", self._c.speedJ, qd, self.accel, 0.0),
                                lambda q: lead - float(np.dot(q - q0, u)), v, self.accel)
             v_fix = v
-        self._move(target, max(min(v_fix, self.jog_speed), 1e-3), True)
+        self._move(target, max(min(v_fix, self.jog_speed), 1e-3), True, watch=False)  # under the jog's watchdog
 
     def jog_velocity(self, mode: str, axis: int, velocity: float, frame: str = "base") -> None:
         """Non-blocking velocity jog for hold-to-run: speedJ (``mode="joint"``, ``velocity`` rad/s on joint
@@ -753,7 +774,10 @@ class URRobot(RobotBase):
             self._check_safety()
             return
         if on:
-            self._watchdog.disarm()  # the arm rests in freedrive without kicks
+            # the arm rests in freedrive without kicks: a jog watchdog's script is ended; the relaxed one a waited
+            # move leaves (MOVE_IDLE_WATCHDOG_HZ) is kept (ending the script before every seat, then starting a
+            # fresh one, timed out now and then)
+            self._watchdog.disarm()
         self._ready_for_motion()
         if on:
             if self._compliant_mode is not None:

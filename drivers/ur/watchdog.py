@@ -17,6 +17,12 @@ from collections.abc import Callable
 from station.drivers.ur.link import RTDELink
 
 JOG_IDLE_WATCHDOG_HZ = 1.0  # the RTDE watchdog between velocity jogs (arm standing; jog_keep_alive feeds it)
+# a waited move_joints carries it too: ur_rtde's script runs a moveJ to its end without its client, so a station
+# killed mid-move stops the arm within 0.5 s; once the arm stands it is relaxed (1000 s: a seat, a technician's
+# freedrive), not ended: an expiry only means a fresh script for the next command, and a script start per move
+# was slow on a busy PC
+MOVE_WATCHDOG_HZ = 2.0
+MOVE_IDLE_WATCHDOG_HZ = 0.001
 
 
 class JogWatchdog:
@@ -68,8 +74,10 @@ class JogWatchdog:
 
     def disarm(self) -> None:
         """Before anything that is not followed by kicks (freedrive, unwatched moves): end the script that
-        carries the jog watchdog; a fresh one (without it) is uploaded by URRobot._ready_for_motion."""
-        if self.armed:
+        carries the jog watchdog; a fresh one (without it) is uploaded by URRobot._ready_for_motion. The relaxed
+        watchdog a waited move leaves (1000 s) is kept: ending the script and starting a fresh one before every
+        seat timed out now and then."""
+        if self.armed and self.hz != MOVE_IDLE_WATCHDOG_HZ:
             self._link.check()
             if self._link.control.isProgramRunning():
                 self._link.control.stopScript()

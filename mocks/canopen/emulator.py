@@ -54,6 +54,7 @@ from station.mocks.canopen.drive import (
 )
 from station.mocks.canopen.eds import UNIT_INC_PER_S, UNIT_RPM
 from station.mocks.canopen.timing import OwnClock
+from station.mocks.emulator import EmulatorBase
 
 log = logging.getLogger("station.mocks.canopen")
 
@@ -151,8 +152,9 @@ class _Rx(can.Listener):
             log.exception("canopen emulator: handling frame 0x%03X failed", msg.arbitration_id)
 
 
-class CanopenEmulator:
-    """Drives 1..n on one CAN channel, wired to ``world`` (joint i <-> i-th node of ``nodes``)."""
+class CanopenEmulator(EmulatorBase):
+    """Drives 1..n on one CAN channel, wired to ``world`` (joint i <-> i-th node of ``nodes``): an
+    ``EmulatorBase`` (``start()`` returns it, ``stop()`` idempotent, ``url``, ``power_cycle()``, context manager)."""
 
     def __init__(self, world, interface: str = "virtual", channel: str = "chan0", nodes=None, *,
                  contact_node: int | None = -1, store_path: str | Path | None = None,
@@ -259,7 +261,7 @@ class CanopenEmulator:
         return f"canopen+{self.interface}://{self.channel}?nodes={ids}&model={self.world.nominal.name}"
 
     # ---- lifecycle ----------------------------------------------------------------------------
-    def start(self) -> CanopenEmulator:
+    def _startup(self) -> None:
         bus = can.Bus(interface=self.interface, channel=self.channel, **self.bus_kwargs)
         net = canopen.Network(bus)
         net.NOTIFIER_CYCLE = 0.05  # bounds how long stop() waits for the bus thread
@@ -276,9 +278,8 @@ class CanopenEmulator:
         net.connect()
         for d in self.drives.values():
             d.power_on()
-        return self
 
-    def stop(self) -> None:
+    def _shutdown(self) -> None:
         self._stop.set()
         self._wake.set()
         if self._thread is not None:
@@ -290,12 +291,6 @@ class CanopenEmulator:
                 net.disconnect()
             except Exception:  # bus already gone
                 log.debug("canopen emulator: disconnect failed", exc_info=True)
-
-    def __enter__(self) -> CanopenEmulator:
-        return self.start()
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
 
     def power_cycle(self, nodes=None) -> None:
         """Emulated power off/on: volatile values are lost (PDO mapping, heartbeat settings, unsaved home offset

@@ -68,6 +68,7 @@ from station.mocks.dynamixel.tables import (
     ONE_TURN,
     VELOCITY_UNIT,
 )
+from station.mocks.emulator import EmulatorBase
 from station.mocks.ids import parse_id_list
 
 INST_PING, INST_READ, INST_WRITE, INST_REG_WRITE, INST_ACTION, INST_FACTORY_RESET = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
@@ -108,7 +109,7 @@ def _bulk_write_chunks(prm: bytes) -> list[tuple[int, int, bytes]] | None:
     return chunks if k == len(prm) else None
 
 
-class DynamixelEmulator:
+class DynamixelEmulator(EmulatorBase):
     """``DynamixelEmulator(world, ids=[11, 12, 13, 14]).start()`` -> the started emulator (``.path``: the pty,
     ``.url``: the robot URL); ``.stop()`` (idempotent); a context manager; ``.power_cycle()``.
 
@@ -220,16 +221,13 @@ class DynamixelEmulator:
         return f"dynamixel://{self.path}?model={self.model.name}&ids={ids}{extra}"
 
     # ---- lifecycle ----------------------------------------------------------------------------
-    def start(self) -> DynamixelEmulator:
-        if self._thread is not None:
-            return self
+    def _startup(self) -> None:
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)  # no echo / line discipline before the client configures the port
         self.path = os.ttyname(self._slave)
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="dynamixel-emulator", daemon=True)
         self._thread.start()
-        return self
 
     def power_cycle(self) -> None:
         """The servos' supply off and on (the USB adapter, and so the pty, stays): EEPROM kept, RAM to its
@@ -254,7 +252,7 @@ class DynamixelEmulator:
                 self._inline = False
             self.power_cycles += 1
 
-    def stop(self) -> None:
+    def _shutdown(self) -> None:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5)
@@ -264,12 +262,6 @@ class DynamixelEmulator:
                 with contextlib.suppress(OSError):
                     os.close(fd)
         self._master = self._slave = -1
-
-    def __enter__(self) -> DynamixelEmulator:
-        return self.start()
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
 
     def eeprom(self) -> dict[int, bytes]:
         """EEPROM images by id, to start a new emulator after an emulated power cycle."""

@@ -22,6 +22,7 @@ import threading
 import time
 
 import numpy as np
+from station.mocks.emulator import EmulatorBase
 from station.mocks.tracker.config import TrackerConfig
 from station.mocks.world.tracker import SIGMA_0, SIGMA_PER_M, measure_poses
 
@@ -32,8 +33,10 @@ DEVICE = "tracker"
 MAX_LINE = 256
 
 
-class TrackerServer:
-    """A tracker serving ``world`` on ``host:port`` (port 0: any free port) from a thread of this process."""
+class TrackerServer(EmulatorBase):
+    """A tracker serving ``world`` on ``host:port`` (port 0: any free port) from a thread of this process (an
+    ``EmulatorBase``: ``start()`` returns it, ``stop()`` idempotent, ``url``, ``power_cycle()``). The port is bound
+    at construction (``port`` known at once); a tracker never started is only an instrument model (``measure()``)."""
 
     def __init__(self, world, config: TrackerConfig, host: str = "127.0.0.1", port: int = 0, seed: int = 0) -> None:
         self.world, self.config = world, config
@@ -41,40 +44,61 @@ class TrackerServer:
         self._lock = threading.Lock()
         self._t0 = time.monotonic()
         self.measurements = 0
+        self._conns: set[socket.socket] = set()
+        self._server = self._bind(host, port)
+        self.host, self.port = self._server.server_address[:2]
+        self._thread: threading.Thread | None = None
+
+    def _bind(self, host: str, port: int) -> socketserver.ThreadingTCPServer:
         outer = self
 
         class Handler(socketserver.StreamRequestHandler):
             def handle(self) -> None:
-                outer._serve(self.rfile, self.wfile, self.connection)
+                with outer._lock:
+                    outer._conns.add(self.connection)
+                try:
+                    outer._serve(self.rfile, self.wfile, self.connection)
+                finally:
+                    with outer._lock:
+                        outer._conns.discard(self.connection)
 
         class Server(socketserver.ThreadingTCPServer):
             daemon_threads = True
             allow_reuse_address = True
 
-        self._server = Server((host, port), Handler)
-        self.host, self.port = self._server.server_address[:2]
-        self._thread: threading.Thread | None = None
+        return Server((host, port), Handler)
 
     @property
     def url(self) -> str:
         return f"tcp://{self.host}:{self.port}"
 
-    def start(self) -> TrackerServer:
+    def _startup(self) -> None:
         self._thread = threading.Thread(target=self._server.serve_forever, name="tracker", daemon=True)
         self._thread.start()
-        return self
 
-    def stop(self) -> None:
-        self._server.shutdown()
-        self._server.server_close()
+    def _shutdown(self) -> None:
         if self._thread is not None:
+            self._server.shutdown()
             self._thread.join(timeout=5)
+            self._thread = None
+        self._server.server_close()
+        self._drop_connections()
 
-    def __enter__(self) -> TrackerServer:
-        return self.start()
+    def _drop_connections(self) -> None:
+        with self._lock:
+            conns = list(self._conns)
+        for c in conns:
+            with contextlib.suppress(OSError):
+                c.shutdown(socket.SHUT_RDWR)
 
-    def __exit__(self, *exc) -> None:
-        self.stop()
+    def power_cycle(self) -> None:
+        """The instrument off and on: every connection drops, it listens again on the same port (its clock
+        restarts; its placement, ``config``, is its set-up and stays)."""
+        self._shutdown()
+        self._t0 = time.monotonic()
+        self._server = self._bind(self.host, self.port)
+        if self.started:
+            self._startup()
 
     # ---- one connection ------------------------------------------------------------------------------
     def _serve(self, rfile, wfile, conn: socket.socket) -> None:

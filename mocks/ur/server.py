@@ -16,6 +16,7 @@ import threading
 import time
 
 import numpy as np
+from station.mocks.emulator import EmulatorBase
 from station.mocks.ur import primary_wire as P
 from station.mocks.ur import rtde_wire as W
 from station.mocks.ur import state as S
@@ -204,67 +205,80 @@ class DashboardConn(_Conn):
         finally:
             f.close()
 
+    _STATES = {0: "STOPPING", 1: "STOPPED", 2: "PLAYING", 3: "PAUSING", 4: "PAUSED", 5: "RESUMING"}
+
     def answer(self, line: str):
-        ctl = self.ctl
+        """The reply line to one dashboard command, and what to do once it is sent (or None)."""
         cmd = line.lower()
-        notice(ctl.world, dashboard={"command": cmd})
-        states = {0: "STOPPING", 1: "STOPPED", 2: "PLAYING", 3: "PAUSING", 4: "PAUSED", 5: "RESUMING"}
-        if cmd == "polyscopeversion":
-            return ctl.polyscope, None
-        if cmd == "get serial number":
-            return ctl.serial, None
-        if cmd == "get robot model":
-            return ctl.robot_model, None
-        if cmd == "is in remote control":
-            return str(ctl.remote_control).lower(), None
-        if cmd == "robotmode":
-            return f"Robotmode: {ctl.mode_name}", None
-        if cmd == "safetymode" or cmd == "safetystatus":
-            label = "Safetymode" if cmd == "safetymode" else "Safetystatus"
-            return f"{label}: {SAFETY_NAMES.get(ctl.safety_mode, 'FAULT')}", None
-        if cmd == "unlock protective stop":
-            return ctl.unlock_protective_stop(), None
-        if cmd == "close safety popup":
-            return "closing safety popup", None
-        if cmd == "close popup":
-            return "closing popup", None
-        if cmd.startswith("popup "):
-            ctl.messages.append(line[6:])
-            return "showing popup", None
-        if cmd == "stop":
-            ctl.stop_program()
-            return "Stopped", None
-        if cmd == "pause":
-            return "Pausing program", None
-        if cmd == "programstate":
-            return f"{states.get(ctl.runtime_state, 'STOPPED')} {ctl.program or '<unnamed>'}", None
-        if cmd == "running":
-            return f"Program running: {str(ctl.runtime_state == 2).lower()}", None
-        if cmd == "power on":
-            ctl.power_on()
-            return "Powering on", None
-        if cmd == "power off":
-            ctl.power_off()
-            return "Powering off", None
-        if cmd == "brake release":
-            ctl.brake_release()
-            return "Brake releasing", None
-        if cmd.startswith("addtolog"):
-            ctl.messages.append(line[9:])
-            return "Added log message", None
-        if cmd == "quit":
-            return "Disconnected", None
-        if cmd.startswith("emulator"):
-            return self.emulator(cmd.split()[1:])
+        notice(self.ctl.world, dashboard={"command": cmd})
+        fixed = self._FIXED.get(cmd)
+        if fixed is not None:
+            return fixed(self, self.ctl), None
+        for prefix, handler in self._PREFIXED:
+            if cmd.startswith(prefix):
+                return handler(self, line, cmd)
         return f"could not understand: '{line}'", None
+
+    def _popup(self, line: str, cmd: str):
+        self.ctl.messages.append(line[6:])
+        return "showing popup", None
+
+    def _addtolog(self, line: str, cmd: str):
+        self.ctl.messages.append(line[9:])
+        return "Added log message", None
+
+    def _emulator_cmd(self, line: str, cmd: str):
+        return self.emulator(cmd.split()[1:])
+
+    def _safety(self, ctl, label: str) -> str:
+        return f"{label}: {SAFETY_NAMES.get(ctl.safety_mode, 'FAULT')}"
+
+    def _stop(self, ctl) -> str:
+        ctl.stop_program()
+        return "Stopped"
+
+    def _power_on(self, ctl) -> str:
+        ctl.power_on()
+        return "Powering on"
+
+    def _power_off(self, ctl) -> str:
+        ctl.power_off()
+        return "Powering off"
+
+    def _brake_release(self, ctl) -> str:
+        ctl.brake_release()
+        return "Brake releasing"
+
+    # the controller's commands with no argument: (self, controller) -> reply
+    _FIXED = {
+        "polyscopeversion": lambda self, ctl: ctl.polyscope,
+        "get serial number": lambda self, ctl: ctl.serial,
+        "get robot model": lambda self, ctl: ctl.robot_model,
+        "is in remote control": lambda self, ctl: str(ctl.remote_control).lower(),
+        "robotmode": lambda self, ctl: f"Robotmode: {ctl.mode_name}",
+        "safetymode": lambda self, ctl: self._safety(ctl, "Safetymode"),
+        "safetystatus": lambda self, ctl: self._safety(ctl, "Safetystatus"),
+        "unlock protective stop": lambda self, ctl: ctl.unlock_protective_stop(),
+        "close safety popup": lambda self, ctl: "closing safety popup",
+        "close popup": lambda self, ctl: "closing popup",
+        "stop": _stop,
+        "pause": lambda self, ctl: "Pausing program",
+        "programstate": lambda self, ctl: (f"{DashboardConn._STATES.get(ctl.runtime_state, 'STOPPED')} "
+                                           f"{ctl.program or '<unnamed>'}"),
+        "running": lambda self, ctl: f"Program running: {str(ctl.runtime_state == 2).lower()}",
+        "power on": _power_on,
+        "power off": _power_off,
+        "brake release": _brake_release,
+        "quit": lambda self, ctl: "Disconnected",
+    }
+    # commands with an argument: (prefix, handler(self, line, lowercased line) -> (reply, after))
+    _PREFIXED = (("popup ", _popup), ("addtolog", _addtolog), ("emulator", _emulator_cmd))
 
     def emulator(self, args: list[str]):
         """``emulator protective_stop [AFTER]``, ``emulator stall SECONDS [AFTER]``, ``emulator drop SECONDS
         [AFTER]``, ``emulator estop on|off``, ``emulator power_cycle [BOOT_S]``, ``emulator hold_scripts S``,
-        ``emulator encoder``,
-        ``emulator tip``, ``emulator log``.
+        ``emulator encoder``, ``emulator tip``, ``emulator registers``, ``emulator stats``, ``emulator log``.
         AFTER (s of controller time) delays the fault, so a client can be mid-command when it bites."""
-        ctl = self.ctl
         if not args:
             return ("emulator: commands: protective_stop [after], stall S [after], drop S [after], "
                     "estop on|off, power_cycle [boot_s], hold_scripts S, encoder, tip, log"), None
@@ -273,61 +287,78 @@ class DashboardConn(_Conn):
             nums = [float(x) for x in rest if x not in ("on", "off")]
         except ValueError:
             return f"emulator: bad number in {' '.join(rest)!r}", None
+        handler = self._EMULATOR.get(what)
+        if handler is None:
+            return f"emulator: unknown command {what!r}", None
+        return handler(self, self.ctl, nums, rest)
 
-        def later(after: float, fn) -> None:
-            # counted on the controller's clock, as the motion it should interrupt: a wall-clock timer bit
-            # before a sim world had moved when the emulator was starved of CPU (busy CI machine)
-            if after <= 0:
-                fn()
-                return
-            due = ctl.controller_time() + after
+    def _later(self, after: float, fn) -> None:
+        """``fn`` after ``after`` s of controller time: counted on the controller's clock, as the motion it should
+        interrupt (a wall-clock timer bit before a sim world had moved when the emulator was starved of CPU)."""
+        ctl = self.ctl
+        if after <= 0:
+            fn()
+            return
+        due = ctl.controller_time() + after
 
-            def wait() -> None:
-                while ctl.controller_time() < due and ctl._running:
-                    time.sleep(0.002)
-                fn()
+        def wait() -> None:
+            while ctl.controller_time() < due and ctl._running:
+                time.sleep(0.002)
+            fn()
 
-            threading.Thread(target=wait, name="ur-emulator-after", daemon=True).start()
+        threading.Thread(target=wait, name="ur-emulator-after", daemon=True).start()
 
-        if what == "protective_stop":
-            later(nums[0] if nums else 0.0, lambda: ctl.protective_stop("injected on the dashboard"))
-            return "emulator: protective stop", None
-        if what == "stall":
-            seconds = nums[0] if nums else ctl.stall_s
-            later(nums[1] if len(nums) > 1 else 0.0, lambda: ctl.stall(seconds))
-            return "emulator: stalling data stream", None
-        if what == "drop":
-            seconds = nums[0] if nums else ctl.drop_s
-            return "emulator: dropping connections", lambda: later(nums[1] if len(nums) > 1 else 0.0,
-                                                                  lambda: ctl.drop(seconds))
-        if what == "hold_scripts":
-            with ctl.lock:
-                ctl.hold_scripts_until = ctl.controller_time() + (nums[0] if nums else 10.0)
-            return "emulator: holding scripts", None
-        if what == "power_cycle":
-            boot = nums[0] if nums else self.server.boot_s
-            return "emulator: power cycle", lambda: threading.Thread(
-                target=self.server.power_cycle, args=(boot,), name="ur-power-cycle", daemon=True).start()
-        if what == "estop":
-            ctl.emergency_stop(bool(rest) and rest[0] == "on")
-            return f"emulator: emergency stop {'on' if ctl.estop else 'off'}", None
-        if what == "encoder":
-            return "emulator: " + " ".join(f"{v:.12g}" for v in np.asarray(ctl.world.encoder_q())), None
-        if what == "tip":
-            return "emulator: " + " ".join(f"{v:.12g}" for v in np.asarray(ctl.world.tip_true())), None
-        if what == "registers":
-            o = ctl.reg_offset
-            return (f"emulator: in_int {ctl.in_int[o:o + 3]} out_int {ctl.out_int[o:o + 3]} "
-                    f"watchdog {ctl.watchdog_hz:g} Hz, "
-                    f"last write {ctl.controller_time() - ctl.in_int0_written:.3f} s ago (controller time), "
-                    f"(tick, command) {list(ctl.cmd_log)[-12:]}"
-                    ), None
-        if what == "stats":
-            return (f"emulator: ticks {ctl.tick_count} late {ctl.late_ticks} max_late_ms {ctl.max_late * 1e3:.1f}"
-                    ), None
-        if what == "log":
-            return "emulator: " + " | ".join(ctl.messages[-20:]), None
-        return f"emulator: unknown command {what!r}", None
+    def _e_protective_stop(self, ctl, nums, rest):
+        self._later(nums[0] if nums else 0.0, lambda: ctl.protective_stop("injected on the dashboard"))
+        return "emulator: protective stop", None
+
+    def _e_stall(self, ctl, nums, rest):
+        seconds = nums[0] if nums else ctl.stall_s
+        self._later(nums[1] if len(nums) > 1 else 0.0, lambda: ctl.stall(seconds))
+        return "emulator: stalling data stream", None
+
+    def _e_drop(self, ctl, nums, rest):
+        seconds = nums[0] if nums else ctl.drop_s
+        return "emulator: dropping connections", lambda: self._later(nums[1] if len(nums) > 1 else 0.0,
+                                                                     lambda: ctl.drop(seconds))
+
+    def _e_hold_scripts(self, ctl, nums, rest):
+        with ctl.lock:
+            ctl.hold_scripts_until = ctl.controller_time() + (nums[0] if nums else 10.0)
+        return "emulator: holding scripts", None
+
+    def _e_power_cycle(self, ctl, nums, rest):
+        boot = nums[0] if nums else self.server.boot_s
+        return "emulator: power cycle", lambda: threading.Thread(
+            target=self.server.power_cycle, args=(boot,), name="ur-power-cycle", daemon=True).start()
+
+    def _e_estop(self, ctl, nums, rest):
+        ctl.emergency_stop(bool(rest) and rest[0] == "on")
+        return f"emulator: emergency stop {'on' if ctl.estop else 'off'}", None
+
+    def _e_registers(self, ctl, nums, rest):
+        o = ctl.reg_offset
+        return (f"emulator: in_int {ctl.in_int[o:o + 3]} out_int {ctl.out_int[o:o + 3]} "
+                f"watchdog {ctl.watchdog_hz:g} Hz, "
+                f"last write {ctl.controller_time() - ctl.in_int0_written:.3f} s ago (controller time), "
+                f"(tick, command) {list(ctl.cmd_log)[-12:]}"), None
+
+    _EMULATOR = {
+        "protective_stop": _e_protective_stop,
+        "stall": _e_stall,
+        "drop": _e_drop,
+        "hold_scripts": _e_hold_scripts,
+        "power_cycle": _e_power_cycle,
+        "estop": _e_estop,
+        "encoder": lambda self, ctl, nums, rest: (
+            "emulator: " + " ".join(f"{v:.12g}" for v in np.asarray(ctl.world.encoder_q())), None),
+        "tip": lambda self, ctl, nums, rest: (
+            "emulator: " + " ".join(f"{v:.12g}" for v in np.asarray(ctl.world.tip_true())), None),
+        "registers": _e_registers,
+        "stats": lambda self, ctl, nums, rest: (
+            f"emulator: ticks {ctl.tick_count} late {ctl.late_ticks} max_late_ms {ctl.max_late * 1e3:.1f}", None),
+        "log": lambda self, ctl, nums, rest: ("emulator: " + " | ".join(ctl.messages[-20:]), None),
+    }
 
 
 _PROGRAM = re.compile(r"^(?:def|sec)\s+(\w+)\s*\(\s*\)\s*:", re.M)
@@ -411,8 +442,9 @@ class PrimaryConn(ScriptConn):
             self.close()
 
 
-class URServer:
-    """Listens on ``host`` for the three ports and owns the controller thread."""
+class URServer(EmulatorBase):
+    """Listens on ``host`` for the controller's ports and owns the controller thread (an ``EmulatorBase``:
+    ``start()`` returns it, ``stop()``/``close()`` idempotent, ``url``, ``world``, ``power_cycle()``)."""
 
     def __init__(self, controller: URController, host: str = "127.0.0.1", *, rtde_port: int = RTDE_PORT,
                  dashboard_port: int = DASHBOARD_PORT, script_port: int = SCRIPT_PORT,
@@ -435,32 +467,19 @@ class URServer:
         controller.on_drop = self.drop
 
     @property
+    def world(self):
+        """The World the controller drives."""
+        return self.controller.world
+
+    @property
     def url(self) -> str:
         """The robot URL the station opens for this controller."""
         return self._url or f"ur://{self.host}"
 
-    def start(self) -> URServer:
+    def _startup(self) -> None:
         self.running = True
-        try:
-            self._listen()
-        except OSError:
-            self._close_listeners()
-            self.running = False
-            raise
+        self._listen()
         self.controller.start()
-        return self
-
-    def stop(self) -> None:
-        """Close every port and stop the controller; calling it again does nothing."""
-        if not self.running and not self.listeners:
-            return
-        self.close()
-
-    def __enter__(self) -> URServer:
-        return self.start()
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
 
     def power_cycle(self, boot_s: float | None = None) -> None:
         """Switch the controller off and on: every connection drops, the ports refuse connections while it
@@ -539,7 +558,8 @@ class URServer:
         if self.running:
             self._listen()
 
-    def close(self) -> None:
+    def _shutdown(self) -> None:
+        """Close every port and stop the controller (also after a start that failed half way)."""
         self.running = False
         self._close_listeners()
         self.close_connections()

@@ -1,9 +1,8 @@
-"""``station mock ...``: emulators and the simulated world. Each bus's emulator package provides
-``station.mocks.<bus>.cli.register(mock_app)``; the world provides ``station.mocks.world.cli``."""
+"""``station mock ...``: emulators and the simulated world. Every emulator's command comes from its plug in the
+``station.emulators`` entry points (``station.mocks.plug``: a new bus adds its command there, not here); the
+world's from ``station.mocks.world.cli``."""
 
 from __future__ import annotations
-
-import importlib
 
 import typer
 
@@ -12,13 +11,14 @@ from station.cli.helpgroup import HelpGroup
 
 mock_app = typer.Typer(cls=HelpGroup, no_args_is_help=True, help=COMMANDS["mock"][1])
 
-PROVIDERS = ("station.mocks.world.cli", "station.mocks.dynamixel.cli", "station.mocks.canopen.cli",
-             "station.mocks.ur.cli", "station.mocks.tracker.cli", "station.mocks.franka.cli")
-
 
 def register(app: typer.Typer) -> None:
-    for name in PROVIDERS:
-        importlib.import_module(name).register(mock_app)
+    from station.mocks.plug import plugs
+    from station.mocks.world import cli as world_cli
+
+    world_cli.register(mock_app)
+    for plug in plugs().values():
+        plug.register(mock_app)
     for group in mock_app.registered_groups:  # mock world: the same command list as every group
         group.cls = HelpGroup
     app.add_typer(mock_app, name="mock")

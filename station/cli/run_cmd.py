@@ -276,8 +276,14 @@ def restore_cmd(
         _exit(2)
 
 
+def _demo_help() -> str:
+    from station.mocks.plug import demo_buses
+
+    return f"Bus to demonstrate: {', '.join(demo_buses())} (an emulator with a demo world)."
+
+
 def demo(
-    robot: str = typer.Option("ur", "--robot", help="Bus to demonstrate: ur, canopen or dynamixel."),
+    robot: str = typer.Option("ur", "--robot", help=_demo_help()),
     time_mode: str = typer.Option("instant", "--time", help="Emulated motion: instant or realtime."),
     seed: int = typer.Option(5, "--seed", help="Seed of the hidden errors."),
 ) -> None:
@@ -287,14 +293,29 @@ def demo(
 
 
 # ---- the demo: a world with hidden errors, an emulator for it (station.mocks.launch), zero_offsets ----------
-# The station side never imports the mocks; this glue (the CLI) does.
-BUS_MODELS = {"ur": "ur5e", "canopen": "arm6", "dynamixel": "omx"}
-# Dynamixel: one socket on a 4-axis arm cannot separate the first two zeros from the socket's position; the
-# surveyed cell position is used instead (see docs/procedures.md)
-BUS_OPTIONS = {"ur": {}, "canopen": {}, "dynamixel": {"reference": "cell", "cone_deg": 70.0}}
+# The station side never imports the mocks; this glue (the CLI) does. Which buses have a demo, their model and
+# zero_offsets' options there come from the emulators' plugs (station.mocks.plug, entry points).
+def __getattr__(name: str):
+    """``BUS_MODELS`` / ``BUS_OPTIONS``: bus -> demo model / demo procedure options, from the plugs."""
+    if name in ("BUS_MODELS", "BUS_OPTIONS"):
+        from station.mocks.plug import demo_buses
+
+        return {bus: (p.demo.model if name == "BUS_MODELS" else dict(p.demo.options))
+                for bus, p in demo_buses().items()}
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-def demo_world(bus: str, seed: int, time_mode: str = "instant", sigma_deg: float = 0.15) -> dict:
+def _demo_plug(bus: str):
+    from station.mocks.plug import demo_buses
+    from station.robot.errors import ConfigError
+
+    buses = demo_buses()
+    if bus not in buses:
+        raise ConfigError(f"--robot must be one of {', '.join(buses)}, got {bus!r}")
+    return buses[bus]
+
+
+def demo_world(bus: str, seed: int, time_mode: str = "instant", sigma_deg: float | None = None) -> dict:
     """World document (SI) with hidden joint zero offsets only (what zero_offsets identifies)."""
     import math
 
@@ -303,16 +324,19 @@ def demo_world(bus: str, seed: int, time_mode: str = "instant", sigma_deg: float
     from station.kinematics import load_model
     from station.mocks.world.world import default_doc
 
-    model = BUS_MODELS[bus]
-    m = load_model(model)
+    demo = _demo_plug(bus).demo
+    sigma_deg = demo.sigma_deg if sigma_deg is None else sigma_deg
+    m = load_model(demo.model)
     rng = np.random.default_rng(seed)
-    doc = default_doc(model, seed)
-    doc["description"] = f"demo world for {model} on {bus}: hidden joint zero offsets"
+    doc = default_doc(demo.model, seed)
+    doc["description"] = f"demo world for {demo.model} on {bus}: hidden joint zero offsets"
     doc["errors"] = {"explicit": {f"offset.j{i + 1}": float(rng.normal(0, math.radians(sigma_deg)))
                                   if j.revolute else float(rng.normal(0, 0.1e-3)) for i, j in enumerate(m.joints)}}
     doc["motion"]["time_mode"] = time_mode
     doc["buses"] = {"ur": {"serial": f"2023550{seed:04d}"}, "dynamixel": {"ids": [11, 12, 13, 14]},
                     "canopen": {"nodes": list(range(1, m.n_joints + 1))}}
+    for key, value in demo.world.items():
+        doc[key] = {**doc.get(key, {}), **value} if isinstance(value, dict) else value
     return doc
 
 
@@ -330,7 +354,7 @@ def write_demo_files(bus: str, folder: Path, seed: int, time_mode: str) -> tuple
     world = World.from_file(world_path)
     cell_path.write_text("# station cell (station-cell/1), lengths in m\n"
                          + yaml.safe_dump(world.station_cell(), sort_keys=False))
-    serial = doc["buses"]["ur"]["serial"] if bus == "ur" else f"DEMO-{bus.upper()}-{seed:04d}"
+    serial = doc["buses"].get(bus, {}).get("serial") or f"DEMO-{bus.upper()}-{seed:04d}"
     return world_path, cell_path, serial
 
 
@@ -341,26 +365,28 @@ def run_demo(bus: str, *, time_mode: str = "instant", seed: int = 5, quiet: bool
 
     from station.api import run as start
     from station.mocks.launch import launch
+    from station.mocks.plug import CHILD
     from station.mocks.world import World
     from station.robot.errors import ConfigError
 
     if time_mode not in ("instant", "realtime"):
         raise ConfigError(f"--time must be instant or realtime, got {time_mode!r}")
-    if bus not in BUS_MODELS:
-        raise ConfigError(f"--robot must be one of {', '.join(BUS_MODELS)}, got {bus!r}")
+    plug = _demo_plug(bus)
     home = Path(os.environ.get("STATION_HOME") or "./station-data")
     world_path, cell_path, serial = write_demo_files(bus, home / "demo", seed, time_mode)
     hidden = World.from_file(world_path).hidden()
-    typer.echo(f"demo: {BUS_MODELS[bus]} on {bus}, hidden errors in {world_path}")
+    typer.echo(f"demo: {plug.demo.model} on {bus}, hidden errors in {world_path}")
     t0 = time.monotonic()
-    with launch(bus, world_path, serial=serial, process=bus != "canopen") as emu:  # realtime: own GIL
-        typer.echo(f"demo: emulator up, robot URL {emu.url}")
-        if "power_on=yes" in emu.url:
+    # a child process where the emulator can run as one (realtime: its own GIL)
+    with launch(bus, world_path, serial=serial, process=CHILD in plug.modes) as emu:
+        url = emu.url + plug.demo.query
+        typer.echo(f"demo: emulator up, robot URL {url}")
+        if "power_on=yes" in url:
             typer.echo("demo: the controller boots with the arm powered off, as a real one; power_on=yes in the URL "
                        "lets the station power it on and release the brakes")
         cb, bar = _progress_bar(quiet)
         with bar:
-            out = start("zero_offsets", emu.url, serial, cell=cell_path, options=dict(BUS_OPTIONS[bus]),
+            out = start("zero_offsets", url, serial, cell=cell_path, options=dict(plug.demo.options),
                         progress=cb, log=lambda s: typer.echo(s, err=True))
     if out.status != "completed" or out.passed is None:
         _finish(out)  # NO LIMITS too: exits
@@ -370,7 +396,7 @@ def run_demo(bus: str, *, time_mode: str = "instant", seed: int = 5, quiet: bool
     typer.echo(f"  {'parameter':12s} {'truth':>10s} {'recovered':>10s} {'± 1σ':>8s} {'error':>9s}  ")
     from station.kinematics import load_model
 
-    model = load_model(BUS_MODELS[bus])
+    model = load_model(plug.demo.model)
     for name, p in res["parameters"].items():
         if not name.startswith("offset."):
             continue
