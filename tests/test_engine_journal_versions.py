@@ -83,7 +83,7 @@ def test_a_producer_with_an_unknown_field_is_refused_before_anything_is_written(
 
 @pytest.mark.parametrize("fmt", ["station-journal/3", "station-journal/3.0", "station-journal/12.1"])
 def test_a_newer_major_version_is_refused_in_one_line(tmp_path, fmt):
-    from tests.test_hostile_fuzz import _cli
+    from clirunner import station_main
 
     path, lines, _ = _write_newer(tmp_path)
     lines[0]["format"] = fmt
@@ -94,7 +94,7 @@ def test_a_newer_major_version_is_refused_in_one_line(tmp_path, fmt):
     assert "\n" not in msg and f"{path}:1:" in msg and f"{fmt} is a newer major version" in msg
     assert "station-journal/2" in msg  # says what this station reads
     for argv in (["report", path], ["resume", path.parent]):  # the commands that read a journal
-        code, _, err = _cli(argv)
+        code, _, err = station_main(*argv)
         assert code == 2 and err.strip().count("\n") == 0 and err.startswith("station: error: "), err
         assert "newer major version" in err
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import time
 
 import pytest
+from clirunner import station_main
 from faultrig import demo_cell
 
 from station.api import run as start
@@ -20,7 +21,6 @@ from station.engine.touch import SocketSeating
 from station.report import write_report
 from station.report.content import steps_rows
 from station.robot.errors import DeviceFault
-from tests.test_hostile_fuzz import _cli
 
 
 # ---- the mechanism alone ---------------------------------------------------------------------------------------
@@ -162,7 +162,7 @@ def test_every_step_of_a_run_is_traced_with_its_arguments_and_duration_and_nests
     assert [c[:2] for c in check] == [("approach", 1), ("seat", 1), ("leave", 1)] and "pose" in check[0][2]
     assert rec["solve"]["info"] == {"identify": "offsets"} and rec["solve"]["duration_s"] > 0
     assert rec["connect"]["started"].endswith("Z")
-    code, shown, err = _cli(["records", "show", cell.serial, "--db", cell.db])
+    code, shown, err = station_main("records", "show", cell.serial, "--db", cell.db)
     assert code == 0, err
     table = [line.replace("│", " ").split() for line in shown[shown.index("Steps"):].splitlines()]
     assert ["approach", str(n_poses), "done"] == table[[r[:1] for r in table].index(["approach"])][:3], table

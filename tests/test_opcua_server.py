@@ -16,8 +16,8 @@ import time
 
 import numpy as np
 import pytest
+from clirunner import station_main
 from station.mocks.world import World
-from test_hostile_fuzz import _cli
 from test_panel_browser import _files, _url
 
 from station.records import open_records
@@ -362,7 +362,7 @@ def test_bad_users_file_is_one_line(tmp_path, text, says):
 
     f = tmp_path / "users.yaml"
     f.write_text(text.replace("HASH", hash_password("x" * 8)))
-    code, _, err = _cli(["opcua", "--robot", "dynamixel:///dev/null?model=omx", "--cell", cell_path,
+    code, _, err = station_main(*["opcua", "--robot", "dynamixel:///dev/null?model=omx", "--cell", cell_path,
                          "--endpoint", "opc.tcp://127.0.0.1:4899", "--users", f])  # refused before it listens
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and lines[0].startswith("station: error: users file"), err

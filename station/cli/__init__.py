@@ -80,6 +80,10 @@ def fail(message: str, code: int = 2):
 
 
 def _err(line: str) -> None:
+    """One line whatever the message quotes: a control character read from a file (a key holding "\\r")
+    is printed escaped, never as a line break."""
+    if not line.isprintable():
+        line = "".join(c if c.isprintable() else repr(c)[1:-1] for c in line)
     print(line, file=sys.stderr, flush=True)
 
 

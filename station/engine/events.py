@@ -438,7 +438,28 @@ def _check_sample(e: Sample) -> None:
             raise SchemaError(name, "beyond any instrument's range (|value| <= 1e6 m or rad)")
 
 
-_DEEP_CHECKS = {Plan: _check_plan, Sample: _check_sample}
+_PARAMETER_FIELDS = {"value": float | None, "std": float | None, "identifiable": bool, "kind": str,
+                     "nominal": float | None, "unit": str}
+
+
+def _check_result(e: Result) -> None:
+    """The fields of a solve result that records and reports build on (each parameter's value, std, kind);
+    the rest (residuals, notes, settings) is report material and passes through."""
+    if "parameters" not in e.result:  # a solve that failed records its error only
+        return
+    params = e.result["parameters"]
+    if type(params) is not dict:
+        _fail("result.parameters", "an object of parameters", params)
+    for name, p in params.items():
+        w = f"result.parameters.{name!r}"
+        if type(p) is not dict:
+            _fail(w, "an object", p)
+        if "value" not in p or "identifiable" not in p:
+            raise SchemaError(w, "expected its value and identifiable")
+        p.update({k: _checker(tp)(p[k], f"{w}.{k}") for k, tp in _PARAMETER_FIELDS.items() if k in p})
+
+
+_DEEP_CHECKS = {Plan: _check_plan, Sample: _check_sample, Result: _check_result}
 
 
 def make(event: "Event | dict") -> Event:
