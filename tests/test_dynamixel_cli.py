@@ -74,3 +74,27 @@ def test_bad_arguments_exit_2_with_one_line():
     assert proc.returncode == 2
     assert proc.stderr.strip().startswith("station: error:") and "one id per joint" in proc.stderr
     assert proc.stdout == ""
+
+
+def test_two_worlds_print_two_serials_and_the_robot_reports_the_printed_one(tmp_path):
+    """X-series servos carry no serial number: without ``serial=`` every omx arm on ids 11-14 would file its
+    records under one derived serial (two arms merged, a false DRIFT). The printed URL carries one derived from
+    the world (or the world's ``buses.dynamixel.serial``), and the driver reports it as configured."""
+    from station.mocks.world.example import example_text
+
+    urls = []
+    for seed, extra in ((1, None), (2, None), (2, "ARM-7")):
+        doc = yaml.safe_load(example_text("omx", seed=seed))
+        if extra:
+            doc.setdefault("buses", {}).setdefault("dynamixel", {})["serial"] = extra
+        (tmp_path / f"w{seed}{extra}.yaml").write_text(yaml.safe_dump(doc))
+        proc, _ = _start("--world", str(tmp_path / f"w{seed}{extra}.yaml"))
+        try:
+            urls.append(proc.stdout.readline().strip().removeprefix("robot URL "))
+            with open_robot(urls[-1]) as robot:
+                ident = robot.identity()
+            assert ident.serial_source == "url" and urls[-1].endswith(f"serial={ident.serial}")
+        finally:
+            _stop(proc)
+    serials = [u.rsplit("serial=", 1)[1] for u in urls]
+    assert serials[0] != serials[1] and serials[0].startswith("DXL-") and serials[2] == "ARM-7", serials

@@ -9,6 +9,7 @@ import signal
 import sys
 import threading
 from pathlib import Path
+from urllib.parse import quote
 
 import typer
 from station.mocks.cliopts import SEED, WORLD
@@ -78,6 +79,14 @@ def emulator_for(world, ids: str | None = None, baud: int | None = None, wire_ti
         raise MockError(str(e)) from None
 
 
+def arm_serial(world) -> str:
+    """``buses.dynamixel.serial``, else one derived from the world (servos report none; records tell arms apart
+    by it)."""
+    from station.mocks.world.identity import default_serial
+
+    return str(world.bus_config("dynamixel").get("serial") or default_serial(world, "dynamixel"))
+
+
 def register(mock_app: typer.Typer) -> None:
     @mock_app.command("dynamixel")
     def dynamixel(
@@ -91,18 +100,22 @@ def register(mock_app: typer.Typer) -> None:
         contact: str = typer.Option(None, "--contact-id", help="Contact sensor id (default 200, 'none': off)"),
         servo: str = typer.Option(None, "--servo", help="Servo model: xm430 (default) or xl430"),
         eeprom: Path = typer.Option(None, "--eeprom", help="EEPROM file: loaded at start, saved at exit"),
+        serial: str = typer.Option(None, "--serial", help="The arm's serial number in the printed robot URL "
+                                   "(default: the world file's buses.dynamixel.serial, else derived from the world: "
+                                   "two worlds never share one)"),
         exit_with_parent: bool = typer.Option(False, "--exit-with-parent", help="Stop when the process that "
                                               "started this one ends (tests: no orphan after a crash)."),
     ) -> None:
         """Emulated Dynamixel servos (Protocol 2.0) on a pseudo-terminal; prints the pty path, then the robot URL."""
         emu = build_emulator(world, model, ids, baud, wire_timing, return_delay, contact, servo, eeprom, seed)
+        serial = serial or arm_serial(emu.world)
         done = threading.Event()
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: done.set())
         emu.start()
         parent = os.getppid()
         try:
-            sys.stdout.write(f"{emu.path}\nrobot URL {emu.url}\n")
+            sys.stdout.write(f"{emu.path}\nrobot URL {emu.url}&serial={quote(serial, safe='')}\n")
             sys.stdout.flush()
             while not done.wait(0.5):
                 if exit_with_parent and os.getppid() != parent:

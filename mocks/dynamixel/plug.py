@@ -23,6 +23,12 @@ class DynamixelPlug(Plug):
 
         return emulator_for(world)
 
+    def child_args(self, emu) -> list[str]:
+        return ["--serial", emu.serial] if emu.serial else []
+
+    def serial_in_url(self, emu) -> bool:
+        return emu.emulator is not None  # in-process: the launcher adds it; a child prints its own
+
     def child_url(self, emu, lines: list[str]) -> str:
         emu.port = lines[0]
         return super().child_url(emu, lines)

@@ -39,4 +39,6 @@ def default_serial(world, kind: str = "ur") -> str:
         return str(0x5A000000 | ((d % 0xFFFF) << 8))
     if kind == "dynamixel":
         return f"DXL-{d % 16**8:08X}"
+    if kind == "dynamixel":
+        return f"DXL-{d % 16**8:08X}"
     raise ValueError(f"default_serial: unknown kind {kind!r}")
