@@ -83,7 +83,10 @@ class FrankaRobot(RobotBase):
                "impedance while compliant"),
         Option("rot_stiffness", number(1, 300, unit="N m/rad"), 30.0, "rotational stiffness while compliant"),
         Option("contact_force", number(0.3, 50, unit="N"), 2.0, "`touch()` is true when the estimated external "
-               "force differs this much from the force at rest when compliance began"),
+               "force differs this much from the force at rest when compliance began (after a move: before it)"),
+        Option("press_force", number(0, 20, unit="N"), 5.0, "compliance taken up after a move presses on along "
+               "that move with this force (the impedance target `press_force/stiffness` beyond), so a ball the "
+               "move brought to a socket seats in its cone under the arm's control; 0: hold where it stands"),
         Option("retries", integer(0, 10), 3, "motions aborted by a communication-constraint violation are "
                "recovered and retried this often before it is a fault"),
         Option("realtime", either("ignore", "enforce"), "ignore", "libfranka's real-time scheduling check "
@@ -94,7 +97,7 @@ class FrankaRobot(RobotBase):
 
     def __init__(self, host: str, model: Model, *, serial: str | None = None, motion: str = "async",
                  speed: float = 0.5, accel: float = 2.0, stiffness: float = 600.0, rot_stiffness: float = 30.0,
-                 contact_force: float = 2.0, retries: int = 3, realtime: str = "ignore",
+                 contact_force: float = 2.0, press_force: float = 5.0, retries: int = 3, realtime: str = "ignore",
                  export_dir: str | None = None, url: str = "", connect: bool = True) -> None:
         self.host = host
         self.model = model
@@ -102,7 +105,8 @@ class FrankaRobot(RobotBase):
         self.motion = motion
         self.speed, self.accel = speed, accel
         self.stiffness, self.rot_stiffness = stiffness, rot_stiffness
-        self.contact_force = contact_force
+        self.contact_force, self.press_force = contact_force, press_force
+        self._last_move: tuple | None = None  # (q from, q to, external force at rest before) of the last stiff move
         self.retries = retries
         self.realtime = realtime
         self.export_dir = export_dir
@@ -142,7 +146,8 @@ class FrankaRobot(RobotBase):
             raise ConfigError(f"robot URL {url.raw!r}: speed={o['speed']:g} must be in (0, {vmax:g}] rad/s")
         args = dict(serial=o["serial"], motion=o["motion"], speed=o["speed"] or min(0.5, vmax), accel=o["accel"],
                     stiffness=o["stiffness"], rot_stiffness=o["rot_stiffness"], contact_force=o["contact_force"],
-                    retries=o["retries"], realtime=o["realtime"], export_dir=o["export"], url=url.raw)
+                    press_force=o["press_force"], retries=o["retries"], realtime=o["realtime"],
+                    export_dir=o["export"], url=url.raw)
         args.update(overrides)
         return cls(url.host, model, **args)
 
@@ -286,6 +291,7 @@ class FrankaRobot(RobotBase):
         target = self._checked_target(q, "move_joints")
         v = self._checked_speed(speed, "move_joints", upper=float(limits.DQ_MAX.min())) or self.speed
         self._interrupt.clear()
+        self._note_move(target)
         for attempt in range(self.retries + 1):
             try:
                 if self._compliant:
@@ -512,6 +518,7 @@ class FrankaRobot(RobotBase):
                                        f"{attempt + 1} times by {r}") from None
                     self._recover(str(r))
             self._compliant = True
+            self._press_on()
         else:
             if not self._compliant:
                 return
@@ -525,6 +532,38 @@ class FrankaRobot(RobotBase):
                         self._raise_motion_error(loop.error, "set_compliant(False)")
                     except _Retry as r:  # the hold was lost: clear the reflex, the arm rests where it is
                         self._recover(str(r))
+
+    def _note_move(self, target: np.ndarray) -> None:
+        """Remember a stiff move (where from, where to, the external force at rest before it): compliance taken
+        up right after it presses on along it (``_press_on``)."""
+        self._last_move = None
+        if self._compliant or self.press_force <= 0:
+            return
+        s = self._state("move_joints")
+        if not self._moving(s):
+            self._last_move = (np.asarray(s.q, float), target.copy(), np.asarray(s.O_F_ext_hat_K, float)[:3])
+
+    def _press_on(self) -> None:
+        """Compliance after a stiff move that ended where it was sent: the impedance target goes on along the
+        move's straight-line direction at the tool by ``press_force / stiffness`` (orientation kept), at about
+        20 mm/s, and the call returns once the arm rests there or against what stopped it. What an integrator
+        does to seat a ball: approach stiff, switch to impedance, press on with a set force; the cone, not the
+        controller, centres the ball. The force at rest is then the one before the move (free of the contact
+        the stiff move may have made)."""
+        last, self._last_move = self._last_move, None
+        if last is None:
+            return
+        q_from, q_to, force_before = last
+        q_now = self._q()
+        dx = self.model.position(q_to) - self.model.position(q_from)
+        if np.linalg.norm(dx) < 1e-3 or np.linalg.norm(self.model.position(q_now) - self.model.position(q_to)) > 3e-3:
+            return  # a rotation in place, or the move ended elsewhere: nothing to press along
+        depth = self.press_force / self.stiffness
+        J = self.model.jacobian_q(q_to).reshape(6, 7)
+        dq = np.linalg.pinv(J) @ np.concatenate([dx / np.linalg.norm(dx) * depth, np.zeros(3)])
+        self._tare = force_before
+        # a move of the compliant hold (retried like any move if the robot aborts it)
+        self.move_joints(q_now + dq, speed=float(np.max(np.abs(dq))) * 0.02 / depth + 1e-4)
 
     def _revive_compliance(self) -> None:
         """The compliant hold ended without being asked to (the robot aborted it): for a communication-constraint
