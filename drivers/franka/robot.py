@@ -84,9 +84,10 @@ class FrankaRobot(RobotBase):
         Option("rot_stiffness", number(1, 300, unit="N m/rad"), 30.0, "rotational stiffness while compliant"),
         Option("contact_force", number(0.3, 50, unit="N"), 2.0, "`touch()` is true when the estimated external "
                "force differs this much from the force at rest when compliance began (after a move: before it)"),
-        Option("press_force", number(0, 20, unit="N"), 5.0, "compliance taken up after a move presses on along "
+        Option("press_force", number(0, 20, unit="N"), 0.0, "compliance taken up after a move presses on along "
                "that move with this force (the impedance target `press_force/stiffness` beyond), so a ball the "
-               "move brought to a socket seats in its cone under the arm's control; 0: hold where it stands"),
+               "move brought to a socket seats in its cone under the arm's control; 0 (default, not yet "
+               "verified end to end): hold where it stands"),
         Option("retries", integer(0, 10), 3, "motions aborted by a communication-constraint violation are "
                "recovered and retried this often before it is a fault"),
         Option("realtime", either("ignore", "enforce"), "ignore", "libfranka's real-time scheduling check "
@@ -97,7 +98,7 @@ class FrankaRobot(RobotBase):
 
     def __init__(self, host: str, model: Model, *, serial: str | None = None, motion: str = "async",
                  speed: float = 0.5, accel: float = 2.0, stiffness: float = 600.0, rot_stiffness: float = 30.0,
-                 contact_force: float = 2.0, press_force: float = 5.0, retries: int = 3, realtime: str = "ignore",
+                 contact_force: float = 2.0, press_force: float = 0.0, retries: int = 3, realtime: str = "ignore",
                  export_dir: str | None = None, url: str = "", connect: bool = True) -> None:
         self.host = host
         self.model = model
