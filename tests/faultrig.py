@@ -1,4 +1,4 @@
-"""Shared rig of the fault and durability tests (tests/e2e/test_fault*.py, tests/e2e/test_durability*.py): the station as
+"""Shared rig of the fault and durability tests (tests/e2e: test_fault*, test_durability*): the station as
 a child process, a demo cell on an emulator, the bus's safe state read on the emulator/world side. One place, so
 the fault files do not each grow their own copy.
 
