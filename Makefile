@@ -41,7 +41,7 @@ test: $(STAMP) $(SIM_STAMP)
 
 # every fault on every bus (make test runs each fault once, on one bus, through all four phases)
 test-matrix: $(STAMP)
-	$(BIN)/python -m pytest -q -n 2 -m fullmatrix tests/test_fault_matrix.py
+	$(BIN)/python -m pytest -q -n 2 -m fullmatrix tests/e2e/test_fault_matrix.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -3,7 +3,7 @@
 scipy.optimize.least_squares with finite-difference Jacobians, convergence from 5 mm / 2 deg errors.
 
 (d) coverage of the reported intervals over Monte Carlo (robots drawn from the priors, the simulation of
-tests/test_solver_coverage.py), (e) ``station solve`` end to end (subprocess) beside the in-process call.
+tests/solver/test_solver_coverage.py), (e) ``station solve`` end to end (subprocess) beside the in-process call.
 
 Run: .venv/bin/python bench/solver.py [--quick] [--parts abcde]      (prints tables)"""
 
@@ -294,7 +294,8 @@ def _part_d(trials: int) -> None:
     import sys
     from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    tests = Path(__file__).resolve().parents[1] / "tests"
+    sys.path[:0] = [str(tests), str(tests / "solver")]
     from table import print_table
     from test_solver_coverage import _monte_carlo
 

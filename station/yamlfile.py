@@ -129,7 +129,7 @@ class _ShippedLoader(getattr(yaml, "cyaml", None) and yaml.cyaml.CParser or yaml
     """StrictLoader's scalars, constructors and line record on libyaml's parser (~10x faster than the pure
     Python one: ~15 ms of every command that loads a built-in model; bench/startup.py). For the station's own package
     data only: its composer does not refuse aliases or deep nesting, which shipped files do not have
-    (tests/test_startup.py parses every built-in both ways and compares)."""
+    (tests/cli/test_startup.py parses every built-in both ways and compares)."""
 
     yaml_constructors = StrictLoader.yaml_constructors
     yaml_implicit_resolvers = StrictLoader.yaml_implicit_resolvers

@@ -1,5 +1,5 @@
-"""Bus rigs: one emulated robot per bus, as the bus-conformance suite (tests/test_bus_conformance.py) and the load
-soak (tests/test_soak_buses.py) use it. A rig is the demo world of its bus (hidden zero offsets, the cell of
+"""Bus rigs: one emulated robot per bus, as the bus-conformance suite (tests/e2e/test_bus_conformance.py) and the load
+soak (tests/e2e/test_soak_buses.py) use it. A rig is the demo world of its bus (hidden zero offsets, the cell of
 sockets) served by the bus's emulator (``station.mocks.launch``, the ``station.emulators`` plugs), the URL the
 station opens, and what the test needs to know about the bus that the station must not be asked: the truth
 (joint positions and motion read on the emulator's side of the wire), how to stage a device fault, what a power

@@ -1,4 +1,4 @@
-"""Shared rig of the fault and durability tests (tests/test_fault*.py, tests/test_durability*.py): the station as
+"""Shared rig of the fault and durability tests (tests/e2e: test_fault*, test_durability*): the station as
 a child process, a demo cell on an emulator, the bus's safe state read on the emulator/world side. One place, so
 the fault files do not each grow their own copy.
 
@@ -86,7 +86,7 @@ def demo_cell(bus: str, tmp_path: Path, seed: int, *, cross_process: bool = Fals
         chan = f"d-{uuid.uuid4().hex[:8]}"
         emu = CanopenEmulator(World.from_file(world_path), channel=chan).start()
         # as a socketcand daemon started with -e 0x1FFFFFFF: error frames reach the station (by default socketcand
-        # forwards none: tests/test_canopen_socketcand.py)
+        # forwards none: tests/drivers/canopen/test_canopen_socketcand.py)
         hub = SocketcandHub(chan, port=0, error_mask=0x1FFFFFFF).start()
         try:
             url = f"canopen+socketcand://127.0.0.1:{hub.port}?channel=can0&nodes=1-6&model=arm6"

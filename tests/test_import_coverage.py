@@ -186,9 +186,9 @@ def test_reexported_names_cover_their_defining_module():
 # fails on a stale entry), never by being ignored.
 PENDING = {
     # run only against franka-sim (MuJoCo, its own environment): exercised through open_robot("franka://...") by
-    # tests/test_franka_driver.py, which another change owns now; the import belongs there
-    "station.drivers.franka.robot": "through open_robot in tests/test_franka_driver.py",
-    "station.drivers.franka.stream": "the driver's 1 kHz loop, through tests/test_franka_driver.py",
+    # tests/drivers/franka/test_franka_driver.py, which another change owns now; the import belongs there
+    "station.drivers.franka.robot": "through open_robot in tests/drivers/franka/test_franka_driver.py",
+    "station.drivers.franka.stream": "the driver's 1 kHz loop, through tests/drivers/franka/test_franka_driver.py",
     # a script run by the franka-sim interpreter (imports mujoco, not installed in the station's environment)
     "station.mocks.franka.simhost": "started by station.mocks.franka.launch in the franka-sim environment",
 }

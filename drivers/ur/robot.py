@@ -74,7 +74,7 @@ CONTROL_SCRIPT_TIMEOUT_S = 5.0
 LOCAL_HOSTS = ("localhost", "127.0.0.1")  # ur_rtde skips its remote-control check only for these
 # RTDE stall timeout: the controller sends a package every 2 ms; 200 ms gave spurious stalls on a loaded
 # 2-core PC; 500 ms (250 packages) soaked with zero spurious faults under two busy loops
-# (tests/test_soak_buses.py) and still stops the arm within half a second of a dead link.
+# (tests/e2e/test_soak_buses.py) and still stops the arm within half a second of a dead link.
 STALL_MS = 500.0
 
 

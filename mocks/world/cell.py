@@ -29,7 +29,7 @@ class CellPoint:
 
 
 # Default cells and start poses per built-in model (SI). Sockets sit where the tool reaches them from a
-# wide cone of orientations (checked by tests/test_world_cell.py); needles point up.
+# wide cone of orientations (checked by tests/mocks/world/test_world_cell.py); needles point up.
 DEFAULTS: dict[str, dict] = {
     "ur5e": {
         "start": [0.0, -1.5707963267948966, 1.5707963267948966, -1.5707963267948966, -1.5707963267948966, 0.0],
@@ -65,7 +65,7 @@ DEFAULTS: dict[str, dict] = {
         "points": [
             # a tall fixture close in: the wrist cannot reach table height (d1 = 400 mm, shoulder limits), and
             # further out (e.g. 600, 0, 300 mm) the shoulder hardly varies over the tool cone, so the zero of
-            # joint 2 is 10x less certain than here (checked by tests/test_world_cell.py)
+            # joint 2 is 10x less certain than here (checked by tests/mocks/world/test_world_cell.py)
             {"label": "A", "kind": "socket", "position": [0.35, 0.0, 0.75], "approach": [0, 0, 1]},
             {"label": "N", "kind": "needle", "position": [0.30, 0.30, 0.70], "approach": [0, 0, 1]},
         ],

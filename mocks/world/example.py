@@ -9,7 +9,7 @@ from station.mocks.world.world import DEFAULT_SIGMAS
 
 # Sockets the example adds to a built-in 6-axis arm's default cell so that it has three (dh_full needs three spread
 # over the workspace): placed by mocks/world/reach.py (35 deg cone, limits, links clear of the floor, on the side
-# of socket A, as far from the cell's points as reach allows); tests/test_world_example_own_arm.py checks them with
+# of socket A, as far from the cell's points as reach allows); test_world_example_own_arm.py checks them with
 # the engine's planner. Built-in worlds (World.default) keep their cells.
 EXTRA_SOCKETS = {
     "ur3e": [("B", [0.0, -0.363, 0.337]), ("C", [0.0, 0.363, 0.337])],

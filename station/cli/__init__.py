@@ -12,7 +12,7 @@ import sys
 # command -> (module defining ``register(app: typer.Typer) -> None`` or ``click_commands() -> {name: command}``,
 # its one-line help for ``station --help``). Only the invoked command's module is imported (``station --help``
 # imports none), and a click module's commands run without typer: start-up of every command (bench/startup.py;
-# bench/startup.py). tests/test_startup.py checks this table against what each module registers.
+# bench/startup.py). tests/cli/test_startup.py checks this table against what each module registers.
 COMMANDS = {
     "solve": ("station.cli.solve_cmd", "Identify joint offsets, TCP, link geometry from touch samples."),
     "fk": ("station.cli.solve_cmd", "Tool pose (x, y, z in m; rx, ry, rz rotation vector in rad) for each row of "

@@ -1,5 +1,5 @@
 """The command reference of docs/cli.md, generated from the CLI itself: every command and sub-command with its
-usage, first lines and options (value, default, help), and the built-in models. ``tests/test_cli_docs.py``
+usage, first lines and options (value, default, help), and the built-in models. ``tests/cli/test_cli_docs.py``
 compares the block in docs/cli.md with what this module generates, so the docs cannot fall behind the CLI.
 
     python -m station.cli.docgen --write docs/cli.md    # regenerate the block after changing a command

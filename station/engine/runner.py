@@ -62,7 +62,7 @@ class RunControl:
     Every motion of the run (the checklist's, the touch providers', the write-back's check touch) goes through
     the robot's ``move_joints``/``move_linear``; :meth:`attach` guards those two on the run's robot object, so an
     abort during a move stops the robot at once through the driver's stop path (which ends the waited move
-    from another thread: tests/test_bus_conformance.py), and no move starts after an abort."""
+    from another thread: tests/e2e/test_bus_conformance.py), and no move starts after an abort."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()

@@ -170,7 +170,7 @@ def _checked_head(doc, ydoc: YamlDoc, where: str, shipped: bool) -> None:
 def model_from_dict(doc: dict | YamlDoc, where: str = "<model>", *, shipped: bool = False) -> Model:
     """The model of a parsed model file (a ``YamlDoc`` from ``station.yamlfile`` names lines in errors).
 
-    ``shipped``: a built-in model (package data): its schema check ran in tests/test_startup.py, so it is not
+    ``shipped``: a built-in model (package data): its schema check ran in tests/cli/test_startup.py, so it is not
     repeated on every command (the schema is pydantic, ~0.1 s of start-up)."""
     if isinstance(doc, YamlDoc):
         ydoc, doc = doc, doc.data

@@ -458,7 +458,7 @@ class _Estimation:
         cov = None
         if post is not None:
             # No robust ("sandwich", HC3) inflation: on touches whose noise IS the model's it raised the stds
-            # 25-60 % above the actual error spread (Monte Carlo, tests/test_solver_coverage.py) - an honest
+            # 25-60 % above the actual error spread (Monte Carlo, tests/solver/test_solver_coverage.py) - an honest
             # std must not be inflated. Noise of another shape is modelled (joint noise, noise.py) instead.
             cov = post.cov
             std[post.cols] = np.sqrt(np.maximum(np.diag(cov), 0.0))

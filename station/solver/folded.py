@@ -16,7 +16,7 @@ block every element is pose-independent, so:
   every column together.
 
 Same numbers as ``problem.position_jacobian`` and ``Model.jacobians`` (checked to 1e-12 in
-``tests/test_solver_folded.py``)."""
+``tests/solver/test_solver_folded.py``)."""
 
 from __future__ import annotations
 

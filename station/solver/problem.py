@@ -463,7 +463,7 @@ class Problem:
         """``residual_jacobian`` at ``x`` with the first joint's offset changed by ``delta`` from the values
         ``r, J`` at ``x`` (scaled or not), without a chain pass: every tool position and every model
         column (all at or after that joint) moves by the same rigid motion ``T``; point columns do not
-        change. Exact (to rounding); ``tests/test_solver_folded.py`` compares it with a fresh pass."""
+        change. Exact (to rounding); ``tests/solver/test_solver_folded.py`` compares it with a fresh pass."""
         T = self.folded.first_joint_motion(delta)
         N = len(self.obs)
         R, t = T[:3, :3], T[:3, 3]
@@ -593,7 +593,7 @@ def position_jacobian(chain, q: np.ndarray, params: np.ndarray, param_idx: np.nd
     translation along or rotation about a local axis), but only position rows and only the requested
     parameters, in a (3, ., N) memory layout, with runs of pose-independent elements multiplied once as
     4x4 matrices: the identification Jacobian costs about one forward kinematics evaluation.
-    ``tests/test_solver_problem.py`` checks it against ``Model.jacobians`` and finite differences."""
+    ``tests/solver/test_solver_problem.py`` checks it against ``Model.jacobians`` and finite differences."""
     q = np.atleast_2d(q)
     N, K = q.shape[0], chain.n_elements
     if want is None:
