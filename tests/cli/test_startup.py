@@ -70,7 +70,7 @@ def test_solve_imports_no_scipy_rich_or_database(tmp_path):
     assert not set(HEAVY) & mods
 
 
-# what the hot commands never load with a built-in model and a plain CSV (issue 8: solve <= 0.3 s end to end):
+# what the hot commands never load with a built-in model and a plain CSV (fast start: solve <= 0.3 s end to end):
 # typer converts option values through pydantic TypeAdapters; numpy.ma came with np.median; the plan-time
 # prediction, TCP methods and IK are other commands' parts; logging and importlib.resources cost start-up only
 NOT_ON_THE_HOT_PATH = ("typer", "typer._adapters", "pydantic", "pydantic_core", "rich", "numpy.ma", "logging",

@@ -1,5 +1,5 @@
-"""``station solve``/``fk`` are plain click commands, the other commands typer (start-up, issue 8); an option is
-declared once (``station.cli.optspec.Opt``) and made into either. The same argv parsed both ways must give the
+"""``station solve``/``fk`` are plain click commands, the other commands typer (start-up: bench/startup.py); an option
+is declared once (``station.cli.optspec.Opt``) and made into either. The same argv parsed both ways must give the
 same values, and the same kind of refusal: the typer twin here is built from the very declarations."""
 
 from __future__ import annotations

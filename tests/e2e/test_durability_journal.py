@@ -1,4 +1,4 @@
-"""Durability of the session journal (issue 9): an append that cannot complete (short write, ENOSPC, a real
+"""Durability of the session journal: an append that cannot complete (short write, ENOSPC, a real
 RLIMIT_FSIZE refusal) leaves the journal valid and the session never PASS; free space and a writable sessions
 folder are checked before anything moves; a torn last line is reported and kept, never silently dropped."""
 

@@ -1,4 +1,4 @@
-"""Records durability (issue 9): the database is opened and proven writable before the robot moves; a store that
+"""Records durability: the database is opened and proven writable before the robot moves; a store that
 fails at the end leaves the run NOT STORED (exit 2, never PASS) with the journal complete, and
 ``station records sync`` stores it later from the journal (idempotent)."""
 

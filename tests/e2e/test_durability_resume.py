@@ -1,4 +1,4 @@
-"""Resume safety and the end of a run (issue 9): the procedure file is hashed before it is imported, the header
+"""Resume safety and the end of a run: the procedure file is hashed before it is imported, the header
 fields resume acts on are checked; a fault between the last sample and the end is an error, never PASS."""
 
 import hashlib

@@ -1,4 +1,4 @@
-"""Write-back as a transaction (issue 9) on the Dynamixel emulator (pty, real dynamixel_sdk), the station in its
+"""Write-back as a transaction on the Dynamixel emulator (pty, real dynamixel_sdk), the station in its
 own process: SIGTERM in the write window is held off until every servo is written and read back; kill -9 in
 the window leaves a half-written calibration that ``station resume`` finishes and ``station restore`` rolls
 back to the journaled backup.
@@ -157,7 +157,7 @@ def _can(tmp_path, seed):
 def _until_window(start_args, env, marker, home, sig, wrapper=None, tries=4):
     """Run (then, after a bus fault before the write window, resume: the supported way on after a fault) until
     the wrapper signals the write window; then send ``sig``. On a loaded machine a lost bus answer can end a
-    try early (issue 9 item 8, the drivers' retries); every try is journaled in the same session."""
+    try early (the drivers' retries); every try is journaled in the same session."""
     args = start_args
     for _ in range(tries):
         proc = _station(args, env, marker, wrapper)
@@ -262,7 +262,7 @@ def test_restore_without_a_backup_is_one_line_before_the_robot_is_opened(tmp_pat
     assert r.returncode == 2 and err.count("\n") == 1 and "no backup" in err and "does-not-exist" not in err, err
 
 
-# ---- CANopen: killed after the 0x607C writes, before the 0x1010 store (issue 9 item 2) --------------------------
+# ---- CANopen: killed after the 0x607C writes, before the 0x1010 store --------------------------
 # every 0x607C sent, the store not yet
 CAN_WRAPPER = _can_pause_wrapper("index == 0x1010", "home offsets written, store not sent")
 

@@ -40,7 +40,7 @@ def test_scripted_session_like_the_docs(cell):
         s.measure_result()
         s.measure("socket_height", float(result.points()["A"][2]), "length")  # informational: no limit
         verdict = s.judge()
-    # no limits section for this script: informational measurements only, and that is never a PASS (issue 15.5)
+    # no limits section for this script: informational measurements only, and that is never a PASS
     assert verdict["passed"] is None and verdict["status"] == "NO LIMITS"
     assert s.outcome.status == "completed" and s.outcome.stored and s.outcome.report.exists()
     assert s.outcome.verdict == "NO LIMITS" and s.outcome.passed is None and s.outcome.exit_code == 2

@@ -1,4 +1,4 @@
-"""The fault matrix (issue 9, docs/reliability.md "Fault matrix"): {bus faults (timeout, corrupt, disconnect, drive
+"""The fault matrix (docs/reliability.md "Fault matrix"): {bus faults (timeout, corrupt, disconnect, drive
 fault), SIGTERM, SIGINT, kill -9, disk full, records DB down} x {motion, record, solve, write-back} on the
 Dynamixel, CANopen and UR emulators, each fault followed by ``station resume``.
 
@@ -124,7 +124,7 @@ def test_world_file_bad_fault_is_one_line(tmp_path):
 
 
 def test_compliance_left_by_a_crash_is_reported_and_reset(tmp_path, emulators):
-    """Issue 9 item 8: a run killed while seating leaves the servos compliant (Goal PWM limited);
+    """A run killed while seating leaves the servos compliant (Goal PWM limited);
     the next connection reports it (status().compliant, what the pre-run check reads) and set_compliant(False)
     makes the arm stiff again. Truth: the world's compliance."""
     world = World.default(model="omx", seed=4, time_mode="realtime")

@@ -1,4 +1,4 @@
-"""CANopen write-back durability (issue 9 item 2): home offsets written to 0x607C but killed before the 0x1010
+"""CANopen write-back durability: home offsets written to 0x607C but killed before the 0x1010
 store live only in volatile memory and are gone after a power cycle (the emulator keeps volatile and stored
 values apart); ``persist_calibration()`` re-sends the store so they survive. Truth: the emulated drives'
 object dictionaries after an emulated power cycle, read again over SDO by a fresh robot."""
@@ -32,7 +32,7 @@ def test_unstored_offsets_lost_at_power_cycle_and_kept_after_persist():
         for n, c in zip(robot.nodes, counts, strict=True):  # the write phase, killed before the store
             robot.bus.sdo_write(n, 0x607C, c)
         robot.close()
-        assert _cycle_and_read(emu, url) == [0] * 6  # volatile only: gone (what issue 9 item 2 saw)
+        assert _cycle_and_read(emu, url) == [0] * 6  # volatile only: gone (what the first fault campaign saw)
 
         robot = open_robot(url)
         for n, c in zip(robot.nodes, counts, strict=True):

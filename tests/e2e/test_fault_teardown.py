@@ -1,4 +1,4 @@
-"""Safe teardown after a bus fault (issue 9 item 5): a CANopen bus-off while the arm is seated (compliant,
+"""Safe teardown after a bus fault: a CANopen bus-off while the arm is seated (compliant,
 every drive enabled in profile torque mode). The station's controller is off the bus for its recovery time,
 so the quick stop sent when the fault latched never reaches the drives (the emulator drops frames sent while
 bus-off); teardown's "compliance off" must then disable every drive (power stage off, brakes engaged) through

@@ -1,4 +1,4 @@
-"""UR link drop and the teardown (issue 9, fault matrix UR x disconnect): the controller closes every socket and
+"""UR link drop and the teardown (fault matrix: UR x disconnect): the controller closes every socket and
 refuses connections for a while (``emulator drop S`` on the emulator's dashboard). The teardown cannot stop the
 ur_rtde control program over a link that is gone; close() keeps trying the dashboard ``stop`` for
 ``URRobot.TEARDOWN_S`` (a short outage), and says loudly when the controller stayed unreachable. The next

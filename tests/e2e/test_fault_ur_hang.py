@@ -1,4 +1,4 @@
-"""No hang (issue 9 item 6): the UR controller vanishes right before a move (the emulator process is frozen
+"""No hang: the UR controller vanishes right before a move (the emulator process is frozen
 with SIGSTOP: no FIN, no RST, like a pulled cable) while ur_rtde's moveJ waits for its acknowledgement. The
 station must raise ConnectionLost within the RTDE stall timeout (URL ``stall_ms``), and Ctrl-C must take
 effect within ~1 s. Real ur_rtde against the emulator in a child process."""

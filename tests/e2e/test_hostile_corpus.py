@@ -1,4 +1,4 @@
-"""Regression corpus of issue 14: every hostile or careless input named there is one line
+"""Regression corpus of the hostile-input campaign: every hostile or careless input it named is one line
 ``station: error: ...`` and exit 2 (never a traceback, never exit 1, never a hang, never a silent answer).
 
 The CLI runs in-process (``station.cli.main`` with ``sys.argv``) so the corpus stays fast; a handful of cases

@@ -1,4 +1,4 @@
-"""Property-based fuzzing (hypothesis) of every reader and of the CLI entry points (issue 14): whatever the
+"""Property-based fuzzing (hypothesis) of every reader and of the CLI entry points: whatever the
 input — random bytes, random structure, random numbers incl. NaN/inf/huge, random units — the result is a
 valid value or the reader's own one-line error; the CLI exits 0 with a valid result or 2 with one line; never
 a traceback, never another exception, never a hang (pytest-timeout bounds each test).

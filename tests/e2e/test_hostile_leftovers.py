@@ -1,4 +1,4 @@
-"""Issue 14 leftovers: unit slips inside the joint limits, noise-free data, strict JSON writers, journal sample
+"""Hostile-input leftovers: unit slips inside the joint limits, noise-free data, strict JSON writers, journal sample
 fields of the wrong type (fuzzed), ``station jog`` URLs, ``--poses`` below the unknowns.
 
 Ground truth: touches simulated with a known model (hidden offsets) by ``station.solver.simulate``; the slip is

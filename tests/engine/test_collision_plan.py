@@ -1,4 +1,4 @@
-"""Collision-aware pose plans: the UR5e demo plan (issue 15: 14 of 28 poses put the elbow up to 260 mm below the
+"""Collision-aware pose plans: the UR5e demo plan (before it, 14 of 28 poses put the elbow up to 260 mm below the
 mounting plane) must keep every link capsule above the plane with its clearance.
 
 Ground truth for "below the plane" is computed here, independently of station.kinematics.collision: the elbow

@@ -1,4 +1,4 @@
-"""Plan-time check (issue 10): before the robot moves, the station predicts from the planned poses what the
+"""Plan-time check: before the robot moves, the station predicts from the planned poses what the
 solve can identify and how well, and refuses a plan that cannot meet the procedure's limits in one line (exit 2)
 instead of 24 poses of motion to find out. Emulated arm6 on CANopen (real canopen library, virtual bus)."""
 

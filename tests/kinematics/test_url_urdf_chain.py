@@ -1,4 +1,4 @@
-"""Robot URLs take a URDF model with ``tip_link=``/``base_link=`` on every driver (issue 11): the chain the URL
+"""Robot URLs take a URDF model with ``tip_link=``/``base_link=`` on every driver: the chain the URL
 names is the one the driver loads; a URDF with several chain ends and no tip is one line naming the candidates.
 The 7-DOF arm's hand has two fingers besides the ball; the reference is the URDF reader (checked against yourdfpy
 in test_urdf.py)."""

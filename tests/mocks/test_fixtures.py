@@ -1,4 +1,4 @@
-"""Per-touch weights and several fixture positions in one solve (issue 11 item 5).
+"""Per-touch weights and several fixture positions in one solve.
 
 Ground truth: the simulated world (``station.mocks.world``): its true robot makes the touches, its sockets are
 the first fixture position; the second position is the same fixture moved rigidly (the known distance between

@@ -19,7 +19,7 @@ from station.kinematics import se3
 from station.records import open_records
 from station.solver.map import CorrectionMap
 
-SIGMA_0, SIGMA_PER_M = 15e-6, 6e-6  # the tracker's specification (issue 12), one sigma per reflector and axis
+SIGMA_0, SIGMA_PER_M = 15e-6, 6e-6  # the tracker's specification (docs/hardware.md), 1 sigma per reflector, axis
 SERIAL = "HX-0042"
 
 

@@ -17,7 +17,7 @@ from station.api import run as start
 from station.kinematics import se3
 from station.solver.map import CorrectionMap
 
-SIGMA_0, SIGMA_PER_M = 15e-6, 6e-6  # the tracker's specification (issue 12), one sigma per reflector and axis
+SIGMA_0, SIGMA_PER_M = 15e-6, 6e-6  # the tracker's specification (docs/hardware.md), 1 sigma per reflector, axis
 SERIAL = "A6-0012"
 GOOD = [0.0, 0.17, 0.17, 0.0, -0.87, 0.0]  # rad: elbow bent, wrist centre 0.3 m off axis 1, wrist bent
 SHOULDER = [0.3, -0.9, 1.2, -0.8, 1.2, 0.4]  # rad: +-20 deg around it the wrist centre passes ~5 mm from axis 1

@@ -33,7 +33,7 @@ from station.engine.session_record import session_from_journal
 from station.kinematics import se3
 from station.solver.map import CorrectionMap
 
-SIGMA_0, SIGMA_PER_M = 15e-6, 6e-6  # the tracker's specification (issue 12), one sigma per reflector and axis
+SIGMA_0, SIGMA_PER_M = 15e-6, 6e-6  # the tracker's specification (docs/hardware.md), 1 sigma per reflector, axis
 SERIAL = "A6-0013"
 START = np.array([0.0, 0.17, 0.17, 0.0, -0.87, 0.0])  # rad: the bent-elbow work zone (test_correction_map_arm6)
 SPAN = np.radians(10.0)

@@ -29,7 +29,7 @@ from station.robot.errors import ConfigError
 from station.solver.map import CorrectionMap, MapError
 from tests.procedures.test_correction_map_calibration import _true_pose, calibration_file
 
-SIGMA_0, SIGMA_PER_M = 15e-6, 6e-6  # the tracker's specification (issue 12), one sigma per reflector and axis
+SIGMA_0, SIGMA_PER_M = 15e-6, 6e-6  # the tracker's specification (docs/hardware.md), 1 sigma per reflector, axis
 SERIAL = "A6-0014"
 START = np.array([0.0, 0.17, 0.17, 0.0, -0.87, 0.0])  # rad: the bent-elbow work zone
 SPAN = np.radians(10.0)

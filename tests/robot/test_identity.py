@@ -1,4 +1,4 @@
-"""Identity check at connect (issue 9 item 9): the model named in the URL (or the default) against what the
+"""Identity check at connect: the model named in the URL (or the default) against what the
 controller / devices report, on the real wire (ur_rtde + dashboard socket, dynamixel-sdk on a pty, canopen
 SDO over a python-can bus). A mismatch is one ``IdentityMismatch`` line (exit 2) and nothing moved: the
 world's joints are where they started (ground truth from the emulator's world)."""

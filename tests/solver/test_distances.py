@@ -1,4 +1,4 @@
-"""Known distances and planes (issue 11 item 3): ``station solve --distance A,B=50mm`` / ``--plane P``.
+"""Known distances and planes: ``station solve --distance A,B=50mm`` / ``--plane P``.
 
 Ground truth: the simulated world (``station.mocks.world``): its hidden errors make the true robot, its cell
 points are the true socket positions, and the distance stated is the one between the world's sockets. The
@@ -46,7 +46,7 @@ def data(world, rng, n=25):
 
 
 def test_scale_collapse_solves_with_a_known_distance(world):
-    """Issue 10 item 3: link lengths with unknown sockets are refused for "no known length"; the distance
+    """Link lengths with unknown sockets are refused for "no known length"; the distance
     between the two sockets makes the scale identifiable, and the lengths come out at the world's truth."""
     obs = data(world, np.random.default_rng(1))
     without = solve(world.nominal, obs, "offsets,dh,tcp", "unknown")

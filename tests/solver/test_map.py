@@ -1,4 +1,4 @@
-"""The correction map of seed 004: interpolation exactness, sample plans, the seed's 2x2 worked example, the
+"""The correction map (docs/map.md): interpolation exactness, sample plans, the seed's 2x2 worked example, the
 hexapod with hidden geometric errors, a serial arm, the JSON form and the errors. Ground truth comes from the
 simulated world (true geometry) or is computed here independently of the map code."""
 

@@ -38,7 +38,7 @@ def _scenario(name: str):
         drawn = ["offset.j2", "offset.j3", "offset.j4", "dh.j2.a", "dh.j3.a"]
         return (nominal, ",".join(drawn), drawn, [np.array([0.3, 0.2, 0.2, 0.1]), np.array([-0.4, 0.1, 0.4, 0.2])],
                 None, 0.9, 13, 20e-6, True)
-    if name == "omx-weak":  # few touches, narrow spread, seating-class noise (issue 10, item 1)
+    if name == "omx-weak":  # few touches, narrow spread, seating-class noise
         nominal = load_model("omx")
         drawn = ["offset.j2", "offset.j3", "offset.j4"]
         return (nominal, ",".join(drawn), drawn, [np.array([0.3, 0.2, 0.2, 0.1])], None, 0.45, 12, 0.2e-3, True)

@@ -63,7 +63,7 @@ def test_ur5e_one_unknown_point_offsets_tcp_names_j1_and_j6():
 
 
 def test_last_offset_reason_on_axis_vs_free_tool():
-    """Issue 10 item 6: a fixed tool on the last axis -> "lies on the axis"; a free tool -> the TCP absorbs
+    """A fixed tool on the last axis -> "lies on the axis"; a free tool -> the TCP absorbs
     the rotation, whether or not it happens to be near the axis (never the axis reason for a free tool)."""
     rng = np.random.default_rng(5)
     nominal = ur5e_with_tool((0.0, 0.0, 0.1))

@@ -1,4 +1,4 @@
-"""Issue 15 item 8 papercuts: the example world's bus sections fit the robot it describes, and the README's jog
+"""Papercuts: the example world's bus sections fit the robot it describes, and the README's jog
 command survives a POSIX shell."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The jog UI's write-back holds SIGTERM until the device is written and read back (issue 9), then quits like
+"""The jog UI's write-back holds SIGTERM until the device is written and read back, then quits like
 ctrl+q. A real signal from another process into the real app (textual, headless, on its main thread) driving
 the CiA 402 emulator through canopen on a virtual bus. The write window is widened, not faked: the driver's own
 ``write_calibration`` runs, then waits 3 s before the read-back."""

@@ -87,7 +87,7 @@ def test_jog_and_record_on_ur(ur, tmp_path):
 @pytest.mark.exclusive  # the dialog waits on a live UR emulator: run alone (make test)
 @pytest.mark.timeout(120)
 def test_ur_writeback_is_an_honest_export(ur, tmp_path):
-    """Issue 15 item 6: the UR path is an export. The dialog says so, the controller is unchanged, the journal,
+    """The UR path is an export. The dialog says so, the controller is unchanged, the journal,
     the record and the report say "exported to PATH, controller unchanged", no after values, no restore."""
     from station.engine.session_record import session_from_journal
     from station.report.render import write_report

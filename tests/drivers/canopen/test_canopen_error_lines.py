@@ -1,4 +1,4 @@
-"""A CANopen fault prints ONE error line (issue 9 item 11, "CANopen errors printed twice"): ``station run`` in its
+"""A CANopen fault prints ONE error line ("CANopen errors printed twice"): ``station run`` in its
 own process on the demo cell, the drives behind a socketcand hub (python-can's real client), a fault staged from
 the world file. stderr must hold exactly one ``station: error:`` line, exit 2, and the fault's text nowhere else
 (the driver's latch and teardown used to repeat it as warnings)."""

@@ -20,7 +20,7 @@ from station.kinematics import se3
 from station.robot.errors import ConfigError, ConnectionLost, DeviceFault
 from station.solver.map import CorrectionMap, plan
 
-SIGMA_0, SIGMA_PER_M = 15e-6, 6e-6  # the instrument's specification (issue 12), one sigma per reflector and axis
+SIGMA_0, SIGMA_PER_M = 15e-6, 6e-6  # the instrument's specification (docs/hardware.md), 1 sigma per reflector, axis
 TRACKER = {"units": {"length": "mm", "angle": "deg"}, "pose": {"x": 2000, "y": 500, "z": 800, "rz": 120}}
 
 
