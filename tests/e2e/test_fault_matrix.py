@@ -119,7 +119,7 @@ def test_world_file_bad_fault_is_one_line(tmp_path):
     doc["faults"] = [{"do": "explode"}]
     path = tmp_path / "bad.yaml"
     path.write_text(yaml.safe_dump(doc))
-    with pytest.raises(WorldFileError, match=r"faults\[0\]\.do.*'explode' is not one of timeout"):
+    with pytest.raises(WorldFileError, match=r"bad.yaml:\d+: faults\[0\]\.do: expected timeout, .*got 'explode'"):
         World.from_file(path)
 
 

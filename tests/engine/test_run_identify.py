@@ -8,13 +8,19 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from clirunner import station_proc as station
+from clirunner import station_proc
 from station.mocks.world import World
 
 from station.cli.nextstep import suggest
 from station.engine.cell import RefPoint
 from station.engine.plan import generate_plan
 from station.solver import Observations, solve
+
+
+def station(*args):
+    """``station ARGS`` as a child process: exit code, stdout, stderr lines."""
+    r = station_proc(*args)
+    return r.code, r.out, r.err_lines
 
 
 @pytest.mark.parametrize("procedure", ["verify", "correction_map"])

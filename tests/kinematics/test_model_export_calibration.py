@@ -7,11 +7,17 @@ from __future__ import annotations
 import json
 
 import numpy as np
-from clirunner import station_proc as station
+from clirunner import station_proc
 
 from station.kinematics import load_model
 from station.report import build_report
 from station.safeio import dumps_json
+
+
+def station(*args):
+    """``station ARGS`` as a child process: exit code, stdout, stderr lines."""
+    r = station_proc(*args)
+    return r.code, r.out, r.err_lines
 
 
 def test_result_report_and_session_give_the_same_calibrated_robot(tmp_path, session_factory):

@@ -2,6 +2,7 @@
 
 import copy
 import math
+import re
 
 import numpy as np
 import pytest
@@ -144,44 +145,49 @@ def test_example_file_loads_and_is_complete(tmp_path, model):
     assert "mm" in text and "deg" in text
 
 
+# (change, the field the error names, what the line it names holds: yaml.safe_dump's block layout)
 BAD = [
-    ({"format": "station-world/2"}, "format"),
-    ({"units": {"length": "inch", "angle": "deg"}}, "units"),
-    ({"units": {"length": "mm"}}, "units"),
-    ({"seed": -1}, "seed"),
-    ({"seed": "abc"}, "seed"),
-    ({"robot": {"model": "nosuchrobot"}}, "robot.model"),
-    ({"robot": {"model": "ur5e", "colour": "blue"}}, "robot"),
-    ({"errors": {"explicit": {"offset.j9": 0.1}}}, "errors.explicit.offset.j9"),
-    ({"errors": {"explicit": {"offset.j2": "a lot"}}}, "errors.explicit.offset.j2"),
-    ({"errors": {"explicit": {"offset.j2": float("nan")}}}, "errors.explicit.offset.j2"),
-    ({"errors": {"random": {"nosuchgroup": 0.1}}}, "errors.random.nosuchgroup"),
-    ({"errors": {"random": {"dh": 0.1}}}, "errors.random.dh"),
-    ({"errors": {"random": {"offsets": -0.1}}}, "errors.random.offsets"),
-    ({"errors": {"random": {"dh": {"length": 0.1}}}}, "errors.random.dh"),
-    ({"joints": {"backlash": {"j7": 0.1}}}, "joints.backlash.j7"),
-    ({"joints": {"payload": -1}}, "joints.payload"),
-    ({"motion": {"time_mode": "fast"}}, "motion.time_mode"),
-    ({"motion": {"time_scale": 0}}, "motion.time_scale"),
-    ({"motion": {"start": [0, 0]}}, "motion.start"),
-    ({"motion": {"start": [0, 0, 0, 0, 0, 400]}}, "motion.start[5]"),
-    ({"cell": {"points": [{"label": "A", "kind": "hole", "position": [0, 0, 0]}]}}, "cell.points[0].kind"),
-    ({"cell": {"points": [{"label": "A", "kind": "socket"}]}}, "cell.points[0].position"),
-    ({"cell": {"points": [{"label": "A", "kind": "socket", "position": [0, 0]}]}}, "cell.points[0].position"),
+    ({"format": "station-world/2"}, "format", "format: station-world/2"),
+    ({"units": {"length": "inch", "angle": "deg"}}, "units.length", "length: inch"),
+    ({"units": {"length": "mm"}}, "units", "units:"),
+    ({"seed": -1}, "seed", "seed: -1"),
+    ({"seed": "abc"}, "seed", "seed: abc"),
+    ({"robot": {"model": "nosuchrobot"}}, "robot.model", "model: nosuchrobot"),
+    ({"robot": {"model": "ur5e", "colour": "blue"}}, "robot", "colour: blue"),
+    ({"errors": {"explicit": {"offset.j9": 0.1}}}, "errors.explicit.offset.j9", "offset.j9: 0.1"),
+    ({"errors": {"explicit": {"offset.j2": "a lot"}}}, "errors.explicit.offset.j2", "offset.j2: a lot"),
+    ({"errors": {"explicit": {"offset.j2": float("nan")}}}, "errors.explicit.offset.j2", "offset.j2: .nan"),
+    ({"errors": {"random": {"nosuchgroup": 0.1}}}, "errors.random.nosuchgroup", "nosuchgroup: 0.1"),
+    ({"errors": {"random": {"dh": 0.1}}}, "errors.random.dh", "dh: 0.1"),
+    ({"errors": {"random": {"offsets": -0.1}}}, "errors.random.offsets", "offsets: -0.1"),
+    ({"errors": {"random": {"dh": {"length": 0.1}}}}, "errors.random.dh", "dh:"),
+    ({"joints": {"backlash": {"j7": 0.1}}}, "joints.backlash.j7", "j7: 0.1"),
+    ({"joints": {"payload": -1}}, "joints.payload", "payload: -1"),
+    ({"motion": {"time_mode": "fast"}}, "motion.time_mode", "time_mode: fast"),
+    ({"motion": {"time_scale": 0}}, "motion.time_scale", "time_scale: 0"),
+    ({"motion": {"start": [0, 0]}}, "motion.start", "start:"),
+    ({"motion": {"start": [0, 0, 0, 0, 0, 400]}}, "motion.start[5]", "- 400"),
+    ({"cell": {"points": [{"label": "A", "kind": "hole", "position": [0, 0, 0]}]}},
+     "cell.points[0].kind", "kind: hole"),
+    ({"cell": {"points": [{"label": "A", "kind": "socket"}]}},
+     "cell.points[0]: expected key 'position'", "- kind: socket"),
+    ({"cell": {"points": [{"label": "A", "kind": "socket", "position": [0, 0]}]}},
+     "cell.points[0].position", "position:"),
     ({"cell": {"points": [{"label": "A", "kind": "socket", "position": [0, 0, 0]},
-                          {"label": "A", "kind": "needle", "position": [1, 0, 0]}]}}, "cell.points[1].label"),
+                          {"label": "A", "kind": "needle", "position": [1, 0, 0]}]}},
+     "cell.points[1].label", "label: A"),
     ({"cell": {"points": [{"label": "A", "kind": "socket", "position": [0, 0, 0], "approach": [0, 0, 0]}]}},
-     "cell.points[0].approach"),
-    ({"cell": {"capture_radius": -8}}, "cell.capture_radius"),
-    ({"noise": {"seating": -0.01}}, "noise.seating"),
-    ({"noise": {"jitter": 1}}, "noise"),
-    ({"buses": ["dynamixel"]}, "buses"),
-    ({"colour": "blue"}, "colour"),
+     "cell.points[0].approach", "- approach:"),
+    ({"cell": {"capture_radius": -8}}, "cell.capture_radius", "capture_radius: -8"),
+    ({"noise": {"seating": -0.01}}, "noise.seating", "seating: -0.01"),
+    ({"noise": {"jitter": 1}}, "noise", "jitter: 1"),
+    ({"buses": ["dynamixel"]}, "buses", "buses:"),
+    ({"colour": "blue"}, "colour", "colour: blue"),
 ]
 
 
-@pytest.mark.parametrize("change,field", BAD)
-def test_malformed_world_file_one_line_error_naming_file_and_field(tmp_path, change, field):
+@pytest.mark.parametrize("change,field,holds", BAD)
+def test_malformed_world_file_one_line_error_naming_file_line_and_field(tmp_path, change, field, holds):
     doc = _doc()
     doc.update(change)
     f = tmp_path / "bad.yaml"
@@ -190,7 +196,9 @@ def test_malformed_world_file_one_line_error_naming_file_and_field(tmp_path, cha
         World.from_file(f)
     msg = str(e.value)
     assert "\n" not in msg
-    assert msg.startswith(f"{f}: ")
+    m = re.match(rf"{re.escape(str(f))}:(\d+): ", msg)
+    assert m, msg
+    assert holds in f.read_text().splitlines()[int(m.group(1)) - 1], msg  # the line of the faulty field
     assert field in msg
     assert isinstance(e.value, ValueError)
     from station.mocks.errors import MockError
