@@ -10,7 +10,9 @@ Units: joints rad, joint speed rad/s, forces N, stiffness N/m and N m/rad.
   checked against the joint limits and speeds against Franka's limits before anything is sent.
 - Compliance: ``set_compliant(True)`` runs a Cartesian-impedance motion (``SetCartesianImpedance`` stiffness
   ``stiffness``/``rot_stiffness``) from the driver's 1 kHz loop; moves while compliant are moves of that
-  motion, so a ball driven a few millimetres past a socket seats under the arm's own control.
+  motion, so a ball driven a few millimetres past a socket seats under the arm's own control. Compliance taken
+  up right after a stiff move presses on along it with ``press_force`` (``drivers.franka.press``): the cone,
+  not where the stiff move stopped, decides where the ball rests.
 - Contact: ``touch()`` is the estimated external force (``O_F_ext_hat_K``) against the force at rest when
   compliance began, above ``contact_force``.
 - Faults: a motion the robot aborts for a communication-constraint violation is recovered
@@ -31,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 from station.drivers.franka import identity as ident
-from station.drivers.franka import limits
+from station.drivers.franka import limits, press
 from station.drivers.franka.stream import StreamLoop
 
 from station.kinematics import Model
@@ -84,10 +86,10 @@ class FrankaRobot(RobotBase):
         Option("rot_stiffness", number(1, 300, unit="N m/rad"), 30.0, "rotational stiffness while compliant"),
         Option("contact_force", number(0.3, 50, unit="N"), 2.0, "`touch()` is true when the estimated external "
                "force differs this much from the force at rest when compliance began (after a move: before it)"),
-        Option("press_force", number(0, 20, unit="N"), 0.0, "compliance taken up after a move presses on along "
-               "that move with this force (the impedance target `press_force/stiffness` beyond), so a ball the "
-               "move brought to a socket seats in its cone under the arm's control; 0 (default, not yet "
-               "verified end to end): hold where it stands"),
+        Option("press_force", number(0, 20, unit="N"), 5.0, "compliance taken up right after a stiff move "
+               "presses on along that move's tool direction with this force (the impedance target "
+               "`press_force/stiffness` beyond, at most 5 mm of free travel), so the socket's cone centres the "
+               "ball; 0: hold where the move stopped"),
         Option("retries", integer(0, 10), 3, "motions aborted by a communication-constraint violation are "
                "recovered and retried this often before it is a fault"),
         Option("realtime", either("ignore", "enforce"), "ignore", "libfranka's real-time scheduling check "
@@ -98,7 +100,7 @@ class FrankaRobot(RobotBase):
 
     def __init__(self, host: str, model: Model, *, serial: str | None = None, motion: str = "async",
                  speed: float = 0.5, accel: float = 2.0, stiffness: float = 600.0, rot_stiffness: float = 30.0,
-                 contact_force: float = 2.0, press_force: float = 0.0, retries: int = 3, realtime: str = "ignore",
+                 contact_force: float = 2.0, press_force: float = 5.0, retries: int = 3, realtime: str = "ignore",
                  export_dir: str | None = None, url: str = "", connect: bool = True) -> None:
         self.host = host
         self.model = model
@@ -108,6 +110,7 @@ class FrankaRobot(RobotBase):
         self.stiffness, self.rot_stiffness = stiffness, rot_stiffness
         self.contact_force, self.press_force = contact_force, press_force
         self._last_move: tuple | None = None  # (q from, q to, external force at rest before) of the last stiff move
+        self.last_press: str | None = None  # how the last seating press ended (seated, no contact, not settled)
         self.retries = retries
         self.realtime = realtime
         self.export_dir = export_dir
@@ -536,35 +539,82 @@ class FrankaRobot(RobotBase):
 
     def _note_move(self, target: np.ndarray) -> None:
         """Remember a stiff move (where from, where to, the external force at rest before it): compliance taken
-        up right after it presses on along it (``_press_on``)."""
+        up right after it presses on along it (``_press_on``). The force is read at rest (waited for, at most
+        0.5 s): the estimate of a moving arm carries its dynamics, and this one is the touch's zero."""
         self._last_move = None
         if self._compliant or self.press_force <= 0:
             return
         s = self._state("move_joints")
-        if not self._moving(s):
-            self._last_move = (np.asarray(s.q, float), target.copy(), np.asarray(s.O_F_ext_hat_K, float)[:3])
+        end = time.monotonic() + 0.5
+        while self._moving(s) and time.monotonic() < end:
+            time.sleep(0.01)
+            s = self._state("move_joints")
+        self._last_move = (np.asarray(s.q, float), target.copy(), np.asarray(s.O_F_ext_hat_K, float)[:3])
 
     def _press_on(self) -> None:
-        """Compliance after a stiff move that ended where it was sent: the impedance target goes on along the
-        move's straight-line direction at the tool by ``press_force / stiffness`` (orientation kept), at about
-        20 mm/s, and the call returns once the arm rests there or against what stopped it. What an integrator
-        does to seat a ball: approach stiff, switch to impedance, press on with a set force; the cone, not the
-        controller, centres the ball. The force at rest is then the one before the move (free of the contact
-        the stiff move may have made)."""
+        """Compliance right after a stiff move: the seating press (``drivers.franka.press``). The impedance
+        target goes on along the move's straight-line tool direction by ``press_force / stiffness`` (orientation
+        kept) at 20 mm/s, and the call returns once the arm rests against what stopped it with a steady force.
+        The touch's zero is then the force before the move (free of the contact the stiff move may have made:
+        a joint servo driving a ball into a cone leaves 3-30 N that the impedance then releases). Free travel
+        beyond ``press.TRAVEL`` means nothing is there: the press is called off and the arm held where it is
+        (``touch()`` stays off, so the seating step reports it)."""
         last, self._last_move = self._last_move, None
+        self.last_press = None
         if last is None:
             return
         q_from, q_to, force_before = last
         q_now = self._q()
-        dx = self.model.position(q_to) - self.model.position(q_from)
-        if np.linalg.norm(dx) < 1e-3 or np.linalg.norm(self.model.position(q_now) - self.model.position(q_to)) > 3e-3:
-            return  # a rotation in place, or the move ended elsewhere: nothing to press along
-        depth = self.press_force / self.stiffness
-        J = self.model.jacobian_q(q_to).reshape(6, 7)
-        dq = np.linalg.pinv(J) @ np.concatenate([dx / np.linalg.norm(dx) * depth, np.zeros(3)])
+        u, why = press.direction(self.model, q_from, q_to, q_now)
+        if u is None:
+            log.warning("%s: no seating press: %s", self.where, why)
+            return
         self._tare = force_before
-        # a move of the compliant hold (retried like any move if the robot aborts it)
-        self.move_joints(q_now + dq, speed=float(np.max(np.abs(dq))) * 0.02 / depth + 1e-4)
+        plan = press.plan(self.model, q_now, u, self.press_force / self.stiffness)
+        for attempt in range(self.retries + 1):
+            try:
+                self.last_press = self._watch_press(plan, press.joint_speed(plan, q_now))
+                return
+            except _Retry as r:
+                if attempt >= self.retries:
+                    raise BusError(f"{self.where}: seating press aborted {attempt + 1} times by {r}; the robot "
+                                   "holds where it stopped") from None
+                self._recover(str(r))  # the hold taken up again, the touch's zero kept
+
+    def _watch_press(self, plan: press.Press, speed: float) -> str:
+        """Stream the press and watch it: returns how it ended (``seated``: at rest with a steady force;
+        ``no contact``: free travel beyond ``press.TRAVEL``, held there; ``not settled``: out of time)."""
+        if self._loop is None or not self._loop.alive:
+            self._start_compliant_loop(tare=False)
+        loop = self._loop
+        self._compliant_target, self._compliant_speed = plan.q.copy(), speed
+        deadline = time.monotonic() + 2 * loop.move_to(plan.q, speed).T + SETTLE_S
+        settle = press.Settle(self.press_force)
+        while True:
+            if self._interrupt.is_set():
+                raise SafetyStop(f"{self.where}: seating press: stopped")
+            if loop.error is not None or loop.done.is_set():
+                self._loop = None
+                self._raise_motion_error(loop.error, "seating press")
+            s = loop.state
+            q, dq = np.asarray(s.q, float), np.asarray(s.dq, float)
+            travel = plan.travel(self.model.position(q))
+            if travel > press.TRAVEL:
+                loop.move_to(q, speed)  # nothing to seat in: hold here
+                self._compliant_target = q.copy()
+                log.warning("%s: seating press called off: %.1f mm of free travel beyond where the move ended "
+                            "(no socket there?); holding compliant where it is", self.where, travel * 1e3)
+                return "no contact"
+            tool_speed = float(np.linalg.norm(self.model.jacobian_q(q).reshape(6, 7)[:3] @ dq))
+            force = float(np.asarray(s.O_F_ext_hat_K, float)[:3] @ plan.u)
+            if settle.add(time.monotonic(), tool_speed, force) and loop.path_done():
+                log.info("%s: seated: pressing %.2f N after %.2f mm", self.where, force, travel * 1e3)
+                return "seated"
+            if time.monotonic() > deadline:
+                log.warning("%s: seating press: the arm did not come to rest (%.1f mm/s, %.2f N)", self.where,
+                            tool_speed * 1e3, force)
+                return "not settled"
+            time.sleep(0.004)
 
     def _revive_compliance(self) -> None:
         """The compliant hold ended without being asked to (the robot aborted it): for a communication-constraint
