@@ -1,17 +1,14 @@
-"""``station.drivers.franka.press`` and the driver's options for it (``station.drivers.franka.robot``, without a
-robot): the press direction, its joint target, the rest it waits for; ``press_force`` parsed and bounded. The
-press on franka-sim itself: tests/drivers/franka/test_franka_driver.py and the two-socket and zero_offsets runs."""
+"""``station.drivers.franka.press``: the seating press's direction, its joint target and the rest it waits for
+(the FR3 model, no robot). The press on franka-sim itself: tests/drivers/franka/test_franka_driver.py, and the
+zero_offsets (tests/e2e/test_bus_conformance.py) and two-socket runs."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 from station.drivers.franka import press
-from station.drivers.franka.robot import FrankaRobot
 
 from station.kinematics import load_model
-from station.robot.errors import ConfigError
-from station.robot.url import parse_url
 
 Q = np.array([0.1, 0.3, -0.1, -2.0, 0.05, 2.3, 0.7])  # a seating-like FR3 pose, tool pointing down
 
@@ -93,14 +90,3 @@ def test_rest_needs_a_still_tool_and_a_steady_force():
     # a jolt of the force starts the rest over
     assert not s.add(t, 0.0005, 8.0)
     assert not s.rested
-
-
-def test_press_force_is_an_option_of_the_url():
-    url = "franka://127.0.0.2?model=fr3"
-    assert FrankaRobot.from_url(parse_url(url), connect=False).press_force == 5.0  # the default
-    r = FrankaRobot.from_url(parse_url(url + "&press_force=0&stiffness=1000"), connect=False)
-    assert r.press_force == 0.0 and r.stiffness == 1000.0
-    with pytest.raises(ConfigError, match="press_force"):
-        FrankaRobot.from_url(parse_url(url + "&press_force=25"), connect=False)  # above the reflex thresholds
-    with pytest.raises(ConfigError, match="press_force"):
-        FrankaRobot.from_url(parse_url(url + "&press_force=-1"), connect=False)
