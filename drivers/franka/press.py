@@ -15,9 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 
 MIN_APPROACH = 1e-3  # m: a move whose tool travels less than this has no direction to press along
-TRAVEL = 5e-3  # m: free travel the press may take beyond where the stiff move ended before it is called off
-# (a socket's cone meets the ball within the approach error, well under a millimetre once aimed; the two-socket
-# procedure stands off 4 mm; more than this in free air means nothing is there to seat in)
+TRAVEL = 6e-3  # m: travel without contact the press may take beyond where the stiff move ended before it is
+# called off (a socket's cone meets the ball within the approach error, under a millimetre once aimed; the
+# two-socket procedure stands off 4 mm and its first aim at a socket is the cell's, good to a millimetre or two;
+# more than this in free air means nothing is there to seat in)
 SPEED = 0.02  # m/s: the press target moves at this tool speed (a touch, not a blow)
 REST_TOOL = 1e-3  # m/s: the pressed tool rests when slower than this ...
 STEADY_S = 0.1  # s ... for this long, while the force along the press varies by less than

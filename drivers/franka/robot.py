@@ -88,8 +88,8 @@ class FrankaRobot(RobotBase):
                "force differs this much from the force at rest when compliance began (after a move: before it)"),
         Option("press_force", number(0, 20, unit="N"), 5.0, "compliance taken up right after a stiff move "
                "presses on along that move's tool direction with this force (the impedance target "
-               "`press_force/stiffness` beyond, at most 5 mm of free travel), so the socket's cone centres the "
-               "ball; 0: hold where the move stopped"),
+               "`press_force/stiffness` beyond, at most 6 mm of travel before contact), so the socket's cone "
+               "centres the ball; 0: hold where the move stopped"),
         Option("retries", integer(0, 10), 3, "motions aborted by a communication-constraint violation are "
                "recovered and retried this often before it is a fault"),
         Option("realtime", either("ignore", "enforce"), "ignore", "libfranka's real-time scheduling check "
@@ -556,9 +556,9 @@ class FrankaRobot(RobotBase):
         target goes on along the move's straight-line tool direction by ``press_force / stiffness`` (orientation
         kept) at 20 mm/s, and the call returns once the arm rests against what stopped it with a steady force.
         The touch's zero is then the force before the move (free of the contact the stiff move may have made:
-        a joint servo driving a ball into a cone leaves 3-30 N that the impedance then releases). Free travel
-        beyond ``press.TRAVEL`` means nothing is there: the press is called off and the arm held where it is
-        (``touch()`` stays off, so the seating step reports it)."""
+        a joint servo driving a ball into a cone leaves 3-40 N that the impedance then releases). Travel
+        beyond ``press.TRAVEL`` without contact means nothing is there: the press is called off and the arm held
+        where it is (``touch()`` stays off, so the seating step reports it)."""
         last, self._last_move = self._last_move, None
         self.last_press = None
         if last is None:
@@ -583,13 +583,15 @@ class FrankaRobot(RobotBase):
 
     def _watch_press(self, plan: press.Press, speed: float) -> str:
         """Stream the press and watch it: returns how it ended (``seated``: at rest with a steady force;
-        ``no contact``: free travel beyond ``press.TRAVEL``, held there; ``not settled``: out of time)."""
+        ``no contact``: beyond ``press.TRAVEL`` without contact, held there; ``not settled``: out of time)."""
         if self._loop is None or not self._loop.alive:
             self._start_compliant_loop(tare=False)
         loop = self._loop
         self._compliant_target, self._compliant_speed = plan.q.copy(), speed
         deadline = time.monotonic() + 2 * loop.move_to(plan.q, speed).T + SETTLE_S
         settle = press.Settle(self.press_force)
+        touched = False  # contact met: from then on the target's depth bounds the travel
+        tare = self._tare if self._tare is not None else np.zeros(3)
         while True:
             if self._interrupt.is_set():
                 raise SafetyStop(f"{self.where}: seating press: stopped")
@@ -599,14 +601,15 @@ class FrankaRobot(RobotBase):
             s = loop.state
             q, dq = np.asarray(s.q, float), np.asarray(s.dq, float)
             travel = plan.travel(self.model.position(q))
-            if travel > press.TRAVEL:
+            force = float(np.asarray(s.O_F_ext_hat_K, float)[:3] @ plan.u)
+            touched = touched or force - float(tare @ plan.u) > self.contact_force
+            if travel > press.TRAVEL and not touched:
                 loop.move_to(q, speed)  # nothing to seat in: hold here
                 self._compliant_target = q.copy()
-                log.warning("%s: seating press called off: %.1f mm of free travel beyond where the move ended "
+                log.warning("%s: seating press called off: %.1f mm beyond where the move ended without contact "
                             "(no socket there?); holding compliant where it is", self.where, travel * 1e3)
                 return "no contact"
             tool_speed = float(np.linalg.norm(self.model.jacobian_q(q).reshape(6, 7)[:3] @ dq))
-            force = float(np.asarray(s.O_F_ext_hat_K, float)[:3] @ plan.u)
             if settle.add(time.monotonic(), tool_speed, force) and loop.path_done():
                 log.info("%s: seated: pressing %.2f N after %.2f mm", self.where, force, travel * 1e3)
                 return "seated"
