@@ -553,8 +553,9 @@ class FrankaRobot(RobotBase):
 
     def _press_on(self) -> None:
         """Compliance right after a stiff move: the seating press (``drivers.franka.press``). The impedance
-        target goes on along the move's straight-line tool direction by ``press_force / stiffness`` (orientation
-        kept) at 20 mm/s, and the call returns once the arm rests against what stopped it with a steady force.
+        target goes on along the move's straight-line tool direction (orientation kept) at 20 mm/s until contact,
+        then ``press_force / stiffness`` beyond the contact, and the call returns once the arm rests against what
+        stopped it with a steady force.
         The touch's zero is then the force before the move (free of the contact the stiff move may have made:
         a joint servo driving a ball into a cone leaves 3-40 N that the impedance then releases). Travel
         beyond ``press.TRAVEL`` without contact means nothing is there: the press is called off and the arm held
@@ -570,7 +571,7 @@ class FrankaRobot(RobotBase):
             log.warning("%s: no seating press: %s", self.where, why)
             return
         self._tare = force_before
-        plan = press.plan(self.model, q_now, u, self.press_force / self.stiffness)
+        plan = press.plan(self.model, q_now, u, press.TRAVEL + self.press_force / self.stiffness)
         for attempt in range(self.retries + 1):
             try:
                 self.last_press = self._watch_press(plan, press.joint_speed(plan, q_now))
@@ -582,16 +583,20 @@ class FrankaRobot(RobotBase):
                 self._recover(str(r))  # the hold taken up again, the touch's zero kept
 
     def _watch_press(self, plan: press.Press, speed: float) -> str:
-        """Stream the press and watch it: returns how it ended (``seated``: at rest with a steady force;
-        ``no contact``: beyond ``press.TRAVEL`` without contact, held there; ``not settled``: out of time)."""
+        """Stream the press and watch it: the target goes towards ``plan`` (``press.TRAVEL`` + ``press_force /
+        stiffness`` beyond the start); once contact is felt it is set ``press_force / stiffness`` beyond where the
+        tool is (the push at rest is then ``press_force`` however far the approach went). Returns how it ended
+        (``seated``: at rest with a steady force; ``no contact``: ``press.TRAVEL`` without contact, held there;
+        ``not settled``: out of time)."""
         if self._loop is None or not self._loop.alive:
             self._start_compliant_loop(tare=False)
         loop = self._loop
+        depth = self.press_force / self.stiffness
         self._compliant_target, self._compliant_speed = plan.q.copy(), speed
         deadline = time.monotonic() + 2 * loop.move_to(plan.q, speed).T + SETTLE_S
         settle = press.Settle(self.press_force)
-        touched = False  # contact met: from then on the target's depth bounds the travel
-        tare = self._tare if self._tare is not None else np.zeros(3)
+        tare = float((self._tare if self._tare is not None else np.zeros(3)) @ plan.u)
+        touched = False
         while True:
             if self._interrupt.is_set():
                 raise SafetyStop(f"{self.where}: seating press: stopped")
@@ -602,22 +607,33 @@ class FrankaRobot(RobotBase):
             q, dq = np.asarray(s.q, float), np.asarray(s.dq, float)
             travel = plan.travel(self.model.position(q))
             force = float(np.asarray(s.O_F_ext_hat_K, float)[:3] @ plan.u)
-            touched = touched or force - float(tare @ plan.u) > self.contact_force
-            if travel > press.TRAVEL and not touched:
-                loop.move_to(q, speed)  # nothing to seat in: hold here
-                self._compliant_target = q.copy()
-                log.warning("%s: seating press called off: %.1f mm beyond where the move ended without contact "
-                            "(no socket there?); holding compliant where it is", self.where, travel * 1e3)
-                return "no contact"
+            if not touched and force - tare > self.contact_force:  # contact: press_force from here on
+                touched = True
+                self._compliant_target = press.plan(self.model, q, plan.u, depth).q
+                loop.move_to(self._compliant_target, speed)
+            elif not touched and travel > press.TRAVEL:
+                return self._call_off(loop, q, speed, travel)
             tool_speed = float(np.linalg.norm(self.model.jacobian_q(q).reshape(6, 7)[:3] @ dq))
-            if settle.add(time.monotonic(), tool_speed, force) and loop.path_done():
-                log.info("%s: seated: pressing %.2f N after %.2f mm", self.where, force, travel * 1e3)
+            if settle.add(time.monotonic(), tool_speed, force) and touched and loop.path_done():
+                log.info("%s: seated: pressing %.2f N after %.2f mm", self.where, force - tare, travel * 1e3)
                 return "seated"
             if time.monotonic() > deadline:
                 log.warning("%s: seating press: the arm did not come to rest (%.1f mm/s, %.2f N)", self.where,
-                            tool_speed * 1e3, force)
+                            tool_speed * 1e3, force - tare)
                 return "not settled"
             time.sleep(0.004)
+
+    def _call_off(self, loop: StreamLoop, q: np.ndarray, speed: float, travel: float) -> str:
+        """Nothing to seat in: the hold goes back to where the tool is and the call returns once it rests there
+        (at most 2 s)."""
+        self._compliant_target = q.copy()
+        loop.move_to(q, speed)
+        log.warning("%s: seating press called off: %.1f mm beyond where the move ended without contact (no socket "
+                    "there?); holding compliant where it is", self.where, travel * 1e3)
+        end = time.monotonic() + 2.0
+        while time.monotonic() < end and not (loop.path_done() and not self._moving(loop.state)):
+            time.sleep(0.01)
+        return "no contact"
 
     def _revive_compliance(self) -> None:
         """The compliant hold ended without being asked to (the robot aborted it): for a communication-constraint
