@@ -19,6 +19,8 @@ TRAVEL = 6e-3  # m: travel without contact the press may take beyond where the s
 # called off (a socket's cone meets the ball within the approach error, under a millimetre once aimed; the
 # two-socket procedure stands off 4 mm and its first aim at a socket is the cell's, good to a millimetre or two;
 # more than this in free air means nothing is there to seat in)
+WINDOW = 1.0  # s: the press follows a stiff move only when compliance is taken up this soon after it ended (a
+# seating step does it at once; a technician who jogs and then turns compliance on by hand does not)
 SPEED = 0.02  # m/s: the press target moves at this tool speed (a touch, not a blow)
 REST_TOOL = 1e-3  # m/s: the pressed tool rests when slower than this ...
 STEADY_S = 0.1  # s ... for this long, while the force along the press varies by less than

@@ -111,6 +111,7 @@ class FrankaRobot(RobotBase):
         self.contact_force, self.press_force = contact_force, press_force
         self._last_move: tuple | None = None  # (q from, q to, external force at rest before) of the last stiff move
         self.last_press: str | None = None  # how the last seating press ended (seated, no contact, not settled)
+        self._moved_at = -math.inf  # monotonic time the last move ended as asked
         self.retries = retries
         self.realtime = realtime
         self.export_dir = export_dir
@@ -304,6 +305,7 @@ class FrankaRobot(RobotBase):
                     self._stream_move(target, v, wait, compliant=False)
                 else:
                     self._async_move(target, v, wait)
+                self._moved_at = time.monotonic()  # a stiff move that ended as asked: a press may follow it
                 return
             except _Retry as r:
                 if attempt >= self.retries:
@@ -562,8 +564,8 @@ class FrankaRobot(RobotBase):
         where it is (``touch()`` stays off, so the seating step reports it)."""
         last, self._last_move = self._last_move, None
         self.last_press = None
-        if last is None:
-            return
+        if last is None or time.monotonic() - self._moved_at > press.WINDOW:
+            return  # no stiff move just before (a technician turning compliance on after a jog, a failed move)
         q_from, q_to, force_before = last
         q_now = self._q()
         u, why = press.direction(self.model, q_from, q_to, q_now)

@@ -211,6 +211,26 @@ def test_the_seating_press_is_called_off_where_there_is_no_socket(sim):
 
 
 @pytest.mark.slow
+def test_compliance_taken_up_later_than_right_after_a_move_does_not_press(sim):
+    """A technician who jogs and then turns compliance on by hand: no press (only a seating step's compliance,
+    taken up at once after its stiff move, presses on)."""
+    from station.drivers.franka.press import WINDOW
+
+    _, world, _ = sim
+    empty = np.asarray(world.points["A"].position) + [0.0, -0.04, 0.03]
+    with _open(sim, speed=1.0) as r:
+        r.move_joints(ik_down(world.nominal, empty, r.joint_positions().q, 0.0))
+        time.sleep(WINDOW + 0.3)
+        q0 = r.joint_positions().q
+        r.set_compliant(True)
+        assert r.last_press is None and not r.touch()
+        time.sleep(0.3)
+        moved = world.truth.position(r.joint_positions().q[None])[0] - world.truth.position(q0[None])[0]
+        assert np.linalg.norm(moved) < 0.5e-3, moved
+        r.set_compliant(False)
+
+
+@pytest.mark.slow
 def test_joint_compliance_of_the_world_bends_the_simulated_arm(tmp_path):
     """The world's joint compliance is in the simulated arm: seated, the TRUE rigid arm at the recorded joints
     misses the socket by the gravity deflection, and the world's own model of it (theta = q + C tau) puts the
