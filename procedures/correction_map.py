@@ -32,7 +32,7 @@ from station.procedures._calibration import (
 )
 
 from station.engine import events as ev
-from station.engine.declare import HOLDOUT, SEED, Measurement, Option, angle, count, measures, takes
+from station.engine.declare import HOLDOUT, SEED, Measurement, Option, angle, choice, count, measures, takes
 from station.engine.plan import PlannedPose, PosePlan
 from station.engine.steps import step
 from station.kinematics import se3
@@ -49,6 +49,8 @@ PREDICTED_LIMIT = 0.5  # serial arms: refuse a work box where the map would leav
 
 GRID = Option("grid", "--grid", count(1, 100, "sub-intervals 1..100"), "Q sub-intervals per actuator (Q+1 levels).",
               "count")
+MESH = Option("mesh", "", choice("grid", "simplex"), "How the map interpolates between its nodes: grid "
+              "(multilinear) or simplex (barycentric).")
 SPAN = Option("span_deg", "--span-deg", angle(0, 90, "deg", "20deg", "a half-width"), "With a serial arm: the work "
               "box is +- this angle per joint around the start pose: 20deg (a bare number is degrees).", "deg", "20")
 
@@ -70,7 +72,7 @@ SPAN = Option("span_deg", "--span-deg", angle(0, 90, "deg", "20deg", "a half-wid
     Measurement("holdout_rotation_rms", "deg", "held out: RMS rotation error with the map"),
     Measurement("tracker_noise_rms", "mm", "the tracker's stated noise at the held-out distances (RMS)"),
     judged=("holdout_rms",))
-@takes(HOLDOUT, SEED, TRACKER, GRID, SPAN, PAYLOAD, CALIBRATION)
+@takes(HOLDOUT, SEED, TRACKER, GRID, SPAN, PAYLOAD, CALIBRATION, settings=(MESH,))
 def checklist(s):
     s.connect()                                  # 1. connect and identify the robot (serial must match)
     s.check_state()                              # 2. no fault or stop, powered

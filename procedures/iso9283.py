@@ -24,7 +24,7 @@ from station.procedures._calibration import (
 )
 
 from station.engine import events as ev
-from station.engine.declare import Kind, Measurement, Option, choice, count, measures, takes
+from station.engine.declare import Kind, Measurement, Option, choice, count, is_number, measures, takes
 from station.engine.plan import PlannedPose, PosePlan
 from station.engine.steps import step
 from station.kinematics import se3
@@ -69,8 +69,14 @@ def _cube_value(text, flag: str, options: dict) -> list[float]:
 
 CYCLES = Option("cycles", "--cycles", count(4, 1000, "4..1000 cycles per pose (the standard: 30)"),
                 "Cycles per pose (the standard's 30).", "count")
+def _is_cube(v) -> bool:
+    """A journaled cube: ``[x, y, z, edge]`` in metres, edge > 0."""
+    return type(v) is list and len(v) == 4 and all(is_number(x, -1e9, 1e9) for x in v) and v[3] > 0
+
+
 CUBE = Option("cube", "--cube", Kind("the centre and edge X,Y,Z,EDGE in the base frame (metres, or one unit for all: "
-                                     "400,0,500,300mm), edge > 0", str, _cube_value),
+                                     "400,0,500,300mm), edge > 0", str, _cube_value, _is_cube,
+                                     "[x, y, z, edge] in metres, edge > 0"),
               "The test cube's centre and edge X,Y,Z,EDGE in the base frame (e.g. 400,0,500,300mm).", "m",
               "the largest cube around the tool")
 PLANE = Option("plane", "--plane", choice(*PLANES), "The cube's diagonal plane of the test poses: x+, x-, y+, y-, z+ "
