@@ -94,10 +94,9 @@ def checklist(s):
 def map_plan(s) -> PosePlan:
     """The sample grid of the nominal model (``station.solver.map.plan``) in grid order, then the held-out
     configurations; journaled once (a resumed session reuses it)."""
-    old = s.events("plan")
-    if old:
-        s.current_plan = PosePlan.from_dict(old[-1].plan)
-        return s.current_plan
+    journaled = s.journaled_plan()
+    if journaled is not None:
+        return journaled
     with s.step("plan"):
         m = s.model
         try:
@@ -183,10 +182,7 @@ def clear_of_keep_outs(s, x: np.ndarray) -> tuple[np.ndarray, int]:
     keep-outs (a parallel robot's legs have no capsules: all kept), and how many were left out."""
     if not _serial(s.model) or not len(x):
         return x, 0
-    from station.kinematics.collision import Checker, KeepOut
-
-    ko = s.cell.keep_out if s.cell else None
-    hits = Checker(s.model, KeepOut.default() if ko is None else ko).hits(x)
+    hits = s.checker().hits(x)
     keep = np.array([h is None for h in hits])
     return x[keep], int((~keep).sum())
 
@@ -200,14 +196,10 @@ def move(s, pose: PlannedPose) -> None:
     if not _serial(s.model):
         s.move_to(pose.q)
         return
-    from station.engine.plan import route_from
-
     m = s.model
     q = np.asarray(pose.q, float)
     short = np.maximum(q - np.array([APPROACH if j.revolute else APPROACH_LENGTH for j in m.joints]), m.lower)
-    for target in route_from(m, s.cell.keep_out if s.cell else None, s.robot.joint_positions().q, [short, q],
-                             what=f"configuration {pose.index}"):
-        s.move_to(target)
+    s.move_along([short, q], f"configuration {pose.index}")
 
 
 def _arrays(s, which: str):
@@ -304,13 +296,11 @@ def verify(s, cmap, reg):
         s.measure("holdout_rms", float(np.sqrt(np.mean(e_map ** 2))))
         s.measure("holdout_max", float(np.max(e_map)))
         s.measure("holdout_rotation_rms", float(np.sqrt(np.mean(r_map ** 2))), "angle")
-        spec = (s.events("instrument") or [None])[-1]
-        spec = spec.data.get("spec", {}) if spec is not None else {}
-        try:  # the instrument's own noise at these distances: 3-D RMS of one reflector reading (the floor)
-            sig = float(spec["sigma0_m"]) + float(spec["sigma_per_m"]) * np.linalg.norm(meas[:, :3], axis=1)
+        # the instrument's own noise at these distances: 3-D RMS of one reflector reading (the floor); an
+        # instrument that does not state its noise: nothing to compare with
+        sig = s.instrument_sigma(np.linalg.norm(meas[:, :3], axis=1))
+        if sig is not None:
             s.measure("tracker_noise_rms", float(np.sqrt(np.mean(3 * sig ** 2))))
-        except (KeyError, TypeError, ValueError):
-            pass  # an instrument that does not state its noise: nothing to compare with
 
 
 def store(s, cmap, reg):
