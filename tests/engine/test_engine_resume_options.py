@@ -82,3 +82,10 @@ def test_what_a_flag_reads_is_what_a_resume_accepts():
             assert not o.holds(object()), o.name
     assert {o.name for o in (*SESSION_OPTIONS, *PLAN_OPTIONS)} <= seen
     assert {"grid", "mesh", "tracker", "payload", "calibration", "cycles", "cube", "plane"} <= seen
+
+
+def test_station_run_reads_touch_by_the_same_declaration():
+    """``--touch`` is read by ``declare.TOUCH`` (the resume above holds the journaled value to it too): one line
+    before any robot is opened."""
+    r = station_main("run", "zero_offsets", "--robot", NOWHERE, "--serial", "S", "--touch", "poke")
+    assert r.code == 2 and r.error_line() == "station: error: --touch 'poke': expected one of seat, guarded, manual"
