@@ -8,7 +8,7 @@ from pathlib import Path
 
 import typer
 
-from station.cli.run_options import CONE, DB, HOLDOUT, LIMITS, POSES
+from station.cli.run_options import CONE, DB, HOLDOUT, LIMITS, POSES, REFERENCE
 
 
 def panel(
@@ -22,7 +22,7 @@ def panel(
     limits: Path = LIMITS,
     db: str = DB,
     touch: str = typer.Option(None, "--touch", help="Seat, guarded or manual (the operator touches each point)."),
-    reference: str = typer.Option(None, "--reference", help="Reference: unknown (solve the point) or cell (surveyed)."),
+    reference: str = REFERENCE,
     poses: int = POSES,
     holdout: int = HOLDOUT,
     cone: str = CONE,

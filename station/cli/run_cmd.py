@@ -50,11 +50,12 @@ def _progress_bar(quiet: bool):
 
 def preflight(robot: str, poses, holdout, cone, seed, touch, reference, limits, cell) -> None:
     """Every option and input file checked before any robot is opened or moved: one line, exit 2."""
-    from station.robot.errors import ConfigError
 
     _options(poses, holdout, cone, reference, seed)  # each value read by its declaration (station.engine.declare)
-    if touch is not None and touch not in ("seat", "guarded", "manual"):
-        raise ConfigError(f"--touch {touch!r}: expected seat, guarded or manual")
+    if touch is not None:
+        from station.engine.declare import TOUCH
+
+        TOUCH.read(touch)
     from station.robot.url import parse_url
 
     parse_url(robot)
