@@ -11,7 +11,7 @@ from pathlib import Path
 import typer
 
 from station.cli.model_options import PAYLOAD
-from station.cli.run_options import DB, LIMITS
+from station.cli.run_options import DB, LIMITS, TOUCH
 
 
 def _exit(code: int):
@@ -197,8 +197,7 @@ def run(
     apply: bool = typer.Option(False, "--apply", help="Write identified joint offsets back (two-phase)."),
     cell: Path = typer.Option(None, "--cell", help="Cell file (default $STATION_CELL, then ./cell.yaml)."),
     operator: str = typer.Option(None, "--operator", help="Who runs it (default: login name)."),
-    touch: str = typer.Option(None, "--touch", help="How the tool meets a point: seat (socket), guarded "
-                                "(contact input) or manual."),
+    touch: str = TOUCH,
     identify: str = typer.Option(None, "--identify", help="Parameter groups to solve for instead of the "
                                  "procedure's own (zero_offsets: offsets, dh_full: offsets,dh,tcp), e.g. "
                                  "offsets,tcp; as station solve --identify."),

@@ -14,3 +14,4 @@ POSES = typer.Option(None, declare.POSES.flag, help=declare.POSES.doc + " Defaul
 HOLDOUT = typer.Option(None, declare.HOLDOUT.flag, help=declare.HOLDOUT.doc)
 CONE = typer.Option(None, declare.CONE.flag, help=declare.CONE.doc)
 REFERENCE = typer.Option(None, declare.REFERENCE.flag, help=declare.REFERENCE.doc)
+TOUCH = typer.Option(None, declare.TOUCH.flag, help=declare.TOUCH.doc)

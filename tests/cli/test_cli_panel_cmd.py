@@ -51,3 +51,14 @@ def test_a_bad_reference_is_refused_by_the_declaration_before_anything_serves(tm
     r = station_main(command, "--robot", "ur://127.0.0.1:9", "--cell", cell, "--reference", "surveyed")
     assert r.code == 2 and r.error_line() == ("station: error: --reference 'surveyed': expected "
                                               f"{declare.REFERENCE.kind.form}"), r.err
+
+
+@pytest.mark.parametrize("command", ["run", "panel"])
+def test_touch_is_the_engines_one_declaration(tmp_path, command):
+    assert declare.TOUCH.doc in " ".join(station_main(command, "--help", columns=200).out.split()), command
+    cell = tmp_path / "cell.yaml"
+    cell.write_text(CELL)
+    args = ("zero_offsets", "--serial", "U1") if command == "run" else ()
+    r = station_main(command, *args, "--robot", "ur://127.0.0.1:9", "--cell", cell, "--touch", "probe")
+    assert r.code == 2 and r.error_line() == ("station: error: --touch 'probe': expected "
+                                              f"{declare.TOUCH.kind.form}"), r.err
