@@ -344,7 +344,7 @@ class FrankaRobot(RobotBase):
         h = self._handler
         res = h.set_joint_position_target(pf.AsyncPositionControlHandler.JointPositionTarget(target.tolist()))
         if not res.was_successful:
-            self._handler = None
+            self._end_motions()  # released now, not when the garbage collector gets to it
             self._raise_motion_error(res.error_message or "target refused", "move_joints")
         if not wait:
             return
@@ -357,7 +357,9 @@ class FrankaRobot(RobotBase):
             if self._interrupt.is_set():
                 raise SafetyStop(f"{self.where}: move_joints: stopped")
             if fb.status == pf._pylibfranka.TargetStatus.kAborted:
-                self._handler = None
+                # released now: a traceback that keeps this frame alive would otherwise keep libfranka's control
+                # slot taken, and the next motion after a recovery is refused
+                self._end_motions()
                 self._raise_motion_error(fb.error_message or "aborted", "move_joints")
             if fb.status == pf._pylibfranka.TargetStatus.kTargetReached and self._arrived(target):
                 return
@@ -676,6 +678,8 @@ class FrankaRobot(RobotBase):
         if any(w in text for w in NETWORK_WORDS):  # the asynchronous handler reports a lost link as text
             self._drop()
             raise ConnectionLost(f"{self.where}: {what}: connection lost: {text}")
+        if any(c in text or c in errors for c in COLLISION):  # the asynchronous handler reports a reflex as text
+            raise SafetyStop(f"{self.where}: {what}: collision reflex ({text}); clear the cause, then recover")
         raise DeviceFault(f"{self.where}: {what}: {text}" + (f" ({errors})" if errors else ""))
 
     def _translate(self, e: BaseException, what: str, errors: str = ""):

@@ -25,7 +25,10 @@ What this process adds to franka-sim 1.1.7 (each named in docs/hardware-franka.m
   the contact forces on the arm, with noise (franka-sim publishes zeros);
 - the asynchronous position motion generator (``Move.use_async_motion_generator``, libfranka >= 0.18): the
   robot moves to the last target it received within the velocities of the ``Move``, at the rate the client
-  chooses (franka-sim ignores the flag and judges the sparse targets as a 1 kHz stream)."""
+  chooses (franka-sim ignores the flag and judges the sparse targets as a 1 kHz stream);
+- the collision reflexes: franka-sim acknowledges ``SetCollisionBehavior`` and does nothing with it; here the
+  upper thresholds are kept and a motion whose estimated external torque or wrench exceeds them is aborted with
+  ``joint_reflex`` / ``cartesian_reflex``, as the robot does (libfranka robot.h, ``setCollisionBehavior``)."""
 
 from __future__ import annotations
 
@@ -44,7 +47,13 @@ import threading
 import mujoco
 import numpy as np
 from franka_sim.control_modes import ControlMode
-from franka_sim.franka_protocol import ControllerMode, LibfrankaControllerMode, MotionGeneratorMode
+from franka_sim.franka_protocol import (
+    ControllerMode,
+    LibfrankaControllerMode,
+    MotionGeneratorMode,
+    RobotMode,
+    SetCollisionBehaviorCommand,
+)
 from franka_sim.franka_sim_server import FrankaSimServer
 from franka_sim.mujoco_franka_sim import ARM_POSITION_KD, ARM_POSITION_KP, DEFAULT_DT, MujocoFrankaSim
 from franka_sim.robot_state import RobotState
@@ -63,6 +72,9 @@ D_STABLE = 1.5 * ARMATURE / DEFAULT_DT  # the damping an explicit step of the jo
 ELASTIC_DAMPING = 20.0  # N m s/rad on a compliant joint's elastic hinge: it rings down within a few ms
 EST_ALPHA = 0.95  # low-pass of the external torque estimate per 1 ms cycle (~20 ms time constant)
 ASYNC_ACCELERATION = 4.0  # rad/s^2 of the asynchronous generator (FR3: 10 rad/s^2 at most)
+# positions of the collision reflexes in the 41-entry error arrays of the robot state (libfranka errors.h,
+# research_interface::robot::Error: ..., force_control_safety_violation = 5, joint_reflex, cartesian_reflex)
+JOINT_REFLEX_INDEX, CARTESIAN_REFLEX_INDEX = 6, 7
 
 
 def _strip_urdf(text: str) -> str:
@@ -461,6 +473,8 @@ class StationServer(FrankaSimServer):
         self._pending: AsyncGenerator | None = None
         self._async_lock = threading.Lock()
         self._final_state_id = 0
+        self.upper_torque: np.ndarray | None = None  # N m per joint; None until the client sets them
+        self.upper_force: np.ndarray | None = None  # N, N m per Cartesian axis
         super().__init__(host=host, physics_sim=self.physics_sim, urdf_path=scene["served_urdf"],
                          enable_gripper=False, enforce_comm_constraints=bool(scene.get("enforce_comm", True)),
                          enforce_motion_limits=bool(scene.get("enforce_limits", True)))
@@ -554,6 +568,46 @@ class StationServer(FrankaSimServer):
             self._async = None
             self.physics_sim.generator = None
         super()._engage_idle_hold(reason, motion_id)
+
+    # ---- collision reflexes ---------------------------------------------------------------------------------
+    def handle_set_collision_behavior_command(self, client_socket, header, payload: bytes):
+        with contextlib.suppress(struct.error, ValueError):
+            cmd = SetCollisionBehaviorCommand.from_bytes(payload)
+            # the acceleration and the nominal set apply in different phases of a motion, which the robot does
+            # not publish: the lower of the two is the strictest reading of both
+            self.upper_torque = np.minimum(cmd.upper_torque_thresholds_acceleration,
+                                           cmd.upper_torque_thresholds_nominal)
+            self.upper_force = np.minimum(cmd.upper_force_thresholds_acceleration,
+                                          cmd.upper_force_thresholds_nominal)
+        super().handle_set_collision_behavior_command(client_socket, header, payload)
+
+    def _run_safety_velocity_check(self, sim_state) -> None:
+        super()._run_safety_velocity_check(sim_state)
+        self._run_collision_reflex(sim_state)
+
+    def _run_collision_reflex(self, sim_state) -> None:
+        """Once per published state: a motion that pushes harder than the upper collision thresholds stops with
+        the reflex, latched in ``current_errors``/``last_motion_errors``, the ``Move`` answered kReflexAborted
+        (libfranka then raises ``ControlException``), until ``AutomaticErrorRecovery``."""
+        if self.upper_force is None or not isinstance(sim_state, dict) or "O_F_ext_hat_K" not in sim_state:
+            return
+        if self.robot_state.state["robot_mode"] != RobotMode.kMove:
+            return
+        F = np.abs(np.asarray(sim_state["O_F_ext_hat_K"], float))
+        tau = np.abs(np.asarray(sim_state["tau_ext_hat_filtered"], float))
+        if np.any(self.upper_force < F):
+            i = int(np.argmax(F - self.upper_force))
+            index, reason = CARTESIAN_REFLEX_INDEX, (f"cartesian_reflex: external wrench {F[i]:.1f} on axis {i} "
+                                                     f"above the threshold {self.upper_force[i]:g}")
+        elif np.any(tau > self.upper_torque):
+            j = int(np.argmax(tau - self.upper_torque))
+            index, reason = JOINT_REFLEX_INDEX, (f"joint_reflex: external torque {tau[j]:.1f} N m on joint {j + 1} "
+                                                 f"above the threshold {self.upper_torque[j]:g} N m")
+        else:
+            return
+        with self._motion_lock:
+            if self.robot_state.state["robot_mode"] == RobotMode.kMove:
+                self._abort_with_error(index, reason, self._motion_generation)
 
     # ---- impedance and stiffness frame ----------------------------------------------------------------------
     def handle_set_joint_impedance_command(self, client_socket, header, payload: bytes):
