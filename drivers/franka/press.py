@@ -19,6 +19,9 @@ TRAVEL = 6e-3  # m: travel without contact the press may take beyond where the s
 # called off (a socket's cone meets the ball within the approach error, under a millimetre once aimed; the
 # two-socket procedure stands off 4 mm and its first aim at a socket is the cell's, good to a millimetre or two;
 # more than this in free air means nothing is there to seat in)
+STANDOFF = 3e-3  # m: a seating step's stiff move ends this far short of the seated pose along the socket's axis
+# (the arm, stiff, would otherwise load the cone with 30-45 N, past the collision thresholds the driver sets, and a
+# real robot stops with a reflex); the press covers it (within TRAVEL with the model's error to spare)
 WINDOW = 1.0  # s: the press follows a stiff move only when compliance is taken up this soon after it ended (a
 # seating step does it at once; a technician who jogs and then turns compliance on by hand does not)
 SPEED = 0.02  # m/s: the press target moves at this tool speed (a touch, not a blow)

@@ -109,6 +109,8 @@ class FrankaRobot(RobotBase):
         self.speed, self.accel = speed, accel
         self.stiffness, self.rot_stiffness = stiffness, rot_stiffness
         self.contact_force, self.press_force = contact_force, press_force
+        # read by the seating step: a robot that presses is brought stiff only this close to the seated pose
+        self.seat_standoff = press.STANDOFF if press_force > 0 else 0.0
         self._last_move: tuple | None = None  # (q from, q to, external force at rest before) of the last stiff move
         self.last_press: str | None = None  # how the last seating press ended (seated, no contact, not settled)
         self._moved_at = -math.inf  # monotonic time the last move ended as asked

@@ -589,9 +589,11 @@ class StationServer(FrankaSimServer):
         """Once per published state: a motion that pushes harder than the upper collision thresholds stops with
         the reflex, latched in ``current_errors``/``last_motion_errors``, the ``Move`` answered kReflexAborted
         (libfranka then raises ``ControlException``), until ``AutomaticErrorRecovery``."""
-        if self.upper_force is None or not isinstance(sim_state, dict) or "O_F_ext_hat_K" not in sim_state:
+        if not isinstance(sim_state, dict) or "O_F_ext_hat_K" not in sim_state:
             return
-        if self.robot_state.state["robot_mode"] != RobotMode.kMove:
+        moving = self.robot_state.state["robot_mode"] == RobotMode.kMove
+        self._note_peak(sim_state["O_F_ext_hat_K"], moving)
+        if self.upper_force is None or not moving:
             return
         F = np.abs(np.asarray(sim_state["O_F_ext_hat_K"], float))
         tau = np.abs(np.asarray(sim_state["tau_ext_hat_filtered"], float))
@@ -608,6 +610,18 @@ class StationServer(FrankaSimServer):
         with self._motion_lock:
             if self.robot_state.state["robot_mode"] == RobotMode.kMove:
                 self._abort_with_error(index, reason, self._motion_generation)
+
+    def _note_peak(self, F, moving: bool) -> None:
+        """The largest estimated contact force of each motion, appended to ``$FRANKA_SIM_PEAK_LOG`` (one number in
+        N a line) when it is set: what a seating loads the cone with, measured where the reflex judges it."""
+        if moving:
+            self._peak = max(getattr(self, "_peak", 0.0), float(np.linalg.norm(np.asarray(F, float)[:3])))
+            return
+        peak, self._peak = getattr(self, "_peak", 0.0), 0.0
+        path = os.environ.get("FRANKA_SIM_PEAK_LOG")
+        if peak > 0 and path:
+            with open(path, "a") as f:
+                f.write(f"{peak:.2f}\n")
 
     # ---- impedance and stiffness frame ----------------------------------------------------------------------
     def handle_set_joint_impedance_command(self, client_socket, header, payload: bytes):

@@ -58,6 +58,20 @@ def _wait(cond, timeout: float, poll: float = 0.005) -> bool:
         time.sleep(poll)
 
 
+def along_approach(s: Session, pose: PlannedPose, q_ref: np.ndarray, depth: float, seed: np.ndarray) -> np.ndarray:
+    """Joint target with the tip ``depth`` metres past where ``q_ref`` puts it along the point's approach axis
+    (towards the point; negative: back out), same orientation."""
+    model = s.model
+    T = model.fk(q_ref)
+    T[:3, 3] -= s.point(pose.point).approach * depth
+    full = model.n_joints >= 6
+    r = model.ik(T if full else T[:3, 3], seed, position_only=not full)
+    if not r.ok[0]:
+        where = f"{depth * 1e3:.2f} mm down" if depth >= 0 else f"{-depth * 1e3:.2f} mm short of the seated pose"
+        raise TouchFailed(f"pose {pose.index}: the approach towards {pose.point} leaves the reachable space {where}")
+    return r.q[0]
+
+
 class SocketSeating:
     """Automatic: move to the nominal touch pose (the tip lands within the socket's capture radius), switch to
     compliant mode and let the ball seat in the cone; the joints are read while still compliant.
@@ -74,6 +88,9 @@ class SocketSeating:
         if not isinstance(robot, Compliant):
             raise ConfigError(f"socket {pose.point}: seating needs a compliant mode, which this robot does not have")
         target = s.aimed_q(pose)
+        standoff = float(getattr(robot, "seat_standoff", 0.0) or 0.0)
+        if standoff > 0:  # a robot that presses: stiff to short of the cone, the press seats the ball
+            target = along_approach(s, pose, target, -standoff, target)
         robot.move_joints(target, speed=s.touch_speed(pose.approach_arr, target))
         robot.set_compliant(True)
         # the touch indicator lights once the ball sits in the cone; a robot without one (touch() is None) is
@@ -106,15 +123,7 @@ class GuardedApproach:
 
     def _at(self, s: Session, pose: PlannedPose, depth: float, seed: np.ndarray) -> np.ndarray:
         """Joint target ``depth`` metres past the approach pose along the approach axis (same orientation)."""
-        model = s.model
-        T = model.fk(pose.approach_arr)
-        T[:3, 3] -= s.point(pose.point).approach * depth
-        full = model.n_joints >= 6
-        r = model.ik(T if full else T[:3, 3], seed, position_only=not full)
-        if not r.ok[0]:
-            raise TouchFailed(f"pose {pose.index}: the approach towards {pose.point} leaves the reachable space "
-                              f"{depth * 1e3:.2f} mm down")
-        return r.q[0]
+        return along_approach(s, pose, pose.approach_arr, depth, seed)
 
     def bring_to(self, s: Session, pose: PlannedPose) -> None:
         robot = s.robot
