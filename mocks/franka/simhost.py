@@ -475,6 +475,7 @@ class StationServer(FrankaSimServer):
         self._final_state_id = 0
         self.upper_torque: np.ndarray | None = None  # N m per joint; None until the client sets them
         self.upper_force: np.ndarray | None = None  # N, N m per Cartesian axis
+        self._peak, self._peak_log = 0.0, os.environ.get("FRANKA_SIM_PEAK_LOG", "")
         super().__init__(host=host, physics_sim=self.physics_sim, urdf_path=scene["served_urdf"],
                          enable_gripper=False, enforce_comm_constraints=bool(scene.get("enforce_comm", True)),
                          enforce_motion_limits=bool(scene.get("enforce_limits", True)))
@@ -589,10 +590,11 @@ class StationServer(FrankaSimServer):
         """Once per published state: a motion that pushes harder than the upper collision thresholds stops with
         the reflex, latched in ``current_errors``/``last_motion_errors``, the ``Move`` answered kReflexAborted
         (libfranka then raises ``ControlException``), until ``AutomaticErrorRecovery``."""
-        if not isinstance(sim_state, dict) or "O_F_ext_hat_K" not in sim_state:
-            return
         moving = self.robot_state.state["robot_mode"] == RobotMode.kMove
-        self._note_peak(sim_state["O_F_ext_hat_K"], moving)
+        if not isinstance(sim_state, dict) or "O_F_ext_hat_K" not in sim_state or not (moving or self._peak):
+            return  # the publish loop's 1 ms: nothing to do between motions
+        if self._peak_log:
+            self._note_peak(sim_state["O_F_ext_hat_K"], moving)
         if self.upper_force is None or not moving:
             return
         F = np.abs(np.asarray(sim_state["O_F_ext_hat_K"], float))
@@ -615,13 +617,11 @@ class StationServer(FrankaSimServer):
         """The largest estimated contact force of each motion, appended to ``$FRANKA_SIM_PEAK_LOG`` (one number in
         N a line) when it is set: what a seating loads the cone with, measured where the reflex judges it."""
         if moving:
-            self._peak = max(getattr(self, "_peak", 0.0), float(np.linalg.norm(np.asarray(F, float)[:3])))
+            self._peak = max(self._peak, float(np.linalg.norm(np.asarray(F, float)[:3])))
             return
-        peak, self._peak = getattr(self, "_peak", 0.0), 0.0
-        path = os.environ.get("FRANKA_SIM_PEAK_LOG")
-        if peak > 0 and path:
-            with open(path, "a") as f:
-                f.write(f"{peak:.2f}\n")
+        peak, self._peak = self._peak, 0.0
+        with open(self._peak_log, "a") as f:
+            f.write(f"{peak:.2f}\n")
 
     # ---- impedance and stiffness frame ----------------------------------------------------------------------
     def handle_set_joint_impedance_command(self, client_socket, header, payload: bytes):
