@@ -473,8 +473,8 @@ class StationServer(FrankaSimServer):
         self._pending: AsyncGenerator | None = None
         self._async_lock = threading.Lock()
         self._final_state_id = 0
-        self.upper_torque: np.ndarray | None = None  # N m per joint; None until the client sets them
-        self.upper_force: np.ndarray | None = None  # N, N m per Cartesian axis
+        self.upper_torque: list[float] | None = None  # N m per joint; None until the client sets them
+        self.upper_force: list[float] | None = None  # N, N m per Cartesian axis
         self._peak, self._peak_log = 0.0, os.environ.get("FRANKA_SIM_PEAK_LOG", "")
         super().__init__(host=host, physics_sim=self.physics_sim, urdf_path=scene["served_urdf"],
                          enable_gripper=False, enforce_comm_constraints=bool(scene.get("enforce_comm", True)),
@@ -576,10 +576,10 @@ class StationServer(FrankaSimServer):
             cmd = SetCollisionBehaviorCommand.from_bytes(payload)
             # the acceleration and the nominal set apply in different phases of a motion, which the robot does
             # not publish: the lower of the two is the strictest reading of both
-            self.upper_torque = np.minimum(cmd.upper_torque_thresholds_acceleration,
-                                           cmd.upper_torque_thresholds_nominal)
-            self.upper_force = np.minimum(cmd.upper_force_thresholds_acceleration,
-                                          cmd.upper_force_thresholds_nominal)
+            self.upper_torque = [min(a, b) for a, b in zip(cmd.upper_torque_thresholds_acceleration,
+                                                           cmd.upper_torque_thresholds_nominal, strict=True)]
+            self.upper_force = [min(a, b) for a, b in zip(cmd.upper_force_thresholds_acceleration,
+                                                          cmd.upper_force_thresholds_nominal, strict=True)]
         super().handle_set_collision_behavior_command(client_socket, header, payload)
 
     def _run_safety_velocity_check(self, sim_state) -> None:
@@ -597,18 +597,21 @@ class StationServer(FrankaSimServer):
             self._note_peak(sim_state["O_F_ext_hat_K"], moving)
         if self.upper_force is None or not moving:
             return
-        F = np.abs(np.asarray(sim_state["O_F_ext_hat_K"], float))
-        tau = np.abs(np.asarray(sim_state["tau_ext_hat_filtered"], float))
-        if np.any(self.upper_force < F):
-            i = int(np.argmax(F - self.upper_force))
-            index, reason = CARTESIAN_REFLEX_INDEX, (f"cartesian_reflex: external wrench {F[i]:.1f} on axis {i} "
-                                                     f"above the threshold {self.upper_force[i]:g}")
-        elif np.any(tau > self.upper_torque):
-            j = int(np.argmax(tau - self.upper_torque))
-            index, reason = JOINT_REFLEX_INDEX, (f"joint_reflex: external torque {tau[j]:.1f} N m on joint {j + 1} "
-                                                 f"above the threshold {self.upper_torque[j]:g} N m")
+        # plain floats: this runs in the 1 kHz publish loop, where numpy's per-call cost would show
+        over = [abs(f) - u for f, u in zip(sim_state["O_F_ext_hat_K"], self.upper_force, strict=True)]
+        if max(over) > 0:
+            i = over.index(max(over))
+            reason = (f"cartesian_reflex: external wrench {over[i] + self.upper_force[i]:.1f} on axis {i} above the "
+                      f"threshold {self.upper_force[i]:g}")
+            index = CARTESIAN_REFLEX_INDEX
         else:
-            return
+            over = [abs(f) - u for f, u in zip(sim_state["tau_ext_hat_filtered"], self.upper_torque, strict=True)]
+            if max(over) <= 0:
+                return
+            j = over.index(max(over))
+            reason = (f"joint_reflex: external torque {over[j] + self.upper_torque[j]:.1f} N m on joint {j + 1} above "
+                      f"the threshold {self.upper_torque[j]:g} N m")
+            index = JOINT_REFLEX_INDEX
         with self._motion_lock:
             if self.robot_state.state["robot_mode"] == RobotMode.kMove:
                 self._abort_with_error(index, reason, self._motion_generation)
