@@ -28,6 +28,7 @@ import io
 import os
 import subprocess
 import sys
+import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import NamedTuple
@@ -138,8 +139,10 @@ class ChildProcess:
     line, wait for its ``CliResult``. A context manager: a child still running at exit is killed and reaped."""
 
     def __init__(self, cmd: list[str], *, env: dict[str, str], cwd: str | Path | None) -> None:
+        # bytes, read here line by line: a line waited for with a timeout is never stuck in a text buffer
         self.popen = subprocess.Popen(cmd, env=env, cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                      stderr=subprocess.PIPE, text=True)
+                                      stderr=subprocess.PIPE)
+        self._buf = b""
 
     @property
     def pid(self) -> int:
@@ -161,20 +164,29 @@ class ChildProcess:
         self.popen.kill()
 
     def readline(self, timeout: float | None = None) -> str:
-        """The next line the child prints ("" at its end); ``timeout``: "" too when none comes within it."""
-        if timeout is not None:
-            import select
+        """The next line the child prints, with its newline; "" at the end of its output or, with ``timeout``,
+        when no whole line came within it."""
+        import select
 
-            ready, _, _ = select.select([self.popen.stdout], [], [], timeout)
-            if not ready:
+        end = None if timeout is None else time.monotonic() + timeout
+        fd = self.popen.stdout.fileno()
+        while b"\n" not in self._buf:
+            left = None if end is None else max(0.0, end - time.monotonic())
+            if not select.select([fd], [], [], left)[0]:
                 return ""
-        return self.popen.stdout.readline()
+            chunk = os.read(fd, 4096)
+            if not chunk:
+                break
+            self._buf += chunk
+        line, sep, self._buf = self._buf.partition(b"\n")
+        return (line + sep).decode(errors="replace")
 
     def wait(self, timeout: float = 180) -> CliResult:
         """Wait for the end (``subprocess.TimeoutExpired`` past ``timeout``); what the child left: exit code, the
         rest of stdout (after the lines read), stderr."""
         out, err = self.popen.communicate(timeout=timeout)
-        return CliResult(self.popen.returncode, out, err)
+        rest, self._buf = self._buf + out, b""
+        return CliResult(self.popen.returncode, rest.decode(errors="replace"), err.decode(errors="replace"))
 
     def close(self) -> None:
         if self.popen.poll() is None:
