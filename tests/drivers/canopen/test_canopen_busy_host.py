@@ -6,16 +6,14 @@ timeout fired and the host's scheduling gap. Truth: the process's exit and outpu
 
 from __future__ import annotations
 
-import os
 import signal
-import subprocess
-import sys
 import time
 import uuid
 from pathlib import Path
 
 import numpy as np
 import pytest
+from clirunner import python_spawn
 from faultrig import canopen_arm
 from station.mocks.canopen.emulator import CanopenEmulator
 from station.mocks.canopen.hub import SocketcandHub
@@ -53,38 +51,31 @@ robot.close()
 
 @pytest.mark.slow
 @pytest.mark.exclusive
-def test_a_station_the_host_does_not_schedule_sees_no_spurious_timeout(tmp_path):
+def test_a_station_the_host_does_not_schedule_sees_no_spurious_timeout():
     """The station process (drives behind a socketcand hub in this process) touches and moves in a loop while
     it is stopped for 250 ms at a time, again and again (20 ms of running between): more than the 200 ms digital-
     input wait and, added up, the 1 s set-point and SYNC-round waits; less than the drives' 800 ms consumer of the
     station's heartbeat. It finishes without a fault."""
     chan = f"busy-{uuid.uuid4().hex[:8]}"
     world = World.default(model="arm6", seed=5, start=START)
-    script = tmp_path / "station_loop.py"
-    script.write_text(STATION)
     with CanopenEmulator(world, channel=chan), SocketcandHub(chan, port=0) as hub:
         url = f"canopen+socketcand://127.0.0.1:{hub.port}?channel=can0&nodes=1-6&model=arm6&sdo_timeout_ms=2000"
-        proc = subprocess.Popen([sys.executable, str(script), url], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                text=True, cwd=ROOT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        try:
-            line = proc.stdout.readline()
-            assert line.strip() == "ready", line + (proc.stderr.read() if proc.poll() is not None else "")
+        # a script, not a command: no station command touches and moves in a loop
+        with python_spawn(STATION, url, cwd=ROOT) as proc:
+            line = proc.readline()
+            assert line.strip() == "ready", line + (proc.wait().err if not proc.running() else "")
             stopped = 0.0
             rng = np.random.default_rng(1)
             end = time.monotonic() + 6.0
-            while time.monotonic() < end and proc.poll() is None:
+            while time.monotonic() < end and proc.running():
                 time.sleep(float(rng.uniform(0.005, 0.03)))
                 proc.send_signal(signal.SIGSTOP)
                 time.sleep(0.25)
                 stopped += 0.25
                 proc.send_signal(signal.SIGCONT)
-            out, err = proc.communicate(timeout=120)
-        finally:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGCONT)
-                proc.kill()
-                proc.wait()
-    assert proc.returncode == 0 and out.strip().startswith("done"), out + err
+            r = proc.wait(timeout=120)
+    out, err = r.out, r.err
+    assert r.code == 0 and out.strip().startswith("done"), out + err
     assert stopped >= 4.0
     print(f"\nstation stopped {stopped:.1f} s in 250 ms pieces: {out.strip()}")
 
