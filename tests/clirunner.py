@@ -28,6 +28,7 @@ import io
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -139,10 +140,13 @@ class ChildProcess:
     line, wait for its ``CliResult``. A context manager: a child still running at exit is killed and reaped."""
 
     def __init__(self, cmd: list[str], *, env: dict[str, str], cwd: str | Path | None) -> None:
-        # bytes, read here line by line: a line waited for with a timeout is never stuck in a text buffer
+        # stdout: bytes, read here line by line (a line waited for with a timeout is never stuck in a text
+        # buffer); stderr: a file, so a long-lived child that logs a lot never blocks on a full pipe nobody reads
+        self._err = tempfile.TemporaryFile()  # noqa: SIM115 - closed in close()
         self.popen = subprocess.Popen(cmd, env=env, cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                      stderr=subprocess.PIPE)
+                                      stderr=self._err)
         self._buf = b""
+        self._closed = False
 
     @property
     def pid(self) -> int:
@@ -184,14 +188,24 @@ class ChildProcess:
     def wait(self, timeout: float = 180) -> CliResult:
         """Wait for the end (``subprocess.TimeoutExpired`` past ``timeout``); what the child left: exit code, the
         rest of stdout (after the lines read), stderr."""
-        out, err = self.popen.communicate(timeout=timeout)
-        rest, self._buf = self._buf + out, b""
-        return CliResult(self.popen.returncode, rest.decode(errors="replace"), err.decode(errors="replace"))
+        out, _ = self.popen.communicate(timeout=timeout)
+        rest, self._buf = self._buf + (out or b""), b""
+        return CliResult(self.popen.returncode, rest.decode(errors="replace"), self.stderr())
+
+    def stderr(self) -> str:
+        """What the child wrote to stderr so far."""
+        self._err.seek(0)
+        return self._err.read().decode(errors="replace")
 
     def close(self) -> None:
+        """Kill the child if it still runs and reap it (safe to call twice)."""
+        if self._closed:
+            return
+        self._closed = True
         if self.popen.poll() is None:
             self.popen.kill()
         self.popen.communicate()
+        self._err.close()
 
     def __enter__(self) -> ChildProcess:
         return self
