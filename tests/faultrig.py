@@ -228,28 +228,6 @@ setattr(Session, *phase_hook({phase!r}, lambda s: os.kill(os.getpid(), signal.SI
 """
 
 
-@contextlib.contextmanager
-def canopen_arm(start, *, seed: int = 11, query: str = "", **world_kw):
-    """(world, emulator, robot): the arm6 drives on a fresh python-can virtual channel in a realtime world, the
-    robot opened on it (``query``: extra URL options, e.g. ``&heartbeat_ms=100``); closed in reverse order."""
-    from station.mocks.canopen.emulator import CanopenEmulator
-    from station.mocks.world import World
-
-    from station.robot import open_robot
-
-    chan = f"f-{uuid.uuid4().hex[:8]}"
-    world = World.default(model="arm6", seed=seed, start=start, time_mode="realtime", **world_kw)
-    emu = CanopenEmulator(world, channel=chan, timeout_silence=1.0).start()
-    try:
-        robot = open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6{query}")
-        try:
-            yield world, emu, robot
-        finally:
-            robot.close()
-    finally:
-        emu.stop()
-
-
 def realtime_ur(tmp_path: Path, emulators, seed: int):
     """A UR5e emulator process on a real-time world (faults and hangs are timed on the wall clock)."""
     import yaml

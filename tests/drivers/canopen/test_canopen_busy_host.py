@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from clirunner import python_spawn
-from faultrig import canopen_arm
 from station.mocks.canopen.emulator import CanopenEmulator
 from station.mocks.canopen.hub import SocketcandHub
 from station.mocks.world import World
@@ -58,6 +57,8 @@ def test_a_station_the_host_does_not_schedule_sees_no_spurious_timeout():
     station's heartbeat. It finishes without a fault."""
     chan = f"busy-{uuid.uuid4().hex[:8]}"
     world = World.default(model="arm6", seed=5, start=START)
+    # its own rig: the station runs in another process, so the drives sit behind a socketcand hub (robot_rig's
+    # virtual channel reaches this process only)
     with CanopenEmulator(world, channel=chan), SocketcandHub(chan, port=0) as hub:
         url = f"canopen+socketcand://127.0.0.1:{hub.port}?channel=can0&nodes=1-6&model=arm6&sdo_timeout_ms=2000"
         # a script, not a command: no station command touches and moves in a loop
@@ -80,38 +81,33 @@ def test_a_station_the_host_does_not_schedule_sees_no_spurious_timeout():
     print(f"\nstation stopped {stopped:.1f} s in 250 ms pieces: {out.strip()}")
 
 
-def test_a_silent_contact_input_is_found_within_its_documented_time():
+def test_a_silent_contact_input_is_found_within_its_documented_time(robot_rig):
     """The contact drive goes silent: touch() fails within the digital-input wait (5 event periods, at least
     200 ms) of observed time, and says which wait and the host's gap."""
-    with canopen_arm(START) as (world, emu, robot):
-        robot.enable()
+    world = World.default(model="arm6", seed=11, start=START, time_mode="realtime")
+    _, robot = robot_rig("canopen", world)
+    robot.touch()
+    world.faults.inject("timeout", device=robot.contact_node)
+    time.sleep(0.02)
+    t0 = time.monotonic()
+    with pytest.raises(ConnectionLost) as e:
         robot.touch()
-        world.faults.inject("timeout", device=robot.contact_node)
-        time.sleep(0.02)
-        t0 = time.monotonic()
-        with pytest.raises(ConnectionLost) as e:
-            robot.touch()
-        took = time.monotonic() - t0
+    took = time.monotonic() - t0
     assert "no digital-input TPDO within 200 ms" in str(e.value) and "host scheduling gap" in str(e.value)
     assert 0.15 < took < 0.6, took
 
 
-def test_a_drive_that_never_acknowledges_is_found_within_one_second():
+def test_a_drive_that_never_acknowledges_is_found_within_one_second(robot_rig):
     """A drive that takes no new set-point (its statusword never sets bit 12): the move fails after 1.0 s of
     observed time, naming the timeout, the node and the host's scheduling gap; nothing keeps moving."""
-    chan = f"ack-{uuid.uuid4().hex[:8]}"
     world = World.default(model="arm6", seed=5, start=START)
-    with CanopenEmulator(world, channel=chan) as emu:
-        from station.robot import open_robot
-
-        with open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6") as robot:
-            robot.enable()
-            d = emu.drives[4]
-            d._new_setpoint = lambda relative: None  # firmware that ignores bit 4 in profile position mode
-            t0 = time.monotonic()
-            with pytest.raises(DeviceFault) as e:
-                robot.move_joints(robot.joint_positions().q + 0.01, speed=0.5)
-            took = time.monotonic() - t0
+    emu, robot = robot_rig("canopen", world)
+    d = emu.drives[4]
+    d._new_setpoint = lambda relative: None  # firmware that ignores bit 4 in profile position mode
+    t0 = time.monotonic()
+    with pytest.raises(DeviceFault) as e:
+        robot.move_joints(robot.joint_positions().q + 0.01, speed=0.5)
+    took = time.monotonic() - t0
     text = str(e.value)
     assert "set-point acknowledge not confirmed within 1.0 s" in text and "[4]" in text, text
     assert "host scheduling gap" in text and "\n" not in text

@@ -117,6 +117,8 @@ def test_killing_the_station_mid_move_stops_the_arm_within_the_consumer_time():
     The arm is still within 400 ms + the quick-stop deceleration (+ scheduling slack) of the kill."""
     chan = f"k-{uuid.uuid4().hex[:8]}"
     world = World.default(model="arm6", seed=3, start=START, time_mode="realtime")
+    # its own rig: the station runs in another process, so the drives sit behind a socketcand hub (robot_rig's
+    # virtual channel reaches this process only)
     with CanopenEmulator(world, channel=chan) as emu, SocketcandHub(chan, port=0) as hub:
         # sdo_timeout_ms: connecting is not what is timed here, and this host may be loaded
         url = (f"canopen+socketcand://127.0.0.1:{hub.port}?channel=can0&nodes=1-6&model=arm6"
