@@ -187,7 +187,7 @@ def phase_hook(phase: str, act, *, in_write: bool = False):
     """``(name, method)``: a replacement for ``Session.<name>`` that runs ``act(session)`` as the phase starts (the
     3rd approach, the 3rd record, the solve, the write-back); with ``in_write`` inside the write-back's device
     write (the window whose signals are held). Install it with monkeypatch in-process, or in a station child
-    process through :data:`WRAPPER`."""
+    process through its prelude, :func:`kill_in`."""
     from station.engine.session import Session
 
     name, nth = PHASE_CALLS[phase]
