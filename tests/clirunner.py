@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import select
 import subprocess
 import sys
 import tempfile
@@ -170,8 +171,6 @@ class ChildProcess:
     def readline(self, timeout: float | None = None) -> str:
         """The next line the child prints, with its newline; "" at the end of its output or, with ``timeout``,
         when no whole line came within it."""
-        import select
-
         end = None if timeout is None else time.monotonic() + timeout
         fd = self.popen.stdout.fileno()
         while b"\n" not in self._buf:
