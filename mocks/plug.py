@@ -16,15 +16,17 @@ from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass, field
-from importlib.metadata import entry_points
 from typing import TYPE_CHECKING, Any
 
 from station.mocks.errors import MockError
+
+from station.plugins import Registry
 
 if TYPE_CHECKING:
     from station.mocks.emulator import EmulatorBase
 
 GROUP = "station.emulators"
+REGISTRY = Registry(GROUP, "emulator", MockError, noun="emulator", fold_case=False)  # bus names as written
 IN_PROCESS, CHILD = "in-process", "child"
 
 
@@ -83,10 +85,11 @@ class Plug:
 
 def _load() -> dict[str, Plug]:
     plugs: dict[str, Plug] = {}
-    for ep in sorted(entry_points(group=GROUP), key=lambda e: e.name):
+    for name in REGISTRY.names():
+        ep = REGISTRY.entry(name)
         try:
-            plug = ep.load()
-        except (ImportError, AttributeError) as e:  # a missing module or a missing name in it
+            plug = REGISTRY.load(name)
+        except (ImportError, AttributeError) as e:  # our own module missing, or a missing name in it
             raise MockError(f"emulator {ep.name!r} ({ep.value}) cannot be imported: {e}") from None
         if not isinstance(plug, Plug) or plug.bus != ep.name:
             raise MockError(f"entry point {GROUP} {ep.name} = {ep.value} is not the Plug of bus {ep.name!r}")

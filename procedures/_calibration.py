@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from station.engine.declare import Kind, Option, url
+from station.engine.declare import Kind, Option, is_number, url
 from station.robot.errors import ConfigError
 from station.safeio import DuplicateKeyError, loads_strict
 from station.solver.map import working_model
@@ -45,14 +45,22 @@ def _calibration_file(path, flag: str, options: dict) -> str:
     return str(Path(path).resolve())
 
 
+def _is_payload(v) -> bool:
+    """A journaled payload: ``{"mass": kg, "com": [x, y, z] m}`` within what a station carries."""
+    return (type(v) is dict and set(v) == {"mass", "com"} and is_number(v["mass"], 0, 10_000)
+            and type(v["com"]) is list and len(v["com"]) == 3 and all(is_number(c, -10, 10) for c in v["com"]))
+
+
 # the options of the procedures that measure with an instrument (declared once: correction_map, iso9283)
 TRACKER = Option("tracker", "--tracker", url("tcp://127.0.0.1:5300"), "Measuring instrument URL, e.g. "
                  "tcp://127.0.0.1:5300 (station mock tracker).")
 PAYLOAD = Option("payload", "--payload", Kind("a mass with its unit, optionally @x,y,z: 0.5kg@0,0,30mm", str,
-                                              _payload_value),
+                                              _payload_value, _is_payload, "{mass: kg 0..10000, com: [x, y, z] m}"),
                  "Mass at the tool, e.g. 0.1kg or 250g, optionally with its centre in the tool frame: 0.5kg@0,0,30mm "
                  "(loads the joints: compliance).", "kg", "none")
-CALIBRATION = Option("calibration", "--calibration", Kind("a station solve result JSON", Path, _calibration_file),
+CALIBRATION = Option("calibration", "--calibration",
+                     Kind("a station solve result JSON", Path, _calibration_file,
+                          lambda v: type(v) is str and 0 < len(v) < 4096, "a file name"),
                      "A parametric calibration of the robot's model (result JSON of station solve) the procedure "
                      "works on top of.", None, "none (the nominal model)")
 

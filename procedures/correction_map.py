@@ -32,7 +32,7 @@ from station.procedures._calibration import (
 )
 
 from station.engine import events as ev
-from station.engine.declare import HOLDOUT, SEED, Measurement, Option, angle, count, measures, takes
+from station.engine.declare import HOLDOUT, SEED, Measurement, Option, angle, choice, count, measures, takes
 from station.engine.plan import PlannedPose, PosePlan
 from station.engine.steps import step
 from station.kinematics import se3
@@ -49,6 +49,8 @@ PREDICTED_LIMIT = 0.5  # serial arms: refuse a work box where the map would leav
 
 GRID = Option("grid", "--grid", count(1, 100, "sub-intervals 1..100"), "Q sub-intervals per actuator (Q+1 levels).",
               "count")
+MESH = Option("mesh", "", choice("grid", "simplex"), "How the map interpolates between its nodes: grid "
+              "(multilinear) or simplex (barycentric).")
 SPAN = Option("span_deg", "--span-deg", angle(0, 90, "deg", "20deg", "a half-width"), "With a serial arm: the work "
               "box is +- this angle per joint around the start pose: 20deg (a bare number is degrees).", "deg", "20")
 
@@ -70,7 +72,7 @@ SPAN = Option("span_deg", "--span-deg", angle(0, 90, "deg", "20deg", "a half-wid
     Measurement("holdout_rotation_rms", "deg", "held out: RMS rotation error with the map"),
     Measurement("tracker_noise_rms", "mm", "the tracker's stated noise at the held-out distances (RMS)"),
     judged=("holdout_rms",))
-@takes(HOLDOUT, SEED, TRACKER, GRID, SPAN, PAYLOAD, CALIBRATION)
+@takes(HOLDOUT, SEED, TRACKER, GRID, SPAN, PAYLOAD, CALIBRATION, settings=(MESH,))
 def checklist(s):
     s.connect()                                  # 1. connect and identify the robot (serial must match)
     s.check_state()                              # 2. no fault or stop, powered
@@ -92,10 +94,9 @@ def checklist(s):
 def map_plan(s) -> PosePlan:
     """The sample grid of the nominal model (``station.solver.map.plan``) in grid order, then the held-out
     configurations; journaled once (a resumed session reuses it)."""
-    old = s.events("plan")
-    if old:
-        s.current_plan = PosePlan.from_dict(old[-1].plan)
-        return s.current_plan
+    journaled = s.journaled_plan()
+    if journaled is not None:
+        return journaled
     with s.step("plan"):
         m = s.model
         try:
@@ -181,10 +182,7 @@ def clear_of_keep_outs(s, x: np.ndarray) -> tuple[np.ndarray, int]:
     keep-outs (a parallel robot's legs have no capsules: all kept), and how many were left out."""
     if not _serial(s.model) or not len(x):
         return x, 0
-    from station.kinematics.collision import Checker, KeepOut
-
-    ko = s.cell.keep_out if s.cell else None
-    hits = Checker(s.model, KeepOut.default() if ko is None else ko).hits(x)
+    hits = s.checker().hits(x)
     keep = np.array([h is None for h in hits])
     return x[keep], int((~keep).sum())
 
@@ -198,14 +196,10 @@ def move(s, pose: PlannedPose) -> None:
     if not _serial(s.model):
         s.move_to(pose.q)
         return
-    from station.engine.plan import route_from
-
     m = s.model
     q = np.asarray(pose.q, float)
     short = np.maximum(q - np.array([APPROACH if j.revolute else APPROACH_LENGTH for j in m.joints]), m.lower)
-    for target in route_from(m, s.cell.keep_out if s.cell else None, s.robot.joint_positions().q, [short, q],
-                             what=f"configuration {pose.index}"):
-        s.move_to(target)
+    s.move_along([short, q], f"configuration {pose.index}")
 
 
 def _arrays(s, which: str):
@@ -302,13 +296,11 @@ def verify(s, cmap, reg):
         s.measure("holdout_rms", float(np.sqrt(np.mean(e_map ** 2))))
         s.measure("holdout_max", float(np.max(e_map)))
         s.measure("holdout_rotation_rms", float(np.sqrt(np.mean(r_map ** 2))), "angle")
-        spec = (s.events("instrument") or [None])[-1]
-        spec = spec.data.get("spec", {}) if spec is not None else {}
-        try:  # the instrument's own noise at these distances: 3-D RMS of one reflector reading (the floor)
-            sig = float(spec["sigma0_m"]) + float(spec["sigma_per_m"]) * np.linalg.norm(meas[:, :3], axis=1)
+        # the instrument's own noise at these distances: 3-D RMS of one reflector reading (the floor); an
+        # instrument that does not state its noise: nothing to compare with
+        sig = s.instrument_sigma(np.linalg.norm(meas[:, :3], axis=1))
+        if sig is not None:
             s.measure("tracker_noise_rms", float(np.sqrt(np.mean(3 * sig ** 2))))
-        except (KeyError, TypeError, ValueError):
-            pass  # an instrument that does not state its noise: nothing to compare with
 
 
 def store(s, cmap, reg):

@@ -24,7 +24,7 @@ from station.procedures._calibration import (
 )
 
 from station.engine import events as ev
-from station.engine.declare import Kind, Measurement, Option, choice, count, measures, takes
+from station.engine.declare import Kind, Measurement, Option, choice, count, is_number, measures, takes
 from station.engine.plan import PlannedPose, PosePlan
 from station.engine.steps import step
 from station.kinematics import se3
@@ -69,8 +69,14 @@ def _cube_value(text, flag: str, options: dict) -> list[float]:
 
 CYCLES = Option("cycles", "--cycles", count(4, 1000, "4..1000 cycles per pose (the standard: 30)"),
                 "Cycles per pose (the standard's 30).", "count")
+def _is_cube(v) -> bool:
+    """A journaled cube: ``[x, y, z, edge]`` in metres, edge > 0."""
+    return type(v) is list and len(v) == 4 and all(is_number(x, -1e9, 1e9) for x in v) and v[3] > 0
+
+
 CUBE = Option("cube", "--cube", Kind("the centre and edge X,Y,Z,EDGE in the base frame (metres, or one unit for all: "
-                                     "400,0,500,300mm), edge > 0", str, _cube_value),
+                                     "400,0,500,300mm), edge > 0", str, _cube_value, _is_cube,
+                                     "[x, y, z, edge] in metres, edge > 0"),
               "The test cube's centre and edge X,Y,Z,EDGE in the base frame (e.g. 400,0,500,300mm).", "m",
               "the largest cube around the tool")
 PLANE = Option("plane", "--plane", choice(*PLANES), "The cube's diagonal plane of the test poses: x+, x-, y+, y-, z+ "
@@ -126,16 +132,12 @@ def _cycles(s) -> int:
 def test_plan(s) -> PosePlan:
     """The test cube (largest around the tool, or ``--cube``), the joint values of every pose and approach pose,
     and the visiting order; journaled once (a resumed session reuses it)."""
-    old = s.events("plan")
-    if old:
-        s.current_plan = PosePlan.from_dict(old[-1].plan)
-        return s.current_plan
+    journaled = s.journaled_plan()
+    if journaled is not None:
+        return journaled
     with s.step("plan"):
         n = _cycles(s)
-        from station.kinematics.collision import Checker, KeepOut
-
-        ko = s.cell.keep_out if s.cell else None
-        checker = Checker(s.model, KeepOut.default() if ko is None else ko)
+        checker = s.checker()
         q0 = np.asarray(s.robot.joint_positions().q, float)
         plane = str(s.options.get("plane", "x+"))
         try:
@@ -181,28 +183,15 @@ def approach(s, pose: PlannedPose) -> None:
     """To the pose's approach pose along a path clear of the keep-outs, then straight onto the pose: the last
     motion comes from the same side in every cycle, so the gears' backlash sits on the same side. The static
     readings after the first stay where the arm stands (it was approached for the first)."""
-    from station.engine.plan import route_from
-
     label, k, _ = s.current_plan.settings["iso9283"]["series"][pose.index]
     here = np.asarray(s.robot.joint_positions().q, float)
     if label == "static" and k > 1 and np.max(np.abs(here - pose.q_arr)) < 1e-4:
         return
     s.check_space(f"the approach to pose {pose.index}")
-    for q in route_from(s.model, s.cell.keep_out if s.cell else None, s.robot.joint_positions().q,
-                        [pose.approach_q, pose.q], what=f"pose {pose.index} ({pose.point})"):
-        s.move_to(q)
+    s.move_along([pose.approach_q, pose.q], f"pose {pose.index} ({pose.point})")
 
 
 # ---- the evaluation --------------------------------------------------------------------------------------
-def _instrument_sigma(s, distance: np.ndarray) -> np.ndarray | None:
-    """The instrument's stated per-axis noise (1 sigma, m) at each distance, or None if it states none."""
-    spec = next((e.data.get("spec") or {} for e in reversed(s.events("instrument"))), {})
-    try:
-        return float(spec["sigma0_m"]) + float(spec["sigma_per_m"]) * np.asarray(distance, float)
-    except (KeyError, TypeError, ValueError):
-        return None
-
-
 def _series(s) -> dict:
     """The measured samples by role: registration ``[(q, reading)]`` and ``{(direction, pose): [(cycle, q,
     reading)]}`` (readings: x, y, z, rx, ry, rz in the instrument frame)."""
@@ -292,7 +281,7 @@ def evaluate_model(s, model, data: dict, noise: np.ndarray) -> tuple[dict, dict]
         if d == UNI:
             commanded[p] = to_vectors(model.fk(rows[0][1][None]), FULL)[0]
             attained[p] = vec
-            sig = _instrument_sigma(s, np.linalg.norm(meas[:, :3], axis=1).mean())
+            sig = s.instrument_sigma(np.linalg.norm(meas[:, :3], axis=1).mean())
             sigma[p] = None if sig is None else float(sig)
         if p in VAP_POSES:
             directions.setdefault(p, {})[d] = vec

@@ -194,9 +194,11 @@ def _along(s, point, q, depth):
 @step("seat", args=("pose",))
 def seat_by_impedance(s, pose):
     """From the approach pose: stiff to ``standoff_mm`` above where the model puts the socket (corrected by the
-    earlier seatings there), compliant, then drive ``press_mm`` past the centre; the ball seats in the cone and
-    the arm comes to rest against it. Done when the robot senses the contact force and stands still; without
-    contact the target goes ``press_mm`` deeper, twice (the cell's socket positions are approximate)."""
+    earlier seatings there), compliant; a robot that presses on by itself when it turns compliant (a Franka:
+    ``press_force`` along the approach) has then seated the ball. Otherwise drive ``press_mm`` past the centre;
+    the ball seats in the cone and the arm comes to rest against it. Done when the robot senses the contact
+    force and stands still; without contact the target goes ``press_mm`` deeper, twice (the cell's socket
+    positions are approximate)."""
     import time
 
     robot = s.robot
@@ -216,6 +218,9 @@ def seat_by_impedance(s, pose):
         raise TouchFailed(f"pose {pose.index}: contact {standoff * 1e3:g} mm before socket {pose.point}: check the "
                           "cell file")
     robot.set_compliant(True)
+    if robot.touch() and not robot.status().moving:
+        return  # the robot pressed on along the approach itself and the ball rests in the cone (a Franka's
+        # seating press, docs/hardware-franka.md): driving the target elsewhere would only change the push
     here = stand
     for depth in (step, 2 * step, 3 * step):
         press = _along(s, point, target, depth)

@@ -40,3 +40,15 @@ def lazy_names(module_name: str, where: dict[str, str]):
         return value
 
     return __getattr__
+
+
+def lazy_exports(module_name: str, exports: dict[str, tuple[str, ...]]):
+    """``(__all__, __getattr__, __dir__)`` for a package whose ``__init__`` lists its public names by defining module
+    (``{module: (name, ...)}``), each imported on first use (:func:`lazy_names`): ``import station.robot`` costs
+    no driver, numpy or kinematics."""
+    where = {name: module for module, names in exports.items() for name in names}
+
+    def __dir__() -> list[str]:
+        return sorted(set(vars(sys.modules[module_name])) | set(where))
+
+    return sorted(where), lazy_names(module_name, where), __dir__

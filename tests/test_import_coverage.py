@@ -184,14 +184,7 @@ def test_reexported_names_cover_their_defining_module():
 
 # Not imported by a test yet, and why. An entry leaves this table when a test imports the module (the test below
 # fails on a stale entry), never by being ignored.
-PENDING = {
-    # run only against franka-sim (MuJoCo, its own environment): exercised through open_robot("franka://...") by
-    # tests/drivers/franka/test_franka_driver.py, which another change owns now; the import belongs there
-    "station.drivers.franka.robot": "through open_robot in tests/drivers/franka/test_franka_driver.py",
-    "station.drivers.franka.stream": "the driver's 1 kHz loop, through tests/drivers/franka/test_franka_driver.py",
-    # a script run by the franka-sim interpreter (imports mujoco, not installed in the station's environment)
-    "station.mocks.franka.simhost": "started by station.mocks.franka.launch in the franka-sim environment",
-}
+PENDING: dict[str, str] = {}
 
 
 def test_every_source_module_is_imported_by_a_test():

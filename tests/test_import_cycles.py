@@ -1,10 +1,12 @@
 """No import circle in the source tree: the graph of every ``import`` in station/, drivers/, mocks/ and procedures/
-that runs (module level and inside functions alike: a deferred import that closes a circle only hides it) is parsed
-with ``ast`` and must have no cycle. A circle means two modules each need a piece of the other; that piece belongs
-in a third module both import (docs/architecture.md, "Import rules").
+(module level, inside functions and under ``if TYPE_CHECKING:`` alike: a deferred import that closes a circle only
+hides it, and an annotation that names a module's importer is the same dependency on paper) is parsed with ``ast``
+and must have no cycle. A circle means two modules each need a piece of the other; that piece belongs in a third
+module both import, or the lower one states what it needs as a small ``Protocol`` (docs/architecture.md, "Import
+rules").
 
-What is not an edge: an import under ``if TYPE_CHECKING:`` (never executed: an annotation's name only), and an
-import of one's own enclosing package (Python loads every parent package before a submodule anyway). An edge goes
+What is not an edge: an import of one's own enclosing package (Python loads every parent package before a
+submodule anyway). An edge goes
 to the module an import names (``from pkg import sub``: to ``pkg.sub`` when that is a module of the tree, else to
 ``pkg``); a package that names its submodules for lazy loading (``station.lazy.lazy_names``) does so in strings,
 which are no import."""
@@ -65,32 +67,16 @@ def import_graph() -> dict[str, dict[str, int]]:
     for module, path in sources.items():
         edges = graph.setdefault(module, {})
         tree = ast.parse(path.read_text(), filename=str(path))
-        for node in _run_time_imports(tree):
+        for node in _imports(tree):
             for target in _targets(node, module, path.name == "__init__.py", known):
                 if target != module and not module.startswith(target + "."):
                     edges[target] = min(edges.get(target, node.lineno), node.lineno)
     return graph
 
 
-def _is_type_checking(node: ast.AST) -> bool:
-    t = getattr(node, "test", None)
-    return isinstance(node, ast.If) and ((isinstance(t, ast.Name) and t.id == "TYPE_CHECKING") or (
-        isinstance(t, ast.Attribute) and t.attr == "TYPE_CHECKING"))
-
-
-def _run_time_imports(tree: ast.AST) -> list[ast.Import | ast.ImportFrom]:
-    """Every import statement outside the body of ``if TYPE_CHECKING:`` (its ``else`` runs)."""
-    out: list[ast.Import | ast.ImportFrom] = []
-    todo = [tree]
-    while todo:
-        node = todo.pop()
-        if isinstance(node, ast.Import | ast.ImportFrom):
-            out.append(node)
-        elif _is_type_checking(node):
-            todo.extend(node.orelse)
-        else:
-            todo.extend(ast.iter_child_nodes(node))
-    return out
+def _imports(tree: ast.AST) -> list[ast.Import | ast.ImportFrom]:
+    """Every import statement of a module, wherever it stands (``if TYPE_CHECKING:`` included)."""
+    return [node for node in ast.walk(tree) if isinstance(node, ast.Import | ast.ImportFrom)]
 
 
 def cycles(graph: dict[str, dict[str, int]]) -> list[list[str]]:
@@ -151,6 +137,7 @@ def test_the_graph_sees_the_source_tree():
             "station.procedures.zero_offsets", "station.cli.solve_cmd"} <= set(graph)
     assert "station.robot.base" in graph["station.drivers.canopen.robot"]
     assert "station.cli.nextstep" in graph["station.cli.run_cmd"]  # an import inside a function counts
+    assert "station.kinematics" in graph["station.tui.hold"]  # and one under TYPE_CHECKING
     assert "station.cli" not in graph["station.cli.group"]  # its own package: loaded first anyway
     assert cycles({"a": {"b": 1}, "b": {"c": 1}, "c": {"a": 1}, "d": {"a": 1}}) == [["a", "b", "c"]]
     assert cycles({"a": {"b": 1}, "b": {}}) == []

@@ -60,14 +60,17 @@ def _is_type_checking(node: ast.If) -> bool:
 
 
 def _imports(tree: ast.Module, module: str, is_package: bool):
-    """``(imported module, module_level)`` for every import outside ``if TYPE_CHECKING:``."""
+    """``(imported module, module_level)`` for every import, those under ``if TYPE_CHECKING:`` included (as not
+    module level: they are never loaded at run time)."""
     out = []
 
     def visit(node, top: bool):
         for child in ast.iter_child_nodes(node):
             if isinstance(child, ast.If) and _is_type_checking(child):
-                for sub in child.orelse:
-                    visit(ast.Module(body=[sub], type_ignores=[]), top)
+                # an annotation's import is a dependency all the same (the layering holds for it), but it is never
+                # loaded at run time: not module level for the start-up weight rule
+                visit(ast.Module(body=child.body, type_ignores=[]), False)
+                visit(ast.Module(body=child.orelse, type_ignores=[]), top)
                 continue
             if isinstance(child, ast.Import):
                 out.extend((a.name, top) for a in child.names)
@@ -128,6 +131,8 @@ def test_graph_sees_the_source_tree():
             "station.engine.runner"} <= modules
     assert ("station.drivers.canopen.robot", "station.robot.base", True) in {(m, n, t) for m, n, t, _ in rows}
     assert _violations({"station.drivers": {"station.robot"}})  # a rule that does not hold is reported
+    typing_only = ast.parse("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    import station.records\n")
+    assert ("station.records", False) in _imports(typing_only, "station.engine.x", False)
 
 
 def test_parts_never_import_what_the_architecture_forbids():

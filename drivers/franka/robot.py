@@ -10,7 +10,9 @@ Units: joints rad, joint speed rad/s, forces N, stiffness N/m and N m/rad.
   checked against the joint limits and speeds against Franka's limits before anything is sent.
 - Compliance: ``set_compliant(True)`` runs a Cartesian-impedance motion (``SetCartesianImpedance`` stiffness
   ``stiffness``/``rot_stiffness``) from the driver's 1 kHz loop; moves while compliant are moves of that
-  motion, so a ball driven a few millimetres past a socket seats under the arm's own control.
+  motion, so a ball driven a few millimetres past a socket seats under the arm's own control. Compliance taken
+  up right after a stiff move presses on along it with ``press_force`` (``drivers.franka.press``): the cone,
+  not where the stiff move stopped, decides where the ball rests.
 - Contact: ``touch()`` is the estimated external force (``O_F_ext_hat_K``) against the force at rest when
   compliance began, above ``contact_force``.
 - Faults: a motion the robot aborts for a communication-constraint violation is recovered
@@ -31,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 from station.drivers.franka import identity as ident
-from station.drivers.franka import limits
+from station.drivers.franka import limits, press
 from station.drivers.franka.stream import StreamLoop
 
 from station.kinematics import Model
@@ -83,7 +85,11 @@ class FrankaRobot(RobotBase):
                "impedance while compliant"),
         Option("rot_stiffness", number(1, 300, unit="N m/rad"), 30.0, "rotational stiffness while compliant"),
         Option("contact_force", number(0.3, 50, unit="N"), 2.0, "`touch()` is true when the estimated external "
-               "force differs this much from the force at rest when compliance began"),
+               "force differs this much from the force at rest when compliance began (after a move: before it)"),
+        Option("press_force", number(0, 20, unit="N"), 5.0, "compliance taken up right after a stiff move "
+               "presses on along that move's tool direction with this force (the impedance target "
+               "`press_force/stiffness` beyond, at most 6 mm of travel before contact), so the socket's cone "
+               "centres the ball; 0: hold where the move stopped"),
         Option("retries", integer(0, 10), 3, "motions aborted by a communication-constraint violation are "
                "recovered and retried this often before it is a fault"),
         Option("realtime", either("ignore", "enforce"), "ignore", "libfranka's real-time scheduling check "
@@ -94,7 +100,7 @@ class FrankaRobot(RobotBase):
 
     def __init__(self, host: str, model: Model, *, serial: str | None = None, motion: str = "async",
                  speed: float = 0.5, accel: float = 2.0, stiffness: float = 600.0, rot_stiffness: float = 30.0,
-                 contact_force: float = 2.0, retries: int = 3, realtime: str = "ignore",
+                 contact_force: float = 2.0, press_force: float = 5.0, retries: int = 3, realtime: str = "ignore",
                  export_dir: str | None = None, url: str = "", connect: bool = True) -> None:
         self.host = host
         self.model = model
@@ -102,7 +108,10 @@ class FrankaRobot(RobotBase):
         self.motion = motion
         self.speed, self.accel = speed, accel
         self.stiffness, self.rot_stiffness = stiffness, rot_stiffness
-        self.contact_force = contact_force
+        self.contact_force, self.press_force = contact_force, press_force
+        self._last_move: tuple | None = None  # (q from, q to, external force at rest before) of the last stiff move
+        self.last_press: str | None = None  # how the last seating press ended (seated, no contact, not settled)
+        self._moved_at = -math.inf  # monotonic time the last move ended as asked
         self.retries = retries
         self.realtime = realtime
         self.export_dir = export_dir
@@ -142,7 +151,8 @@ class FrankaRobot(RobotBase):
             raise ConfigError(f"robot URL {url.raw!r}: speed={o['speed']:g} must be in (0, {vmax:g}] rad/s")
         args = dict(serial=o["serial"], motion=o["motion"], speed=o["speed"] or min(0.5, vmax), accel=o["accel"],
                     stiffness=o["stiffness"], rot_stiffness=o["rot_stiffness"], contact_force=o["contact_force"],
-                    retries=o["retries"], realtime=o["realtime"], export_dir=o["export"], url=url.raw)
+                    press_force=o["press_force"], retries=o["retries"], realtime=o["realtime"],
+                    export_dir=o["export"], url=url.raw)
         args.update(overrides)
         return cls(url.host, model, **args)
 
@@ -286,6 +296,7 @@ class FrankaRobot(RobotBase):
         target = self._checked_target(q, "move_joints")
         v = self._checked_speed(speed, "move_joints", upper=float(limits.DQ_MAX.min())) or self.speed
         self._interrupt.clear()
+        self._note_move(target)
         for attempt in range(self.retries + 1):
             try:
                 if self._compliant:
@@ -294,6 +305,7 @@ class FrankaRobot(RobotBase):
                     self._stream_move(target, v, wait, compliant=False)
                 else:
                     self._async_move(target, v, wait)
+                self._moved_at = time.monotonic()  # a stiff move that ended as asked: a press may follow it
                 return
             except _Retry as r:
                 if attempt >= self.retries:
@@ -512,6 +524,7 @@ class FrankaRobot(RobotBase):
                                        f"{attempt + 1} times by {r}") from None
                     self._recover(str(r))
             self._compliant = True
+            self._press_on()
         else:
             if not self._compliant:
                 return
@@ -525,6 +538,104 @@ class FrankaRobot(RobotBase):
                         self._raise_motion_error(loop.error, "set_compliant(False)")
                     except _Retry as r:  # the hold was lost: clear the reflex, the arm rests where it is
                         self._recover(str(r))
+
+    def _note_move(self, target: np.ndarray) -> None:
+        """Remember a stiff move (where from, where to, the external force at rest before it): compliance taken
+        up right after it presses on along it (``_press_on``). The force is read at rest (waited for, at most
+        0.5 s): the estimate of a moving arm carries its dynamics, and this one is the touch's zero."""
+        self._last_move = None
+        if self._compliant or self.press_force <= 0:
+            return
+        s = self._state("move_joints")
+        end = time.monotonic() + 0.5
+        while self._moving(s) and time.monotonic() < end:
+            time.sleep(0.01)
+            s = self._state("move_joints")
+        self._last_move = (np.asarray(s.q, float), target.copy(), np.asarray(s.O_F_ext_hat_K, float)[:3])
+
+    def _press_on(self) -> None:
+        """Compliance right after a stiff move: the seating press (``drivers.franka.press``). The impedance
+        target goes on along the move's straight-line tool direction (orientation kept) at 20 mm/s until contact,
+        then ``press_force / stiffness`` beyond the contact, and the call returns once the arm rests against what
+        stopped it with a steady force.
+        The touch's zero is then the force before the move (free of the contact the stiff move may have made:
+        a joint servo driving a ball into a cone leaves 3-40 N that the impedance then releases). Travel
+        beyond ``press.TRAVEL`` without contact means nothing is there: the press is called off and the arm held
+        where it is (``touch()`` stays off, so the seating step reports it)."""
+        last, self._last_move = self._last_move, None
+        self.last_press = None
+        if last is None or time.monotonic() - self._moved_at > press.WINDOW:
+            return  # no stiff move just before (a technician turning compliance on after a jog, a failed move)
+        q_from, q_to, force_before = last
+        q_now = self._q()
+        u, why = press.direction(self.model, q_from, q_to, q_now)
+        if u is None:
+            log.warning("%s: no seating press: %s", self.where, why)
+            return
+        self._tare = force_before
+        plan = press.plan(self.model, q_now, u, press.TRAVEL + self.press_force / self.stiffness)
+        for attempt in range(self.retries + 1):
+            try:
+                self.last_press = self._watch_press(plan, press.joint_speed(plan, q_now))
+                return
+            except _Retry as r:
+                if attempt >= self.retries:
+                    raise BusError(f"{self.where}: seating press aborted {attempt + 1} times by {r}; the robot "
+                                   "holds where it stopped") from None
+                self._recover(str(r))  # the hold taken up again, the touch's zero kept
+
+    def _watch_press(self, plan: press.Press, speed: float) -> str:
+        """Stream the press and watch it: the target goes towards ``plan`` (``press.TRAVEL`` + ``press_force /
+        stiffness`` beyond the start); once contact is felt it is set ``press_force / stiffness`` beyond where the
+        tool is (the push at rest is then ``press_force`` however far the approach went). Returns how it ended
+        (``seated``: at rest with a steady force; ``no contact``: ``press.TRAVEL`` without contact, held there;
+        ``not settled``: out of time)."""
+        if self._loop is None or not self._loop.alive:
+            self._start_compliant_loop(tare=False)
+        loop = self._loop
+        depth = self.press_force / self.stiffness
+        self._compliant_target, self._compliant_speed = plan.q.copy(), speed
+        deadline = time.monotonic() + 2 * loop.move_to(plan.q, speed).T + SETTLE_S
+        settle = press.Settle(self.press_force)
+        tare = float((self._tare if self._tare is not None else np.zeros(3)) @ plan.u)
+        touched = False
+        while True:
+            if self._interrupt.is_set():
+                raise SafetyStop(f"{self.where}: seating press: stopped")
+            if loop.error is not None or loop.done.is_set():
+                self._loop = None
+                self._raise_motion_error(loop.error, "seating press")
+            s = loop.state
+            q, dq = np.asarray(s.q, float), np.asarray(s.dq, float)
+            travel = plan.travel(self.model.position(q))
+            force = float(np.asarray(s.O_F_ext_hat_K, float)[:3] @ plan.u)
+            if not touched and force - tare > self.contact_force:  # contact: press_force from here on
+                touched = True
+                self._compliant_target = press.plan(self.model, q, plan.u, depth).q
+                loop.move_to(self._compliant_target, speed)
+            elif not touched and travel > press.TRAVEL:
+                return self._call_off(loop, q, speed, travel)
+            tool_speed = float(np.linalg.norm(self.model.jacobian_q(q).reshape(6, 7)[:3] @ dq))
+            if settle.add(time.monotonic(), tool_speed, force) and touched and loop.path_done():
+                log.info("%s: seated: pressing %.2f N after %.2f mm", self.where, force - tare, travel * 1e3)
+                return "seated"
+            if time.monotonic() > deadline:
+                log.warning("%s: seating press: the arm did not come to rest (%.1f mm/s, %.2f N)", self.where,
+                            tool_speed * 1e3, force - tare)
+                return "not settled"
+            time.sleep(0.004)
+
+    def _call_off(self, loop: StreamLoop, q: np.ndarray, speed: float, travel: float) -> str:
+        """Nothing to seat in: the hold goes back to where the tool is and the call returns once it rests there
+        (at most 2 s)."""
+        self._compliant_target = q.copy()
+        loop.move_to(q, speed)
+        log.warning("%s: seating press called off: %.1f mm beyond where the move ended without contact (no socket "
+                    "there?); holding compliant where it is", self.where, travel * 1e3)
+        end = time.monotonic() + 2.0
+        while time.monotonic() < end and not (loop.path_done() and not self._moving(loop.state)):
+            time.sleep(0.01)
+        return "no contact"
 
     def _revive_compliance(self) -> None:
         """The compliant hold ended without being asked to (the robot aborted it): for a communication-constraint

@@ -22,7 +22,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from fractions import Fraction
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Protocol
 
 import canopen
 from canopen.sdo import SdoAbortedError
@@ -62,7 +62,7 @@ from station.mocks.canopen.eds import (
 )
 
 if TYPE_CHECKING:
-    from station.mocks.canopen.emulator import CanopenEmulator
+    from collections.abc import Sequence
 
 log = logging.getLogger("station.mocks.canopen")
 
@@ -127,11 +127,61 @@ class DriveNode(canopen.LocalNode):
         self._drive.after_write(index, subindex)
 
 
+class Reading(Protocol):
+    """The world as one SYNC (or one SDO read) sees it (the emulator's ``Snap``)."""
+
+    q: Sequence[float]  # encoder positions, SI
+    qd: Sequence[float]
+
+    @property
+    def contact(self) -> bool: ...
+
+
+class Bus(Protocol):
+    """What a drive needs of the emulator it sits on (``station.mocks.canopen.emulator.CanopenEmulator``, which
+    owns the bus, the world and the scheduler thread): written here, so the drive does not import the emulator
+    that builds it."""
+
+    world: Any
+    boot_delay: float  # s from NMT reset to the boot-up message
+    parallel: bool  # a parallel robot: no torque modes
+    home_offset_convention: str  # "position" or "zero": how the drive applies 0x607C
+    limits_dirty: bool  # a torque limit was written: applied to the world at the next SYNC
+
+    def snap(self, max_age: float = 0.002) -> Reading: ...
+
+    def send(self, cob_id: int, data: bytes) -> None: ...
+
+    def wake(self) -> None: ...
+
+    def persist(self) -> None: ...
+
+    def world_set_enabled(self, joint: int, on: bool) -> None: ...
+
+    def world_fault(self, joint: int, code: int) -> None: ...
+
+    def world_clear_fault(self, joint: int) -> None: ...
+
+    def move_joint(self, joint: int, q: float, speed: float | None) -> None: ...
+
+    def velocity_joint(self, joint: int, qd: float) -> None: ...
+
+    def torque_joint(self, joint: int, tau: float) -> None: ...
+
+    def hold_joint(self, joint: int) -> None: ...
+
+    def stop_joint(self, joint: int) -> None: ...
+
+    def update_torque_limits(self, compliance: bool = True) -> None: ...
+
+    def rpdo_config_changed(self) -> None: ...
+
+
 class Drive402:
     """One node: its object dictionary (a LocalNode), 402 state, PDOs, NMT. All world access goes through
     the emulator (``emu``), which owns the bus and the scheduler thread."""
 
-    def __init__(self, emu: CanopenEmulator, node_id: int, joint: int, encoder, serial: int,
+    def __init__(self, emu: Bus, node_id: int, joint: int, encoder, serial: int,
                  contact_wired: bool = False, *, incremental: bool = False, resolution: float | None = None,
                  velocity_unit: int = UNIT_INC_PER_S, rated_torque: float = 1.0) -> None:
         self.emu = emu

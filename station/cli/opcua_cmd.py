@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from station.cli.run_options import CONE
+from station.cli.run_options import CONE, DB, HOLDOUT, LIMITS, POSES, REFERENCE
 
 
 def opcua(
@@ -15,11 +15,11 @@ def opcua(
     endpoint: str = typer.Option("opc.tcp://127.0.0.1:4840", "--endpoint", help="OPC UA endpoint (loopback "
                                  "unless configured; off loopback Basic256Sha256 with --cert/--key and --users)."),
     procedure: str = typer.Option("zero_offsets", "--procedure", help="Default procedure of Start."),
-    limits: Path = typer.Option(None, "--limits", help="Limits file (default: procedures/limits.yaml)."),
-    db: str = typer.Option(None, "--db", help="Records database URL."),
-    reference: str = typer.Option(None, "--reference", help="Reference: unknown (solve the point) or cell (surveyed)."),
-    poses: int = typer.Option(None, "--poses", help="Number of fit poses."),
-    holdout: int = typer.Option(None, "--holdout", help="Number of held-out poses."),
+    limits: Path = LIMITS,
+    db: str = DB,
+    reference: str = REFERENCE,
+    poses: int = POSES,
+    holdout: int = HOLDOUT,
     cone: str = CONE,
     cert: Path = typer.Option(None, "--cert", help="Server certificate for Basic256Sha256."),
     key: Path = typer.Option(None, "--key", help="Server private key (PEM) for Basic256Sha256."),

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import typer
 
-from station.cli.run_options import CONE, DB, HOLDOUT, LIMITS, POSES
+from station.cli.run_options import CONE, DB, HOLDOUT, LIMITS, POSES, REFERENCE, TOUCH
 
 
 def panel(
@@ -21,8 +21,8 @@ def panel(
                               "$STATION_PANEL_TOKEN)."),
     limits: Path = LIMITS,
     db: str = DB,
-    touch: str = typer.Option(None, "--touch", help="Seat, guarded or manual (the operator touches each point)."),
-    reference: str = typer.Option(None, "--reference", help="Reference: unknown (solve the point) or cell (surveyed)."),
+    touch: str = TOUCH,
+    reference: str = REFERENCE,
     poses: int = POSES,
     holdout: int = HOLDOUT,
     cone: str = CONE,
@@ -54,6 +54,10 @@ def panel(
         raise ConfigError("HTTPS needs --tls-cert and --tls-key (and --tls-client-ca only with them)")
     tls = TLS(tls_cert, tls_key, tls_client_ca) if tls_cert is not None else None
     check_listen(host, token, tls)
+    if touch is not None:  # read by its declaration, as station run does: a bad value never reaches a unit
+        from station.engine.declare import TOUCH as TOUCH_OPTION
+
+        TOUCH_OPTION.read(touch)
     cfg = PanelConfig(robot=robot, cell=str(cell), procedure=procedure, limits=str(limits) if limits else None,
                       db=db, options=_options(poses, holdout, cone, reference, None), touch=touch, confirm=confirm)
     _check_files(cfg)

@@ -11,7 +11,7 @@ from pathlib import Path
 import typer
 
 from station.cli.model_options import PAYLOAD
-from station.cli.run_options import DB, LIMITS
+from station.cli.run_options import DB, LIMITS, TOUCH
 
 
 def _exit(code: int):
@@ -50,11 +50,12 @@ def _progress_bar(quiet: bool):
 
 def preflight(robot: str, poses, holdout, cone, seed, touch, reference, limits, cell) -> None:
     """Every option and input file checked before any robot is opened or moved: one line, exit 2."""
-    from station.robot.errors import ConfigError
 
     _options(poses, holdout, cone, reference, seed)  # each value read by its declaration (station.engine.declare)
-    if touch is not None and touch not in ("seat", "guarded", "manual"):
-        raise ConfigError(f"--touch {touch!r}: expected seat, guarded or manual")
+    if touch is not None:
+        from station.engine.declare import TOUCH
+
+        TOUCH.read(touch)
     from station.robot.url import parse_url
 
     parse_url(robot)
@@ -196,8 +197,7 @@ def run(
     apply: bool = typer.Option(False, "--apply", help="Write identified joint offsets back (two-phase)."),
     cell: Path = typer.Option(None, "--cell", help="Cell file (default $STATION_CELL, then ./cell.yaml)."),
     operator: str = typer.Option(None, "--operator", help="Who runs it (default: login name)."),
-    touch: str = typer.Option(None, "--touch", help="How the tool meets a point: seat (socket), guarded "
-                                "(contact input) or manual."),
+    touch: str = TOUCH,
     identify: str = typer.Option(None, "--identify", help="Parameter groups to solve for instead of the "
                                  "procedure's own (zero_offsets: offsets, dh_full: offsets,dh,tcp), e.g. "
                                  "offsets,tcp; as station solve --identify."),

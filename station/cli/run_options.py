@@ -13,3 +13,5 @@ DB = typer.Option(None, "--db", help="Records database URL (default $STATION_DB,
 POSES = typer.Option(None, declare.POSES.flag, help=declare.POSES.doc + " Default: the procedure's.")
 HOLDOUT = typer.Option(None, declare.HOLDOUT.flag, help=declare.HOLDOUT.doc)
 CONE = typer.Option(None, declare.CONE.flag, help=declare.CONE.doc)
+REFERENCE = typer.Option(None, declare.REFERENCE.flag, help=declare.REFERENCE.doc)
+TOUCH = typer.Option(None, declare.TOUCH.flag, help=declare.TOUCH.doc)

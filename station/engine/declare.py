@@ -21,6 +21,7 @@ options of the shipped procedures and ``station run PROC --help`` lists PROC's (
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
 from typing import Any
@@ -47,11 +48,21 @@ class Measurement:
 class Kind:
     """The values an option accepts: ``form`` in words (help and messages), the command-line type, and
     ``read(value, flag, options)`` -> the session option's value (``options``: the ones read before it); a
-    ``ValueError`` becomes one line naming the flag and the form, a ``ConfigError`` is passed on as it is."""
+    ``ValueError`` becomes one line naming the flag and the form, a ``ConfigError`` is passed on as it is.
+
+    ``valid(value)`` says whether a session value (what ``read`` gives, as the journal keeps it) is one of this
+    kind, ``stored`` its form in words where that is not ``form``: a resume holds the journal's options to them (a
+    journal is data: it may be damaged). ``valid`` None: not checked."""
 
     form: str
     type: type
     read: Callable[[Any, str, dict], Any]
+    valid: Callable[[Any], bool] | None = None
+    stored: str | None = None
+
+    @property
+    def stored_form(self) -> str:
+        return self.stored or self.form
 
 
 @dataclass(frozen=True)
@@ -70,12 +81,17 @@ class Option:
 
     def read(self, value, options: dict | None = None):
         """The option value of a command-line ``value``; one line naming the flag when it is not one."""
+        flag = self.flag or self.name  # a setting has no flag
         try:
-            return self.kind.read(value, self.flag, options or {})
+            return self.kind.read(value, flag, options or {})
         except ConfigError:
             raise
         except (ValueError, TypeError, OverflowError):
-            raise ConfigError(f"{self.flag} {value!r}: expected {self.kind.form}") from None
+            raise ConfigError(f"{flag} {value!r}: expected {self.kind.form}") from None
+
+    def holds(self, value) -> bool:
+        """Whether ``value`` is a session value of this option (``Kind.valid``; True where the kind has none)."""
+        return self.kind.valid is None or bool(self.kind.valid(value))
 
     def default_text(self, defaults: dict) -> str:
         if self.name in defaults:
@@ -85,12 +101,18 @@ class Option:
 
 
 # ---- option kinds -----------------------------------------------------------------------------------------
+def is_number(v, lo: float, hi: float, open_low: bool = False) -> bool:
+    """A JSON number (not a bool) in ``[lo, hi]`` (``(lo, hi]`` with ``open_low``)."""
+    return (type(v) in (int, float) and math.isfinite(v) and (lo < v if open_low else lo <= v) and v <= hi)
+
+
 def count(lo: int, hi: int, form: str | None = None) -> Kind:
     def read(v, flag, options):
         if isinstance(v, bool) or int(v) != v or not lo <= int(v) <= hi:
             raise ValueError
         return int(v)
-    return Kind(form or f"an integer {lo}..{hi}", int, read)
+    return Kind(form or f"an integer {lo}..{hi}", int, read, lambda v: type(v) is int and lo <= v <= hi,
+                f"an integer {lo}..{hi}")
 
 
 def angle(lo: float, hi: float, bare: str, example: str, what: str = "an angle") -> Kind:
@@ -102,7 +124,19 @@ def angle(lo: float, hi: float, bare: str, example: str, what: str = "an angle")
         if not lo < x <= hi:
             raise ConfigError(f"{flag} {v!r}: expected {what} in ({lo:g}, {hi:g}] {bare}, e.g. {example}")
         return x
-    return Kind(f"{what} in ({lo:g}, {hi:g}] {bare}, e.g. {example} (a bare number is {bare})", str, read)
+    return Kind(f"{what} in ({lo:g}, {hi:g}] {bare}, e.g. {example} (a bare number is {bare})", str, read,
+                lambda v: is_number(v, lo, hi, open_low=True), f"{what} in ({lo:g}, {hi:g}] {bare}")
+
+
+def number(lo: float, hi: float, unit: str, open_low: bool = False) -> Kind:
+    """A plain number of ``unit`` in ``[lo, hi]`` (``(lo, hi]`` with ``open_low``): a setting's kind."""
+    def read(v, flag, options):
+        x = float(v)
+        if not is_number(x, lo, hi, open_low):
+            raise ValueError
+        return x
+    span = f"{'(' if open_low else '['}{lo:g}, {hi:g}]"
+    return Kind(f"{unit} in {span}", float, read, lambda v: is_number(v, lo, hi, open_low))
 
 
 def choice(*words: str) -> Kind:
@@ -110,7 +144,7 @@ def choice(*words: str) -> Kind:
         if v not in words:
             raise ValueError
         return v
-    return Kind("one of " + ", ".join(words), str, read)
+    return Kind("one of " + ", ".join(words), str, read, lambda v: type(v) is str and v in words)
 
 
 def url(example: str) -> Kind:
@@ -118,7 +152,17 @@ def url(example: str) -> Kind:
         if "://" not in str(v) or len(str(v)) >= 1000:
             raise ValueError
         return str(v)
-    return Kind(f"a URL, e.g. {example}", str, read)
+    return Kind(f"a URL, e.g. {example}", str, read, lambda v: type(v) is str and "://" in v and len(v) < 1000,
+                "a URL")
+
+
+def switch() -> Kind:
+    """On or off (a flag without a value: ``--apply``)."""
+    def read(v, flag, options):
+        if type(v) is not bool:
+            raise ValueError
+        return v
+    return Kind("true or false", bool, read, lambda v: type(v) is bool)
 
 
 def seed_kind() -> Kind:
@@ -137,6 +181,23 @@ SEED = Option("seed", "--seed", seed_kind(), "Seed of the pose plan.", None, "0"
 REFERENCE = Option("reference", "--reference", choice("unknown", "cell"), "Reference: unknown (solve the point) or "
                    "cell (use the cell file's surveyed positions).", None, "unknown")
 PLAN_OPTIONS = (POSES, HOLDOUT, CONE, SEED, REFERENCE)
+
+# the session options the engine itself reads besides the plan's: station run's own --touch and --apply, and the
+# settings of the pose plan a caller may give in ``options=`` (no flag); held to on a resume like every option
+TOUCH = Option("touch", "--touch", choice("seat", "guarded", "manual"), "How the tool meets a point: seat (socket), "
+               "guarded (contact input) or manual.")
+APPLY = Option("apply", "--apply", switch(), "Write identified joint offsets back (two-phase).")
+SESSION_OPTIONS = (
+    TOUCH, APPLY,
+    Option("roll_deg", "", number(0, 360, "degrees"), "Half-range of the tool's roll about its axis over the plan.",
+           "deg"),
+    Option("margin_deg", "", number(0, 90, "degrees"), "How far inside each joint limit the planned poses stay.",
+           "deg"),
+    Option("clearance", "", number(0, 1, "metres"), "Stand-off along a point's approach direction the tool backs "
+           "away to.", "m"),
+    Option("plan_noise_m", "", number(0, 0.01, "metres", open_low=True), "The touch noise the plan-time check "
+           "assumes.", "m"),
+)
 
 # what Session.measure_result measures after a solve
 SOLVE = (
@@ -178,15 +239,20 @@ def measures(*measurements: Measurement, judged: Iterable[str] = ()):
     return attach
 
 
-def takes(*options: Option):
-    """Declare the options ``checklist`` takes (each flag once)."""
+def takes(*options: Option, settings: Iterable[Option] = ()):
+    """Declare the options ``checklist`` takes (each flag once); ``settings``: the session options it reads that
+    have no flag (set by its ``DEFAULTS`` or a caller's ``options=``), declared so a resume checks them too."""
     flags = [o.flag for o in options]
     dup = sorted({f for f in flags if flags.count(f) > 1})
     if dup:
         raise ConfigError(f"takes(): option {', '.join(dup)} declared twice")
+    settings = tuple(settings)
+    if any(o.flag for o in settings) or not all(o.flag for o in options):
+        raise ConfigError("takes(): an option has a flag, a setting has none")
 
     def attach(fn):
         fn.options = tuple(options)
+        fn.settings = settings
         return fn
     return attach
 
@@ -199,3 +265,10 @@ def declared_measurements(checklist) -> tuple[Measurement, ...] | None:
 
 def declared_options(checklist) -> tuple[Option, ...] | None:
     return getattr(checklist, "options", None)
+
+
+def session_options(checklist) -> dict[str, Option]:
+    """Every declaration a session value of ``checklist`` is held to, by option name: the engine's own, the plan's,
+    then the checklist's options and settings (a procedure's own declaration of a name wins)."""
+    mine = (*(declared_options(checklist) or ()), *getattr(checklist, "settings", ()))
+    return {o.name: o for o in (*SESSION_OPTIONS, *PLAN_OPTIONS, *mine)}

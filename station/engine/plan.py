@@ -262,7 +262,8 @@ def order_for_short_motion(model: Model, qs: np.ndarray, q_start: np.ndarray,
 
 
 # ---- collision-free paths -----------------------------------------------------------------------------------
-def _checker(model: Model, keep_out: KeepOut | None) -> Checker:
+def keep_out_checker(model: Model, keep_out: KeepOut | None) -> Checker:
+    """The collision checker of ``model``'s links against ``keep_out`` (None: the default mounting plane)."""
     return Checker(model, KeepOut.default() if keep_out is None else keep_out)
 
 
@@ -435,7 +436,7 @@ def generate_plan(model: Model, points: list[RefPoint], q_start, *, identify: st
         raise PlanError("pose plan: no reference point given")
     rng = np.random.default_rng(seed)
     q_start = np.asarray(q_start, float)
-    checker = _checker(model, keep_out)
+    checker = keep_out_checker(model, keep_out)
     _start_clear(checker, q_start)
     rejected: Counter = Counter()
     names = model.select(identify) if identify else []
@@ -485,7 +486,7 @@ def plan_from_joints(model: Model, entries: list[dict], points: dict[str, RefPoi
     """A plan listed in a procedure: ``[{"point": "A", "q": [...rad...], "set": "fit"}, ...]``. The approach pose
     backs off along the point's approach direction. A listed pose that brings a link into a keep-out (or
     whose approach does) is refused."""
-    checker = _checker(model, keep_out)
+    checker = keep_out_checker(model, keep_out)
     poses = []
     for i, e in enumerate(entries):
         q = np.asarray(e["q"], float)
@@ -542,7 +543,7 @@ def generate_rotation_plan(model: Model, point: RefPoint, q_start, *, joint: int
     if bad.size:
         raise PlanError(f"rotation plan: point {point.label} not reachable with joint {j + 1} at "
                         f"{np.rad2deg(angles[bad[0]]):.0f} deg")
-    checker = _checker(model, keep_out)
+    checker = keep_out_checker(model, keep_out)
     _start_clear(checker, q_start)
     for k in range(n):
         hit = checker.hits(res.q[k][None])[0] or checker.hits(ra.q[k][None])[0] or checker.path_hit(ra.q[k], res.q[k])

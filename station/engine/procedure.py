@@ -360,11 +360,12 @@ def _check_declarations(path: Path, checklist) -> None:
     """``@measures``/``@takes`` hold what they say (a procedure that sets the attributes by hand is checked too)."""
     from station.engine.declare import Measurement, Option, declared_measurements, declared_options
 
-    for what, items, kind in (("measures", declared_measurements(checklist), Measurement),
-                              ("takes", declared_options(checklist), Option)):
+    for what, attr, items, kind in (("measures", "measurements", declared_measurements(checklist), Measurement),
+                                    ("takes", "options", declared_options(checklist), Option),
+                                    ("takes", "settings", getattr(checklist, "settings", None), Option)):
         if items is not None and not (isinstance(items, tuple) and all(isinstance(x, kind) for x in items)):
-            raise ProcedureError(f"procedure {path}: checklist.{'measurements' if what == 'measures' else 'options'}"
-                                 f" must be declared with @{what}(...) of station.engine.declare")
+            raise ProcedureError(f"procedure {path}: checklist.{attr} must be declared with @{what}(...) of "
+                                 "station.engine.declare")
 
 
 def _load(path: Path, data: bytes) -> Procedure:

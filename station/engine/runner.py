@@ -12,7 +12,6 @@ import contextlib
 import functools
 import getpass
 import hashlib
-import math
 import os
 import platform
 import signal
@@ -25,6 +24,7 @@ from pathlib import Path
 
 from station.engine import events as ev
 from station.engine.cell import Cell, load_cell
+from station.engine.declare import session_options
 from station.engine.journal import Journal, JournalError, JournalWriteError, check_space, check_writable, read_journal
 from station.engine.limits import check_limits, load_limits
 from station.engine.procedure import Procedure, is_name, load_procedure, procedure_for_resume, shipped_names
@@ -227,44 +227,14 @@ def _cell_from_header(d: dict | None, where: str = "journal") -> Cell | None:
     return dataclasses.replace(cell, path=str(d.get("path") or "journal"))
 
 
-# the procedure options a resume acts on, as the command line accepts them (a journal is data: it may be damaged)
-def _int_in(lo: int, hi: int):
-    return lambda v: type(v) is int and lo <= v <= hi
-
-
-def _num_in(lo: float, hi: float, open_low: bool = False):
-    return lambda v: type(v) in (int, float) and math.isfinite(v) and (lo < v if open_low else lo <= v) and v <= hi
-
-
-OPTION_CHECKS = {
-    "n_fit": (_int_in(1, 100_000), "a pose count 1..100000"),
-    "n_holdout": (_int_in(0, 100_000), "a pose count 0..100000"),
-    "seed": (_int_in(0, 2**63 - 1), "a non-negative integer"),
-    "cone_deg": (_num_in(0, 90, True), "degrees in (0, 90]"),
-    "span_deg": (_num_in(0, 90, True), "degrees in (0, 90]"),
-    "roll_deg": (_num_in(0, 360), "degrees in [0, 360]"),
-    "margin_deg": (_num_in(0, 90), "degrees in [0, 90]"),
-    "clearance": (_num_in(0, 1), "metres in [0, 1]"),
-    "plan_noise_m": (_num_in(0, 0.01, True), "metres in (0, 0.01]"),
-    "grid": (lambda v: _int_in(1, 100)(v) or (type(v) is list and 0 < len(v) <= 64 and all(map(_int_in(1, 100), v))),
-             "sub-intervals 1..100 (or one per actuator)"),
-    "mesh": (lambda v: v in ("grid", "simplex"), "grid or simplex"),
-    "reference": (lambda v: v in ("unknown", "cell"), "unknown or cell"),
-    "touch": (lambda v: v in ("seat", "guarded", "manual"), "seat, guarded or manual"),
-    "apply": (lambda v: type(v) is bool, "true or false"),
-    "tracker": (lambda v: type(v) is str and "://" in v and len(v) < 1000, "an instrument URL"),
-    "calibration": (lambda v: type(v) is str and 0 < len(v) < 4096, "a file name"),
-    "payload": (lambda v: type(v) is dict and set(v) == {"mass", "com"} and _num_in(0, 10_000)(v["mass"])
-                and type(v["com"]) is list and len(v["com"]) == 3 and all(map(_num_in(-10, 10), v["com"])),
-                "{mass: kg 0..10000, com: [x, y, z] m}"),
-}
-
-
-def _check_options(options: dict, where: str) -> None:
+def _check_options(options: dict, where: str, procedure: Procedure) -> None:
+    """The journaled options a resume acts on, held to their declarations (``declare.session_options``: the
+    engine's, the plan's and the procedure's own; a journal is data: it may be damaged)."""
+    declared = session_options(procedure.module.checklist)
     for name, value in options.items():
-        check = OPTION_CHECKS.get(name)
-        if check is not None and not check[0](value):
-            raise ConfigError(f"{where}: field options.{name}: {str(value)[:60]!r} is not {check[1]}")
+        o = declared.get(name)
+        if o is not None and not o.holds(value):
+            raise ConfigError(f"{where}: field options.{name}: {str(value)[:60]!r} is not {o.kind.stored_form}")
 
 
 def _optional_cell(cell_path) -> Cell | None:
@@ -446,6 +416,7 @@ def resume(session_ref: str | Path, *, touch=None, progress: Callable[[int, int,
     # the path the journal names is never read, so a damaged or planted journal cannot run code
     proc = procedure_for_resume(header.procedure, header.procedure_sha256, file=procedure,
                                 where=f"session {header.session}")
+    _check_options(header.options, f"journal {path}:1", proc)
     lim_info = header.limits or {}
     if lim_info.get("path") is not None:  # hashed before it is parsed: a journal may name any file
         from station.textfile import read_capped
@@ -601,7 +572,6 @@ def _check_header(path: Path, header: ev.Header) -> None:
     lim = header.limits
     if not isinstance(lim, dict) or not isinstance(lim.get("sha256"), str):
         raise ConfigError(f"{where}: field limits: needs path, version and sha256 of the limits file")
-    _check_options(header.options, where)
 
 
 def _install_sigterm():

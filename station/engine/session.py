@@ -298,7 +298,28 @@ class Session:
                 problems.append(f"{option} instrument close: {type(e).__name__}: {e}")
         return problems
 
+    def instrument_sigma(self, distance):
+        """The per-axis noise (1 sigma, m) the session's instrument states for itself at ``distance`` (m, a number
+        or an array) from it: ``sigma0_m + sigma_per_m * distance`` of its journaled identity's ``spec``; None when
+        it states none (nothing to compare with)."""
+        spec = next((e.data.get("spec") or {} for e in reversed(self.events("instrument"))), {})
+        try:
+            return float(spec["sigma0_m"]) + float(spec["sigma_per_m"]) * np.asarray(distance, float)
+        except (KeyError, TypeError, ValueError):
+            return None
+
     # ---- reference points and plans -------------------------------------------------------------
+    @property
+    def keep_out(self):
+        """The cell's mounting plane and keep-out volumes; None without a cell (nothing below the base plane)."""
+        return self.cell.keep_out if self.cell else None
+
+    def checker(self):
+        """A collision checker of the robot's links against :attr:`keep_out` (``station.kinematics.collision``)."""
+        from station.engine.plan import keep_out_checker
+
+        return keep_out_checker(self.model, self.keep_out)
+
     def point(self, label: str) -> RefPoint:
         if self.cell is None:
             raise ConfigError("this procedure needs a cell file (--cell FILE or $STATION_CELL or ./cell.yaml)")
@@ -314,21 +335,30 @@ class Session:
             raise ConfigError(f"cell {self.cell.path} has no {kind or ''} reference point".replace("  ", " "))
         return pts
 
+    def journaled_plan(self) -> PosePlan | None:
+        """The plan this session journaled (a resumed session reuses exactly the same poses; also a procedure that
+        plans its own), now ``current_plan``; None before one is journaled. A plan for another number of joints
+        than the robot's is one line."""
+        old = self.events("plan")
+        if not old:
+            return None
+        plan = PosePlan.from_dict(old[-1].plan)  # its shapes and bounds were checked when it was read
+        n = self.model.n_joints
+        bad = next((p for p in plan.poses if len(p.q) != n), None)
+        if bad is not None:
+            raise ConfigError(f"journal {self.journal.path}: plan event {old[-1].seq}: pose {bad.index} has "
+                              f"{len(bad.q)} joint values, the robot's model {self.model.name} has {n}; the "
+                              "journaled plan is not for this robot")
+        self.current_plan = plan
+        return plan
+
     def plan(self, points: list[RefPoint] | None = None, *, identify: str = "offsets", n_fit: int | None = None,
              n_holdout: int | None = None, listed: list[dict] | None = None, **kw) -> PosePlan:
         """The pose plan: generated for ``points`` (or ``listed`` joint positions); journaled, so a resumed
         session reuses exactly the same poses."""
-        old = self.events("plan")
-        if old:
-            plan = PosePlan.from_dict(old[-1].plan)  # its shapes and bounds were checked when it was read
-            n = self.model.n_joints
-            bad = next((p for p in plan.poses if len(p.q) != n), None)
-            if bad is not None:
-                raise ConfigError(f"journal {self.journal.path}: plan event {old[-1].seq}: pose {bad.index} has "
-                                  f"{len(bad.q)} joint values, the robot's model {self.model.name} has {n}; the "
-                                  "journaled plan is not for this robot")
-            self.current_plan = plan
-            return self.current_plan
+        journaled = self.journaled_plan()
+        if journaled is not None:
+            return journaled
         identify = self.identify(identify)
         with self.step("plan"):
             q0 = self.robot.joint_positions().q
@@ -336,7 +366,7 @@ class Session:
             n_fit = n_fit or opt.get("n_fit")
             n_holdout = opt.get("n_holdout", 4) if n_holdout is None else n_holdout
             rotate = kw.pop("rotate_joint", None)
-            kw.setdefault("keep_out", self.cell.keep_out if self.cell else None)  # None: nothing below the base
+            kw.setdefault("keep_out", self.keep_out)
             if listed is None and "n_fit" in self.given:  # --poses: at least one pose per unknown
                 pts = [(points or self.points("socket"))[0]] if rotate is not None else (
                     points or self.points("socket")[:1])
@@ -472,6 +502,15 @@ class Session:
         self.check_space("a move")
         self.robot.move_joints(np.asarray(q, float), speed=speed)
 
+    def move_along(self, targets: list, what: str) -> None:
+        """Through ``targets`` (joint positions, in order) from where the arm stands, along a path clear of the
+        keep-outs (vias where a straight one is blocked; refused in one line naming ``what`` if none is clear:
+        ``station.engine.plan.route_from``), each move by :meth:`move_to`."""
+        from station.engine.plan import route_from
+
+        for q in route_from(self.model, self.keep_out, self.robot.joint_positions().q, targets, what=what):
+            self.move_to(q)
+
     @steps.step(args=("pose",))
     def approach(self, pose: PlannedPose) -> None:
         """Move above the reference (approach pose of the plan) through the plan's via poses; the path from where
@@ -479,8 +518,8 @@ class Session:
         from station.engine.plan import route_from
 
         self.check_space(f"the approach to pose {pose.index}")
-        for q in route_from(self.model, self.cell.keep_out if self.cell else None, self.robot.joint_positions().q,
-                            [*pose.via, pose.approach_q], what=f"pose {pose.index}"):
+        for q in route_from(self.model, self.keep_out, self.robot.joint_positions().q, [*pose.via, pose.approach_q],
+                            what=f"pose {pose.index}"):
             self.robot.move_joints(q)
 
     def touch_speed(self, q_from, q_to) -> float:

@@ -9,26 +9,11 @@ load from their modules on first use."""
 
 from __future__ import annotations
 
-import importlib
+from station.lazy import lazy_exports
 
 _EXPORTS = {
     "station.instruments.protocol": ("InstrumentIdentity", "PoseInstrument", "PoseReading"),
     "station.instruments.base": ("InstrumentBase",),
     "station.instruments.registry": ("GROUP", "instrument_class", "open_instrument", "schemes", "url_examples"),
 }
-_WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
-
-__all__ = sorted(_WHERE)
-
-
-def __getattr__(name: str):
-    module = _WHERE.get(name)
-    if module is None:
-        raise AttributeError(f"module 'station.instruments' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_WHERE))
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -1,24 +1,26 @@
 """``InstrumentBase``: what every measuring instrument driver shares, as ``RobotBase`` is for robots (python-can's
-``BusABC`` idea): ``close()`` runs ``_shutdown()`` exactly once (also on an instrument whose constructor failed
-half way), ``with instrument:`` closes it, ``closed`` says so, a reading from a closed instrument is refused;
+``BusABC`` idea; the lifecycle is ``station.plugins.CloseOnce``, the robots' too): ``close()`` runs ``_shutdown()``
+exactly once (also on an instrument whose constructor failed half way), ``with instrument:`` closes it, ``closed``
+says so, a reading from a closed instrument is refused;
 the class declares its URL ``options`` (``station.robot.url.Options``) and ``url_example``, and
 ``from_url`` parses them."""
 
 from __future__ import annotations
 
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from typing import ClassVar
 
 from station.instruments.protocol import InstrumentIdentity, PoseReading
+from station.plugins import CloseOnce
 from station.robot.errors import ConnectionLost
 from station.robot.url import Options, RobotURL, parse_url
 
 
-class InstrumentBase(ABC):
+class InstrumentBase(CloseOnce):
     options: ClassVar[Options] = Options()  # the URL query options this instrument accepts
     url_example: ClassVar[str] = "SCHEME://HOST"  # how its URL looks, for messages ("--tracker tcp://HOST:PORT")
-    url: str = ""
-    _closed: bool = False  # class default: valid before the constructor ran
+    noun: ClassVar[str] = "instrument"
+    closed_error: ClassVar[type[Exception]] = ConnectionLost
 
     @classmethod
     def parse(cls, url: str | RobotURL) -> tuple[RobotURL, dict]:
@@ -38,32 +40,3 @@ class InstrumentBase(ABC):
     @abstractmethod
     def measure(self) -> PoseReading:
         """One stationary reading of the probe."""
-
-    @abstractmethod
-    def _shutdown(self) -> None:
-        """Release the link. Runs once, possibly on a half-constructed instrument; must not raise for a link
-        that is already gone."""
-
-    def close(self) -> None:
-        """Disconnect. Idempotent."""
-        if self._closed:
-            return
-        self._closed = True
-        self._shutdown()
-
-    @property
-    def closed(self) -> bool:
-        return self._closed
-
-    def _check_open(self, what: str) -> None:
-        if self._closed:
-            raise ConnectionLost(f"{what}: {self.url or type(self).__name__} is closed; open the instrument again")
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def __repr__(self) -> str:
-        return f"<{type(self).__name__} {self.url or '?'}{' closed' if self._closed else ''}>"

@@ -5,43 +5,21 @@ first use and a driver module is imported only when its scheme is opened."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
+from station.plugins import Registry
 from station.robot.errors import ConfigError
 
-if TYPE_CHECKING:
-    from importlib.metadata import EntryPoint
-
 GROUP = "station.instruments"
-_entry_points: dict[str, EntryPoint] | None = None
-
-
-def _registered() -> dict[str, EntryPoint]:
-    global _entry_points
-    if _entry_points is None:
-        from importlib import metadata
-
-        _entry_points = {ep.name.lower(): ep for ep in metadata.entry_points(group=GROUP)}
-    return _entry_points
+REGISTRY = Registry(GROUP, "instrument", ConfigError)
 
 
 def schemes() -> list[str]:
     """Every registered instrument URL scheme."""
-    return sorted(_registered())
+    return REGISTRY.names()
 
 
 def instrument_class(scheme: str) -> type:
     """The class registered for ``scheme`` (its module imported now)."""
-    ep = _registered().get(scheme.lower())
-    if ep is None:
-        raise ConfigError(f"unknown scheme {scheme!r}; known: {', '.join(schemes()) or 'none'}")
-    try:
-        return ep.load()
-    except ModuleNotFoundError as e:  # a plug-in that did not wrap its own library's import
-        if (e.name or "").split(".")[0] == "station":
-            raise
-        raise ConfigError(f"the {scheme} instrument ({ep.value}) needs the Python module {e.name!r}, which is not "
-                          "installed") from None
+    return REGISTRY.load(scheme)
 
 
 def url_examples() -> str:

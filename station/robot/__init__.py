@@ -7,7 +7,7 @@ load numpy)."""
 
 from __future__ import annotations
 
-import importlib
+from station.lazy import lazy_exports
 
 _EXPORTS = {
     "station.robot.errors": ("BusError", "ConfigError", "ConnectionLost", "DeviceFault", "IdentityMismatch",
@@ -19,19 +19,4 @@ _EXPORTS = {
     "station.robot.registry": ("open_robot", "schemes"),
     "station.robot.url": ("RobotURL", "parse_ids", "parse_url"),
 }
-_WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
-
-__all__ = sorted(_WHERE)
-
-
-def __getattr__(name: str):
-    module = _WHERE.get(name)
-    if module is None:
-        raise AttributeError(f"module 'station.robot' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_WHERE))
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -1,8 +1,9 @@
 """``RobotBase``: what every driver shares, so each one writes only what its bus does differently (python-can's
 ``BusABC`` idea).
 
-- lifecycle: ``close()`` runs the driver's ``_shutdown()`` exactly once (also on a robot whose constructor
-  failed half way), ``with robot:`` closes it, ``closed`` says so, motion on a closed robot is refused;
+- lifecycle (``station.plugins.CloseOnce``, shared with instruments): ``close()`` runs the driver's
+  ``_shutdown()`` exactly once (also on a robot whose constructor failed half way), ``with robot:`` closes it,
+  ``closed`` says so, motion on a closed robot is refused;
 - URL options: the class declares ``options`` (``station.robot.url.Options``); ``from_url`` parses them;
 - motion pre-checks before anything is sent: joint limits, speed values, no motion while compliant, jog
   targets and the 250 mm/s tool cap (``station.robot.motion``).
@@ -12,9 +13,10 @@ Drivers subclass it; callers never need to: they use the ``Robot`` protocol and 
 from __future__ import annotations
 
 import math
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from typing import TYPE_CHECKING, ClassVar
 
+from station.plugins import CloseOnce
 from station.robot.errors import ConfigError, ConnectionLost, LimitError, SafetyStop
 from station.robot.url import Option, Options, RobotURL, text
 
@@ -31,12 +33,12 @@ CHAIN_OPTIONS = (
 )
 
 
-class RobotBase(ABC):
+class RobotBase(CloseOnce):
     options: ClassVar[Options] = Options()  # the URL query options this driver accepts
+    noun: ClassVar[str] = "robot"
+    closed_error: ClassVar[type[Exception]] = ConnectionLost
     model: Model
-    url: str = ""
-    _closed: bool = False  # class defaults: valid before the constructor ran (close() of a half-built robot)
-    _compliant: bool = False
+    _compliant: bool = False  # class default: valid before the constructor ran (close() of a half-built robot)
 
     # ---- construction ------------------------------------------------------------------------------------
     @classmethod
@@ -58,35 +60,11 @@ class RobotBase(ABC):
         except (ModelFileError, OSError, ValueError, KeyError) as e:
             raise ConfigError(f"robot URL {url.raw!r}: model {name_or_model!r}: {e}") from None
 
-    # ---- lifecycle ---------------------------------------------------------------------------------------
+    # ---- lifecycle (close-once: station.plugins.CloseOnce) ---------------------------------------------------
     @abstractmethod
     def _shutdown(self) -> None:
         """Leave every device in its safe state (stopped, holding or powered down) and release the bus.
         Runs once, possibly on a half-constructed robot; must not raise for a bus that is already gone."""
-
-    def close(self) -> None:
-        """Stop, leave the bus safe and disconnect. Idempotent."""
-        if self._closed:
-            return
-        self._closed = True
-        self._shutdown()
-
-    @property
-    def closed(self) -> bool:
-        return self._closed
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def __repr__(self) -> str:
-        return f"<{type(self).__name__} {self.url or '?'}{' closed' if self._closed else ''}>"
-
-    def _check_open(self, what: str) -> None:
-        if self._closed:
-            raise ConnectionLost(f"{what}: {self.url or type(self).__name__} is closed; open the robot again")
 
     # ---- motion pre-checks (nothing is sent when one fails) ----------------------------------------------
     def _check_stiff(self, what: str) -> None:

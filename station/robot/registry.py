@@ -12,34 +12,21 @@ driver modules imported only when their scheme is opened: no bus library is impo
 
 from __future__ import annotations
 
-import contextlib
-from typing import TYPE_CHECKING
-
+from station.plugins import Registry, library
 from station.robot.errors import ConfigError
 from station.robot.url import RobotURL, parse_url
 
-if TYPE_CHECKING:
-    from importlib.metadata import EntryPoint
-
 GROUP = "station.robots"
-_entry_points: dict[str, EntryPoint] | None = None
-
-
-def _registered() -> dict[str, EntryPoint]:
-    global _entry_points
-    if _entry_points is None:
-        from importlib import metadata  # ~50 ms: only when a robot is opened
-
-        _entry_points = {ep.name.lower(): ep for ep in metadata.entry_points(group=GROUP)}
-    return _entry_points
+REGISTRY = Registry(GROUP, "driver", ConfigError,
+                    empty=f"no robot drivers are registered (entry-point group {GROUP} is empty): the station "
+                          "package is not installed properly; reinstall it (make venv)")
 
 
 def schemes() -> list[str]:
     """Every registered URL scheme."""
-    return sorted(_registered())
+    return REGISTRY.names()
 
 
-@contextlib.contextmanager
 def bus_library(package: str):
     """Wrap a driver's import of its bus library: a missing one becomes a one-line ``ConfigError`` naming
     the package to install (python-can wraps its interfaces' import errors the same way)::
@@ -47,31 +34,12 @@ def bus_library(package: str):
         with bus_library("ur-rtde"):
             import rtde_control
     """
-    try:
-        yield
-    except ModuleNotFoundError as e:
-        if (e.name or "").split(".")[0] == "station":
-            raise  # our own module missing is a bug: keep the traceback
-        raise ConfigError(f"the Python package {package} is not installed (import of {e.name!r} failed); "
-                          f"install it: pip install {package}") from None
+    return library(package, ConfigError)
 
 
 def driver_class(scheme: str) -> type:
     """The driver class registered for ``scheme`` (its module imported now)."""
-    ep = _registered().get(scheme.lower())
-    if ep is None:
-        known = schemes()
-        if not known:
-            raise ConfigError(f"no robot drivers are registered (entry-point group {GROUP} is empty): the "
-                              "station package is not installed properly; reinstall it (make venv)")
-        raise ConfigError(f"unknown scheme {scheme!r}; known: {', '.join(known)}")
-    try:
-        return ep.load()
-    except ModuleNotFoundError as e:  # a plug-in driver that did not wrap its bus library import
-        if (e.name or "").split(".")[0] == "station":
-            raise
-        raise ConfigError(f"the {scheme} driver ({ep.value}) needs the Python module {e.name!r}, which is not "
-                          "installed") from None
+    return REGISTRY.load(scheme)
 
 
 def open_robot(url: str, **overrides):

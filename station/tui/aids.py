@@ -6,7 +6,7 @@ talks to the robot through the controller (its lock, its error handling, its jou
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -15,15 +15,59 @@ from station.robot.errors import ConfigError, LimitError, StationError
 from station.tui import approach as ap
 
 if TYPE_CHECKING:
-    from station.tui.controller import JogController
+    from contextlib import AbstractContextManager
+
+    from station.engine.cell import Cell
+    from station.engine.session import Session
+    from station.kinematics import Model
+    from station.kinematics.collision import Checker, KeepOut
+    from station.tui.hold import HoldToRun
 
 NEAR_STALL_S = 1.0  # s: a "go near" segment that shows no motion for this long after its command has stopped
+
+
+class Reading(Protocol):
+    T: np.ndarray | None  # the tool pose of the last reading (nominal model), base frame
+
+
+class Aided(Protocol):
+    """What the aids need of the jog controller that owns them (``station.tui.controller.JogController``): the
+    robot, its model and cell, the selected point, the last reading, the hold in progress, its lock and session,
+    and where it says what happened. Written here, so this part does not import the controller that imports it."""
+
+    robot: Any
+    model: Model
+    session: Session
+    cell: Cell | None
+    reference: Any  # "unknown", or {label: xyz} given on the command line
+    keep_out: KeepOut
+    readout: Reading | None
+    holding: HoldToRun
+    io_lock: AbstractContextManager
+    frame: str
+    ur_rotvec: bool
+    fault: str | None
+    message: str
+
+    @property
+    def point(self) -> str: ...
+
+    @property
+    def speed_mm_s(self) -> float: ...
+
+    def count_si(self, joint: int) -> float: ...
+
+    def _get_checker(self) -> Checker | None: ...
+
+    def _update_guidance(self) -> None: ...
+
+    def _on_error(self, err: StationError, what: str) -> None: ...
 
 
 class ApproachAids:
     """Proximity, go near and seat for one controller (``ctl``)."""
 
-    def __init__(self, ctl: JogController) -> None:
+    def __init__(self, ctl: Aided) -> None:
         self.ctl = ctl
         # where the technician can be sent: points with a nominal position, and the ones they cannot be
         # (a socket without a compliant mode to seat it; out of reach: checked at the first reading)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import statistics
 import time
 from collections import deque
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -15,7 +15,9 @@ from station.robot.errors import LimitError, StationError
 from station.robot.motion import joint_speed_for_tool_cap
 
 if TYPE_CHECKING:
-    from station.tui.controller import JogController
+    from contextlib import AbstractContextManager
+
+    from station.kinematics import Model
 
 # hold-to-run (docs/jog.md "Hold-to-run"). A terminal with the kitty keyboard protocol reports the key release
 # (station.tui.keys): the release stops at once. Elsewhere only the autorepeat shows a held key: the press, a
@@ -40,10 +42,49 @@ RELEASE_LOCK_S = 0.2  # s: a release waits at most this for a re-command in flig
 HOLD_DELAY_MIN_S = 0.15  # s: no terminal's repeat delay is shorter
 
 
+class Jogger(Protocol):
+    """What hold-to-run needs of the jog controller that owns it (``station.tui.controller.JogController``): its
+    robot and model, the jog a key makes, its lock, STOP, and where it says what happened. Written here, so this
+    part does not import the controller that imports it."""
+
+    robot: Any
+    model: Model
+    io_lock: AbstractContextManager
+    mode: str  # joint | cartesian
+    frame: str  # base | tool
+    axis: int
+    velocity_jog: bool
+    fault: str | None
+    message: str
+    last_jog: dict | None
+
+    @property
+    def speed_percent(self) -> int: ...
+
+    @property
+    def speed_mm_s(self) -> float: ...
+
+    def axis_names(self) -> list[str]: ...
+
+    def axis_unit(self, axis: int) -> str: ...
+
+    def joint_rate(self, axis: int) -> float: ...
+
+    def lead_rate(self, axis: int, q0: np.ndarray, target: np.ndarray, step: float) -> float: ...
+
+    def target(self, q0: np.ndarray, axis: int, step: float) -> np.ndarray: ...
+
+    def stop(self, quiet: bool = False) -> None: ...
+
+    def _refuse_axis(self, axis: int) -> str | None: ...
+
+    def _on_error(self, err: StationError, what: str) -> None: ...
+
+
 class HoldToRun:
     """The hold-to-run part of a ``JogController`` (``ctl``): key events in, motion commands out."""
 
-    def __init__(self, ctl: JogController) -> None:
+    def __init__(self, ctl: Jogger) -> None:
         self.ctl = ctl
         self.hold_state: dict | None = None
         self.repeat_intervals: deque[float] = deque(maxlen=16)  # the terminal's autorepeat, measured (s)

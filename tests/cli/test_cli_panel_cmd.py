@@ -1,5 +1,6 @@
 """``station.cli.panel_cmd``: the panel's files are checked when it starts (one line each), not when the first unit
-is scanned; and the options ``station run`` and ``station panel`` share (``station.cli.run_options``)."""
+is scanned; and the options ``station run``, ``station panel`` and ``station opcua`` share
+(``station.cli.run_options``, the plan's from the engine's declarations)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from clirunner import station_main
 
 from station.cli import run_options
 from station.cli.panel_cmd import _check_files
+from station.engine import declare
 
 CELL = ("format: station-cell/1\nunits: {length: mm}\npoints:\n"
         "  A: {kind: socket, position: [350, 0, 750], approach: [0, 0, 1]}\n")
@@ -31,9 +33,32 @@ def test_each_bad_file_is_named_at_start(tmp_path):
         assert "\n" not in str(e.value)
 
 
-@pytest.mark.parametrize("command", ["run", "panel"])
+@pytest.mark.parametrize("command", ["run", "panel", "opcua"])
 def test_shared_options_are_offered_by_both_commands(command):
     out = " ".join(station_main(command, "--help", columns=200).out.split())
-    for opt in (run_options.LIMITS, run_options.DB, run_options.POSES, run_options.HOLDOUT, run_options.CONE):
+    for opt in (run_options.LIMITS, run_options.DB, run_options.POSES, run_options.HOLDOUT, run_options.CONE,
+                run_options.REFERENCE):
         flag = opt.param_decls[0]
         assert flag in out, (command, flag)
+    # --reference is the engine's one declaration everywhere: its help, and its reading of a value
+    assert declare.REFERENCE.doc in out, command
+
+
+@pytest.mark.parametrize("command", ["panel", "opcua"])
+def test_a_bad_reference_is_refused_by_the_declaration_before_anything_serves(tmp_path, command):
+    cell = tmp_path / "cell.yaml"
+    cell.write_text(CELL)
+    r = station_main(command, "--robot", "ur://127.0.0.1:9", "--cell", cell, "--reference", "surveyed")
+    assert r.code == 2 and r.error_line() == ("station: error: --reference 'surveyed': expected "
+                                              f"{declare.REFERENCE.kind.form}"), r.err
+
+
+@pytest.mark.parametrize("command", ["run", "panel"])
+def test_touch_is_the_engines_one_declaration(tmp_path, command):
+    assert declare.TOUCH.doc in " ".join(station_main(command, "--help", columns=200).out.split()), command
+    cell = tmp_path / "cell.yaml"
+    cell.write_text(CELL)
+    args = ("zero_offsets", "--serial", "U1") if command == "run" else ()
+    r = station_main(command, *args, "--robot", "ur://127.0.0.1:9", "--cell", cell, "--touch", "probe")
+    assert r.code == 2 and r.error_line() == ("station: error: --touch 'probe': expected "
+                                              f"{declare.TOUCH.kind.form}"), r.err

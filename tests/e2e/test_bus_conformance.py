@@ -254,10 +254,6 @@ def test_apply_power_cycle_then_verify_finds_zero_offsets(rig, tmp_path, monkeyp
     monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
     out = api.run("zero_offsets", rig.url, rig.serial, cell=rig.cell_path, db=db, apply=True,
                   options=dict(rig.options), report=False)
-    if rig.bus == "franka" and "did not seat" in str(out.error):
-        # known and open: on franka-sim the demo's ball 60 mm off the flange axis fails to seat in one of the
-        # two sockets 50 mm apart at some of zero_offsets' 24 poses (seeds 5, 17, 21; cones 20-35 deg)
-        pytest.xfail(f"franka: zero_offsets seating on franka-sim: {out.error}")
     assert out.status == "completed" and out.passed, (out.status, out.error, out.verdict)
     first = _offsets(out.record)
     hidden = _hidden(rig)

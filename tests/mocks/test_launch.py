@@ -179,9 +179,9 @@ def test_a_new_emulator_is_an_entry_point_found_by_launch_mock_and_demo(tmp_path
         PLUG = PaperPlug()
     '''))
     monkeypatch.syspath_prepend(str(tmp_path))
-    eps = [*plug_module.entry_points(group=plug_module.GROUP),
-           EntryPoint(name="paper", value="papermock:PLUG", group=plug_module.GROUP)]
-    monkeypatch.setattr(plug_module, "entry_points", lambda group: eps)
+    eps = {**plug_module.REGISTRY.entries(),
+           "paper": EntryPoint(name="paper", value="papermock:PLUG", group=plug_module.GROUP)}
+    monkeypatch.setattr(plug_module.REGISTRY, "_entries", eps)
     monkeypatch.setattr(plug_module, "_PLUGS", None)
     with launch("paper", serial="P-1") as emu:
         assert emu.url == "paper://bench?model=arm6&serial=P-1" and emu.world.nominal.name == "arm6"
@@ -192,8 +192,8 @@ def test_a_new_emulator_is_an_entry_point_found_by_launch_mock_and_demo(tmp_path
     monkeypatch.setattr(mock_cmd, "mock_app", typer.Typer())
     mock_cmd.register(app)
     assert "paper" in {c.name for c in mock_cmd.mock_app.registered_commands}
-    bad = [*eps, EntryPoint(name="broken", value="papermock:NOPE", group=plug_module.GROUP)]
-    monkeypatch.setattr(plug_module, "entry_points", lambda group: bad)
+    bad = {**eps, "broken": EntryPoint(name="broken", value="papermock:NOPE", group=plug_module.GROUP)}
+    monkeypatch.setattr(plug_module.REGISTRY, "_entries", bad)
     monkeypatch.setattr(plug_module, "_PLUGS", None)
     with pytest.raises(MockError, match="broken"):
         plug_module.plugs()

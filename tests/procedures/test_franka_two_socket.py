@@ -57,12 +57,6 @@ def _projected_truth(world: World, record: dict) -> dict[str, float]:
     return out
 
 
-# Known open defect (docs/hardware-franka.md, "Seating"): the driver switches to Cartesian impedance where its stiff
-# move stopped and never presses on, so a ball that stops just beside a socket's cone does not seat ("touch
-# indicator is off"); under the two busy processes here it now happens at some poses. Not strict: it passes when
-# every ball lands in its cone. A fix that presses along the approach is on the branch frankademo, unverified.
-@pytest.mark.xfail(reason="Franka seating without a press along the approach misses some sockets under load",
-                   strict=False)
 def test_two_socket_recovers_the_hidden_geometry_under_load(tmp_path, monkeypatch):
     monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
     world_path = write_world(tmp_path, seed=11)

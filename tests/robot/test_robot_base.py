@@ -231,9 +231,9 @@ def test_a_new_bus_is_an_entry_point_not_a_core_edit(tmp_path, monkeypatch):
                 pass
     '''))
     monkeypatch.syspath_prepend(str(tmp_path))
-    eps = dict(registry_module._registered())
+    eps = dict(registry_module.REGISTRY.entries())
     eps["paper"] = EntryPoint(name="paper", value="paperbus:PaperBus", group=registry_module.GROUP)
-    monkeypatch.setattr(registry_module, "_entry_points", eps)
+    monkeypatch.setattr(registry_module.REGISTRY, "_entries", eps)
     robot = open_robot("paper://bench?axes=4")
     assert type(robot).__name__ == "PaperBus" and robot.axes == 4
     with pytest.raises(ConfigError, match="axes='12'"):

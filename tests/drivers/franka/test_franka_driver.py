@@ -133,7 +133,7 @@ def test_compliance_seats_the_ball_and_contact_is_sensed_by_force(sim):
     _, world, _ = sim
     nominal = world.nominal  # the ball as the cell states it
     socket = world.points["A"].position
-    with _open(sim, speed=1.0) as r:
+    with _open(sim, speed=1.0, press_force=0) as r:  # compliance that holds where it begins: the test drives
         q0 = r.joint_positions().q
         above = ik_down(nominal, socket, q0, 0.03)
         stand = ik_down(nominal, socket, above, 0.004)
@@ -162,6 +162,72 @@ def test_compliance_seats_the_ball_and_contact_is_sensed_by_force(sim):
         assert not r.status().compliant
         r.move_joints(above)
         assert not r.touch()
+
+
+@pytest.mark.slow
+def test_the_seating_press_seats_the_ball_from_a_stand_off(sim):
+    """Stiff to 4 mm above where the nominal model puts socket B, compliant: the driver presses on along that
+    approach with ``press_force`` and returns with the ball at rest in the cone, pushing with that force."""
+    _, world, _ = sim
+    nominal, socket = world.nominal, world.points["B"].position
+    with _open(sim, speed=1.0) as r:  # press_force: the default, 5 N
+        above = ik_down(nominal, socket, r.joint_positions().q, 0.03)
+        stand = ik_down(nominal, socket, above, 0.004)
+        r.move_joints(above)
+        r.move_joints(stand, speed=0.2)
+        assert not r.touch()
+        r.set_compliant(True)
+        assert r.last_press == "seated" and r.touch() and not r.status().moving
+        F = r.external_force()
+        assert 4.0 < -F[2] < 6.0, F  # the press, 5 N down (robot on environment), within the estimate's noise
+        q = r.joint_positions().q
+        true_ball = world.truth.position(q[None])[0]
+        assert np.linalg.norm(true_ball - socket) < 6 * SEATING, (true_ball - socket) * 1e6
+        r.set_compliant(False)
+        r.move_joints(above)
+        assert not r.touch()
+
+
+@pytest.mark.slow
+def test_the_seating_press_is_called_off_where_there_is_no_socket(sim):
+    """Stiff to a point in free air 40 mm beside socket A, compliant: the press goes 6 mm without contact and
+    stops there (the target was 8.3 mm beyond), holding; nothing touched."""
+    _, world, _ = sim
+    nominal = world.nominal
+    empty = np.asarray(world.points["A"].position) + [0.0, -0.04, 0.0]
+    with _open(sim, speed=1.0) as r:
+        above = ik_down(nominal, empty, r.joint_positions().q, 0.03)
+        stand = ik_down(nominal, empty, above, 0.01)
+        r.move_joints(above)
+        r.move_joints(stand, speed=0.2)
+        z0 = world.truth.position(r.joint_positions().q[None])[0][2]
+        r.set_compliant(True)
+        assert r.last_press == "no contact" and not r.touch()
+        time.sleep(0.3)
+        went = z0 - world.truth.position(r.joint_positions().q[None])[0][2]
+        assert 5.5e-3 < went < 7.0e-3, went  # called off at 6 mm, not the 8.3 mm of the target
+        r.set_compliant(False)
+        r.move_joints(above)
+
+
+@pytest.mark.slow
+def test_compliance_taken_up_later_than_right_after_a_move_does_not_press(sim):
+    """A technician who jogs and then turns compliance on by hand: no press (only a seating step's compliance,
+    taken up at once after its stiff move, presses on)."""
+    from station.drivers.franka.press import WINDOW
+
+    _, world, _ = sim
+    empty = np.asarray(world.points["A"].position) + [0.0, -0.04, 0.03]
+    with _open(sim, speed=1.0) as r:
+        r.move_joints(ik_down(world.nominal, empty, r.joint_positions().q, 0.0))
+        time.sleep(WINDOW + 0.3)
+        q0 = r.joint_positions().q
+        r.set_compliant(True)
+        assert r.last_press is None and not r.touch()
+        time.sleep(0.3)
+        moved = world.truth.position(r.joint_positions().q[None])[0] - world.truth.position(q0[None])[0]
+        assert np.linalg.norm(moved) < 0.5e-3, moved
+        r.set_compliant(False)
 
 
 @pytest.mark.slow
