@@ -26,10 +26,6 @@ ALLOWED = {
     "cli/test_startup.py": "lists the modules main loaded (code after main), writes stdout to /dev/full, and "
                            "checks main itself leaves gc and the environment as found (station_main restores them)",
     "cli/test_wheel_install.py": "the console script of a wheel installed into a fresh virtual environment",
-    # files of the Franka work running in parallel: to move onto the runner once it has merged
-    "drivers/franka/test_franka_driver.py": "the Franka driver's tests, owned by the Franka work in parallel",
-    "e2e/test_bus_conformance.py": "its Franka cases are being changed in parallel; the kill test's Popen goes "
-                                   "onto station_spawn after that merge",
 }
 
 SUBPROCESS_CALLS = {"run", "Popen", "call", "check_call", "check_output"}
