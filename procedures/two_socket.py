@@ -110,8 +110,9 @@ def _candidates(s, pt, q0, rng, cone_deg, elbow, n_orient=40, n_elbow=7):
     roll, and the elbow joint held at ``n_elbow`` values across its range (IK of the other six joints for the
     full pose); those within the limits (10 deg margin) whose pose, approach pose and path between keep every
     link clear of the cell's keep-outs."""
-    from station.engine.plan import _cone_dirs, _frame_with_z
+    from station.engine.plan import _cone_dirs
     from station.kinematics.collision import Checker, KeepOut
+    from station.kinematics.se3 import frame_with_z
 
     model = s.model
     lo, hi = model.lower, model.upper
@@ -124,7 +125,7 @@ def _candidates(s, pt, q0, rng, cone_deg, elbow, n_orient=40, n_elbow=7):
     for i in range(n_orient):
         for j in range(n_elbow):
             r = i * n_elbow + j
-            T[r, :3, :3] = _frame_with_z(dirs[i], rolls[i])
+            T[r, :3, :3] = frame_with_z(dirs[i], rolls[i])
             T[r, :3, 3] = pt.position
             seeds[r, elbow] = elbows[j]
     W = np.ones(model.n_joints)

@@ -236,16 +236,18 @@ def tui_no_idle_wait(monkeypatch):
 
 @pytest.fixture
 def robot_rig():
-    """Factory ``robot_rig(bus, world, *, query="", enable=True, **emulator_options) -> (emulator, robot)``: the
-    emulated devices of ``bus`` serving the ``World`` in this process (CANopen drives on a python-can virtual
-    channel of their own, Dynamixel servos on a pty) and the real driver connected to them through its URL
-    (``open_robot``; ``query`` is appended, e.g. ``"&heartbeat_ms=250"``), enabled. Robots are closed before their
-    emulators at teardown. A world file, a UR controller or a child process: the ``emulators`` fixture."""
+    """Factory ``robot_rig(bus, world, *, query="", enable=True, connect=True, **emulator_options) -> (emulator,
+    robot)``: the emulated devices of ``bus`` serving the ``World`` in this process (CANopen drives on a python-can
+    virtual channel of their own, Dynamixel servos on a pty) and the real driver connected to them through its URL
+    (``open_robot``; ``query`` is appended, e.g. ``"&heartbeat_ms=250"``), enabled. ``connect=False``: the
+    emulator alone (robot None), for a test that talks to the devices below the driver first (the vendor's SDK, a
+    raw CANopen node) or opens the robot itself (``emulator.url``). Robots are closed before their emulators at
+    teardown. A world file, a UR controller or a child process: the ``emulators`` fixture."""
     from station.robot import open_robot
 
     made: list = []
 
-    def make(bus: str, world, *, query: str = "", enable: bool = True, **options):
+    def make(bus: str, world, *, query: str = "", enable: bool = True, connect: bool = True, **options):
         if bus == "canopen":
             import uuid
 
@@ -264,6 +266,8 @@ def robot_rig():
             url = emu.url
         else:
             raise ValueError(f"robot_rig: no in-process emulator for bus {bus!r} (use the emulators fixture)")
+        if not connect:
+            return emu, None
         robot = open_robot(url + query)
         made.append(robot)
         if enable:

@@ -1,6 +1,7 @@
-"""Shared rig of the fault and durability tests (tests/e2e: test_fault*, test_durability*): the station as
-a child process, a demo cell on an emulator, the bus's safe state read on the emulator/world side. One place, so
-the fault files do not each grow their own copy.
+"""Shared rig of the fault and durability tests (tests/e2e: test_fault*, test_durability*): a demo cell on an
+emulator, the bus's safe state read on the emulator/world side, a fault hooked into a phase of a real session.
+One place, so the fault files do not each grow their own copy. The station itself runs through the one CLI
+runner (tests/clirunner.py); a station child killed in a phase is ``station_proc(..., prelude=kill_in(phase))``.
 
 Ground truth is always the simulated world or the emulated devices, never the station's own word."""
 
@@ -8,38 +9,20 @@ from __future__ import annotations
 
 import contextlib
 import os
-import subprocess
-import sys
 import time
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from busrig import CANOPEN_RELAXED
 from station.mocks.launch import launch
 
 from station.cli.run_cmd import write_demo_files
 from station.engine import read_journal
 
-CLI = "import sys; sys.argv[0] = 'station'; from station.cli import main; main()"
-
-
-def station(args: list[str], env: dict, *, code: str = CLI, timeout: float = 180) -> subprocess.CompletedProcess:
-    """``station ARGS`` in its own process (optionally through a wrapper ``code`` that patches it first)."""
-    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=timeout,
-                          env=env)
-
-
-def spawn(args: list[str], env: dict, *, code: str = CLI) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-c", code, *args], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-
 
 def samples(journal: Path) -> list:
     return [e for e in read_journal(journal)[1] if e.type == "sample"]
-
-
-def error_lines(stderr: str) -> list[str]:
-    return [x for x in stderr.splitlines() if x.startswith("station: error:")]
 
 
 @dataclass
@@ -66,10 +49,13 @@ class DemoCell:
 
 
 @contextlib.contextmanager
-def demo_cell(bus: str, tmp_path: Path, seed: int, *, cross_process: bool = False, world_doc=None):
+def demo_cell(bus: str, tmp_path: Path, seed: int, *, cross_process: bool = False, world_doc=None,
+              relaxed: bool = False):
     """A demo cell on ``bus``. ``cross_process``: reachable from a station child process too (CANopen through a
     socketcand hub, python-can's real client; Dynamixel on a pty; UR always is). ``world_doc(doc)`` may edit the
-    world document before the emulator starts."""
+    world document before the emulator starts. ``relaxed`` (CANopen drives in this process): the URL carries the
+    documented consumer, SDO and master-consumer times relaxed (``busrig.CANOPEN_RELAXED`` says why) for tests
+    that are not heartbeat or SDO timing tests."""
     import yaml
 
     world_path, cell_path, serial = write_demo_files(bus, tmp_path, seed=seed, time_mode="instant")
@@ -101,6 +87,8 @@ def demo_cell(bus: str, tmp_path: Path, seed: int, *, cross_process: bool = Fals
 
         world = World.from_file(world_path)
     with launch(bus, world if world is not None else world_path, serial=serial) as emu:
+        if relaxed and bus == "canopen":
+            emu.url += CANOPEN_RELAXED
         yield DemoCell(bus, emu.url, world_path, cell_path, serial, db, home, emu, world)
 
 
@@ -199,7 +187,7 @@ def phase_hook(phase: str, act, *, in_write: bool = False):
     """``(name, method)``: a replacement for ``Session.<name>`` that runs ``act(session)`` as the phase starts (the
     3rd approach, the 3rd record, the solve, the write-back); with ``in_write`` inside the write-back's device
     write (the window whose signals are held). Install it with monkeypatch in-process, or in a station child
-    process through :data:`WRAPPER`."""
+    process through its prelude, :func:`kill_in`."""
     from station.engine.session import Session
 
     name, nth = PHASE_CALLS[phase]
@@ -227,40 +215,17 @@ def phase_hook(phase: str, act, *, in_write: bool = False):
     return name, hooked
 
 
-# ``station ARGS`` killed with SIGKILL as PHASE starts (inside the device write for write-back):
-# python -c WRAPPER PHASE ARGS...
-WRAPPER = f"""
+def kill_in(phase: str) -> str:
+    """The ``prelude`` (tests/clirunner.py) of a station child that kills itself with SIGKILL as ``phase`` starts
+    (inside the device write for write-back): no teardown runs, as when the power or the process is lost."""
+    return f"""
 import os, signal, sys
 sys.path.insert(0, {str(Path(__file__).parent)!r})
 from faultrig import phase_hook
 from station.engine.session import Session
-phase = sys.argv.pop(1)
-setattr(Session, *phase_hook(phase, lambda s: os.kill(os.getpid(), signal.SIGKILL), in_write=phase == "write-back"))
-sys.argv[0] = "station"
-from station.cli import main; main()
+setattr(Session, *phase_hook({phase!r}, lambda s: os.kill(os.getpid(), signal.SIGKILL),
+                             in_write={phase == "write-back"}))
 """
-
-
-@contextlib.contextmanager
-def canopen_arm(start, *, seed: int = 11, query: str = "", **world_kw):
-    """(world, emulator, robot): the arm6 drives on a fresh python-can virtual channel in a realtime world, the
-    robot opened on it (``query``: extra URL options, e.g. ``&heartbeat_ms=100``); closed in reverse order."""
-    from station.mocks.canopen.emulator import CanopenEmulator
-    from station.mocks.world import World
-
-    from station.robot import open_robot
-
-    chan = f"f-{uuid.uuid4().hex[:8]}"
-    world = World.default(model="arm6", seed=seed, start=start, time_mode="realtime", **world_kw)
-    emu = CanopenEmulator(world, channel=chan, timeout_silence=1.0).start()
-    try:
-        robot = open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6{query}")
-        try:
-            yield world, emu, robot
-        finally:
-            robot.close()
-    finally:
-        emu.stop()
 
 
 def realtime_ur(tmp_path: Path, emulators, seed: int):

@@ -1,12 +1,14 @@
 """The tests' one CLI runner (tests/clirunner.py): in process, as the console script and as ``python -m
 station.cli``, the same command gives the same exit code and output; the environment and the working directory
-given to the in-process runner are restored afterwards."""
+given to the in-process runner are restored afterwards; a spawned child is read, signalled and never left
+running; a prelude patches the station in its child."""
 
 from __future__ import annotations
 
 import os
+import signal
 
-from clirunner import CliResult, station_main, station_proc
+from clirunner import CliResult, python_spawn, station_main, station_proc, station_spawn
 
 
 def test_the_three_ways_agree(tmp_path):
@@ -37,3 +39,26 @@ def test_usage_errors_name_the_command_as_the_console_script_does():
     assert inside.code == outside.code == 2
     assert inside.error_line() == outside.error_line()
     assert inside.error_line().startswith("station: error: station mock world example: No such option: --nope")
+
+
+def test_a_child_can_be_read_signalled_and_is_never_left_running(tmp_path):
+    """``python_spawn``/``station_spawn``: a line waited for with a timeout, a signal, the exit code a signal
+    gives; a child still running when the ``with`` block ends is killed and reaped."""
+    code = "import sys, time\nprint('ready', sys.argv[1], flush=True)\ntime.sleep(60)\n"
+    with python_spawn(code, "x") as child:
+        assert child.readline(timeout=30) == "ready x\n" and child.readline(timeout=0.2) == ""  # nothing more yet
+        child.send_signal(signal.SIGTERM)
+        r = child.wait(timeout=10)
+    assert r.code == -signal.SIGTERM and not child.running()
+    with python_spawn(code, "y") as child:
+        assert child.readline(timeout=30) == "ready y\n"
+    assert child.returncode == -signal.SIGKILL  # killed at the end of the block
+    with station_spawn("model", "list") as child:
+        r = child.wait(timeout=60)
+    assert r.code == 0 and "ur5e" in r.out and r.err == ""
+
+
+def test_a_prelude_patches_the_station_in_its_child():
+    """``prelude``: code run in the child before ``main``; the command then runs as the console script does."""
+    r = station_proc("model", "list", prelude="print('patched first')", timeout=60)
+    assert r.code == 0 and r.out.startswith("patched first\n") and "ur5e" in r.out

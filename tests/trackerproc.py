@@ -1,9 +1,7 @@
 """``station mock tracker --world W --canopen`` as a real process for the correction_map tests: the world's CiA 402
 drives behind a socketcand hub and the laser tracker in one process, with their URLs; killed like a crash."""
 
-import signal
-import subprocess
-import sys
+from clirunner import station_spawn
 
 # a slower SYNC and a longer heartbeat consumer time (driver URL options): the CI machine is shared; no contact
 # input (the map cell measures with the tracker): subscribed, the emulator works out the world's true, gravity-
@@ -13,19 +11,14 @@ ROBOT_OPTIONS = "&sync_ms=20&heartbeat_timeout_ms=5000&sdo_timeout_ms=2000&maste
 
 class TrackerProcess:
     def __init__(self, world, can_port: int = 0, seed: int = 0) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-m", "station.cli", "mock", "tracker", "--world", str(world),
-                                      "--canopen", "--can-port", str(can_port), "--seed", str(seed)],
-                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        self.tracker = self.proc.stdout.readline().split()[3]
-        self.robot = self.proc.stdout.readline().split()[5] + ROBOT_OPTIONS
+        self.proc = station_spawn("mock", "tracker", "--world", world, "--canopen", "--can-port", can_port, "--seed",
+                                  seed, module=True)
+        self.tracker = self.proc.readline().split()[3]
+        self.robot = self.proc.readline().split()[5] + ROBOT_OPTIONS
 
     def kill(self) -> None:
         """SIGKILL: a crash, no teardown of its sockets (safe to call twice)."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGKILL)
-        self.proc.wait(timeout=10)
-        for f in (self.proc.stdout, self.proc.stderr):
-            f.close()
+        self.proc.close()
 
     def __enter__(self):
         return self

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from station.kinematics.se3 import frame_with_z
+
 CONE = np.deg2rad(35.0)  # the pose plan's default cone (station.engine.plan)
 MARGIN = np.deg2rad(5.0)  # the pose plan's joint-limit margin
 CLEARANCE = 0.03  # m: the approach pose backs off this far along the approach direction
@@ -27,16 +29,6 @@ class Placement:
     start: list[float]  # encoder positions at power-on: the tool above the first socket, pointing down
     reach: float  # m: the tool's largest distance from joint 1's axis (sampled)
     note: str = ""  # why there are fewer points than asked, when there are
-
-
-def _frame(z: np.ndarray, roll: float) -> np.ndarray:
-    z = z / np.linalg.norm(z)
-    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = helper - z * (helper @ z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    c, s = np.cos(roll), np.sin(roll)
-    return np.column_stack([c * x + s * y, -s * x + c * y, z])
 
 
 def _directions() -> list[tuple[np.ndarray, float]]:
@@ -85,7 +77,7 @@ def cone_scores(model, positions, keep_out=None, *, approach=(0.0, 0.0, 1.0), se
     up = np.asarray(approach, float)
     dirs = _directions()
     n_dir = len(dirs)
-    R = np.stack([_frame(d, roll) for d, roll in dirs])
+    R = np.stack([frame_with_z(d, roll) for d, roll in dirs])
     T = np.repeat(np.eye(4)[None], len(cand) * n_dir, axis=0)
     T[:, :3, :3] = np.tile(R, (len(cand), 1, 1))
     T[:, :3, 3] = np.repeat(cand, n_dir, axis=0)

@@ -24,6 +24,7 @@ import numpy as np
 from station.engine.cell import RefPoint
 from station.kinematics import Model
 from station.kinematics.collision import Checker, Hit, KeepOut
+from station.kinematics.se3 import frame_with_z
 from station.robot.errors import ConfigError
 
 
@@ -68,21 +69,11 @@ class PosePlan:
         return [p for p in self.poses if p.set == name]
 
 
-def _frame_with_z(z: np.ndarray, roll: float) -> np.ndarray:
-    z = z / np.linalg.norm(z)
-    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = helper - z * (helper @ z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    c, s = np.cos(roll), np.sin(roll)
-    return np.column_stack([c * x + s * y, -s * x + c * y, z])
-
-
 def _cone_dirs(axis: np.ndarray, cone: float, n: int, rng) -> np.ndarray:
     """``n`` unit vectors inside a cone of half-angle ``cone`` around ``axis`` (area-uniform)."""
     tilt = np.arccos(1 - rng.random(n) * (1 - np.cos(cone)))
     az = rng.random(n) * 2 * np.pi
-    R = _frame_with_z(axis, 0.0)
+    R = frame_with_z(axis, 0.0)
     local = np.column_stack([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)])
     return local @ R.T
 
@@ -126,7 +117,7 @@ def _candidates(model: Model, point: RefPoint, q_start, n, cone, clearance, roll
         rolls = rng.uniform(-roll, roll, n)
         T = np.repeat(np.eye(4)[None], n, axis=0)
         for i in range(n):
-            T[i, :3, :3] = _frame_with_z(dirs[i], rolls[i])
+            T[i, :3, :3] = frame_with_z(dirs[i], rolls[i])
         T[:, :3, 3] = p
         # every target from three seeds: the start posture turned towards the point and two random ones. All
         # converged solutions are candidates: the arm's other configurations (shoulder back, wrist flipped)

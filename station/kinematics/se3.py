@@ -20,6 +20,18 @@ def rot_z(a: float) -> np.ndarray:
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
 
 
+def frame_with_z(z: np.ndarray, roll: float = 0.0) -> np.ndarray:
+    """A rotation whose z axis is ``z`` (any length), turned by ``roll`` about it: the x axis is the one of the base
+    x or y axes least aligned with z, projected square to z (a definite frame for every direction)."""
+    z = np.asarray(z, float) / np.linalg.norm(z)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = helper - z * (helper @ z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    c, s = np.cos(roll), np.sin(roll)
+    return np.column_stack([c * x + s * y, -s * x + c * y, z])
+
+
 def rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:
     """Fixed-axis roll-pitch-yaw: ``R = Rz(rz) Ry(ry) Rx(rx)``; input ``(..., 3)`` as (rx, ry, rz)."""
     rpy = np.asarray(rpy, dtype=float)

@@ -13,10 +13,7 @@ read on the emulator's side of the wire (``rig.truth``), never from the driver u
 from __future__ import annotations
 
 import json
-import os
 import signal
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -24,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from busrig import open_rig
+from clirunner import station_spawn
 
 from station import api
 from station.engine import read_journal
@@ -31,7 +29,6 @@ from station.robot import SafetyStop, open_robot
 from station.robot.capabilities import CalibrationStore, WritePose
 
 BUSES = ["canopen-socketcand", "dynamixel", "ur", "franka"]
-CLI = "import sys; sys.argv[0] = 'station'; from station.cli import main; main()"
 
 
 # franka-sim (MuJoCo in its own environment) starts in seconds: in the slow part, as test_franka_driver.py
@@ -312,21 +309,15 @@ def test_killing_the_station_mid_move_stops_the_arm(bus, tmp_path):
     """``station run zero_offsets`` in its own process is killed (SIGKILL) while the arm moves: nothing sends a
     stop, the device's own consumer / watchdog must stop it within the documented time."""
     with open_rig(bus, tmp_path, realtime=True) as rig:
-        env = {**os.environ, "STATION_HOME": str(tmp_path / "home")}
+        env = {"STATION_HOME": str(tmp_path / "home")}
         args = ["run", "zero_offsets", "--robot", rig.kill_url, "--serial", rig.serial, "--cell", str(rig.cell_path),
                 "--db", f"sqlite:///{tmp_path / 'r.db'}"]
-        proc = subprocess.Popen([sys.executable, "-c", CLI, *args], env=env, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.PIPE, text=True)
-        try:
+        with station_spawn(*args, env=env) as proc:
             moving = _wait_moving(rig, proc)
             proc.send_signal(signal.SIGKILL)
             t_kill = time.monotonic()
             proc.wait(10)
             took = rig.wait_still(10.0) if rig.truth_while_connected else _franka_still(rig, t_kill)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
     print(f"\n{bus}: station killed mid-move ({moving}); arm still {took * 1e3:.0f} ms after the kill "
           f"(documented {rig.kill_bound * 1e3:.0f} ms + deceleration)")
     assert took <= rig.kill_bound + STOP_SLACK, (took, rig.kill_bound)
@@ -341,10 +332,10 @@ def _wait_moving(rig, proc, timeout: float = 60.0) -> str:
     end = time.monotonic() + timeout
     if not rig.truth_while_connected:
         time.sleep(8.0)  # connect (served model check) and plan; the approach then moves for seconds
-        assert proc.poll() is None, proc.stderr.read()[-2000:]
+        assert proc.running(), proc.stderr()[-2000:]
         return "approach started"
     while time.monotonic() < end:
-        assert proc.poll() is None, proc.stderr.read()[-2000:]
+        assert proc.running(), proc.stderr()[-2000:]
         if rig.truth.moving():
             time.sleep(0.2)  # well into the move
             return "moving"

@@ -10,6 +10,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
+from clirunner import station_proc
 from faultrig import demo_cell
 
 from station.api import resume
@@ -159,13 +160,11 @@ def test_disk_full_mid_session_is_an_error_then_resume_completes(cell, monkeypat
 def test_free_space_is_checked_before_the_robot_is_opened(tmp_path, monkeypatch):
     monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
     monkeypatch.setenv("STATION_MIN_FREE_MB", str(10 ** 9))  # a petabyte: more than any disk has free
-    r = subprocess.run([sys.executable, "-c", "from station.cli import main; main()", "run", "zero_offsets",
-                        "--robot", "dynamixel:///dev/does-not-exist?model=omx", "--serial", "X",
-                        "--db", f"sqlite:///{tmp_path / 'r.db'}"], capture_output=True, text=True, timeout=120,
-                       env=os.environ.copy())
-    assert r.returncode == 2
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("station: error: only ") and "MiB free" in lines[0], r.stderr
+    r = station_proc("run", "zero_offsets", "--robot", "dynamixel:///dev/does-not-exist?model=omx", "--serial", "X",
+                     "--db", f"sqlite:///{tmp_path / 'r.db'}", timeout=120)  # the environment set above
+    assert r.code == 2
+    lines = r.err_lines
+    assert len(lines) == 1 and lines[0].startswith("station: error: only ") and "MiB free" in lines[0], r.err
     assert not list((tmp_path / "home" / "sessions").glob("*"))  # no session was started
 
 
@@ -202,17 +201,15 @@ def test_read_only_sessions_folder_is_one_line_before_the_robot_is_opened(tmp_pa
         sessions.chmod(0o555)
     try:
         env = {**os.environ, "STATION_HOME": str(home)}
-        r = subprocess.run([sys.executable, "-c", "from station.cli import main; main()", "run", "zero_offsets",
-                            "--robot", "dynamixel:///dev/does-not-exist?model=omx", "--serial", "X",
-                            "--db", f"sqlite:///{tmp_path / 'r.db'}"], capture_output=True, text=True,
-                           timeout=120, env=env)
+        r = station_proc("run", "zero_offsets", "--robot", "dynamixel:///dev/does-not-exist?model=omx",
+                         "--serial", "X", "--db", f"sqlite:///{tmp_path / 'r.db'}", timeout=120, env=env)
     finally:
         if mounted:
             subprocess.run(["umount", str(sessions)], check=True)
         else:
             sessions.chmod(0o755)
-    assert r.returncode == 2
-    lines = r.stderr.strip().splitlines()
+    assert r.code == 2
+    lines = r.err_lines
     assert len(lines) == 1 and lines[0].startswith(f"station: error: cannot write session journals in {sessions}"), \
-        r.stderr
-    assert "does-not-exist" not in r.stderr  # the robot was never opened
+        r.err
+    assert "does-not-exist" not in r.err  # the robot was never opened

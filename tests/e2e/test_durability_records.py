@@ -6,21 +6,15 @@ import contextlib
 import os
 import shutil
 import sqlite3
-import subprocess
-import sys
 
 import pytest
+from clirunner import station_proc
 from station.mocks.launch import launch
 
 from station.api import run as start
 from station.cli.run_cmd import BUS_OPTIONS, write_demo_files
 from station.engine import read_journal
 from station.records import RecordsError, open_records
-
-
-def _station(args, env, timeout=180):
-    return subprocess.run([sys.executable, "-c", "from station.cli import main; main()", *args],
-                          capture_output=True, text=True, timeout=timeout, env=env)
 
 
 @pytest.mark.parametrize("db, says", [
@@ -35,12 +29,12 @@ def test_bad_database_is_one_line_before_the_robot_is_opened(tmp_path, db, says)
             pass
         db = f"sqlite:///file:{path}?mode=ro&uri=true"
     env = {**os.environ, "STATION_HOME": str(tmp_path / "home")}
-    r = _station(["run", "zero_offsets", "--robot", "dynamixel:///dev/does-not-exist?model=omx", "--serial", "X",
-                  "--db", db], env)
-    assert r.returncode == 2, r.stderr
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("station: error: ") and says in lines[0], r.stderr
-    assert "does-not-exist" not in r.stderr  # the robot was never opened
+    r = station_proc("run", "zero_offsets", "--robot", "dynamixel:///dev/does-not-exist?model=omx", "--serial", "X",
+                     "--db", db, env=env)
+    assert r.code == 2, r.err
+    lines = r.err_lines
+    assert len(lines) == 1 and lines[0].startswith("station: error: ") and says in lines[0], r.err
+    assert "does-not-exist" not in r.err  # the robot was never opened
     assert not (tmp_path / "home" / "sessions").exists() or not list((tmp_path / "home" / "sessions").iterdir())
 
 
@@ -76,15 +70,15 @@ def test_database_lost_at_the_end_is_not_stored_then_synced(tmp_path, monkeypatc
     assert events[-1].type == "end" and events[-1].status == "completed"  # the journal is complete
     n = len([e for e in events if e.type == "sample"])
     env = {**os.environ, "STATION_HOME": str(tmp_path / "home")}
-    r = _station(["records", "sync", out.session], env)  # the database still down: one line, exit 2
-    assert r.returncode == 2 and r.stderr.count("station: error:") == 1, r.stderr
+    r = station_proc("records", "sync", out.session, env=env)  # the database still down: one line, exit 2
+    assert r.code == 2 and r.err.count("station: error:") == 1, r.err
     shutil.rmtree(dbfile)  # the database is back
-    r = _station(["records", "sync"], env)  # no id: every ended session not stored yet
-    assert r.returncode == 0 and f"{out.session}: stored" in r.stdout, r.stderr
-    r = _station(["records", "sync"], env)
-    assert r.returncode == 0 and f"{out.session}: already stored" in r.stdout, r.stderr
-    r = _station(["records", "sync", out.session], env)  # named: the same record is there, nothing is written
-    assert r.returncode == 0 and f"{out.session}: already stored" in r.stdout, r.stdout + r.stderr
+    r = station_proc("records", "sync", env=env)  # no id: every ended session not stored yet
+    assert r.code == 0 and f"{out.session}: stored" in r.out, r.err
+    r = station_proc("records", "sync", env=env)
+    assert r.code == 0 and f"{out.session}: already stored" in r.out, r.err
+    r = station_proc("records", "sync", out.session, env=env)  # named: the same record is there, nothing is written
+    assert r.code == 0 and f"{out.session}: already stored" in r.out, r.out + r.err
     with open_records(db) as rec:
         stored = rec.session(out.session)
         (summary,) = rec.sessions(serial)
@@ -102,8 +96,7 @@ def test_not_stored_on_the_command_line(tmp_path):
     env = {**os.environ, "STATION_HOME": str(tmp_path / "home")}
     # the records database goes away while the station solves (after the last sample): a wrapper around the
     # station's own entry point swaps the file for a directory, which SQLite cannot open
-    code = (
-        "import sys\n"
+    prelude = (
         "from pathlib import Path\n"
         "import station.engine.session as S\n"
         "orig = S.Session.solve\n"
@@ -112,18 +105,16 @@ def test_not_stored_on_the_command_line(tmp_path):
         "    if db.is_file():\n"
         "        db.unlink(); db.mkdir()\n"
         "    return orig(self, *a, **k)\n"
-        "S.Session.solve = solve\n"
-        "from station.cli import main; main()\n")
+        "S.Session.solve = solve\n")
     with launch("dynamixel", world_path, serial=serial, process=True) as emu:
-        r = subprocess.run([sys.executable, "-c", code, "run", "zero_offsets", "--robot", emu.url, "--serial",
-                            serial, "--cell", str(cell_path), "--db", f"sqlite:///{dbfile}", "-q",
-                            "--reference", "cell", "--cone", "70"],
-                           capture_output=True, text=True, timeout=300, env=env)
-    assert r.returncode == 2, r.stderr
-    assert r.stdout.strip().splitlines()[-1] == "NOT STORED" and "PASS" not in r.stdout.splitlines()[-1]
-    errors = [x for x in r.stderr.splitlines() if x.startswith("station: error:")]
-    assert len(errors) == 1 and "record not stored" in errors[0], r.stderr
-    assert "station records sync" in r.stderr and "station resume" not in r.stderr
+        r = station_proc("run", "zero_offsets", "--robot", emu.url, "--serial", serial, "--cell", cell_path,
+                         "--db", f"sqlite:///{dbfile}", "-q", "--reference", "cell", "--cone", "70",
+                         timeout=300, env=env, prelude=prelude)
+    assert r.code == 2, r.err
+    assert r.out.strip().splitlines()[-1] == "NOT STORED" and "PASS" not in r.out.splitlines()[-1]
+    errors = r.errors
+    assert len(errors) == 1 and "record not stored" in errors[0], r.err
+    assert "station records sync" in r.err and "station resume" not in r.err
 
 
 class _Outage:
@@ -207,12 +198,12 @@ def test_postgres_outage_at_the_end_is_not_stored_then_synced(tmp_path, monkeypa
         assert events[-1].type == "end" and events[-1].status == "completed"
         n = len([e for e in events if e.type == "sample"])
         env = {**os.environ, "STATION_HOME": str(tmp_path / "home")}
-        r = _station(["records", "sync", out.session], env)  # still unreachable: one line, exit 2
-        assert r.returncode == 2 and r.stderr.count("station: error:") == 1, r.stderr
+        r = station_proc("records", "sync", out.session, env=env)  # still unreachable: one line, exit 2
+        assert r.code == 2 and r.err.count("station: error:") == 1, r.err
         relay.up = True  # the server is reachable again
         for want in ("stored", "already stored"):
-            r = _station(["records", "sync"], env)
-            assert r.returncode == 0 and f"{out.session}: {want}" in r.stdout, (r.stdout, r.stderr)
+            r = station_proc("records", "sync", env=env)
+            assert r.code == 0 and f"{out.session}: {want}" in r.out, (r.out, r.err)
         with open_records(pg_url) as rec:
             stored = rec.session(out.session)
             (summary,) = rec.sessions(serial)

@@ -3,11 +3,9 @@ fields resume acts on are checked; a fault between the last sample and the end i
 
 import hashlib
 import json
-import os
-import subprocess
-import sys
 
 import pytest
+from clirunner import station_proc
 from station.mocks.launch import launch
 
 from station.api import run as start
@@ -28,9 +26,7 @@ def _journal(home, proc_path, sha, **over):
 
 
 def _resume(home, **env_extra):
-    env = {**os.environ, "STATION_HOME": str(home), **env_extra}
-    return subprocess.run([sys.executable, "-c", "from station.cli import main; main()", "resume", "S-1"],
-                          capture_output=True, text=True, timeout=60, env=env)
+    return station_proc("resume", "S-1", env={"STATION_HOME": str(home), **env_extra}, timeout=60)
 
 
 def test_a_planted_procedure_is_never_imported(tmp_path):
@@ -40,7 +36,7 @@ def test_a_planted_procedure_is_never_imported(tmp_path):
                        "def checklist(s):\n    pass\n")
     _journal(tmp_path / "home", planted, hashlib.sha256(b"the file the session started with").hexdigest())
     r = _resume(tmp_path / "home", STATION_PROCEDURES=str(tmp_path))  # found by name in a configured folder
-    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "sha256 differs" in r.stderr, r.stderr
+    assert r.code == 2 and r.err.count("\n") == 1 and "sha256 differs" in r.err, r.err
     assert not marker.exists()  # refused before import: its code never ran
 
 
@@ -56,7 +52,7 @@ def test_header_fields_are_checked_before_anything_is_loaded(tmp_path, field, va
     sha = hashlib.sha256(planted.read_bytes()).hexdigest()
     _journal(tmp_path / "home", planted, sha, **over)
     r = _resume(tmp_path / "home")
-    assert r.returncode == 2 and r.stderr.count("\n") == 1 and says in r.stderr and ":1:" in r.stderr, r.stderr
+    assert r.code == 2 and r.err.count("\n") == 1 and says in r.err and ":1:" in r.err, r.err
 
 
 def test_fault_after_the_last_sample_is_an_error_never_pass(tmp_path, monkeypatch):

@@ -11,24 +11,24 @@ import contextlib
 import json
 import os
 import signal
-import subprocess
-import sys
 import time
 
 import pytest
 import yaml
+from clirunner import station_proc, station_spawn
 from station.mocks.launch import launch
 
 from station.cli.run_cmd import write_demo_files
 from station.engine import read_journal
 from station.robot import open_robot
 
+# the station child's preludes (tests/clirunner.py); MARKER is the file they write when the window opens
 WRAPPER = """
-import sys, time
+import time
 from pathlib import Path
 from station.drivers.dynamixel.robot import DynamixelRobot
 orig = DynamixelRobot.write_calibration
-marker = Path(sys.argv.pop(1))
+marker = Path(MARKER)
 def split_write(self, values):
     items = sorted(values.items())
     orig(self, dict(items[:2]))
@@ -36,15 +36,7 @@ def split_write(self, values):
     time.sleep(4.0)
     orig(self, dict(items[2:]))
 DynamixelRobot.write_calibration = split_write
-sys.argv[0] = "station"
-from station.cli import main; main()
 """
-
-
-def _station(args, env, marker=None, wrapper=None):
-    pre = ["-c", wrapper or WRAPPER, str(marker)] if marker else ["-c", "from station.cli import main; main()"]
-    return subprocess.Popen([sys.executable, *pre, *args], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
 
 
 def _device(url):
@@ -63,10 +55,10 @@ def _can_pause_wrapper(condition: str, note: str) -> str:
     """A station entry point whose CANopen write-back pauses 4 s (after writing the marker file) at the first
     SDO write for which ``condition`` (on node_id, index) holds: a window a signal can land in."""
     return f"""
-import sys, time
+import time
 from pathlib import Path
 from station.drivers.canopen.robot import CanopenRobot
-marker = Path(sys.argv.pop(1))
+marker = Path(MARKER)
 orig = CanopenRobot.write_calibration
 def write_calibration(self, values):
     real, real_obj = self.bus.sdo_write, self.bus.write_obj
@@ -86,8 +78,6 @@ def write_calibration(self, values):
     finally:
         self.bus.sdo_write, self.bus.write_obj = real, real_obj
 CanopenRobot.write_calibration = write_calibration
-sys.argv[0] = "station"
-from station.cli import main; main()
 """
 
 
@@ -159,26 +149,22 @@ def _until_window(start_args, env, marker, home, sig, wrapper=None, tries=4):
     the wrapper signals the write window; then send ``sig``. On a loaded machine a lost bus answer can end a
     try early (the drivers' retries); every try is journaled in the same session."""
     args = start_args
+    prelude = f"MARKER = {str(marker)!r}\n{wrapper or WRAPPER}"
     for _ in range(tries):
-        proc = _station(args, env, marker, wrapper)
-        try:
+        with station_spawn(*args, env=env, prelude=prelude) as proc:
             end = time.monotonic() + 240
-            while not marker.exists() and proc.poll() is None and time.monotonic() < end:
+            while not marker.exists() and proc.running() and time.monotonic() < end:
                 time.sleep(0.02)
             if marker.exists():
                 t0 = time.monotonic()
-                os.kill(proc.pid, sig)
-                stdout, stderr = proc.communicate(timeout=60)
+                proc.send_signal(sig)
+                r = proc.wait(timeout=60)
                 journal = next((home / "sessions").glob("*/journal.jsonl"))
-                return proc.returncode, stdout, stderr, time.monotonic() - t0, journal
-            stdout, stderr = proc.communicate(timeout=30)
-            assert proc.returncode == 2 and "station resume" in stderr, (stdout, stderr)  # a fault: resume
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.communicate()
+                return r.code, r.out, r.err, time.monotonic() - t0, journal
+            r = proc.wait(timeout=30)
+            assert r.code == 2 and "station resume" in r.err, (r.out, r.err)  # a fault: resume
         args = ["resume", next((home / "sessions").glob("*/journal.jsonl")).parent.name, "-q"]
-    raise AssertionError(f"never reached the write window in {tries} tries: {stderr}")
+    raise AssertionError(f"never reached the write window in {tries} tries: {r.err}")
 
 
 def _run_until_window(rig, sig):
@@ -203,9 +189,8 @@ def test_sigterm_in_the_write_window_is_held_until_every_servo_is_written(bench)
     assert stderr.strip().splitlines()[-1].startswith("station: interrupted; continue with: station resume ")
     assert "Traceback" not in stderr
     # resume: the write is journaled complete; the known-pose check runs, PASS
-    again = _station(["resume", journal.parent.name, "-q"], rig.env)
-    out, err = again.communicate(timeout=240)
-    assert again.returncode == 0 and out.strip().splitlines()[-1] == "PASS", err
+    again = station_proc("resume", journal.parent.name, "-q", env=rig.env, timeout=240)
+    assert again.code == 0 and again.out.strip().splitlines()[-1] == "PASS", again.err
     wb = _writebacks(journal)
     assert wb[-1].phase == "verified" and wb[-1].verified
     assert _close(after, _device(rig.url), rig.tol)
@@ -228,25 +213,23 @@ def test_kill_9_in_the_write_window_is_finished_or_rolled_back(bench, then):
     assert _close({n: pre.before[n] for n in names[k:]}, half, tol)  # ... the others old: half written
     assert not _close(pre.after, half, tol)
     if then == "resume":
-        again = _station(["resume", journal.parent.name, "-q"], env)
-        out, err = again.communicate(timeout=240)
-        assert again.returncode == 0 and out.strip().splitlines()[-1] == "PASS", err
+        again = station_proc("resume", journal.parent.name, "-q", env=env, timeout=240)
+        assert again.code == 0 and again.out.strip().splitlines()[-1] == "PASS", again.err
         wb = _writebacks(journal)
         assert [e.phase for e in wb] == ["pre-image", "written", "verified"] and wb[-1].verified
         assert "finished on resume" in wb[1].note
         assert _close(pre.after, _device(rig.url), tol)  # all new values stored
     else:
-        r = _station(["restore", journal.parent.name], env)
-        out, err = r.communicate(timeout=120)
-        assert r.returncode == 0, err
-        assert "restored" in out
+        r = station_proc("restore", journal.parent.name, env=env, timeout=120)
+        assert r.code == 0, r.err
+        assert "restored" in r.out
         assert _close(before, _device(rig.url), tol)  # the pre-image, to the count
         wb = _writebacks(journal)
         assert [(e.kind, e.phase) for e in wb[1:]] == [("restore", "pre-image"), ("restore", "written")]
         # the session's write-back was rolled back on purpose: resume says so in one line, nothing moves
-        again = _station(["resume", journal.parent.name, "-q"], env)
-        out, err = again.communicate(timeout=120)
-        assert again.returncode == 2 and err.strip().count("\n") == 0 and "station restore" in err, err
+        again = station_proc("resume", journal.parent.name, "-q", env=env, timeout=120)
+        err = again.err
+        assert again.code == 2 and err.strip().count("\n") == 0 and "station restore" in err, err
 
 
 def test_restore_without_a_backup_is_one_line_before_the_robot_is_opened(tmp_path):
@@ -257,9 +240,9 @@ def test_restore_without_a_backup_is_one_line_before_the_robot_is_opened(tmp_pat
     Journal.create(folder / "journal.jsonl", ev.Header(session="S-1", procedure="zero_offsets", serial="X",
                                                        url="dynamixel:///dev/does-not-exist?model=omx")).close()
     env = {**os.environ, "STATION_HOME": str(tmp_path / "home")}
-    r = _station(["restore", "S-1"], env)
-    out, err = r.communicate(timeout=60)
-    assert r.returncode == 2 and err.count("\n") == 1 and "no backup" in err and "does-not-exist" not in err, err
+    r = station_proc("restore", "S-1", env=env, timeout=60)
+    err = r.err
+    assert r.code == 2 and err.count("\n") == 1 and "no backup" in err and "does-not-exist" not in err, err
 
 
 # ---- CANopen: killed after the 0x607C writes, before the 0x1010 store --------------------------
@@ -288,9 +271,8 @@ def test_canopen_kill_9_before_the_store_is_finished_by_resume_and_survives_a_po
     tol = 1e-6  # arm6 encoders: ~1e-6 rad per count
     assert _close(pre.after, _device(url), tol)  # the drives answer with the new values: volatile only
     # resume finishes the transaction: the values are written again, this time with the 0x1010 store
-    again = _station(["resume", journal.parent.name, "-q"], env)
-    out, err = again.communicate(timeout=300)
-    assert again.returncode == 0 and out.strip().splitlines()[-1] == "PASS", err
+    again = station_proc("resume", journal.parent.name, "-q", env=env, timeout=300)
+    assert again.code == 0 and again.out.strip().splitlines()[-1] == "PASS", again.err
     wb = _writebacks(journal)
     assert [e.phase for e in wb] == ["pre-image", "written", "verified"] and wb[-1].verified
     emu.power_cycle()  # what is not stored is lost here

@@ -4,28 +4,21 @@ middle of the write-back. (zero_offsets --apply, power cycle and the identificat
 in tests/e2e/test_bus_conformance.py.)"""
 
 import pytest
-from station.mocks.launch import launch
+from faultrig import demo_cell
 
 from station.api import resume
 from station.api import run as start
-from station.cli.run_cmd import write_demo_files
 from station.engine import read_journal
 from station.records import open_records
 
 
 @pytest.fixture
 def cell(tmp_path, monkeypatch):
-    monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
-    world_path, cell_path, serial = write_demo_files("canopen", tmp_path, seed=21, time_mode="instant")
-    with launch("canopen", world_path, serial=serial) as emu:
-        # not a heartbeat test: the emulator runs in this process, so at load ~9 on 2 cores its heartbeat thread
-        # waits for the GIL/CPU behind the solver and the station's threads (2009 ms gaps measured); the consumer
-        # time is the documented URL option heartbeat_timeout_ms (production default 800 ms is unchanged;
-        # tests/drivers/canopen/test_canopen_faults.py covers heartbeat loss)
-        # SDO answers too (sdo_timeout_ms), and the drives' consumer of the station's heartbeat, a thread of this
-        # process (master_timeout_ms; tests/drivers/canopen/test_canopen_heartbeat.py covers a lost station)
-        emu.url += "&heartbeat_timeout_ms=5000&sdo_timeout_ms=2000&master_timeout_ms=5000"
-        yield emu, cell_path, serial, f"sqlite:///{tmp_path / 'records.db'}"
+    # not a heartbeat or SDO timing test: the drives run in this process (relaxed times, busrig.CANOPEN_RELAXED;
+    # tests/drivers/canopen/test_canopen_faults.py and test_canopen_heartbeat.py cover the production times)
+    with demo_cell("canopen", tmp_path, 21, relaxed=True) as c:
+        monkeypatch.setenv("STATION_HOME", str(c.home))
+        yield c.emu, c.cell_path, c.serial, c.db
 
 
 def test_fault_mid_procedure_stops_robot_and_keeps_journal(cell):
@@ -61,7 +54,7 @@ def test_fault_mid_procedure_stops_robot_and_keeps_journal(cell):
         assert "\n" not in str(done.error)
 
 
-def test_guarded_approach_stops_at_first_contact(tmp_path, monkeypatch):
+def test_guarded_approach_stops_at_first_contact(tmp_path, monkeypatch, emulators):
     """A needle on the contact input (a 2 mm contact sphere): step down until the contact closes, bisect. Every
     sample is taken with the contact just closed: the true tip on the sphere's surface, to the bisection step.
     (Where on the sphere depends on the lateral aim error, so a contact sphere limits a TCP calibration to that
@@ -83,10 +76,10 @@ def test_guarded_approach_stops_at_first_contact(tmp_path, monkeypatch):
     world_path, cell_path = tmp_path / "w.yaml", tmp_path / "c.yaml"
     world_path.write_text(yaml.safe_dump(doc))
     cell_path.write_text(yaml.safe_dump(World.from_file(world_path).station_cell()))
-    with launch("canopen", world_path, serial="NEEDLE-1") as emu:
-        out = start("tcp_4point", emu.url, "NEEDLE-1", cell=cell_path, touch=GuardedApproach(fine=0.01e-3),
-                    options={"n_fit": 6, "n_holdout": 1})
-        world = emu.world
+    emu = emulators("canopen", world_path, serial="NEEDLE-1")
+    out = start("tcp_4point", emu.url, "NEEDLE-1", cell=cell_path, touch=GuardedApproach(fine=0.01e-3),
+                options={"n_fit": 6, "n_holdout": 1})
+    world = emu.world
     assert out.status == "completed", out.error
     samples = out.record["samples"]
     assert len(samples) == 7 and all(x["status"]["touch"] for x in samples)

@@ -5,14 +5,13 @@ sample; a failing verdict exits 1 and is stored."""
 import math
 import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from clirunner import station_proc, station_spawn
 from station.mocks.launch import launch
 
 from station.api import run as start
@@ -62,11 +61,6 @@ def test_zero_offsets_recovers_hidden_offsets(home):
     assert (out.folder / "samples.csv").read_text().count("\n") == 2 + len(out.record["samples"])
 
 
-def _station(args, env):
-    return subprocess.Popen([sys.executable, "-c", "from station.cli import main; main()", *args], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-
-
 def _journal_samples(home: Path) -> tuple[Path | None, int]:
     for j in (home / "home" / "sessions").glob("*/journal.jsonl"):
         return j, j.read_text().count('"type":"sample"')
@@ -79,34 +73,23 @@ def test_kill_9_then_resume_keeps_every_sample(home):
     db = f"sqlite:///{home / 'r.db'}"
     env = {**os.environ, "STATION_HOME": str(home / "home")}
     with launch("dynamixel", world_path, serial=serial) as emu:
-        proc = _station(["run", "zero_offsets", "--robot", emu.url, "--serial", serial, "--cell", str(cell_path),
-                         "--reference", "cell", "--cone", "70", "--db", db, "-q"], env)
-        try:
+        with station_spawn("run", "zero_offsets", "--robot", emu.url, "--serial", serial, "--cell", cell_path,
+                           "--reference", "cell", "--cone", "70", "--db", db, "-q", env=env) as proc:
             end = time.monotonic() + 60
             n = 0
-            while time.monotonic() < end and n < 6 and proc.poll() is None:
+            while time.monotonic() < end and n < 6 and proc.running():
                 journal, n = _journal_samples(home)
                 time.sleep(0.01)
-            assert proc.poll() is None and n >= 6, proc.communicate(timeout=5)
-            os.kill(proc.pid, signal.SIGKILL)
+            assert proc.running() and n >= 6, proc.wait(timeout=5)
+            proc.send_signal(signal.SIGKILL)
             proc.wait(timeout=10)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-            proc.communicate()
         _, before = read_journal(journal)
         kept = [e for e in before if e["type"] == "sample"]
         assert len(kept) >= 6 and not any(e["type"] == "end" for e in before)
         # resume in its own process too: the emulator thread keeps this one's interpreter to itself
-        again = _station(["resume", journal.parent.name, "-q"], env)
-        try:
-            stdout, stderr = again.communicate(timeout=120)
-        finally:
-            if again.poll() is None:
-                again.kill()
-                again.communicate()
+        r = station_proc("resume", journal.parent.name, "-q", env=env, timeout=120)
         hidden = emu.world.hidden()
-    assert again.returncode == 0 and stdout.strip().splitlines()[-1] == "PASS", stderr
+    assert r.code == 0 and r.out.strip().splitlines()[-1] == "PASS", r.err
     out = session_from_journal(journal)
     _, events = read_journal(journal)
     samples = [e for e in events if e["type"] == "sample"]
@@ -128,17 +111,11 @@ def test_failing_verdict_exits_1_and_is_stored(home):
     db = f"sqlite:///{home / 'r.db'}"
     env = {**os.environ, "STATION_HOME": str(home / "home")}
     with launch("dynamixel", world_path, serial=serial) as emu:
-        proc = _station(["run", "zero_offsets", "--robot", emu.url, "--serial", serial, "--cell", str(cell_path),
-                         "--reference", "cell", "--cone", "70", "--db", db, "--limits", str(strict), "-q",
-                         "--poses", "12", "--holdout", "2"], env)
-        try:
-            stdout, stderr = proc.communicate(timeout=120)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.communicate()
-    assert proc.returncode == 1, stderr
-    assert stdout.strip().splitlines()[-1] == "FAIL"
+        r = station_proc("run", "zero_offsets", "--robot", emu.url, "--serial", serial, "--cell", cell_path,
+                         "--reference", "cell", "--cone", "70", "--db", db, "--limits", strict, "-q",
+                         "--poses", "12", "--holdout", "2", env=env, timeout=120)
+    assert r.code == 1, r.err
+    assert r.out.strip().splitlines()[-1] == "FAIL"
     with open_records(db) as rec:
         (s,) = rec.sessions(serial)
         stored = rec.session(s["session"])
@@ -150,27 +127,23 @@ def test_sigterm_stops_the_robot_and_journals_the_interruption(home):
     world_path, cell_path, serial = _files(home, seed=34, time_mode="realtime", time_scale=4.0)
     env = {**os.environ, "STATION_HOME": str(home / "home")}
     with launch("dynamixel", world_path, serial=serial) as emu:
-        proc = _station(["run", "zero_offsets", "--robot", emu.url, "--serial", serial, "--cell", str(cell_path),
-                         "--reference", "cell", "--cone", "70", "--db", f"sqlite:///{home / 'r.db'}", "-q"], env)
-        try:
+        with station_spawn("run", "zero_offsets", "--robot", emu.url, "--serial", serial, "--cell", cell_path,
+                           "--reference", "cell", "--cone", "70", "--db", f"sqlite:///{home / 'r.db'}", "-q",
+                           env=env) as proc:
             end = time.monotonic() + 60
             n = 0
-            while time.monotonic() < end and n < 3 and proc.poll() is None:
+            while time.monotonic() < end and n < 3 and proc.running():
                 journal, n = _journal_samples(home)
                 time.sleep(0.01)
-            if proc.poll() is not None:  # ended before it could be interrupted: say why
-                pytest.fail(f"station exited {proc.returncode} before the interruption: {proc.communicate()[1]}")
+            if not proc.running():  # ended before it could be interrupted: say why
+                pytest.fail(f"station exited {proc.returncode} before the interruption: {proc.wait().err}")
             assert n >= 3
             while not emu.world.is_moving() and time.monotonic() < end:  # interrupt it mid-motion
                 time.sleep(0.002)
             proc.send_signal(signal.SIGTERM)
-            stdout, stderr = proc.communicate(timeout=30)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.communicate()
-        assert proc.returncode == 130, stderr
-        assert "station resume" in stderr
+            r = proc.wait(timeout=30)
+        assert r.code == 130, r.err
+        assert "station resume" in r.err
         time.sleep(0.5)  # a controlled stop decelerates
         assert not emu.world.is_moving() and not emu.world.compliant
     _, events = read_journal(journal)

@@ -8,12 +8,12 @@ and zero errors of 0.2 mm / 0.1 deg the residuals fail the limits, which one tes
 from __future__ import annotations
 
 import math
-import sys
 import uuid
 
 import numpy as np
 import pytest
 import yaml
+from clirunner import station_main
 from station.mocks.canopen.emulator import CanopenEmulator
 from station.mocks.world import World
 
@@ -52,17 +52,6 @@ def scara(tmp_path, monkeypatch):
     yield make
     for emu in started:
         emu.stop()
-
-
-def _station_run(monkeypatch, capsys, *args: str) -> tuple[int, str]:
-    """``station run ...`` in this process (the emulator's virtual channel lives here): exit code, stdout."""
-    from station.cli import main
-
-    monkeypatch.setattr(sys, "argv", ["station", "run", *args, "--quiet"])
-    with pytest.raises(SystemExit) as ex:
-        main()
-    out = capsys.readouterr().out
-    return ex.value.code, out
 
 
 def _stored(db: str, stdout: str) -> dict:
@@ -123,11 +112,12 @@ def test_quill_in_metres_over_canopen(scara):
 
 
 @pytest.mark.parametrize("procedure", ["tcp_4point", "tcp_circle"])
-def test_tcp_procedure_recovers_hidden_tool(scara, monkeypatch, capsys, procedure):
+def test_tcp_procedure_recovers_hidden_tool(scara, procedure):
     world, url, cell, db = scara(3)
-    code, out = _station_run(monkeypatch, capsys, procedure, "--robot", url, "--serial", "SCARA-3",
-                             "--cell", str(cell), "--db", db)
-    assert code == 0, out
+    # in this process: the emulator's virtual channel lives here
+    code, out, err = station_main("run", procedure, "--robot", url, "--serial", "SCARA-3", "--cell", cell,
+                                  "--db", db, "--quiet")
+    assert code == 0, out + err
     assert out.rstrip().splitlines()[-1] == "PASS"
     record = _stored(db, out)
     assert record["verdict"]["passed"] is True
@@ -143,16 +133,16 @@ def test_tcp_procedure_recovers_hidden_tool(scara, monkeypatch, capsys, procedur
     assert np.max(np.linalg.norm(tips - world.points["A"].position, axis=1)) < 0.1e-3
 
 
-def test_tcp_4point_on_uncalibrated_arm_fails(scara, monkeypatch, capsys):
+def test_tcp_4point_on_uncalibrated_arm_fails(scara):
     """The default world's hidden link and zero errors (0.2 mm, 0.1 deg) are not a tool offset: the residuals
     exceed their limits -- the 0.10 mm fit limit, or the 0.15 mm hold-out limit when the planned poses let the
     tool offset absorb the errors on the fit poses (seen: fit 0.03 mm, hold-out 0.35 mm) -- the run prints FAIL
     and exits 1 (the record is stored all the same)."""
     world, url, cell, db = scara(0, errors=None)
     assert any(n.startswith("dh.") for n in world.errors())
-    code, out = _station_run(monkeypatch, capsys, "tcp_4point", "--robot", url, "--serial", "SCARA-0",
-                             "--cell", str(cell), "--db", db)
-    assert code == 1, out
+    code, out, err = station_main("run", "tcp_4point", "--robot", url, "--serial", "SCARA-0", "--cell", cell,
+                                  "--db", db, "--quiet")
+    assert code == 1, out + err
     assert out.rstrip().splitlines()[-1] == "FAIL"
     record = _stored(db, out)
     failed = {m["name"] for m in record["verdict"]["measurements"] if not m["passed"]}

@@ -3,26 +3,20 @@ technician's manual touch through the ManualTouch provider, and teardown when a 
 
 import numpy as np
 import pytest
-from station.mocks.launch import launch
+from clirunner import station_proc
+from faultrig import demo_cell
 
 import station
-from station.cli.run_cmd import write_demo_files
 from station.engine import ManualTouch, read_journal
 
 
 @pytest.fixture
 def cell(tmp_path, monkeypatch):
-    monkeypatch.setenv("STATION_HOME", str(tmp_path / "home"))
-    world_path, cell_path, serial = write_demo_files("canopen", tmp_path, seed=61, time_mode="instant")
-    with launch("canopen", world_path, serial=serial) as emu:
-        # not a heartbeat test: the emulator runs in this process, so at load ~9 on 2 cores its heartbeat thread
-        # waits for the GIL/CPU behind the solver and the station's threads (2009 ms gaps measured); the consumer
-        # time is the documented URL option heartbeat_timeout_ms (production default 800 ms is unchanged;
-        # tests/drivers/canopen/test_canopen_faults.py covers heartbeat loss)
-        # SDO answers too (sdo_timeout_ms), and the drives' consumer of the station's heartbeat, a thread of this
-        # process (master_timeout_ms; tests/drivers/canopen/test_canopen_heartbeat.py covers a lost station)
-        emu.url += "&heartbeat_timeout_ms=5000&sdo_timeout_ms=2000&master_timeout_ms=5000"
-        yield emu, cell_path, serial, f"sqlite:///{tmp_path / 'records.db'}"
+    # not a heartbeat or SDO timing test: the drives run in this process (relaxed times, busrig.CANOPEN_RELAXED;
+    # tests/drivers/canopen/test_canopen_faults.py and test_canopen_heartbeat.py cover the production times)
+    with demo_cell("canopen", tmp_path, 61, relaxed=True) as c:
+        monkeypatch.setenv("STATION_HOME", str(c.home))
+        yield c.emu, c.cell_path, c.serial, c.db
 
 
 def test_scripted_session_like_the_docs(cell):
@@ -53,12 +47,8 @@ def test_scripted_session_like_the_docs(cell):
         assert [r["passed"] for r in records.sessions(serial)] == [None]
     finally:
         records.close()
-    import subprocess
-    import sys
-
-    listed = subprocess.run([sys.executable, "-m", "station.cli", "records", "list", "--serial", serial, "--db", db],
-                            capture_output=True, text=True, env={**__import__("os").environ, "COLUMNS": "80"})
-    assert listed.returncode == 0 and "NO LIMITS" in listed.stdout and "PASS" not in listed.stdout, listed.stdout
+    listed = station_proc("records", "list", "--serial", serial, "--db", db, module=True, env={"COLUMNS": "80"})
+    assert listed.code == 0 and "NO LIMITS" in listed.out and "PASS" not in listed.out, listed.out
     html = s.outcome.report.read_text()
     assert 'id="overall">NO LIMITS<' in html and 'id="overall">PASS' not in html
     hidden = emu.world.hidden()

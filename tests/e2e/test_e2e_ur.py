@@ -2,12 +2,11 @@
 the TCP (4-point and XYZR-circle style) recovered within their uncertainty; ``station demo`` runs."""
 
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 import yaml
+from clirunner import station_proc
 from station.mocks.launch import launch
 
 from station.api import run as start
@@ -59,10 +58,9 @@ def test_tcp_methods_on_ur(home):
 
 def test_station_demo_command(home):
     env = {**os.environ, "STATION_HOME": str(home / "home")}
-    r = subprocess.run([sys.executable, "-c", "from station.cli import main; main()", "demo", "--robot", "ur"],
-                       capture_output=True, text=True, timeout=180, env=env, cwd=home)
-    assert r.returncode == 0, r.stderr[-2000:]
-    out = r.stdout
+    r = station_proc("demo", "--robot", "ur", timeout=180, env=env, cwd=home)
+    assert r.code == 0, r.err[-2000:]
+    out = r.out
     assert "hidden truth" in out and "offset.j2" in out and out.strip().splitlines()[-1] == "PASS"
     report = next(line.split(None, 1)[1] for line in out.splitlines() if line.startswith("report:"))
     assert (home / report).exists() or os.path.exists(report)

@@ -28,7 +28,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from faultrig import WRAPPER, assert_safe, counts_of, demo_cell, device_offsets, phase_hook, samples, station
+from clirunner import station_proc
+from faultrig import assert_safe, counts_of, demo_cell, device_offsets, kill_in, phase_hook, samples
 from station.mocks.world import World, default_doc
 
 from station import api
@@ -305,10 +306,9 @@ def _step(cell, row, phase, session, monkeypatch, act):
     error or '', session id)."""
     in_write = phase == "write-back"
     if row == "kill -9":
-        r = station(_cli_args(cell, session), cell.env, code=WRAPPER.replace("phase = sys.argv.pop(1)",
-                                                                              f"phase = {phase!r}"))
-        assert "Traceback" not in r.stderr, r.stderr
-        return r.returncode, r.stderr.strip(), cell.journal().parent.name
+        r = station_proc(*_cli_args(cell, session), env=cell.env, prelude=kill_in(phase))
+        assert "Traceback" not in r.err, r.err
+        return r.code, r.err.strip(), cell.journal().parent.name
     with monkeypatch.context() as m:
         m.setattr(Session, *phase_hook(phase, act, in_write=in_write))
         old = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal (not pytest's)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import time
 
 import pytest
-from faultrig import canopen_arm
+from station.mocks.world import World
 
 from station.robot import BusError
 
@@ -18,12 +18,12 @@ SAFE = ("SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON")
 
 
 @pytest.fixture
-def seated():
-    with canopen_arm(START) as (world, emu, robot):
-        robot.enable()
-        robot.set_compliant(True)
-        assert world.compliant
-        yield world, emu, robot
+def seated(robot_rig):
+    world = World.default(model="arm6", seed=11, start=START, time_mode="realtime")
+    emu, robot = robot_rig("canopen", world)
+    robot.set_compliant(True)
+    assert world.compliant
+    return world, emu, robot
 
 
 def _states(emu) -> list[str]:

@@ -6,8 +6,6 @@ run through the installed command to prove the same holds out of process."""
 
 import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -370,17 +368,14 @@ def test_urls(url, needle):
 # ---- a crash is exit 2, never the FAIL code -----------------------------------------------------------------
 def test_internal_error_is_exit_2_one_line(tmp_path):
     """A bug (here: a command that raises ZeroDivisionError) is reported as an internal error, exit 2."""
-    code = ("import sys, typer\nfrom station import cli\n"
-            "@cli.app.command('boom')\ndef boom():\n    1 / 0\n"
-            "sys.argv = ['station', 'boom']\ncli.main()\n")
+    boom = "from station import cli\n@cli.app.command('boom')\ndef boom():\n    1 / 0\n"
     env = {k: v for k, v in os.environ.items() if k != "STATION_DEBUG"}
-    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, env=env)
-    assert p.returncode == 2
-    lines = p.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("station: error: internal error: ZeroDivisionError"), p.stderr
-    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
-                       env=env | {"STATION_DEBUG": "1"})
-    assert p.returncode == 2 and "Traceback" in p.stderr
+    p = station_proc("boom", prelude=boom, timeout=60, env=env, replace_env=True)
+    assert p.code == 2
+    lines = p.err_lines
+    assert len(lines) == 1 and lines[0].startswith("station: error: internal error: ZeroDivisionError"), p.err
+    p = station_proc("boom", prelude=boom, timeout=60, env=env | {"STATION_DEBUG": "1"}, replace_env=True)
+    assert p.code == 2 and "Traceback" in p.err
 
 
 def test_out_of_process_fifo_does_not_hang(tmp_path):

@@ -6,11 +6,11 @@ the declarations and ``station run PROC --help`` lists them."""
 from __future__ import annotations
 
 import ast
-import sys
 from pathlib import Path
 
 import pytest
 import yaml
+from clirunner import station_main
 
 from station.engine.declare import CONSISTENCY, PLAN_OPTIONS, SOLVE, WRITE_BACK, Measurement, measures
 from station.engine.limits import LimitsError, check_limits, default_limits, load_limits
@@ -20,23 +20,6 @@ from station.engine.procedure import ProcedureError, load_procedure, shipped_fol
 RUN_FLAGS = {"--robot", "--serial", "--limits", "--db", "--apply", "--cell", "--operator", "--touch", "--reference",
              "--poses", "--holdout", "--cone", "--seed", "--tracker", "--grid", "--span-deg", "--calibration",
              "--payload", "--identify", "--cycles", "--cube", "--plane", "--quiet", "-q"}
-
-
-def _station(capsys, *args) -> tuple[int, str, str]:
-    """``station ARGS`` in process, as the console script runs it: (exit code, stdout, stderr)."""
-    from station.cli import main
-
-    argv = sys.argv
-    sys.argv = ["station", *map(str, args)]
-    code = 0
-    try:
-        main()
-    except SystemExit as e:
-        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
-    finally:
-        sys.argv = argv
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 def _measured_in_source(path: Path) -> set[str]:
@@ -103,12 +86,12 @@ def _limits_without(tmp_path, model: str, procedure: str, drop: str | None = Non
     return p
 
 
-def test_a_missing_limit_is_one_line_before_the_robot_opens(tmp_path, capsys):
+def test_a_missing_limit_is_one_line_before_the_robot_opens(tmp_path):
     lim = _limits_without(tmp_path, "omx", "zero_offsets", drop="fit_rms")
     with pytest.raises(LimitsError, match=r"models\.omx\.zero_offsets: no limit for fit_rms"):
         check_limits("zero_offsets", load_procedure("zero_offsets").measurements, load_limits(lim))
     # nobody answers at this address: an error naming the limit proves it came before the robot was opened
-    code, out, err = _station(capsys, "run", "zero_offsets", "--robot", "ur://127.0.0.250", "--serial", "S",
+    code, out, err = station_main("run", "zero_offsets", "--robot", "ur://127.0.0.250", "--serial", "S",
                               "--limits", lim)
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1, err
@@ -157,18 +140,18 @@ def test_run_takes_every_flag_it_took_with_the_declared_ones_from_the_declaratio
     assert {o.flag for o, _ in declared_flags()} >= {o.flag for o in PLAN_OPTIONS} | {"--grid", "--tracker"}
 
 
-def test_a_flag_the_procedure_does_not_take_is_one_line(capsys):
-    code, _, err = _station(capsys, "run", "zero_offsets", "--robot", "ur://127.0.0.250", "--serial", "S",
+def test_a_flag_the_procedure_does_not_take_is_one_line():
+    code, _, err = station_main("run", "zero_offsets", "--robot", "ur://127.0.0.250", "--serial", "S",
                             "--grid", "3")
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and "--grid: procedure zero_offsets takes no --grid" in lines[0], err
-    code, _, err = _station(capsys, "run", "correction_map", "--robot", "ur://127.0.0.250", "--serial", "S",
+    code, _, err = station_main("run", "correction_map", "--robot", "ur://127.0.0.250", "--serial", "S",
                             "--grid", "0")
     assert code == 2 and "--grid 0: expected sub-intervals 1..100" in err, err
 
 
-def test_run_procedure_help_lists_its_options_with_units_and_defaults(capsys):
-    code, out, _ = _station(capsys, "run", "correction_map", "--help")
+def test_run_procedure_help_lists_its_options_with_units_and_defaults():
+    code, out, _ = station_main("run", "correction_map", "--help")
     assert code == 0
     own = out.split("Options of correction_map:")[1].split("Measurements of")[0]
     flat = " ".join(own.split())
@@ -178,10 +161,10 @@ def test_run_procedure_help_lists_its_options_with_units_and_defaults(capsys):
     assert "--cone <" not in out and "--cycles <" not in out  # what it does not take is not offered
     meas = " ".join(out.split("Measurements of correction_map")[1].split())
     assert "holdout_rms [mm, judged]" in meas and "tracker_noise_rms [mm]" in meas
-    code, out, _ = _station(capsys, "run", "--robot", "ur://x", "zero_offsets", "--help")  # after an option
+    code, out, _ = station_main("run", "--robot", "ur://x", "zero_offsets", "--help")  # after an option
     assert code == 0 and "Options of zero_offsets:" in out and "--tracker <" not in out
     assert "fit_rms [mm, judged]" in " ".join(out.split()) and "offset_std_max [deg]" in " ".join(out.split())
-    code, out, _ = _station(capsys, "run", "--help")  # no procedure: every flag, which procedures take it
+    code, out, _ = station_main("run", "--help")  # no procedure: every flag, which procedures take it
     assert code == 0 and "--tracker <" in out and "--poses <" in out and "Options of" not in out
 
 
@@ -248,27 +231,27 @@ def handed_over(monkeypatch):
     monkeypatch.setattr(station.api, "run", stand_in)
 
 
-def test_declared_values_reach_the_session_options(capsys, handed_over):
-    code, _, err = _station(capsys, "run", "correction_map", "--robot", "ur://127.0.0.250", "--serial", "S",
+def test_declared_values_reach_the_session_options(handed_over):
+    code, _, err = station_main("run", "correction_map", "--robot", "ur://127.0.0.250", "--serial", "S",
                             "--grid", "3", "--span-deg", "0.1rad", "--tracker", "tcp://127.0.0.1:5300", "--seed", "4")
     assert code == 2 and "handed over correction_map: [('grid', 3), ('seed', 4), ('span_deg', 5.7295" in err, err
     assert "('tracker', 'tcp://127.0.0.1:5300')" in err
 
 
-def test_a_site_procedure_declares_flags_of_its_own(tmp_path, monkeypatch, capsys, handed_over):
+def test_a_site_procedure_declares_flags_of_its_own(tmp_path, monkeypatch, handed_over):
     (tmp_path / "my_check.py").write_text(SITE_PROCEDURE)
     monkeypatch.setenv("STATION_PROCEDURES", str(tmp_path))
     base = ["run", "my_check", "--robot", "ur://127.0.0.250", "--serial", "S"]
-    code, _, err = _station(capsys, *base, "--passes", "5", "--poses", "7")
+    code, _, err = station_main(*base, "--passes", "5", "--poses", "7")
     assert code == 2 and "handed over my_check: [('n_fit', 7), ('passes', 5)]" in err, err
-    code, _, err = _station(capsys, *base, "--passes", "50")
+    code, _, err = station_main(*base, "--passes", "50")
     assert code == 2 and err.strip() == "station: error: --passes 50: expected an integer 1..20", err
-    code, _, err = _station(capsys, *base, "--cone", "30deg")
+    code, _, err = station_main(*base, "--cone", "30deg")
     assert code == 2 and "--cone: procedure my_check takes no --cone (its options: --holdout, --passes, --poses)" in err
-    code, out, _ = _station(capsys, "run", "my_check", "--help")
+    code, out, _ = station_main("run", "my_check", "--help")
     flat = " ".join(out.split())
     assert code == 0 and "--passes <int> Passes over every point. Unit: count; default: 3." in flat
-    code, _, err = _station(capsys, "run", "zero_offsets", "--robot", "ur://127.0.0.250", "--serial", "S",
+    code, _, err = station_main("run", "zero_offsets", "--robot", "ur://127.0.0.250", "--serial", "S",
                             "--passes", "5")  # not a flag of a procedure that does not declare it
     assert code == 2 and err.strip().splitlines() == [
         "station: error: --passes: procedure zero_offsets takes no --passes (its options: --cone, --holdout, --poses, "

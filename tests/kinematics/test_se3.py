@@ -59,3 +59,16 @@ def test_no_scipy_for_the_kinematics_at_import():
 
     code = "import sys, station.kinematics.se3; print('scipy' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True).stdout.strip() == "False"
+
+
+def test_frame_with_z_is_a_proper_rotation_onto_z_and_roll_turns_about_it():
+    rng = np.random.default_rng(4)
+    dirs = [*rng.normal(size=(200, 3)), np.array([1.0, 0, 0]), np.array([0, 0, -3.0]), np.array([0.95, 0.3, 0])]
+    for z in dirs:
+        roll = rng.uniform(-np.pi, np.pi)
+        R = se3.frame_with_z(z, roll)
+        assert np.allclose(R.T @ R, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(R), 1.0)
+        assert np.allclose(R[:, 2], z / np.linalg.norm(z), atol=1e-12)
+        # the roll is a turn about the frame's own z (scipy's rotation, not ours)
+        turned = se3.frame_with_z(z) @ Rotation.from_euler("z", roll).as_matrix()
+        assert np.allclose(R, turned, atol=1e-12)

@@ -3,21 +3,17 @@ describes, on every bus and in both process modes; children never outlive their 
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 import yaml
+from clirunner import python_spawn, station_proc
 from station.mocks.errors import MockError
 from station.mocks.launch import launch
 from station.mocks.world import World
 
 from station.robot import open_robot
-
-STATION = str(Path(sys.executable).with_name("station"))
 
 
 def _world_file(tmp_path: Path, model: str, buses: dict) -> Path:
@@ -70,19 +66,14 @@ def test_a_child_ends_with_its_parent(tmp_path):
     code = ("import sys, time; from station.mocks.launch import launch\n"
             f"emu = launch('dynamixel', {str(path)!r}, process=True).start()\n"
             "print(emu.proc.pid, flush=True); time.sleep(60)")
-    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
-    try:
-        child = int(parent.stdout.readline())
-        os.kill(parent.pid, 9)
+    with python_spawn(code) as parent:
+        child = int(parent.readline())
+        parent.kill()
         parent.wait(10)
         deadline = time.monotonic() + 10
         while time.monotonic() < deadline and _alive(child):
             time.sleep(0.1)
         assert not _alive(child)
-    finally:
-        if parent.poll() is None:
-            parent.kill()
-        parent.stdout.close()
 
 
 def _alive(pid: int) -> bool:
@@ -94,11 +85,11 @@ def _alive(pid: int) -> bool:
 
 
 def test_station_demo_with_an_unknown_bus_is_one_line():
-    p = subprocess.run([STATION, "demo", "--robot", "profibus"], capture_output=True, text=True, timeout=60)
-    assert p.returncode == 2
+    p = station_proc("demo", "--robot", "profibus", timeout=60)
+    assert p.code == 2
     from station.mocks.plug import demo_buses
 
-    assert p.stderr.strip().splitlines() == [f"station: error: --robot must be one of {', '.join(demo_buses())}, "
+    assert p.err_lines == [f"station: error: --robot must be one of {', '.join(demo_buses())}, "
                                              "got 'profibus'"]
 
 

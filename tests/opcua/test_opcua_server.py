@@ -7,16 +7,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import os
 import signal
 import socket
 import subprocess
-import sys
 import time
 
 import numpy as np
 import pytest
-from clirunner import station_main
+from clirunner import station_main, station_spawn
 from station.mocks.world import World
 
 from station.records import open_records
@@ -30,11 +28,9 @@ def _free_port() -> int:
 
 
 def _server(tmp_path, url, cell, db, endpoint, *extra):
-    env = {**os.environ, "STATION_HOME": str(tmp_path / "home")}
-    return subprocess.Popen([sys.executable, "-m", "station.cli", "opcua", "--robot", url, "--cell", str(cell),
-                             "--db", db, "--endpoint", endpoint, "--reference", "cell", "--cone", "70",
-                             "--poses", "12", "--holdout", "2", *extra], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    return station_spawn("opcua", "--robot", url, "--cell", cell, "--db", db, "--endpoint", endpoint, "--reference",
+                         "cell", "--cone", "70", "--poses", "12", "--holdout", "2", *extra, module=True,
+                         env={"STATION_HOME": str(tmp_path / "home")})
 
 
 def _unit_server(tmp_path, emulators, seed: int, serial: str, *extra: str, **files):
@@ -60,8 +56,8 @@ async def _connect(endpoint: str, proc):
             await client.connect()
             return client
         except (OSError, TimeoutError):
-            if proc.poll() is not None or time.monotonic() > end:
-                raise AssertionError(proc.communicate()) from None
+            if not proc.running() or time.monotonic() > end:
+                raise AssertionError(proc.wait()) from None
             await asyncio.sleep(0.3)
 
 
@@ -129,7 +125,7 @@ def test_start_subscribe_verdict_read_result(tmp_path, emulators):
         hidden = World.from_file(world_path).hidden()
     finally:
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=30)
+        _, out, err = proc.wait(timeout=30)
     assert verdict == "PASS" and state == "done" and progress == 1.0
     assert result["session"] == session and result["verdict"] == "PASS" and result["stored"] is True
     with open_records(db) as rec:  # PASS on the line means the record is in the database
@@ -168,7 +164,7 @@ def test_abort_through_opcua_leaves_a_resumable_session(tmp_path, emulators):
         session, verdict, result = asyncio.run(scenario())
     finally:
         proc.send_signal(signal.SIGINT)
-        proc.communicate(timeout=30)
+        proc.wait(timeout=30)
     assert verdict == "ABORTED" and result["session"] == session
     journal = tmp_path / "home" / "sessions" / session / "journal.jsonl"
     last = json.loads(journal.read_text().strip().splitlines()[-1])
@@ -179,7 +175,7 @@ def test_abort_through_opcua_leaves_a_resumable_session(tmp_path, emulators):
 def test_off_loopback_without_certificates_is_refused(tmp_path, endpoint):
     world_path, cell_path = _files(tmp_path, seed=53)
     proc = _server(tmp_path, "dynamixel:///dev/null?model=omx", cell_path, "sqlite:///x.db", endpoint)
-    out, err = proc.communicate(timeout=60)
+    _, out, err = proc.wait(timeout=60)
     assert proc.returncode == 2
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("station: error: ") and "Basic256Sha256" in lines[0], err
@@ -214,8 +210,8 @@ def test_basic256sha256_endpoint_refuses_unencrypted_clients(tmp_path):
                 with socket.create_connection(("127.0.0.1", int(endpoint.rsplit(":", 1)[1])), timeout=1):
                     break
             except OSError:
-                if proc.poll() is not None or time.monotonic() > end:
-                    raise AssertionError(proc.communicate()) from None
+                if not proc.running() or time.monotonic() > end:
+                    raise AssertionError(proc.wait()) from None
                 await asyncio.sleep(0.3)
         plain = Client(endpoint, timeout=10)
         with pytest.raises(Exception):  # noqa: B017 - asyncua raises BadSecurityPolicyRejected or similar
@@ -237,7 +233,7 @@ def test_basic256sha256_endpoint_refuses_unencrypted_clients(tmp_path):
         assert asyncio.run(scenario()) == "idle"
     finally:
         proc.send_signal(signal.SIGINT)
-        proc.communicate(timeout=30)
+        proc.wait(timeout=30)
 
 
 # ---- users and rights ----------------------------------------------------------------------------------------
@@ -264,8 +260,8 @@ async def _signed_in(endpoint: str, proc, user: str | None, password: str | None
             await client.connect()
             return client
         except (OSError, TimeoutError):
-            if proc.poll() is not None or time.monotonic() > end:
-                raise AssertionError(proc.communicate()) from None
+            if not proc.running() or time.monotonic() > end:
+                raise AssertionError(proc.wait()) from None
             await asyncio.sleep(0.3)
 
 
@@ -343,7 +339,7 @@ def test_users_and_rights_read_and_operate(tmp_path):
         asyncio.run(scenario())
     finally:
         proc.send_signal(signal.SIGINT)
-        proc.communicate(timeout=30)
+        proc.wait(timeout=30)
     assert not marker.exists() and not (tmp_path / "home" / "sessions").exists()
 
 
@@ -374,7 +370,7 @@ def test_off_loopback_without_users_is_refused(tmp_path):
     cert, key = _cert(tmp_path, "station")
     proc = _server(tmp_path, "dynamixel:///dev/null?model=omx", cell_path, "sqlite:///x.db",
                    "opc.tcp://0.0.0.0:4898", "--cert", str(cert), "--key", str(key))
-    out, err = proc.communicate(timeout=60)
+    _, out, err = proc.wait(timeout=60)
     lines = err.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and "users file" in lines[0] and "anonymous" in lines[0], err
 

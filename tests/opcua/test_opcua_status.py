@@ -31,8 +31,8 @@ async def _client(endpoint: str, proc=None):
             await client.connect()
             return client
         except (OSError, TimeoutError):
-            if (proc is not None and proc.poll() is not None) or time.monotonic() > end:
-                raise AssertionError(proc.communicate() if proc is not None else "no server") from None
+            if (proc is not None and not proc.running()) or time.monotonic() > end:
+                raise AssertionError(proc.wait() if proc is not None else "no server") from None
             await asyncio.sleep(0.3)
 
 
@@ -115,7 +115,7 @@ def test_start_refusals_abort_and_last_result_over_the_wire(tmp_path, emulators)
         session, aborted = asyncio.run(scenario())
     finally:
         proc.send_signal(signal.SIGINT)
-        proc.communicate(timeout=30)
+        proc.wait(timeout=30)
     assert aborted["verdict"] == "ABORTED" and aborted["session"] == session and aborted["resumable"] is True
     assert aborted["reason"].startswith("Aborted by the operator") and "RESUME" in aborted["action"]
     _, events = read_journal(tmp_path / "home" / "sessions" / session / "journal.jsonl")

@@ -13,7 +13,6 @@ import shutil
 import signal
 import socket
 import subprocess
-import sys
 import time
 import urllib.error
 import urllib.request
@@ -22,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from clirunner import station_spawn
 from station.mocks.world import World
 
 from station.cli.run_cmd import demo_world
@@ -61,15 +61,14 @@ class Panel:
     def __init__(self, tmp_path: Path, url: str, cell: Path, db: str, *extra: str) -> None:
         self.port = _free_port()
         self.base = f"http://127.0.0.1:{self.port}"
-        env = {**os.environ, "STATION_HOME": str(tmp_path / "home")}
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "station.cli", "panel", "--robot", url, "--cell", str(cell), "--db", db,
-             "--port", str(self.port), "--reference", "cell", "--cone", "70", "--poses", "12", "--holdout", "2",
-             *extra], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.home = tmp_path / "home"
+        self.proc = station_spawn("panel", "--robot", url, "--cell", cell, "--db", db, "--port", self.port,
+                                  "--reference", "cell", "--cone", "70", "--poses", "12", "--holdout", "2", *extra,
+                                  module=True, env={"STATION_HOME": str(self.home)})
         end = time.monotonic() + 60
         while time.monotonic() < end:
-            if self.proc.poll() is not None:
-                raise AssertionError(self.proc.communicate())
+            if not self.proc.running():
+                raise AssertionError(self.proc.wait())
             try:
                 self.state()
                 return
@@ -85,15 +84,15 @@ class Panel:
             return json.loads(r.read())
 
     def kill(self) -> None:
-        if self.proc.poll() is None:
-            os.kill(self.proc.pid, signal.SIGKILL)
-        self.proc.communicate(timeout=10)
+        if self.proc.running():
+            self.proc.kill()
+        self.proc.wait(timeout=10)
 
     def close(self) -> None:
-        if self.proc.poll() is None:
+        if self.proc.running():
             self.proc.send_signal(signal.SIGINT)
             try:
-                self.proc.communicate(timeout=20)
+                self.proc.wait(timeout=20)
             except subprocess.TimeoutExpired:
                 self.kill()
 

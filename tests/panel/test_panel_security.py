@@ -8,10 +8,9 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import signal
 import socket
 import ssl
-import subprocess
-import sys
 import time
 import urllib.error
 import urllib.request
@@ -141,7 +140,7 @@ def test_dns_rebinding_host_is_refused_on_every_route(panel):
 
 
 def panel_home(panel: Panel) -> Path:
-    return Path(panel.proc.args[panel.proc.args.index("--cell") + 1]).parent / "home"
+    return panel.home
 
 
 def test_planted_sessions_run_no_foreign_code_through_the_panel(panel, tmp_path):
@@ -173,19 +172,19 @@ def test_planted_sessions_run_no_foreign_code_through_the_panel(panel, tmp_path)
 def test_off_loopback_with_tls_client_certificates_and_refusals(tmp_path, fast_only):
     """Beyond loopback: a token or TLS client certificates, else the panel does not start (one line, exit 2);
     with client certificates required, a client without one gets no answer at all (the ``tls`` run)."""
-    from clirunner import station_main
+    from clirunner import station_main, station_spawn
 
     from tests.opcua.test_opcua_server import _cert
 
     _, cell = _files(tmp_path, seed=72)
-    base = [sys.executable, "-m", "station.cli", "panel", "--robot", ROBOT, "--cell", str(cell)]
+    base = ["panel", "--robot", ROBOT, "--cell", str(cell)]
     cert, key = _cert(tmp_path, "station")
     pem = tmp_path / "station-cert.pem"
     for extra, says in (([], "--token"), (["--tls-cert", str(pem), "--tls-key", str(key)], "--token"),
                         (["--tls-client-ca", str(pem)], "--tls-cert"),
                         (["--tls-cert", str(key), "--tls-key", str(key), "--tls-client-ca", str(pem)], "TLS files"),
                         (["--token", "t0k3n-abcdef", "--allow-host", "a b"], "--allow-host")):
-        code, _, err = station_main(*base[3:], "--host", "0.0.0.0", *extra)  # refused before it listens
+        code, _, err = station_main(*base, "--host", "0.0.0.0", *extra)  # refused before it listens
         lines = err.strip().splitlines()
         assert code == 2 and lines[-1].startswith("station: error: ") and says in lines[-1], (extra, err)
     if fast_only:
@@ -194,10 +193,9 @@ def test_off_loopback_with_tls_client_certificates_and_refusals(tmp_path, fast_o
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    proc = subprocess.Popen([*base, "--host", "0.0.0.0", "--port", str(port), "--tls-cert", str(pem), "--tls-key",
-                             str(key), "--tls-client-ca", str(tmp_path / "client-cert.pem")],
-                            env={**os.environ, "STATION_HOME": str(tmp_path / "home")},
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = station_spawn(*base, "--host", "0.0.0.0", "--port", port, "--tls-cert", pem, "--tls-key", key,
+                         "--tls-client-ca", tmp_path / "client-cert.pem", module=True,
+                         env={"STATION_HOME": str(tmp_path / "home")})
     try:
         ctx = ssl.create_default_context(cafile=str(pem))
         ctx.check_hostname = False
@@ -213,8 +211,8 @@ def test_off_loopback_with_tls_client_certificates_and_refusals(tmp_path, fast_o
             except (ssl.SSLError, ConnectionResetError, BrokenPipeError):
                 break
             except OSError:
-                if proc.poll() is not None or time.monotonic() > end:
-                    raise AssertionError(proc.communicate()) from None
+                if not proc.running() or time.monotonic() > end:
+                    raise AssertionError(proc.wait()) from None
                 time.sleep(0.2)
         ctx.load_cert_chain(str(tmp_path / "client-cert.pem"), str(client_key))
         for host, want in ((f"localhost:{port}", b"200"), (f"evil.example:{port}", b"403")):
@@ -226,8 +224,8 @@ def test_off_loopback_with_tls_client_certificates_and_refusals(tmp_path, fast_o
                     got += chunk
             assert got.split(b"\r\n", 1)[0] == b"HTTP/1.1 " + want + (b" OK" if want == b"200" else b" Forbidden"), got
     finally:
-        proc.terminate()
-        proc.communicate(timeout=30)
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=30)
 
 
 EVIL_PAGE = """<!doctype html><html><body><h1>cat pictures</h1>

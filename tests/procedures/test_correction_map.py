@@ -3,10 +3,11 @@ on a python-can virtual bus), the laser-tracker emulator on a loopback TCP socke
 engine; the truth comes from the simulated world. Also: a resume after an interruption measures no pose twice."""
 
 import json
+import signal
 
 import numpy as np
 import pytest
-from clirunner import station_proc
+from clirunner import station_proc, station_spawn
 from station.mocks.launch import launch
 from station.mocks.tracker.config import tracker_config
 from station.mocks.tracker.server import TrackerServer
@@ -145,23 +146,17 @@ def test_without_or_with_a_dead_tracker_nothing_moves(cell):
 def test_command_line_over_socketcand_and_tcp(tmp_path):
     """The documented commands: `station mock tracker --world W --canopen` (one process: drives + tracker), then
     `station run correction_map --robot URL --tracker URL` through python-can's socketcand interface."""
-    import subprocess
-    import sys
-
     from station.mocks.world.example import example_text
 
     world = tmp_path / "w.yaml"
     world.write_text(example_text("hexapod"))  # what `station mock world example --model hexapod` prints
-    proc = subprocess.Popen([sys.executable, "-m", "station.cli", "mock", "tracker", "--world", str(world),
-                             "--canopen"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        trk = proc.stdout.readline().split()[3]
-        robot = proc.stdout.readline().split()[5]
+    with station_spawn("mock", "tracker", "--world", world, "--canopen", module=True) as proc:
+        trk = proc.readline().split()[3]
+        robot = proc.readline().split()[5]
         r = station_proc("run", "correction_map", "--robot", robot, "--serial", "HX-9", "--tracker", trk, "--grid",
                          "1", "-q", "--db", f"sqlite:///{tmp_path / 'r.db'}", timeout=300,
                          env={"STATION_HOME": str(tmp_path / "home")})
-    finally:
-        proc.terminate()
+        proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=10)
     assert r.code == 0, r.err
     lines = r.out.strip().splitlines()

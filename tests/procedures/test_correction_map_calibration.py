@@ -116,7 +116,7 @@ def test_map_on_a_calibration_resumed_on_a_restarted_tracker(tmp_path, monkeypat
         out = start("correction_map", emu.robot, SERIAL, db=db, report=False, progress=crash,
                     options={"tracker": emu.tracker, "grid": 1, "span_deg": 10, "calibration": str(cal_file)})
         for _ in range(3):  # a CAN timeout of the shared CI machine before the crash: resumed, as a technician would
-            if emu.proc.poll() is not None or out.status != "error" or "canopen" not in str(out.error):
+            if not emu.proc.running() or out.status != "error" or "canopen" not in str(out.error):
                 break
             out = resume(out.session, db=db, report=False, progress=crash)
     finally:

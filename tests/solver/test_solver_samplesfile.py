@@ -98,9 +98,9 @@ def test_prismatic_joint_rejects_angle_unit(tmp_path):
 def test_readings_beyond_the_limits_are_data_with_one_warning_per_joint(tmp_path):
     """A real recording (MUKCa, Kinova Gen3 lite: joint 6 read 2.43 rad with the URDF's limits +-2.09) is used as
     recorded; the warning names the joint, how many readings and how far. Degrees stay refused where they fit."""
-    import subprocess
-    import sys
     from pathlib import Path
+
+    from clirunner import station_proc
 
     data = Path(__file__).parents[1] / "data" / "mukca"
     m = load_model(data / "gen3lite.urdf", tip_link="ball_link")
@@ -113,10 +113,8 @@ def test_readings_beyond_the_limits_are_data_with_one_warning_per_joint(tmp_path
     assert len(s.q) == len(rows) and np.abs(s.q[:, 5]).max() > 2.09 + np.radians(5)
     (w,) = s.warnings
     assert w.startswith(f"{f}: q6 (joint_6): ") and "beyond the joint limits [-2.09, 2.09] rad, by up to" in w
-    station = str(Path(sys.executable).with_name("station"))
-    r = subprocess.run([station, "fk", "--model", str(data / "gen3lite.urdf"), "--tip-link", "ball_link",
-                        "--joints", str(f)], capture_output=True, text=True, timeout=60)
-    assert r.returncode == 0 and r.stderr.startswith("station: warning: ") and len(r.stderr.splitlines()) == 1
+    r = station_proc("fk", "--model", data / "gen3lite.urdf", "--tip-link", "ball_link", "--joints", f, timeout=60)
+    assert r.code == 0 and r.err.startswith("station: warning: ") and len(r.err.splitlines()) == 1
     q = s.q.copy()
     q[:, 2] = np.degrees(q[:, 2])  # a column in degrees under a radian header: still a unit slip, refused
     f.write_text("q1,q2,q3,q4,q5,q6\n" + "\n".join(",".join(f"{v:.9g}" for v in r_) for r_ in q) + "\n")

@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import asyncio
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
+from clirunner import station_proc
 from station.mocks.world import World
 
 from station.engine.journal import read_journal
@@ -166,11 +165,9 @@ def test_record_discard_retake_live_solve_and_writeback(rig):
                 assert abs(value - HIDDEN[name]) <= 4 * sd + 1e-6, (name, value, HIDDEN[name], sd)
             # the session's samples.csv is what `station solve` reads: same data, same answer
             out = ctl.session.folder / "offline.json"
-            code = "import sys; from station.cli import main; sys.argv = ['station', *sys.argv[1:]]; main()"
-            p = subprocess.run([sys.executable, "-c", code, "solve", "--model", "arm6", "--samples",
-                                str(ctl.session.samples_csv), "--identify", "offsets,tcp", "--out", str(out)],
-                               capture_output=True, text=True, timeout=60)
-            assert p.returncode == 0, p.stderr
+            p = station_proc("solve", "--model", "arm6", "--samples", ctl.session.samples_csv, "--identify",
+                             "offsets,tcp", "--out", out, timeout=60)
+            assert p.code == 0, p.err
             offline = json.loads(out.read_text())
             assert set(offline["unidentifiable"]) == {"offset.j1", "offset.j6"}
             for name, value, _, _ in st.identified:

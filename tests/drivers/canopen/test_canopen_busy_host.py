@@ -6,17 +6,14 @@ timeout fired and the host's scheduling gap. Truth: the process's exit and outpu
 
 from __future__ import annotations
 
-import os
 import signal
-import subprocess
-import sys
 import time
 import uuid
 from pathlib import Path
 
 import numpy as np
 import pytest
-from faultrig import canopen_arm
+from clirunner import python_spawn
 from station.mocks.canopen.emulator import CanopenEmulator
 from station.mocks.canopen.hub import SocketcandHub
 from station.mocks.world import World
@@ -53,74 +50,64 @@ robot.close()
 
 @pytest.mark.slow
 @pytest.mark.exclusive
-def test_a_station_the_host_does_not_schedule_sees_no_spurious_timeout(tmp_path):
+def test_a_station_the_host_does_not_schedule_sees_no_spurious_timeout():
     """The station process (drives behind a socketcand hub in this process) touches and moves in a loop while
     it is stopped for 250 ms at a time, again and again (20 ms of running between): more than the 200 ms digital-
     input wait and, added up, the 1 s set-point and SYNC-round waits; less than the drives' 800 ms consumer of the
     station's heartbeat. It finishes without a fault."""
     chan = f"busy-{uuid.uuid4().hex[:8]}"
     world = World.default(model="arm6", seed=5, start=START)
-    script = tmp_path / "station_loop.py"
-    script.write_text(STATION)
+    # its own rig: the station runs in another process, so the drives sit behind a socketcand hub (robot_rig's
+    # virtual channel reaches this process only)
     with CanopenEmulator(world, channel=chan), SocketcandHub(chan, port=0) as hub:
         url = f"canopen+socketcand://127.0.0.1:{hub.port}?channel=can0&nodes=1-6&model=arm6&sdo_timeout_ms=2000"
-        proc = subprocess.Popen([sys.executable, str(script), url], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                text=True, cwd=ROOT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        try:
-            line = proc.stdout.readline()
-            assert line.strip() == "ready", line + (proc.stderr.read() if proc.poll() is not None else "")
+        # a script, not a command: no station command touches and moves in a loop
+        with python_spawn(STATION, url, cwd=ROOT) as proc:
+            line = proc.readline()
+            assert line.strip() == "ready", line + (proc.wait().err if not proc.running() else "")
             stopped = 0.0
             rng = np.random.default_rng(1)
             end = time.monotonic() + 6.0
-            while time.monotonic() < end and proc.poll() is None:
+            while time.monotonic() < end and proc.running():
                 time.sleep(float(rng.uniform(0.005, 0.03)))
                 proc.send_signal(signal.SIGSTOP)
                 time.sleep(0.25)
                 stopped += 0.25
                 proc.send_signal(signal.SIGCONT)
-            out, err = proc.communicate(timeout=120)
-        finally:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGCONT)
-                proc.kill()
-                proc.wait()
-    assert proc.returncode == 0 and out.strip().startswith("done"), out + err
+            r = proc.wait(timeout=120)
+    out, err = r.out, r.err
+    assert r.code == 0 and out.strip().startswith("done"), out + err
     assert stopped >= 4.0
     print(f"\nstation stopped {stopped:.1f} s in 250 ms pieces: {out.strip()}")
 
 
-def test_a_silent_contact_input_is_found_within_its_documented_time():
+def test_a_silent_contact_input_is_found_within_its_documented_time(robot_rig):
     """The contact drive goes silent: touch() fails within the digital-input wait (5 event periods, at least
     200 ms) of observed time, and says which wait and the host's gap."""
-    with canopen_arm(START) as (world, emu, robot):
-        robot.enable()
+    world = World.default(model="arm6", seed=11, start=START, time_mode="realtime")
+    _, robot = robot_rig("canopen", world)
+    robot.touch()
+    world.faults.inject("timeout", device=robot.contact_node)
+    time.sleep(0.02)
+    t0 = time.monotonic()
+    with pytest.raises(ConnectionLost) as e:
         robot.touch()
-        world.faults.inject("timeout", device=robot.contact_node)
-        time.sleep(0.02)
-        t0 = time.monotonic()
-        with pytest.raises(ConnectionLost) as e:
-            robot.touch()
-        took = time.monotonic() - t0
+    took = time.monotonic() - t0
     assert "no digital-input TPDO within 200 ms" in str(e.value) and "host scheduling gap" in str(e.value)
     assert 0.15 < took < 0.6, took
 
 
-def test_a_drive_that_never_acknowledges_is_found_within_one_second():
+def test_a_drive_that_never_acknowledges_is_found_within_one_second(robot_rig):
     """A drive that takes no new set-point (its statusword never sets bit 12): the move fails after 1.0 s of
     observed time, naming the timeout, the node and the host's scheduling gap; nothing keeps moving."""
-    chan = f"ack-{uuid.uuid4().hex[:8]}"
     world = World.default(model="arm6", seed=5, start=START)
-    with CanopenEmulator(world, channel=chan) as emu:
-        from station.robot import open_robot
-
-        with open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6") as robot:
-            robot.enable()
-            d = emu.drives[4]
-            d._new_setpoint = lambda relative: None  # firmware that ignores bit 4 in profile position mode
-            t0 = time.monotonic()
-            with pytest.raises(DeviceFault) as e:
-                robot.move_joints(robot.joint_positions().q + 0.01, speed=0.5)
-            took = time.monotonic() - t0
+    emu, robot = robot_rig("canopen", world)
+    d = emu.drives[4]
+    d._new_setpoint = lambda relative: None  # firmware that ignores bit 4 in profile position mode
+    t0 = time.monotonic()
+    with pytest.raises(DeviceFault) as e:
+        robot.move_joints(robot.joint_positions().q + 0.01, speed=0.5)
+    took = time.monotonic() - t0
     text = str(e.value)
     assert "set-point acknowledge not confirmed within 1.0 s" in text and "[4]" in text, text
     assert "host scheduling gap" in text and "\n" not in text

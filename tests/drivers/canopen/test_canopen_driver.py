@@ -24,14 +24,10 @@ def quantum(model) -> np.ndarray:
 
 
 @pytest.fixture
-def cell():
-    chan = f"d-{uuid.uuid4().hex[:8]}"
+def cell(robot_rig):
     world = World.default(model="arm6", seed=7, start=START)
-    emu = CanopenEmulator(world, channel=chan).start()
-    robot = open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6")
-    yield world, emu, robot, chan
-    robot.close()
-    emu.stop()
+    emu, robot = robot_rig("canopen", world, enable=False)
+    return world, emu, robot, emu.channel
 
 
 def drain(bus: can.BusABC) -> list[can.Message]:
@@ -185,26 +181,20 @@ def test_touch_on_needle_and_compliant_seating_in_socket(cell):
     assert np.all(np.abs(robot.joint_positions().q - seated_q) <= quantum(world.nominal))  # holds where it sat
 
 
-def test_stop_halts_a_realtime_move():
-    chan = f"d-{uuid.uuid4().hex[:8]}"
+def test_stop_halts_a_realtime_move(robot_rig):
     world = World.default(model="arm6", seed=7, start=START, time_mode="realtime")
-    with CanopenEmulator(world, channel=chan):
-        robot = open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6")
-        try:
-            robot.enable()
-            target = np.array(START) + 0.3
-            robot.move_joints(target, speed=0.5, wait=False)
-            time.sleep(0.1)
-            assert world.is_moving()
-            robot.stop()
-            time.sleep(0.5)
-            assert not world.is_moving()
-            assert np.max(np.abs(world.encoder_q() - target)) > 0.05  # stopped short of the target
-            assert robot.status().enabled  # halt keeps the drives enabled
-            robot.move_joints(target, speed=1.0)  # and a new move clears the halt
-            assert np.all(np.abs(world.encoder_q() - target) <= quantum(world.nominal))
-        finally:
-            robot.close()
+    _, robot = robot_rig("canopen", world)
+    target = np.array(START) + 0.3
+    robot.move_joints(target, speed=0.5, wait=False)
+    time.sleep(0.1)
+    assert world.is_moving()
+    robot.stop()
+    time.sleep(0.5)
+    assert not world.is_moving()
+    assert np.max(np.abs(world.encoder_q() - target)) > 0.05  # stopped short of the target
+    assert robot.status().enabled  # halt keeps the drives enabled
+    robot.move_joints(target, speed=1.0)  # and a new move clears the halt
+    assert np.all(np.abs(world.encoder_q() - target) <= quantum(world.nominal))
 
 
 def test_url_errors():
@@ -221,6 +211,7 @@ def test_url_errors():
 
 
 def test_virtual_channel_name_keeps_its_case():
+    # its own rig: the channel's name, with capitals, is what is tested (robot_rig names its channels)
     chan = f"Cell-{uuid.uuid4().hex[:6].upper()}"
     with CanopenEmulator(World.default(model="arm6"), channel=chan):
         robot = open_robot(f"canopen+virtual://{chan}?nodes=1-6&model=arm6")

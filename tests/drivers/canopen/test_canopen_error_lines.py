@@ -6,7 +6,8 @@ the world file. stderr must hold exactly one ``station: error:`` line, exit 2, a
 from __future__ import annotations
 
 import pytest
-from faultrig import demo_cell, error_lines, station
+from clirunner import station_proc
+from faultrig import demo_cell
 
 FAULTS = {  # world-file fault -> text the one error line must carry
     "EMCY": ({"do": "device_fault", "device": 3, "code": 0x2310, "at": {"pdo": {"node": 3}}}, "EMCY 0x2310"),
@@ -22,12 +23,12 @@ def test_a_canopen_fault_prints_one_error_line(tmp_path, fault):
         doc["faults"] = [entry]
 
     with demo_cell("canopen", tmp_path, 5, cross_process=True, world_doc=stage) as cell:
-        r = station(["run", "zero_offsets", "--robot", cell.url, "--serial", cell.serial, "--cell",
-                     str(cell.cell_path), "--db", cell.db, "-q"], cell.env)
+        r = station_proc("run", "zero_offsets", "--robot", cell.url, "--serial", cell.serial, "--cell",
+                         cell.cell_path, "--db", cell.db, "-q", env=cell.env)
         assert cell.world.faults.fired, "the staged fault never reached the wire"
-    assert r.returncode == 2, r.stderr
-    lines = error_lines(r.stderr)
-    assert len(lines) == 1, r.stderr
-    assert text in lines[0], r.stderr
-    assert sum(text in x for x in r.stderr.splitlines()) == 1, r.stderr  # said once, not echoed by warnings
-    assert "Traceback" not in r.stderr
+    assert r.code == 2, r.err
+    lines = r.errors
+    assert len(lines) == 1, r.err
+    assert text in lines[0], r.err
+    assert sum(text in x for x in r.err.splitlines()) == 1, r.err  # said once, not echoed by warnings
+    assert "Traceback" not in r.err

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 import pytest
-from faultrig import canopen_arm
+from station.mocks.world import World
 
 from station.robot import BusError, ConnectionLost, DeviceFault
 
@@ -16,14 +16,14 @@ TARGET = np.array(START) + np.array([0.4, 0.3, -0.4, 0.5, 0.4, 0.6])
 
 
 @pytest.fixture
-def moving():
+def moving(robot_rig):
     """A robot in the middle of a slow realtime move."""
-    with canopen_arm(START, query="&heartbeat_ms=100") as (world, emu, robot):
-        robot.enable()
-        robot.move_joints(TARGET, speed=0.3, wait=False)
-        time.sleep(0.1)
-        assert world.is_moving()
-        yield world, emu, robot
+    world = World.default(model="arm6", seed=11, start=START, time_mode="realtime")
+    emu, robot = robot_rig("canopen", world, query="&heartbeat_ms=100")
+    robot.move_joints(TARGET, speed=0.3, wait=False)
+    time.sleep(0.1)
+    assert world.is_moving()
+    return world, emu, robot
 
 
 def wait_fault(robot, timeout: float = 2.0):
@@ -120,17 +120,17 @@ def test_an_isolated_error_frame_is_tolerated_as_documented(moving):
     assert not world.is_moving()
 
 
-def test_error_frames_option_raises_the_tolerance():
-    with canopen_arm(START, query="&error_frames=3") as (world, emu, robot):
-        robot.enable()
-        for _ in range(3):
-            emu.inject_error_frame("protocol")
-        time.sleep(0.2)
-        robot.joint_positions()
-        assert robot.faults.error is None
+def test_error_frames_option_raises_the_tolerance(robot_rig):
+    world = World.default(model="arm6", seed=11, start=START, time_mode="realtime")
+    emu, robot = robot_rig("canopen", world, query="&error_frames=3")
+    for _ in range(3):
         emu.inject_error_frame("protocol")
-        err = wait_fault(robot)
-        assert isinstance(err, BusError) and "4 within 1 s" in str(err) and "3 tolerated" in str(err), err
+    time.sleep(0.2)
+    robot.joint_positions()
+    assert robot.faults.error is None
+    emu.inject_error_frame("protocol")
+    err = wait_fault(robot)
+    assert isinstance(err, BusError) and "4 within 1 s" in str(err) and "3 tolerated" in str(err), err
 
 
 def test_bus_off_is_bus_error(moving):

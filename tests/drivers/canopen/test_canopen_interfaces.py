@@ -11,7 +11,7 @@ import socket
 import can
 import pytest
 from can.interfaces.virtual import VirtualBus
-from faultrig import error_lines, station
+from clirunner import station_proc
 from station.drivers.canopen import CanopenRobot
 
 from station.kinematics import load_model
@@ -65,11 +65,11 @@ def test_socketcan_on_this_kernel():
 
 def test_the_station_command_prints_one_line_and_exits_2(tmp_path):
     env = {**os.environ, "STATION_HOME": str(tmp_path)}
-    r = station(["run", "zero_offsets", "--robot", f"canopen+pcan://PCAN_USBBUS1?{Q}", "--serial", "X"], env)
-    assert r.returncode == 2, r.stderr
-    lines = error_lines(r.stderr)
-    assert len(lines) == 1 and "canopen+pcan" in lines[0] and "PCAN-Basic" in lines[0], r.stderr
-    assert "Traceback" not in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    r = station_proc("run", "zero_offsets", "--robot", f"canopen+pcan://PCAN_USBBUS1?{Q}", "--serial", "X", env=env)
+    assert r.code == 2, r.err
+    lines = r.errors
+    assert len(lines) == 1 and "canopen+pcan" in lines[0] and "PCAN-Basic" in lines[0], r.err
+    assert "Traceback" not in r.err and r.err.count("\n") == 1, r.err
 
 
 def test_bad_bitrate_is_refused():

@@ -3,12 +3,9 @@
 
 from __future__ import annotations
 
-import os
 import re
 import signal
 import socket
-import subprocess
-import sys
 import time
 import uuid
 from pathlib import Path
@@ -16,6 +13,7 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
+from clirunner import station_proc, station_spawn
 from station.mocks.canopen.emulator import CanopenEmulator
 from station.mocks.canopen.hub import SocketcandHub
 from station.mocks.world import World
@@ -150,14 +148,11 @@ def test_hub_gone_is_connection_lost(hub_rig):
 
 
 def test_station_mock_canopen_process():
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    station = str(Path(sys.executable).with_name("station"))
-    proc = subprocess.Popen([station, "mock", "canopen", "--port", "0", "--nodes", "1-6"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env)
-    try:
-        line = proc.stdout.readline()
+    with station_spawn("mock", "canopen", "--port", "0", "--nodes", "1-6", cwd=ROOT,
+                       env={"PYTHONUNBUFFERED": "1"}) as proc:
+        line = proc.readline(timeout=60)
         m = re.match(r"socketcand 127\.0\.0\.1:(\d+) channel can0 url (\S+)$", line.strip())
-        assert m, line + proc.stderr.read() if proc.poll() is not None else line
+        assert m, line + proc.wait().err if not proc.running() else line
         robot = open_robot(m.group(2))
         try:
             q0 = robot.joint_positions().q
@@ -167,20 +162,13 @@ def test_station_mock_canopen_process():
             assert robot.identity().model == "arm6"
         finally:
             robot.close()
-    finally:
         proc.send_signal(signal.SIGTERM)
-        try:
-            assert proc.wait(10) == 0, proc.stderr.read()
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
+        r = proc.wait(10)
+        assert r.code == 0, r.err
 
 
 def test_station_mock_canopen_bad_input_exits_2(tmp_path):
-    station = str(Path(sys.executable).with_name("station"))
     for args, what in ((["--nodes", "1-3"], "one node per joint"),
                        (["--world", str(tmp_path / "missing.yaml")], "missing.yaml")):
-        out = subprocess.run([station, "mock", "canopen", "--port", "0", *args], capture_output=True, text=True,
-                             timeout=60, cwd=ROOT)
-        assert out.returncode == 2 and out.stderr.startswith("station: error: ") and what in out.stderr
+        out = station_proc("mock", "canopen", "--port", "0", *args, timeout=60, cwd=ROOT)
+        assert out.code == 2 and out.err.startswith("station: error: ") and what in out.err

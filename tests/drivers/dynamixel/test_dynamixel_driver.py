@@ -31,14 +31,12 @@ def to_write_pose(robot, values) -> None:
 
 
 @pytest.fixture()
-def rig():
+def rig(robot_rig):
+    """omx servos 11-14 and the contact sensor 200 at 1 Mbps on a pty, the driver connected (not enabled)."""
     world = World.default(model="omx", seed=7, start=[0.2, -0.3, 0.4, 0.1])
-    emu = DynamixelEmulator(world, ids=IDS)
-    path = emu.start().path
-    robot = open_robot(f"dynamixel://{path}?baud=1000000&ids=11-14&model=omx&contact=200&latency=50")
-    yield world, emu, robot
-    robot.close()
-    emu.stop()
+    emu, robot = robot_rig("dynamixel", world, ids=IDS, query="&latency=50", enable=False)
+    assert "contact=200" in emu.url
+    return world, emu, robot
 
 
 def test_open_identity_and_protocol(rig):
@@ -95,17 +93,15 @@ def test_plain_sync_read_snapshot_costs_one_transaction(rig):
         assert np.all(np.abs(snap.q - world.encoder_q()) <= _tick(world, 0) / 2 + 1e-12)
 
 
-def test_profile_velocity_is_respected_in_real_time():
+def test_profile_velocity_is_respected_in_real_time(robot_rig):
     world = World.default(model="omx", time_mode="realtime")
-    with DynamixelEmulator(world, ids=IDS) as emu, \
-            open_robot(f"dynamixel://{emu.path}?ids=11-14&model=omx&latency=50") as robot:
-        robot.enable()
-        t0 = time.monotonic()
-        robot.move_joints(np.array([0.4, 0.0, 0.0, 0.0]), speed=1.0)
-        dt = time.monotonic() - t0
-        # 0.4 rad at <= 1 rad/s (profile velocity quantised down) plus the acceleration ramps
-        assert 0.4 <= dt < 1.5
-        assert abs(world.encoder_q()[0] - 0.4) <= _tick(world, 0)
+    _, robot = robot_rig("dynamixel", world, ids=IDS, query="&latency=50")
+    t0 = time.monotonic()
+    robot.move_joints(np.array([0.4, 0.0, 0.0, 0.0]), speed=1.0)
+    dt = time.monotonic() - t0
+    # 0.4 rad at <= 1 rad/s (profile velocity quantised down) plus the acceleration ramps
+    assert 0.4 <= dt < 1.5
+    assert abs(world.encoder_q()[0] - 0.4) <= _tick(world, 0)
 
 
 def test_limits_refuse_and_nothing_is_sent(rig):
@@ -147,45 +143,36 @@ def test_jog_joint_and_cartesian_with_tool_speed_cap(rig):
     assert tool_speed <= 0.25 * 1.05
 
 
-def test_writeback_round_trips_and_survives_a_power_cycle():
+def test_writeback_round_trips_and_survives_a_power_cycle(robot_rig):
     world = World.default(model="omx", seed=2, start=[0.1, 0.2, 0.3, 0.4])
-    emu = DynamixelEmulator(world, ids=IDS)
-    url = f"dynamixel://{emu.start().path}?ids=11-14&model=omx&latency=50"
-    robot = open_robot(url)
-    try:
-        robot.enable()
-        assert robot.read_calibration() == {f"offset.j{k}": 0.0 for k in range(1, 5)}
-        want = {"offset.j1": 0.0123, "offset.j2": -0.0456, "offset.j4": 0.2}
-        to_write_pose(robot, want)
-        q_before = robot.joint_positions().q
-        robot.write_calibration(want)
-        got = robot.read_calibration()
-        for k in range(4):
-            tick = _tick(world, k)
-            assert abs(got[f"offset.j{k + 1}"] - want.get(f"offset.j{k + 1}", 0.0)) <= tick / 2 + 1e-12
-        assert robot.status().enabled  # torque state restored after the EEPROM write
-        shift = robot.joint_positions().q - q_before  # the same physical pose: the readings moved by the offsets
-        assert np.allclose(shift, [got[f"offset.j{k}"] for k in range(1, 5)], atol=1e-12)
-        with pytest.raises(ConfigError):
-            robot.write_calibration({"dh.j1.a": 0.1})
-        with pytest.raises(LimitError):
-            robot.write_calibration({"offset.j1": 1e4})
-        robot.close()
-        eeprom = emu.eeprom()
-        emu.stop()
-        # power cycle: a new emulator keeps the EEPROM images, RAM restarts (torque off; the arm stands where the
-        # write left it: no written joint carries gravity torque there)
-        emu = DynamixelEmulator(world, ids=IDS, eeprom=eeprom)
-        url = f"dynamixel://{emu.start().path}?ids=11-14&model=omx&latency=50"
-        robot = open_robot(url)
-        assert robot.read_calibration() == got
-        assert not robot.status().enabled
-        q = robot.joint_positions().q
-        assert np.all(np.abs(q - (world.encoder_q() + [got[f"offset.j{k}"] for k in range(1, 5)]))
-                      <= _tick(world, 0) / 2 + 1e-12)
-    finally:
-        robot.close()
-        emu.stop()
+    emu, robot = robot_rig("dynamixel", world, ids=IDS, query="&latency=50")
+    assert robot.read_calibration() == {f"offset.j{k}": 0.0 for k in range(1, 5)}
+    want = {"offset.j1": 0.0123, "offset.j2": -0.0456, "offset.j4": 0.2}
+    to_write_pose(robot, want)
+    q_before = robot.joint_positions().q
+    robot.write_calibration(want)
+    got = robot.read_calibration()
+    for k in range(4):
+        tick = _tick(world, k)
+        assert abs(got[f"offset.j{k + 1}"] - want.get(f"offset.j{k + 1}", 0.0)) <= tick / 2 + 1e-12
+    assert robot.status().enabled  # torque state restored after the EEPROM write
+    shift = robot.joint_positions().q - q_before  # the same physical pose: the readings moved by the offsets
+    assert np.allclose(shift, [got[f"offset.j{k}"] for k in range(1, 5)], atol=1e-12)
+    with pytest.raises(ConfigError):
+        robot.write_calibration({"dh.j1.a": 0.1})
+    with pytest.raises(LimitError):
+        robot.write_calibration({"offset.j1": 1e4})
+    robot.close()
+    eeprom = emu.eeprom()
+    emu.stop()
+    # power cycle: a new emulator keeps the EEPROM images, RAM restarts (torque off; the arm stands where the
+    # write left it: no written joint carries gravity torque there)
+    emu, robot = robot_rig("dynamixel", world, ids=IDS, eeprom=eeprom, query="&latency=50", enable=False)
+    assert robot.read_calibration() == got
+    assert not robot.status().enabled
+    q = robot.joint_positions().q
+    assert np.all(np.abs(q - (world.encoder_q() + [got[f"offset.j{k}"] for k in range(1, 5)]))
+                  <= _tick(world, 0) / 2 + 1e-12)
 
 
 def test_compliant_mode_seats_in_socket_and_touch_reads_contact(rig):
@@ -216,20 +203,19 @@ def test_compliant_mode_seats_in_socket_and_touch_reads_contact(rig):
     assert np.linalg.norm(world.tip_true() - sock.position) < 1e-4
 
 
-def test_needle_contact_through_the_contact_sensor():
+def test_needle_contact_through_the_contact_sensor(robot_rig):
     cell = {"contact_radius": 0.002,
             "points": [{"label": "N", "kind": "needle", "position": [0.18, 0.08, 0.05], "approach": [0, 0, 1]}]}
     world = World.default(model="omx", seed=1, cell=cell)
-    with DynamixelEmulator(world, ids=IDS, contact_id=210) as emu, \
-            open_robot(f"dynamixel://{emu.path}?ids=11-14&model=omx&contact=210&latency=50") as robot:
-        robot.enable()
-        needle = world.points["N"].position
-        res = world.truth.ik(needle, np.array([0.4, 0.5, 0.3, 0.8]))
-        robot.move_joints(res.q[0])
-        assert robot.touch() is True
-        robot.jog("cartesian", 2, 0.01)
-        assert robot.touch() is False
-        assert emu.devices[210].get("contact_count") == 1
+    emu, robot = robot_rig("dynamixel", world, ids=IDS, contact_id=210, query="&latency=50")
+    assert "contact=210" in emu.url
+    needle = world.points["N"].position
+    res = world.truth.ik(needle, np.array([0.4, 0.5, 0.3, 0.8]))
+    robot.move_joints(res.q[0])
+    assert robot.touch() is True
+    robot.jog("cartesian", 2, 0.01)
+    assert robot.touch() is False
+    assert emu.devices[210].get("contact_count") == 1
 
 
 def test_url_errors_are_config_errors():
@@ -255,6 +241,8 @@ def test_goal_refused_by_servo_position_limits_is_caught_at_once(rig):
 
 
 def test_xl430_arm_reads_moves_and_is_compliant_through_goal_pwm():
+    # its own rig: the URL names no ids (the driver's default, 1-4), which robot_rig's emulator URL always spells
+    # out
     world = World.default(model="omx", seed=8)
     with DynamixelEmulator(world, ids=[1, 2, 3, 4], servo="xl430", contact_id=None) as emu, \
             open_robot(f"dynamixel://{emu.path}?model=omx&servo=xl430-w250&latency=50") as robot:

@@ -13,7 +13,6 @@ import dynamixel_sdk as sdk
 import numpy as np
 import pytest
 from station.drivers.dynamixel.bus import DxlPort
-from station.mocks.dynamixel import DynamixelEmulator
 from station.mocks.world import World
 
 from station.robot import DeviceFault, LimitError, open_robot
@@ -94,10 +93,11 @@ class Releases:
 
 
 @pytest.fixture
-def rig():
+def rig(robot_rig):
+    """The servos alone (no driver yet): a test sets them up as a technician would before the station opens them."""
     world = World.default(model="omx", seed=7, start=START)
-    with DynamixelEmulator(world, ids=IDS) as emu:
-        yield world, emu
+    emu, _ = robot_rig("dynamixel", world, ids=IDS, connect=False)
+    return world, emu
 
 
 # ---- Torque Enable: free run, no brake ---------------------------------------------------------------------
@@ -229,35 +229,35 @@ def test_reverse_mode_turns_positions_around_and_the_driver_honours_it(rig):
             "offset.j2"], atol=1e-12)
 
 
-def test_time_based_profile_sets_the_move_time():
+def test_time_based_profile_sets_the_move_time(robot_rig):
     """e-Manual, Drive Mode bit 2 and Profile Velocity: with the time-based profile Profile Velocity is the time
     span of the move and Profile Acceleration its accelerating time, in ms. The driver writes ms to such a servo:
     the move takes the time it planned, not the ~0.1 s a velocity read as ms-as-units would give."""
     world = World.default(model="omx", seed=7, start=START, time_mode="sim")
-    with DynamixelEmulator(world, ids=IDS) as emu:
-        wire = Wire(emu)
-        try:
-            for i in IDS:
-                assert wire.write(i, DRIVE_MODE, 1, 4) == (sdk.COMM_SUCCESS, 0)
-            assert wire.write(13, TORQUE, 1, 1) == (sdk.COMM_SUCCESS, 0)
-            assert wire.write(13, PROFILE_VELOCITY, 4, 1500) == (sdk.COMM_SUCCESS, 0)  # 1.5 s
-            assert wire.write(13, PROFILE_ACCELERATION, 4, 300) == (sdk.COMM_SUCCESS, 0)  # 0.3 s accelerating
-            assert wire.write(13, GOAL, 4, wire.read(13, PRESENT) + 300) == (sdk.COMM_SUCCESS, 0)
-            assert world.is_moving()
-            assert abs(world.run_until_idle() - 1.5) < 0.01
-            assert wire.write(13, TORQUE, 1, 0) == (sdk.COMM_SUCCESS, 0)
-        finally:
-            wire.close()
-        with open_robot(f"{emu.url}&latency=50") as robot:
-            robot.enable()
-            target = np.array(START) + [0.4, 0.2, -0.3, 0.1]
-            robot.move_joints(target, speed=0.5, wait=False)
-            pv = [emu.devices[i].get("profile_velocity") for i in IDS]
-            pa = [emu.devices[i].get("profile_acceleration") for i in IDS]
-            assert len(set(pv)) == 1 and len(set(pa)) == 1 and 2 * pa[0] <= pv[0]  # one time span for all joints
-            assert pv[0] / 1000 >= 0.4 / 0.5  # the lead joint at no more than 0.5 rad/s
-            assert abs(world.run_until_idle() - pv[0] / 1000) < 0.01
-            np.testing.assert_allclose(world.encoder_q(), target, atol=_tick(world, 0) / 2 + 1e-12)
+    emu, _ = robot_rig("dynamixel", world, ids=IDS, connect=False)
+    wire = Wire(emu)
+    try:
+        for i in IDS:
+            assert wire.write(i, DRIVE_MODE, 1, 4) == (sdk.COMM_SUCCESS, 0)
+        assert wire.write(13, TORQUE, 1, 1) == (sdk.COMM_SUCCESS, 0)
+        assert wire.write(13, PROFILE_VELOCITY, 4, 1500) == (sdk.COMM_SUCCESS, 0)  # 1.5 s
+        assert wire.write(13, PROFILE_ACCELERATION, 4, 300) == (sdk.COMM_SUCCESS, 0)  # 0.3 s accelerating
+        assert wire.write(13, GOAL, 4, wire.read(13, PRESENT) + 300) == (sdk.COMM_SUCCESS, 0)
+        assert world.is_moving()
+        assert abs(world.run_until_idle() - 1.5) < 0.01
+        assert wire.write(13, TORQUE, 1, 0) == (sdk.COMM_SUCCESS, 0)
+    finally:
+        wire.close()
+    with open_robot(f"{emu.url}&latency=50") as robot:
+        robot.enable()
+        target = np.array(START) + [0.4, 0.2, -0.3, 0.1]
+        robot.move_joints(target, speed=0.5, wait=False)
+        pv = [emu.devices[i].get("profile_velocity") for i in IDS]
+        pa = [emu.devices[i].get("profile_acceleration") for i in IDS]
+        assert len(set(pv)) == 1 and len(set(pa)) == 1 and 2 * pa[0] <= pv[0]  # one time span for all joints
+        assert pv[0] / 1000 >= 0.4 / 0.5  # the lead joint at no more than 0.5 rad/s
+        assert abs(world.run_until_idle() - pv[0] / 1000) < 0.01
+        np.testing.assert_allclose(world.encoder_q(), target, atol=_tick(world, 0) / 2 + 1e-12)
 
 
 # ---- Present Position: one turn after power-on, reboot, mode switch ------------------------------------------
@@ -271,69 +271,70 @@ def _omx_zero_at_0(tmp_path: Path) -> str:
     return str(path)
 
 
-def test_present_position_resets_to_one_turn_and_the_driver_is_not_fooled(tmp_path):
+def test_present_position_resets_to_one_turn_and_the_driver_is_not_fooled(robot_rig, tmp_path):
     """e-Manual, operating mode note: Present Position is reset to an absolute value within one full rotation at
     power-on and at a reboot (and on a switch to / torque on in Position Control Mode). A waist whose zero is the
     servo's 0 reads -326 ticks at -0.5 rad as 3770 after power-on; in Extended Position Control Mode it counts on
     past 4096 and reads one turn less after a reboot. The driver unwraps every reading into the joint's range."""
     model = _omx_zero_at_0(tmp_path)
     world = World.default(model=model, seed=7, start=[-0.5, -0.3, 0.4, 0.1])
-    with DynamixelEmulator(world, ids=IDS) as emu:
-        wire = Wire(emu)
-        try:
-            assert wire.read(11, PRESENT) == -326 % 4096  # power-on: within one turn
-            assert wire.write(11, OPERATING_MODE, 1, 4) == (sdk.COMM_SUCCESS, 0)
-        finally:
-            wire.close()
-        with open_robot(f"{emu.url}&model={model}&latency=50") as robot:
-            np.testing.assert_allclose(robot.joint_positions().q, world.encoder_q(), atol=_tick(world, 0) / 2 + 1e-12)
-            robot.enable()
-            robot.move_joints(np.array([0.5, -0.3, 0.4, 0.1]))
-            assert emu.devices[11].get("present_position") == 326 + 4096  # extended: counting on
-            robot.reboot("waist")
-            assert emu.devices[11].get("present_position") == 326  # one turn less
-            robot.enable()
-            np.testing.assert_allclose(robot.joint_positions().q[0], 0.5, atol=_tick(world, 0))
-            robot.move_joints(np.array([-0.5, -0.3, 0.4, 0.1]))
-            np.testing.assert_allclose(world.encoder_q()[0], -0.5, atol=_tick(world, 0))
+    emu, _ = robot_rig("dynamixel", world, ids=IDS, connect=False)
+    wire = Wire(emu)
+    try:
+        assert wire.read(11, PRESENT) == -326 % 4096  # power-on: within one turn
+        assert wire.write(11, OPERATING_MODE, 1, 4) == (sdk.COMM_SUCCESS, 0)
+    finally:
+        wire.close()
+    with open_robot(f"{emu.url}&model={model}&latency=50") as robot:
+        np.testing.assert_allclose(robot.joint_positions().q, world.encoder_q(), atol=_tick(world, 0) / 2 + 1e-12)
+        robot.enable()
+        robot.move_joints(np.array([0.5, -0.3, 0.4, 0.1]))
+        assert emu.devices[11].get("present_position") == 326 + 4096  # extended: counting on
+        robot.reboot("waist")
+        assert emu.devices[11].get("present_position") == 326  # one turn less
+        robot.enable()
+        np.testing.assert_allclose(robot.joint_positions().q[0], 0.5, atol=_tick(world, 0))
+        robot.move_joints(np.array([-0.5, -0.3, 0.4, 0.1]))
+        np.testing.assert_allclose(world.encoder_q()[0], -0.5, atol=_tick(world, 0))
     # Position Control Mode covers one turn: such a joint is refused there before anything moves
     world = World.default(model=model, seed=7, start=[-0.5, -0.3, 0.4, 0.1])
-    with DynamixelEmulator(world, ids=IDS) as emu, pytest.raises(Exception, match="crosses the 0/4095"):
+    emu, _ = robot_rig("dynamixel", world, ids=IDS, connect=False)
+    with pytest.raises(Exception, match="crosses the 0/4095"):
         open_robot(f"{emu.url}&model={model}&latency=50")
 
 
 # ---- Status Return Level ---------------------------------------------------------------------------------------
-def test_status_return_level_below_2_is_honoured():
+def test_status_return_level_below_2_is_honoured(robot_rig):
     """e-Manual, Status Return Level (68): 1 answers PING and READ only, 0 PING only. A servo left at 1 gets its
     writes without a status awaited (read back instead: no timeouts, no retries); one at 0 answers no read, so the
     driver sets it to 2 for this power-on and says so."""
     world = World.default(model="omx", seed=7, start=START)
-    with DynamixelEmulator(world, ids=IDS, status_return_level=1) as emu:
-        wire = Wire(emu)
-        try:
-            assert wire.write(12, 65, 1, 1)[0] == sdk.COMM_RX_TIMEOUT  # a write: no status
-            assert wire.read(12, 65, 1) == 1  # a read: answered
-            assert wire.write(12, SRL, 1, 0)[0] == sdk.COMM_RX_TIMEOUT
-            g = sdk.GroupSyncRead(wire.port, wire.ph, PRESENT, 4)
-            for i in IDS:
-                g.addParam(i)
-            assert g.txRxPacket() != sdk.COMM_SUCCESS  # level 0: not even a sync read
-            assert wire.write(12, SRL, 1, 1)[0] == sdk.COMM_RX_TIMEOUT
-        finally:
-            wire.close()
-        with open_robot(f"{emu.url}&latency=50") as robot:
-            robot.enable()
-            _write_pose(robot, {"offset.j2": -0.01, "offset.j3": 0.01})
-            robot.write_calibration({"offset.j2": -0.01, "offset.j3": 0.01})  # (it would time out awaiting a status)
-            assert [emu.devices[i].get("homing_offset") for i in IDS] == [0, -7, 7, 0]
+    emu, _ = robot_rig("dynamixel", world, ids=IDS, status_return_level=1, connect=False)
+    wire = Wire(emu)
+    try:
+        assert wire.write(12, 65, 1, 1)[0] == sdk.COMM_RX_TIMEOUT  # a write: no status
+        assert wire.read(12, 65, 1) == 1  # a read: answered
+        assert wire.write(12, SRL, 1, 0)[0] == sdk.COMM_RX_TIMEOUT
+        g = sdk.GroupSyncRead(wire.port, wire.ph, PRESENT, 4)
+        for i in IDS:
+            g.addParam(i)
+        assert g.txRxPacket() != sdk.COMM_SUCCESS  # level 0: not even a sync read
+        assert wire.write(12, SRL, 1, 1)[0] == sdk.COMM_RX_TIMEOUT
+    finally:
+        wire.close()
+    with open_robot(f"{emu.url}&latency=50") as robot:
+        robot.enable()
+        _write_pose(robot, {"offset.j2": -0.01, "offset.j3": 0.01})
+        robot.write_calibration({"offset.j2": -0.01, "offset.j3": 0.01})  # (it would time out awaiting a status)
+        assert [emu.devices[i].get("homing_offset") for i in IDS] == [0, -7, 7, 0]
     world = World.default(model="omx", seed=7, start=START)
-    with DynamixelEmulator(world, ids=IDS, status_return_level=0) as emu:
-        log = _capture()
-        with open_robot(f"{emu.url}&latency=20") as robot:  # each silent read: 4 x ~42 ms
-            assert robot.joint_positions().q.shape == (4,)
-        assert [emu.devices[i].get("status_return_level") for i in IDS] == [2] * 4
-        said = [m for m in log.lines if "Status Return Level 0" in m]
-        assert len(said) == 4 and all("\n" not in m for m in said)
+    emu, _ = robot_rig("dynamixel", world, ids=IDS, status_return_level=0, connect=False)
+    log = _capture()
+    with open_robot(f"{emu.url}&latency=20") as robot:  # each silent read: 4 x ~42 ms
+        assert robot.joint_positions().q.shape == (4,)
+    assert [emu.devices[i].get("status_return_level") for i in IDS] == [2] * 4
+    said = [m for m in log.lines if "Status Return Level 0" in m]
+    assert len(said) == 4 and all("\n" not in m for m in said)
 
 
 class _capture(logging.Handler):
@@ -347,20 +348,20 @@ class _capture(logging.Handler):
 
 
 # ---- Fast Sync Read needs firmware that has it -------------------------------------------------------------------
-def test_firmware_without_fast_sync_read_gets_sync_read():
+def test_firmware_without_fast_sync_read_gets_sync_read(robot_rig):
     """Fast Sync Read (0x8A) exists from some firmware on (ROBOTIS-GIT/dynamixel_hardware_interface issues 79 and
     83, "FastSyncRead Rx Fail"; DynamixelSDK issue 527): older firmware does not answer it. The driver tries one
     at connect and uses the SDK's Sync Read from then on, said once."""
     world = World.default(model="omx", seed=7, start=START)
-    with DynamixelEmulator(world, ids=IDS, fast_sync_read=False) as emu:
-        log = _capture()
-        with open_robot(f"{emu.url}&latency=20") as robot:  # each unanswered try: ~42 ms
-            assert not robot.fast
-            emu.reset_stats()
-            robot.joint_positions()
-            assert emu.stats["by_inst"] == {"sync_read": 1}
-        said = [m for m in log.lines if "Fast Sync Read" in m]
-        assert len(said) == 1 and "using Sync Read" in said[0]
+    emu, _ = robot_rig("dynamixel", world, ids=IDS, fast_sync_read=False, connect=False)
+    log = _capture()
+    with open_robot(f"{emu.url}&latency=20") as robot:  # each unanswered try: ~42 ms
+        assert not robot.fast
+        emu.reset_stats()
+        robot.joint_positions()
+        assert emu.stats["by_inst"] == {"sync_read": 1}
+    said = [m for m in log.lines if "Fast Sync Read" in m]
+    assert len(said) == 1 and "using Sync Read" in said[0]
 
 
 # ---- the USB adapter's latency timer -----------------------------------------------------------------------------

@@ -7,13 +7,11 @@ connection (the FCI serves one client at a time)."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
+from clirunner import station_proc
 from franka_helpers import SEATING, ik_down, write_world
 from station.mocks.franka.launch import FrankaEmulator
 from station.mocks.world import World
@@ -421,30 +419,25 @@ def test_export_writes_a_calibrated_urdf_and_model(sim, tmp_path):
 
 
 def test_station_mock_franka_input_errors_are_one_line(tmp_path):
-    station = str(Path(sys.executable).with_name("station"))
     world = write_world(tmp_path)
     ur = tmp_path / "ur.yaml"
     ur.write_text(world.read_text().replace("model: fr3", "model: ur5e").replace("  tool:", "  xtool:"))
     cases = [(["--world", str(world), "--host", "10.1.2.3"], "loopback addresses only", {}),
              (["--world", str(world)], "franka-sim environment is missing", {"STATION_FRANKA_SIM_PYTHON": "/nope/py"}),
              (["--world", str(tmp_path / "none.yaml")], "none.yaml", {})]
-    import os
-
     for args, text, env in cases:
-        p = subprocess.run([station, "mock", "franka", *args], capture_output=True, text=True, timeout=60,
-                           env={**os.environ, **env})
-        assert p.returncode == 2, p.stderr
-        lines = p.stderr.strip().splitlines()
-        assert len(lines) == 1 and lines[0].startswith("station: error:") and text in lines[0], p.stderr
+        r = station_proc("mock", "franka", *args, env=env, timeout=60)
+        assert r.code == 2, r.err
+        lines = r.err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("station: error:") and text in lines[0], r.err
 
 
 def test_a_missing_pylibfranka_is_one_line_naming_the_package(tmp_path):
-    code = ("import sys; sys.modules['pylibfranka'] = None; from station.cli import main; "
-            "sys.argv = ['station', 'run', 'two_socket', '--robot', 'franka://127.0.0.1', '--serial', 'X', "
-            f"'--db', 'sqlite:///{tmp_path}/r.db']; main()")
-    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=tmp_path)
-    assert p.returncode == 2, p.stderr
-    assert p.stderr.strip().count("\n") == 0 and "pip install pylibfranka" in p.stderr, p.stderr
+    r = station_proc("run", "two_socket", "--robot", "franka://127.0.0.1", "--serial", "X",
+                     "--db", f"sqlite:///{tmp_path}/r.db", prelude="import sys; sys.modules['pylibfranka'] = None",
+                     timeout=60, cwd=tmp_path)
+    assert r.code == 2, r.err
+    assert r.err.strip().count("\n") == 0 and "pip install pylibfranka" in r.err, r.err
 
 
 def test_franka_url_errors_are_one_line():

@@ -3,14 +3,13 @@ TCP socket: the documented line protocol, readings against the world's truth, no
 specification, bounded waits and one-line errors, and the CSV import of a tracker's export (station map build
 --measurements)."""
 
+import signal
 import socket
-import subprocess
-import sys
 import time
 
 import numpy as np
 import pytest
-from clirunner import station_proc
+from clirunner import station_proc, station_spawn
 from station.drivers.tracker import open_tracker
 from station.mocks.tracker.config import tracker_config
 from station.mocks.tracker.server import TrackerServer
@@ -118,16 +117,13 @@ def test_station_mock_tracker_process(tmp_path):
     assert r.code == 0, r.err
     text = r.out.replace("buses:", "buses:\n  tracker: {serial: LT-42}", 1)
     world.write_text(text)
-    proc = subprocess.Popen([sys.executable, "-m", "station.cli", "mock", "tracker", "--world", str(world)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        line = proc.stdout.readline().split()
+    with station_spawn("mock", "tracker", "--world", world, module=True) as proc:
+        line = proc.readline().split()
         assert line[0] == "tracker" and line[3].startswith("tcp://127.0.0.1:") and line[5] == "LT-42"
         with open_tracker(line[3]) as c:
             assert c.serial == "LT-42"
             assert np.isfinite(c.measure().pose).all()
-    finally:
-        proc.terminate()
+        proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=10)
     bad = tmp_path / "bad.yaml"
     bad.write_text(text.replace("{serial: LT-42}", "{pose: {x: 1}}"))

@@ -3,12 +3,10 @@ URL that works as printed, and every identity error on the way names the fix tha
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 import yaml
+from clirunner import station_proc
 from station.mocks.world import World, default_doc
 
 from station.robot import IdentityMismatch, open_robot
@@ -72,11 +70,9 @@ def test_identity_errors_for_an_own_arm_name_the_fix_that_works(tmp_path, emulat
 
 def test_mock_ur_refuses_an_arm_a_ur_controller_cannot_drive(tmp_path):
     path, _ = _own_arm_world(tmp_path, arm7_urdf(), start=None, tip_link="ball")
-    cli = [sys.executable, "-c", "import sys; from station.cli import main; sys.argv[0]='station'; main()"]
-    out = subprocess.run([*cli, "mock", "ur", "--host", "127.0.0.1", "--world", str(path)], capture_output=True,
-                         text=True, timeout=60)
-    assert out.returncode == 2 and out.stderr.count("\n") == 1
-    assert "station: error:" in out.stderr and "7 joints" in out.stderr and "6 revolute joints" in out.stderr
+    out = station_proc("mock", "ur", "--host", "127.0.0.1", "--world", path, timeout=60)
+    assert out.code == 2 and out.err.count("\n") == 1
+    assert "station: error:" in out.err and "7 joints" in out.err and "6 revolute joints" in out.err
 
 
 def test_mock_ur_refuses_bad_bus_settings_in_one_line(tmp_path):

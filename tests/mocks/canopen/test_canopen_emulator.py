@@ -17,10 +17,12 @@ SAVE, LOAD = eds.SAVE_SIGNATURE, eds.LOAD_SIGNATURE
 
 
 @pytest.fixture
-def rig():
-    chan = f"t-{uuid.uuid4().hex[:8]}"
+def rig(robot_rig):
+    """The drives from robot_rig without the station's driver: the client here is python-canopen's own nodes (the
+    emulator is what is tested, at protocol level), with a sniffer on the same channel."""
     world = World.default(model="arm6", seed=3)
-    emu = CanopenEmulator(world, channel=chan).start()
+    emu, _ = robot_rig("canopen", world, connect=False)
+    chan = emu.channel
     sniff = can.Bus(interface="virtual", channel=chan)
     net = canopen.Network()
     net.NOTIFIER_CYCLE = 0.05  # quick teardown
@@ -34,7 +36,6 @@ def rig():
     yield world, emu, net, nodes, sniff
     net.disconnect()
     sniff.shutdown()
-    emu.stop()
 
 
 def drain(bus: can.BusABC) -> list[can.Message]:
@@ -187,6 +188,7 @@ def test_store_parameters_survive_reset_only_when_saved(rig):
 
 
 def test_store_file_keeps_parameters_across_emulator_restart(tmp_path):
+    # its own rig: the drives restart on the same channel, as a power cycle leaves them on the same wire
     chan = f"t-{uuid.uuid4().hex[:8]}"
     store = tmp_path / "store.json"
     world = World.default(model="arm6")
@@ -278,25 +280,24 @@ def test_synchronous_rpdo_acts_on_the_next_sync(rig):
     assert n.sdo[0x6064].raw == here + 20000
 
 
-def test_profile_velocity_mode_moves_a_realtime_joint():
-    chan = f"t-{uuid.uuid4().hex[:8]}"
+def test_profile_velocity_mode_moves_a_realtime_joint(robot_rig):
     world = World.default(model="arm6", time_mode="realtime")
-    with CanopenEmulator(world, channel=chan):
-        net = canopen.Network()
-        net.NOTIFIER_CYCLE = 0.05
-        net.connect(interface="virtual", channel=chan)
-        try:
-            time.sleep(0.02)
-            n = net.add_node(4, str(eds.EDS_PATH))
-            _enable(n)
-            n.sdo[0x6060].raw = 3
-            q0 = world.encoder_q()[3]
-            enc = world.nominal.joints[3].encoder  # direction -1: positive counts = negative joint motion
-            n.sdo[0x60FF].raw = int(0.5 * enc.counts_per_unit * enc.gear)  # 0.5 rad/s at the joint
-            time.sleep(0.3)
-            assert world.encoder_q()[3] < q0 - 0.05
-            n.sdo[0x60FF].raw = 0
-            time.sleep(0.2)
-            assert not world.is_moving()
-        finally:
-            net.disconnect()
+    emu, _ = robot_rig("canopen", world, connect=False)
+    net = canopen.Network()
+    net.NOTIFIER_CYCLE = 0.05
+    net.connect(interface="virtual", channel=emu.channel)
+    try:
+        time.sleep(0.02)
+        n = net.add_node(4, str(eds.EDS_PATH))
+        _enable(n)
+        n.sdo[0x6060].raw = 3
+        q0 = world.encoder_q()[3]
+        enc = world.nominal.joints[3].encoder  # direction -1: positive counts = negative joint motion
+        n.sdo[0x60FF].raw = int(0.5 * enc.counts_per_unit * enc.gear)  # 0.5 rad/s at the joint
+        time.sleep(0.3)
+        assert world.encoder_q()[3] < q0 - 0.05
+        n.sdo[0x60FF].raw = 0
+        time.sleep(0.2)
+        assert not world.is_moving()
+    finally:
+        net.disconnect()

@@ -3,42 +3,31 @@
 from __future__ import annotations
 
 import json
-import select
 import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from clirunner import ChildProcess, station_proc, station_spawn
 from station.mocks.world import World
 
 from station.robot import open_robot
 
-STATION = [sys.executable, "-c", "from station.cli import main; main()"]
 
-
-def _start(*args: str) -> tuple[subprocess.Popen, str]:
-    proc = subprocess.Popen([*STATION, "mock", "dynamixel", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-    ready, _, _ = select.select([proc.stdout], [], [], 30)
-    if not ready:
-        proc.kill()
-        proc.wait()
+def _start(*args: str) -> tuple[ChildProcess, str]:
+    proc = station_spawn("mock", "dynamixel", *args)
+    line = proc.readline(timeout=30)
+    if not line:
+        proc.close()
         pytest.fail("station mock dynamixel printed nothing within 30 s")
-    path = proc.stdout.readline().strip()
-    return proc, path
+    return proc, line.strip()
 
 
-def _stop(proc: subprocess.Popen) -> int:
-    proc.send_signal(signal.SIGTERM)
-    try:
-        return proc.wait(timeout=10)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+def _stop(proc: ChildProcess) -> int:
+    with proc:
+        proc.send_signal(signal.SIGTERM)
+        return proc.wait(timeout=10).code
 
 
 def test_process_serves_world_file_and_keeps_eeprom_across_restarts(tmp_path: Path):
@@ -69,11 +58,10 @@ def test_process_serves_world_file_and_keeps_eeprom_across_restarts(tmp_path: Pa
 
 
 def test_bad_arguments_exit_2_with_one_line():
-    proc = subprocess.run([*STATION, "mock", "dynamixel", "--ids", "1-3"], capture_output=True, text=True,
-                          timeout=60)
-    assert proc.returncode == 2
-    assert proc.stderr.strip().startswith("station: error:") and "one id per joint" in proc.stderr
-    assert proc.stdout == ""
+    r = station_proc("mock", "dynamixel", "--ids", "1-3", timeout=60)
+    assert r.code == 2
+    assert r.err.strip().startswith("station: error:") and "one id per joint" in r.err
+    assert r.out == ""
 
 
 def test_two_worlds_print_two_serials_and_the_robot_reports_the_printed_one(tmp_path):
@@ -90,7 +78,7 @@ def test_two_worlds_print_two_serials_and_the_robot_reports_the_printed_one(tmp_
         (tmp_path / f"w{seed}{extra}.yaml").write_text(yaml.safe_dump(doc))
         proc, _ = _start("--world", str(tmp_path / f"w{seed}{extra}.yaml"))
         try:
-            urls.append(proc.stdout.readline().strip().removeprefix("robot URL "))
+            urls.append(proc.readline(timeout=30).strip().removeprefix("robot URL "))
             with open_robot(urls[-1]) as robot:
                 ident = robot.identity()
             assert ident.serial_source == "url" and urls[-1].endswith(f"serial={ident.serial}")

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import socket
 import struct
-import subprocess
-import sys
 import time
 
 import numpy as np
@@ -14,6 +12,7 @@ import pytest
 import rtde_control
 import rtde_receive
 import yaml
+from clirunner import station_proc
 from station.mocks.launch import dashboard, launch
 from station.mocks.world import World, default_doc
 
@@ -148,12 +147,10 @@ def test_dashboard_answers_like_polyscope(emu):
 
 
 def test_cli_rejects_bad_host_and_bad_world(tmp_path):
-    cli = [sys.executable, "-c", "import sys; from station.cli import main; sys.argv[0]='station'; main()"]
-    out = subprocess.run([*cli, "mock", "ur", "--host", "not-an-ip"], capture_output=True, text=True, timeout=30)
-    assert out.returncode == 2 and "station: error:" in out.stderr and "not-an-ip" in out.stderr
+    out = station_proc("mock", "ur", "--host", "not-an-ip", timeout=30)
+    assert out.code == 2 and "station: error:" in out.err and "not-an-ip" in out.err
     bad = tmp_path / "bad.yaml"
     bad.write_text("format: station-world/1\nunits: {length: m, angle: rad}\nrobot: {model: ur5e}\n"
                    "motion: {time_mode: warp}\n")
-    out = subprocess.run([*cli, "mock", "ur", "--host", "127.0.0.1", "--world", str(bad)], capture_output=True,
-                         text=True, timeout=30)
-    assert out.returncode == 2 and "station: error:" in out.stderr and "time_mode" in out.stderr
+    out = station_proc("mock", "ur", "--host", "127.0.0.1", "--world", bad, timeout=30)
+    assert out.code == 2 and "station: error:" in out.err and "time_mode" in out.err
