@@ -277,6 +277,9 @@ def _travel(model: Model, path: list[np.ndarray]) -> float:
     return float(sum(np.max(np.abs(y - x) / v) for x, y in zip(path, path[1:], strict=False)))
 
 
+VIA_MARGIN = np.deg2rad(5.0)  # rad: a retract via keeps this far inside every joint limit (the plan's default)
+
+
 def _lifted(checker: Checker, q: np.ndarray, heights=(0.1, 0.2, 0.3)) -> list[np.ndarray]:
     """Retract poses: the tool moved straight away from the mounting plane (up, for a table arm) by
     ``heights``, same orientation where the arm has the joints for it."""
@@ -287,7 +290,11 @@ def _lifted(checker: Checker, q: np.ndarray, heights=(0.1, 0.2, 0.3)) -> list[np
     T = np.repeat(model.fk(q)[None], len(heights), axis=0)
     T[:, :3, 3] += np.asarray(heights)[:, None] * up
     r = model.ik(T if full else T[:, :3, 3], q, position_only=not full, max_iter=150)
-    return [x for x, ok in zip(r.q, r.ok, strict=True) if ok and np.max(np.abs(x - q)) < 1.5]
+    # the IK may put a joint anywhere inside its limits; a via at the very limit is one a true arm (its zeros off
+    # by the errors being calibrated) cannot reach, and one a robot's limit-dependent speed envelope slows to a
+    # stop short of: keep the margin the plan's own poses keep
+    inside = _inside(model, r.q, VIA_MARGIN)
+    return [x for x, ok, w in zip(r.q, r.ok, inside, strict=True) if ok and w and np.max(np.abs(x - q)) < 1.5]
 
 
 def find_via(checker: Checker, a, b, home=None) -> list[np.ndarray] | None:
