@@ -258,6 +258,12 @@ def keep_out_checker(model: Model, keep_out: KeepOut | None) -> Checker:
     return Checker(model, KeepOut.default() if keep_out is None else keep_out)
 
 
+def transit_checker(model: Model, keep_out: KeepOut | None, slack: float = 0.0) -> Checker:
+    """The checker of the moves between poses: the links as :func:`keep_out_checker`, and the tool's tip kept out
+    of every obstacle (only the approach to a reference brings the tip to a surface)."""
+    return Checker(model, KeepOut.default() if keep_out is None else keep_out, slack=slack, tip=True)
+
+
 def _via_candidates(a: np.ndarray, b: np.ndarray, home: np.ndarray | None) -> np.ndarray:
     """Intermediate poses worth trying between ``a`` and ``b``: the home/start pose, and the joint-wise splits
     (move the proximal joints first, or the distal ones: e.g. lift the elbow before swinging the base)."""
@@ -339,9 +345,10 @@ def route(checker: Checker, q_from, targets: list, home=None, what: str = "move"
         hit = checker.hits(t[None])[0]
         if hit is not None:
             raise PlanError(f"{what}: target {np.round(t, 4).tolist()} rad: {hit.describe()}")
-        via = find_via(checker, cur, t, home)
+        leg = checker.leaving(cur)
+        via = find_via(leg, cur, t, home)
         if via is None:
-            raise PlanError(_blocked_message(what, checker.path_hit(cur, t)))
+            raise PlanError(_blocked_message(what, leg.path_hit(cur, t)))
         out += via + [t]
         cur = t
     return out
@@ -358,7 +365,7 @@ def route_from(model: Model, keep_out: KeepOut | None, q_now, targets: list, wha
     if key not in _checkers:
         if len(_checkers) > 8:
             _checkers.clear()
-        _checkers[key] = (model, keep_out, Checker(model, keep_out, slack=RUN_SLACK))  # refs keep the ids valid
+        _checkers[key] = (model, keep_out, transit_checker(model, keep_out, RUN_SLACK))  # refs keep the ids valid
     return route(_checkers[key][2], q_now, targets, what=what)
 
 
@@ -370,14 +377,29 @@ def _route_plan(model: Model, checker: Checker, poses: list[PlannedPose], q_star
     prev = None if q_start is None else np.asarray(q_start, float)
     for i, p in enumerate(poses):
         if prev is not None and not (known_clear and known_clear[i]):
-            via = find_via(checker, prev, p.approach_arr, q_start)
+            leg = checker.leaving(prev)
+            via = find_via(leg, prev, p.approach_arr, q_start)
             if via is None:
                 frm = "the start pose" if i == 0 else f"pose {i - 1}"
                 raise PlanError(_blocked_message(f"pose plan: path from {frm} to pose {i}",
-                                                 checker.path_hit(prev, p.approach_arr)))
+                                                 leg.path_hit(prev, p.approach_arr)))
             p.via = [v.tolist() for v in via]
         prev = p.approach_arr
     return poses
+
+
+def _scan_edges(checker: Checker, QA: np.ndarray, q_start: np.ndarray, ends: list) -> list[Hit | None]:
+    """The worst hit on each approach-to-approach path ``ends`` (index -1: the start pose, whose paths leave
+    from where the arm stands: ``Checker.leaving``)."""
+    out: list[Hit | None] = [None] * len(ends)
+    for ck, idx in ((checker, [k for k, (i, _) in enumerate(ends) if i >= 0]),
+                    (checker.leaving(q_start), [k for k, (i, _) in enumerate(ends) if i < 0])):
+        if idx:
+            hits = ck.scan(np.array([q_start if ends[k][0] < 0 else QA[ends[k][0]] for k in idx]),
+                           QA[[ends[k][1] for k in idx]])
+            for k, h in zip(idx, hits, strict=True):
+                out[k] = h
+    return out
 
 
 def _order_clear(model: Model, checker: Checker, QA: np.ndarray, q_start: np.ndarray,
@@ -393,7 +415,7 @@ def _order_clear(model: Model, checker: Checker, QA: np.ndarray, q_start: np.nda
         if not new:
             break
         ends = [sorted(e) for e in new]
-        hits = checker.scan(np.array([q_start if i < 0 else QA[i] for i, _ in ends]), QA[[j for _, j in ends]])
+        hits = _scan_edges(checker, QA, q_start, ends)
         for e, h in zip(new, hits, strict=True):
             seen.add(e)
             if h is not None:
@@ -467,12 +489,13 @@ def generate_plan(model: Model, points: list[RefPoint], q_start, *, identify: st
     # holdout poses: every point that is held out was also fitted (the solver needs its position)
     chosen = fit + hold
     qs = Q[chosen]
-    tour, known = _order_clear(model, checker, QA[chosen], q_start, qs)
+    transit = transit_checker(model, keep_out)
+    tour, known = _order_clear(model, transit, QA[chosen], q_start, qs)
     poses = []
     for i, t in enumerate(tour):
         c = chosen[t]
         poses.append(PlannedPose(i, labels[c], Q[c].tolist(), QA[c].tolist(), "fit" if t < n_fit else "holdout"))
-    _route_plan(model, checker, poses, q_start, known)
+    _route_plan(model, transit, poses, q_start, known)
     return PosePlan(poses, {"generated": True, "identify": identify, "n_fit": n_fit, "n_holdout": n_holdout,
                             "cone_deg": cone_deg, "clearance_m": clearance, "seed": seed,
                             "points": [p.to_dict() for p in points], "keep_out": checker.keep_out.to_dict(),
@@ -509,12 +532,13 @@ def plan_from_joints(model: Model, entries: list[dict], points: dict[str, RefPoi
         poses.append(PlannedPose(i, pt.label, q.tolist(), r.q[0].tolist(), e.get("set", "fit")))
     if q_start is not None:
         _start_clear(checker, q_start)
-        tour, known = _order_clear(model, checker, np.array([p.approach_q for p in poses]),
+        transit = transit_checker(model, keep_out)
+        tour, known = _order_clear(model, transit, np.array([p.approach_q for p in poses]),
                                    np.asarray(q_start, float), np.array([p.q for p in poses]))
         poses = [poses[t] for t in tour]
         for i, p in enumerate(poses):
             p.index = i
-    _route_plan(model, checker, poses, q_start, known if q_start is not None else None)
+    _route_plan(model, transit_checker(model, keep_out), poses, q_start, known if q_start is not None else None)
     return PosePlan(poses, {"generated": False, "keep_out": checker.keep_out.to_dict()})
 
 
@@ -551,7 +575,7 @@ def generate_rotation_plan(model: Model, point: RefPoint, q_start, *, joint: int
     hold = set(np.linspace(1, n - 2, n_holdout).round().astype(int).tolist()) if n_holdout else set()
     poses = [PlannedPose(i, point.label, res.q[k].tolist(), ra.q[k].tolist(), "holdout" if k in hold else "fit")
              for i, k in enumerate(order)]
-    _route_plan(model, checker, poses, q_start)
+    _route_plan(model, transit_checker(model, keep_out), poses, q_start)
     return PosePlan(poses, {"generated": True, "rotation_joint": j + 1, "angles_rad": angles.tolist(),
                             "points": [point.to_dict()], "clearance_m": clearance,
                             "keep_out": checker.keep_out.to_dict()})

@@ -14,7 +14,7 @@ are not checked against it. Every obstacle has a clearance: a link closer than t
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -331,6 +331,21 @@ def _box_distance(A, B, box: Box, iters: int = 22) -> np.ndarray:
     return best - (hi - lo) * np.linalg.norm(d, axis=-1)
 
 
+def _with_tip(model, env: Envelope) -> Envelope:
+    """``env`` plus one segment: the tool's again, to the TCP (untrimmed), radius the tool's, link n + 2
+    ("tool tip")."""
+    tool = np.flatnonzero(env.link == model.n_joints + 1)
+    if not tool.size:
+        return env
+    s = int(tool[-1])
+
+    def plus(x, v):
+        return np.append(x, v)
+
+    return replace(env, a=plus(env.a, env.a[s]), b=plus(env.b, env.b[s]), link=plus(env.link, model.n_joints + 2),
+                   radius=plus(env.radius, env.radius[s]), trim=plus(env.trim, 0.0), names=(*env.names, "tool tip"))
+
+
 def _fixed_to_plane(model, env: Envelope, plane: Plane) -> np.ndarray:
     """Per segment: its distance to the plane is the same in every configuration (it stands on the plane by
     design, e.g. the base column), so checking it would only re-discover how the robot is built."""
@@ -351,7 +366,7 @@ class Hit:
     clearance: float
 
     def describe(self) -> str:
-        what = "tool" if self.link_name == "tool" else f"link {self.link} ({self.link_name})"
+        what = self.link_name if self.link_name in ("tool", "tool tip") else f"link {self.link} ({self.link_name})"
         if self.distance < 0:
             return (f"{what} would be {-self.distance * 1e3:.0f} mm inside obstacle '{self.obstacle}' "
                     f"(clearance {self.clearance * 1e3:.0f} mm)")
@@ -363,19 +378,42 @@ class Checker:
     """Precomputed envelope and checked (segment, obstacle) pairs for one model and keep-out; call it on
     configurations. Build once per plan, not per pose."""
 
-    def __init__(self, model, keep_out: KeepOut | None, slack: float = 0.0) -> None:
+    def __init__(self, model, keep_out: KeepOut | None, slack: float = 0.0, tip: bool = False) -> None:
         """``slack`` (m): accept this much less than each obstacle's clearance (a check at run time of poses
-        planned with the full clearance: encoder noise and seating must not make a planned move fail)."""
+        planned with the full clearance: encoder noise and seating must not make a planned move fail).
+
+        ``tip``: also keep the tool's free end (the ``tool_free`` metres the envelope leaves out so that the tip
+        can touch the references) out of every obstacle, without clearance: the check of a move between poses.
+        Only the approach to a reference may bring the tip to a surface; a transit that drags it through the
+        table is what a real arm's collision reflex stops."""
         self.model = model
         self.keep_out = KeepOut.default() if keep_out is None else keep_out
-        self.env = envelope(model)
+        self.slack = slack
+        plain = envelope(model)
+        self.env = _with_tip(model, plain) if tip else plain
+        tip = len(self.env.a) > len(plain.a)  # an arm without a tool frame has no tip to keep out
         self._ops = _compile(model, self.env.element, model.params)
         self.obstacles = self.keep_out.all
         S = len(self.env.a)
         self.mask = np.ones((S, len(self.obstacles)), bool)
         if self.keep_out.mounting is not None:
             self.mask[:, 0] = ~_fixed_to_plane(model, self.env, self.keep_out.mounting)
-        self.need = np.array([max(o.clearance - slack, 0.0) for o in self.obstacles])
+        # (S, O) m: the clearance each segment keeps from each obstacle; the tip's is none (it may touch, not enter)
+        self.clearance = np.array([[o.clearance for o in self.obstacles]] * S).reshape(S, len(self.obstacles))
+        if tip:
+            self.clearance[-1] = 0.0
+        self.need = np.maximum(self.clearance - slack, 0.0)
+        self._plain: Checker | None = None if tip else self
+
+    def leaving(self, q) -> Checker:
+        """The checker for a path that starts at ``q``: this one, unless the tool's tip is already at a surface
+        there (seated, touching: the tip check does not hold at the start), then the one without the tip
+        check (what the approach to that reference was checked with) for the way out."""
+        if self._plain is self or self.clear(np.asarray(q, float)[None])[0]:
+            return self
+        if self._plain is None:
+            self._plain = Checker(self.model, self.keep_out, self.slack)
+        return self._plain
 
     def margins(self, Q, chunk: int = 4096) -> np.ndarray:
         """``(N, S, O)``: envelope distance minus required clearance (negative = violation; +inf = unchecked)."""
@@ -387,7 +425,7 @@ class Checker:
             A, B, r = capsules(self.model, Q[s:s + chunk], self.env, ops=self._ops)
             for o, ob in enumerate(self.obstacles):
                 d = _plane_distance(A, B, ob) if isinstance(ob, Plane) else self._box(A, B, r, ob)
-                m = d - r[None, :] - self.need[o]
+                m = d - r[None, :] - self.need[None, :, o]
                 out[s:s + chunk, :, o] = np.where(self.mask[None, :, o], m, np.inf)
         return out
 
@@ -423,7 +461,7 @@ class Checker:
     def _hit(self, s: int, o: int, margin: float) -> Hit:
         k = int(self.env.link[s])
         ob = self.obstacles[o]
-        return Hit(k, self.env.names[k - 1], ob.name, margin + self.need[o], ob.clearance)
+        return Hit(k, self.env.names[k - 1], ob.name, margin + self.need[s, o], float(self.clearance[s, o]))
 
     # ---- paths ----------------------------------------------------------------------------------
     def travel(self, qa, qb) -> np.ndarray:

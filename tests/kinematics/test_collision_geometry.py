@@ -19,6 +19,7 @@ from station.kinematics.collision import (
     _plane_distance,
     capsules,
     envelope,
+    radii_of,
 )
 from station.kinematics.se3 import rpy_to_matrix
 from station.robot.errors import LimitError
@@ -97,6 +98,27 @@ def test_a_tool_is_checked_except_its_tip():
     ch = Checker(m, KeepOut(Plane("table", np.array([0, 0, 1.0]), tip[2] + 0.05, 0.0)))
     h = ch.hits(q[None])[0]
     assert h is not None and h.link == 7 and h.link_name == "tool" and "tool would be" in h.describe()
+
+
+def test_a_move_between_poses_keeps_the_tip_out_and_may_leave_a_touch():
+    m = load_model("ur5e").with_params({"tcp.z": 0.15})
+    q = np.array([0.0, -1.2, 1.9, -2.27, -1.5708, 0.0])  # tool pointing down
+    tip = m.fk(q)[:3, 3]
+    table = KeepOut(Plane("table", np.array([0, 0, 1.0]), tip[2] + 0.005, 0.01))  # the tip 5 mm below its top
+    plain, transit = Checker(m, table), Checker(m, table, tip=True)
+    assert plain.hits(q[None])[0] is None  # the approach to a reference may bring the tip there
+    h = transit.hits(q[None])[0]
+    assert h is not None and h.link_name == "tool tip" and h.clearance == 0.0 and "tool tip would be" in h.describe()
+    # the tip's own depth (independent: the TCP's height against the plane, less the tool's radius)
+    assert h.distance == pytest.approx(tip[2] - (tip[2] + 0.005) - radii_of(m)[1], abs=1e-9)
+    above = q.copy()
+    above[1] -= 0.25  # the shoulder lifts the tool off the table
+    assert transit.hits(above[None])[0] is None
+    # a move between poses that ends with the tip in the table is refused; the plain check lets it through
+    assert plain.path_hit(above, q) is None and transit.path_hit(above, q) is not None
+    # the way out of a touch is checked as the way in was; from a clear pose the tip check holds
+    assert transit.leaving(q) is not transit and transit.leaving(q).path_hit(q, above) is None
+    assert transit.leaving(above) is transit
 
 
 def test_path_scan_agrees_with_dense_sampling():
