@@ -23,7 +23,7 @@ import numpy as np
 
 from station.engine.cell import RefPoint
 from station.kinematics import Model
-from station.kinematics.collision import Checker, Hit, KeepOut
+from station.kinematics.collision import Box, Checker, Hit, KeepOut
 from station.kinematics.se3 import frame_with_z
 from station.robot.errors import ConfigError
 
@@ -258,10 +258,25 @@ def keep_out_checker(model: Model, keep_out: KeepOut | None) -> Checker:
     return Checker(model, KeepOut.default() if keep_out is None else keep_out)
 
 
-def transit_checker(model: Model, keep_out: KeepOut | None, slack: float = 0.0) -> Checker:
+def transit_checker(model: Model, keep_out: KeepOut | None, slack: float = 0.0, points=()) -> Checker:
     """The checker of the moves between poses: the links as :func:`keep_out_checker`, and the tool's tip kept out
-    of every obstacle (only the approach to a reference brings the tip to a surface)."""
-    return Checker(model, KeepOut.default() if keep_out is None else keep_out, slack=slack, tip=True)
+    of every obstacle and of the references ``points`` (only the approach to a reference brings the tip there)."""
+    return Checker(model, KeepOut.default() if keep_out is None else keep_out, slack=slack, tip=True,
+                   tip_only=tuple(reference_body(p) for p in points))
+
+
+REFERENCE_DEPTH = 0.03  # m: how far below a reference point its body (socket, nest, needle post) is kept out
+
+
+def reference_body(point: RefPoint) -> Box:
+    """The volume a reference occupies, for the tip on moves between poses: a box under the point along its
+    approach axis, as wide as its capture radius, its top at the point (where a seated ball's centre is)."""
+    from station.kinematics.se3 import frame_with_z
+
+    a = np.asarray(point.approach, float)
+    w = max(float(point.radius), 0.005)
+    return Box(f"reference {point.label}", np.asarray(point.position, float) - a * REFERENCE_DEPTH / 2,
+               np.array([w, w, REFERENCE_DEPTH / 2]), frame_with_z(a), clearance=0.0)
 
 
 def _via_candidates(a: np.ndarray, b: np.ndarray, home: np.ndarray | None) -> np.ndarray:
@@ -358,15 +373,18 @@ RUN_SLACK = 0.002  # m: at run time a move may come this much closer than the cl
 _checkers: dict = {}
 
 
-def route_from(model: Model, keep_out: KeepOut | None, q_now, targets: list, what: str = "move") -> list[np.ndarray]:
+def route_from(model: Model, keep_out: KeepOut | None, q_now, targets: list, what: str = "move",
+               points=()) -> list[np.ndarray]:
     """The run-time check before a plan's moves: :func:`route` from where the arm stands (a resumed or jogged
     arm may stand anywhere), with ``RUN_SLACK`` less clearance than the plan kept."""
-    key = (id(model), id(keep_out))
+    points = tuple(points)
+    key = (id(model), id(keep_out), *map(id, points))
     if key not in _checkers:
         if len(_checkers) > 8:
             _checkers.clear()
-        _checkers[key] = (model, keep_out, transit_checker(model, keep_out, RUN_SLACK))  # refs keep the ids valid
-    return route(_checkers[key][2], q_now, targets, what=what)
+        # the objects are kept with their checker: their ids stay valid as keys
+        _checkers[key] = (model, keep_out, points, transit_checker(model, keep_out, RUN_SLACK, points))
+    return route(_checkers[key][3], q_now, targets, what=what)
 
 
 def _route_plan(model: Model, checker: Checker, poses: list[PlannedPose], q_start,
@@ -489,7 +507,7 @@ def generate_plan(model: Model, points: list[RefPoint], q_start, *, identify: st
     # holdout poses: every point that is held out was also fitted (the solver needs its position)
     chosen = fit + hold
     qs = Q[chosen]
-    transit = transit_checker(model, keep_out)
+    transit = transit_checker(model, keep_out, points=points)
     tour, known = _order_clear(model, transit, QA[chosen], q_start, qs)
     poses = []
     for i, t in enumerate(tour):
@@ -532,13 +550,14 @@ def plan_from_joints(model: Model, entries: list[dict], points: dict[str, RefPoi
         poses.append(PlannedPose(i, pt.label, q.tolist(), r.q[0].tolist(), e.get("set", "fit")))
     if q_start is not None:
         _start_clear(checker, q_start)
-        transit = transit_checker(model, keep_out)
+        transit = transit_checker(model, keep_out, points=points.values())
         tour, known = _order_clear(model, transit, np.array([p.approach_q for p in poses]),
                                    np.asarray(q_start, float), np.array([p.q for p in poses]))
         poses = [poses[t] for t in tour]
         for i, p in enumerate(poses):
             p.index = i
-    _route_plan(model, transit_checker(model, keep_out), poses, q_start, known if q_start is not None else None)
+    _route_plan(model, transit_checker(model, keep_out, points=points.values()), poses, q_start,
+                known if q_start is not None else None)
     return PosePlan(poses, {"generated": False, "keep_out": checker.keep_out.to_dict()})
 
 
@@ -575,7 +594,7 @@ def generate_rotation_plan(model: Model, point: RefPoint, q_start, *, joint: int
     hold = set(np.linspace(1, n - 2, n_holdout).round().astype(int).tolist()) if n_holdout else set()
     poses = [PlannedPose(i, point.label, res.q[k].tolist(), ra.q[k].tolist(), "holdout" if k in hold else "fit")
              for i, k in enumerate(order)]
-    _route_plan(model, transit_checker(model, keep_out), poses, q_start)
+    _route_plan(model, transit_checker(model, keep_out, points=[point]), poses, q_start)
     return PosePlan(poses, {"generated": True, "rotation_joint": j + 1, "angles_rad": angles.tolist(),
                             "points": [point.to_dict()], "clearance_m": clearance,
                             "keep_out": checker.keep_out.to_dict()})

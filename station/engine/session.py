@@ -498,6 +498,10 @@ class Session:
 
         check_space(self.folder, f"not starting {what}")
 
+    def _references(self) -> tuple:
+        """The cell's reference points: bodies the tool's tip stays out of on moves between poses."""
+        return tuple(self.cell.points.values()) if self.cell is not None else ()
+
     def move_to(self, q, speed: float | None = None) -> None:
         self.check_space("a move")
         self.robot.move_joints(np.asarray(q, float), speed=speed)
@@ -508,7 +512,8 @@ class Session:
         ``station.engine.plan.route_from``), each move by :meth:`move_to`."""
         from station.engine.plan import route_from
 
-        for q in route_from(self.model, self.keep_out, self.robot.joint_positions().q, targets, what=what):
+        for q in route_from(self.model, self.keep_out, self.robot.joint_positions().q, targets, what=what,
+                            points=self._references()):
             self.move_to(q)
 
     @steps.step(args=("pose",))
@@ -519,7 +524,7 @@ class Session:
 
         self.check_space(f"the approach to pose {pose.index}")
         for q in route_from(self.model, self.keep_out, self.robot.joint_positions().q, [*pose.via, pose.approach_q],
-                            what=f"pose {pose.index}"):
+                            what=f"pose {pose.index}", points=self._references()):
             self.robot.move_joints(q)
 
     def touch_speed(self, q_from, q_to) -> float:

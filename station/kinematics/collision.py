@@ -378,14 +378,16 @@ class Checker:
     """Precomputed envelope and checked (segment, obstacle) pairs for one model and keep-out; call it on
     configurations. Build once per plan, not per pose."""
 
-    def __init__(self, model, keep_out: KeepOut | None, slack: float = 0.0, tip: bool = False) -> None:
+    def __init__(self, model, keep_out: KeepOut | None, slack: float = 0.0, tip: bool = False,
+                 tip_only: tuple[Obstacle, ...] = ()) -> None:
         """``slack`` (m): accept this much less than each obstacle's clearance (a check at run time of poses
         planned with the full clearance: encoder noise and seating must not make a planned move fail).
 
         ``tip``: also keep the tool's free end (the ``tool_free`` metres the envelope leaves out so that the tip
         can touch the references) out of every obstacle, without clearance: the check of a move between poses.
         Only the approach to a reference may bring the tip to a surface; a transit that drags it through the
-        table is what a real arm's collision reflex stops."""
+        table is what a real arm's collision reflex stops. ``tip_only``: obstacles only the tip is kept out of
+        (the bodies of the references themselves, which the links may pass near)."""
         self.model = model
         self.keep_out = KeepOut.default() if keep_out is None else keep_out
         self.slack = slack
@@ -393,7 +395,8 @@ class Checker:
         self.env = _with_tip(model, plain) if tip else plain
         tip = len(self.env.a) > len(plain.a)  # an arm without a tool frame has no tip to keep out
         self._ops = _compile(model, self.env.element, model.params)
-        self.obstacles = self.keep_out.all
+        tip_only = tuple(tip_only) if tip else ()
+        self.obstacles = (*self.keep_out.all, *tip_only)
         S = len(self.env.a)
         self.mask = np.ones((S, len(self.obstacles)), bool)
         if self.keep_out.mounting is not None:
@@ -402,6 +405,8 @@ class Checker:
         self.clearance = np.array([[o.clearance for o in self.obstacles]] * S).reshape(S, len(self.obstacles))
         if tip:
             self.clearance[-1] = 0.0
+            if tip_only:
+                self.mask[:-1, len(self.obstacles) - len(tip_only):] = False
         self.need = np.maximum(self.clearance - slack, 0.0)
         self._plain: Checker | None = None if tip else self
 

@@ -200,3 +200,27 @@ def test_a_listed_pose_below_the_table_is_refused():
     with pytest.raises(PlanError, match=r"listed pose 0: link 2 \(shoulder-elbow\) would be \d+ mm inside "
                                         r"obstacle 'mounting plane'"):
         plan_from_joints(m, [{"point": "A", "q": below}], pts)
+
+
+def test_moves_between_poses_keep_the_tip_out_of_the_references_themselves():
+    """A reference is a body (a socket's nest, a needle's post) under its point: only the approach to it may
+    bring the tip there; a move between poses that dips the tip into it is refused, the links may pass by."""
+    from station.engine.plan import reference_body, transit_checker
+
+    m = load_model("ur5e").with_params({"tcp.z": 0.1})
+    q = np.array([0.0, -1.2, 1.9, -2.27, -1.5708, 0.0])  # tool pointing down
+    tip = m.fk(q)[:3, 3]
+    pt = RefPoint("A", "socket", tip + np.array([0.0, 0.0, 0.006]), np.array([0.0, 0.0, 1.0]), radius=0.008)
+    body = reference_body(pt)  # independent check of its extent: a box under the point, as wide as its radius
+    assert np.allclose(body.center, pt.position - [0, 0, 0.015]) and np.allclose(body.half, [0.008, 0.008, 0.015])
+    above = q.copy()
+    above[1] -= 0.25  # the tool lifted well clear
+    plain = Checker(m, KeepOut.none())
+    transit = transit_checker(m, KeepOut.none(), points=[pt])
+    assert plain.path_hit(above, q) is None  # the links and the trimmed tool see nothing there
+    h = transit.path_hit(above, q)
+    assert h is not None and h.obstacle == "reference A" and h.link_name == "tool tip"
+    # from the touch itself the way out is checked as the way in was
+    assert transit.leaving(q).path_hit(q, above) is None
+    # a link passing through the reference's box is not this check's business (masked: tip only)
+    assert not transit.mask[:-1, -1].any() and transit.mask[-1, -1]
