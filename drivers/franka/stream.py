@@ -13,7 +13,10 @@ Units: rad, s."""
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import os
+import sys
 import threading
 import time
 
@@ -21,6 +24,46 @@ import numpy as np
 from station.drivers.franka.trajectory import Quintic, plan
 
 RT_PRIORITY = 80  # SCHED_FIFO priority of the loop (libfranka's control loops take the highest)
+
+SWITCH_INTERVAL = 2e-4  # s: how long the loop may wait for the GIL while another thread runs Python (a fifth of
+# a cycle; Python's default is 5 ms, five lost cycles each time)
+
+_lock = threading.Lock()
+_holders = 0  # loops running now
+_saved: tuple[bool, float] = (True, 0.005)  # the process's settings before the first loop
+
+
+@contextlib.contextmanager
+def gil_for_the_loop():
+    """The process gives the 1 kHz loop the GIL in time while a loop runs; the loop needs it every cycle, and
+    the robot aborts the motion with ``communication_constraints_violation`` after 20 lost cycles in a row.
+
+    - No automatic cyclic garbage collection: a full collection holds the GIL for the whole scan of the heap,
+      ~0.4 s for 2 million objects measured here, and an integrator's process (or a test worker after a
+      thousand tests) is that big. That is the seating press aborted in CI, reproduced with such a collection
+      in the same process. Reference counting still frees what the loop and the driver allocate; cycles wait
+      for the end of the motion.
+    - A short switch interval (``SWITCH_INTERVAL``): a thread running Python keeps the GIL for up to 5 ms by
+      default before a waiting thread gets it.
+
+    The caller's settings come back when the last loop ends."""
+    global _holders, _saved
+    with _lock:
+        if _holders == 0:
+            _saved = (gc.isenabled(), sys.getswitchinterval())
+            gc.disable()
+            sys.setswitchinterval(SWITCH_INTERVAL)
+        _holders += 1
+    try:
+        yield
+    finally:
+        with _lock:
+            _holders -= 1
+            if _holders == 0:
+                enabled, interval = _saved
+                sys.setswitchinterval(interval)
+                if enabled:
+                    gc.enable()
 
 
 class StreamLoop:
@@ -94,6 +137,10 @@ class StreamLoop:
             return "normal"
 
     def _run(self) -> None:
+        with gil_for_the_loop():
+            self._stream()
+
+    def _stream(self) -> None:
         pf = self._pf
         ctrl = None
         self.scheduling = self._realtime()

@@ -96,3 +96,50 @@ def test_a_new_target_starts_from_the_commanded_state_and_a_reflex_ends_the_loop
     _wait(loop.done.is_set)
     assert isinstance(loop.error, RuntimeError) and "reflex" in str(loop.error) and not loop.alive
     assert loop.error.__traceback__ is None  # kept without its frames (they would hold libfranka's control lock)
+
+
+def test_while_a_loop_runs_no_collection_and_no_long_wait_keeps_the_gil_from_it():
+    """A full cyclic collection holds the GIL for the whole heap (~0.4 s for 2 million objects), and Python lets
+    a running thread keep the GIL 5 ms by default: either loses the robot 5-400 cycles. While any loop runs,
+    the process collects nothing automatically and switches threads within a fifth of a cycle; the settings
+    the process had come back when the last loop ends (two loops overlapping: a compliant hold and a move)."""
+    import gc
+    import sys
+    import threading
+
+    gc.enable()
+    before = sys.getswitchinterval()
+    started = []
+
+    def seen(phase, info):
+        if phase == "start":
+            started.append(info["generation"])
+
+    first = StreamLoop(_Robot(_Control(Q0)), PF, "joint", accel=2.0, jerk=500.0).start()
+    second = StreamLoop(_Robot(_Control(Q0)), PF, "joint", accel=2.0, jerk=500.0).start()
+    gc.callbacks.append(seen)
+    try:
+        stop = threading.Event()
+
+        def garbage():  # another thread of the process makes cycles, as an integrator's program would
+            while not stop.is_set():
+                for _ in range(1000):
+                    a: list = []
+                    a.append(a)
+                time.sleep(0.001)
+
+        maker = threading.Thread(target=garbage)
+        maker.start()
+        time.sleep(0.3)
+        assert not gc.isenabled() and sys.getswitchinterval() <= 0.2 * DT
+        first.finish()
+        time.sleep(0.1)
+        assert not gc.isenabled()  # the second loop still runs
+        stop.set()
+        maker.join()
+        assert started == []  # no collection of any generation while a loop ran
+        second.finish()
+    finally:
+        gc.callbacks.remove(seen)
+    assert first.error is None and second.error is None
+    assert gc.isenabled() and sys.getswitchinterval() == before
