@@ -678,7 +678,10 @@ class URRobot(RobotBase):
 
     def _velocity_jog(self, send, remaining, v: float, a: float) -> None:
         total = remaining(self.joint_positions().q)
-        deadline = time.monotonic() + total / v + v / a + 1.0  # the jog watchdog
+        # the step's deadline runs on the controller's clock, as _wait_move's budget does: wall time on a real
+        # UR; an emulated controller starved of CPU runs its world (and its watchdog) slower
+        budget = total / v + v / a + 1.0
+        t_start = self._r.getTimestamp()
         self._speeding = True
         try:
             # if this process or the network dies mid-jog, the controller stops the program itself
@@ -700,8 +703,9 @@ class URRobot(RobotBase):
                     # step is finished with its move
                     self._restart_after_watchdog("the step is finished with a move", self._watchdog.last_write)
                     break
-                if time.monotonic() > deadline:
-                    raise BusError(f"ur://{self.host}: jog watchdog: the step did not complete in time; stopped")
+                if self._r.getTimestamp() - t_start > budget:
+                    raise BusError(f"ur://{self.host}: jog watchdog: the step did not complete in {budget:.1f} s "
+                                   "(controller time); stopped")
                 self._kick()
                 time.sleep(0.002)
         finally:

@@ -54,9 +54,12 @@ def test_teardown_says_loudly_when_the_controller_stays_unreachable(ur, caplog):
     loud = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING
             and "could not stop the robot program" in r.getMessage()]
     assert len(loud) == 1 and "\n" not in loud[0] and "teach pendant" in loud[0], caplog.text
-    state, _, _ = ur_truth(ur, timeout=8.0)  # once the controller is back: the lost client's program still runs
-
-    assert state.startswith("PLAYING"), state
+    state, _, _ = ur_truth(ur, timeout=8.0)  # once the controller is back: the lost client's program still runs,
+    # unless the failed move's own watchdog reached the controller before the link went (a race a loaded host
+    # decides; the controller then stopped the program itself, as it does a dead station's, and says so)
+    if not state.startswith("PLAYING"):
+        assert state.startswith("STOPPED"), state
+        assert "RTDE watchdog expired" in ur.dashboard("emulator log"), state
     # the next connection replaces it with a fresh control script and moves the arm
     with open_robot(ur.url) as robot2:
         q = robot2.joint_positions().q
