@@ -36,8 +36,8 @@ demo: $(STAMP)
 test test-matrix: export PYTHONDONTWRITEBYTECODE :=
 test: $(STAMP) $(SIM_STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not exclusive and not fullmatrix"
-	$(BIN)/python -m pytest -q -m exclusive
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not exclusive and not fullmatrix" --durations=25
+	$(BIN)/python -m pytest -q -m exclusive --durations=10
 
 # every fault on every bus (make test runs each fault once, on one bus, through all four phases)
 test-matrix: $(STAMP)

@@ -311,8 +311,19 @@ def franka(tmp_path: Path, *, realtime: bool, seed: int) -> Iterator[Rig]:
         # generator's tolerance. retries=8: this host runs test workers beside the simulator's 1 kHz loop and
         # the driver's own (compliance, the seating press), so communication-constraint violations come in runs;
         # recovering and retrying is the driver's documented answer (docs/hardware-franka.md, URL options)
+        def fault():
+            # a person bumps into the arm: a push on the tool staged in the simulator (SIGUSR1, simhost.py), which
+            # the collision reflex answers during a motion (the thresholds the driver set)
+            import os
+            import signal
+
+            from station.robot import SafetyStop
+
+            os.kill(emu.proc.pid, signal.SIGUSR1)
+            return (SafetyStop,)
+
         url = emu.url + find("franka").demo.query + "&retries=8"
         yield Rig("franka", "franka", emu, url, serial, world_path, cell_path,
-                  FrankaTruth(emu), np.full(7, 1e-9), np.full(7, 5e-3), False, None, volatile, True,
+                  FrankaTruth(emu), np.full(7, 1e-9), np.full(7, 5e-3), False, fault, volatile, True,
                   kill_url=emu.url, kill_bound=0.5, options=_options("franka"), truth_while_connected=False,
                   speed=0.3)

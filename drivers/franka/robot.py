@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 from station.drivers.franka import identity as ident
 from station.drivers.franka import limits, press
-from station.drivers.franka.stream import StreamLoop
+from station.drivers.franka.stream import StreamLoop, keep_scheduling
 
 from station.kinematics import Model
 from station.robot.base import CHAIN_OPTIONS, RobotBase
@@ -166,7 +166,8 @@ class FrankaRobot(RobotBase):
     def connect(self) -> None:
         rt = pf.RealtimeConfig.kEnforce if self.realtime == "enforce" else pf.RealtimeConfig.kIgnore
         try:
-            self._robot = pf.Robot(self.host, rt)
+            with keep_scheduling():
+                self._robot = pf.Robot(self.host, rt)
         except Exception as e:  # NetworkException, IncompatibleVersionException, RealtimeException
             raise ConnectionLost(f"{self.where}: cannot connect to the FCI: {_one_line(e)} (robot on, brakes open "
                                  "and FCI activated in Desk? libfranka >= 0.18 needs system image >= 5.9)") from None
@@ -337,7 +338,8 @@ class FrankaRobot(RobotBase):
         if self._handler is None:
             cfg = pf.AsyncPositionControlHandler.Configuration(list(vmax), GOAL_TOL)
             try:
-                res = pf.AsyncPositionControlHandler.configure(robot, cfg)
+                with keep_scheduling():
+                    res = pf.AsyncPositionControlHandler.configure(robot, cfg)
             except Exception as e:
                 raise self._translate(e, "start of the position motion") from None
             if res.error_message is not None or res.handler is None:
@@ -655,8 +657,23 @@ class FrankaRobot(RobotBase):
                                "the robot holds where it stopped") from None
             self._revivals += 1
             self._recover(str(r))  # restarts the hold (the force at rest kept)
-            if self._compliant_target is not None and self._loop is not None:
-                self._loop.move_to(self._compliant_target, self._compliant_speed)
+            loop = self._loop
+            if self._compliant_target is not None and loop is not None:
+                # the new hold starts where the arm is, its spring relaxed: a seated ball's push is gone until
+                # the target is back. Returned only once it is and the arm rests again (at most 2 s), or the
+                # reading that revived the hold (a sample's touch) would see no contact (seen in CI: "touch
+                # indicator is off" right after a revival)
+                loop.move_to(self._compliant_target, self._compliant_speed)
+                end = time.monotonic() + 2.0
+                rest = None
+                while time.monotonic() < end and loop.alive:
+                    if loop.path_done() and not self._moving(loop.state):
+                        rest = rest or time.monotonic()
+                        if time.monotonic() - rest >= press.STEADY_S:
+                            break
+                    else:
+                        rest = None
+                    time.sleep(0.005)
 
     # ---- errors -------------------------------------------------------------------------------------------
     def _await_standstill(self, timeout: float = 2.0) -> None:

@@ -25,6 +25,26 @@ from station.drivers.franka.trajectory import Quintic, plan
 
 RT_PRIORITY = 80  # SCHED_FIFO priority of the loop (libfranka's control loops take the highest)
 
+@contextlib.contextmanager
+def keep_scheduling():
+    """The calling thread's scheduling as it was before the block: libfranka makes the thread that opens a
+    ``Robot`` run SCHED_FIFO at priority 99 where the system allows it (measured: the station's main thread
+    after ``pf.Robot(...)``, with ``RealtimeConfig.kIgnore`` too). That priority is for a control loop that
+    blocks every millisecond; the station's main thread plans and solves for seconds, and at 99 it shut the
+    rest of the host out of a core -- in CI a process forked from it burned two cores at 99 and a simulator
+    could not start in 60 s. The driver's own 1 kHz loop raises its own thread (``StreamLoop._realtime``)."""
+    policy = param = None
+    with contextlib.suppress(OSError, AttributeError):
+        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        yield
+    finally:
+        if policy is not None:
+            with contextlib.suppress(OSError):
+                if (os.sched_getscheduler(0), os.sched_getparam(0)) != (policy, param):
+                    os.sched_setscheduler(0, policy, param)
+
+
 SWITCH_INTERVAL = 2e-4  # s: how long the loop may wait for the GIL while another thread runs Python (a fifth of
 # a cycle; Python's default is 5 ms, five lost cycles each time)
 

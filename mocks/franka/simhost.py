@@ -28,7 +28,10 @@ What this process adds to franka-sim 1.1.7 (each named in docs/hardware-franka.m
   chooses (franka-sim ignores the flag and judges the sparse targets as a 1 kHz stream);
 - the collision reflexes: franka-sim acknowledges ``SetCollisionBehavior`` and does nothing with it; here the
   upper thresholds are kept and a motion whose estimated external torque or wrench exceeds them is aborted with
-  ``joint_reflex`` / ``cartesian_reflex``, as the robot does (libfranka robot.h, ``setCollisionBehavior``)."""
+  ``joint_reflex`` / ``cartesian_reflex``, as the robot does (libfranka robot.h, ``setCollisionBehavior``);
+- a push on the tool staged from outside (SIGUSR1: ``PUSH_FORCE`` N sideways for ``PUSH_S``; a person who
+  bumps into the arm), felt by the physics and by the external force estimate: the device fault a test bench
+  can stage, which the collision reflex answers during a motion."""
 
 from __future__ import annotations
 
@@ -70,6 +73,8 @@ ARMATURE = np.array([0.15, 0.15, 0.15, 0.15, 0.15, 0.15, 0.15])  # kg m^2 per jo
 DAMPING = 1.0  # N m s/rad: viscous joint friction
 D_STABLE = 1.5 * ARMATURE / DEFAULT_DT  # the damping an explicit step of the joint law keeps stable
 ELASTIC_DAMPING = 20.0  # N m s/rad on a compliant joint's elastic hinge: it rings down within a few ms
+PUSH_FORCE = 60.0  # N on the tool, horizontal: a firm bump, above every collision threshold the driver sets
+PUSH_S = 0.3  # s of simulated time
 EST_ALPHA = 0.95  # low-pass of the external torque estimate per 1 ms cycle (~20 ms time constant)
 ASYNC_ACCELERATION = 4.0  # rad/s^2 of the asynchronous generator (FR3: 10 rad/s^2 at most)
 # positions of the collision reflexes in the 41-entry error arrays of the robot state (libfranka errors.h,
@@ -155,6 +160,8 @@ class StationArm(MujocoFrankaSim):
         self._nests: list[dict] = []
         self._elastic_dofs = np.zeros(0, dtype=np.intp)
         self.seated: dict[str, bool] = {}
+        self._push_until = -1.0  # simulated time (s) a staged push on the tool lasts until
+        self._push_tau = np.zeros(7)  # N m: its generalized force on the arm's joints (environment -> robot)
 
     # ---- model --------------------------------------------------------------------------------------------
     def initialize_simulation(self) -> None:
@@ -333,8 +340,30 @@ class StationArm(MujocoFrankaSim):
             # the robot-side generator advances with the simulation (1 ms a step), whatever the wall clock does
             self.latest_joint_positions = gen.step(self.dt)[0].copy()
         super()._apply_control()
+        self._apply_push()
         if self._elastic_dofs.size:  # gravity bends the elastic hinges: gravcomp is taken back there
             self.data.qfrc_applied[self._elastic_dofs] -= self.data.qfrc_gravcomp[self._elastic_dofs]
+
+    def push(self) -> None:
+        """Stage a push on the tool (from the signal handler: only two numbers change here; the physics thread
+        applies it at its next step)."""
+        self._push_until = float(self.data.time) + PUSH_S
+
+    def _apply_push(self) -> None:
+        """While a staged push lasts: ``PUSH_FORCE`` N horizontally, perpendicular to the arm's plane, on the
+        tool point, as a generalized force on the arm's joints (and kept for the external force estimate)."""
+        if self.data is None or self.data.time > self._push_until:
+            self._push_tau = np.zeros(7)
+            return
+        m, d = self.model, self.data
+        x = d.xpos[self._tool_body]
+        side = np.cross([0.0, 0.0, 1.0], x)
+        n = float(np.linalg.norm(side))
+        F = PUSH_FORCE * (side / n if n > 1e-6 else np.array([0.0, 1.0, 0.0]))
+        jp = np.zeros((3, m.nv))
+        mujoco.mj_jac(m, d, jp, np.zeros((3, m.nv)), x, self._tool_body)
+        self._push_tau = jp[:, self.arm_dofs_idx].T @ F
+        d.qfrc_applied[self.arm_dofs_idx] += self._push_tau
 
     # ---- state --------------------------------------------------------------------------------------------
     # franka-sim's physics step publishes a fresh snapshot dict for the network threads to read; the station's
@@ -356,7 +385,7 @@ class StationArm(MujocoFrankaSim):
         O_T_K = O_T_EE @ self.EE_T_K
         # external torque: what the contacts (and joint limits) push on the measured joints; the robot reports
         # what it exerts on the environment (libfranka robot_state.h: robot -> environment positive)
-        tau = -np.asarray(self.data.qfrc_constraint[self.arm_dofs_idx], float)
+        tau = -np.asarray(self.data.qfrc_constraint[self.arm_dofs_idx], float) - self._push_tau
         self._tau_ext = EST_ALPHA * self._tau_ext + (1 - EST_ALPHA) * tau
         J = cm.jacobian(O_T_K[:3, 3])
         self._noise = EST_ALPHA * self._noise + math.sqrt(1 - EST_ALPHA ** 2) * self.rng.normal(
@@ -686,6 +715,7 @@ def main(argv=None) -> int:
 
     signal.signal(signal.SIGTERM, shutdown)
     signal.signal(signal.SIGINT, shutdown)
+    signal.signal(signal.SIGUSR1, lambda *_: server.physics_sim.push())
     parent = os.getppid()
 
     def watch_parent():

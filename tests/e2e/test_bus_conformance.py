@@ -70,7 +70,8 @@ def _still(rig, robot, timeout: float = 5.0) -> None:
 def moving_rig(rig, tmp_path):
     """A rig of its own whose moves take their real time (the module's rigs run the procedures' moves in
     emulated time where the bus allows), for a stop or a fault mid-move; the module's rig is not touched."""
-    if rig.bus == "franka":  # franka-sim's physics is always realtime; its faults are not staged (no state kept)
+    if rig.bus == "franka":  # franka-sim's physics is always realtime; a reflex it latches is cleared by the next
+        # connection's automatic error recovery
         yield rig
         return
     with open_rig(rig.name, tmp_path, realtime=True) as r:
@@ -161,8 +162,7 @@ def _under_way(rig, q0, mover: threading.Thread, timeout: float = 20.0) -> None:
 def test_a_device_fault_mid_move_stops_the_arm_with_a_typed_error(moving_rig):
     rig = moving_rig
     if rig.fault is None:
-        pytest.skip(f"{rig.name}: no device fault can be staged from outside the emulator (franka-sim's reflexes "
-                    "come from the client's own commands: tests/drivers/franka/test_franka_driver.py)")
+        pytest.skip(f"{rig.name}: no device fault can be staged from outside the emulator")
     robot = _robot(rig)
     try:
         q0 = robot.joint_positions().q

@@ -7,6 +7,8 @@ connection (the FCI serves one client at a time)."""
 
 from __future__ import annotations
 
+import contextlib
+import threading
 import time
 
 import numpy as np
@@ -98,6 +100,46 @@ def test_moves_on_the_robots_generator_and_on_the_driver_loop(sim):
             # the robot's generator needs nothing at 1 kHz from this process; the driver's own loop may be starved
             # on a busy host, and is then recovered (never another fault)
             assert r.recoveries == [] if motion == "async" else set(r.recoveries) <= {COMM}
+
+
+@pytest.mark.slow
+def test_the_station_thread_keeps_its_scheduling_only_the_loop_runs_real_time(sim):
+    """libfranka makes the thread that opens a ``Robot`` SCHED_FIFO 99 where the host allows it; the driver gives
+    the station's thread its own scheduling back (it plans and solves for seconds: at 99 it shut the host out of
+    a core, and a process forked from it burned one at 99 in CI). Only the driver's 1 kHz loop runs ahead."""
+    import os
+
+    import pylibfranka as pf
+
+    emu, _, _ = sim
+    mine = (os.sched_getscheduler(0), os.sched_getparam(0))
+    seen = {}
+
+    def bare() -> None:  # the hazard itself, where the host grants real-time scheduling (this one does; a
+        # container without CAP_SYS_NICE does not, and there it cannot arise)
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+            seen["may"] = True
+        robot = pf.Robot(emu.url.split("//")[1].split("?")[0], pf.RealtimeConfig.kIgnore)
+        seen["bare"] = os.sched_getscheduler(0)
+        del robot
+
+    t = threading.Thread(target=bare)
+    t.start()
+    t.join(30)
+    if seen.get("may"):
+        assert seen["bare"] == os.SCHED_FIFO  # what the driver guards against
+    with _open(sim, speed=1.0) as r:
+        assert (os.sched_getscheduler(0), os.sched_getparam(0)) == mine
+        q0 = r.joint_positions().q
+        r.move_joints(q0 + np.array([0.05, 0, 0, 0, 0, 0, 0]))
+        r.set_compliant(True)
+        if seen.get("may"):
+            assert r._loop.scheduling == "SCHED_FIFO"
+        r.set_compliant(False)
+        r.move_joints(q0)
+        assert (os.sched_getscheduler(0), os.sched_getparam(0)) == mine
 
 
 @pytest.mark.slow
@@ -325,6 +367,46 @@ def test_a_communication_constraint_violation_is_recovered_and_the_move_retried(
         r.enable()  # clears the reflex
         r.retries = 3  # the URL's default again: a busy host may starve the 1 kHz loop on its own
         r.move_joints(q0)
+
+
+@pytest.mark.slow
+def test_a_seated_hold_the_robot_aborts_is_taken_up_with_its_push_before_the_next_reading(sim):
+    """Seated by the press, the compliant hold is aborted by a communication-constraint violation (the station
+    PC starved for 0.2 s). The next reading takes the hold up again, and answers only once the push is back:
+    the touch a sample is recorded with is on, the force the press's (the new hold starts with its spring
+    relaxed; before, the reading right after a revival saw no contact, seen in CI)."""
+    _, world, _ = sim
+    nominal, socket = world.nominal, world.points["B"].position
+    stall = threading.Event()
+
+    def hook(cycle, cmd):
+        if stall.is_set():
+            stall.clear()
+            time.sleep(0.2)
+        return cmd
+
+    with _open(sim, speed=1.0) as r:
+        real = r._robot
+        above = ik_down(nominal, socket, r.joint_positions().q, 0.03)
+        stand = ik_down(nominal, socket, above, 0.004)
+        r.move_joints(above)
+        r.move_joints(stand, speed=0.2)
+        r._robot = _Robot(real, hook)
+        try:
+            r.set_compliant(True)
+            assert r.last_press == "seated" and r.touch()
+            loop = r._loop
+            stall.set()
+            assert loop.done.wait(5.0) and loop.error is not None  # the robot ended the hold
+            assert r.touch()  # taken up again, pushing
+            assert r.recoveries and set(r.recoveries) == {COMM}
+            F = r.external_force()
+            assert 4.0 < -F[2] < 6.0, F
+            assert np.linalg.norm(world.truth.position(r.joint_positions().q[None])[0] - socket) < 6 * SEATING
+        finally:
+            r._robot = real
+        r.set_compliant(False)
+        r.move_joints(above)
 
 
 @pytest.mark.slow
