@@ -274,11 +274,6 @@ def test_apply_power_cycle_then_verify_finds_zero_offsets(rig, tmp_path, monkeyp
     url = rig.url if rig.store else _export_url(rig, out.folder / "controller-calibration")
     again = api.run("zero_offsets", url, rig.serial, cell=rig.cell_path, db=db, options=dict(rig.options),
                     report=False)
-    if rig.bus == "franka" and "seating press aborted" in str(again.error):
-        # known and open (docs/hardware-franka.md): on the CI host the verify run's seating press is aborted by
-        # communication-constraint violations time after time (4 of 4, then 9 of 9 with retries=8) while the
-        # first run's presses pass; the driver ends it in one line with a resumable session
-        pytest.xfail(f"franka: the verify run's seating press: {again.error}")
     assert again.status == "completed" and again.passed, (again.status, again.error, again.verdict)
     second = _offsets(again.record)
     assert second
