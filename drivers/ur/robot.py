@@ -394,6 +394,17 @@ class URRobot(RobotBase):
             log.info("ur://%s: control script not running: re-uploading", self.host)
             self._start_script()
 
+    def _script_stopped_while_standing(self) -> bool:
+        """After a refused command that was to start a motion: on a package newer than the refusal, the program
+        is not running, the arm is RUNNING (powered, brakes off) and no safety stop is active."""
+        ts = self._r.getTimestamp()
+        silence = Silence()
+        while self._r.getTimestamp() == ts and silence.tick() < self.stale_timeout:
+            time.sleep(0.002)
+        self._link.check()
+        return (not self._c.isProgramRunning() and int(self._r.getRobotMode()) == ROBOT_MODE_RUNNING
+                and safety_error(self.host, int(self._r.getSafetyStatusBits())) is None)
+
     def _refused(self, what: str) -> None:
         """A ur_rtde command returned False: say why, leave the robot stopped."""
         self._link.check()
@@ -477,6 +488,17 @@ class URRobot(RobotBase):
         if not ok and self._watchdog.ended_script(previous):
             # between the check before this move and the move (seen on a loaded CI host)
             self._restart_after_watchdog("moveJ is sent again", previous)
+            ok = self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True)
+            self._watchdog.wrote()
+        elif not ok and self._script_stopped_while_standing():
+            # stopped from outside (dashboard, pendant) while the arm stood, and this process's RTDE state did
+            # not show it yet when it checked before the move (a loaded host's receive thread lags): the script
+            # is started again, as the check would have done, and the move sent once more
+            log.warning("ur://%s: the control script had stopped before the move (runtime_state %s); started "
+                        "again", self.host, self._r.getRuntimeState())
+            self._start_script()
+            if watch:
+                self._watchdog.arm(self.move_watchdog)
             ok = self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True)
             self._watchdog.wrote()
         if not ok:

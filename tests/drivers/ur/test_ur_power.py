@@ -162,3 +162,41 @@ def test_a_station_kept_from_running_is_no_control_script_timeout(tmp_path, emul
         monkeypatch.setattr(ur_robot.time, "sleep", real_sleep)
         assert starved
         np.testing.assert_allclose(_encoders(emu), q + 0.05, atol=1e-9)
+
+
+def test_a_program_stopped_from_outside_just_before_a_move_is_started_again(tmp_path, emulators, monkeypatch, caplog):
+    """Someone stops the program from the dashboard while the arm stands, and the station's RTDE state does not
+    show it yet when the move checks (a loaded host's receive thread lags; made certain here by answering the
+    check from before the stop). The refused moveJ is then seen for what it is: the script is started again,
+    as the check would have done, and the move lands -- not "moveJ was not executed" (seen in CI)."""
+    import logging
+
+    path, world = _world(tmp_path)
+    emu = emulators("ur", path)
+    with open_robot(f"ur://{emu.host}?power_on=yes") as robot:
+        robot.enable()
+        q = robot.joint_positions().q
+        robot.move_joints(q + 0.02, speed=1.0)
+        emu.dashboard("stop")
+        stale = [True]  # the one reading from before the stop
+
+        class Lagging:  # ur_rtde's control interface, its first program-state answer from before the stop
+            def __init__(self, control) -> None:
+                self._control = control
+
+            def __getattr__(self, name):
+                return getattr(self._control, name)
+
+            def isProgramRunning(self) -> bool:  # noqa: N802 (ur_rtde's name)
+                return stale.pop() if stale else self._control.isProgramRunning()
+
+        real = robot._c
+        robot._c = Lagging(real)
+        try:
+            with caplog.at_level(logging.WARNING, logger="station.drivers.ur"):
+                robot.move_joints(q + 0.05, speed=1.0)
+        finally:
+            robot._c = real
+        assert not stale  # the lagging reading was used
+        assert any("had stopped before the move" in r.getMessage() for r in caplog.records)
+        np.testing.assert_allclose(_encoders(emu), q + 0.05, atol=1e-9)
