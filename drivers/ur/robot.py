@@ -483,8 +483,9 @@ class URRobot(RobotBase):
         if watch:  # ur_rtde's script runs a moveJ to its end without a client: the watchdog stops a dead station's
             self._watchdog.arm(self.move_watchdog)
         previous = self._watchdog.last_write
+        sent = time.monotonic()
         ok = self._bounded("moveJ", self._c.moveJ, target.tolist(), v, self.accel, True)
-        self._watchdog.wrote()
+        self._watchdog.wrote(sent)
         if not ok and self._watchdog.ended_script(previous):
             # between the check before this move and the move (seen on a loaded CI host)
             self._restart_after_watchdog("moveJ is sent again", previous)
@@ -679,13 +680,15 @@ class URRobot(RobotBase):
         self._watchdog.arm(self.jog_watchdog)
         self._speeding = True
         previous = self._watchdog.last_write
+        sent = time.monotonic()
         ok = send()
-        self._watchdog.speed_written()
+        self._watchdog.speed_written(sent)
         if not ok and self._watchdog.ended_script(previous):
             self._restart_after_watchdog("the speed command is sent again", previous)
             self._watchdog.arm(self.jog_watchdog)
+            sent = time.monotonic()
             ok = send()
-            self._watchdog.speed_written()
+            self._watchdog.speed_written(sent)
         if not ok:
             self._speeding = False
             self._refused("speed command")

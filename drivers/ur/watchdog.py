@@ -46,12 +46,17 @@ class JogWatchdog:
         """A new control script carries no watchdog."""
         self.hz = 0.0
 
-    def wrote(self) -> None:
-        self.last_write = time.monotonic()
+    # A write is dated when it is sent, not when the command returns: the controller counts the watchdog from
+    # receiving it, which is before ur_rtde's command returns (it waits for the script to take the command).
+    # Dated at the return, a loaded station saw the watchdog's stop come "too early" and called it someone
+    # else's stop (CI, "the control script stopped during the jog (not by the station)").
+    def wrote(self, sent: float | None = None) -> None:
+        self.last_write = time.monotonic() if sent is None else sent
 
-    def speed_written(self) -> None:
-        # kicks wait for the script to read the command
-        self.speed_sent = self.last_write = time.monotonic()
+    def speed_written(self, sent: float | None = None) -> None:
+        # kicks wait for the script to read the command (from the command's return)
+        self.speed_sent = time.monotonic()
+        self.last_write = self.speed_sent if sent is None else sent
 
     def kick(self) -> None:
         # A kick writes 0 into the command register: never within a few controller cycles of a speed
@@ -66,9 +71,10 @@ class JogWatchdog:
         that stops writing stops the program); it stays armed until the script ends. No-op when already at hz."""
         if hz <= 0 or self.hz == hz:
             return
+        sent = time.monotonic()
         if self._bounded("setWatchdog", self._link.control.setWatchdog, hz):
             self.hz = hz
-            self.last_write = time.monotonic()
+            self.last_write = sent
         # refused: the script is gone (a new one starts without a watchdog: URRobot._ready_for_motion). What it
         # carried and our last write are kept, so the next command can tell whether that watchdog ended it.
 
