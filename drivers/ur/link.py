@@ -181,19 +181,21 @@ class RTDELink:
 
         threading.Thread(target=run, name=f"ur-{what}", daemon=True).start()
         silence = Silence()  # this process's own scheduling gaps are not the controller's silence
-        while True:
-            try:
-                if done.wait(0.02):
-                    break
-            except KeyboardInterrupt:  # the command may still reach the controller later: never let it run
+        try:
+            while not done.wait(0.02):
+                if silence.tick() > self.stale_timeout:
+                    self.abandon_control()
+                    raise ConnectionLost(f"ur://{self.host}: the controller did not acknowledge {what} within "
+                                         f"{self.stale_timeout * 1e3:.0f} ms (RTDE stall timeout; "
+                                         f"{silence.note()}): link lost, nothing more was sent and a stop went "
+                                         "out over the dashboard; reconnect the robot when the network is back")
+        except KeyboardInterrupt:  # wherever in the wait it lands: the command may still reach the controller
+            # later, so never let it run; and the interface, still inside the call, must not be disconnected
+            # under it at close (an interrupt outside the wait itself left it in place: ur_rtde crashed in
+            # the teardown's disconnect, seen once in CI)
+            if not done.is_set():
                 self.abandon_control()
-                raise
-            if silence.tick() > self.stale_timeout:
-                self.abandon_control()
-                raise ConnectionLost(f"ur://{self.host}: the controller did not acknowledge {what} within "
-                                     f"{self.stale_timeout * 1e3:.0f} ms (RTDE stall timeout; {silence.note()}): "
-                                     "link lost, nothing more was sent and a stop went out over the dashboard; "
-                                     "reconnect the robot when the network is back")
+            raise
         if "error" in box:
             raise box["error"]
         return box["value"]
