@@ -62,3 +62,34 @@ def test_the_jog_watchdog_is_armed_by_a_velocity_jog_and_stays_until_the_script_
         assert dog.armed and dog.hz > 0 and "RTDE watchdog" in dog.diagnosis()
         robot.stop()
         assert dog.armed and not dog.ended_script(time.monotonic())  # the program still runs
+
+
+def test_ctrl_c_anywhere_in_a_bounded_wait_sets_the_running_interface_aside(emulators, monkeypatch):
+    """Ctrl-C that lands in the stall check beside the 20 ms wait (not in the wait itself) still abandons the
+    control interface whose call runs on: the teardown must not disconnect it under that call (ur_rtde crashed
+    there once in CI). The interface here is a stand-in whose command never returns in time."""
+    import station.drivers.ur.link as link_module
+
+    emu = emulators("ur", model="ur5e")
+    link = RTDELink(emu.host, DashboardClient(emu.host), stale_timeout=5.0)
+
+    class Hanging:  # the command is still inside the call when Ctrl-C comes
+        def moveJ(self, *args):  # noqa: N802 (ur_rtde's name)
+            time.sleep(1.0)
+            return True
+
+    hanging = Hanging()
+    link.control = hanging
+
+    class Interrupted(link_module.Silence):
+        def tick(self) -> float:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(link_module, "Silence", Interrupted)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            link.bounded("moveJ", hanging.moveJ)
+        assert link.control is None and link.abandoned is hanging
+    finally:
+        link.abandoned = None
+        link.drop()
