@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import select
 import threading
+import time
 from collections.abc import Callable
 
 from station.robot.errors import BusError, ConfigError, ConnectionLost
@@ -70,6 +71,10 @@ class DxlBus:
         self.retried = 0
         self.status_level: dict[int, int] = {}  # Status Return Level (68) per id, as read at connect (default 2)
         self._lock = threading.RLock()  # one transaction at a time (a UI may poll status while jogging)
+        # the station's own silences on the bus: a servo's Bus Watchdog (98) trips when it hears nothing for its
+        # period, and the driver must know whether that silence was its own (a loaded host) or lost packets
+        self._last_io = time.monotonic()
+        self._quiet = 0.0
         try:
             ok = self.port.openPort() and self.port.setBaudRate(int(baud))
         except Exception as e:  # pyserial raises SerialException/OSError for a missing or busy port
@@ -86,7 +91,24 @@ class DxlBus:
     def _transact(self, what: str, fn: Callable[[], tuple], retry: bool = True):
         """``fn() -> (result_code, *values)``; returns ``values`` on success."""
         with self._lock:
-            return self._transact_locked(what, fn, retry)
+            self._quiet = max(self._quiet, time.monotonic() - self._last_io)
+            try:
+                return self._transact_locked(what, fn, retry)
+            finally:
+                self._last_io = time.monotonic()
+
+    def quiet_from_now(self) -> None:
+        """Start measuring the longest silence: from now, the longest time between one transaction's end and
+        the next one's start (``longest_quiet``, s)."""
+        with self._lock:
+            self._last_io = time.monotonic()
+            self._quiet = 0.0
+
+    @property
+    def longest_quiet(self) -> float:
+        """Seconds: the longest time the station sent nothing since ``quiet_from_now`` (up to now)."""
+        with self._lock:
+            return max(self._quiet, time.monotonic() - self._last_io)
 
     def _transact_locked(self, what: str, fn: Callable[[], tuple], retry: bool):
         results = []

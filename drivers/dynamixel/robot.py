@@ -39,6 +39,20 @@ from station.robot.protocol import Identity, JointSnapshot, JointState, RobotSta
 from station.robot.url import Option, Options, RobotURL, either, flag, id_list, integer, number, text
 
 log = logging.getLogger("station.drivers.dynamixel")
+# a servo's bus watchdog that stopped a move while the station itself was quiet for at least this share of its
+# period was tripped by the station's lateness, not by lost packets: the move is sent again, at most
+# WATCHDOG_RESENDS times in a row
+OWN_SILENCE = 0.75
+WATCHDOG_RESENDS = 3
+
+
+class _WatchdogTripped(Exception):
+    """Inside the driver: servos ``ids`` stopped a waited move by their bus watchdog; ``quiet`` is the station's
+    own longest silence (s) since the watchdog was armed, ``present`` the Present Positions then."""
+
+    def __init__(self, ids: list[int], present: list[int], quiet: float) -> None:
+        super().__init__(ids)
+        self.ids, self.present, self.quiet = ids, present, quiet
 
 LATENCY_MS = 50.0  # default latency term: a dead servo is reported after (1 + retries) x ~102 ms ~= 0.4 s
 HOLD_TORQUE = 0.003  # N m: default gravity torque under which a joint may have its torque off for an EEPROM write
@@ -411,12 +425,39 @@ class DynamixelRobot(RobotBase):
             self._rest = None
             self._send_goals(payload, goals)
             return
-        # while we watch the move, the servos' bus watchdog stops them if the bus goes quiet. A tripped
-        # watchdog only re-arms from 0: the 0 is written first unless the last move (or enable()) left every
-        # watchdog at 0
+        # while we watch the move, the servos' bus watchdog stops them if the bus goes quiet. A station that was
+        # itself quiet that long (a loaded host: a collection, another process on the cores) finds the arm
+        # stopped where it was: it says so and sends the same move again, from there, a bounded number of times
+        for attempt in range(1 + WATCHDOG_RESENDS):
+            try:
+                self._watched_move(payload, goals, expected)
+                return
+            except _WatchdogTripped as trip:
+                quiet = trip.quiet
+                if quiet < OWN_SILENCE * T.WATCHDOG_UNITS * 0.02 or attempt == WATCHDOG_RESENDS:
+                    self._halt_quietly(trip.present)
+                    why = (f"the station was quiet on the bus for {quiet * 1e3:.0f} ms, {attempt + 1} time(s) in a "
+                           "row (the host is overloaded)" if quiet >= OWN_SILENCE * T.WATCHDOG_UNITS * 0.02 else
+                           f"although the station was never quiet for more than {quiet * 1e3:.0f} ms: packets are "
+                           "being lost (check the cable, the adapter's latency timer and the termination)")
+                    raise DeviceFault(f"move: the bus watchdog of {', '.join(self._name(i) for i in trip.ids)} "
+                                      f"stopped the move ({T.WATCHDOG_UNITS * 20} ms without a packet) {why}; "
+                                      "the servos hold", device=f"dynamixel:{trip.ids[0]}") from None
+                log.warning("dynamixel: the station was quiet on the bus for %.0f ms during a move (the host is "
+                            "loaded); the servos' bus watchdog stopped the arm, as it must; the same move is sent "
+                            "again from where it stopped (%d of %d)", quiet * 1e3, attempt + 1, WATCHDOG_RESENDS)
+                acc, vel, expected = self._profiles(self._q(trip.present), target, speed)
+                payload = {i: b"".join(int(x).to_bytes(4, "little", signed=True) for x in (acc[k], vel[k], goals[k]))
+                           for k, i in enumerate(self.ids)}
+
+    def _watched_move(self, payload: dict[int, bytes], goals: list[int], expected: float) -> None:
+        """The goals sent and waited for under the servos' bus watchdog: armed before the goals (a tripped
+        watchdog only re-arms from 0: the 0 is written first unless the last move, or enable(), left every
+        watchdog at 0) and back to 0 at the end."""
         if not self._wd_clear:
             self._guard(self.bus.sync_write, T.BUS_WATCHDOG, 1, {i: 0 for i in self.ids})
         self._wd_clear = False
+        self.bus.quiet_from_now()
         self._guard(self.bus.sync_write, T.BUS_WATCHDOG, 1, {i: T.WATCHDOG_UNITS for i in self.ids})
         done = False
         self._maybe_moving = True
@@ -462,14 +503,19 @@ class DynamixelRobot(RobotBase):
             back = [unpack(d[0:4]) for d in data]
             present = [unpack(d[T.POLL_PRESENT:T.POLL_PRESENT + 4]) for d in data]
             self._check_alerts([out[i][1] for i in self.ids], present)
-            if first:
-                first = False
-                refused = [i for i, b, g in zip(self.ids, back, goals, strict=True) if b != g]
-                if refused:
-                    self._halt_quietly(present)
-                    raise DeviceFault(f"move: {', '.join(self._name(i) for i in refused)} refused the goal "
-                                      "position (outside its min/max position limits 52/48, or bus watchdog "
-                                      "tripped); stopped", device=f"dynamixel:{refused[0]}")
+            # a goal that is not ours: refused at the first poll (position limits 48/52, a tripped bus watchdog),
+            # or taken back later by the servo itself (its bus watchdog: goal := present)
+            refused = [i for i, b, g in zip(self.ids, back, goals, strict=True) if b != g]
+            if refused:
+                if self._interrupt.is_set():  # stop() wrote the hold position: not a refusal
+                    raise SafetyStop("move: interrupted by stop(); the arm holds where it stopped")
+                self._raise_tripped(present)
+                self._halt_quietly(present)
+                raise DeviceFault(f"move: {', '.join(self._name(i) for i in refused)} "
+                                  + ("refused the goal position (outside its min/max position limits 52/48); "
+                                     if first else "lost its goal position during the move (another client on "
+                                     "the bus?); ") + "stopped", device=f"dynamixel:{refused[0]}")
+            first = False
             if not any(d[T.POLL_MOVING] for d in data) and max(
                     abs(p - g) for p, g in zip(present, goals, strict=True)) <= 10:  # the moving threshold
                 self._rest = present
@@ -481,6 +527,15 @@ class DynamixelRobot(RobotBase):
                                   "(blocked or torque off?); it was stopped", device="dynamixel")
             # half the expected remaining time, 2..50 ms (the bus watchdog needs a packet every 200 ms)
             time.sleep(min(0.05, max(0.002, (t0 + expected - now) / 2)))
+
+    def _raise_tripped(self, present: list[int]) -> None:
+        """Raise ``_WatchdogTripped`` if a servo's Bus Watchdog (98) reads 255 (tripped), with the station's own
+        longest silence since it was armed."""
+        quiet = self.bus.longest_quiet
+        state, _ = self._guard(self._read_all, T.BUS_WATCHDOG, 1, False)
+        tripped = [i for i, w in zip(self.ids, state, strict=True) if w == 255]
+        if tripped:
+            raise _WatchdogTripped(tripped, present, quiet)
 
     def jog(self, mode: str, axis: int, step: float, speed: float | None = None) -> None:
         snap = self.joint_positions()

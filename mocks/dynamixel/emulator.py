@@ -906,6 +906,8 @@ class DynamixelEmulator(EmulatorBase):
                 goals = True
             if names & {"goal_position", "profile_velocity", "profile_acceleration"}:
                 goals = True
+            if "goal_position" in names:  # a goal written after the torque went on is the one the servo holds,
+                self._hold_after.discard(dev.dxl_id)  # not where a fall still being settled leaves the joint
             if "goal_velocity" in names:
                 velocity = True
             if "id" in names and dev.dxl_id != old_id:

@@ -161,3 +161,80 @@ def test_enable_clears_a_tripped_bus_watchdog():
         assert np.max(np.abs(robot.joint_positions().q - TARGET)) < 2e-3
         assert all(emu.devices[i].get("bus_watchdog") == 0 for i in IDS)  # disarmed after the move
 
+
+
+def _late_station(robot, stalls: set[int], seconds: float = 0.35):
+    """The station's own lateness: before the sync reads numbered in ``stalls`` (1 = the first of the move), the
+    driver's thread sleeps ``seconds``, longer than the servos' 0.2 s bus watchdog (a loaded host does this)."""
+    read = robot.bus.sync_read
+    calls = [0]
+
+    def late(*a, **k):
+        calls[0] += 1
+        if calls[0] in stalls:
+            time.sleep(seconds)
+        return read(*a, **k)
+    robot.bus.sync_read = late
+    return calls
+
+
+def test_a_station_late_on_the_bus_finds_the_arm_stopped_and_sends_the_move_again(caplog):
+    """The servos' bus watchdog stops the arm when the station is quiet for 0.2 s, as on the device; a driver
+    that was itself quiet that long says so and sends the same move again from where the arm stopped."""
+    world = World.default(model="omx", seed=4, time_mode="realtime")
+    with DynamixelEmulator(world, ids=IDS) as emu, \
+            open_robot(f"dynamixel://{emu.path}?ids=11-14&model=omx&latency=50") as robot:
+        robot.enable()
+        late = _late_station(robot, {4})
+        with caplog.at_level("WARNING", logger="station.drivers.dynamixel"):
+            robot.move_joints(TARGET, speed=1.0)
+        assert late[0] > 4
+        said = [r.getMessage() for r in caplog.records if "quiet on the bus" in r.getMessage()]
+        assert len(said) == 1 and "sent again" in said[0], said
+        assert np.max(np.abs(world.encoder_q() - TARGET)) < 2e-3
+        robot.joint_positions()  # a round trip: the emulator has applied the (unanswered) sync write
+        assert all(emu.devices[i].get("bus_watchdog") == 0 for i in IDS)  # disarmed after the move
+
+
+def test_a_station_late_every_time_stops_in_one_line():
+    world = World.default(model="omx", seed=4, time_mode="realtime")
+    with DynamixelEmulator(world, ids=IDS) as emu, \
+            open_robot(f"dynamixel://{emu.path}?ids=11-14&model=omx&latency=50") as robot:
+        robot.enable()
+        _late_station(robot, set(range(2, 200)))
+        with pytest.raises(DeviceFault) as e:
+            robot.move_joints(TARGET, speed=1.0)
+        assert "4 time(s) in a row (the host is overloaded)" in str(e.value)
+        time.sleep(0.1)
+        assert not world.is_moving()
+        assert np.max(np.abs(world.encoder_q() - TARGET)) > 0.1  # four short stretches, each stopped
+        robot.bus.sync_read = type(robot.bus).sync_read.__get__(robot.bus)
+        robot.move_joints(TARGET, speed=2.0)  # the next move clears the tripped watchdogs first
+        assert np.max(np.abs(world.encoder_q() - TARGET)) < 2e-3
+
+
+def test_a_watchdog_trip_while_the_station_talked_is_lost_packets_not_resent():
+    """Servo 12 stops hearing the bus for longer than its watchdog while the station keeps polling: that is
+    not the station's lateness; the move is not sent again, the error names the bus."""
+    world = World.default(model="omx", seed=4, time_mode="realtime")
+    with DynamixelEmulator(world, ids=IDS) as emu, \
+            open_robot(f"dynamixel://{emu.path}?ids=11-14&model=omx&latency=50") as robot:
+        robot.enable()
+        read = robot.bus.sync_read
+        calls = [0]
+
+        def deaf_12(*a, **k):
+            calls[0] += 1
+            if calls[0] == 3:  # what servo 12 last heard is 1 s old: its own watchdog trips at the next check
+                with emu._lock:
+                    emu._last_rx[12] -= 1.0
+                time.sleep(0.05)
+            return read(*a, **k)
+        robot.bus.sync_read = deaf_12
+        with pytest.raises(DeviceFault) as e:
+            robot.move_joints(TARGET, speed=1.0)
+        msg = str(e.value)
+        assert "bus watchdog of servo id 12" in msg and "packets are being lost" in msg, msg
+        time.sleep(0.4)
+        assert not world.is_moving()
+        assert np.max(np.abs(world.encoder_q() - TARGET)) > 0.3

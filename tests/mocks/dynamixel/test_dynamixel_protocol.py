@@ -202,3 +202,32 @@ def test_emulator_rejects_bad_configuration():
     with pytest.raises(ValueError, match="baud"):
         DynamixelEmulator(world, ids=[1, 2, 3, 4], baud=12345)
     assert os.path.exists("/dev/ptmx")
+
+
+def test_a_goal_written_while_a_fall_is_settled_is_the_one_the_servo_holds(bus):
+    """Torque off and on again (as a homing-offset write does), then a new goal, all while the instant world
+    still settles the fall on its worker (slow on a loaded host): the servo holds the goal it was given, not
+    where the fall left the joint."""
+    import threading
+    import time
+
+    world, emu, port, ph = bus
+    assert ph.write1ByteTxRx(port, 11, 64, 1)[0] == sdk.COMM_SUCCESS
+    set_enabled = world.set_enabled
+    slow = threading.Event()
+
+    def slow_fall(on, joints=None):
+        if not on:
+            slow.set()
+            time.sleep(0.5)  # the worker settling the fall, late
+        return set_enabled(on, joints) if joints is not None else set_enabled(on)
+    world.set_enabled = slow_fall
+    present, res, _ = ph.read4ByteTxRx(port, 11, 132)
+    assert res == sdk.COMM_SUCCESS
+    assert ph.write1ByteTxRx(port, 11, 64, 0)[0] == sdk.COMM_SUCCESS
+    assert slow.wait(2)
+    assert ph.write1ByteTxRx(port, 11, 64, 1)[0] == sdk.COMM_SUCCESS
+    goal = present + 150
+    assert ph.write4ByteTxRx(port, 11, 116, goal)[0] == sdk.COMM_SUCCESS
+    assert emu.settled(5)
+    assert ph.read4ByteTxRx(port, 11, 116)[:2] == (goal, sdk.COMM_SUCCESS)
