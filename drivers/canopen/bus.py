@@ -179,6 +179,7 @@ class CanopenBus:
         self._pool: concurrent.futures.ThreadPoolExecutor | None = None  # per_node's SDO workers
         self._stop = threading.Event()
         self.closing = False  # set once the robot starts closing: a boot-up message then is no fault
+        self._consumers_from = 0.0  # monotonic: every drive's consumer has been sent a heartbeat by then
         self._threads: list[threading.Thread] = []
         self.network = canopen.Network()
         self.network.NOTIFIER_CYCLE = 0.05  # bounds how long close() waits for the bus thread
@@ -230,6 +231,7 @@ class CanopenBus:
             self._configure_consumer(node_id)
 
         self.per_node(self.nodes, configure)
+        self._heartbeat_for_the_consumers()
         for node_id, node in self.drives.items():
             node.setup_402_state_machine(read_pdos=False)
             node.tpdo[1].add_callback(lambda m, n=node_id: self._on_tpdo1(n, m))
@@ -255,11 +257,34 @@ class CanopenBus:
         node.nmt.state = "OPERATIONAL"
         node.sdo[0x1017].raw = self.master.heartbeat_ms  # starts the periodic heartbeat
         self.master_node = node
+        self._watch_heartbeat_task()
+
+    def _watch_heartbeat_task(self) -> None:
         # python-can's periodic task re-raises a send error in its thread (a traceback on stderr) unless it has
         # an error handler: a heartbeat that cannot be sent is a lost link, said once by the latch
-        task = getattr(getattr(node.nmt, "_send_task", None), "_task", None)
+        task = getattr(getattr(self.master_node.nmt, "_send_task", None), "_task", None)
         if task is not None and hasattr(task, "on_error"):
             task.on_error = self._heartbeat_send_failed
+
+    def _heartbeat_for_the_consumers(self) -> None:
+        """A drive's heartbeat consumer watches a producer only from the first heartbeat it hears after its 0x1016
+        entry is written (CiA 301, heartbeat protocol: monitoring starts with the first heartbeat received; the
+        emulator does the same). The heartbeat task starts again now, so its first heartbeat goes out at once;
+        ``consumers_watching()`` waits until one period and a half has passed since: no drive is enabled that
+        would not notice the station go silent (a drive enabled in that window, on a loaded host, kept going
+        after a bus-off took the station off the bus)."""
+        if self.master_node is None:
+            return
+        self.master_node.nmt.start_heartbeat(self.master.heartbeat_ms)
+        self._watch_heartbeat_task()
+        self._consumers_from = time.monotonic() + 1.5 * self.master.heartbeat_ms / 1000.0
+
+    def consumers_watching(self) -> None:
+        """Return once every drive's consumer has been sent a heartbeat since it was configured (at most one
+        heartbeat period and a half after connect; at once afterwards)."""
+        wait = self._consumers_from - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
 
     def _heartbeat_send_failed(self, exc: Exception) -> bool:
         if not self.closing:

@@ -398,6 +398,7 @@ class CanopenRobot(RobotBase):
         if self._limits:  # seating limits still set (a fault ended the seating): stiff again before enabling
             self._restore_limits()
         self._compliant = False
+        self.bus.consumers_watching()  # no drive enabled that would not notice the station go silent
         snap = self.bus.round()
         for node_id in self.nodes:
             self.bus.preset_target(node_id, snap[node_id][1])

@@ -143,9 +143,11 @@ class _Rx(can.Listener):
     def on_message_received(self, msg: can.Message) -> None:
         if msg.is_error_frame or msg.is_remote_frame:
             return
-        if time.monotonic() < self.emu.offbus_until:
+        stamp = msg.timestamp or time.time()
+        start, end = self.emu.offbus
+        if start <= stamp < end:
             return  # sent while the station's controller was bus-off: never on the wire
-        self.emu.rx_stamp = msg.timestamp or time.time()
+        self.emu.rx_stamp = stamp
         try:
             self.emu._dispatch(msg.arbitration_id, bytes(msg.data), msg.timestamp)
         except Exception:  # an emulator bug must not kill the bus thread silently
@@ -184,7 +186,10 @@ class CanopenEmulator(EmulatorBase):
         self.busoff_recovery = float(cfg.get("busoff_recovery_s", 0.2))
         # how long a drive takes to write its flash on "store parameters" (0x1010) before it answers
         self.store_s = float(cfg.get("store_s", 0.0))
-        self.offbus_until = 0.0  # monotonic: the station's controller is bus-off (its frames are lost) until then
+        # wall clock (frame timestamps): the station's controller is bus-off (its frames are lost) from .. until;
+        # judged by when a frame was sent, not when this process's receive thread gets to it (a frame on the wire
+        # before the bus-off was heard, however late the thread is)
+        self.offbus = (0.0, 0.0)
         # identity overrides for staging a wrong device (world file buses.canopen.device_type: e.g. 0x00020191)
         self.device_type = int(str(cfg["device_type"]), 0) if "device_type" in cfg else None
         # a parallel robot (Gough-Stewart legs) has no joint dynamics in the world: torques are not modelled there
@@ -468,7 +473,8 @@ class CanopenEmulator(EmulatorBase):
         msg = can.Message(arbitration_id=ERROR_CLASSES[kind], is_error_frame=True, is_extended_id=False,
                           data=bytes(8))
         if kind == "busoff":
-            self.offbus_until = time.monotonic() + self.busoff_recovery
+            now = time.time()
+            self.offbus = (now, now + self.busoff_recovery)
         with net.send_lock:
             net.bus.send(msg)
 

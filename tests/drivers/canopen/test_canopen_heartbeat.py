@@ -152,3 +152,17 @@ def test_killing_the_station_mid_move_stops_the_arm_within_the_consumer_time():
         assert np.max(np.abs(world.encoder_q() - q_kill)) < 0.3 * (0.4 + decel + 0.3)  # nowhere near its target
         assert {d.state for d in emu.drives.values()} <= {"QUICK STOP ACTIVE", "SWITCH ON DISABLED"}
         print(f"\nstation killed mid-move: arm still after {took * 1e3:.0f} ms (consumer 400 ms)")
+
+
+def test_no_drive_is_enabled_before_its_consumer_watches_the_station(robot_rig):
+    """A consumer watches the station only from the first heartbeat it hears after its 0x1016 entry is written
+    (CiA 301): at the moment enable() returns, every drive has heard one, so each would notice the station go
+    silent. Truth: the emulated drives' own consumer state; the heartbeat period made long (1 s) so that the
+    window is wide open without the wait."""
+    world = World.default(model="arm6", seed=3, start=START, time_mode="realtime")
+    emu, robot = robot_rig("canopen", world, query="&master_heartbeat_ms=1000&heartbeat_timeout_ms=3500",
+                           enable=False)
+    robot.enable()
+    unwatched = [d.id for d in emu.drives.values() if d.hb_seen.get(127) is None]
+    assert not unwatched, f"enabled while their consumers did not watch yet: {unwatched}"
+    assert all(d.state == "OPERATION ENABLED" for d in emu.drives.values())
