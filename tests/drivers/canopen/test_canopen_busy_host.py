@@ -6,7 +6,6 @@ timeout fired and the host's scheduling gap. Truth: the process's exit and outpu
 
 from __future__ import annotations
 
-import re
 import signal
 import time
 import uuid
@@ -82,14 +81,6 @@ def test_a_station_the_host_does_not_schedule_sees_no_spurious_timeout():
     print(f"\nstation stopped {stopped:.1f} s in 250 ms pieces: {out.strip()}")
 
 
-def _not_run(text: str) -> float:
-    """Seconds of the wait the station says its host did not run it (the waits count observed time)."""
-    m = re.search(r"host scheduling gap: (?:longest \d+ ms, )?(\d+) ms (?:of the wait not run|not counted as silence)",
-                  text)
-    assert m, text
-    return int(m.group(1)) / 1e3
-
-
 def test_a_silent_contact_input_is_found_within_its_documented_time(robot_rig):
     """The contact drive goes silent: touch() fails within the digital-input wait (5 event periods, at least
     200 ms) of observed time, and says which wait and the host's gap."""
@@ -103,7 +94,7 @@ def test_a_silent_contact_input_is_found_within_its_documented_time(robot_rig):
         robot.touch()
     took = time.monotonic() - t0
     assert "no digital-input TPDO within 200 ms" in str(e.value) and "host scheduling gap" in str(e.value)
-    assert 0.15 < took < 0.6 + _not_run(str(e.value)), (took, str(e.value))  # observed time: the host's gaps on top
+    assert 0.15 < took < 0.6, took
 
 
 def test_a_drive_that_never_acknowledges_is_found_within_one_second(robot_rig):
@@ -120,4 +111,4 @@ def test_a_drive_that_never_acknowledges_is_found_within_one_second(robot_rig):
     text = str(e.value)
     assert "set-point acknowledge not confirmed within 1.0 s" in text and "[4]" in text, text
     assert "host scheduling gap" in text and "\n" not in text
-    assert 0.9 < took < 2.0 + _not_run(text), (took, text)
+    assert 0.9 < took < 2.0, took
