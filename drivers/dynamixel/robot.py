@@ -418,8 +418,7 @@ class DynamixelRobot(RobotBase):
         start_q = self.joint_positions().q if rest is None else self._q(rest)
         acc, vel, expected = self._profiles(start_q, target, speed)
         goals = [f.goal(f.to_reading(target[j])) for j, f in enumerate(self.frames)]
-        payload = {i: b"".join(int(x).to_bytes(4, "little", signed=True) for x in (acc[k], vel[k], goals[k]))
-                   for k, i in enumerate(self.ids)}
+        payload = self._profile_payload(acc, vel, goals)
         if not wait:
             self._maybe_moving = True
             self._rest = None
@@ -434,10 +433,11 @@ class DynamixelRobot(RobotBase):
                 return
             except _WatchdogTripped as trip:
                 quiet = trip.quiet
-                if quiet < OWN_SILENCE * T.WATCHDOG_UNITS * 0.02 or attempt == WATCHDOG_RESENDS:
+                own = quiet >= OWN_SILENCE * T.WATCHDOG_UNITS * 0.02
+                if not own or attempt == WATCHDOG_RESENDS:
                     self._halt_quietly(trip.present)
                     why = (f"the station was quiet on the bus for {quiet * 1e3:.0f} ms, {attempt + 1} time(s) in a "
-                           "row (the host is overloaded)" if quiet >= OWN_SILENCE * T.WATCHDOG_UNITS * 0.02 else
+                           "row (the host is overloaded)" if own else
                            f"although the station was never quiet for more than {quiet * 1e3:.0f} ms: packets are "
                            "being lost (check the cable, the adapter's latency timer and the termination)")
                     raise DeviceFault(f"move: the bus watchdog of {', '.join(self._name(i) for i in trip.ids)} "
@@ -447,8 +447,12 @@ class DynamixelRobot(RobotBase):
                             "loaded); the servos' bus watchdog stopped the arm, as it must; the same move is sent "
                             "again from where it stopped (%d of %d)", quiet * 1e3, attempt + 1, WATCHDOG_RESENDS)
                 acc, vel, expected = self._profiles(self._q(trip.present), target, speed)
-                payload = {i: b"".join(int(x).to_bytes(4, "little", signed=True) for x in (acc[k], vel[k], goals[k]))
-                           for k, i in enumerate(self.ids)}
+                payload = self._profile_payload(acc, vel, goals)
+
+    def _profile_payload(self, acc, vel, goals: list[int]) -> dict[int, bytes]:
+        """Per servo: Profile Acceleration, Profile Velocity, Goal Position (108..119), one Sync Write."""
+        return {i: b"".join(int(x).to_bytes(4, "little", signed=True) for x in (acc[k], vel[k], goals[k]))
+                for k, i in enumerate(self.ids)}
 
     def _watched_move(self, payload: dict[int, bytes], goals: list[int], expected: float) -> None:
         """The goals sent and waited for under the servos' bus watchdog: armed before the goals (a tripped
