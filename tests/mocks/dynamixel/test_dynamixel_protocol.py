@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import threading
+import time
 
 import dynamixel_sdk as sdk
 import numpy as np
@@ -208,9 +210,6 @@ def test_a_goal_written_while_a_fall_is_settled_is_the_one_the_servo_holds(bus):
     """Torque off and on again (as a homing-offset write does), then a new goal, all while the instant world
     still settles the fall on its worker (slow on a loaded host): the servo holds the goal it was given, not
     where the fall left the joint."""
-    import threading
-    import time
-
     world, emu, port, ph = bus
     assert ph.write1ByteTxRx(port, 11, 64, 1)[0] == sdk.COMM_SUCCESS
     set_enabled = world.set_enabled
